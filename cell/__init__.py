@@ -1,0 +1,3 @@
+"""cell: a networked industrial robot cell on one machine (README.md)."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,5 @@
+import sys
+
+from cell.cli import main
+
+sys.exit(main())

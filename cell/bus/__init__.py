@@ -1,0 +1,36 @@
+"""The cell bus: protobuf messages over ZeroMQ through one XSUB/XPUB forwarder.
+
+async with Bus.connect(config.bus, "my-service") as bus:
+    bus.publish("events/hello", msg)
+    sub = await bus.subscribe("status/")
+    reply = await bus.request("dataplane", "insert_tps", req, InsertReply)
+"""
+
+from cell.bus.envelope import Envelope, EnvelopeError, GapCounter, Header, Kind
+from cell.bus.forwarder import Forwarder, ForwarderStats
+from cell.bus.node import (
+    Bus,
+    BusError,
+    BusTimeout,
+    BusUnavailable,
+    RemoteError,
+    RpcFault,
+    Subscription,
+)
+
+__all__ = [
+    "Bus",
+    "BusError",
+    "BusTimeout",
+    "BusUnavailable",
+    "Envelope",
+    "EnvelopeError",
+    "Forwarder",
+    "ForwarderStats",
+    "GapCounter",
+    "Header",
+    "Kind",
+    "RemoteError",
+    "RpcFault",
+    "Subscription",
+]

@@ -1,0 +1,440 @@
+"""A service's connection to the cell bus: publish, subscribe, request/reply.
+
+Every node has one PUB socket and one control SUB socket (request replies,
+requests it serves, sync pings), read by one reader task; each Subscription
+has a SUB socket of its own so that data never queues behind control traffic.
+
+No lost first messages: the forwarder subscribes its XSUB to everything, so a
+publisher passes every message once its connection is up.  A node is ready
+only when a ping it publishes has come back to it through the forwarder (on
+the control socket at connect, on the new socket for each subscribe), which
+proves both its publisher and its subscription are live end to end.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import inspect
+import itertools
+import logging
+from collections import deque
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import zmq
+import zmq.asyncio
+from google.protobuf.message import Message
+
+from cell.bus.envelope import Encoder, Envelope, EnvelopeError, GapCounter, Kind, check_topic, decode
+from cell.config import BusConfig
+from cell.v1 import bus_pb2
+
+log = logging.getLogger("cell.bus")
+M = TypeVar("M", bound=Message)
+Handler = Callable[[Any], Message | Awaitable[Message]]
+
+_SYNC = b"_sync/"
+_REPLY = "_reply/"
+
+
+class BusError(Exception):
+    """Base of the bus's own errors."""
+
+
+class BusUnavailable(BusError):
+    """No forwarder answered: the cell (or its bus service) is not running at the configured endpoints."""
+
+
+class BusTimeout(BusError, TimeoutError):
+    """A request got no reply in time."""
+
+
+class RemoteError(BusError):
+    """The serving side answered a request with an error."""
+
+    def __init__(self, service: str, method: str, code: str, message: str) -> None:
+        self.service, self.method, self.code, self.message = service, method, code, message
+        super().__init__(f"{service}.{method} failed: {code}: {message}")
+
+
+class RpcFault(Exception):
+    """Raise in a request handler to answer with a coded error (e.g. code='refused')."""
+
+    def __init__(self, code: str, message: str) -> None:
+        self.code, self.message = code, message
+        super().__init__(f"{code}: {message}")
+
+
+_actx: zmq.asyncio.Context | None = None
+_sctx: zmq.Context | None = None
+
+
+def async_context() -> zmq.asyncio.Context:
+    global _actx
+    if _actx is None:
+        _actx = zmq.asyncio.Context()
+    return _actx
+
+
+def sync_context() -> zmq.Context:
+    """A blocking view of the same ZeroMQ context (inproc endpoints are shared between the two)."""
+    global _sctx
+    if _sctx is None:
+        _sctx = zmq.Context.shadow(async_context().underlying)
+    return _sctx
+
+
+@dataclass(slots=True)
+class _Method:
+    request_type: type[Message]
+    handler: Handler
+
+
+class Subscription:
+    """Messages on a set of topic prefixes, with loss counting; made by Bus.subscribe()."""
+
+    def __init__(self, bus: Bus, sock: zmq.asyncio.Socket, prefixes: tuple[str, ...]) -> None:
+        self.prefixes = prefixes
+        self.gaps = GapCounter()
+        self.received = 0
+        self.malformed = 0
+        self._bus = bus
+        self._sock = sock
+        self._raw = zmq.Socket.shadow(sock.underlying)
+        self._backlog: deque[list[bytes]] = deque()
+        self._ready: deque[Envelope] = deque()
+
+    @property
+    def lost(self) -> int:
+        return self.gaps.lost
+
+    def _take(self, frames: list[bytes], out: list[Envelope]) -> None:
+        if frames[0][:1] == b"_":  # the bus's own traffic (late sync pings, replies under a '' prefix)
+            return
+        try:
+            env = decode(frames)
+        except EnvelopeError as exc:
+            self.malformed += 1
+            log.debug("dropped malformed message on %r: %s", frames[0][:64], exc)
+            return
+        self.gaps.observe(env.header.instance, env.topic, env.header.seq)
+        out.append(env)
+
+    def _drain(self, limit: int) -> list[Envelope]:
+        out: list[Envelope] = []
+        while self._backlog and len(out) < limit:
+            self._take(self._backlog.popleft(), out)
+        recv = self._raw.recv_multipart
+        while len(out) < limit:
+            try:
+                frames = recv(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            self._take(frames, out)
+        self.received += len(out)
+        return out
+
+    async def recv_batch(self, max_messages: int = 1024, timeout: float | None = None) -> list[Envelope]:
+        """The messages waiting (up to max_messages); waits for one at least, TimeoutError after timeout."""
+        if self._ready:
+            out = list(self._ready)
+            self._ready.clear()
+            return out
+        out = self._drain(max_messages)
+        async with asyncio.timeout(timeout):
+            while not out:
+                await self._sock.poll(None, zmq.POLLIN)
+                out = self._drain(max_messages)
+        return out
+
+    async def recv(self, timeout: float | None = None) -> Envelope:
+        if not self._ready:
+            self._ready.extend(await self.recv_batch(timeout=timeout))
+        return self._ready.popleft()
+
+    def __aiter__(self) -> AsyncIterator[Envelope]:
+        return self._iter()
+
+    async def _iter(self) -> AsyncIterator[Envelope]:
+        while True:
+            yield await self.recv()
+
+    def close(self) -> None:
+        if not self._sock.closed:
+            self._sock.close(linger=0)
+        with contextlib.suppress(ValueError):
+            self._bus._subs.remove(self)
+
+
+class Bus:
+    """One node on the bus, named `source`; open it with `async with Bus.connect(cfg, name) as bus`."""
+
+    def __init__(self, config: BusConfig, source: str) -> None:
+        self.config = config
+        self.source = source
+        self._enc = Encoder(source)
+        self.instance = self._enc.instance
+        self._reply_topic = f"{_REPLY}{self.instance:08x}"
+        self._topics: dict[str, bytes] = {}
+        self._pending: dict[int, asyncio.Future[Envelope]] = {}
+        self._methods: dict[str, _Method] = {}
+        self._syncs: dict[bytes, asyncio.Future[None]] = {}
+        self._corr = itertools.count(1)
+        self._tokens = itertools.count(1)
+        self._subs: list[Subscription] = []
+        self._handlers: set[asyncio.Task[None]] = set()
+        self._reader: asyncio.Task[None] | None = None
+        self.published = 0
+        self.dropped = 0
+        self.requests = 0
+        self.served = 0
+        self.late_replies = 0
+        self.malformed = 0
+
+    # --- lifetime ----------------------------------------------------------------------------
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def connect(cls, config: BusConfig, source: str) -> AsyncIterator[Bus]:
+        """Connect, wait until the bus carries our messages both ways, yield; close everything on exit."""
+        bus = cls(config, source)
+        ctx = async_context()
+        bus._pub = sync_context().socket(zmq.PUB)
+        bus._ctl = ctx.socket(zmq.SUB)
+        try:
+            bus._pub.setsockopt(zmq.LINGER, 0)
+            bus._pub.setsockopt(zmq.SNDHWM, config.hwm)
+            bus._pub.connect(config.pub)
+            bus._ctl.setsockopt(zmq.LINGER, 0)
+            bus._ctl.setsockopt(zmq.RCVHWM, config.hwm)
+            bus._ctl.subscribe(bus._reply_topic.encode())
+            bus._ctl.subscribe(_SYNC + f"{bus.instance:08x}/c".encode())
+            bus._ctl.connect(config.sub)
+            bus._ctl_raw = zmq.Socket.shadow(bus._ctl.underlying)
+            # the node owns its reader and handler tasks (no TaskGroup here: it would wrap
+            # the caller's own exceptions in ExceptionGroups); they are awaited on the way out
+            bus._reader = asyncio.create_task(bus._read_control(), name=f"bus-reader:{source}")
+            await bus._sync(f"c{next(bus._tokens)}", bus._ctl_token_wait)
+            yield bus
+        finally:
+            await bus._stop_tasks()
+            bus._close()
+
+    async def _stop_tasks(self) -> None:
+        tasks = [t for t in (self._reader, *self._handlers) if t is not None]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    def _close(self) -> None:
+        for sub in list(self._subs):
+            sub.close()
+        for sock in (self._pub, self._ctl):
+            if not sock.closed:
+                sock.close(linger=0)
+        for fut in self._pending.values():
+            fut.cancel()
+
+    def counters(self) -> dict[str, float]:
+        """What this node has done so far, for heartbeats."""
+        return {
+            "bus.published": self.published,
+            "bus.dropped": self.dropped,
+            "bus.received": sum(s.received for s in self._subs),
+            "bus.lost": sum(s.lost for s in self._subs),
+            "bus.malformed": self.malformed + sum(s.malformed for s in self._subs),
+            "bus.requests": self.requests,
+            "bus.served": self.served,
+            "bus.late_replies": self.late_replies,
+        }
+
+    # --- sync: prove a path end to end -------------------------------------------------------
+
+    async def _sync(self, name: str, wait: Callable[[bytes], Awaitable[None]]) -> None:
+        token = _SYNC + f"{self.instance:08x}/{name}".encode()
+        done = asyncio.ensure_future(wait(token))
+        delay = 0.0005
+        try:
+            async with asyncio.timeout(self.config.connect_timeout_s):
+                while not done.done():
+                    with contextlib.suppress(zmq.Again):
+                        self._pub.send_multipart([token, b""], zmq.NOBLOCK)
+                    await asyncio.wait([done], timeout=delay)
+                    delay = min(delay * 2, 0.05)
+            await done
+        except TimeoutError:
+            raise BusUnavailable(
+                f"no bus forwarder answered at {self.config.pub} / {self.config.sub} "
+                f"within {self.config.connect_timeout_s:g} s (is the cell's 'bus' service running?)"
+            ) from None
+        finally:
+            done.cancel()
+
+    async def _ctl_token_wait(self, token: bytes) -> None:
+        fut = self._syncs[token] = asyncio.get_running_loop().create_future()
+        try:
+            await fut
+        finally:
+            del self._syncs[token]
+
+    # --- publish / subscribe -----------------------------------------------------------------
+
+    def _topic(self, topic: str) -> bytes:
+        raw = self._topics.get(topic)
+        if raw is None:
+            raw = check_topic(topic)
+            if len(self._topics) < 10_000:
+                self._topics[topic] = raw
+        return raw
+
+    def _send(self, topic: bytes, msg: Message, kind: Kind = Kind.PUBLISH, correlation: int = 0) -> None:
+        frames = self._enc.encode(topic, msg.DESCRIPTOR.full_name, msg.SerializeToString(), kind, correlation)
+        try:
+            self._pub.send_multipart(frames, zmq.NOBLOCK)
+        except zmq.Again:
+            self.dropped += 1
+        else:
+            self.published += 1
+
+    def publish(self, topic: str, msg: Message) -> None:
+        """Send msg on topic to every subscriber of a prefix of it; never blocks (drops at the HWM)."""
+        self._send(self._topic(topic), msg)
+
+    async def subscribe(self, *prefixes: str) -> Subscription:
+        """A Subscription to topics starting with any of prefixes ('' is everything), live on return."""
+        raw = [check_topic(p) if p else b"" for p in prefixes] or [b""]
+        sock = async_context().socket(zmq.SUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.RCVHWM, self.config.hwm)
+        for p in raw:
+            sock.subscribe(p)
+        sub = Subscription(self, sock, tuple(prefixes))
+        self._subs.append(sub)
+        try:
+            sock.connect(self.config.sub)
+
+            async def wait(token: bytes) -> None:
+                sock.subscribe(token)
+                while True:
+                    await sock.poll(None, zmq.POLLIN)
+                    while True:
+                        try:
+                            frames = sub._raw.recv_multipart(zmq.NOBLOCK)
+                        except zmq.Again:
+                            break
+                        if frames[0] == token:
+                            sock.unsubscribe(token)
+                            return
+                        sub._backlog.append(frames)
+
+            await self._sync(f"s{next(self._tokens)}", wait)
+        except BaseException:
+            sub.close()
+            raise
+        return sub
+
+    # --- request / reply ---------------------------------------------------------------------
+
+    async def request(
+        self,
+        service: str,
+        method: str,
+        msg: Message,
+        reply_type: type[M] | None = None,
+        timeout: float | None = None,
+    ) -> M | Message:
+        """Ask `service` to run `method`; its reply, or BusTimeout, or RemoteError if it answered an error."""
+        timeout = self.config.request_timeout_s if timeout is None else timeout
+        corr = next(self._corr)
+        fut: asyncio.Future[Envelope] = asyncio.get_running_loop().create_future()
+        self._pending[corr] = fut
+        self.requests += 1
+        try:
+            self._send(self._topic(f"rpc/{service}/{method}"), msg, Kind.REQUEST, corr)
+            async with asyncio.timeout(timeout):
+                env = await fut
+        except TimeoutError:
+            raise BusTimeout(
+                f"no reply from {service}.{method} within {timeout:g} s (is service {service!r} running?)"
+            ) from None
+        finally:
+            self._pending.pop(corr, None)
+        if env.header.kind == Kind.ERROR:
+            err = env.decode(bus_pb2.RpcError)
+            raise RemoteError(service, method, err.code, err.message)
+        return env.decode(reply_type) if reply_type is not None else env.message()
+
+    async def serve(self, service: str, methods: Mapping[str, tuple[type[Message], Handler]]) -> None:
+        """Answer requests to service.<method>; handlers may be sync or async and may raise RpcFault."""
+        for name, (request_type, handler) in methods.items():
+            self._methods[f"rpc/{service}/{name}"] = _Method(request_type, handler)
+        self._ctl.subscribe(check_topic(f"rpc/{service}/"))
+        await self._sync(f"c{next(self._tokens)}", self._ctl_token_wait)
+
+    # --- the control reader ------------------------------------------------------------------
+
+    async def _read_control(self) -> None:
+        recv = self._ctl_raw.recv_multipart
+        while True:
+            await self._ctl.poll(None, zmq.POLLIN)
+            while True:
+                try:
+                    frames = recv(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                try:
+                    self._dispatch(frames)
+                except Exception:  # a bug here must not silence the node: log it and go on
+                    self.malformed += 1
+                    log.exception("%s: control message %r not handled", self.source, frames[0][:64])
+
+    def _dispatch(self, frames: list[bytes]) -> None:
+        if frames[0].startswith(_SYNC):
+            fut = self._syncs.get(frames[0])
+            if fut is not None and not fut.done():
+                fut.set_result(None)
+            return
+        try:
+            env = decode(frames)
+        except EnvelopeError as exc:
+            self.malformed += 1
+            log.debug("%s: dropped malformed control message: %s", self.source, exc)
+            return
+        if env.topic == self._reply_topic:
+            fut = self._pending.pop(env.header.correlation, None)
+            if fut is None or fut.done():
+                self.late_replies += 1
+            elif env.header.kind in (Kind.REPLY, Kind.ERROR):
+                fut.set_result(env)
+            return
+        if env.header.kind != Kind.REQUEST:
+            return
+        task = asyncio.create_task(self._serve_one(env))
+        self._handlers.add(task)
+        task.add_done_callback(self._handlers.discard)
+
+    async def _serve_one(self, env: Envelope) -> None:
+        reply_to = f"{_REPLY}{env.header.instance:08x}".encode()
+        corr = env.header.correlation
+        method = self._methods.get(env.topic)
+        try:
+            if method is None:
+                raise RpcFault("unknown_method", f"no method {env.topic.removeprefix('rpc/')!r} here")
+            want = method.request_type.DESCRIPTOR.full_name
+            if env.header.type_name != want:
+                raise RpcFault("bad_request", f"expected a {want}, got a {env.header.type_name or 'nothing'}")
+            result = method.handler(env.decode(method.request_type))
+            if inspect.isawaitable(result):
+                result = await result
+            self._send(reply_to, result, Kind.REPLY, corr)
+        except RpcFault as fault:
+            self._send(reply_to, bus_pb2.RpcError(code=fault.code, message=fault.message), Kind.ERROR, corr)
+        except EnvelopeError as exc:
+            self._send(reply_to, bus_pb2.RpcError(code="bad_request", message=str(exc)), Kind.ERROR, corr)
+        except Exception as exc:
+            log.exception("%s: handler for %s failed", self.source, env.topic)
+            err = bus_pb2.RpcError(code="internal", message=f"{type(exc).__name__}: {exc}")
+            self._send(reply_to, err, Kind.ERROR, corr)
+        self.served += 1

@@ -1,0 +1,157 @@
+"""The `cell` command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+
+from google.protobuf import json_format
+
+from cell import __version__, aio
+from cell.config import ConfigError, load_config
+
+EXIT_CONFIG = 2
+
+
+def _config_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--config",
+        "-c",
+        metavar="FILE",
+        help="TOML merged over the embedded default (default: the embedded one)",
+    )
+
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    from cell import launcher
+    from cell.services import load_all
+
+    config = load_config(args.config)
+    load_all(config)  # unknown services are config errors (exit 2), before anything starts
+    return aio.run(
+        launcher.up(config, duration=args.duration, processes=args.processes, log_level=args.log_level)
+    )
+
+
+def _cmd_service(args: argparse.Namespace) -> int:
+    from cell import launcher
+    from cell.services import load
+
+    config = load_config(args.config)
+    load(args.name, config)
+    return aio.run(launcher.service(config, args.name, watch_stdin=args.watch_stdin))
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from cell import launcher
+    from cell.bus import BusError
+    from cell.registry import format_status
+
+    config = load_config(args.config)
+    try:
+        st = aio.run(launcher.fetch_status(config, args.timeout))
+    except BusError as exc:
+        print(f"cell status: no cell answered ({exc})", file=sys.stderr)
+        return 1
+    if args.json:
+        print(
+            json.dumps(
+                json_format.MessageToDict(
+                    st, always_print_fields_with_no_presence=True, preserving_proto_field_name=True
+                )
+            )
+        )
+    else:
+        print(format_status(st))
+    return 0 if all(s.health == "ok" for s in st.services) else 3
+
+
+def _cmd_config_show(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    print(f"# effective configuration: {config.source} over the embedded default\n")
+    print(config.to_toml(), end="")
+    return 0
+
+
+def _cmd_bench_bus(args: argparse.Namespace) -> int:
+    from cell.bench import bus
+
+    result = bus.run(messages=args.messages, pings=args.pings, rounds=args.rounds)
+    print(bus.format_result(result))
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cell",
+        description="Run and inspect a networked industrial robot cell (README.md).",
+    )
+    parser.add_argument("--version", action="version", version=f"cell {__version__}")
+    parser.add_argument(
+        "--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"], help="default: INFO"
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("up", help="run the whole cell until Ctrl-C (or --duration)")
+    _config_arg(p)
+    p.add_argument("--duration", type=float, metavar="S", help="stop cleanly after S seconds")
+    p.add_argument(
+        "--processes", action="store_true", help="one OS process per service (default: one process)"
+    )
+    p.set_defaults(func=_cmd_up)
+
+    p = sub.add_parser("service", help="run one service alone against a running bus")
+    p.add_argument("name", help="a built-in service (e.g. bus) or a [services.plugins] name")
+    _config_arg(p)
+    p.add_argument("--watch-stdin", action="store_true", help=argparse.SUPPRESS)  # set by `up --processes`
+    p.set_defaults(func=_cmd_service)
+
+    p = sub.add_parser(
+        "status",
+        help="list a running cell's services, health, uptime and counters",
+        description="Exit code: 0 every service ok, 1 no cell answered, 3 some service not ok.",
+    )
+    _config_arg(p)
+    p.add_argument(
+        "--timeout", type=float, default=2.0, metavar="S", help="give up after S seconds (default 2)"
+    )
+    p.add_argument("--json", action="store_true", help="print the status as JSON")
+    p.set_defaults(func=_cmd_status)
+
+    p = sub.add_parser("config", help="inspect the configuration")
+    csub = p.add_subparsers(dest="config_command", required=True, metavar="ACTION")
+    q = csub.add_parser("show", help="print the effective configuration as TOML")
+    _config_arg(q)
+    q.set_defaults(func=_cmd_config_show)
+
+    p = sub.add_parser("bench", help="measure hot paths next to a baseline in the same run")
+    bsub = p.add_subparsers(dest="bench_command", required=True, metavar="TARGET")
+    q = bsub.add_parser(
+        "bus", help="bus messages/s and round trip p50/p99 (64-byte payloads) next to raw pyzmq PUB/SUB"
+    )
+    q.add_argument("--messages", type=int, default=200_000, help="messages per throughput round")
+    q.add_argument("--pings", type=int, default=2_000, help="round trips per latency round")
+    q.add_argument("--rounds", type=int, default=3, help="alternating rounds of each (best is kept)")
+    q.add_argument("--json", action="store_true", help="also print the result as one JSON line")
+    q.set_defaults(func=_cmd_bench_bus)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=args.log_level,
+        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        return args.func(args)
+    except ConfigError as exc:
+        print(f"cell: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    except KeyboardInterrupt:
+        return 130

@@ -1,0 +1,319 @@
+"""The cell's configuration: TOML merged over the embedded default (cell/default.toml).
+
+Every default lives in default.toml, nowhere else; the dataclasses below only
+say what each key must be.  Any unknown key or bad value raises ConfigError
+naming the key and the file, which the CLI turns into exit code 2.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import re
+import tomllib
+import types
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
+
+import tomli_w
+
+DEFAULT_SOURCE = "<embedded default>"
+_NAME = re.compile(r"[a-z][a-z0-9_\-]{0,31}")
+_ENTRY = re.compile(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*")
+
+
+class ConfigError(Exception):
+    """A configuration that cannot be used; says which key of which file and why."""
+
+    def __init__(self, source: str, key: str, problem: str) -> None:
+        self.source, self.key, self.problem = source, key, problem
+        where = f"{key}: " if key else ""
+        super().__init__(f"config error in {source}: {where}{problem}")
+
+
+# --- value checks: each returns a problem or None --------------------------------------------
+
+
+def _positive(v: float) -> str | None:
+    return None if v > 0 else f"must be > 0 (got {v})"
+
+
+def _port(v: int) -> str | None:
+    return None if 1 <= v <= 65535 else f"must be a port number 1..65535 (got {v})"
+
+
+def _name(v: str) -> str | None:
+    ok = _NAME.fullmatch(v)
+    return None if ok else f"must be a name of lowercase letters, digits, '_' or '-' (got {v!r})"
+
+
+def _host_port(v: str) -> str | None:
+    try:
+        parse_host_port(v)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+def _zmq_endpoint(v: str) -> str | None:
+    if v.startswith("ipc://") and len(v) > 6:
+        return None
+    if v.startswith("tcp://"):
+        return _host_port(v[6:])
+    return f"must be tcp://HOST:PORT or ipc://PATH (got {v!r})"
+
+
+def _check(fn: Callable[[Any], str | None]) -> Any:
+    return field(metadata={"check": fn})
+
+
+def parse_host_port(text: str) -> tuple[str, int]:
+    """'127.0.0.1:50000' or '[::1]:50000' -> (host, port)."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit():
+        raise ValueError(f"must be HOST:PORT (got {text!r})")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not host:
+        raise ValueError(f"must be HOST:PORT (got {text!r})")
+    if host != "localhost":
+        try:
+            ipaddress.ip_address(host)
+        except ValueError:
+            raise ValueError(f"host must be an IP address or 'localhost' (got {host!r})") from None
+    if not 1 <= int(port) <= 65535:
+        raise ValueError(f"port must be 1..65535 (got {port})")
+    return host, int(port)
+
+
+# --- the schema --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CellSection:
+    name: str = _check(_name)
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    pub: str = _check(_zmq_endpoint)
+    sub: str = _check(_zmq_endpoint)
+    hwm: int = _check(_positive)
+    connect_timeout_s: float = _check(_positive)
+    request_timeout_s: float = _check(_positive)
+
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        if self.pub == self.sub:
+            raise err("sub", "must differ from bus.pub")
+
+
+@dataclass(frozen=True)
+class ServicesConfig:
+    run: list[str]
+    on_failure: Literal["restart", "stop"]
+    backoff_initial_s: float = _check(_positive)
+    backoff_max_s: float = _check(_positive)
+    heartbeat_s: float = _check(_positive)
+    plugins: dict[str, str] = field(default_factory=dict)
+
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        for i, name in enumerate(self.run):
+            if problem := _name(name):
+                raise err(f"run[{i}]", problem)
+        if len(set(self.run)) != len(self.run):
+            raise err("run", "lists a service twice")
+        for name, entry in self.plugins.items():
+            if problem := _name(name):
+                raise err(f"plugins.{name}", problem)
+            if not _ENTRY.fullmatch(entry):
+                raise err(f"plugins.{name}", f"must be 'package.module:attribute' (got {entry!r})")
+        if self.backoff_max_s < self.backoff_initial_s:
+            raise err("backoff_max_s", "must be >= backoff_initial_s")
+
+
+@dataclass(frozen=True)
+class DataplaneConfig:
+    listen: str = _check(_host_port)
+
+
+@dataclass(frozen=True)
+class SnpConfig:
+    listen: str = _check(_host_port)
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    id: int = _check(lambda v: None if 1 <= v <= 0xFFFF else f"must be 1..65535 (got {v})")
+    name: str = _check(_name)
+    model: Literal["ur5e"]
+    backend: Literal["mujoco", "kinematic"]
+    skill_port: int = _check(_port)
+    status_hz: int = _check(_positive)
+    command_hz: int = _check(_positive)
+
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        if self.command_hz > self.status_hz:
+            raise err("command_hz", f"must be <= status_hz ({self.status_hz})")
+
+
+@dataclass(frozen=True)
+class RobotDefaults:
+    """Keys every [[robots]] entry inherits unless it sets them itself."""
+
+    model: Literal["ur5e"]
+    backend: Literal["mujoco", "kinematic"]
+    status_hz: int = _check(_positive)
+    command_hz: int = _check(_positive)
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    cell: CellSection
+    bus: BusConfig
+    services: ServicesConfig
+    dataplane: DataplaneConfig
+    snp: SnpConfig
+    robot_defaults: RobotDefaults
+    robots: list[RobotConfig]
+    source: str = field(default=DEFAULT_SOURCE, metadata={"internal": True})
+
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        for attr in ("id", "name", "skill_port"):
+            seen: set[object] = set()
+            for i, robot in enumerate(self.robots):
+                value = getattr(robot, attr)
+                if value in seen:
+                    raise err(f"robots[{i}].{attr}", f"{value!r} is used by another robot")
+                seen.add(value)
+
+    def robot(self, name: str) -> RobotConfig:
+        for robot in self.robots:
+            if robot.name == name:
+                return robot
+        raise KeyError(f"no robot named {name!r} in {self.source}")
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        del data["source"]
+        return data
+
+    def to_toml(self) -> str:
+        return tomli_w.dumps(self.to_dict())
+
+
+# --- loading -----------------------------------------------------------------------------------
+
+
+def default_text() -> str:
+    return resources.files("cell").joinpath("default.toml").read_text()
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> CellConfig:
+    """The effective config: `path` (if any) merged over the embedded default, then `overrides`."""
+    data = tomllib.loads(default_text())
+    source = DEFAULT_SOURCE
+    if path is not None:
+        source = str(path)
+        try:
+            text = Path(path).read_text()
+        except OSError as exc:
+            raise ConfigError(source, "", f"cannot read: {exc.strerror}") from None
+        try:
+            user = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(source, "", f"not valid TOML: {exc}") from None
+        data = _merge(data, user)
+    if overrides:
+        data = _merge(data, overrides)
+    return config_from_dict(data, source)
+
+
+def config_from_dict(data: dict[str, Any], source: str = DEFAULT_SOURCE) -> CellConfig:
+    robots, defaults = data.get("robots"), data.get("robot_defaults")
+    if isinstance(robots, list) and isinstance(defaults, dict):
+        data = {**data, "robots": [{**defaults, **r} if isinstance(r, dict) else r for r in robots]}
+    return replace(_build(CellConfig, data, "", source), source=source)
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _build(cls: type, data: Any, path: str, source: str) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(source, path, f"must be a table (got {_kind(data)})")
+    hints = get_type_hints(cls)
+    known = {f.name: f for f in fields(cls) if not f.metadata.get("internal")}
+    for key in data:
+        if key not in known:
+            raise ConfigError(source, _join(path, key), f"unknown key (known: {', '.join(sorted(known))})")
+    kwargs = {}
+    for name, f in known.items():
+        key = _join(path, name)
+        if name not in data:
+            raise ConfigError(source, key, "missing")
+        value = _convert(hints[name], data[name], key, source)
+        if (check := f.metadata.get("check")) and (problem := check(value)):
+            raise ConfigError(source, key, problem)
+        kwargs[name] = value
+    obj = cls(**kwargs)
+    if hasattr(obj, "validate"):
+        obj.validate(lambda sub, problem: ConfigError(source, _join(path, sub), problem))
+    return obj
+
+
+def _kind(value: Any) -> str:
+    return {dict: "a table", list: "an array", str: "a string", bool: "a boolean"}.get(
+        type(value), type(value).__name__
+    )
+
+
+def _convert(tp: Any, value: Any, key: str, source: str) -> Any:
+    origin = get_origin(tp)
+    if is_dataclass(tp):
+        return _build(tp, value, key, source)
+    if origin is Literal:
+        choices = get_args(tp)
+        if value not in choices:
+            raise ConfigError(source, key, f"must be one of {', '.join(map(repr, choices))} (got {value!r})")
+        return value
+    if origin is list:
+        if not isinstance(value, list):
+            raise ConfigError(source, key, f"must be an array (got {_kind(value)})")
+        (item,) = get_args(tp)
+        return [_convert(item, v, f"{key}[{i}]", source) for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(source, key, f"must be a table (got {_kind(value)})")
+        _, item = get_args(tp)
+        return {k: _convert(item, v, _join(key, k), source) for k, v in value.items()}
+    if origin in (Union, types.UnionType):
+        raise TypeError(f"unions are not supported in the config schema ({key})")
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(source, key, f"must be true or false (got {value!r})")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(source, key, f"must be an integer (got {value!r})")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(source, key, f"must be a number (got {value!r})")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(source, key, f"must be a string (got {value!r})")
+        return value
+    raise TypeError(f"unsupported config type {tp!r} at {key}")

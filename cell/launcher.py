@@ -1,0 +1,113 @@
+"""`cell up`, `cell service` and `cell status`: start services, keep the status registry, stop cleanly."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import sys
+import time
+from dataclasses import replace
+
+from cell.aio import stop_on_signals, stop_on_stdin_eof
+from cell.bus import Bus, BusError
+from cell.config import CellConfig
+from cell.processes import ChildService
+from cell.registry import StatusRegistry, format_status
+from cell.services import load, load_all
+from cell.supervisor import ServiceFailed, Supervisor
+from cell.v1 import health_pb2
+
+log = logging.getLogger("cell")
+
+
+async def up(
+    config: CellConfig, *, duration: float | None = None, processes: bool = False, log_level: str = "INFO"
+) -> int:
+    """Run the cell until SIGINT/SIGTERM or `duration`; print a summary; 0 on a clean stop."""
+    specs = load_all(config)
+    mode = "processes" if processes else "single-process"
+    registry = StatusRegistry(config.cell.name, mode, [s.name for s in specs])
+    stop = asyncio.Event()
+    t0 = time.monotonic()
+    final: health_pb2.CellStatus | None = None
+    failed: ServiceFailed | None = None
+    with stop_on_signals(stop):
+        timer = asyncio.get_running_loop().call_later(duration, stop.set) if duration else None
+        try:
+            async with asyncio.TaskGroup() as tg:
+                if processes:
+                    for spec in specs:
+                        tg.create_task(ChildService(spec.name, config, log_level).run(stop), name=spec.name)
+                else:
+                    tg.create_task(Supervisor(config, specs).run(stop), name="supervisor")
+                keeper = tg.create_task(_keep_registry(config, registry, t0), name="registry")
+                await stop.wait()
+                final = registry.status()
+                keeper.cancel()
+        except* ServiceFailed as group:
+            failed = group.exceptions[0]  # type: ignore[assignment]
+        finally:
+            if timer is not None:
+                timer.cancel()
+    if failed is not None:
+        print(f"cell: {failed}; the cell stopped (services.on_failure = 'stop')", file=sys.stderr)
+        return 1
+    log.info("cell %r stopped after %.1f s", config.cell.name, time.monotonic() - t0)
+    if final is not None:
+        print(format_status(final))
+    return 0
+
+
+async def _keep_registry(config: CellConfig, registry: StatusRegistry, t0: float) -> None:
+    announced = False
+    while True:
+        try:
+            async with Bus.connect(config.bus, "cell") as bus:
+                reader = asyncio.ensure_future(registry.run(bus))
+                try:
+                    while not announced and not reader.done():
+                        if all(s.health == "ok" for s in registry.status().services):
+                            announced = True
+                            log.info(
+                                "cell %r is up in %.2f s (%s): `cell status` to inspect, Ctrl-C to stop",
+                                config.cell.name,
+                                time.monotonic() - t0,
+                                ", ".join(registry.expected),
+                            )
+                            break
+                        await asyncio.wait([reader], timeout=0.05)
+                    await reader
+                finally:
+                    reader.cancel()
+        except BusError as exc:
+            log.warning("status registry waiting for the bus: %s", exc)
+            await asyncio.sleep(0.5)
+
+
+async def service(config: CellConfig, name: str, *, watch_stdin: bool = False) -> int:
+    """Run one service alone (its own supervisor and heartbeats) until SIGINT/SIGTERM."""
+    spec = load(name, config)
+    stop = asyncio.Event()
+    with stop_on_signals(stop):
+        watch = await stop_on_stdin_eof(stop) if watch_stdin else None
+        try:
+            await Supervisor(config, [spec], node_name=f"supervisor-{name}-{os.getpid()}").run(stop)
+        except ServiceFailed as exc:
+            print(f"cell: {exc}", file=sys.stderr)
+            return 1
+        finally:
+            if watch is not None:
+                watch.close()
+    return 0
+
+
+async def fetch_status(config: CellConfig, timeout: float = 2.0) -> health_pb2.CellStatus:
+    """Ask a running cell for its status; BusUnavailable/BusTimeout if none answers."""
+    bus_cfg = replace(config.bus, connect_timeout_s=timeout)
+    async with Bus.connect(bus_cfg, f"status-{os.getpid()}") as bus:
+        reply = await bus.request(
+            "cell", "status", health_pb2.StatusRequest(), health_pb2.CellStatus, timeout
+        )
+    assert isinstance(reply, health_pb2.CellStatus)
+    return reply

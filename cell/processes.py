@@ -1,0 +1,84 @@
+"""`cell up --processes`: one OS process per service, supervised by the launcher.
+
+Each child is `python -m cell service NAME` in its own session, so a Ctrl-C at
+the terminal reaches only the launcher, which then stops the children in
+order (SIGTERM, then SIGKILL after a grace period).  A child whose parent dies
+sees its standard input close and stops by itself: no process is left behind.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+
+from cell.config import DEFAULT_SOURCE, CellConfig
+from cell.supervisor import ServiceFailed
+
+log = logging.getLogger("cell.processes")
+GRACE_S = 1.5  # SIGTERM -> SIGKILL; keeps a whole shutdown inside 2 s
+
+
+class ChildService:
+    def __init__(self, name: str, config: CellConfig, log_level: str = "INFO") -> None:
+        self.name = name
+        self.config = config
+        self.log_level = log_level
+        self.proc: asyncio.subprocess.Process | None = None
+        self.starts = 0
+
+    def argv(self) -> list[str]:
+        args = [sys.executable, "-m", "cell", "--log-level", self.log_level, "service", self.name]
+        if self.config.source != DEFAULT_SOURCE:
+            args += ["--config", self.config.source]
+        return [*args, "--watch-stdin"]
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Keep the child running until `stop`; restart or raise ServiceFailed when it dies."""
+        policy = self.config.services
+        backoff = policy.backoff_initial_s
+        try:
+            while not stop.is_set():
+                self.proc = await asyncio.create_subprocess_exec(
+                    *self.argv(), stdin=asyncio.subprocess.PIPE, start_new_session=True
+                )
+                self.starts += 1
+                exited = asyncio.ensure_future(self.proc.wait())
+                stopping = asyncio.ensure_future(stop.wait())
+                try:
+                    await asyncio.wait({exited, stopping}, return_when=asyncio.FIRST_COMPLETED)
+                finally:
+                    exited.cancel()
+                    stopping.cancel()
+                if stop.is_set():
+                    break
+                rc = self.proc.returncode
+                log.error("service process %r (pid %d) exited with code %s", self.name, self.proc.pid, rc)
+                if policy.on_failure == "stop":
+                    raise ServiceFailed(self.name, f"process exited with code {rc}")
+                log.info("restarting %r in %.1f s", self.name, backoff)
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(backoff):
+                        await stop.wait()
+                backoff = min(backoff * 2, policy.backoff_max_s)
+        finally:
+            await self.terminate()
+
+    async def terminate(self) -> None:
+        proc = self.proc
+        if proc is None or proc.returncode is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGTERM)
+        try:
+            async with asyncio.timeout(GRACE_S):
+                await proc.wait()
+        except TimeoutError:
+            log.warning("service process %r did not stop in %.1f s: killing it", self.name, GRACE_S)
+            with contextlib.suppress(ProcessLookupError):
+                proc.kill()
+            await proc.wait()
+        if proc.stdin is not None:
+            proc.stdin.close()

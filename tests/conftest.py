@@ -1,0 +1,138 @@
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import AsyncIterator, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import tomli_w
+
+from cell.bus import BusError, Forwarder
+from cell.config import BusConfig, CellConfig, load_config
+
+ROOT = Path(__file__).resolve().parent.parent
+_used: set[int] = set()
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port nothing listens on now (never the same twice in one test run)."""
+    while True:
+        with socket.socket(socket.AF_INET, kind) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in _used:
+            _used.add(port)
+            return port
+
+
+def cell_overrides(**services: object) -> dict:
+    """Config overrides putting a cell on free ports, so tests never collide with each other or a dev cell."""
+    robots = [
+        {"id": 1, "name": "r1", "skill_port": free_port()},
+        {"id": 2, "name": "r2", "skill_port": free_port()},
+    ]
+    return {
+        "bus": {"pub": f"tcp://127.0.0.1:{free_port()}", "sub": f"tcp://127.0.0.1:{free_port()}"},
+        "dataplane": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
+        "snp": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
+        "robots": robots,
+        "services": {"heartbeat_s": 0.2, **services},
+    }
+
+
+def write_config(path: Path, data: dict) -> Path:
+    path.write_text(tomli_w.dumps(data))
+    return path
+
+
+@pytest.fixture
+def bus_config() -> BusConfig:
+    return load_config(overrides=cell_overrides()).bus
+
+
+@pytest.fixture
+def forwarder(bus_config: BusConfig) -> Iterator[BusConfig]:
+    """A real forwarder in this process; yields the config nodes use to reach it."""
+    fwd = Forwarder(bus_config)
+    fwd.start()
+    yield bus_config
+    fwd.stop()
+
+
+def cell_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    return env
+
+
+@dataclass
+class RunningCell:
+    proc: subprocess.Popen[str]
+    config: CellConfig
+    path: Path
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> tuple[int, float, str, str]:
+        """Signal the cell; return (exit code, seconds it took, stdout, stderr)."""
+        t0 = time.monotonic()
+        self.proc.send_signal(sig)
+        out, err = self.proc.communicate(timeout=timeout)
+        return self.proc.returncode, time.monotonic() - t0, out, err
+
+
+async def wait_status(config: CellConfig, want: set[str], timeout: float = 20.0):
+    """Poll a cell's status until the named services are all ok; the last status or AssertionError."""
+    from cell.launcher import fetch_status
+
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        try:
+            last = await fetch_status(config, timeout=1.0)
+        except BusError:
+            continue
+        healthy = {s.name for s in last.services if s.health == "ok"}
+        if want <= healthy:
+            return last
+        await asyncio.sleep(0.05)  # polling interval, not synchronisation: the loop condition decides
+    raise AssertionError(f"services {sorted(want)} not all ok within {timeout} s; last status: {last}")
+
+
+@pytest.fixture
+async def start_cell(tmp_path: Path) -> AsyncIterator:
+    """start_cell(run=[...], plugins={...}, processes=False) -> RunningCell, up and healthy."""
+    cells: list[RunningCell] = []
+
+    async def start(
+        *,
+        run: list[str],
+        plugins: dict[str, str] | None = None,
+        processes: bool = False,
+        wait_for: set[str] | None = None,
+        **services: object,
+    ) -> RunningCell:
+        data = cell_overrides(run=run, plugins=plugins or {}, **services)
+        path = write_config(tmp_path / f"cell{len(cells)}.toml", data)
+        config = load_config(path)
+        cmd = [sys.executable, "-m", "cell", "up", "--config", str(path)]
+        if processes:
+            cmd.append("--processes")
+        proc = subprocess.Popen(
+            cmd, env=cell_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        cell = RunningCell(proc, config, path)
+        cells.append(cell)
+        await wait_status(config, set(run) if wait_for is None else wait_for)
+        return cell
+
+    yield start
+    for cell in cells:
+        if cell.proc.poll() is None:
+            cell.proc.kill()
+            cell.proc.communicate()

@@ -1,0 +1,31 @@
+"""Services the tests add through [services.plugins]: real services run by the real runtime."""
+
+from __future__ import annotations
+
+import asyncio
+
+from cell.service import ServiceContext
+from cell.v1 import bus_pb2
+
+
+async def echo(ctx: ServiceContext) -> None:
+    """Answers echo.echo with its request, and republishes test/in/X on test/out/X."""
+
+    def handle(req: bus_pb2.BenchPayload) -> bus_pb2.BenchPayload:
+        ctx.counters["echo.requests"] = ctx.counters.get("echo.requests", 0) + 1
+        return req
+
+    await ctx.bus.serve("echo", {"echo": (bus_pb2.BenchPayload, handle)})
+    sub = await ctx.bus.subscribe("test/in/")
+    while True:
+        for env in await sub.recv_batch():
+            ctx.bus.publish(
+                "test/out/" + env.topic.removeprefix("test/in/"), env.decode(bus_pb2.BenchPayload)
+            )
+            ctx.counters["echo.republished"] = ctx.counters.get("echo.republished", 0) + 1
+
+
+async def crasher(ctx: ServiceContext) -> None:
+    """Runs briefly, then fails: for the supervision tests."""
+    await asyncio.sleep(0.05)
+    raise RuntimeError("deliberate failure from the crasher test service")

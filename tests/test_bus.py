@@ -1,0 +1,243 @@
+"""The bus over real ZeroMQ sockets through a real forwarder."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import replace
+
+import pytest
+import zmq
+
+from cell.bus import Bus, BusError, BusTimeout, BusUnavailable, Forwarder, RemoteError, RpcFault
+from cell.bus.envelope import Encoder
+from cell.bus.node import sync_context
+from cell.config import BusConfig
+from cell.v1 import bus_pb2
+from tests.conftest import free_port
+
+
+def payload(i: int) -> bus_pb2.BenchPayload:
+    return bus_pb2.BenchPayload(data=i.to_bytes(4, "big"))
+
+
+async def collect(sub, n: int, timeout: float = 5.0) -> list:
+    got: list = []
+    async with asyncio.timeout(timeout):
+        while len(got) < n:
+            got += await sub.recv_batch()
+    return got
+
+
+async def test_publish_subscribe_round_trip(forwarder: BusConfig) -> None:
+    async with Bus.connect(forwarder, "pub") as pub, Bus.connect(forwarder, "sub") as sub_node:
+        sub = await sub_node.subscribe("status/")
+        pub.publish("status/r1", payload(1))
+        env = await sub.recv(timeout=5)
+        assert env.topic == "status/r1"
+        assert env.header.source == "pub"
+        assert env.header.instance == pub.instance
+        assert env.header.type_name == "cell.v1.BenchPayload"
+        assert env.message() == payload(1)
+        assert 0 < time.monotonic_ns() - env.header.sent_ns < 5e9
+
+
+async def test_prefix_filtering(forwarder: BusConfig) -> None:
+    async with Bus.connect(forwarder, "pub") as pub, Bus.connect(forwarder, "sub") as node:
+        sub = await node.subscribe("a/", "c/")
+        for topic in ("b/x", "a/x", "ab/x", "c/y", "b/z"):
+            pub.publish(topic, payload(0))
+        pub.publish("c/end", payload(0))
+        got = await collect(sub, 3)
+        assert [e.topic for e in got] == ["a/x", "c/y", "c/end"]
+
+
+@pytest.mark.parametrize("attempt", range(10))
+async def test_no_lost_first_messages_from_a_new_publisher(forwarder: BusConfig, attempt: int) -> None:
+    """The slow-joiner case: a publisher publishes the moment connect() returns."""
+    async with Bus.connect(forwarder, "sub") as node:
+        sub = await node.subscribe("first/")
+        async with Bus.connect(forwarder, f"new-{attempt}") as pub:
+            for i in range(50):
+                pub.publish("first/x", payload(i))
+        got = await collect(sub, 50)
+        assert [e.decode(bus_pb2.BenchPayload).data for e in got] == [payload(i).data for i in range(50)]
+        assert [e.header.seq for e in got] == list(range(50))
+        assert sub.lost == 0
+
+
+async def test_no_lost_first_messages_to_a_new_subscription(forwarder: BusConfig) -> None:
+    """Whatever is published after subscribe() returns is delivered."""
+    async with Bus.connect(forwarder, "pub") as pub, Bus.connect(forwarder, "sub") as node:
+        for round_ in range(10):
+            sub = await node.subscribe(f"late{round_}/")
+            pub.publish(f"late{round_}/x", payload(round_))
+            assert (await sub.recv(timeout=5)).message() == payload(round_)
+            sub.close()
+
+
+def raw_publisher(cfg: BusConfig) -> zmq.Socket:
+    sock = sync_context().socket(zmq.PUB)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(cfg.pub)
+    return sock
+
+
+async def send_until_seen(sock: zmq.Socket, sub, frames: list[bytes]) -> None:
+    """Raw sockets have no sync handshake: repeat a marker until it arrives, then the path is live."""
+    async with asyncio.timeout(5):
+        while True:
+            sock.send_multipart(frames)
+            try:
+                await sub.recv(timeout=0.02)
+                return
+            except TimeoutError:
+                continue
+
+
+async def test_gaps_and_malformed_messages_are_counted(forwarder: BusConfig) -> None:
+    async with Bus.connect(forwarder, "sub") as node:
+        sub = await node.subscribe("g/")
+        sock = raw_publisher(forwarder)
+        try:
+            enc = Encoder("raw")
+            await send_until_seen(sock, sub, enc.encode(b"g/marker", "cell.v1.Empty", b""))
+            sub.gaps.lost = 0  # counting starts now (the marker repeats do not matter)
+            for i in range(10):
+                frames = enc.encode(b"g/x", "cell.v1.BenchPayload", payload(i).SerializeToString())
+                if i not in (3, 4, 7):  # lose three on purpose
+                    sock.send_multipart(frames)
+            for junk in ([b"g/bad"], [b"g/bad", b"short"], [b"g/bad", b"\x09" + b"\x00" * 40]):
+                sock.send_multipart(junk)
+            sock.send_multipart(enc.encode(b"g/end", "cell.v1.Empty", b""))
+            got = await collect(sub, 8)
+        finally:
+            sock.close()
+        assert [e.topic for e in got][-1] == "g/end"
+        assert [e.decode(bus_pb2.BenchPayload).data for e in got[:-1]] == [
+            payload(i).data for i in range(10) if i not in (3, 4, 7)
+        ]
+        assert sub.lost == 3
+        assert sub.malformed == 3
+
+
+async def test_request_reply_and_errors(forwarder: BusConfig) -> None:
+    async def double(req: bus_pb2.BenchPayload) -> bus_pb2.BenchPayload:
+        await asyncio.sleep(0)
+        return bus_pb2.BenchPayload(data=req.data * 2)
+
+    def full(_req: bus_pb2.Empty) -> bus_pb2.Empty:
+        raise RpcFault("refused", "table full (50000 of 50000)")
+
+    def broken(_req: bus_pb2.Empty) -> bus_pb2.Empty:
+        raise ZeroDivisionError("oops")
+
+    methods = {
+        "double": (bus_pb2.BenchPayload, double),
+        "full": (bus_pb2.Empty, full),
+        "broken": (bus_pb2.Empty, broken),
+    }
+    async with Bus.connect(forwarder, "server") as server, Bus.connect(forwarder, "client") as client:
+        await server.serve("svc", methods)
+        reply = await client.request("svc", "double", bus_pb2.BenchPayload(data=b"ab"), bus_pb2.BenchPayload)
+        assert reply.data == b"abab"
+
+        cases = [
+            ("full", bus_pb2.Empty(), "refused", "table full"),
+            ("broken", bus_pb2.Empty(), "internal", "ZeroDivisionError: oops"),
+            ("nothing", bus_pb2.Empty(), "unknown_method", "svc/nothing"),
+            ("double", bus_pb2.Empty(), "bad_request", "expected a cell.v1.BenchPayload"),
+        ]
+        for method, msg, code, text in cases:
+            with pytest.raises(RemoteError) as info:
+                await client.request("svc", method, msg)
+            assert (info.value.service, info.value.method, info.value.code) == ("svc", method, code)
+            assert text in info.value.message
+        # the server survived every failure
+        reply = await client.request("svc", "double", bus_pb2.BenchPayload(data=b"z"), bus_pb2.BenchPayload)
+        assert reply.data == b"zz"
+        assert server.served == 6
+
+
+async def test_concurrent_requests_are_matched_by_correlation_id(forwarder: BusConfig) -> None:
+    async def slow_echo(req: bus_pb2.BenchPayload) -> bus_pb2.BenchPayload:
+        # later requests answer first, so replies come back out of order
+        await asyncio.sleep((50 - int.from_bytes(req.data, "big")) * 0.001)
+        return req
+
+    async with Bus.connect(forwarder, "server") as server, Bus.connect(forwarder, "client") as client:
+        await server.serve("svc", {"echo": (bus_pb2.BenchPayload, slow_echo)})
+        replies = await asyncio.gather(
+            *(client.request("svc", "echo", payload(i), bus_pb2.BenchPayload) for i in range(50))
+        )
+        assert [r.data for r in replies] == [payload(i).data for i in range(50)]
+
+
+async def test_request_without_server_times_out_clearly(forwarder: BusConfig) -> None:
+    async with Bus.connect(forwarder, "client") as client:
+        t0 = time.monotonic()
+        with pytest.raises(BusTimeout, match=r"no reply from nobody\.hello within 0\.3 s"):
+            await client.request("nobody", "hello", bus_pb2.Empty(), timeout=0.3)
+        assert 0.3 <= time.monotonic() - t0 < 1.0
+        assert isinstance(BusTimeout("x"), TimeoutError)
+
+
+async def test_late_reply_is_counted_not_delivered(forwarder: BusConfig) -> None:
+    release = asyncio.Event()
+
+    async def stall(req: bus_pb2.Empty) -> bus_pb2.Empty:
+        await release.wait()
+        return req
+
+    async with Bus.connect(forwarder, "server") as server, Bus.connect(forwarder, "client") as client:
+        await server.serve("svc", {"stall": (bus_pb2.Empty, stall)})
+        with pytest.raises(BusTimeout):
+            await client.request("svc", "stall", bus_pb2.Empty(), timeout=0.1)
+        release.set()
+        served = server.served
+        async with asyncio.timeout(5):
+            while client.late_replies == 0:
+                await client.request(
+                    "svc", "stall", bus_pb2.Empty()
+                )  # a fresh round trip flushes the late one
+        assert server.served > served
+        assert client.late_replies == 1
+
+
+async def test_no_forwarder_is_a_clear_error(bus_config: BusConfig) -> None:
+    cfg = replace(bus_config, connect_timeout_s=0.3)
+    t0 = time.monotonic()
+    with pytest.raises(BusUnavailable, match="no bus forwarder answered"):
+        async with Bus.connect(cfg, "lonely"):
+            pass
+    assert time.monotonic() - t0 < 1.5
+
+
+async def test_node_exceptions_propagate_unwrapped(forwarder: BusConfig) -> None:
+    with pytest.raises(KeyError):
+        async with Bus.connect(forwarder, "n"):
+            raise KeyError("mine")
+
+
+async def test_forwarder_statistics_count_messages(forwarder: BusConfig) -> None:
+    own = replace(forwarder, pub=f"tcp://127.0.0.1:{free_port()}", sub=f"tcp://127.0.0.1:{free_port()}")
+    fwd = Forwarder(own)
+    fwd.start()
+    try:
+        before = await fwd.statistics()
+        async with Bus.connect(own, "a") as a:
+            sub = await a.subscribe("s/")
+            for i in range(20):
+                a.publish("s/x", payload(i))
+            await collect(sub, 20)
+        after = await fwd.statistics()
+        assert after.frames_in - before.frames_in >= 2 * 20
+        assert after.frames_out - before.frames_out >= 2 * 20
+        assert after.as_counters()["forwarder.messages_in"] == after.frames_in // 2
+    finally:
+        fwd.stop()
+
+
+def test_forwarder_refuses_a_taken_port(forwarder: BusConfig) -> None:
+    with pytest.raises(BusError, match="cannot bind"):
+        Forwarder(forwarder).start()

@@ -1,0 +1,210 @@
+"""Whole cells as real processes: `cell up`, `cell status`, signals, supervision."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from cell.bus import Bus
+from cell.launcher import fetch_status
+from cell.v1 import bus_pb2
+from tests.conftest import cell_env, free_port, write_config
+
+ECHO = {"echo": "tests.plugins:echo"}
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is dead too (it only waits to be reaped)
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ", 1)[1][0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def can_bind(endpoint: str) -> bool:
+    host, port = endpoint.removeprefix("tcp://").rsplit(":", 1)
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, int(port)))
+        except OSError:
+            return False
+    return True
+
+
+@pytest.mark.parametrize("processes", [False, True], ids=["single-process", "processes"])
+async def test_bus_round_trip_with_services_in_other_processes(start_cell, processes: bool) -> None:
+    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, processes=processes)
+    async with Bus.connect(cell.config.bus, "tester") as bus:
+        out = await bus.subscribe("test/out/")
+        reply = await bus.request("echo", "echo", bus_pb2.BenchPayload(data=b"ping"), bus_pb2.BenchPayload)
+        assert reply.data == b"ping"
+        for i in range(100):
+            bus.publish("test/in/n", bus_pb2.BenchPayload(data=str(i).encode()))
+        got = []
+        async with asyncio.timeout(10):
+            while len(got) < 100:
+                got += await out.recv_batch()
+        assert [e.decode(bus_pb2.BenchPayload).data for e in got] == [str(i).encode() for i in range(100)]
+        assert {e.header.source for e in got} == {"echo"}
+        assert out.lost == 0
+    status = await fetch_status(cell.config)
+    pids = {s.name: s.last.pid for s in status.services}
+    assert pids["bus"] != os.getpid()
+    if processes:
+        assert pids["bus"] != pids["echo"] != cell.proc.pid
+    else:
+        assert pids["bus"] == pids["echo"] == cell.proc.pid
+
+
+@pytest.mark.parametrize("processes", [False, True], ids=["single-process", "processes"])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+async def test_signal_stops_everything_within_2s(start_cell, processes: bool, sig: int) -> None:
+    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, processes=processes)
+    status = await fetch_status(cell.config)
+    pids = {s.last.pid for s in status.services} | {cell.proc.pid}
+    rc, took, out, err = cell.stop(sig)
+    assert rc == 0, err
+    assert took < 2.0, f"shutdown took {took:.2f} s"
+    assert [p for p in pids if pid_alive(p)] == []
+    assert can_bind(cell.config.bus.pub) and can_bind(cell.config.bus.sub)
+    assert "bus" in out and "echo" in out  # the closing summary
+    assert "Traceback" not in err
+
+
+async def test_children_stop_when_the_launcher_is_killed(start_cell) -> None:
+    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, processes=True)
+    status = await fetch_status(cell.config)
+    children = [s.last.pid for s in status.services]
+    cell.proc.kill()  # no chance to clean up: the children must notice on their own
+    cell.proc.communicate()
+    deadline = time.monotonic() + 5
+    while any(pid_alive(p) for p in children) and time.monotonic() < deadline:
+        await asyncio.sleep(0.05)
+    assert [p for p in children if pid_alive(p)] == []
+
+
+async def test_cell_status_command(start_cell) -> None:
+    cell = await start_cell(run=["bus", "echo"], plugins=ECHO)
+
+    def status(*extra: str) -> subprocess.CompletedProcess[str]:
+        cmd = [sys.executable, "-m", "cell", "status", "--config", str(cell.path), *extra]
+        return subprocess.run(cmd, capture_output=True, text=True, env=cell_env(), timeout=30)
+
+    table = status()
+    assert table.returncode == 0, table.stderr
+    rows = {
+        line.split()[0]: line.split() for line in table.stdout.splitlines()[2:] if not line.startswith(" ")
+    }
+    assert rows["bus"][1] == "ok" and rows["echo"][1] == "ok"
+    assert int(rows["bus"][3]) == cell.proc.pid
+    assert "forwarder.messages_in=" in table.stdout
+
+    js = status("--json")
+    assert js.returncode == 0
+    data = json.loads(js.stdout)
+    assert data["mode"] == "single-process"
+    by_name = {s["name"]: s for s in data["services"]}
+    assert by_name["bus"]["last"]["counters"]["forwarder.messages_in"] > 0
+    assert by_name["echo"]["last"]["state"] == "SERVICE_STATE_RUNNING"
+    assert by_name["echo"]["last"]["uptime_s"] > 0
+
+
+def test_cell_status_without_a_cell(tmp_path) -> None:
+    path = write_config(
+        tmp_path / "c.toml",
+        {"bus": {"pub": f"tcp://127.0.0.1:{free_port()}", "sub": f"tcp://127.0.0.1:{free_port()}"}},
+    )
+    t0 = time.monotonic()
+    result = subprocess.run(
+        [sys.executable, "-m", "cell", "status", "--config", str(path), "--timeout", "0.5"],
+        capture_output=True,
+        text=True,
+        env=cell_env(),
+        timeout=30,
+    )
+    assert result.returncode == 1
+    assert "no cell answered" in result.stderr
+    assert time.monotonic() - t0 < 10
+
+
+@pytest.mark.parametrize("processes", [False, True], ids=["single-process", "processes"])
+async def test_failing_service_is_restarted_with_backoff(start_cell, processes: bool) -> None:
+    cell = await start_cell(
+        run=["bus", "echo", "crasher"],
+        plugins={**ECHO, "crasher": "tests.plugins:crasher"},
+        processes=processes,
+        wait_for={"bus", "echo"},
+        backoff_initial_s=0.05,
+        backoff_max_s=0.2,
+    )
+    deadline = time.monotonic() + 15
+    crasher = None
+    while time.monotonic() < deadline:
+        status = await fetch_status(cell.config)
+        crasher = next(s for s in status.services if s.name == "crasher")
+        if crasher.last.restarts >= 3:
+            break
+        await asyncio.sleep(0.05)
+    assert crasher is not None and crasher.last.restarts >= 3, crasher
+    assert "deliberate failure" in crasher.last.last_error
+    # the rest of the cell is unharmed
+    healthy = {s.name for s in status.services if s.health == "ok"}
+    assert {"bus", "echo"} <= healthy
+    rc, _, _, err = cell.stop()
+    assert rc == 0
+    assert "Traceback" in err and "RuntimeError: deliberate failure" in err  # never a silent death
+
+
+@pytest.mark.parametrize("processes", [False, True], ids=["single-process", "processes"])
+def test_failing_service_stops_the_cell_when_configured(tmp_path, processes: bool) -> None:
+    from tests.conftest import cell_overrides
+
+    data = cell_overrides(
+        run=["bus", "crasher"], plugins={"crasher": "tests.plugins:crasher"}, on_failure="stop"
+    )
+    path = write_config(tmp_path / "c.toml", data)
+    cmd = [sys.executable, "-m", "cell", "up", "--config", str(path), "--duration", "30"]
+    result = subprocess.run(
+        cmd + (["--processes"] if processes else []),
+        capture_output=True,
+        text=True,
+        env=cell_env(),
+        timeout=60,
+    )
+    assert result.returncode == 1
+    assert "service 'crasher' failed" in result.stderr
+    assert "RuntimeError: deliberate failure" in result.stderr
+
+
+def test_duration_stops_cleanly_with_a_summary(tmp_path) -> None:
+    from tests.conftest import cell_overrides
+
+    path = write_config(tmp_path / "c.toml", cell_overrides(run=["bus"]))
+    t0 = time.monotonic()
+    result = subprocess.run(
+        [sys.executable, "-m", "cell", "up", "--config", str(path), "--duration", "1.5"],
+        capture_output=True,
+        text=True,
+        env=cell_env(),
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stderr
+    assert 1.5 <= time.monotonic() - t0 < 8
+    assert "is up in" in result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith("cell 'default' (single-process)")
+    assert lines[2].split()[:2] == ["bus", "ok"]

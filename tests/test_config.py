@@ -1,0 +1,135 @@
+"""Config: the embedded default, merging, and errors that name the key and the file."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from cell.config import DEFAULT_SOURCE, ConfigError, config_from_dict, load_config
+from tests.conftest import cell_env
+
+
+def test_embedded_default_is_the_two_robot_cell() -> None:
+    cfg = load_config()
+    assert cfg.source == DEFAULT_SOURCE
+    assert [(r.id, r.name, r.skill_port) for r in cfg.robots] == [(1, "r1", 1234), (2, "r2", 1235)]
+    r1 = cfg.robot("r1")
+    assert (r1.model, r1.backend, r1.status_hz, r1.command_hz) == ("ur5e", "mujoco", 500, 125)
+    assert cfg.dataplane.listen == "127.0.0.1:50000"
+    assert cfg.snp.listen == "127.0.0.1:50010"
+
+
+def test_default_binds_loopback_only() -> None:
+    cfg = load_config()
+    for endpoint in (cfg.bus.pub, cfg.bus.sub, cfg.dataplane.listen, cfg.snp.listen):
+        assert "127.0.0.1" in endpoint
+
+
+def test_file_merges_over_default(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text(
+        '[bus]\nhwm = 5\n[robot_defaults]\nbackend = "kinematic"\n'
+        '[[robots]]\nid = 7\nname = "arm"\nskill_port = 2000\n'
+    )
+    cfg = load_config(path)
+    assert cfg.source == str(path)
+    assert cfg.bus.hwm == 5
+    assert cfg.bus.pub == load_config().bus.pub  # untouched keys keep the default
+    assert [(r.id, r.name, r.backend, r.status_hz) for r in cfg.robots] == [(7, "arm", "kinematic", 500)]
+
+
+def test_config_show_round_trips() -> None:
+    cfg = load_config()
+    assert config_from_dict(tomllib.loads(cfg.to_toml())) == cfg
+
+
+@pytest.mark.parametrize(
+    ("toml", "key", "problem"),
+    [
+        ("[bus]\nspeed = 1\n", "bus.speed", "unknown key"),
+        ("colour = 1\n", "colour", "unknown key"),
+        ('[[robots]]\nid = 1\nname = "a"\nskill_port = 1\nspeed = 3\n', "robots[0].speed", "unknown key"),
+        ('[bus]\nhwm = "lots"\n', "bus.hwm", "must be an integer"),
+        ("[bus]\nhwm = -1\n", "bus.hwm", "must be > 0"),
+        ('[bus]\npub = "udp://x"\n', "bus.pub", "tcp://HOST:PORT or ipc://PATH"),
+        ('[bus]\npub = "tcp://127.0.0.1:50031"\n', "bus.sub", "must differ"),
+        ('[dataplane]\nlisten = "127.0.0.1"\n', "dataplane.listen", "HOST:PORT"),
+        ('[dataplane]\nlisten = "my.host:5"\n', "dataplane.listen", "IP address"),
+        ('[services]\non_failure = "ignore"\n', "services.on_failure", "one of 'restart', 'stop'"),
+        ('[services]\nrun = ["bus", "bus"]\n', "services.run", "twice"),
+        ('[services.plugins]\nx = "nocolon"\n', "services.plugins.x", "package.module:attribute"),
+        ('[[robots]]\nid = 70000\nname = "a"\nskill_port = 1\n', "robots[0].id", "1..65535"),
+        ('[[robots]]\nid = 1\nname = "A b"\nskill_port = 1\n', "robots[0].name", "lowercase"),
+        (
+            '[[robots]]\nid = 1\nname = "a"\nskill_port = 1\nbackend = "gazebo"\n',
+            "robots[0].backend",
+            "one of",
+        ),
+        ('[[robots]]\nid = 1\nname = "a"\nskill_port = 1\ncommand_hz = 1000\n', "robots[0].command_hz", "<="),
+        (
+            '[[robots]]\nid = 1\nname = "a"\nskill_port = 1\n'
+            '[[robots]]\nid = 1\nname = "b"\nskill_port = 2\n',
+            "robots[1].id",
+            "used by another robot",
+        ),
+        ("[[robots]]\nid = 1\n", "robots[0].name", "missing"),
+        ("robots = 3\n", "robots", "must be an array"),
+    ],
+)
+def test_bad_config_names_key_and_file(tmp_path: Path, toml: str, key: str, problem: str) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(toml)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert info.value.key == key
+    assert problem in info.value.problem
+    assert str(path) in str(info.value)
+
+
+def test_invalid_toml_and_missing_file(tmp_path: Path) -> None:
+    path = tmp_path / "broken.toml"
+    path.write_text("[bus\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(path)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "nope.toml")
+
+
+def _cell(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "cell", *args], capture_output=True, text=True, env=cell_env(), timeout=60
+    )
+
+
+@pytest.mark.parametrize("command", [["config", "show"], ["up", "--duration", "1"], ["status"]])
+def test_cli_exits_2_naming_key_and_file(tmp_path: Path, command: list[str]) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text("[robot_defaults]\nstatus_hz = 0\n")
+    result = _cell(*command, "--config", str(path))
+    assert result.returncode == 2
+    assert "robot_defaults.status_hz" in result.stderr
+    assert str(path) in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_unknown_service_is_a_config_error(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text('[services]\nrun = ["bus", "telepathy"]\n')
+    result = _cell("up", "--duration", "1", "--config", str(path))
+    assert result.returncode == 2
+    assert "unknown service 'telepathy'" in result.stderr
+    assert "services.run" in result.stderr
+
+
+def test_config_show_prints_effective_toml(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text("[bus]\nhwm = 77\n")
+    result = _cell("config", "show", "--config", str(path))
+    assert result.returncode == 0
+    shown = tomllib.loads(result.stdout)
+    assert shown["bus"]["hwm"] == 77
+    assert shown["robots"][1]["name"] == "r2"

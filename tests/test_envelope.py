@@ -1,0 +1,116 @@
+"""The bus envelope, byte by byte (docs/protocols/bus.md)."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+
+from cell.bus.envelope import (
+    HEADER,
+    Encoder,
+    EnvelopeError,
+    GapCounter,
+    Kind,
+    check_topic,
+    decode,
+    message_class,
+)
+from cell.v1 import bus_pb2, health_pb2
+
+
+def fixed_encoder() -> Encoder:
+    return Encoder("svc", instance=0x01020304, clock=lambda: 0x1122334455667788)
+
+
+def test_header_bytes_are_exact() -> None:
+    frames = fixed_encoder().encode(b"a/b", "cell.v1.Empty", b"\x08\x01", Kind.REQUEST, correlation=7)
+    assert frames[0] == b"a/b"
+    expected = (
+        bytes([1, 1, 3, 13])  # version, kind=REQUEST, len("svc"), len("cell.v1.Empty")
+        + bytes.fromhex("01020304")  # instance
+        + (0).to_bytes(8, "big")  # seq: first on this topic
+        + bytes.fromhex("1122334455667788")  # send time
+        + (7).to_bytes(8, "big")  # correlation
+        + b"svc"
+        + b"cell.v1.Empty"
+        + b"\x08\x01"
+    )
+    assert frames[1] == expected
+    assert HEADER.size == 32
+
+
+def test_sequence_counts_per_topic() -> None:
+    enc = fixed_encoder()
+    seqs = [decode(enc.encode(t, "x.Y", b"")).header.seq for t in (b"a", b"a", b"b", b"a", b"b")]
+    assert seqs == [0, 1, 0, 2, 1]
+
+
+def test_round_trip_with_payload() -> None:
+    hb = health_pb2.Heartbeat(service="bus", pid=42, counters={"x": 1.5})
+    enc = fixed_encoder()
+    env = decode(enc.encode(b"health/bus", hb.DESCRIPTOR.full_name, hb.SerializeToString()))
+    assert env.topic == "health/bus"
+    assert env.header.kind is Kind.PUBLISH
+    assert env.header.source == "svc"
+    assert env.header.instance == 0x01020304
+    assert env.header.sent_ns == 0x1122334455667788
+    assert env.message() == hb
+    assert env.decode(health_pb2.Heartbeat).counters["x"] == 1.5
+
+
+def _body(version=1, kind=0, nsrc=1, ntype=1, names=b"ab", payload=b"") -> bytes:
+    return struct.pack("!BBBBIQQQ", version, kind, nsrc, ntype, 1, 2, 3, 4) + names + payload
+
+
+@pytest.mark.parametrize(
+    ("frames", "reason"),
+    [
+        ([b"t"], "expected 2 frames"),
+        ([b"t", _body(), b"extra"], "expected 2 frames"),
+        ([b"t", b"\x01" * 31], "header too short"),
+        ([b"t", _body(version=2)], "unsupported envelope version 2"),
+        ([b"t", _body(kind=9)], "unknown message kind 9"),
+        ([b"t", _body(nsrc=200)], "overrun"),
+        ([b"t", _body(names=b"\xff\xfe")], "not UTF-8"),
+        ([b"\xff", _body()], "not UTF-8"),
+    ],
+)
+def test_malformed_frames_are_rejected_with_a_reason(frames: list[bytes], reason: str) -> None:
+    with pytest.raises(EnvelopeError, match=reason):
+        decode(frames)
+
+
+def test_undecodable_payload_is_an_envelope_error() -> None:
+    env = decode(fixed_encoder().encode(b"t", "cell.v1.RpcError", b"\x0a\xff"))  # length overruns
+    with pytest.raises(EnvelopeError, match=r"not a valid cell\.v1\.RpcError"):
+        env.message()
+
+
+def test_unknown_type_name_is_an_envelope_error() -> None:
+    with pytest.raises(EnvelopeError, match="unknown message type"):
+        message_class("no.such.Type")
+    assert message_class("cell.v1.BenchPayload") is type(bus_pb2.BenchPayload())
+
+
+def test_gap_counter() -> None:
+    g = GapCounter()
+    assert g.observe(1, "a", 5) == 0  # joining late is not a loss
+    assert g.observe(1, "a", 6) == 0
+    assert g.observe(1, "a", 9) == 2  # 7 and 8 lost
+    assert g.observe(1, "b", 0) == 0  # another topic is another stream
+    assert g.observe(2, "a", 0) == 0  # a restarted publisher has a new instance
+    assert g.observe(1, "a", 4) == 0  # backwards: reordered, not lost
+    assert (g.lost, g.reordered) == (2, 1)
+    assert g.observe(1, "a", 5) == 0  # tracking restarted from 4
+
+
+@pytest.mark.parametrize("topic", ["status/r1", "a", "dataplane/counters", "events/service/bus", "x-y.z_1/"])
+def test_good_topics(topic: str) -> None:
+    assert check_topic(topic) == topic.encode()
+
+
+@pytest.mark.parametrize("topic", ["", "/a", "a//b", "_sync/x", "a b", "é", "a/\x00"])
+def test_bad_topics(topic: str) -> None:
+    with pytest.raises(ValueError, match="bad bus topic"):
+        check_topic(topic)
