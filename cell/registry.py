@@ -58,7 +58,7 @@ class StatusRegistry:
         bus.publish(POLL_TOPIC, health_pb2.StatusRequest())  # no waiting a whole period to hear everyone
         while True:
             for env in await health.recv_batch():
-                if env.header.type_name == health_pb2.Heartbeat.DESCRIPTOR.full_name:
+                if env.type_name == health_pb2.Heartbeat.DESCRIPTOR.full_name:
                     self.observe(env.decode(health_pb2.Heartbeat))
 
 

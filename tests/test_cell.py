@@ -59,7 +59,7 @@ async def test_bus_round_trip_with_services_in_other_processes(start_cell, proce
             while len(got) < 100:
                 got += await out.recv_batch()
         assert [e.decode(bus_pb2.BenchPayload).data for e in got] == [str(i).encode() for i in range(100)]
-        assert {e.header.source for e in got} == {"echo"}
+        assert {e.source for e in got} == {"echo"}
         assert out.lost == 0
     status = await fetch_status(cell.config)
     pids = {s.name: s.last.pid for s in status.services}

@@ -24,10 +24,10 @@ def fixed_encoder() -> Encoder:
 
 
 def test_header_bytes_are_exact() -> None:
-    frames = fixed_encoder().encode(b"a/b", "cell.v1.Empty", b"\x08\x01", Kind.REQUEST, correlation=7)
-    assert frames[0] == b"a/b"
+    frame = fixed_encoder().encode(b"a/b", "cell.v1.Empty", b"\x08\x01", Kind.REQUEST, correlation=7)
     expected = (
-        bytes([1, 1, 3, 13])  # version, kind=REQUEST, len("svc"), len("cell.v1.Empty")
+        b"a/b\0"  # topic first, so ZeroMQ's prefix filter sees it
+        + bytes([1, 1, 3, 13])  # version, kind=REQUEST, len("svc"), len("cell.v1.Empty")
         + bytes.fromhex("01020304")  # instance
         + (0).to_bytes(8, "big")  # seq: first on this topic
         + bytes.fromhex("1122334455667788")  # send time
@@ -36,13 +36,13 @@ def test_header_bytes_are_exact() -> None:
         + b"cell.v1.Empty"
         + b"\x08\x01"
     )
-    assert frames[1] == expected
+    assert frame == expected
     assert HEADER.size == 32
 
 
 def test_sequence_counts_per_topic() -> None:
     enc = fixed_encoder()
-    seqs = [decode(enc.encode(t, "x.Y", b"")).header.seq for t in (b"a", b"a", b"b", b"a", b"b")]
+    seqs = [decode(enc.encode(t, "x.Y", b"")).seq for t in (b"a", b"a", b"b", b"a", b"b")]
     assert seqs == [0, 1, 0, 2, 1]
 
 
@@ -51,34 +51,41 @@ def test_round_trip_with_payload() -> None:
     enc = fixed_encoder()
     env = decode(enc.encode(b"health/bus", hb.DESCRIPTOR.full_name, hb.SerializeToString()))
     assert env.topic == "health/bus"
-    assert env.header.kind is Kind.PUBLISH
-    assert env.header.source == "svc"
-    assert env.header.instance == 0x01020304
-    assert env.header.sent_ns == 0x1122334455667788
+    assert env.kind is Kind.PUBLISH
+    assert env.source == "svc"
+    assert env.instance == 0x01020304
+    assert env.sent_ns == 0x1122334455667788
     assert env.message() == hb
     assert env.decode(health_pb2.Heartbeat).counters["x"] == 1.5
 
 
-def _body(version=1, kind=0, nsrc=1, ntype=1, names=b"ab", payload=b"") -> bytes:
-    return struct.pack("!BBBBIQQQ", version, kind, nsrc, ntype, 1, 2, 3, 4) + names + payload
+def _frame(topic=b"t", version=1, kind=0, nsrc=1, ntype=1, names=b"ab", payload=b"") -> bytes:
+    return topic + b"\0" + struct.pack("!BBBBIQQQ", version, kind, nsrc, ntype, 1, 2, 3, 4) + names + payload
+
+
+def test_well_formed_test_frame() -> None:
+    env = decode(_frame(payload=b"xyz"))
+    assert (env.topic, env.source, env.type_name, env.seq, env.payload) == ("t", "a", "b", 2, b"xyz")
 
 
 @pytest.mark.parametrize(
-    ("frames", "reason"),
+    ("frame", "reason"),
     [
-        ([b"t"], "expected 2 frames"),
-        ([b"t", _body(), b"extra"], "expected 2 frames"),
-        ([b"t", b"\x01" * 31], "header too short"),
-        ([b"t", _body(version=2)], "unsupported envelope version 2"),
-        ([b"t", _body(kind=9)], "unknown message kind 9"),
-        ([b"t", _body(nsrc=200)], "overrun"),
-        ([b"t", _body(names=b"\xff\xfe")], "not UTF-8"),
-        ([b"\xff", _body()], "not UTF-8"),
+        (b"", "no topic"),
+        (b"t", "no topic"),
+        (_frame(topic=b""), "no topic"),
+        (b"x" * 300 + b"\0" + _frame()[2:], "no topic"),  # topics are at most 255 bytes
+        (b"t\0" + b"\x01" * 31, "header too short"),
+        (_frame(version=2), "unsupported envelope version 2"),
+        (_frame(kind=9), "unknown message kind 9"),
+        (_frame(nsrc=200), "overrun"),
+        (_frame(names=b"\xff\xfe"), "not UTF-8"),
+        (_frame(topic=b"\xff"), "not UTF-8"),
     ],
 )
-def test_malformed_frames_are_rejected_with_a_reason(frames: list[bytes], reason: str) -> None:
+def test_malformed_frames_are_rejected_with_a_reason(frame: bytes, reason: str) -> None:
     with pytest.raises(EnvelopeError, match=reason):
-        decode(frames)
+        decode(frame)
 
 
 def test_undecodable_payload_is_an_envelope_error() -> None:
@@ -110,7 +117,7 @@ def test_good_topics(topic: str) -> None:
     assert check_topic(topic) == topic.encode()
 
 
-@pytest.mark.parametrize("topic", ["", "/a", "a//b", "_sync/x", "a b", "é", "a/\x00"])
+@pytest.mark.parametrize("topic", ["", "/a", "a//b", "_sync/x", "a b", "é", "a/\x00", "a" * 256])
 def test_bad_topics(topic: str) -> None:
     with pytest.raises(ValueError, match="bad bus topic"):
         check_topic(topic)

@@ -6,7 +6,7 @@ async with Bus.connect(config.bus, "my-service") as bus:
     reply = await bus.request("dataplane", "insert_tps", req, InsertReply)
 """
 
-from cell.bus.envelope import Envelope, EnvelopeError, GapCounter, Header, Kind
+from cell.bus.envelope import Envelope, EnvelopeError, GapCounter, Kind
 from cell.bus.forwarder import Forwarder, ForwarderStats
 from cell.bus.node import (
     Bus,
@@ -28,7 +28,6 @@ __all__ = [
     "Forwarder",
     "ForwarderStats",
     "GapCounter",
-    "Header",
     "Kind",
     "RemoteError",
     "RpcFault",

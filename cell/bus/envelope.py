@@ -1,9 +1,13 @@
-"""The bus envelope: the fixed binary header every bus message carries (docs/protocols/bus.md).
+"""The bus envelope: how one bus message is laid out in one ZeroMQ frame (docs/protocols/bus.md).
 
-Sans-IO: this module turns (topic, header, payload) into ZeroMQ frames and back,
-and counts lost messages; it never touches a socket.  The header is a packed
-struct rather than a protobuf message because it rides on every message and
-must cost well under a microsecond; payloads are protobuf.
+    topic NUL | header (32 bytes) | source | type name | payload (protobuf)
+
+Sans-IO: this module turns a message into its frame and back, and counts lost
+messages; it never touches a socket.  One frame, because pyzmq's multipart
+calls cost ten times a single send/recv; the topic comes first so that
+ZeroMQ's prefix filtering works as usual.  The header is a packed struct, not
+protobuf, because it rides on every message and must cost well under a
+microsecond.
 """
 
 from __future__ import annotations
@@ -22,11 +26,14 @@ from google.protobuf.message import DecodeError, Message
 
 VERSION = 1
 # version u8, kind u8, source length u8, type-name length u8, instance u32,
-# seq u64, send time u64 (CLOCK_MONOTONIC ns), correlation id u64; then source, then type name
+# seq u64, send time u64 (CLOCK_MONOTONIC ns), correlation id u64
 HEADER = struct.Struct("!BBBBIQQQ")
+_HSIZE = HEADER.size
+_unpack = HEADER.unpack_from
 MAX_NAME = 255
-# topics are '/'-separated words; a leading '_' is reserved for the bus's own traffic
+MAX_TOPIC = 255
 M = TypeVar("M", bound="Message")
+# topics are '/'-separated words; a leading '_' is reserved for the bus's own traffic
 _TOPIC = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]*(/[A-Za-z0-9_.\-]+)*/?")
 
 
@@ -37,49 +44,47 @@ class Kind(IntEnum):
     ERROR = 3
 
 
+_KINDS = tuple(Kind)
+
+
 class EnvelopeError(ValueError):
-    """A frame set that is not a well-formed bus message."""
-
-
-@dataclass(slots=True)
-class Header:
-    kind: Kind
-    source: str
-    type_name: str
-    instance: int
-    seq: int
-    sent_ns: int
-    correlation: int
+    """A frame that is not a well-formed bus message."""
 
 
 @dataclass(slots=True)
 class Envelope:
-    """One received bus message; the payload is decoded only when asked for."""
+    """One received bus message: topic, header fields and payload (decoded only when asked for)."""
 
     topic: str
-    header: Header
+    kind: Kind
+    source: str
+    type_name: str
+    instance: int  # random per publishing node: a restarted node is a new stream
+    seq: int  # per (instance, topic)
+    sent_ns: int  # CLOCK_MONOTONIC of the sender
+    correlation: int  # request/reply matching; 0 on plain publishes
     payload: bytes
 
     def message(self) -> Message:
         """The payload as the protobuf type its header names (the module defining it must be imported)."""
-        return self.decode(message_class(self.header.type_name))
+        return self.decode(message_class(self.type_name))
 
     def decode(self, cls: type[M]) -> M:
         msg = cls()
         try:
             msg.ParseFromString(self.payload)
         except DecodeError as exc:
-            raise EnvelopeError(
-                f"payload on {self.topic!r} is not a valid {cls.DESCRIPTOR.full_name}"
-            ) from exc
+            what = cls.DESCRIPTOR.full_name
+            raise EnvelopeError(f"payload on {self.topic!r} is not a valid {what}") from exc
         return msg
 
 
 def check_topic(topic: str) -> bytes:
     """Validate a topic or prefix and return it encoded ('_'-topics are the bus's own)."""
-    if not _TOPIC.fullmatch(topic):
+    if not _TOPIC.fullmatch(topic) or len(topic) > MAX_TOPIC:
         raise ValueError(
-            f"bad bus topic {topic!r}: use '/'-separated words of letters, digits, '_', '.', '-'"
+            f"bad bus topic {topic!r}: use up to {MAX_TOPIC} bytes of '/'-separated words "
+            "of letters, digits, '_', '.', '-'"
         )
     return topic.encode()
 
@@ -94,9 +99,8 @@ def message_class(type_name: str) -> type[Message]:
         try:
             desc = descriptor_pool.Default().FindMessageTypeByName(type_name)
         except KeyError:
-            raise EnvelopeError(
-                f"unknown message type {type_name!r} (is its _pb2 module imported?)"
-            ) from None
+            why = f"unknown message type {type_name!r} (is its _pb2 module imported?)"
+            raise EnvelopeError(why) from None
         cls = _classes[type_name] = message_factory.GetMessageClass(desc)
     return cls
 
@@ -112,13 +116,13 @@ class Encoder:
         self, source: str, instance: int | None = None, clock: Callable[[], int] = time.monotonic_ns
     ) -> None:
         self.source = source
-        self._clock = clock
         self._source = source.encode()
         if not 0 < len(self._source) <= MAX_NAME:
             raise ValueError(f"bus source name must be 1..{MAX_NAME} bytes, got {source!r}")
         self.instance = instance if instance is not None else int.from_bytes(os.urandom(4), "big")
+        self._clock = clock
         self._seq: dict[bytes, int] = {}
-        self._types: dict[str, bytes] = {}
+        self._names: dict[str, tuple[int, bytes]] = {}  # type name -> (its length, source + type name)
 
     def encode(
         self,
@@ -127,20 +131,20 @@ class Encoder:
         payload: bytes,
         kind: Kind = Kind.PUBLISH,
         correlation: int = 0,
-    ) -> list[bytes]:
-        """The frames [topic, header+payload] of one message; topic must come from check_topic()."""
+    ) -> bytes:
+        """The frame of one message; topic must come from check_topic() (or be the bus's own)."""
         seq = self._seq.get(topic, 0)
         self._seq[topic] = seq + 1
-        tname = self._types.get(type_name)
-        if tname is None:
+        names = self._names.get(type_name)
+        if names is None:
             tname = type_name.encode()
             if len(tname) > MAX_NAME:
                 raise ValueError(f"message type name too long: {type_name!r}")
-            self._types[type_name] = tname
+            names = self._names[type_name] = (len(tname), self._source + tname)
         head = HEADER.pack(
-            VERSION, kind, len(self._source), len(tname), self.instance, seq, self._clock(), correlation
+            VERSION, kind, len(self._source), names[0], self.instance, seq, self._clock(), correlation
         )
-        return [topic, head + self._source + tname + payload]
+        return b"".join((topic, b"\0", head, names[1], payload))
 
 
 _names: dict[bytes, str] = {}
@@ -155,32 +159,42 @@ def _name(raw: bytes) -> str:
     return s
 
 
-def decode(frames: list[bytes]) -> Envelope:
-    """Parse the frames of one message; raise EnvelopeError with the reason if malformed."""
-    if len(frames) != 2:
-        raise EnvelopeError(f"expected 2 frames, got {len(frames)}")
-    topic, body = frames
-    if len(body) < HEADER.size:
-        raise EnvelopeError(f"header too short: {len(body)} bytes < {HEADER.size}")
-    version, kind, nsrc, ntype, instance, seq, sent_ns, corr = HEADER.unpack_from(body)
+def frame_topic(frame: bytes) -> bytes:
+    """The topic of a frame without decoding the rest (b'' if it has none)."""
+    end = frame.find(b"\0", 0, MAX_TOPIC + 1)
+    return frame[:end] if end > 0 else b""
+
+
+def decode(frame: bytes) -> Envelope:
+    """Parse one frame; raise EnvelopeError with the reason if it is not a well-formed message."""
+    end = frame.find(b"\0", 0, MAX_TOPIC + 1)
+    if end <= 0:
+        raise EnvelopeError("no topic: expected 'topic NUL header ...'")
+    h = end + 1
+    if len(frame) < h + _HSIZE:
+        raise EnvelopeError(f"header too short: {len(frame) - h} bytes < {_HSIZE}")
+    version, kind, nsrc, ntype, instance, seq, sent_ns, corr = _unpack(frame, h)
     if version != VERSION:
         raise EnvelopeError(f"unsupported envelope version {version}")
-    if kind > Kind.ERROR:
+    if kind >= len(_KINDS):
         raise EnvelopeError(f"unknown message kind {kind}")
-    start = HEADER.size + nsrc + ntype
-    if len(body) < start:
-        raise EnvelopeError(f"header names overrun the frame ({len(body)} bytes < {start})")
+    src = h + _HSIZE
+    mid = src + nsrc
+    start = mid + ntype
+    if len(frame) < start:
+        raise EnvelopeError(f"header names overrun the frame ({len(frame)} bytes < {start})")
     try:
-        header = Header(
-            Kind(kind),
-            _name(body[HEADER.size : HEADER.size + nsrc]),
-            _name(body[HEADER.size + nsrc : start]),
+        return Envelope(
+            _name(frame[:end]),
+            _KINDS[kind],
+            _name(frame[src:mid]),
+            _name(frame[mid:start]),
             instance,
             seq,
             sent_ns,
             corr,
+            frame[start:],
         )
-        return Envelope(_name(topic), header, body[start:])
     except UnicodeDecodeError as exc:
         raise EnvelopeError(f"topic or names are not UTF-8: {exc.reason}") from None
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import zmq
 
-from cell.bus.node import BusError, async_context, sync_context
+from cell.bus.node import BusError, readable, zmq_context
 from cell.config import BusConfig
 
 _ids = itertools.count()
@@ -24,7 +24,7 @@ _ids = itertools.count()
 
 @dataclass(frozen=True, slots=True)
 class ForwarderStats:
-    """libzmq's proxy statistics; it counts frames, and every bus message is 2 frames."""
+    """libzmq's proxy statistics; it counts frames, and a bus message is one frame."""
 
     frames_in: int
     bytes_in: int
@@ -34,9 +34,9 @@ class ForwarderStats:
 
     def as_counters(self) -> dict[str, float]:
         return {
-            "forwarder.messages_in": self.frames_in // 2,
+            "forwarder.messages_in": self.frames_in,
             "forwarder.bytes_in": self.bytes_in,
-            "forwarder.messages_out": self.frames_out // 2,
+            "forwarder.messages_out": self.frames_out,
             "forwarder.bytes_out": self.bytes_out,
             "forwarder.subscription_msgs": self.subscription_msgs,
         }
@@ -51,7 +51,7 @@ class Forwarder:
 
     def start(self) -> None:
         """Bind both endpoints (BusError if taken) and start forwarding."""
-        ctx = sync_context()
+        ctx = zmq_context()
         xsub, xpub, rep = ctx.socket(zmq.XSUB), ctx.socket(zmq.XPUB), ctx.socket(zmq.REP)
         self._sockets = (xsub, xpub, rep)
         for sock in self._sockets:
@@ -74,14 +74,15 @@ class Forwarder:
             target=zmq.proxy_steerable, args=(xsub, xpub, None, rep), name="cell-forwarder", daemon=True
         )
         self._thread.start()
-        self._ctl = async_context().socket(zmq.REQ)
+        self._ctl = zmq_context().socket(zmq.REQ)
         self._ctl.setsockopt(zmq.LINGER, 0)
         self._ctl.connect(self._control_ep)
 
     async def statistics(self) -> ForwarderStats:
         assert self._ctl is not None, "start() first"
-        await self._ctl.send(b"STATISTICS")
-        raw = await self._ctl.recv_multipart()
+        self._ctl.send(b"STATISTICS")
+        await readable(self._ctl)
+        raw = self._ctl.recv_multipart()
         v = [struct.unpack("=Q", f)[0] for f in raw]
         # frontend (XSUB) in / bytes in / out / bytes out, then the same for the backend (XPUB)
         return ForwarderStats(v[0], v[1], v[6], v[7], v[4])
@@ -90,7 +91,7 @@ class Forwarder:
         """Stop the proxy thread and close every socket; safe to call twice."""
         if self._thread is None:
             return
-        ctl = sync_context().socket(zmq.REQ)
+        ctl = zmq_context().socket(zmq.REQ)
         ctl.setsockopt(zmq.LINGER, 0)
         ctl.setsockopt(zmq.RCVTIMEO, int(timeout * 1000))
         ctl.connect(self._control_ep)
