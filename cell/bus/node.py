@@ -97,7 +97,7 @@ async def readable(sock: zmq.Socket) -> None:
     fut: asyncio.Future[None] = loop.create_future()
     fd = sock.getsockopt(zmq.FD)
     if fd in _waiting:
-        raise RuntimeError("another coroutine is already waiting on this socket (one reader per subscription)")
+        raise RuntimeError("another coroutine is already waiting on this socket (one reader per socket)")
     _waiting.add(fd)
 
     def check() -> None:
