@@ -255,3 +255,28 @@ async def test_two_readers_on_one_subscription_is_an_error(forwarder: BusConfig)
             await sub.recv()
         node.publish("only/x", payload(1))
         assert (await asyncio.wait_for(first, 5)).message() == payload(1)  # the first reader still works
+
+
+async def test_junk_on_a_served_topic_is_counted_and_the_server_still_answers(forwarder: BusConfig) -> None:
+    def echo(req: bus_pb2.BenchPayload) -> bus_pb2.BenchPayload:
+        return req
+
+    async with Bus.connect(forwarder, "server") as server, Bus.connect(forwarder, "client") as client:
+        await server.serve("svc", {"echo": (bus_pb2.BenchPayload, echo)})
+        sock = raw_publisher(forwarder)
+        try:
+            # raw sockets have no handshake: send junk until the server has counted some
+            async with asyncio.timeout(5):
+                while server.malformed < 3:
+                    for junk in (
+                        b"rpc/svc/echo",
+                        b"rpc/svc/echo\0\x01\x01",
+                        b"rpc/svc/echo\0" + b"\xff" * 60,
+                    ):
+                        sock.send(junk)
+                    await asyncio.sleep(0.01)  # let the server's reader run between bursts
+        finally:
+            sock.close()
+        reply = await client.request("svc", "echo", payload(5), bus_pb2.BenchPayload)
+        assert reply == payload(5)
+        assert server.served == 1  # junk was never mistaken for a request

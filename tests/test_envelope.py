@@ -5,6 +5,8 @@ from __future__ import annotations
 import struct
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from cell.bus.envelope import (
     HEADER,
@@ -121,3 +123,34 @@ def test_good_topics(topic: str) -> None:
 def test_bad_topics(topic: str) -> None:
     with pytest.raises(ValueError, match="bad bus topic"):
         check_topic(topic)
+
+
+@given(st.binary(max_size=400))
+def test_decode_never_fails_any_other_way(frame: bytes) -> None:
+    try:
+        env = decode(frame)
+    except EnvelopeError:
+        return
+    assert frame.startswith(env.topic.encode() + b"\0")
+
+
+@given(
+    topic=st.from_regex(r"[a-z][a-z0-9_]{0,20}(/[a-z0-9_.\-]{1,10}){0,4}", fullmatch=True),
+    source=st.text(min_size=1, max_size=60),
+    payload=st.binary(max_size=300),
+    kind=st.sampled_from(list(Kind)),
+    correlation=st.integers(0, 2**64 - 1),
+)
+def test_encode_decode_round_trip(
+    topic: str, source: str, payload: bytes, kind: Kind, correlation: int
+) -> None:
+    enc = Encoder(source, instance=99, clock=lambda: 123)
+    env = decode(enc.encode(check_topic(topic), "cell.v1.BenchPayload", payload, kind, correlation))
+    assert (env.topic, env.source, env.kind, env.correlation, env.payload) == (
+        topic,
+        source,
+        kind,
+        correlation,
+        payload,
+    )
+    assert (env.instance, env.seq, env.sent_ns, env.type_name) == (99, 0, 123, "cell.v1.BenchPayload")
