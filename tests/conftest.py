@@ -72,6 +72,13 @@ def cell_env() -> dict[str, str]:
     return env
 
 
+def run_cell(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    """Run the `cell` command line to completion in a child process."""
+    return subprocess.run(
+        [sys.executable, "-m", "cell", *args], capture_output=True, text=True, env=cell_env(), timeout=timeout
+    )
+
+
 @dataclass
 class RunningCell:
     proc: subprocess.Popen[str]

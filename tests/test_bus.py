@@ -74,6 +74,7 @@ async def test_no_lost_first_messages_to_a_new_subscription(forwarder: BusConfig
             pub.publish(f"late{round_}/x", payload(round_))
             assert (await sub.recv(timeout=5)).message() == payload(round_)
             sub.close()
+        assert node.counters()["bus.received"] == 10  # closed subscriptions still count
 
 
 def raw_publisher(cfg: BusConfig) -> zmq.Socket:

@@ -7,8 +7,6 @@ import json
 import os
 import signal
 import socket
-import subprocess
-import sys
 import time
 
 import pytest
@@ -16,7 +14,7 @@ import pytest
 from cell.bus import Bus
 from cell.launcher import fetch_status
 from cell.v1 import bus_pb2
-from tests.conftest import cell_env, free_port, write_config
+from tests.conftest import cell_overrides, free_port, run_cell, write_config
 
 ECHO = {"echo": "tests.plugins:echo"}
 
@@ -100,11 +98,7 @@ async def test_children_stop_when_the_launcher_is_killed(start_cell) -> None:
 async def test_cell_status_command(start_cell) -> None:
     cell = await start_cell(run=["bus", "echo"], plugins=ECHO)
 
-    def status(*extra: str) -> subprocess.CompletedProcess[str]:
-        cmd = [sys.executable, "-m", "cell", "status", "--config", str(cell.path), *extra]
-        return subprocess.run(cmd, capture_output=True, text=True, env=cell_env(), timeout=30)
-
-    table = status()
+    table = run_cell("status", "--config", str(cell.path))
     assert table.returncode == 0, table.stderr
     rows = {
         line.split()[0]: line.split() for line in table.stdout.splitlines()[2:] if not line.startswith(" ")
@@ -113,7 +107,7 @@ async def test_cell_status_command(start_cell) -> None:
     assert int(rows["bus"][3]) == cell.proc.pid
     assert "forwarder.messages_in=" in table.stdout
 
-    js = status("--json")
+    js = run_cell("status", "--config", str(cell.path), "--json")
     assert js.returncode == 0
     data = json.loads(js.stdout)
     assert data["mode"] == "single-process"
@@ -129,13 +123,7 @@ def test_cell_status_without_a_cell(tmp_path) -> None:
         {"bus": {"pub": f"tcp://127.0.0.1:{free_port()}", "sub": f"tcp://127.0.0.1:{free_port()}"}},
     )
     t0 = time.monotonic()
-    result = subprocess.run(
-        [sys.executable, "-m", "cell", "status", "--config", str(path), "--timeout", "0.5"],
-        capture_output=True,
-        text=True,
-        env=cell_env(),
-        timeout=30,
-    )
+    result = run_cell("status", "--config", str(path), "--timeout", "0.5")
     assert result.returncode == 1
     assert "no cell answered" in result.stderr
     assert time.monotonic() - t0 < 10
@@ -171,19 +159,12 @@ async def test_failing_service_is_restarted_with_backoff(start_cell, processes: 
 
 @pytest.mark.parametrize("processes", [False, True], ids=["single-process", "processes"])
 def test_failing_service_stops_the_cell_when_configured(tmp_path, processes: bool) -> None:
-    from tests.conftest import cell_overrides
-
     data = cell_overrides(
         run=["bus", "crasher"], plugins={"crasher": "tests.plugins:crasher"}, on_failure="stop"
     )
     path = write_config(tmp_path / "c.toml", data)
-    cmd = [sys.executable, "-m", "cell", "up", "--config", str(path), "--duration", "30"]
-    result = subprocess.run(
-        cmd + (["--processes"] if processes else []),
-        capture_output=True,
-        text=True,
-        env=cell_env(),
-        timeout=60,
+    result = run_cell(
+        "up", "--config", str(path), "--duration", "30", *(["--processes"] if processes else [])
     )
     assert result.returncode == 1
     assert "service 'crasher' failed" in result.stderr
@@ -191,17 +172,9 @@ def test_failing_service_stops_the_cell_when_configured(tmp_path, processes: boo
 
 
 def test_duration_stops_cleanly_with_a_summary(tmp_path) -> None:
-    from tests.conftest import cell_overrides
-
     path = write_config(tmp_path / "c.toml", cell_overrides(run=["bus"]))
     t0 = time.monotonic()
-    result = subprocess.run(
-        [sys.executable, "-m", "cell", "up", "--config", str(path), "--duration", "1.5"],
-        capture_output=True,
-        text=True,
-        env=cell_env(),
-        timeout=60,
-    )
+    result = run_cell("up", "--config", str(path), "--duration", "1.5")
     assert result.returncode == 0, result.stderr
     assert 1.5 <= time.monotonic() - t0 < 8
     assert "is up in" in result.stderr

@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
 import pytest
 
 from cell.config import DEFAULT_SOURCE, ConfigError, config_from_dict, load_config
-from tests.conftest import cell_env
+from tests.conftest import run_cell
 
 
-def test_embedded_default_is_the_two_robot_cell() -> None:
+def test_embedded_default_is_the_two_robotrun_cell() -> None:
     cfg = load_config()
     assert cfg.source == DEFAULT_SOURCE
     assert [(r.id, r.name, r.skill_port) for r in cfg.robots] == [(1, "r1", 1234), (2, "r2", 1235)]
@@ -99,17 +97,11 @@ def test_invalid_toml_and_missing_file(tmp_path: Path) -> None:
         load_config(tmp_path / "nope.toml")
 
 
-def _cell(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cell", *args], capture_output=True, text=True, env=cell_env(), timeout=60
-    )
-
-
 @pytest.mark.parametrize("command", [["config", "show"], ["up", "--duration", "1"], ["status"]])
 def test_cli_exits_2_naming_key_and_file(tmp_path: Path, command: list[str]) -> None:
     path = tmp_path / "bad.toml"
     path.write_text("[robot_defaults]\nstatus_hz = 0\n")
-    result = _cell(*command, "--config", str(path))
+    result = run_cell(*command, "--config", str(path))
     assert result.returncode == 2
     assert "robot_defaults.status_hz" in result.stderr
     assert str(path) in result.stderr
@@ -119,7 +111,7 @@ def test_cli_exits_2_naming_key_and_file(tmp_path: Path, command: list[str]) -> 
 def test_unknown_service_is_a_config_error(tmp_path: Path) -> None:
     path = tmp_path / "c.toml"
     path.write_text('[services]\nrun = ["bus", "telepathy"]\n')
-    result = _cell("up", "--duration", "1", "--config", str(path))
+    result = run_cell("up", "--duration", "1", "--config", str(path))
     assert result.returncode == 2
     assert "unknown service 'telepathy'" in result.stderr
     assert "services.run" in result.stderr
@@ -128,7 +120,7 @@ def test_unknown_service_is_a_config_error(tmp_path: Path) -> None:
 def test_config_show_prints_effective_toml(tmp_path: Path) -> None:
     path = tmp_path / "c.toml"
     path.write_text("[bus]\nhwm = 77\n")
-    result = _cell("config", "show", "--config", str(path))
+    result = run_cell("config", "show", "--config", str(path))
     assert result.returncode == 0
     shown = tomllib.loads(result.stdout)
     assert shown["bus"]["hwm"] == 77

@@ -191,8 +191,12 @@ class Subscription:
     def close(self) -> None:
         if not self._sock.closed:
             self._sock.close(linger=0)
-        with contextlib.suppress(ValueError):
+        if self in self._bus._subs:
             self._bus._subs.remove(self)
+            retired = self._bus._retired  # its counts stay in the node's totals
+            retired["received"] += self.received
+            retired["lost"] += self.lost
+            retired["malformed"] += self.malformed
 
 
 class Bus:
@@ -211,6 +215,8 @@ class Bus:
         self._corr = itertools.count(1)
         self._tokens = itertools.count(1)
         self._subs: list[Subscription] = []
+        # counts of closed subscriptions: heartbeat counters never go backwards
+        self._retired = {"received": 0, "lost": 0, "malformed": 0}
         self._handlers: set[asyncio.Task[None]] = set()
         self._reader: asyncio.Task[None] | None = None
         self.published = 0
@@ -265,12 +271,13 @@ class Bus:
 
     def counters(self) -> dict[str, float]:
         """What this node has done so far, for heartbeats."""
+        old = self._retired
         return {
             "bus.published": self.published,
             "bus.dropped": self.dropped,
-            "bus.received": sum(s.received for s in self._subs),
-            "bus.lost": sum(s.lost for s in self._subs),
-            "bus.malformed": self.malformed + sum(s.malformed for s in self._subs),
+            "bus.received": old["received"] + sum(s.received for s in self._subs),
+            "bus.lost": old["lost"] + sum(s.lost for s in self._subs),
+            "bus.malformed": self.malformed + old["malformed"] + sum(s.malformed for s in self._subs),
             "bus.requests": self.requests,
             "bus.served": self.served,
             "bus.late_replies": self.late_replies,
