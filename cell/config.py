@@ -65,6 +65,10 @@ def _zmq_endpoint(v: str) -> str | None:
     return f"must be tcp://HOST:PORT or ipc://PATH (got {v!r})"
 
 
+def _joint_vector(v: list[float]) -> str | None:
+    return None if len(v) == 6 else f"must list 6 joint values in rad (got {len(v)})"
+
+
 def _check(fn: Callable[[Any], str | None]) -> Any:
     return field(metadata={"check": fn})
 
@@ -151,10 +155,17 @@ class RobotConfig:
     skill_port: int = _check(_port)
     status_hz: int = _check(_positive)
     command_hz: int = _check(_positive)
+    truth_hz: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
+    watchdog_windows: int = _check(_positive)
+    q0: list[float] = field(metadata={"check": _joint_vector})
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         if self.command_hz > self.status_hz:
             raise err("command_hz", f"must be <= status_hz ({self.status_hz})")
+        if self.status_hz % self.command_hz:
+            raise err("command_hz", f"must divide status_hz ({self.status_hz}): windows end on status ticks")
+        if self.truth_hz > self.status_hz:
+            raise err("truth_hz", f"must be <= status_hz ({self.status_hz})")
 
 
 @dataclass(frozen=True)
@@ -165,6 +176,9 @@ class RobotDefaults:
     backend: Literal["mujoco", "kinematic"]
     status_hz: int = _check(_positive)
     command_hz: int = _check(_positive)
+    truth_hz: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
+    watchdog_windows: int = _check(_positive)
+    q0: list[float] = field(metadata={"check": _joint_vector})
 
 
 @dataclass(frozen=True)

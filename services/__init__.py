@@ -15,6 +15,7 @@ from cell.service import ServiceSpec
 # name -> module; imported only when the service is run
 BUILTIN: dict[str, str] = {
     "bus": "cell.services.bus",
+    "robots": "cell.services.robots",
 }
 
 

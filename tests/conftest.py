@@ -32,12 +32,13 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
             return port
 
 
-def cell_overrides(**services: object) -> dict:
+def cell_overrides(robots: list[dict] | None = None, **services: object) -> dict:
     """Config overrides putting a cell on free ports, so tests never collide with each other or a dev cell."""
-    robots = [
-        {"id": 1, "name": "r1", "skill_port": free_port()},
-        {"id": 2, "name": "r2", "skill_port": free_port()},
-    ]
+    if robots is None:
+        robots = [
+            {"id": 1, "name": "r1", "skill_port": free_port()},
+            {"id": 2, "name": "r2", "skill_port": free_port()},
+        ]
     return {
         "bus": {"pub": f"tcp://127.0.0.1:{free_port()}", "sub": f"tcp://127.0.0.1:{free_port()}"},
         "dataplane": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
@@ -122,9 +123,10 @@ async def start_cell(tmp_path: Path) -> AsyncIterator:
         plugins: dict[str, str] | None = None,
         processes: bool = False,
         wait_for: set[str] | None = None,
+        robots: list[dict] | None = None,
         **services: object,
     ) -> RunningCell:
-        data = cell_overrides(run=run, plugins=plugins or {}, **services)
+        data = cell_overrides(robots, run=run, plugins=plugins or {}, **services)
         path = write_config(tmp_path / f"cell{len(cells)}.toml", data)
         config = load_config(path)
         cmd = [sys.executable, "-m", "cell", "up", "--config", str(path)]

@@ -1,0 +1,182 @@
+"""`cell bench robots`: the most robots one core runs at their status rate with < 0.1% late sends.
+
+Each trial runs N robots of one backend in a process pinned to one core, with
+a bare reflector pinned to the other core answering every status datagram
+with a command (as the data plane would), for a few seconds; it passes when
+fewer than 0.1% of status datagrams left a full period late, none was lost to
+a full socket buffer and no tick was skipped.  N doubles until a trial fails,
+then a bisection finds the largest passing N.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import resource
+import time
+from typing import Any
+
+import numpy as np
+
+from cell import aio
+from cell.config import load_config
+from cell.robot import datagram, udp
+from cell.robot.datagram import Kind
+
+LATE_LIMIT = 0.001
+
+
+def _pin(core: int) -> None:
+    if hasattr(os, "sched_setaffinity") and core < (os.cpu_count() or 1):
+        os.sched_setaffinity(0, {core})
+
+
+def reflector(out: Any, stop: Any, answer: bool = True, core: int = 1) -> None:
+    """Answer every status datagram with a command (velocity 0, seq and position echoed), or just count."""
+    _pin(core)
+    sock = udp.open_socket("127.0.0.1")
+    sender = udp.Sender(sock, datagram.SIZE)
+    out.put(sock.getsockname())
+    import select
+
+    poller = select.epoll()
+    poller.register(sock.fileno(), select.EPOLLIN)
+    answered = received = 0
+    while not stop.is_set():
+        if not poller.poll(0.1):
+            continue
+        while (got := udp.recv_batch(sock)) is not None:
+            data, seg, sender_addr = got
+            if seg != datagram.SIZE or len(data) % seg:
+                continue
+            received += len(data) // seg
+            if not answer:
+                continue
+            recs = datagram.view(bytearray(data))
+            recs["kind"] = Kind.COMMAND
+            recs["velocity"] = 0
+            answered += sender.send(memoryview(recs.view(np.uint8)), sender_addr)
+    out.put((received, answered))
+    sock.close()
+
+
+def _trial_child(backend: str, n: int, seconds: float, dataplane: str, out: Any, core: int = 0) -> None:
+    _pin(core)
+    from cell.robot.emulator import RobotGroup
+
+    robots = [
+        {"id": i + 1, "name": f"b{i}", "skill_port": 20000 + i, "backend": backend, "truth_hz": 0}
+        for i in range(n)
+    ]
+    cfg = load_config(overrides={"robots": robots})
+    group = RobotGroup(cfg.robots, dataplane)
+
+    async def main() -> None:
+        import asyncio
+
+        task = asyncio.ensure_future(group.run())
+        await asyncio.sleep(0.3)  # warm-up, not measured
+        base = group.counters.as_dict()
+        group.counters.lateness_us.clear()
+        cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+        t0 = time.monotonic()
+        await asyncio.sleep(seconds)
+        elapsed = time.monotonic() - t0
+        cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+        end = group.counters.as_dict()
+        task.cancel()
+        delta = {k: end[k] - base.get(k, 0) for k in end if not k.startswith("lateness")}
+        delta.update({k: v for k, v in end.items() if k.startswith("lateness")})
+        cpu = (cpu1.ru_utime + cpu1.ru_stime) - (cpu0.ru_utime + cpu0.ru_stime)
+        out.put({**delta, "seconds": elapsed, "cpu": cpu / elapsed})
+
+    try:
+        aio.run(main())
+    finally:
+        group.close()
+
+
+def trial(backend: str, n: int, seconds: float = 3.0, answer: bool = True) -> dict[str, float]:
+    ctx = mp.get_context("spawn")
+    out, stop = ctx.Queue(), ctx.Event()
+    refl = ctx.Process(target=reflector, args=(out, stop, answer), daemon=True)
+    refl.start()
+    host, port = out.get(timeout=30)
+    child = ctx.Process(target=_trial_child, args=(backend, n, seconds, f"{host}:{port}", out), daemon=True)
+    child.start()
+    try:
+        result = out.get(timeout=seconds + 60)
+    except queue.Empty:
+        result = {}
+    child.join(10)
+    stop.set()
+    received, answered = out.get(timeout=10)
+    refl.join(5)
+    sent = result.get("status_sent", 0)
+    expected = n * 6 * (result.get("seconds", seconds) * load_config().robot_defaults.status_hz)
+    # a missed tick is a whole period of every robot's status not sent on time
+    late_count = result.get("late_sends", 0) + result.get("missed_ticks", 0) * n * 6
+    late = late_count / expected if result else 1.0
+    unsent = result.get("status_unsent", 1)
+    ok = bool(result) and late < LATE_LIMIT and unsent == 0 and sent >= 0.99 * expected
+    return {
+        **result,
+        "robots": n,
+        "late_fraction": late,
+        "expected": expected,
+        "received": received,
+        "answered": answered,
+        "ok": ok,
+    }
+
+
+def max_robots(
+    backend: str, start: int, seconds: float, log: Any = None, answer: bool = True
+) -> dict[str, Any]:
+    trials: list[dict[str, Any]] = []
+
+    def run(n: int) -> bool:
+        r = {"backend": backend, **trial(backend, n, seconds, answer)}
+        trials.append(r)
+        if log:
+            log(r)
+        return bool(r["ok"])
+
+    lo, hi = 0, start
+    while run(hi):
+        lo, hi = hi, hi * 2
+    while hi - lo > max(1, lo // 10):  # within 10%
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if run(mid) else (lo, mid)
+    best = max((t for t in trials if t["ok"]), key=lambda t: t["robots"], default=None)
+    return {"backend": backend, "max_robots": lo, "best": best, "trials": trials}
+
+
+def run_bench(
+    backends: list[str], seconds: float = 3.0, log: Any = None, answer: bool = True
+) -> dict[str, Any]:
+    starts = {"kinematic": 16, "mujoco": 8}
+    return {b: max_robots(b, starts[b], seconds, log, answer) for b in backends}
+
+
+def format_trial(r: dict[str, float]) -> str:
+    verdict = "ok  " if r["ok"] else "FAIL"
+    return (
+        f"  {int(r['robots']):>5} robots: {verdict} late {100 * r['late_fraction']:.3f}%  "
+        f"sent {int(r.get('status_sent', 0)):,}/{int(r['expected']):,}  "
+        f"commands {int(r.get('commands', 0)):,}  "
+        f"tick lateness p50/p99 {r.get('lateness_p50_us', float('nan')):.0f}/"
+        f"{r.get('lateness_p99_us', float('nan')):.0f} us  cpu {100 * r.get('cpu', 0):.0f}%"
+    )
+
+
+def format_result(result: dict[str, Any]) -> str:
+    lines = [
+        "robots at 500 Hz status on one core, < 0.1% late sends (answered by a reflector on the other core):"
+    ]
+    for b, r in result.items():
+        best = r["best"]
+        extra = f" ({format_trial(best).strip()})" if best else ""
+        lines.append(f"{b:>10}: {r['max_robots']} robots{extra}")
+    return "\n".join(lines)

@@ -1,0 +1,78 @@
+"""How the robots of a group move: a kinematic model (fleets) or MuJoCo physics (one per robot).
+
+Both take velocity references from the same Drives (window semantics and
+limits) and expose q and qd, (robots, dof) arrays, after each step.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from cell.robot.arm import ArmModel
+from cell.robot.drive import Drives
+
+
+class KinematicArms:
+    """Joints move exactly as their drives do: the fast model for fleets of hundreds of robots."""
+
+    def __init__(self, arm: ArmModel, q0: np.ndarray, watchdog: int) -> None:
+        lim = arm.limits
+        self.drives = Drives(len(q0), lim.v_max, lim.a_max, watchdog)
+        self.q_min, self.q_max = lim.q_min, lim.q_max
+        self.q = np.array(q0, np.float64)
+        self.qd = self.drives.velocity
+        self.limit_hits = 0
+
+    def step(self, dt: float) -> None:
+        self.q += self.drives.step(dt) * dt
+        out = (self.q < self.q_min) | (self.q > self.q_max)
+        if out.any():  # a joint at its end stop halts there
+            self.limit_hits += int(out.sum())
+            np.clip(self.q, self.q_min, self.q_max, out=self.q)
+            self.drives.velocity[out] = 0.0
+            self.drives.target[out] = 0.0
+
+
+class MujocoArms:
+    """Each robot simulated by MuJoCo: velocity-mode servos on the arm's own model.
+
+    The drive's velocity reference is integrated into a position reference and
+    fed forward, ctrl = q_ref + (kv/kp) v_ref, so the servo tracks velocity
+    without the lag of a plain position servo; gravity is compensated by the model.
+    """
+
+    def __init__(self, arm: ArmModel, q0: np.ndarray, watchdog: int) -> None:
+        m = arm.model
+        lim = arm.limits
+        self.model = m
+        self.drives = Drives(len(q0), lim.v_max, lim.a_max, watchdog)
+        self.q_min, self.q_max = lim.q_min, lim.q_max
+        self.data = [mujoco.MjData(m) for _ in range(len(q0))]
+        for d, q in zip(self.data, q0, strict=True):
+            d.qpos[:] = q
+            d.ctrl[:] = q
+            mujoco.mj_forward(m, d)
+        self.q_ref = np.array(q0, np.float64)
+        self.feedforward = -m.actuator_biasprm[:, 2] / m.actuator_gainprm[:, 0]  # kv / kp
+        self.q = np.array(q0, np.float64)
+        self.qd = np.zeros_like(self.q)
+        self.limit_hits = 0
+
+    def step(self, dt: float) -> None:
+        h = self.model.opt.timestep
+        steps = max(1, round(dt / h))
+        for _ in range(steps):
+            v = self.drives.step(h)
+            self.q_ref += v * h
+            np.clip(self.q_ref, self.q_min, self.q_max, out=self.q_ref)
+            ctrl = self.q_ref + self.feedforward * self.drives.velocity
+            for i, d in enumerate(self.data):
+                d.ctrl[:] = ctrl[i]
+                mujoco.mj_step(self.model, d)
+        for i, d in enumerate(self.data):
+            self.q[i] = d.qpos
+            self.qd[i] = d.qvel
+
+
+BACKENDS = {"kinematic": KinematicArms, "mujoco": MujocoArms}

@@ -1,0 +1,73 @@
+"""Velocity-mode joint drives with the robot's command-window semantics, vectorised over joints.
+
+As in the in-network control design, each joint waits for commands during a
+command window; of several, only the latest is kept, and it is executed at
+the end of the window.  A robot whose joints get no command for `watchdog`
+windows makes a protective stop (decelerates to 0 within its limits) and
+resumes once every joint is commanded again.  The watchdog arms with a robot's
+first command: a robot nobody has commanded yet simply stands still.  The
+drive never exceeds the
+joint's velocity or acceleration limit, whatever it is told.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+WATCHDOG_WINDOWS = 3
+
+
+class Drives:
+    """`robots` robots of `dof` joints each; arrays are (robots, dof)."""
+
+    def __init__(self, robots: int, v_max: np.ndarray, a_max: np.ndarray, watchdog: int = WATCHDOG_WINDOWS):
+        self.dof = len(v_max)
+        shape = (robots, self.dof)
+        self.v_max = np.broadcast_to(np.asarray(v_max, np.float64), shape).copy()
+        self.a_max = np.broadcast_to(np.asarray(a_max, np.float64), shape).copy()
+        self.watchdog = watchdog
+        self.velocity = np.zeros(shape)  # what the drive is doing now (its velocity reference)
+        self.target = np.zeros(shape)  # the command executing in this window
+        self.pending = np.zeros(shape)  # the latest command received in this window
+        self.has_pending = np.zeros(shape, bool)
+        self.missed = np.zeros(shape, np.int64)  # windows in a row without a command, per joint
+        self.stopped = np.zeros(robots, bool)  # protective stop
+        self.armed = np.zeros(robots, bool)  # commanded at least once: the watchdog is on
+        self.stops = 0  # protective stops so far
+        self.windows = 0
+
+    def command(self, robot: np.ndarray, joint: np.ndarray, velocity: np.ndarray) -> None:
+        """Commands received in this window, in arrival order: the latest per joint wins."""
+        if robot.size == 0:
+            return
+        flat = robot * self.dof + joint
+        # np assignment gives no order guarantee for repeated indices: keep each joint's last one
+        last = flat.size - 1 - np.unique(flat[::-1], return_index=True)[1]
+        self.pending.flat[flat[last]] = velocity[last]
+        self.has_pending.flat[flat[last]] = True
+
+    def end_window(self) -> tuple[np.ndarray, np.ndarray]:
+        """Execute the kept commands; return (robots that just stopped, robots that just resumed)."""
+        self.windows += 1
+        has = self.has_pending
+        self.target[has] = self.pending[has]
+        self.missed[has] = 0
+        self.missed[~has] += 1
+        self.armed |= has.any(axis=1)
+        starved = (self.missed >= self.watchdog).any(axis=1) & self.armed
+        fed = has.all(axis=1)
+        stopping = starved & ~self.stopped
+        resuming = self.stopped & fed
+        self.stopped = (self.stopped | stopping) & ~resuming
+        self.stops += int(stopping.sum())
+        self.target[self.stopped] = 0.0
+        has[:] = False
+        return np.flatnonzero(stopping), np.flatnonzero(resuming)
+
+    def step(self, dt: float) -> np.ndarray:
+        """Advance the drives by dt toward their targets within limits; return the mean velocity over dt."""
+        goal = np.clip(self.target, -self.v_max, self.v_max)
+        dv = np.clip(goal - self.velocity, -self.a_max * dt, self.a_max * dt)
+        before = self.velocity.copy()
+        self.velocity += dv
+        return 0.5 * (before + self.velocity)

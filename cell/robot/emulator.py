@@ -1,0 +1,239 @@
+"""A group of emulated robots that tick together: commands in, drives and physics, status out.
+
+One tick per status period, on absolute deadlines (no accumulating sleep
+error).  Each tick sends every joint's status (the state at that deadline)
+from its robot's own socket, drains the commands that arrived, ends a command
+window when one is due (the kept commands execute) and steps the backend to
+the next deadline.  Nothing here knows about the bus: the robots service publishes what
+the group reports, and `cell bench robots` drives groups bare.
+"""
+
+from __future__ import annotations
+
+import select
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cell.config import RobotConfig
+from cell.robot import datagram, udp
+from cell.robot.arm import ArmModel, arm_model
+from cell.robot.backends import BACKENDS
+from cell.robot.datagram import Kind, Reject
+from cell.timer import PeriodicTimer
+
+_COMMAND = int(Kind.COMMAND)
+MAX_READS = 256  # recvmsg calls per socket per tick
+
+
+@dataclass
+class GroupCounters:
+    ticks: int = 0
+    status_sent: int = 0
+    status_unsent: int = 0  # socket buffer full
+    late_sends: int = 0  # left a full status period or more after their deadline
+    missed_ticks: int = 0  # status periods that passed with no tick at all (the process was held up)
+    commands: int = 0
+    rejected: dict[str, int] = field(default_factory=lambda: {r.name.lower(): 0 for r in Reject})
+    protective_stops: int = 0
+    resumes: int = 0
+    lateness_us: list[float] = field(default_factory=list)  # tick starts, recent
+
+    def as_dict(self) -> dict[str, float]:
+        late = sorted(self.lateness_us)
+        out = {
+            "ticks": self.ticks,
+            "status_sent": self.status_sent,
+            "status_unsent": self.status_unsent,
+            "late_sends": self.late_sends,
+            "missed_ticks": self.missed_ticks,
+            "commands": self.commands,
+            "protective_stops": self.protective_stops,
+            "resumes": self.resumes,
+        }
+        out.update({f"rejected.{k}": v for k, v in self.rejected.items()})
+        if late:
+            out["lateness_p50_us"] = late[len(late) // 2]
+            out["lateness_p99_us"] = late[min(len(late) - 1, int(len(late) * 0.99))]
+        return out
+
+
+class RobotGroup:
+    """Robots of one backend and one schedule, each with its own UDP socket."""
+
+    def __init__(
+        self,
+        robots: list[RobotConfig],
+        dataplane: str,
+        host: str = "127.0.0.1",
+        arm: ArmModel | None = None,
+    ) -> None:
+        first = robots[0]
+        for r in robots:
+            if (r.backend, r.model, r.status_hz, r.command_hz) != (
+                first.backend,
+                first.model,
+                first.status_hz,
+                first.command_hz,
+            ):
+                raise ValueError("a robot group shares backend, model and rates")
+        self.robots = robots
+        self.n = len(robots)
+        self.arm = arm or arm_model(first.model)
+        self.dof = dof = self.arm.dof
+        self.period = 1.0 / first.status_hz
+        self.window_ticks = first.status_hz // first.command_hz
+        self.dataplane = udp.address(dataplane)
+        q0 = np.array([r.q0 for r in robots], np.float64)
+        self.backend = BACKENDS[first.backend](self.arm, q0, first.watchdog_windows)
+        self.drives = self.backend.drives
+        self.ids = np.array([r.id for r in robots], np.uint16)
+        self.socks = []
+        try:
+            for _ in robots:
+                self.socks.append(udp.open_socket(host))
+        except BaseException:
+            self.close()
+            raise
+        self.senders = [udp.Sender(s, datagram.SIZE) for s in self.socks]
+        self.row_of_fd = {s.fileno(): i for i, s in enumerate(self.socks)}
+        self.poller = select.epoll()
+        for s in self.socks:
+            self.poller.register(s.fileno(), select.EPOLLIN)
+        self.status = datagram.empty(self.n * dof)
+        rows = np.repeat(np.arange(self.n), dof)
+        self.status["robot_id"] = self.ids[rows]
+        self.status["joint_id"] = np.tile(np.arange(dof), self.n)
+        self.status["kind"] = Kind.STATUS
+        self._status_bytes = memoryview(self.status.view(np.uint8))
+        self.seq = np.zeros(self.n * dof, np.uint32)
+        self._pack()  # the first status: the start pose
+        self.tick_no = -1  # index of the last status period served (period k is due at start + k T)
+        self.counters = GroupCounters()
+
+    def addresses(self) -> list[str]:
+        return [f"{h}:{p}" for h, p, *_ in (s.getsockname() for s in self.socks)]
+
+    def close(self) -> None:
+        if hasattr(self, "poller"):
+            self.poller.close()
+        for s in self.socks:
+            s.close()
+
+    # --- one tick --------------------------------------------------------------------------
+
+    def receive(self) -> int:
+        """Take the commands waiting; count and drop what is malformed or foreign.
+
+        Each readable socket is drained (commands sent one by one must all land
+        in this window; a flood is capped at MAX_READS a socket a tick, the rest
+        waits for the next tick), then one vectorised pass checks everything.
+        """
+        size = datagram.SIZE
+        chunks: list[bytes] = []
+        owners: list[int] = []
+        counts: list[int] = []
+        rejected = self.counters.rejected
+        socks, row_of_fd = self.socks, self.row_of_fd
+        for fd, _ in self.poller.poll(0):
+            row = row_of_fd[fd]
+            sock = socks[row]
+            for _ in range(MAX_READS):
+                got = udp.recv_batch(sock)
+                if got is None:
+                    break
+                data, seg, _sender = got
+                if seg != size:  # every datagram of this burst has the wrong length
+                    rejected["length"] += max(1, -(-len(data) // max(seg, 1)))
+                    continue
+                whole = len(data) - len(data) % size
+                if whole != len(data):
+                    rejected["length"] += 1
+                if whole:
+                    chunks.append(data[:whole] if whole != len(data) else data)
+                    owners.append(row)
+                    counts.append(whole // size)
+        if not chunks:
+            return 0
+        recs = datagram.view(b"".join(chunks))
+        rows = np.repeat(np.array(owners), counts)
+        bad_kind = recs["kind"] != _COMMAND
+        bad_robot = ~bad_kind & (recs["robot_id"] != self.ids[rows])
+        bad_joint = ~bad_kind & ~bad_robot & (recs["joint_id"] >= self.dof)
+        ok = ~(bad_kind | bad_robot | bad_joint)
+        n_ok = int(ok.sum())
+        if n_ok != recs.size:
+            rejected["kind"] += int(bad_kind.sum())
+            rejected["robot"] += int(bad_robot.sum())
+            rejected["joint"] += int(bad_joint.sum())
+            recs, rows = recs[ok], rows[ok]
+        if n_ok:
+            self.drives.command(rows, recs["joint_id"].astype(np.int64), datagram.velocities(recs))
+            self.counters.commands += n_ok
+        return n_ok
+
+    def tick(
+        self, deadline: float, periods: int = 1, clock: Callable[[], float] = time.monotonic
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Serve the status period due at `deadline`; return (rows that stopped, rows that resumed).
+
+        The status goes out first: it was packed at the end of the last tick, so it is the
+        state at `deadline`, sent the moment the period starts.  Then the commands that came
+        in are taken, a window ends if one is due, and the robots move on to the next
+        deadline, `periods` periods later if ticks were missed (they move for all of it).
+        """
+        self._send(deadline, clock)
+        self.receive()
+        stopping = resuming = np.empty(0, np.int64)
+        last, self.tick_no = self.tick_no, self.tick_no + periods
+        # windows end at periods W, 2W, ... (W status periods a window); one may have ended since last
+        if self.tick_no // self.window_ticks > max(last, 0) // self.window_ticks:
+            stopping, resuming = self.drives.end_window()
+            self.counters.protective_stops += stopping.size
+            self.counters.resumes += resuming.size
+        self.backend.step(self.period * periods)
+        self._pack()
+        self.counters.ticks += 1
+        self.counters.missed_ticks += periods - 1
+        return stopping, resuming
+
+    def _pack(self) -> None:
+        """The next status of every joint, ready to go at the next deadline."""
+        self.seq += 1
+        st = self.status
+        st["seq"] = self.seq
+        st["velocity"] = np.rint(self.backend.qd.ravel() * datagram.SCALE)
+        st["position"] = np.rint(self.backend.q.ravel() * datagram.SCALE)
+
+    def _send(self, deadline: float, clock: Callable[[], float]) -> None:
+        chunk = self.dof * datagram.SIZE
+        buf, addr, c = self._status_bytes, self.dataplane, self.counters
+        late_after = deadline + self.period
+        for r, sender in enumerate(self.senders):
+            sent = sender.send(buf[r * chunk : (r + 1) * chunk], addr)
+            c.status_sent += sent
+            c.status_unsent += self.dof - sent
+            if clock() >= late_after:
+                c.late_sends += sent
+
+    # --- the schedule ----------------------------------------------------------------------
+
+    async def run(self, on_tick: Callable[[RobotGroup, np.ndarray, np.ndarray], None] | None = None) -> None:
+        """Tick forever on absolute deadlines; on_tick(group, stopped rows, resumed rows) after each."""
+        period_ns = round(self.period * 1e9)
+        timer = PeriodicTimer(time.monotonic_ns() + period_ns, period_ns)
+        lateness = self.counters.lateness_us
+        try:
+            while True:
+                periods = await timer.wait()
+                deadline = (timer.start_ns + (timer.ticks - 1) * period_ns) / 1e9
+                lateness.append((time.monotonic() - deadline) * 1e6)
+                if len(lateness) > 4096:
+                    del lateness[:2048]
+                stopping, resuming = self.tick(deadline, periods)
+                if on_tick is not None:
+                    on_tick(self, stopping, resuming)
+        finally:
+            timer.close()

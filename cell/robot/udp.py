@@ -1,0 +1,89 @@
+"""UDP sockets for many small datagrams: Linux GSO/GRO batching with portable fallbacks.
+
+Loopback UDP costs this machine ~2.3 us of kernel time per datagram sent one
+syscall at a time; with UDP_SEGMENT (GSO) one sendto carries a robot's six
+24-byte datagrams for ~1.2 us each, and they still arrive as six separate
+datagrams.  UDP_GRO lets one recvmsg return a burst of same-sized datagrams.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import struct
+
+from cell.config import parse_host_port
+
+UDP_SEGMENT = 103  # linux/udp.h
+UDP_GRO = 104
+BUFFER_BYTES = 4 * 1024 * 1024  # the system maximum here; the default 212 KB loses bursts
+_GRO_CMSG = socket.CMSG_SPACE(4)
+
+
+def open_socket(host: str = "127.0.0.1", port: int = 0, *, gro: bool = True) -> socket.socket:
+    """A non-blocking UDP socket with large buffers, bound to (host, port)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, BUFFER_BYTES)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, BUFFER_BYTES)
+        if gro:
+            with contextlib.suppress(OSError):  # no GRO: recv_batch still works, one datagram a call
+                sock.setsockopt(socket.SOL_UDP, UDP_GRO, 1)
+        sock.bind((host, port))
+        sock.setblocking(False)
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
+def address(text: str) -> tuple[str, int]:
+    return parse_host_port(text)
+
+
+class Sender:
+    """Sends runs of equal-sized datagrams from one socket to one address (GSO when the kernel has it)."""
+
+    def __init__(self, sock: socket.socket, size: int) -> None:
+        self.sock = sock
+        self.size = size
+        try:
+            sock.setsockopt(socket.SOL_UDP, UDP_SEGMENT, size)
+            self.gso = True
+        except OSError:
+            self.gso = False
+
+    def send(self, buf: memoryview, addr: tuple[str, int]) -> int:
+        """Send buf (a whole number of datagrams) to addr; return how many datagrams went out."""
+        if self.gso:
+            try:
+                self.sock.sendto(buf, addr)
+                return len(buf) // self.size
+            except BlockingIOError:
+                return 0
+        sent = 0
+        for i in range(0, len(buf), self.size):
+            try:
+                self.sock.sendto(buf[i : i + self.size], addr)
+            except BlockingIOError:
+                break
+            sent += 1
+        return sent
+
+
+def recv_batch(sock: socket.socket, bufsize: int = 65536) -> tuple[bytes, int, tuple] | None:
+    """One recvmsg: (data, segment size, sender) or None if nothing waits.
+
+    With GRO, data may hold several datagrams of `segment size` bytes each (the
+    last may be shorter); without it, segment size is len(data).
+    """
+    try:
+        data, anc, _flags, sender = sock.recvmsg(bufsize, _GRO_CMSG)
+    except (BlockingIOError, InterruptedError):
+        return None
+    seg = len(data)
+    for level, kind, raw in anc:
+        if level == socket.SOL_UDP and kind == UDP_GRO and len(raw) >= 4:
+            seg = struct.unpack("=i", raw[:4])[0]
+    return data, seg, sender

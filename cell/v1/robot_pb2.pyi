@@ -1,0 +1,80 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class RobotAnnounce(_message.Message):
+    __slots__ = ("robot_id", "name", "model", "backend", "joints", "q_min", "q_max", "v_max", "a_max", "udp_address", "status_hz", "command_hz", "dataplane")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    MODEL_FIELD_NUMBER: _ClassVar[int]
+    BACKEND_FIELD_NUMBER: _ClassVar[int]
+    JOINTS_FIELD_NUMBER: _ClassVar[int]
+    Q_MIN_FIELD_NUMBER: _ClassVar[int]
+    Q_MAX_FIELD_NUMBER: _ClassVar[int]
+    V_MAX_FIELD_NUMBER: _ClassVar[int]
+    A_MAX_FIELD_NUMBER: _ClassVar[int]
+    UDP_ADDRESS_FIELD_NUMBER: _ClassVar[int]
+    STATUS_HZ_FIELD_NUMBER: _ClassVar[int]
+    COMMAND_HZ_FIELD_NUMBER: _ClassVar[int]
+    DATAPLANE_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    name: str
+    model: str
+    backend: str
+    joints: int
+    q_min: _containers.RepeatedScalarFieldContainer[float]
+    q_max: _containers.RepeatedScalarFieldContainer[float]
+    v_max: _containers.RepeatedScalarFieldContainer[float]
+    a_max: _containers.RepeatedScalarFieldContainer[float]
+    udp_address: str
+    status_hz: int
+    command_hz: int
+    dataplane: str
+    def __init__(self, robot_id: _Optional[int] = ..., name: _Optional[str] = ..., model: _Optional[str] = ..., backend: _Optional[str] = ..., joints: _Optional[int] = ..., q_min: _Optional[_Iterable[float]] = ..., q_max: _Optional[_Iterable[float]] = ..., v_max: _Optional[_Iterable[float]] = ..., a_max: _Optional[_Iterable[float]] = ..., udp_address: _Optional[str] = ..., status_hz: _Optional[int] = ..., command_hz: _Optional[int] = ..., dataplane: _Optional[str] = ...) -> None: ...
+
+class RobotTruth(_message.Message):
+    __slots__ = ("robot_id", "t_ns", "q", "qd", "tool_pose", "target", "stopped", "tick")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    Q_FIELD_NUMBER: _ClassVar[int]
+    QD_FIELD_NUMBER: _ClassVar[int]
+    TOOL_POSE_FIELD_NUMBER: _ClassVar[int]
+    TARGET_FIELD_NUMBER: _ClassVar[int]
+    STOPPED_FIELD_NUMBER: _ClassVar[int]
+    TICK_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    t_ns: int
+    q: _containers.RepeatedScalarFieldContainer[float]
+    qd: _containers.RepeatedScalarFieldContainer[float]
+    tool_pose: _containers.RepeatedScalarFieldContainer[float]
+    target: _containers.RepeatedScalarFieldContainer[float]
+    stopped: bool
+    tick: int
+    def __init__(self, robot_id: _Optional[int] = ..., t_ns: _Optional[int] = ..., q: _Optional[_Iterable[float]] = ..., qd: _Optional[_Iterable[float]] = ..., tool_pose: _Optional[_Iterable[float]] = ..., target: _Optional[_Iterable[float]] = ..., stopped: _Optional[bool] = ..., tick: _Optional[int] = ...) -> None: ...
+
+class RobotEvent(_message.Message):
+    __slots__ = ("robot_id", "name", "kind", "text", "t_ns")
+    class Kind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+        __slots__ = ()
+        KIND_UNSPECIFIED: _ClassVar[RobotEvent.Kind]
+        KIND_PROTECTIVE_STOP: _ClassVar[RobotEvent.Kind]
+        KIND_RESUMED: _ClassVar[RobotEvent.Kind]
+    KIND_UNSPECIFIED: RobotEvent.Kind
+    KIND_PROTECTIVE_STOP: RobotEvent.Kind
+    KIND_RESUMED: RobotEvent.Kind
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    TEXT_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    name: str
+    kind: RobotEvent.Kind
+    text: str
+    t_ns: int
+    def __init__(self, robot_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[RobotEvent.Kind, str]] = ..., text: _Optional[str] = ..., t_ns: _Optional[int] = ...) -> None: ...

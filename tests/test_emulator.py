@@ -1,0 +1,141 @@
+"""Robot groups over real UDP sockets on loopback, ticked by hand (deterministic)."""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+import pytest
+
+from cell.config import load_config
+from cell.robot import datagram, udp
+from cell.robot.datagram import Datagram, Kind
+from cell.robot.emulator import RobotGroup
+from tests.conftest import cell_overrides
+
+Q0 = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
+
+
+@pytest.fixture
+def plant():
+    """A socket standing in for the data plane, and a factory of robot groups sending to it."""
+    dp = udp.open_socket("127.0.0.1")
+    groups: list[RobotGroup] = []
+
+    def make(backend: str = "kinematic", n: int = 1) -> RobotGroup:
+        robots = [
+            {"id": 10 + i, "name": f"t{i}", "skill_port": 3000 + i, "backend": backend} for i in range(n)
+        ]
+        cfg = load_config(overrides={**cell_overrides(), "robots": robots})
+        host, port = dp.getsockname()
+        g = RobotGroup(cfg.robots, f"{host}:{port}")
+        groups.append(g)
+        return g
+
+    yield dp, make
+    for g in groups:
+        g.close()
+    dp.close()
+
+
+def status_from(dp: socket.socket) -> list[Datagram]:
+    out = []
+    while (got := udp.recv_batch(dp)) is not None:
+        data, seg, _ = got
+        out += [datagram.decode(data[i : i + seg]) for i in range(0, len(data), seg)]
+    return out
+
+
+def ticks(g: RobotGroup, n: int) -> list:
+    return [g.tick(deadline=float("inf")) for _ in range(n)]  # never late: timing is not under test
+
+
+def command_all(dp: socket.socket, g: RobotGroup, row: int, v: list[float]) -> None:
+    addr = g.socks[row].getsockname()
+    for j, vj in enumerate(v):
+        dp.sendto(datagram.encode(Datagram(int(g.ids[row]), j, Kind.COMMAND, 0, vj, 0.0)), addr)
+
+
+def test_status_stream(plant) -> None:
+    dp, make = plant
+    g = make(n=2)
+    ticks(g, 3)
+    got = status_from(dp)
+    assert len(got) == 3 * 2 * 6
+    assert {(d.robot_id, d.joint_id) for d in got} == {(r, j) for r in (10, 11) for j in range(6)}
+    assert all(d.kind is Kind.STATUS for d in got)
+    assert sorted(d.seq for d in got if (d.robot_id, d.joint_id) == (11, 4)) == [1, 2, 3]
+    assert [d.position for d in got[:6]] == pytest.approx(Q0, abs=1e-7)
+    assert g.counters.status_sent == 36 and g.counters.late_sends == 0
+
+
+def test_commands_execute_at_the_window_end_latest_first(plant) -> None:
+    dp, make = plant
+    g = make()
+    assert g.window_ticks == 4  # 500 Hz status, 125 Hz commands
+    ticks(g, 1)  # tick 0
+    for v in (0.1, 0.2, 0.3):
+        command_all(dp, g, 0, [v] * 6)
+    ticks(g, 3)  # ticks 1-3: still the first window
+    assert g.drives.target[0].tolist() == [0.0] * 6
+    ticks(g, 1)  # tick 4 ends the window
+    assert g.drives.target[0].tolist() == pytest.approx([0.3] * 6, abs=1e-7)
+    assert g.counters.commands == 18
+    for _ in range(15):  # keep commanding every window (or the watchdog stops the robot)
+        command_all(dp, g, 0, [0.3] * 6)
+        ticks(g, 4)
+    last = status_from(dp)[-6:]
+    assert [d.velocity for d in last] == pytest.approx([0.3] * 6, abs=1e-6)
+
+
+def test_malformed_and_foreign_datagrams_are_counted_and_dropped(plant) -> None:
+    dp, make = plant
+    g = make()
+    addr = g.socks[0].getsockname()
+    good = Datagram(10, 1, Kind.COMMAND, 0, 0.25, 0.0)
+    junk = [
+        b"",
+        b"short",
+        datagram.encode(good) + b"x",  # 25 bytes
+        datagram.encode(Datagram(10, 1, Kind.STATUS, 0, 9.0, 0.0)),  # a status sent to a robot
+        datagram.encode(Datagram(99, 1, Kind.COMMAND, 0, 9.0, 0.0)),  # another robot's command
+        datagram.encode(Datagram(10, 7, Kind.COMMAND, 0, 9.0, 0.0)),  # no joint 7
+        bytes([0, 10, 1, 3]) + bytes(20),  # kind 3
+    ]
+    for j in junk:
+        dp.sendto(j, addr)
+    dp.sendto(datagram.encode(good), addr)
+    ticks(g, 5)
+    assert g.counters.rejected == {"length": 3, "kind": 2, "robot": 1, "joint": 1}
+    assert g.counters.commands == 1
+    assert g.drives.target[0, 1] == pytest.approx(0.25, abs=1e-7)  # the good one still worked
+
+
+def test_watchdog_stops_then_commands_resume(plant) -> None:
+    dp, make = plant
+    g = make()
+    ticks(g, 1)
+    command_all(dp, g, 0, [0.5] * 6)
+    ev = ticks(g, 4)  # window 1 ends at tick 4: commanded
+    assert all(s.size == 0 for s, _ in ev)
+    ev = ticks(g, 12)  # three windows with nothing
+    stops = [s.tolist() for s, _ in ev if s.size]
+    assert stops == [[0]] and g.drives.stopped[0]
+    ticks(g, 150)
+    assert np.abs(g.backend.qd[0]).max() == 0.0  # decelerated to rest
+    command_all(dp, g, 0, [0.1] * 6)
+    ev = ticks(g, 4)
+    assert [r.tolist() for _, r in ev if r.size] == [[0]]
+    assert not g.drives.stopped[0]
+
+
+def test_mujoco_group_follows_commands(plant) -> None:
+    dp, make = plant
+    g = make("mujoco")
+    for _ in range(100):  # 0.2 s of commands every window
+        command_all(dp, g, 0, [0.5, 0, 0, 0, 0, -0.5])
+        ticks(g, 4)
+    status = status_from(dp)[-6:]
+    assert status[0].velocity == pytest.approx(0.5, rel=0.01)
+    assert status[5].velocity == pytest.approx(-0.5, rel=0.01)
+    assert abs(status[2].velocity) < 0.005
