@@ -3,9 +3,12 @@
 Each trial runs N robots of one backend in a process pinned to one core, with
 a bare reflector pinned to the other core answering every status datagram
 with a command (as the data plane would), for a few seconds; it passes when
-fewer than 0.1% of status datagrams left a full period late, none was lost to
-a full socket buffer and no tick was skipped.  N doubles until a trial fails,
-then a bisection finds the largest passing N.
+fewer than 0.1% of status datagrams left a full period late (a missed tick
+counts every robot's status of that period) and none was lost to a full
+socket buffer.  N doubles until it fails, then a bisection finds the largest
+passing N.  This VM stalls for milliseconds now and then whatever the load,
+so each N gets a second trial before it counts as failed, and a one-robot
+baseline in the same run shows how late the machine itself makes a tick.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
 
 LATE_LIMIT = 0.001
+TRIES = 2  # trials of one N before it counts as failed (the VM stalls at random)
 
 
 def _pin(core: int) -> None:
@@ -137,11 +141,14 @@ def max_robots(
     trials: list[dict[str, Any]] = []
 
     def run(n: int) -> bool:
-        r = {"backend": backend, **trial(backend, n, seconds, answer)}
-        trials.append(r)
-        if log:
-            log(r)
-        return bool(r["ok"])
+        for _ in range(TRIES):
+            r = {"backend": backend, **trial(backend, n, seconds, answer)}
+            trials.append(r)
+            if log:
+                log(r)
+            if r["ok"]:
+                return True
+        return False
 
     lo, hi = 0, start
     while run(hi):
