@@ -91,7 +91,7 @@ def _cmd_bench_robots(args: argparse.Namespace) -> int:
     backends = ["kinematic", "mujoco"] if args.backend == "all" else [args.backend]
 
     def log(trial: dict) -> None:
-        print(f"{trial.get('backend', '')}{robots.format_trial(trial)}", flush=True)
+        print(robots.format_trial(trial), flush=True)
 
     result = robots.run_bench(backends, args.seconds, log=log, answer=not args.status_only)
     print(robots.format_result(result))

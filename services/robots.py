@@ -83,13 +83,14 @@ class Publisher:
                 self.bus.publish(f"events/robot/{r.name}", ev)
         if self.every and group.tick_no % self.every == 0:
             b = group.backend
+            at = round(group.state_time * 1e9)  # CLOCK_MONOTONIC ns of the state, not of publishing
             for row, name in enumerate(self.names):
                 q = b.q[row]
                 self.bus.publish(
                     f"truth/{name}",
                     robot_pb2.RobotTruth(
                         robot_id=int(group.ids[row]),
-                        t_ns=now,
+                        t_ns=at,
                         q=q,
                         qd=b.qd[row],
                         tool_pose=group.arm.tool_pose(q),

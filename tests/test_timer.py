@@ -28,7 +28,7 @@ async def test_ticks_on_absolute_deadlines_and_counts_a_stall(precise: bool) -> 
         assert counted == timer.ticks >= 20  # every period is accounted for
         assert time.monotonic_ns() - (start + 19 * PERIOD) < 50 * PERIOD  # no drift to speak of
         before = timer.ticks
-        time.sleep(5.5 * PERIOD / 1e9)  # the loop is held up (a stall, simulated)
+        time.sleep(5.5 * PERIOD / 1e9)  # noqa: ASYNC251 - blocking on purpose: a stalled loop
         missed = await timer.wait()
         assert missed >= 5
         assert timer.ticks == before + missed

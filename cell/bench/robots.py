@@ -163,27 +163,38 @@ def max_robots(
 def run_bench(
     backends: list[str], seconds: float = 3.0, log: Any = None, answer: bool = True
 ) -> dict[str, Any]:
-    starts = {"kinematic": 16, "mujoco": 8}
-    return {b: max_robots(b, starts[b], seconds, log, answer) for b in backends}
+    baseline = {"backend": "kinematic", **trial("kinematic", 1, seconds, answer)}
+    if log:
+        log(baseline)
+    starts = {"kinematic": 32, "mujoco": 16}
+    return {
+        "baseline": baseline,
+        "answered": answer,
+        **{b: max_robots(b, starts[b], seconds, log, answer) for b in backends},
+    }
 
 
-def format_trial(r: dict[str, float]) -> str:
+def format_trial(r: dict[str, Any]) -> str:
     verdict = "ok  " if r["ok"] else "FAIL"
     return (
-        f"  {int(r['robots']):>5} robots: {verdict} late {100 * r['late_fraction']:.3f}%  "
+        f"{r.get('backend', ''):>10} {int(r['robots']):>4} robots: {verdict} "
+        f"late {100 * r['late_fraction']:.3f}%  "
         f"sent {int(r.get('status_sent', 0)):,}/{int(r['expected']):,}  "
-        f"commands {int(r.get('commands', 0)):,}  "
+        f"commands {int(r.get('commands', 0)):,}  missed ticks {int(r.get('missed_ticks', 0))}  "
         f"tick lateness p50/p99 {r.get('lateness_p50_us', float('nan')):.0f}/"
         f"{r.get('lateness_p99_us', float('nan')):.0f} us  cpu {100 * r.get('cpu', 0):.0f}%"
     )
 
 
 def format_result(result: dict[str, Any]) -> str:
-    lines = [
-        "robots at 500 Hz status on one core, < 0.1% late sends (answered by a reflector on the other core):"
-    ]
-    for b, r in result.items():
-        best = r["best"]
-        extra = f" ({format_trial(best).strip()})" if best else ""
-        lines.append(f"{b:>10}: {r['max_robots']} robots{extra}")
+    who = "answered by a reflector on the other core" if result["answered"] else "status only"
+    lines = [f"robots at 500 Hz status on one core with < 0.1% late sends ({who}):"]
+    lines.append(
+        f"  baseline, 1 robot (the machine's own stalls): {format_trial(result['baseline']).strip()}"
+    )
+    for b in ("kinematic", "mujoco"):
+        if b in result:
+            r = result[b]
+            best = f"  [{format_trial(r['best']).strip()}]" if r["best"] else ""
+            lines.append(f"  {b}: {r['max_robots']} robots{best}")
     return "\n".join(lines)

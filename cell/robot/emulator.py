@@ -110,6 +110,7 @@ class RobotGroup:
         self._status_bytes = memoryview(self.status.view(np.uint8))
         self.seq = np.zeros(self.n * dof, np.uint32)
         self._pack()  # the first status: the start pose
+        self.state_time = time.monotonic()
         self.tick_no = -1  # index of the last status period served (period k is due at start + k T)
         self.counters = GroupCounters()
 
@@ -194,6 +195,7 @@ class RobotGroup:
             self.counters.protective_stops += stopping.size
             self.counters.resumes += resuming.size
         self.backend.step(self.period * periods)
+        self.state_time = deadline + self.period * periods  # the instant q, qd now describe
         self._pack()
         self.counters.ticks += 1
         self.counters.missed_ticks += periods - 1
