@@ -1,0 +1,133 @@
+"""Arithmetic the way a P4 switch does it: match tables instead of multipliers (NSDI'22, Sec. 5.3-5.4).
+
+Transform tables approximate x -> c*x with a ternary/longest-prefix match on
+the n most significant bits after the leading 1 (for negative x: after the
+leading 0, i.e. on ~x), ignoring the bits below; each entry returns c times
+the middle of the range it covers, so the relative error is at most 2^-n
+(the paper's bound is 1/2^(n-1)).  LimitVelocity decides x > c and x < -c
+with at most one prefix entry per bit of the constant, as in Sec. 5.4.
+
+Everything here is integer arithmetic on the wire's fixed-point values; the
+floats only appear when a table is generated from its constant.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+WORD = 64
+_SHIFTS = (32, 16, 8, 4, 2, 1)
+
+
+def bit_length(y: np.ndarray) -> np.ndarray:
+    """Bit length of non-negative int64 values, with integer ops only."""
+    y = y.copy()
+    n = np.zeros(y.shape, np.int64)
+    for s in _SHIFTS:
+        big = y >= (1 << s)
+        n[big] += s
+        y[big] >>= s
+    return n + (y > 0)
+
+
+class TransformTable:
+    """x -> round(c * x) for int64 x, approximated by (2^n + (63 - n) 2^(n-1)) entries per sign.
+
+    Entry key: (sign, bit length b, the n leading significant bits p).  Values
+    with b <= n are matched exactly.
+    """
+
+    def __init__(self, c: float, n_bits: int) -> None:
+        if not 2 <= n_bits <= 16:
+            raise ValueError(f"n_bits must be 2..16 (got {n_bits})")
+        self.c = float(c)
+        self.n = n = n_bits
+        self.half = h = 1 << (n - 1)
+        exact = np.arange(1 << n, dtype=np.float64)  # |key| < 2^n: the value itself
+        rows = [exact]
+        for b in range(n + 1, WORD):  # bit lengths n+1 .. 63
+            shift = b - n
+            p = np.arange(h, 2 * h, dtype=np.float64)
+            rows.append(p * 2.0**shift + 2.0 ** (shift - 1))  # the middle of [p << s, (p+1) << s)
+        reps = np.concatenate(rows)  # representative of each entry, for y = x (x >= 0) or y = ~x (x < 0)
+        pos = np.rint(self.c * reps)
+        neg = np.rint(self.c * (-reps - 1.0))  # x = ~y = -y - 1
+        limit = float(2**62)
+        self.table = np.clip(np.stack([pos, neg]), -limit, limit).astype(np.int64)
+
+    @property
+    def entries(self) -> int:
+        return self.table.size
+
+    def index(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        neg = x < 0
+        y = np.where(neg, ~x, x)
+        b = bit_length(y)
+        shift = np.maximum(b - self.n, 0)
+        p = y >> shift
+        idx = np.where(b <= self.n, p, (1 << self.n) + (b - self.n - 1) * self.half + (p - self.half))
+        return neg.astype(np.int64), idx
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        sign, idx = self.index(np.asarray(x, np.int64))
+        return self.table[sign, idx]
+
+
+def prefix_entries(c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Ternary (value, mask) entries matching x > c and x < -c for int64 x (0 <= c < 2^62).
+
+    x > c: x has the sign bit 0 and, at the first bit where it differs from c,
+    a 1 where c has a 0: one entry per 0 bit of c.  x < -c: in two's
+    complement, negatives order like their bit patterns, so one entry per 1
+    bit of -c, with a 0 there (and for c = 0, the sign bit).  At most 63 entries each.
+    """
+    if not 0 <= c < 2**62:
+        raise ValueError(f"limit {c} out of range")
+    hi_v, hi_m, lo_v, lo_m = [], [], [], []
+    d = (-c) & (2**64 - 1)
+    cu = c
+    for i in range(62, -1, -1):
+        mask = (2**64 - 1) ^ ((1 << i) - 1)  # bits 63..i
+        above = (2**64 - 1) ^ ((1 << (i + 1)) - 1)  # bits 63..i+1
+        if not (cu >> i) & 1:
+            hi_v.append((cu & above) | (1 << i))
+            hi_m.append(mask)
+        if (d >> i) & 1:
+            lo_v.append(d & above)
+            lo_m.append(mask)
+
+    if c == 0:  # -0 has no 1 bits: x < 0 is exactly "the sign bit is set"
+        lo_v.append(1 << 63)
+        lo_m.append(1 << 63)
+
+    def arr(v: list[int]) -> np.ndarray:
+        return np.array(v, np.uint64).view(np.int64)
+
+    return arr(hi_v), arr(hi_m), arr(lo_v), arr(lo_m)
+
+
+class LimitVelocity:
+    """Per-joint velocity limits as prefix tables: |out| <= limit for every int64 input."""
+
+    def __init__(self, limits: np.ndarray) -> None:
+        self.limits = np.asarray(limits, np.int64)
+        joints = len(self.limits)
+        size = WORD - 1
+        # padded per joint; a padding entry (mask 0, value 1) never matches
+        self.hi_v = np.ones((joints, size), np.int64)
+        self.hi_m = np.zeros((joints, size), np.int64)
+        self.lo_v = np.ones((joints, size), np.int64)
+        self.lo_m = np.zeros((joints, size), np.int64)
+        self.entries = 0
+        for j, c in enumerate(self.limits):
+            hv, hm, lv, lm = prefix_entries(int(c))
+            self.hi_v[j, : hv.size], self.hi_m[j, : hm.size] = hv, hm
+            self.lo_v[j, : lv.size], self.lo_m[j, : lm.size] = lv, lm
+            self.entries += hv.size + lv.size
+
+    def __call__(self, x: np.ndarray, joint: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, np.int64)
+        over = ((x[:, None] & self.hi_m[joint]) == self.hi_v[joint]).any(axis=1)
+        under = ((x[:, None] & self.lo_m[joint]) == self.lo_v[joint]).any(axis=1)
+        c = self.limits[joint]
+        return np.where(over, c, np.where(under, -c, x))

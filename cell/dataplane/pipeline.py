@@ -1,0 +1,160 @@
+"""The data plane's two pipelines (NSDI'22, Algorithms 1 and 2), run over a batch of status datagrams.
+
+Ingress steps each entity along its trajectory: when the data-plane clock
+reaches REG_nextTime, the entity moves to the next TP (TrajectorySwitcher
+first, then TPStepper) and REG_nextTime grows by the new section's duration
+(additive deadlines keep robots started together together).  One step per
+packet: an entity with k packets in the batch steps at most k times; every
+step after the first packet's is a resubmission in the P4 design, counted.
+
+Egress turns each status into a command with the P-controller
+    v_new = v_curr + c1 (v_trg - v_curr) + c2 (p_trg - p_curr)
+computed as the switch does: TargetData gives (v_trg, p_trg), three
+Transform tables give (1 - c1) v_curr, c1 v_trg and (c2 - 1) p_diff (the
+"(c-1)x" trick, p_diff added back exactly), and LimitVelocity clamps the sum.
+Integer arithmetic only, on the wire's fixed-point values; time is
+CLOCK_MONOTONIC in ns.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from cell.dataplane.approx import LimitVelocity, TransformTable
+from cell.dataplane.tables import NO_ROW, Tables
+from cell.robot.datagram import SCALE, Kind
+
+# inputs from the wire are clamped to this magnitude (about 1e11 rad) so no sum can overflow int64
+INPUT_LIMIT = 1 << 60
+TERM_LIMIT = 1 << 60
+
+
+class TransformBank:
+    """One TransformTable per joint, stacked so a batch mixing joints is one gather."""
+
+    def __init__(self, factors: Sequence[float], n_bits: int) -> None:
+        self.tables = [TransformTable(c, n_bits) for c in factors]
+        self.stack = np.stack([t.table for t in self.tables])
+        np.clip(self.stack, -TERM_LIMIT, TERM_LIMIT, out=self.stack)
+        self._index = self.tables[0].index
+
+    def __call__(self, x: np.ndarray, joint: np.ndarray) -> np.ndarray:
+        sign, idx = self._index(x)
+        return self.stack[joint, sign, idx]
+
+    @property
+    def entries(self) -> int:
+        return self.stack.size
+
+
+@dataclass(frozen=True)
+class ControlConstants:
+    """The P-controller of each joint: v_new = v + c1 (v_trg - v) + c2 (p_trg - p); n significant bits."""
+
+    c1: tuple[float, ...]
+    c2: tuple[float, ...]
+    n_bits: int
+    v_max: tuple[float, ...]  # rad/s, the joints' limits
+
+
+@dataclass
+class PipelineCounters:
+    packets: int = 0
+    holds: int = 0  # status of a robot with no trajectory (or not known): answered with 0
+    steps: int = 0  # TP steps taken
+    resubmits: int = 0  # steps beyond the first of an entity in one batch (resubmitted packets on a switch)
+    stalls: int = 0  # a step was due but the next TP is not loaded (a streaming underrun)
+    limited: int = 0  # commands clamped by LimitVelocity
+
+
+class Pipeline:
+    def __init__(self, tables: Tables, constants: ControlConstants) -> None:
+        self.t = tables
+        self.constants = constants
+        j = len(constants.c1)
+        if not (len(constants.c2) == len(constants.v_max) == j):
+            raise ValueError("c1, c2 and v_max need one value per joint")
+        self.joints = j
+        self.transform_curr_velocity = TransformBank([1.0 - c for c in constants.c1], constants.n_bits)
+        self.transform_trg_velocity = TransformBank(list(constants.c1), constants.n_bits)
+        self.transform_diff_position = TransformBank([c - 1.0 for c in constants.c2], constants.n_bits)
+        self.limit_velocity = LimitVelocity(np.rint(np.array(constants.v_max) * SCALE).astype(np.int64))
+        self.counters = PipelineCounters()
+
+    # --- Algorithm 1 -------------------------------------------------------------------------
+
+    def ingress(self, entities: np.ndarray, packets: np.ndarray, now: int) -> None:
+        """Step the given entities (each with its packet count in this batch) along their trajectories."""
+        t, c = self.t, self.counters
+        budget = packets.copy()
+        first = True
+        while entities.size:
+            cur = t.reg_tp[entities]
+            due = (cur != NO_ROW) & (now >= t.reg_next_time[entities])
+            if not due.any():
+                return
+            e, cur = entities[due], cur[due]
+            nxt = t.effective_next(cur)
+            ok = nxt != NO_ROW
+            c.stalls += int((~ok).sum())
+            e, nxt = e[ok], nxt[ok]
+            t.reg_tp[e] = nxt
+            t.reg_next_tp[e] = t.effective_next(nxt)
+            t.reg_next_time[e] += t.duration[nxt]
+            c.steps += e.size
+            if not first:
+                c.resubmits += e.size
+            first = False
+            left = budget[due][ok] - 1
+            entities, budget = e[left > 0], left[left > 0]
+
+    # --- the whole packet path ---------------------------------------------------------------
+
+    def process(self, recs: np.ndarray, now: int) -> None:
+        """Turn valid status records (datagram.DTYPE) into commands, in place; `now` in ns."""
+        t, c = self.t, self.counters
+        n = recs.size
+        if n == 0:
+            return
+        c.packets += n
+        rid = recs["robot_id"].astype(np.int64)
+        jid = recs["joint_id"].astype(np.int64)
+        ent = t.robot_entity[rid].astype(np.int64)
+        known = ent != NO_ROW
+        if known.any():
+            entities, counts = np.unique(ent[known], return_counts=True)
+            self.ingress(entities, counts, now)
+        # Algorithm 2
+        row = np.where(known, t.reg_tp[np.maximum(ent, 0)], NO_ROW)
+        has = row != NO_ROW
+        r = np.maximum(row, 0)
+        j = np.where(has, t.robot_joint0[rid] + jid, 0)
+        v_trg = t.trg_vel[r, j]  # TargetData
+        p_trg = t.trg_pos[r, j]
+        v = np.clip(recs["velocity"].astype(np.int64), -INPUT_LIMIT, INPUT_LIMIT)
+        p = np.clip(recs["position"].astype(np.int64), -INPUT_LIMIT, INPUT_LIMIT)
+        diff = np.clip(p_trg - p, -TERM_LIMIT, TERM_LIMIT)
+        local = np.minimum(jid, self.joints - 1)
+        v_new = (
+            self.transform_curr_velocity(v, local)
+            + self.transform_trg_velocity(v_trg, local)
+            + self.transform_diff_position(diff, local)
+            + diff
+        )
+        out = self.limit_velocity(v_new, local)
+        c.limited += int((out != v_new).sum())
+        out[~has] = 0
+        c.holds += int((~has).sum())
+        recs["velocity"] = out
+        recs["kind"] = Kind.COMMAND
+
+
+def reference_command(
+    v: float, p: float, v_trg: float, p_trg: float, c1: float, c2: float, v_max: float
+) -> float:
+    """The same controller in floating point, for checking the integer pipeline."""
+    out = v + c1 * (v_trg - v) + c2 * (p_trg - p)
+    return max(-v_max, min(v_max, out))

@@ -1,0 +1,279 @@
+"""The data plane's match-action state (NSDI'22 Fig. 3-4): registers, TPStepper, TargetData,
+TrajectorySwitcher.
+
+An *entity* is what one set of registers drives: one robot, or several robots
+merged into one (their joints side by side) so that they step together.
+
+The packet path only gathers from numpy arrays by row: its cost does not grow
+with the number of trajectory points (TPs) loaded.  Matching a (entity, TP
+id) key to its row, and the TP a row links to, is the control plane's job:
+it keeps the keys in dicts and resolves links when TPs are inserted, also
+links to TPs that are loaded later (a streamed trajectory's next episode).
+Every control-plane call checks the whole batch first and then applies all
+of it, so the packet path sees a batch entirely or not at all.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from cell.robot.datagram import SCALE
+
+NO_ROW = -1
+
+
+class Refused(Exception):
+    """A control-plane request that cannot be applied; nothing of it was applied."""
+
+    def __init__(self, code: str, reason: str) -> None:
+        self.code, self.reason = code, reason
+        super().__init__(f"{code}: {reason}")
+
+
+@dataclass(frozen=True)
+class TP:
+    """A trajectory point as the controller loads it (SI units; converted to fixed point here)."""
+
+    robot: int  # a robot id; for a merged entity, any of its robots
+    id: int
+    next_id: int  # the TP that follows (itself for a hold, an earlier one for a loop)
+    duration_s: float  # section duration: the time allotted to reach this TP
+    positions: Sequence[float]  # one per joint of the entity (rad)
+    velocities: Sequence[float]  # (rad/s)
+
+
+class Tables:
+    def __init__(self, capacity: int = 50_000, max_entities: int = 1024, max_joints: int = 12) -> None:
+        self.capacity = capacity
+        self.max_joints = max_joints
+        self.max_entities = max_entities
+        # robot -> entity and the robot's first joint within it (robot ids are u16)
+        self.robot_entity = np.full(1 << 16, NO_ROW, np.int32)
+        self.robot_joint0 = np.zeros(1 << 16, np.int32)
+        self.entity_joints = np.zeros(max_entities, np.int32)
+        self.entities = 0
+        # registers, one per entity (Algorithm 1)
+        self.reg_tp = np.full(max_entities, NO_ROW, np.int32)
+        self.reg_next_tp = np.full(max_entities, NO_ROW, np.int32)
+        self.reg_next_time = np.zeros(max_entities, np.int64)  # data-plane clock, ns
+        # TPStepper (+ TargetData), one row per TP
+        self.valid = np.zeros(capacity, bool)
+        self.next_row = np.full(capacity, NO_ROW, np.int32)
+        self.duration = np.zeros(capacity, np.int64)  # ns
+        self.trg_pos = np.zeros((capacity, max_joints), np.int64)
+        self.trg_vel = np.zeros((capacity, max_joints), np.int64)
+        # TrajectorySwitcher: the TP a row's successor is overridden with
+        self.switch_row = np.full(capacity, NO_ROW, np.int32)
+        # the control plane's indexes
+        self._row: dict[tuple[int, int], int] = {}
+        self._key = [(-1, -1)] * capacity
+        self._next_id = np.zeros(capacity, np.int64)
+        self._switch_id: dict[int, int] = {}  # row -> the TP id it switches to
+        self._waiting: dict[tuple[int, int], set[tuple[int, str]]] = defaultdict(set)
+        self._free = list(range(capacity - 1, -1, -1))
+
+    # --- robots and entities -----------------------------------------------------------------
+
+    def add_robot(self, robot: int, joints: int = 6) -> int:
+        """Give a robot its own entity (idempotent); return the entity."""
+        if self.robot_entity[robot] != NO_ROW:
+            return int(self.robot_entity[robot])
+        return self._new_entity([robot], [joints])
+
+    def merge(self, robots: Sequence[int], joints: int = 6) -> int:
+        """One entity for several robots, joints side by side in the order given; return it."""
+        if len(set(robots)) != len(robots) or len(robots) < 2:
+            raise Refused("bad_request", "merge needs two or more distinct robots")
+        for r in robots:
+            e = self.robot_entity[r]
+            if e != NO_ROW and self.reg_tp[e] != NO_ROW:
+                raise Refused("in_use", f"robot {r} is following a trajectory; stop it before merging")
+        return self._new_entity(list(robots), [joints] * len(robots))
+
+    def _new_entity(self, robots: list[int], joints: list[int]) -> int:
+        total = sum(joints)
+        if total > self.max_joints:
+            raise Refused("too_many_joints", f"{total} joints, at most {self.max_joints} per entity")
+        if self.entities >= self.max_entities:
+            raise Refused("table_full", f"all {self.max_entities} entities in use")
+        e = self.entities
+        self.entities += 1
+        offset = 0
+        for r, j in zip(robots, joints, strict=True):
+            self.robot_entity[r] = e
+            self.robot_joint0[r] = offset
+            offset += j
+        self.entity_joints[e] = total
+        return e
+
+    def entity_of(self, robot: int) -> int:
+        e = int(self.robot_entity[robot])
+        if e == NO_ROW:
+            raise Refused("unknown_robot", f"robot {robot} is not known to the data plane")
+        return e
+
+    # --- TPStepper / TargetData ----------------------------------------------------------------
+
+    @property
+    def loaded(self) -> int:
+        return self.capacity - len(self._free)
+
+    def insert(self, tps: Sequence[TP]) -> None:
+        """Insert or replace TPs, atomically; Refused (table_full, unknown_robot, ...) before any change."""
+        keys = []
+        for tp in tps:
+            e = self.entity_of(tp.robot)
+            n = int(self.entity_joints[e])
+            if len(tp.positions) != n or len(tp.velocities) != n:
+                raise Refused("bad_request", f"TP {tp.id} of robot {tp.robot}: {n} joint values expected")
+            if not tp.duration_s > 0:
+                raise Refused("bad_request", f"TP {tp.id}: section duration must be > 0")
+            if not (0 <= tp.id < 2**32 and 0 <= tp.next_id < 2**32):
+                raise Refused("bad_request", f"TP ids are u32 (got {tp.id} -> {tp.next_id})")
+            keys.append((e, tp.id))
+        if len(set(keys)) != len(keys):
+            raise Refused("bad_request", "a TP appears twice in one batch")
+        new = sum(1 for k in keys if k not in self._row)
+        if new > len(self._free):
+            raise Refused(
+                "table_full",
+                f"{new} new TPs, {len(self._free)} of {self.capacity} places free (delete some first)",
+            )
+        rows = np.array([self._row[k] if k in self._row else self._alloc(k) for k in keys], np.int64)
+        if rows.size == 0:
+            return
+        n = self.max_joints
+        pos = np.zeros((rows.size, n))
+        vel = np.zeros((rows.size, n))
+        for i, tp in enumerate(tps):
+            pos[i, : len(tp.positions)] = tp.positions
+            vel[i, : len(tp.velocities)] = tp.velocities
+        self.trg_pos[rows] = np.rint(pos * SCALE).astype(np.int64)
+        self.trg_vel[rows] = np.rint(vel * SCALE).astype(np.int64)
+        self.duration[rows] = np.rint(np.array([tp.duration_s for tp in tps]) * 1e9).astype(np.int64)
+        for row, (e, _), tp in zip(rows.tolist(), keys, tps, strict=True):
+            self._next_id[row] = tp.next_id
+            self._link(row, "next", (e, tp.next_id))
+        for row, key in zip(rows.tolist(), keys, strict=True):
+            for waiter, kind in self._waiting.pop(key, ()):
+                (self.next_row if kind == "next" else self.switch_row)[waiter] = row
+        self.valid[rows] = True
+
+    def _alloc(self, key: tuple[int, int]) -> int:
+        row = self._free.pop()
+        self._row[key] = row
+        self._key[row] = key
+        return row
+
+    def _link(self, row: int, kind: str, target: tuple[int, int]) -> None:
+        to = self._row.get(target, NO_ROW)
+        (self.next_row if kind == "next" else self.switch_row)[row] = to
+        if to == NO_ROW:
+            self._waiting[target].add((row, kind))
+
+    def delete(self, keys: Iterable[tuple[int, int]]) -> int:
+        """Delete TPs given as (robot, TP id), atomically; unknown ones are ignored; return how many went.
+
+        A TP that a robot is heading to, or will step to next, is refused (in_use): switch
+        or stop the robot first.
+        """
+        rows = []
+        for robot, tp_id in keys:
+            e = self.entity_of(robot)
+            row = self._row.get((e, tp_id))
+            if row is not None:
+                rows.append(row)
+        if not rows:
+            return 0
+        gone = np.array(rows, np.int64)
+        current = self.reg_tp[: self.entities]
+        busy = np.isin(current, gone) | np.isin(self.effective_next(current), gone)
+        if busy.any():
+            e = int(np.flatnonzero(busy)[0])
+            raise Refused("in_use", f"a TP of entity {e} is being followed; switch or stop it first")
+        self.valid[gone] = False
+        # links into the deleted TPs wait again for their targets
+        for arr, kind in ((self.next_row, "next"), (self.switch_row, "switch")):
+            pointing = np.flatnonzero(np.isin(arr, gone) & self.valid)
+            for w in pointing.tolist():
+                target = self._key[int(arr[w])]
+                arr[w] = NO_ROW
+                self._waiting[target].add((w, kind))
+        for row in rows:
+            key = self._key[row]
+            del self._row[key]
+            self._key[row] = (-1, -1)
+            self._forget_waits(row)
+            self.next_row[row] = NO_ROW
+            self.switch_row[row] = NO_ROW
+            self._switch_id.pop(row, None)
+            self._free.append(row)
+        return len(rows)
+
+    def _forget_waits(self, row: int) -> None:
+        target = (self._key_entity(row), int(self._next_id[row]))
+        waiters = self._waiting.get(target)
+        if waiters:
+            waiters.discard((row, "next"))
+        if row in self._switch_id:
+            t = (target[0], self._switch_id[row])
+            if self._waiting.get(t):
+                self._waiting[t].discard((row, "switch"))
+
+    def _key_entity(self, row: int) -> int:
+        return self._key[row][0]
+
+    def effective_next(self, rows: np.ndarray) -> np.ndarray:
+        """The row each row steps to: its TrajectorySwitcher entry, else its TPStepper link (NO_ROW: none)."""
+        safe = np.maximum(rows, 0)
+        nxt = np.where(self.switch_row[safe] != NO_ROW, self.switch_row[safe], self.next_row[safe])
+        return np.where(rows == NO_ROW, NO_ROW, nxt)
+
+    def row_of(self, robot: int, tp_id: int) -> int:
+        row = self._row.get((self.entity_of(robot), tp_id))
+        if row is None:
+            raise Refused("unknown_tp", f"robot {robot} has no TP {tp_id} loaded")
+        return row
+
+    # --- TrajectorySwitcher ----------------------------------------------------------------------
+
+    def set_switch(self, robot: int, tp_id: int, next_id: int) -> None:
+        """After TP tp_id, go to next_id instead of its successor (it may be loaded later)."""
+        row = self.row_of(robot, tp_id)
+        e = self.entity_of(robot)
+        self.unset_switch(robot, tp_id)
+        self._switch_id[row] = next_id
+        self._link(row, "switch", (e, next_id))
+
+    def unset_switch(self, robot: int, tp_id: int) -> None:
+        row = self.row_of(robot, tp_id)
+        old = self._switch_id.pop(row, None)
+        if old is not None:
+            waiters = self._waiting.get((self.entity_of(robot), old))
+            if waiters:
+                waiters.discard((row, "switch"))
+        self.switch_row[row] = NO_ROW
+
+    # --- registers ------------------------------------------------------------------------------
+
+    def set_registers(self, robot: int, tp_id: int, next_time_ns: int) -> None:
+        """Make the robot's entity head for TP tp_id and step on at next_time_ns (absolute)."""
+        e = self.entity_of(robot)
+        row = self.row_of(robot, tp_id)
+        self.reg_tp[e] = row
+        self.reg_next_tp[e] = NO_ROW  # taken from the TP's link when stepping
+        self.reg_next_time[e] = next_time_ns
+
+    def clear_registers(self, robot: int) -> None:
+        """The entity follows nothing: its robots are told to hold (velocity 0)."""
+        e = self.entity_of(robot)
+        self.reg_tp[e] = NO_ROW
+        self.reg_next_tp[e] = NO_ROW
+
+    def current_tp(self, robot: int) -> int | None:
+        row = int(self.reg_tp[self.entity_of(robot)])
+        return None if row == NO_ROW else self._key[row][1]

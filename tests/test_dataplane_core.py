@@ -1,0 +1,252 @@
+"""The data plane's tables and pipelines, sans IO: approximations, limits, stepping, switching, refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cell.dataplane.approx import LimitVelocity, TransformTable, prefix_entries
+from cell.dataplane.pipeline import ControlConstants, Pipeline, reference_command
+from cell.dataplane.tables import TP, Refused, Tables
+from cell.robot import datagram
+from cell.robot.datagram import SCALE, Kind
+
+I64 = st.integers(-(2**63), 2**63 - 1)
+
+
+@pytest.mark.parametrize("n", [4, 8, 12])
+@pytest.mark.parametrize("c", [0.3, -0.7, 1.5, 0.0, 0.999])
+def test_transform_error_within_the_bound(n: int, c: float) -> None:
+    rng = np.random.default_rng(n)
+    x = np.concatenate([rng.integers(-(2**45), 2**45, 50_000), rng.integers(-3000, 3000, 6000), [0, 1, -1]])
+    t = TransformTable(c, n)
+    exact = c * x.astype(np.float64)
+    err = np.abs(t(x) - exact)
+    # relative error 1/2^n (the paper's bound is 1/2^(n-1)), plus rounding to an integer
+    assert np.all(err <= np.abs(exact) / 2**n + 1.0)
+    assert t.entries == 2 * (2**n + (63 - n) * 2 ** (n - 1))
+
+
+@settings(max_examples=300)
+@given(x=I64, c=st.integers(0, 2**62 - 1))
+def test_limit_velocity_is_exact(x: int, c: int) -> None:
+    out = int(LimitVelocity(np.array([c]))(np.array([x]), np.array([0]))[0])
+    assert out == max(-c, min(c, x))
+
+
+def test_limit_entries_at_most_one_per_bit() -> None:
+    for c in (0, 1, 1000, 33554432, 2**61 + 12345):
+        hv, _, lv, _ = prefix_entries(c)
+        assert hv.size <= 63 and lv.size <= 63
+    hv, _, lv, _ = prefix_entries(0b1011)
+    assert hv.size == 63 - 3  # one per 0 bit of c below the sign
+    assert lv.size == bin((-0b1011) & (2**63 - 1)).count("1")
+
+
+V_MAX = (np.pi,) * 6
+CONSTANTS = ControlConstants(c1=(0.5,) * 6, c2=(2.0, 3.0, 4.0, 5.0, 6.0, 7.0), n_bits=8, v_max=V_MAX)
+
+
+def status(robot: int, joint: int, v: float, p: float, seq: int = 1) -> np.ndarray:
+    recs = datagram.empty(1)
+    datagram.pack(recs, robot, joint, Kind.STATUS, seq, v, p)
+    return recs
+
+
+def batch(*parts: np.ndarray) -> np.ndarray:
+    return np.concatenate(parts)
+
+
+def hold_tp(robot: int, tp: int, nxt: int, q: list[float], dur: float = 0.1, joints: int = 6) -> TP:
+    return TP(robot, tp, nxt, dur, q[:joints] + [0.0] * (joints - len(q[:joints])), [0.0] * joints)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    v=st.lists(I64, min_size=6, max_size=6),
+    p=st.lists(I64, min_size=6, max_size=6),
+    junk=st.integers(0, 2**32 - 1),
+)
+def test_no_input_and_no_table_contents_exceed_a_joint_limit(v: list[int], p: list[int], junk: int) -> None:
+    tables = Tables(capacity=4)
+    tables.add_robot(1)
+    pipe = Pipeline(tables, CONSTANTS)
+    rng = np.random.default_rng(junk)
+    for bank in (pipe.transform_curr_velocity, pipe.transform_trg_velocity, pipe.transform_diff_position):
+        bank.stack[:] = rng.integers(-(2**63), 2**63 - 1, bank.stack.shape, dtype=np.int64)
+    tables.insert([hold_tp(1, 1, 1, [0.0] * 6)])
+    tables.trg_vel[:] = rng.integers(-(2**63), 2**63 - 1, tables.trg_vel.shape, dtype=np.int64)
+    tables.trg_pos[:] = rng.integers(-(2**63), 2**63 - 1, tables.trg_pos.shape, dtype=np.int64)
+    tables.set_registers(1, 1, 0)
+    recs = datagram.empty(6)
+    recs["robot_id"], recs["joint_id"], recs["seq"] = 1, np.arange(6), 5
+    recs["velocity"], recs["position"] = v, p
+    pipe.process(recs, now=1)
+    limit = np.rint(np.pi * SCALE)
+    assert np.all(np.abs(recs["velocity"].astype(np.float64)) <= limit)
+    assert np.all(recs["kind"] == Kind.COMMAND)
+
+
+def test_integer_pipeline_matches_the_float_controller() -> None:
+    rng = np.random.default_rng(7)
+    tables = Tables(capacity=600)
+    tables.add_robot(1)
+    pipe = Pipeline(tables, CONSTANTS)
+    rel = []
+    for k in range(500):
+        q_trg = rng.uniform(-3, 3, 6)
+        v_trg = rng.uniform(-1, 1, 6)
+        tables.insert([TP(1, k, k, 1.0, q_trg.tolist(), v_trg.tolist())])
+        tables.set_registers(1, k, 10**18)
+        v = rng.uniform(-2, 2, 6)
+        p = q_trg + rng.uniform(-0.05, 0.05, 6) * rng.choice([1e-4, 1e-2, 1], 6)
+        recs = datagram.empty(6)
+        datagram.pack(recs, 1, np.arange(6), Kind.STATUS, k, v, p)
+        pipe.process(recs, now=0)
+        got = datagram.velocities(recs)
+        for j in range(6):
+            c1, c2 = CONSTANTS.c1[j], CONSTANTS.c2[j]
+            ref = reference_command(v[j], p[j], v_trg[j], q_trg[j], c1, c2, np.pi)
+            # each table term errs by at most 1/2^n of its size (+ fixed-point rounding)
+            bound = (
+                abs((1 - c1) * v[j]) + abs(c1 * v_trg[j]) + abs((c2 - 1) * (q_trg[j] - p[j]))
+            ) / 2**8 + 1e-6
+            assert abs(got[j] - ref) <= bound, (j, got[j], ref)
+            if abs(ref) > 1e-3:
+                rel.append(abs(got[j] - ref) / abs(ref))
+    # the bound is per term; when terms nearly cancel the sum's relative error can be large
+    assert np.median(rel) < 1 / 2**8
+
+
+def steps_to(pipe: Pipeline, robot: int, now: int) -> int | None:
+    pipe.process(batch(*(status(robot, j, 0.0, 0.0) for j in range(6))), now)
+    return pipe.t.current_tp(robot)
+
+
+def test_stepping_looping_and_additive_deadlines() -> None:
+    t = Tables(capacity=16)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    # 10 -> 11 -> 12 -> 10 (a loop), 100 ms each
+    t.insert([hold_tp(1, 10, 11, [0.1]), hold_tp(1, 11, 12, [0.2]), hold_tp(1, 12, 10, [0.3])])
+    ms = 1_000_000
+    t.set_registers(1, 10, 100 * ms)
+    assert steps_to(pipe, 1, 50 * ms) == 10
+    assert steps_to(pipe, 1, 100 * ms) == 11  # deadline reached: step
+    assert t.reg_next_time[0] == 200 * ms  # additive: 100 ms + TP 11's 100 ms
+    assert steps_to(pipe, 1, 150 * ms) == 11
+    assert steps_to(pipe, 1, 250 * ms) == 12
+    assert steps_to(pipe, 1, 330 * ms) == 10  # looped back
+    assert t.reg_next_time[0] == 400 * ms  # never drifts with when packets come
+    assert pipe.counters.stalls == 0
+
+
+def test_one_step_per_packet_counts_resubmissions() -> None:
+    t = Tables(capacity=16)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    t.insert([hold_tp(1, i, i + 1, [0.0], dur=0.001) for i in range(10)] + [hold_tp(1, 10, 10, [0.0])])
+    t.set_registers(1, 0, 0)
+    pipe.process(batch(status(1, 0, 0, 0), status(1, 1, 0, 0), status(1, 2, 0, 0)), now=10**9)
+    assert t.current_tp(1) == 3  # three packets: three steps, though far more were due
+    assert pipe.counters.steps == 3 and pipe.counters.resubmits == 2
+
+
+def test_commands_steer_toward_the_current_tp() -> None:
+    t = Tables(capacity=4)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    t.insert([TP(1, 1, 1, 1.0, [0.5, 0, 0, 0, 0, -0.5], [0.0] * 6)])
+    t.set_registers(1, 1, 10**18)
+    recs = batch(*(status(1, j, 0.0, 0.0, seq=40 + j) for j in range(6)))
+    pipe.process(recs, now=0)
+    v = datagram.velocities(recs)
+    assert v[0] == pytest.approx(2.0 * 0.5, rel=1 / 2**7)  # c2 (p_trg - p), c2 = 2
+    assert v[5] == pytest.approx(-np.pi, abs=1e-6)  # 3.5 rad/s clamped to the limit
+    assert recs["seq"].tolist() == list(range(40, 46))  # echoed
+    assert list(recs["kind"]) == [Kind.COMMAND] * 6
+    assert pipe.counters.limited == 1
+
+
+def test_switching_to_an_alternate_trajectory() -> None:
+    t = Tables(capacity=16)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    t.insert([hold_tp(1, 1, 2, [0.1]), hold_tp(1, 2, 3, [0.2]), hold_tp(1, 3, 3, [0.3])])
+    t.insert([hold_tp(1, 20, 21, [-0.1]), hold_tp(1, 21, 21, [-0.2])])  # the alternate branch
+    t.set_registers(1, 1, 100)
+    t.set_switch(1, 1, 20)  # after TP 1, take the branch
+    assert steps_to(pipe, 1, 100) == 20
+    assert steps_to(pipe, 1, 100 + 100_000_000) == 21
+    t.unset_switch(1, 1)
+    assert t.switch_row[t.row_of(1, 1)] == -1
+
+
+def test_links_resolve_when_the_next_episode_arrives() -> None:
+    t = Tables(capacity=16)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    t.insert([hold_tp(1, 1, 2, [0.1])])  # TP 2 is not loaded yet
+    t.set_registers(1, 1, 0)
+    assert steps_to(pipe, 1, 10) == 1
+    assert pipe.counters.stalls > 0  # due, but nowhere to go: holds TP 1
+    t.insert([hold_tp(1, 2, 2, [0.2])])
+    assert steps_to(pipe, 1, 20) == 2
+
+
+def test_merged_robots_step_on_the_same_tick() -> None:
+    t = Tables(capacity=16)
+    t.add_robot(1)
+    t.add_robot(2)
+    e = t.merge([1, 2])
+    assert t.entity_joints[e] == 12
+    pipe = Pipeline(t, CONSTANTS)
+    q = [float(i) / 100 for i in range(12)]
+    t.insert([TP(1, 1, 2, 0.1, [0.0] * 12, [0.0] * 12), TP(2, 2, 2, 0.1, q, [0.0] * 12)])
+    t.set_registers(2, 1, 1000)
+    pipe.process(status(1, 0, 0, 0), now=1000)  # only robot 1 speaks: both move on
+    assert t.current_tp(1) == t.current_tp(2) == 2
+    recs = batch(status(2, 3, 0.0, 0.0))
+    pipe.process(recs, now=1001)
+    assert datagram.velocities(recs)[0] == pytest.approx(CONSTANTS.c2[3] * q[9], rel=1 / 2**7)
+
+
+def test_unknown_and_idle_robots_are_told_to_hold() -> None:
+    t = Tables(capacity=4)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    recs = batch(status(1, 0, 1.0, 0.3), status(9, 0, 1.0, 0.3))
+    pipe.process(recs, now=0)
+    assert recs["velocity"].tolist() == [0, 0]
+    assert pipe.counters.holds == 2
+
+
+def test_a_full_table_is_refused_with_a_reason_and_nothing_changes() -> None:
+    t = Tables(capacity=3)
+    t.add_robot(1)
+    t.insert([hold_tp(1, 1, 1, [0.0]), hold_tp(1, 2, 2, [0.0])])
+    with pytest.raises(Refused) as info:
+        t.insert([hold_tp(1, 3, 3, [0.0]), hold_tp(1, 4, 4, [0.0])])
+    assert info.value.code == "table_full" and "1 of 3 places free" in info.value.reason
+    assert t.loaded == 2
+    t.insert([hold_tp(1, 1, 1, [0.5]), hold_tp(1, 3, 3, [0.0])])  # replacing costs no place
+    assert t.loaded == 3
+    with pytest.raises(Refused, match="unknown_robot"):
+        t.insert([hold_tp(7, 1, 1, [0.0])])
+
+
+def test_deleting_a_tp_in_use_is_refused() -> None:
+    t = Tables(capacity=8)
+    t.add_robot(1)
+    t.insert([hold_tp(1, 1, 2, [0.0]), hold_tp(1, 2, 3, [0.0]), hold_tp(1, 3, 3, [0.0])])
+    t.set_registers(1, 1, 10**18)
+    for busy in (1, 2):  # the current TP and the one it steps to
+        with pytest.raises(Refused, match="in_use"):
+            t.delete([(1, busy)])
+    assert t.delete([(1, 3), (1, 99)]) == 1
+    assert t.loaded == 2
+    assert t.next_row[t.row_of(1, 2)] == -1  # its link waits for TP 3 again
+    t.insert([hold_tp(1, 3, 3, [0.0])])
+    assert t.next_row[t.row_of(1, 2)] == t.row_of(1, 3)
