@@ -139,6 +139,18 @@ class ServicesConfig:
 @dataclass(frozen=True)
 class DataplaneConfig:
     listen: str = _check(_host_port)
+    capacity: int = _check(_positive)
+    max_joints: int = _check(_positive)
+    n_bits: int = _check(lambda v: None if 2 <= v <= 16 else f"must be 2..16 (got {v})")
+    c1: list[float] = field(metadata={"check": _joint_vector})
+    c2: list[float] = field(metadata={"check": _joint_vector})
+    v_max: list[float] = field(metadata={"check": _joint_vector})
+    batch: int = _check(_positive)
+
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        for i, v in enumerate(self.v_max):
+            if not 0 < v <= 10:
+                raise err(f"v_max[{i}]", f"must be in (0, 10] rad/s (got {v})")
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from cell.service import ServiceSpec
 BUILTIN: dict[str, str] = {
     "bus": "cell.services.bus",
     "robots": "cell.services.robots",
+    "dataplane": "cell.services.dataplane",
 }
 
 

@@ -250,3 +250,40 @@ def test_deleting_a_tp_in_use_is_refused() -> None:
     assert t.next_row[t.row_of(1, 2)] == -1  # its link waits for TP 3 again
     t.insert([hold_tp(1, 3, 3, [0.0])])
     assert t.next_row[t.row_of(1, 2)] == t.row_of(1, 3)
+
+
+def test_a_batch_from_many_senders_is_answered_in_network_order() -> None:
+    """Regression: np.concatenate turns big-endian structured fields native; batches must not."""
+    import importlib
+
+    from cell.config import load_config
+    from cell.robot import udp
+    from tests.conftest import cell_overrides
+
+    dataplane = importlib.import_module("cell.services.dataplane")
+    cfg = load_config(
+        overrides=cell_overrides(robots=[{"id": r, "name": f"r{r}", "skill_port": 100 + r} for r in (1, 2)])
+    )
+    plane = dataplane.DataPlane(cfg)
+    socks = [udp.open_socket("127.0.0.1") for _ in range(2)]
+    try:
+        addr = plane.sock.getsockname()
+        for robot, sock in zip((1, 2), socks, strict=True):
+            for j in range(6):
+                sock.sendto(
+                    datagram.encode(datagram.Datagram(robot, j, Kind.STATUS, 300 + j, 0.1, 0.2)), addr
+                )
+        assert plane.handle() == 12
+        for robot, sock in zip((1, 2), socks, strict=True):
+            got = []
+            while (r := udp.recv_batch(sock)) is not None:
+                data, seg, _ = r
+                got += [
+                    datagram.decode(data[i : i + seg], kind=Kind.COMMAND) for i in range(0, len(data), seg)
+                ]
+            assert [(d.robot_id, d.joint_id, d.seq) for d in got] == [(robot, j, 300 + j) for j in range(6)]
+            assert all(d.position == pytest.approx(0.2) for d in got)
+    finally:
+        plane.close()
+        for s in socks:
+            s.close()

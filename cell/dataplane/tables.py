@@ -124,25 +124,8 @@ class Tables:
 
     def insert(self, tps: Sequence[TP]) -> None:
         """Insert or replace TPs, atomically; Refused (table_full, unknown_robot, ...) before any change."""
-        keys = []
-        for tp in tps:
-            e = self.entity_of(tp.robot)
-            n = int(self.entity_joints[e])
-            if len(tp.positions) != n or len(tp.velocities) != n:
-                raise Refused("bad_request", f"TP {tp.id} of robot {tp.robot}: {n} joint values expected")
-            if not tp.duration_s > 0:
-                raise Refused("bad_request", f"TP {tp.id}: section duration must be > 0")
-            if not (0 <= tp.id < 2**32 and 0 <= tp.next_id < 2**32):
-                raise Refused("bad_request", f"TP ids are u32 (got {tp.id} -> {tp.next_id})")
-            keys.append((e, tp.id))
-        if len(set(keys)) != len(keys):
-            raise Refused("bad_request", "a TP appears twice in one batch")
-        new = sum(1 for k in keys if k not in self._row)
-        if new > len(self._free):
-            raise Refused(
-                "table_full",
-                f"{new} new TPs, {len(self._free)} of {self.capacity} places free (delete some first)",
-            )
+        self._check_insert(tps)
+        keys = [(self.entity_of(tp.robot), tp.id) for tp in tps]
         rows = np.array([self._row[k] if k in self._row else self._alloc(k) for k in keys], np.int64)
         if rows.size == 0:
             return
@@ -277,3 +260,79 @@ class Tables:
     def current_tp(self, robot: int) -> int | None:
         row = int(self.reg_tp[self.entity_of(robot)])
         return None if row == NO_ROW else self._key[row][1]
+
+    # --- one atomic update ------------------------------------------------------------------------
+
+    def update(
+        self,
+        insert: Sequence[TP] = (),
+        remove: Sequence[tuple[int, int]] = (),
+        switches: Sequence[tuple[int, int, int | None]] = (),
+        registers: Sequence[tuple[int, int | None, int]] = (),
+    ) -> int:
+        """Apply a whole control-plane batch or none of it; return how many TPs were removed.
+
+        switches: (robot, branching TP, next TP or None to unset); registers: (robot, TP or None to
+        clear, next_time_ns).  Order of application: insert, switches, registers, remove; every
+        check is made against that end state before anything changes.
+        """
+        new_keys = {(self.entity_of(tp.robot), tp.id) for tp in insert}
+        self._check_insert(insert)
+
+        def exists(robot: int, tp_id: int) -> bool:
+            return (self.entity_of(robot), tp_id) in self._row or (self.entity_of(robot), tp_id) in new_keys
+
+        for robot, tp_id, _ in switches:
+            if not exists(robot, tp_id):
+                raise Refused("unknown_tp", f"switch at TP {tp_id} of robot {robot}: no such TP")
+        moved = {}
+        for robot, tp_id, _ in registers:
+            if tp_id is not None and not exists(robot, tp_id):
+                raise Refused("unknown_tp", f"registers of robot {robot}: no TP {tp_id}")
+            moved[self.entity_of(robot)] = tp_id
+        gone = {(self.entity_of(r), i) for r, i in remove}
+        # what the entities will follow: TPs named by new registers, else the current ones
+        for e in range(self.entities):
+            if e in moved:
+                following = set() if moved[e] is None else {(e, moved[e])}
+            else:
+                row = int(self.reg_tp[e])
+                following = set() if row == NO_ROW else {self._key[row]}
+                nxt = int(self.effective_next(np.array([row]))[0]) if row != NO_ROW else NO_ROW
+                if nxt != NO_ROW:
+                    following.add(self._key[nxt])
+            if busy := following & gone:
+                raise Refused("in_use", f"TP {sorted(busy)[0][1]} is being followed; switch or stop first")
+        # checked: apply
+        self.insert(insert)
+        for robot, tp_id, nxt in switches:
+            if nxt is None:
+                self.unset_switch(robot, tp_id)
+            else:
+                self.set_switch(robot, tp_id, nxt)
+        for robot, tp_id, next_time in registers:
+            if tp_id is None:
+                self.clear_registers(robot)
+            else:
+                self.set_registers(robot, tp_id, next_time)
+        return self.delete(remove) if remove else 0
+
+    def _check_insert(self, tps: Sequence[TP]) -> None:
+        keys = []
+        for tp in tps:
+            e = self.entity_of(tp.robot)
+            n = int(self.entity_joints[e])
+            if len(tp.positions) != n or len(tp.velocities) != n:
+                raise Refused("bad_request", f"TP {tp.id} of robot {tp.robot}: {n} joint values expected")
+            if not tp.duration_s > 0:
+                raise Refused("bad_request", f"TP {tp.id}: section duration must be > 0")
+            if not (0 <= tp.id < 2**32 and 0 <= tp.next_id < 2**32):
+                raise Refused("bad_request", f"TP ids are u32 (got {tp.id} -> {tp.next_id})")
+            keys.append((e, tp.id))
+        if len(set(keys)) != len(keys):
+            raise Refused("bad_request", "a TP appears twice in one batch")
+        new = sum(1 for k in keys if k not in self._row)
+        if new > len(self._free):
+            free = len(self._free)
+            why = f"{new} new TPs, {free} of {self.capacity} places free (delete some first)"
+            raise Refused("table_full", why)

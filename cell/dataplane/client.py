@@ -1,0 +1,58 @@
+"""The data plane's control-plane API, for controllers: load and remove TPs, switch, start, read state."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+from cell.bus import Bus
+from cell.dataplane.tables import TP
+from cell.v1 import dataplane_pb2
+
+
+class DataplaneClient:
+    """Requests over the bus to service "dataplane"; errors come back as RemoteError(code, reason)."""
+
+    def __init__(self, bus: Bus, service: str = "dataplane", timeout: float | None = None) -> None:
+        self.bus = bus
+        self.service = service
+        self.timeout = timeout
+
+    async def update(
+        self,
+        insert: Iterable[TP] = (),
+        remove: Iterable[tuple[int, int]] = (),
+        switches: Iterable[tuple[int, int, int | None]] = (),
+        registers: Iterable[tuple[int, int | None, int]] = (),
+    ) -> dataplane_pb2.UpdateReply:
+        """One atomic batch (see Tables.update): applied whole, or refused whole with a reason."""
+        req = dataplane_pb2.TableUpdate()
+        for tp in insert:
+            req.insert.add(
+                robot_id=tp.robot,
+                id=tp.id,
+                next_id=tp.next_id,
+                duration_s=tp.duration_s,
+                positions=tp.positions,
+                velocities=tp.velocities,
+            )
+        for robot, tp_id in remove:
+            req.remove.add(robot_id=robot, id=tp_id)
+        for robot, tp_id, nxt in switches:
+            req.switches.add(robot_id=robot, tp_id=tp_id, next_id=nxt or 0, unset=nxt is None)
+        for robot, tp_id, next_time in registers:
+            req.registers.add(robot_id=robot, tp_id=tp_id or 0, next_time_ns=next_time, clear=tp_id is None)
+        reply = await self.bus.request(self.service, "update", req, dataplane_pb2.UpdateReply, self.timeout)
+        assert isinstance(reply, dataplane_pb2.UpdateReply)
+        return reply
+
+    async def merge(self, robots: Sequence[int]) -> int:
+        req = dataplane_pb2.MergeRequest(robot_ids=robots)
+        reply = await self.bus.request(self.service, "merge", req, dataplane_pb2.MergeReply, self.timeout)
+        return reply.entity  # type: ignore[union-attr]
+
+    async def state(self) -> dataplane_pb2.DataplaneState:
+        reply = await self.bus.request(
+            self.service, "state", dataplane_pb2.StateRequest(), dataplane_pb2.DataplaneState, self.timeout
+        )
+        assert isinstance(reply, dataplane_pb2.DataplaneState)
+        return reply

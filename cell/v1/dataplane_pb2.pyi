@@ -1,0 +1,132 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class TrajectoryPoint(_message.Message):
+    __slots__ = ("robot_id", "id", "next_id", "duration_s", "positions", "velocities")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    ID_FIELD_NUMBER: _ClassVar[int]
+    NEXT_ID_FIELD_NUMBER: _ClassVar[int]
+    DURATION_S_FIELD_NUMBER: _ClassVar[int]
+    POSITIONS_FIELD_NUMBER: _ClassVar[int]
+    VELOCITIES_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    id: int
+    next_id: int
+    duration_s: float
+    positions: _containers.RepeatedScalarFieldContainer[float]
+    velocities: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, robot_id: _Optional[int] = ..., id: _Optional[int] = ..., next_id: _Optional[int] = ..., duration_s: _Optional[float] = ..., positions: _Optional[_Iterable[float]] = ..., velocities: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class TpKey(_message.Message):
+    __slots__ = ("robot_id", "id")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    ID_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    id: int
+    def __init__(self, robot_id: _Optional[int] = ..., id: _Optional[int] = ...) -> None: ...
+
+class TableUpdate(_message.Message):
+    __slots__ = ("insert", "remove", "switches", "registers")
+    INSERT_FIELD_NUMBER: _ClassVar[int]
+    REMOVE_FIELD_NUMBER: _ClassVar[int]
+    SWITCHES_FIELD_NUMBER: _ClassVar[int]
+    REGISTERS_FIELD_NUMBER: _ClassVar[int]
+    insert: _containers.RepeatedCompositeFieldContainer[TrajectoryPoint]
+    remove: _containers.RepeatedCompositeFieldContainer[TpKey]
+    switches: _containers.RepeatedCompositeFieldContainer[SwitchEntry]
+    registers: _containers.RepeatedCompositeFieldContainer[RegisterEntry]
+    def __init__(self, insert: _Optional[_Iterable[_Union[TrajectoryPoint, _Mapping]]] = ..., remove: _Optional[_Iterable[_Union[TpKey, _Mapping]]] = ..., switches: _Optional[_Iterable[_Union[SwitchEntry, _Mapping]]] = ..., registers: _Optional[_Iterable[_Union[RegisterEntry, _Mapping]]] = ...) -> None: ...
+
+class SwitchEntry(_message.Message):
+    __slots__ = ("robot_id", "tp_id", "next_id", "unset")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    TP_ID_FIELD_NUMBER: _ClassVar[int]
+    NEXT_ID_FIELD_NUMBER: _ClassVar[int]
+    UNSET_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    tp_id: int
+    next_id: int
+    unset: bool
+    def __init__(self, robot_id: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_id: _Optional[int] = ..., unset: _Optional[bool] = ...) -> None: ...
+
+class RegisterEntry(_message.Message):
+    __slots__ = ("robot_id", "tp_id", "next_time_ns", "clear")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    TP_ID_FIELD_NUMBER: _ClassVar[int]
+    NEXT_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    CLEAR_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    tp_id: int
+    next_time_ns: int
+    clear: bool
+    def __init__(self, robot_id: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., clear: _Optional[bool] = ...) -> None: ...
+
+class UpdateReply(_message.Message):
+    __slots__ = ("inserted", "removed", "loaded", "capacity", "apply_us", "now_ns")
+    INSERTED_FIELD_NUMBER: _ClassVar[int]
+    REMOVED_FIELD_NUMBER: _ClassVar[int]
+    LOADED_FIELD_NUMBER: _ClassVar[int]
+    CAPACITY_FIELD_NUMBER: _ClassVar[int]
+    APPLY_US_FIELD_NUMBER: _ClassVar[int]
+    NOW_NS_FIELD_NUMBER: _ClassVar[int]
+    inserted: int
+    removed: int
+    loaded: int
+    capacity: int
+    apply_us: float
+    now_ns: int
+    def __init__(self, inserted: _Optional[int] = ..., removed: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., apply_us: _Optional[float] = ..., now_ns: _Optional[int] = ...) -> None: ...
+
+class MergeRequest(_message.Message):
+    __slots__ = ("robot_ids",)
+    ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, robot_ids: _Optional[_Iterable[int]] = ...) -> None: ...
+
+class MergeReply(_message.Message):
+    __slots__ = ("entity",)
+    ENTITY_FIELD_NUMBER: _ClassVar[int]
+    entity: int
+    def __init__(self, entity: _Optional[int] = ...) -> None: ...
+
+class StateRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class RobotPlaneState(_message.Message):
+    __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    ENTITY_FIELD_NUMBER: _ClassVar[int]
+    TP_ID_FIELD_NUMBER: _ClassVar[int]
+    NEXT_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    entity: int
+    tp_id: int
+    next_time_ns: int
+    def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ...) -> None: ...
+
+class DataplaneState(_message.Message):
+    __slots__ = ("now_ns", "loaded", "capacity", "robots", "counters")
+    class CountersEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
+    NOW_NS_FIELD_NUMBER: _ClassVar[int]
+    LOADED_FIELD_NUMBER: _ClassVar[int]
+    CAPACITY_FIELD_NUMBER: _ClassVar[int]
+    ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    COUNTERS_FIELD_NUMBER: _ClassVar[int]
+    now_ns: int
+    loaded: int
+    capacity: int
+    robots: _containers.RepeatedCompositeFieldContainer[RobotPlaneState]
+    counters: _containers.ScalarMap[str, float]
+    def __init__(self, now_ns: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., robots: _Optional[_Iterable[_Union[RobotPlaneState, _Mapping]]] = ..., counters: _Optional[_Mapping[str, float]] = ...) -> None: ...

@@ -1,0 +1,104 @@
+"""The dataplane service in a real cell: robots follow trajectories loaded over the bus."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+from cell.bus import Bus, RemoteError
+from cell.config import parse_host_port
+from cell.dataplane.client import DataplaneClient
+from cell.dataplane.tables import TP
+from cell.launcher import fetch_status
+from cell.robot import datagram, udp
+from cell.robot.datagram import Datagram, Kind
+from cell.v1 import robot_pb2
+from tests.conftest import free_port
+
+Q0 = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
+
+
+def robots(backend: str) -> list[dict]:
+    return [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": backend}]
+
+
+async def last_truth(bus: Bus, name: str) -> robot_pb2.RobotTruth:
+    sub = await bus.subscribe(f"truth/{name}")
+    try:
+        env = await sub.recv(timeout=5)
+        return env.decode(robot_pb2.RobotTruth)
+    finally:
+        sub.close()
+
+
+@pytest.mark.parametrize("backend", ["kinematic", "mujoco"])
+async def test_robot_follows_a_loaded_trajectory_to_its_end(start_cell, backend: str) -> None:
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots(backend))
+    async with Bus.connect(cell.config.bus, "controller") as bus:
+        dp = DataplaneClient(bus)
+        goal = [Q0[0] + 0.3, Q0[1] - 0.2, *Q0[2:]]
+        steps = 20  # 0.1 s sections along a straight joint-space line, then hold at the goal
+        line = np.linspace(Q0, goal, steps + 1)
+        vel = (np.array(goal) - np.array(Q0)) / (steps * 0.1)
+        tps = [TP(1, 0, 0, 0.1, Q0, [0.0] * 6)]  # hold where it is (self-loop)
+        tps += [TP(1, k, k + 1, 0.1, line[k].tolist(), vel.tolist()) for k in range(1, steps)]
+        tps += [TP(1, steps, steps, 0.1, goal, [0.0] * 6)]  # the last TP holds
+        reply = await dp.update(insert=tps)
+        assert (reply.inserted, reply.loaded) == (steps + 1, steps + 1)
+        start = reply.now_ns + 200_000_000
+        await dp.update(registers=[(1, 0, start)], switches=[(1, 0, 1)])  # leave the hold at `start`
+        deadline = time.monotonic() + 10
+        while True:
+            st = await dp.state()
+            if next(r.tp_id for r in st.robots if r.robot_id == 1) == steps:
+                break
+            assert time.monotonic() < deadline, st
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(1.0)  # let it settle on the last TP (the P term closes the gap)
+        truth = await last_truth(bus, "r1")
+        assert np.allclose(truth.q, goal, atol=2e-3), (list(truth.q), goal)
+        assert abs(truth.qd[0]) < 1e-2
+        counters = (await dp.state()).counters
+        assert counters["steps"] >= steps and counters["commands_out"] > 1000
+        assert counters["packets_in"] >= counters["commands_out"]
+
+
+async def test_refusals_and_bad_datagrams(start_cell) -> None:
+    cell = await start_cell(run=["bus", "dataplane"], robots=robots("kinematic"))
+    async with Bus.connect(cell.config.bus, "controller") as bus:
+        dp = DataplaneClient(bus)
+        with pytest.raises(RemoteError) as info:
+            await dp.update(insert=[TP(99, 1, 1, 0.1, [0.0] * 6, [0.0] * 6)])
+        assert info.value.code == "unknown_robot"
+        with pytest.raises(RemoteError) as info:
+            await dp.update(registers=[(1, 42, 0)])
+        assert info.value.code == "unknown_tp"
+        assert (await dp.state()).loaded == 0  # nothing of a refused batch was applied
+        # a peer sending junk: counted and dropped, and status is still answered
+        plane = parse_host_port(cell.config.dataplane.listen)
+        sock = udp.open_socket("127.0.0.1")
+        try:
+            for junk in (b"abc", bytes(23), datagram.encode(Datagram(1, 0, Kind.COMMAND, 0, 0.0, 0.0))):
+                sock.sendto(junk, plane)
+            sock.sendto(datagram.encode(Datagram(1, 9, Kind.STATUS, 0, 0.0, 0.0)), plane)
+            sock.sendto(datagram.encode(Datagram(1, 2, Kind.STATUS, 77, 0.5, 0.25)), plane)
+            async with asyncio.timeout(5):
+                while (got := udp.recv_batch(sock)) is None:
+                    await asyncio.sleep(0.005)
+            answer = datagram.decode(got[0], kind=Kind.COMMAND)
+            assert (answer.robot_id, answer.joint_id, answer.seq, answer.velocity) == (1, 2, 77, 0.0)  # hold
+            assert answer.position == pytest.approx(0.25)
+        finally:
+            sock.close()
+        deadline = time.monotonic() + 5
+        while True:
+            c = next(
+                s for s in (await fetch_status(cell.config)).services if s.name == "dataplane"
+            ).last.counters
+            if c["rejected.length"] >= 2 and c["rejected.kind"] >= 1 and c["rejected.joint"] >= 1:
+                break
+            assert time.monotonic() < deadline, dict(c)
+            await asyncio.sleep(0.1)
