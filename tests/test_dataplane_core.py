@@ -217,10 +217,12 @@ def test_unknown_and_idle_robots_are_told_to_hold() -> None:
     t = Tables(capacity=4)
     t.add_robot(1)
     pipe = Pipeline(t, CONSTANTS)
+    t.insert([hold_tp(1, 1, 1, [3.0] * 6)])  # loaded (row 0) but robot 1 was never started on it
     recs = batch(status(1, 0, 1.0, 0.3), status(9, 0, 1.0, 0.3))
     pipe.process(recs, now=0)
     assert recs["velocity"].tolist() == [0, 0]
     assert pipe.counters.holds == 2
+    assert pipe.counters.limited == 0  # a hold is not a limited command
 
 
 def test_a_full_table_is_refused_with_a_reason_and_nothing_changes() -> None:

@@ -145,7 +145,7 @@ class Pipeline:
             + diff
         )
         out = self.limit_velocity(v_new, local)
-        c.limited += int((out != v_new).sum())
+        c.limited += int(((out != v_new) & has).sum())
         out[~has] = 0
         c.holds += int((~has).sum())
         recs["velocity"] = out
