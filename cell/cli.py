@@ -100,6 +100,19 @@ def _cmd_bench_robots(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_dataplane(args: argparse.Namespace) -> int:
+    from cell.bench import dataplane
+
+    def log(trial: dict) -> None:
+        print(dataplane.format_trial(trial), flush=True)
+
+    result = dataplane.run(args.seconds, log=log)
+    print(dataplane.format_result(result))
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cell",
@@ -163,6 +176,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     q.add_argument("--json", action="store_true", help="also print the result as one JSON line")
     q.set_defaults(func=_cmd_bench_robots)
+    q = bsub.add_parser(
+        "dataplane",
+        help="status/s answered within the command window, next to a bare reflector and a naive "
+        "asyncio controller; latency at 10, 100, 300 robots",
+    )
+    q.add_argument("--seconds", type=float, default=2.0, help="length of each trial (default 2)")
+    q.add_argument("--json", action="store_true", help="also print the result as one JSON line")
+    q.set_defaults(func=_cmd_bench_dataplane)
     return parser
 
 

@@ -6,7 +6,18 @@ import pytest
 
 from cell.cli import build_parser, main
 
-COMMANDS = [[], ["up"], ["service"], ["status"], ["config"], ["config", "show"], ["bench"], ["bench", "bus"]]
+COMMANDS = [
+    [],
+    ["up"],
+    ["service"],
+    ["status"],
+    ["config"],
+    ["config", "show"],
+    ["bench"],
+    ["bench", "bus"],
+    ["bench", "robots"],
+    ["bench", "dataplane"],
+]
 
 
 @pytest.mark.parametrize("command", COMMANDS, ids=lambda c: " ".join(c) or "cell")

@@ -20,13 +20,12 @@ _SHIFTS = (32, 16, 8, 4, 2, 1)
 
 
 def bit_length(y: np.ndarray) -> np.ndarray:
-    """Bit length of non-negative int64 values, with integer ops only."""
-    y = y.copy()
+    """Bit length of non-negative int64 values: a binary search with integer vector ops only."""
     n = np.zeros(y.shape, np.int64)
     for s in _SHIFTS:
-        big = y >= (1 << s)
-        n[big] += s
-        y[big] >>= s
+        step = ((y >> s) != 0) * s  # s where the value still has bits above s, else 0
+        n += step
+        y = y >> step
     return n + (y > 0)
 
 
@@ -107,27 +106,46 @@ def prefix_entries(c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
 
 
 class LimitVelocity:
-    """Per-joint velocity limits as prefix tables: |out| <= limit for every int64 input."""
+    """Per-joint velocity limits as prefix tables: |out| <= limit for every int64 input.
+
+    Entries are stored by the bit they end at (the one where x first differs from
+    the constant), so a lookup goes straight to the only entry that can match,
+    found from bit_length(x ^ constant) as an LPM engine's walk would find it,
+    and checks that entry's (value, mask): one candidate per side, not 63.
+    """
 
     def __init__(self, limits: np.ndarray) -> None:
         self.limits = np.asarray(limits, np.int64)
         joints = len(self.limits)
-        size = WORD - 1
-        # padded per joint; a padding entry (mask 0, value 1) never matches
-        self.hi_v = np.ones((joints, size), np.int64)
-        self.hi_m = np.zeros((joints, size), np.int64)
-        self.lo_v = np.ones((joints, size), np.int64)
-        self.lo_m = np.zeros((joints, size), np.int64)
+        # entry ending at bit i (0..63); a missing entry (mask 0, value 1) never matches
+        self.hi_v = np.ones((joints, WORD), np.int64)
+        self.hi_m = np.zeros((joints, WORD), np.int64)
+        self.lo_v = np.ones((joints, WORD), np.int64)
+        self.lo_m = np.zeros((joints, WORD), np.int64)
+        self.neg = np.zeros(joints, np.int64)  # -limit, as the negative side's entries are cut from it
         self.entries = 0
         for j, c in enumerate(self.limits):
             hv, hm, lv, lm = prefix_entries(int(c))
-            self.hi_v[j, : hv.size], self.hi_m[j, : hm.size] = hv, hm
-            self.lo_v[j, : lv.size], self.lo_m[j, : lm.size] = lv, lm
+            for vals, masks, tv, tm in ((hv, hm, self.hi_v, self.hi_m), (lv, lm, self.lo_v, self.lo_m)):
+                for v, m in zip(vals.tolist(), masks.tolist(), strict=True):
+                    bit = _lowest_bit(m)
+                    tv[j, bit], tm[j, bit] = v, m
+            self.neg[j] = -int(c)
             self.entries += hv.size + lv.size
 
     def __call__(self, x: np.ndarray, joint: np.ndarray) -> np.ndarray:
         x = np.asarray(x, np.int64)
-        over = ((x[:, None] & self.hi_m[joint]) == self.hi_v[joint]).any(axis=1)
-        under = ((x[:, None] & self.lo_m[joint]) == self.lo_v[joint]).any(axis=1)
-        c = self.limits[joint]
+        c, d = self.limits[joint], self.neg[joint]
+        # the one entry per side that can match: where x first differs from the constant
+        hi = bit_length(np.where(x ^ c < 0, 0, x ^ c)) - 1
+        hi = np.where(x ^ c < 0, 63, hi)
+        lo = bit_length(np.where(x ^ d < 0, 0, x ^ d)) - 1
+        lo = np.where(x ^ d < 0, 63, lo)
+        hi, lo = np.maximum(hi, 0), np.maximum(lo, 0)
+        over = (x & self.hi_m[joint, hi]) == self.hi_v[joint, hi]
+        under = (x & self.lo_m[joint, lo]) == self.lo_v[joint, lo]
         return np.where(over, c, np.where(under, -c, x))
+
+
+def _lowest_bit(mask: int) -> int:
+    return (mask & -mask).bit_length() - 1 if mask else 0

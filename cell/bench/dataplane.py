@@ -1,0 +1,274 @@
+"""`cell bench dataplane`: status answered within the command window, next to its baselines.
+
+A load generator (one process, one core) plays R robots x 6 joints at 500 Hz:
+every 2 ms it sends each joint's status with seq = the tick number (UDP GSO,
+one socket) and timestamps every answer as it arrives (UDP GRO), so each
+command's status-to-command time is exact.  On the other core runs one of:
+
+- dataplane: the real service's packet path (cell.services.dataplane.DataPlane),
+  every robot following a trajectory, so every packet takes the full pipeline;
+- reflector: the same batched UDP I/O and no pipeline (this machine's limit);
+- naive: the same controller written the obvious way, an asyncio
+  DatagramProtocol handling one datagram at a time in floating point.
+
+A trial passes when >= 99% of status datagrams are answered within the
+command window (8 ms); R grows until one fails.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import multiprocessing as mp
+import os
+import select
+import socket
+import struct
+import time
+from typing import Any
+
+import numpy as np
+
+from cell import aio
+from cell.robot import datagram, udp
+from cell.robot.datagram import SCALE, Kind
+
+WINDOW_NS = 8_000_000
+PERIOD_NS = 2_000_000
+ON_TIME = 0.99
+
+
+def _pin(core: int) -> None:
+    if hasattr(os, "sched_setaffinity") and core < (os.cpu_count() or 1):
+        os.sched_setaffinity(0, {core})
+
+
+# --- the targets (child processes) --------------------------------------------------------------
+
+
+def _dataplane_target(robots: int, out: Any, stop: Any) -> None:
+    _pin(1)
+    from cell.config import load_config
+    from cell.dataplane.tables import TP
+    from cell.services.dataplane import DataPlane
+
+    rob = [{"id": r, "name": f"b{r}", "skill_port": 20000 + r} for r in range(1, robots + 1)]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    cfg = load_config(overrides={"robots": rob, "dataplane": {"listen": f"127.0.0.1:{port}"}})
+    plane = DataPlane(cfg)
+    # every robot heads for a TP 0.1 rad away, forever (a self-loop): the full egress path for each packet
+    plane.tables.insert([TP(r, 1, 1, 1.0, [0.1] * 6, [0.0] * 6) for r in range(1, robots + 1)])
+    for r in range(1, robots + 1):
+        plane.tables.set_registers(r, 1, 2**62)
+    out.put(plane.sock.getsockname())
+
+    async def main() -> None:
+        task = asyncio.ensure_future(plane.run())
+        await asyncio.to_thread(stop.wait)
+        task.cancel()
+
+    aio.run(main())
+    out.put({"batches": plane.batches, "packets": plane.packets_in})
+    plane.close()
+
+
+def _reflector_target(robots: int, out: Any, stop: Any) -> None:
+    from cell.bench.robots import reflector
+
+    reflector(out, stop, True, 1)
+
+
+class _Naive(asyncio.DatagramProtocol):
+    """The obvious way: one datagram at a time, struct and floats, a dict of targets."""
+
+    STRUCT = struct.Struct("!HBBIqq")
+
+    def __init__(self, targets: dict[int, list[float]]) -> None:
+        self.targets = targets
+        self.answered = 0
+
+    def connection_made(self, transport: Any) -> None:
+        self.transport = transport
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        if len(data) != 24:
+            return
+        rid, jid, kind, seq, v, p = self.STRUCT.unpack(data)
+        if kind != 0:
+            return
+        target = self.targets.get(rid)
+        vel, pos = v / SCALE, p / SCALE
+        cmd = 0.0 if target is None else vel + 1.0 * (0.0 - vel) + 5.0 * (target[jid] - pos)
+        cmd = max(-3.14159, min(3.14159, cmd))
+        self.transport.sendto(self.STRUCT.pack(rid, jid, 1, seq, round(cmd * SCALE), p), addr)
+        self.answered += 1
+
+
+def _naive_target(robots: int, out: Any, stop: Any) -> None:
+    _pin(1)
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        proto = _Naive({r: [0.1] * 6 for r in range(1, robots + 1)})
+        sock = udp.open_socket("127.0.0.1", gro=False)
+        transport, _ = await loop.create_datagram_endpoint(lambda: proto, sock=sock)
+        out.put(sock.getsockname())
+        await asyncio.to_thread(stop.wait)
+        transport.close()
+        out.put({"answered": proto.answered})
+
+    aio.run(main())
+
+
+TARGETS = {"dataplane": _dataplane_target, "reflector": _reflector_target, "naive": _naive_target}
+
+
+# --- the load generator (this process) -----------------------------------------------------------
+
+
+def load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float]:
+    """Play `robots` robots at 500 Hz against addr for `seconds`; status-to-command times of every answer."""
+    _pin(0)
+    sock = udp.open_socket("127.0.0.1")
+    sender = udp.Sender(sock, datagram.SIZE)
+    n = robots * 6
+    recs = datagram.empty(n)
+    datagram.pack(
+        recs, np.repeat(np.arange(1, robots + 1), 6), np.tile(np.arange(6), robots), Kind.STATUS, 0, 0.0, 0.0
+    )
+    raw = memoryview(recs.view(np.uint8))
+    chunk = 64 * datagram.SIZE  # GSO segments per call
+    ticks = int(seconds * 1e9 / PERIOD_NS)
+    sent_at = np.zeros(ticks + 1, np.int64)
+    arrivals: list[tuple[int, bytes]] = []  # decoded after the run: the receive loop must stay cheap
+    poller = select.epoll()
+    poller.register(sock.fileno(), select.EPOLLIN)
+    start = time.monotonic_ns() + 50_000_000
+    sent = late_ticks = 0
+    try:
+        for k in range(1, ticks + 1):
+            due = start + k * PERIOD_NS
+            while (now := time.monotonic_ns()) < due:  # take answers until the next tick is due
+                if poller.poll(max(0.0, (due - now) / 1e9 - 0.0002)):
+                    _drain(sock, arrivals)
+            if now - due > PERIOD_NS:
+                late_ticks += 1
+            recs["seq"] = k
+            sent_at[k] = time.monotonic_ns()
+            for i in range(0, len(raw), chunk):
+                sent += sender.send(raw[i : i + chunk], addr)
+        end = time.monotonic_ns() + WINDOW_NS * 4
+        while time.monotonic_ns() < end:  # the last answers
+            if poller.poll(0.001):
+                _drain(sock, arrivals)
+    finally:
+        poller.close()
+        sock.close()
+    lat = []
+    for at, data in arrivals:
+        if len(data) % datagram.SIZE:
+            continue
+        seqs = datagram.view(data)["seq"].astype(np.int64)
+        seqs = seqs[(seqs > 0) & (seqs <= ticks)]
+        lat.append(at - sent_at[seqs])
+    times = np.concatenate(lat) if lat else np.zeros(0, np.int64)
+    answered = times.size
+    on_time = int((times <= WINDOW_NS).sum())
+    out = {
+        "robots": robots,
+        "rate": n * 500,
+        "sent": sent,
+        "answered": answered,
+        "on_time": on_time,
+        "on_time_fraction": on_time / max(sent, 1),
+        "generator_late_ticks": late_ticks,
+    }
+    if times.size:
+        out["p50_us"] = float(np.percentile(times, 50)) / 1e3
+        out["p99_us"] = float(np.percentile(times, 99)) / 1e3
+    return out
+
+
+def _drain(sock: socket.socket, arrivals: list[tuple[int, bytes]]) -> None:
+    recv = sock.recv
+    while True:
+        try:
+            data = recv(65536)
+        except BlockingIOError:
+            return
+        arrivals.append((time.monotonic_ns(), data))
+
+
+def trial(target: str, robots: int, seconds: float = 2.0) -> dict[str, float]:
+    ctx = mp.get_context("spawn")
+    out, stop = ctx.Queue(), ctx.Event()
+    proc = ctx.Process(target=TARGETS[target], args=(robots, out, stop), daemon=True)
+    proc.start()
+    addr = out.get(timeout=60)
+    try:
+        result = load(addr, robots, seconds)
+    finally:
+        stop.set()
+    proc.join(10)
+    result["target"] = target
+    result["ok"] = result["on_time_fraction"] >= ON_TIME
+    return result
+
+
+def sustained(target: str, start: int, seconds: float, log: Any = None) -> dict[str, Any]:
+    """The most status datagrams/s answered within the window: R doubles until a trial fails."""
+    trials, best, r = [], None, start
+    while True:
+        t = trial(target, r, seconds)
+        trials.append(t)
+        if log:
+            log(t)
+        if not t["ok"]:
+            break
+        best, r = t, r * 2
+    return {"target": target, "best": best, "trials": trials}
+
+
+def format_trial(t: dict[str, Any]) -> str:
+    verdict = "ok  " if t["ok"] else "FAIL"
+    return (
+        f"{t['target']:>10} {t['robots']:>4} robots ({t['rate']:>9,} status/s): {verdict} "
+        f"on time {100 * t['on_time_fraction']:6.2f}%  p50/p99 {t.get('p50_us', float('nan')):7.0f}/"
+        f"{t.get('p99_us', float('nan')):7.0f} us  generator late ticks {t['generator_late_ticks']}"
+    )
+
+
+def run(seconds: float = 2.0, log: Any = None) -> dict[str, Any]:
+    result: dict[str, Any] = {
+        "throughput": {
+            t: sustained(t, s, seconds, log) for t, s in (("reflector", 20), ("dataplane", 20), ("naive", 5))
+        }
+    }
+    result["latency"] = [trial("dataplane", r, seconds) for r in (10, 100, 300)]
+    if log:
+        for t in result["latency"]:
+            log(t)
+    return result
+
+
+def format_result(result: dict[str, Any]) -> str:
+    tp = result["throughput"]
+
+    def best(name: str) -> float:
+        b = tp[name]["best"]
+        return float(b["rate"]) if b else 0.0
+
+    ref, dp, naive = best("reflector"), best("dataplane"), best("naive")
+    lines = ["status datagrams/s answered >= 99% within the 8 ms command window (one core each side):"]
+    lines += [
+        f"  {name:>10}: {rate:>10,.0f}"
+        for name, rate in (("reflector", ref), ("dataplane", dp), ("naive", naive))
+    ]
+    if ref and naive:
+        lines.append(
+            f"  dataplane = {100 * dp / ref:.0f}% of the reflector, {dp / naive:.1f}x the naive asyncio one"
+        )
+    lines.append("status-to-command time, robots x 6 joints x 500 Hz:")
+    lines += [f"  {format_trial(t)}" for t in result["latency"]]
+    return "\n".join(lines)
