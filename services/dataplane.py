@@ -151,6 +151,26 @@ class DataPlane:
             now_ns=time.monotonic_ns(),
         )
 
+    async def load_constants(self, req: dataplane_pb2.Constants) -> dataplane_pb2.ConstantsReply:
+        """New controller constants: tables built in a worker thread, then swapped in at once."""
+        constants = ControlConstants(tuple(req.c1), tuple(req.c2), req.n_bits, tuple(req.v_max))
+        if len(constants.c1) != self.pipeline.joints:
+            raise RpcFault("bad_request", f"{self.pipeline.joints} values per list expected")
+        t0 = time.perf_counter()
+        try:
+            built = await asyncio.to_thread(Pipeline.build, constants)
+        except ValueError as exc:
+            raise RpcFault("bad_request", str(exc)) from None
+        build_ms = (time.perf_counter() - t0) * 1e3
+        self.pipeline.install(built)
+        p = self.pipeline
+        entries = p.transform_curr_velocity.entries + p.transform_trg_velocity.entries
+        return dataplane_pb2.ConstantsReply(
+            transform_entries=entries + p.transform_diff_position.entries,
+            limit_entries=p.limit_velocity.entries,
+            build_ms=build_ms,
+        )
+
     def merge(self, req: dataplane_pb2.MergeRequest) -> dataplane_pb2.MergeReply:
         try:
             return dataplane_pb2.MergeReply(entity=self.tables.merge(list(req.robot_ids)))
@@ -205,6 +225,7 @@ async def run(ctx: ServiceContext) -> None:
                 "update": (dataplane_pb2.TableUpdate, plane.update),
                 "merge": (dataplane_pb2.MergeRequest, plane.merge),
                 "state": (dataplane_pb2.StateRequest, plane.state),
+                "load_constants": (dataplane_pb2.Constants, plane.load_constants),
             },
         )
         announcements = await bus.subscribe("announce/robot/")

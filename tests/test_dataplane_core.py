@@ -289,3 +289,24 @@ def test_a_batch_from_many_senders_is_answered_in_network_order() -> None:
         plane.close()
         for s in socks:
             s.close()
+
+
+def test_new_constants_swap_in_whole() -> None:
+    t = Tables(capacity=4)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    t.insert([TP(1, 1, 1, 1.0, [2.0] * 6, [0.0] * 6)])
+    t.set_registers(1, 1, 10**18)
+    recs = batch(status(1, 0, 0.0, 0.0))
+    pipe.process(recs, now=0)
+    assert datagram.velocities(recs)[0] == pytest.approx(np.pi, abs=1e-6)  # 2 rad x c2=2, limited at pi
+    pipe.install(Pipeline.build(ControlConstants((1.0,) * 6, (0.25,) * 6, 8, (0.4,) * 6)))
+    recs = batch(status(1, 0, 0.0, 0.0))
+    pipe.process(recs, now=0)
+    assert datagram.velocities(recs)[0] == pytest.approx(0.4, abs=1e-6)  # the new limit
+    recs = batch(status(1, 0, 0.0, 1.0))
+    pipe.process(recs, now=0)
+    # the new gain: 0.25 = 1 + (c2 - 1), the (c2 - 1) p_diff term (-0.75) errs by at most 2^-8 of itself
+    assert datagram.velocities(recs)[0] == pytest.approx(0.25, abs=0.75 / 2**8 + 1e-6)
+    with pytest.raises(ValueError, match="v_max"):
+        Pipeline.build(ControlConstants((1.0,) * 6, (1.0,) * 6, 8, (11.0,) * 6))

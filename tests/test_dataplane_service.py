@@ -77,6 +77,14 @@ async def test_refusals_and_bad_datagrams(start_cell) -> None:
             await dp.update(registers=[(1, 42, 0)])
         assert info.value.code == "unknown_tp"
         assert (await dp.state()).loaded == 0  # nothing of a refused batch was applied
+        # new controller constants: tables regenerated and swapped in; bad ones refused
+        reply = await dp.load_constants([1.0] * 6, [4.0] * 6, 6, [1.0] * 6)
+        assert reply.transform_entries == 3 * 6 * 2 * (2**6 + 57 * 2**5)
+        assert 0 < reply.limit_entries <= 6 * 2 * 63
+        for bad in ([1.0] * 6, [4.0] * 6, 8, [20.0] * 6), ([1.0] * 5, [4.0] * 5, 8, [1.0] * 5):
+            with pytest.raises(RemoteError) as info:
+                await dp.load_constants(*bad)
+            assert info.value.code == "bad_request"
         # a peer sending junk: counted and dropped, and status is still answered
         plane = parse_host_port(cell.config.dataplane.listen)
         sock = udp.open_socket("127.0.0.1")

@@ -45,6 +45,17 @@ class DataplaneClient:
         assert isinstance(reply, dataplane_pb2.UpdateReply)
         return reply
 
+    async def load_constants(
+        self, c1: Sequence[float], c2: Sequence[float], n_bits: int, v_max: Sequence[float]
+    ) -> dataplane_pb2.ConstantsReply:
+        """New controller constants; the data plane regenerates its Transform and LimitVelocity tables."""
+        req = dataplane_pb2.Constants(c1=c1, c2=c2, n_bits=n_bits, v_max=v_max)
+        reply = await self.bus.request(
+            self.service, "load_constants", req, dataplane_pb2.ConstantsReply, self.timeout
+        )
+        assert isinstance(reply, dataplane_pb2.ConstantsReply)
+        return reply
+
     async def merge(self, robots: Sequence[int]) -> int:
         req = dataplane_pb2.MergeRequest(robot_ids=robots)
         reply = await self.bus.request(self.service, "merge", req, dataplane_pb2.MergeReply, self.timeout)

@@ -73,16 +73,37 @@ class PipelineCounters:
 class Pipeline:
     def __init__(self, tables: Tables, constants: ControlConstants) -> None:
         self.t = tables
-        self.constants = constants
+        self.counters = PipelineCounters()
+        self.install(self.build(constants))
+
+    @staticmethod
+    def build(constants: ControlConstants) -> tuple:
+        """Generate every table for a set of constants (slow-ish: keep it off the packet path)."""
         j = len(constants.c1)
         if not (len(constants.c2) == len(constants.v_max) == j):
             raise ValueError("c1, c2 and v_max need one value per joint")
-        self.joints = j
-        self.transform_curr_velocity = TransformBank([1.0 - c for c in constants.c1], constants.n_bits)
-        self.transform_trg_velocity = TransformBank(list(constants.c1), constants.n_bits)
-        self.transform_diff_position = TransformBank([c - 1.0 for c in constants.c2], constants.n_bits)
-        self.limit_velocity = LimitVelocity(np.rint(np.array(constants.v_max) * SCALE).astype(np.int64))
-        self.counters = PipelineCounters()
+        if not 2 <= constants.n_bits <= 16:
+            raise ValueError(f"n_bits must be 2..16 (got {constants.n_bits})")
+        if not all(0 < v <= 10 for v in constants.v_max):
+            raise ValueError("v_max must be in (0, 10] rad/s for every joint")
+        return (
+            constants,
+            TransformBank([1.0 - c for c in constants.c1], constants.n_bits),
+            TransformBank(list(constants.c1), constants.n_bits),
+            TransformBank([c - 1.0 for c in constants.c2], constants.n_bits),
+            LimitVelocity(np.rint(np.array(constants.v_max) * SCALE).astype(np.int64)),
+        )
+
+    def install(self, built: tuple) -> None:
+        """Swap in tables made by build(): one step, between two packet batches."""
+        (
+            self.constants,
+            self.transform_curr_velocity,
+            self.transform_trg_velocity,
+            self.transform_diff_position,
+            self.limit_velocity,
+        ) = built
+        self.joints = len(self.constants.c1)
 
     # --- Algorithm 1 -------------------------------------------------------------------------
 

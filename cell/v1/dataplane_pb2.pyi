@@ -130,3 +130,25 @@ class DataplaneState(_message.Message):
     robots: _containers.RepeatedCompositeFieldContainer[RobotPlaneState]
     counters: _containers.ScalarMap[str, float]
     def __init__(self, now_ns: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., robots: _Optional[_Iterable[_Union[RobotPlaneState, _Mapping]]] = ..., counters: _Optional[_Mapping[str, float]] = ...) -> None: ...
+
+class Constants(_message.Message):
+    __slots__ = ("c1", "c2", "n_bits", "v_max")
+    C1_FIELD_NUMBER: _ClassVar[int]
+    C2_FIELD_NUMBER: _ClassVar[int]
+    N_BITS_FIELD_NUMBER: _ClassVar[int]
+    V_MAX_FIELD_NUMBER: _ClassVar[int]
+    c1: _containers.RepeatedScalarFieldContainer[float]
+    c2: _containers.RepeatedScalarFieldContainer[float]
+    n_bits: int
+    v_max: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, c1: _Optional[_Iterable[float]] = ..., c2: _Optional[_Iterable[float]] = ..., n_bits: _Optional[int] = ..., v_max: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class ConstantsReply(_message.Message):
+    __slots__ = ("transform_entries", "limit_entries", "build_ms")
+    TRANSFORM_ENTRIES_FIELD_NUMBER: _ClassVar[int]
+    LIMIT_ENTRIES_FIELD_NUMBER: _ClassVar[int]
+    BUILD_MS_FIELD_NUMBER: _ClassVar[int]
+    transform_entries: int
+    limit_entries: int
+    build_ms: float
+    def __init__(self, transform_entries: _Optional[int] = ..., limit_entries: _Optional[int] = ..., build_ms: _Optional[float] = ...) -> None: ...
