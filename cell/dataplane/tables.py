@@ -75,6 +75,7 @@ class Tables:
         self._switch_id: dict[int, int] = {}  # row -> the TP id it switches to
         self._waiting: dict[tuple[int, int], set[tuple[int, str]]] = defaultdict(set)
         self._free = list(range(capacity - 1, -1, -1))
+        self._entity: dict[int, int] = {}  # robot -> entity, for the control plane (numpy scalars are slow)
 
     # --- robots and entities -----------------------------------------------------------------
 
@@ -105,14 +106,15 @@ class Tables:
         offset = 0
         for r, j in zip(robots, joints, strict=True):
             self.robot_entity[r] = e
+            self._entity[r] = e
             self.robot_joint0[r] = offset
             offset += j
         self.entity_joints[e] = total
         return e
 
     def entity_of(self, robot: int) -> int:
-        e = int(self.robot_entity[robot])
-        if e == NO_ROW:
+        e = self._entity.get(robot)
+        if e is None:
             raise Refused("unknown_robot", f"robot {robot} is not known to the data plane")
         return e
 
@@ -125,16 +127,27 @@ class Tables:
     def insert(self, tps: Sequence[TP]) -> None:
         """Insert or replace TPs, atomically; Refused (table_full, unknown_robot, ...) before any change."""
         self._check_insert(tps)
+        self._insert_checked(tps)
+
+    def _insert_checked(self, tps: Sequence[TP]) -> None:
         keys = [(self.entity_of(tp.robot), tp.id) for tp in tps]
         rows = np.array([self._row[k] if k in self._row else self._alloc(k) for k in keys], np.int64)
         if rows.size == 0:
             return
         n = self.max_joints
-        pos = np.zeros((rows.size, n))
-        vel = np.zeros((rows.size, n))
-        for i, tp in enumerate(tps):
-            pos[i, : len(tp.positions)] = tp.positions
-            vel[i, : len(tp.velocities)] = tp.velocities
+        widths = {len(tp.positions) for tp in tps}
+        if len(widths) == 1:  # the usual batch: one entity shape, one conversion
+            w = widths.pop()
+            pos = np.zeros((rows.size, n))
+            vel = np.zeros((rows.size, n))
+            pos[:, :w] = np.array([tp.positions for tp in tps], np.float64)
+            vel[:, :w] = np.array([tp.velocities for tp in tps], np.float64)
+        else:
+            pos = np.zeros((rows.size, n))
+            vel = np.zeros((rows.size, n))
+            for i, tp in enumerate(tps):
+                pos[i, : len(tp.positions)] = tp.positions
+                vel[i, : len(tp.velocities)] = tp.velocities
         self.trg_pos[rows] = np.rint(pos * SCALE).astype(np.int64)
         self.trg_vel[rows] = np.rint(vel * SCALE).astype(np.int64)
         self.duration[rows] = np.rint(np.array([tp.duration_s for tp in tps]) * 1e9).astype(np.int64)
@@ -186,15 +199,20 @@ class Tables:
                 target = self._key[int(arr[w])]
                 arr[w] = NO_ROW
                 self._waiting[target].add((w, kind))
-        for row in rows:
-            key = self._key[row]
-            del self._row[key]
-            self._key[row] = (-1, -1)
+        # only rows with an unresolved link (or a switch) sit in a waiting list
+        for row in gone[self.next_row[gone] == NO_ROW].tolist():
             self._forget_waits(row)
-            self.next_row[row] = NO_ROW
-            self.switch_row[row] = NO_ROW
-            self._switch_id.pop(row, None)
-            self._free.append(row)
+        if self._switch_id:
+            for row in rows:
+                if row in self._switch_id:
+                    self._forget_waits(row)
+                    del self._switch_id[row]
+        row_of, keys = self._row, self._key
+        for row in rows:
+            del row_of[keys[row]]
+        self.next_row[gone] = NO_ROW
+        self.switch_row[gone] = NO_ROW
+        self._free.extend(rows)
         return len(rows)
 
     def _forget_waits(self, row: int) -> None:
@@ -290,21 +308,21 @@ class Tables:
             if tp_id is not None and not exists(robot, tp_id):
                 raise Refused("unknown_tp", f"registers of robot {robot}: no TP {tp_id}")
             moved[self.entity_of(robot)] = tp_id
-        gone = {(self.entity_of(r), i) for r, i in remove}
-        # what the entities will follow: TPs named by new registers, else the current ones
-        for e in range(self.entities):
-            if e in moved:
-                following = set() if moved[e] is None else {(e, moved[e])}
-            else:
-                row = int(self.reg_tp[e])
-                following = set() if row == NO_ROW else {self._key[row]}
-                nxt = int(self.effective_next(np.array([row]))[0]) if row != NO_ROW else NO_ROW
-                if nxt != NO_ROW:
-                    following.add(self._key[nxt])
-            if busy := following & gone:
-                raise Refused("in_use", f"TP {sorted(busy)[0][1]} is being followed; switch or stop first")
+        if remove:
+            gone = {(self.entity_of(r), i) for r, i in remove}
+            # what the entities will follow: TPs named by new registers, else their current and next TPs
+            current = self.reg_tp[: self.entities]
+            upcoming = self.effective_next(current)
+            for e in range(self.entities):
+                if e in moved:
+                    following = set() if moved[e] is None else {(e, moved[e])}
+                else:
+                    following = {self._key[int(r)] for r in (current[e], upcoming[e]) if r != NO_ROW}
+                if busy := following & gone:
+                    tp = sorted(busy)[0][1]
+                    raise Refused("in_use", f"TP {tp} is being followed; switch or stop first")
         # checked: apply
-        self.insert(insert)
+        self._insert_checked(insert)
         for robot, tp_id, nxt in switches:
             if nxt is None:
                 self.unset_switch(robot, tp_id)
