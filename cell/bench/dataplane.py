@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import asyncio
 import multiprocessing as mp
-import os
 import select
 import socket
 import struct
@@ -29,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from cell import aio
+from cell.bench import pin
 from cell.robot import datagram, udp
 from cell.robot.datagram import SCALE, Kind
 
@@ -37,16 +37,11 @@ PERIOD_NS = 2_000_000
 ON_TIME = 0.99
 
 
-def _pin(core: int) -> None:
-    if hasattr(os, "sched_setaffinity") and core < (os.cpu_count() or 1):
-        os.sched_setaffinity(0, {core})
-
-
 # --- the targets (child processes) --------------------------------------------------------------
 
 
 def _dataplane_target(robots: int, out: Any, stop: Any) -> None:
-    _pin(1)
+    pin(1)
     from cell.config import load_config
     from cell.dataplane.tables import TP
     from cell.services.dataplane import DataPlane
@@ -106,7 +101,7 @@ class _Naive(asyncio.DatagramProtocol):
 
 
 def _naive_target(robots: int, out: Any, stop: Any) -> None:
-    _pin(1)
+    pin(1)
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
@@ -129,7 +124,7 @@ TARGETS = {"dataplane": _dataplane_target, "reflector": _reflector_target, "naiv
 
 def load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float]:
     """Play `robots` robots at 500 Hz against addr for `seconds`; status-to-command times of every answer."""
-    _pin(0)
+    pin(0)
     sock = udp.open_socket("127.0.0.1")
     sender = udp.Sender(sock, datagram.SIZE)
     n = robots * 6

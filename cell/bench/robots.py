@@ -14,7 +14,6 @@ baseline in the same run shows how late the machine itself makes a tick.
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 import queue
 import resource
 import time
@@ -23,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from cell import aio
+from cell.bench import pin
 from cell.config import load_config
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
@@ -31,14 +31,9 @@ LATE_LIMIT = 0.001
 TRIES = 2  # trials of one N before it counts as failed (the VM stalls at random)
 
 
-def _pin(core: int) -> None:
-    if hasattr(os, "sched_setaffinity") and core < (os.cpu_count() or 1):
-        os.sched_setaffinity(0, {core})
-
-
 def reflector(out: Any, stop: Any, answer: bool = True, core: int = 1) -> None:
     """Answer every status datagram with a command (velocity 0, seq and position echoed), or just count."""
-    _pin(core)
+    pin(core)
     sock = udp.open_socket("127.0.0.1")
     sender = udp.Sender(sock, datagram.SIZE)
     out.put(sock.getsockname())
@@ -66,7 +61,7 @@ def reflector(out: Any, stop: Any, answer: bool = True, core: int = 1) -> None:
 
 
 def _trial_child(backend: str, n: int, seconds: float, dataplane: str, out: Any, core: int = 0) -> None:
-    _pin(core)
+    pin(core)
     from cell.robot.emulator import RobotGroup
 
     robots = [
