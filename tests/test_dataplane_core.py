@@ -310,3 +310,21 @@ def test_new_constants_swap_in_whole() -> None:
     assert datagram.velocities(recs)[0] == pytest.approx(0.25, abs=0.75 / 2**8 + 1e-6)
     with pytest.raises(ValueError, match="v_max"):
         Pipeline.build(ControlConstants((1.0,) * 6, (1.0,) * 6, 8, (11.0,) * 6))
+
+
+def test_a_key_named_twice_is_deleted_once_and_streaming_leaves_no_residue() -> None:
+    t = Tables(capacity=64)
+    t.add_robot(1)
+    t.insert([hold_tp(1, i, i + 1, [0.0]) for i in range(10)])  # TP 9 waits for TP 10
+    assert t.delete([(1, 3), (1, 3), (1, 4)]) == 2
+    assert t.loaded == 8 and len(t._free) == 64 - 8  # no row freed twice
+    t.insert([hold_tp(1, 100, 101, [0.0]), hold_tp(1, 101, 100, [0.0])])
+    assert len({*t._free}) == len(t._free)
+    # stream episodes through a small table: insert ahead, delete behind; nothing accumulates
+    sizes = []
+    for k in range(1, 40):
+        t.insert([hold_tp(1, 1000 + 10 * k + i, 1000 + 10 * k + i + 1, [0.0]) for i in range(10)])
+        t.delete([(1, 1000 + 10 * (k - 1) + i) for i in range(10)])
+        sizes.append((len(t._waiting), sum(len(w) for w in t._waiting.values()), t.loaded))
+    assert sizes[5] == sizes[-1]  # the same few open links (TP 2 -> 3, TP 9 -> 10, the live end), no growth
+    assert sizes[-1][1] == 3

@@ -177,12 +177,13 @@ class Tables:
         A TP that a robot is heading to, or will step to next, is refused (in_use): switch
         or stop the robot first.
         """
-        rows = []
+        found = []
         for robot, tp_id in keys:
             e = self.entity_of(robot)
             row = self._row.get((e, tp_id))
             if row is not None:
-                rows.append(row)
+                found.append(row)
+        rows = list(dict.fromkeys(found))  # a key named twice is still one row, freed once
         if not rows:
             return 0
         gone = np.array(rows, np.int64)
@@ -207,9 +208,9 @@ class Tables:
                 if row in self._switch_id:
                     self._forget_waits(row)
                     del self._switch_id[row]
-        row_of, keys = self._row, self._key
+        index, key_of = self._row, self._key
         for row in rows:
-            del row_of[keys[row]]
+            del index[key_of[row]]
         self.next_row[gone] = NO_ROW
         self.switch_row[gone] = NO_ROW
         self._free.extend(rows)
@@ -217,13 +218,16 @@ class Tables:
 
     def _forget_waits(self, row: int) -> None:
         target = (self._key_entity(row), int(self._next_id[row]))
-        waiters = self._waiting.get(target)
-        if waiters:
-            waiters.discard((row, "next"))
+        self._unwait(target, (row, "next"))
         if row in self._switch_id:
-            t = (target[0], self._switch_id[row])
-            if self._waiting.get(t):
-                self._waiting[t].discard((row, "switch"))
+            self._unwait((target[0], self._switch_id[row]), (row, "switch"))
+
+    def _unwait(self, target: tuple[int, int], waiter: tuple[int, str]) -> None:
+        waiters = self._waiting.get(target)
+        if waiters is not None:
+            waiters.discard(waiter)
+            if not waiters:  # no empty sets left behind: streaming would grow them forever
+                del self._waiting[target]
 
     def _key_entity(self, row: int) -> int:
         return self._key[row][0]
@@ -254,9 +258,7 @@ class Tables:
         row = self.row_of(robot, tp_id)
         old = self._switch_id.pop(row, None)
         if old is not None:
-            waiters = self._waiting.get((self.entity_of(robot), old))
-            if waiters:
-                waiters.discard((row, "switch"))
+            self._unwait((self.entity_of(robot), old), (row, "switch"))
         self.switch_row[row] = NO_ROW
 
     # --- registers ------------------------------------------------------------------------------
