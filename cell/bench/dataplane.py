@@ -35,12 +35,17 @@ from cell.robot.datagram import SCALE, Kind
 WINDOW_NS = 8_000_000
 PERIOD_NS = 2_000_000
 ON_TIME = 0.99
+PRELOAD = 40_000  # TPs loaded before an updating run, for its deletes
 
 
 # --- the targets (child processes) --------------------------------------------------------------
 
 
-def _dataplane_target(robots: int, out: Any, stop: Any) -> None:
+def _updating_target(robots: int, out: Any, stop: Any) -> None:
+    _dataplane_target(robots, out, stop, updates=True)
+
+
+def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False) -> None:
     pin(1)
     from cell.config import load_config
     from cell.dataplane.tables import TP
@@ -56,15 +61,47 @@ def _dataplane_target(robots: int, out: Any, stop: Any) -> None:
     plane.tables.insert([TP(r, 1, 1, 1.0, [0.1] * 6, [0.0] * 6) for r in range(1, robots + 1)])
     for r in range(1, robots + 1):
         plane.tables.set_registers(r, 1, 2**62)
+    if updates:  # the old TPs the updates will delete, loaded before the load starts
+        old_tps = [TP(1 + i % robots, 1000 + i, 1000 + i, 1.0, [0.0] * 6, [0.0] * 6) for i in range(PRELOAD)]
+        plane.tables.insert(old_tps)
     out.put(plane.sock.getsockname())
 
+    update_ms: list[float] = []
+
+    async def updater() -> None:
+        """Each second, as a controller would: insert 1,600 new TPs and delete 10,000 old ones."""
+        from cell.v1 import dataplane_pb2
+
+        fresh, old = 100_000, 1000
+        while True:
+            await asyncio.sleep(1.0)
+            req = dataplane_pb2.TableUpdate()
+            for i in range(fresh, fresh + 1_600):
+                req.insert.add(
+                    robot_id=1 + i % robots,
+                    id=i,
+                    next_id=i,
+                    duration_s=1.0,
+                    positions=[0.0] * 6,
+                    velocities=[0.0] * 6,
+                )
+            for i in range(old, min(old + 10_000, 1000 + PRELOAD)):
+                req.remove.add(robot_id=1 + (i - 1000) % robots, id=i)
+            t0 = time.perf_counter()
+            plane.update(req)
+            update_ms.append((time.perf_counter() - t0) * 1e3)
+            fresh, old = fresh + 1_600, old + 10_000
+
     async def main() -> None:
-        task = asyncio.ensure_future(plane.run())
+        tasks = [asyncio.ensure_future(plane.run())]
+        if updates:
+            tasks.append(asyncio.ensure_future(updater()))
         await asyncio.to_thread(stop.wait)
-        task.cancel()
+        for t in tasks:
+            t.cancel()
 
     aio.run(main())
-    out.put({"batches": plane.batches, "packets": plane.packets_in})
+    out.put({"batches": plane.batches, "packets": plane.packets_in, "update_ms": update_ms})
     plane.close()
 
 
@@ -116,7 +153,12 @@ def _naive_target(robots: int, out: Any, stop: Any) -> None:
     aio.run(main())
 
 
-TARGETS = {"dataplane": _dataplane_target, "reflector": _reflector_target, "naive": _naive_target}
+TARGETS = {
+    "dataplane": _dataplane_target,
+    "dataplane+updates": _updating_target,
+    "reflector": _reflector_target,
+    "naive": _naive_target,
+}
 
 
 # --- the load generator (this process) -----------------------------------------------------------
@@ -209,6 +251,11 @@ def trial(target: str, robots: int, seconds: float = 2.0) -> dict[str, float]:
         result = load(addr, robots, seconds)
     finally:
         stop.set()
+    if target.startswith("dataplane"):
+        try:
+            result["update_ms"] = out.get(timeout=30).get("update_ms", [])
+        except Exception:
+            result["update_ms"] = []
     proc.join(10)
     result["target"] = target
     result["ok"] = result["on_time_fraction"] >= ON_TIME
@@ -248,6 +295,11 @@ def run(seconds: float = 2.0, log: Any = None) -> dict[str, Any]:
     if log:
         for t in result["latency"]:
             log(t)
+    # updates under load: the same load with and without a controller's updates each second
+    result["updates"] = [trial(t, 100, max(seconds, 3.5)) for t in ("dataplane", "dataplane+updates")]
+    if log:
+        for t in result["updates"]:
+            log(t)
     return result
 
 
@@ -270,4 +322,12 @@ def format_result(result: dict[str, Any]) -> str:
         )
     lines.append("status-to-command time, robots x 6 joints x 500 Hz:")
     lines += [f"  {format_trial(t)}" for t in result["latency"]]
+    quiet, busy = result["updates"]
+    ms = busy.get("update_ms") or [float("nan")]
+    lines.append(
+        f"updates under load (100 robots; 1,600 inserts + 10,000 deletes a second, {len(ms)} updates): "
+        f"{np.mean(ms):.1f} ms per update (max {max(ms):.1f}); p99 {busy.get('p99_us', float('nan')):.0f} us "
+        f"with vs {quiet.get('p99_us', float('nan')):.0f} us without "
+        f"(ratio {busy.get('p99_us', float('nan')) / quiet.get('p99_us', float('nan')):.2f})"
+    )
     return "\n".join(lines)
