@@ -26,6 +26,7 @@ from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import dataplane_pb2, robot_pb2
 
 _STATUS = int(Kind.STATUS)
+SLICE_DECODE = 200  # TPs decoded from a request between two yields
 
 
 class DataPlane:
@@ -45,6 +46,7 @@ class DataPlane:
         self.rejected = {"length": 0, "kind": 0, "joint": 0}
         self.packets_in = self.commands_out = self.unsent = self.batches = 0
         self.batch_ns: list[int] = []
+        self._update_lock = asyncio.Lock()
 
     def add_robot(self, robot: int, joints: int = 6) -> None:
         self.tables.add_robot(robot, joints)
@@ -128,28 +130,54 @@ class DataPlane:
 
     # --- the control plane -------------------------------------------------------------------
 
-    def update(self, req: dataplane_pb2.TableUpdate) -> dataplane_pb2.UpdateReply:
-        t0 = time.perf_counter_ns()
-        try:
-            removed = self.tables.update(
-                insert=[
+    async def update(self, req: dataplane_pb2.TableUpdate) -> dataplane_pb2.UpdateReply:
+        """Apply one atomic batch in slices, letting the packet path run between them."""
+        async with self._update_lock:  # one update at a time: the staged update relies on it
+            started = time.perf_counter_ns()
+            longest = 0
+            t0 = started
+            insert: list[TP] = []
+            for i, p in enumerate(req.insert):
+                insert.append(
                     TP(p.robot_id, p.id, p.next_id, p.duration_s, list(p.positions), list(p.velocities))
-                    for p in req.insert
-                ],
-                remove=[(k.robot_id, k.id) for k in req.remove],
+                )
+                if i % SLICE_DECODE == SLICE_DECODE - 1:
+                    longest = max(longest, time.perf_counter_ns() - t0)
+                    await asyncio.sleep(0)  # the packet path runs here
+                    t0 = time.perf_counter_ns()
+            remove: list[tuple[int, int]] = []
+            for i in range(0, len(req.remove), SLICE_DECODE * 4):
+                remove += [(k.robot_id, k.id) for k in req.remove[i : i + SLICE_DECODE * 4]]
+                longest = max(longest, time.perf_counter_ns() - t0)
+                await asyncio.sleep(0)  # the packet path runs here
+                t0 = time.perf_counter_ns()
+            steps = self.tables.staged_update(
+                insert=insert,
+                remove=remove,
                 switches=[(s.robot_id, s.tp_id, None if s.unset else s.next_id) for s in req.switches],
                 registers=[(r.robot_id, None if r.clear else r.tp_id, r.next_time_ns) for r in req.registers],
             )
-        except Refused as exc:
-            raise RpcFault(exc.code, exc.reason) from None
-        return dataplane_pb2.UpdateReply(
-            inserted=len(req.insert),
-            removed=removed,
-            loaded=self.tables.loaded,
-            capacity=self.tables.capacity,
-            apply_us=(time.perf_counter_ns() - t0) / 1e3,
-            now_ns=time.monotonic_ns(),
-        )
+            while True:
+                try:
+                    next(steps)
+                except StopIteration as done:
+                    removed = int(done.value)
+                    break
+                except Refused as exc:
+                    raise RpcFault(exc.code, exc.reason) from None
+                finally:
+                    longest = max(longest, time.perf_counter_ns() - t0)
+                await asyncio.sleep(0)  # the packet path runs here
+                t0 = time.perf_counter_ns()
+            return dataplane_pb2.UpdateReply(
+                inserted=len(req.insert),
+                removed=removed,
+                loaded=self.tables.loaded,
+                capacity=self.tables.capacity,
+                apply_us=longest / 1e3,
+                total_ms=(time.perf_counter_ns() - started) / 1e6,
+                now_ns=time.monotonic_ns(),
+            )
 
     async def load_constants(self, req: dataplane_pb2.Constants) -> dataplane_pb2.ConstantsReply:
         """New controller constants: tables built in a worker thread, then swapped in at once."""

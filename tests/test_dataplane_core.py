@@ -328,3 +328,55 @@ def test_a_key_named_twice_is_deleted_once_and_streaming_leaves_no_residue() -> 
         sizes.append((len(t._waiting), sum(len(w) for w in t._waiting.values()), t.loaded))
     assert sizes[5] == sizes[-1]  # the same few open links (TP 2 -> 3, TP 9 -> 10, the live end), no growth
     assert sizes[-1][1] == 3
+
+
+def run_sliced(t: Tables, pipe: Pipeline, robot: int, now: list[int], **update) -> list[int | None]:
+    """A staged update with the packet path running between every two slices; the TPs it saw."""
+    seen = []
+    steps = t.staged_update(slice_size=4, **update)
+    while True:
+        now[0] += 1
+        seen.append(steps_to(pipe, robot, now[0]))
+        try:
+            next(steps)
+        except StopIteration:
+            return seen
+
+
+def test_a_staged_update_is_invisible_until_its_flip() -> None:
+    t = Tables(capacity=128)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    t.insert([hold_tp(1, i, i + 1, [0.0], dur=1e-9) for i in range(10)])  # TP 9 -> 10, not loaded yet
+    t.set_registers(1, 0, 0)
+    now = [0]
+    for _ in range(12):
+        now[0] += 1
+        steps_to(pipe, 1, now[0])
+    assert t.current_tp(1) == 9  # stalled at the end of the first episode
+    episode = [hold_tp(1, 10 + i, 11 + i, [0.0], dur=1e-9) for i in range(40)]  # 10 slices of 4
+    seen = run_sliced(t, pipe, 1, now, insert=episode, remove=[(1, i) for i in range(5)])
+    flip = next(i for i, tp in enumerate(seen) if tp != 9)
+    assert flip > 10  # many slices ran, and the robot stayed at TP 9 through all of them
+    assert all(tp == 9 for tp in seen[:flip])
+    assert all(tp is not None and tp >= 10 for tp in seen[flip:])  # then it moved on, into the new episode
+    assert t.loaded == 10 + 40 - 5
+
+
+def test_a_deletion_that_became_in_use_refuses_the_whole_update() -> None:
+    t = Tables(capacity=64)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    t.insert([hold_tp(1, 0, 1, [0.0], dur=1e-9), hold_tp(1, 1, 2, [0.0], dur=1e-9), hold_tp(1, 2, 2, [0.0])])
+    t.set_registers(1, 0, 10**6)  # at TP 0 for now: deleting TP 2 looks safe when the update starts
+    free_before, loaded_before = len(t._free), t.loaded
+    steps = t.staged_update(
+        insert=[hold_tp(1, 50 + i, 50 + i, [0.0]) for i in range(8)], remove=[(1, 2)], slice_size=2
+    )
+    next(steps)  # the update has started ...
+    steps_to(pipe, 1, 10**6)  # ... and meanwhile the robot steps on, to TP 1 (next: TP 2)
+    with pytest.raises(Refused, match="in_use"):
+        for _ in steps:
+            pass
+    assert (len(t._free), t.loaded) == (free_before, loaded_before)  # the staged rows went back
+    assert t.row_of(1, 2) >= 0 and not any(t.valid[r] for r in range(64) if t._key[r][1] >= 50)

@@ -16,7 +16,7 @@ of it, so the packet path sees a batch entirely or not at all.
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Generator, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +24,7 @@ import numpy as np
 from cell.robot.datagram import SCALE
 
 NO_ROW = -1
+SLICE = 256  # TPs handled between two yields of a staged update (each slice well under 1 ms)
 
 
 class Refused(Exception):
@@ -126,14 +127,24 @@ class Tables:
 
     def insert(self, tps: Sequence[TP]) -> None:
         """Insert or replace TPs, atomically; Refused (table_full, unknown_robot, ...) before any change."""
-        self._check_insert(tps)
-        self._insert_checked(tps)
+        self.update(insert=tps)
 
     def _insert_checked(self, tps: Sequence[TP]) -> None:
         keys = [(self.entity_of(tp.robot), tp.id) for tp in tps]
         rows = np.array([self._row[k] if k in self._row else self._alloc(k) for k in keys], np.int64)
         if rows.size == 0:
             return
+        self._write_rows(rows, tps)
+        for row, (e, _), tp in zip(rows.tolist(), keys, tps, strict=True):
+            self._next_id[row] = tp.next_id
+            self._link(row, "next", (e, tp.next_id))
+        for row, key in zip(rows.tolist(), keys, strict=True):
+            for waiter, kind in self._waiting.pop(key, ()):
+                (self.next_row if kind == "next" else self.switch_row)[waiter] = row
+        self.valid[rows] = True
+
+    def _write_rows(self, rows: np.ndarray, tps: Sequence[TP]) -> None:
+        """TargetData and section durations of the given rows."""
         n = self.max_joints
         widths = {len(tp.positions) for tp in tps}
         if len(widths) == 1:  # the usual batch: one entity shape, one conversion
@@ -151,13 +162,6 @@ class Tables:
         self.trg_pos[rows] = np.rint(pos * SCALE).astype(np.int64)
         self.trg_vel[rows] = np.rint(vel * SCALE).astype(np.int64)
         self.duration[rows] = np.rint(np.array([tp.duration_s for tp in tps]) * 1e9).astype(np.int64)
-        for row, (e, _), tp in zip(rows.tolist(), keys, tps, strict=True):
-            self._next_id[row] = tp.next_id
-            self._link(row, "next", (e, tp.next_id))
-        for row, key in zip(rows.tolist(), keys, strict=True):
-            for waiter, kind in self._waiting.pop(key, ()):
-                (self.next_row if kind == "next" else self.switch_row)[waiter] = row
-        self.valid[rows] = True
 
     def _alloc(self, key: tuple[int, int]) -> int:
         row = self._free.pop()
@@ -177,44 +181,7 @@ class Tables:
         A TP that a robot is heading to, or will step to next, is refused (in_use): switch
         or stop the robot first.
         """
-        found = []
-        for robot, tp_id in keys:
-            e = self.entity_of(robot)
-            row = self._row.get((e, tp_id))
-            if row is not None:
-                found.append(row)
-        rows = list(dict.fromkeys(found))  # a key named twice is still one row, freed once
-        if not rows:
-            return 0
-        gone = np.array(rows, np.int64)
-        current = self.reg_tp[: self.entities]
-        busy = np.isin(current, gone) | np.isin(self.effective_next(current), gone)
-        if busy.any():
-            e = int(np.flatnonzero(busy)[0])
-            raise Refused("in_use", f"a TP of entity {e} is being followed; switch or stop it first")
-        self.valid[gone] = False
-        # links into the deleted TPs wait again for their targets
-        for arr, kind in ((self.next_row, "next"), (self.switch_row, "switch")):
-            pointing = np.flatnonzero(np.isin(arr, gone) & self.valid)
-            for w in pointing.tolist():
-                target = self._key[int(arr[w])]
-                arr[w] = NO_ROW
-                self._waiting[target].add((w, kind))
-        # only rows with an unresolved link (or a switch) sit in a waiting list
-        for row in gone[self.next_row[gone] == NO_ROW].tolist():
-            self._forget_waits(row)
-        if self._switch_id:
-            for row in rows:
-                if row in self._switch_id:
-                    self._forget_waits(row)
-                    del self._switch_id[row]
-        index, key_of = self._row, self._key
-        for row in rows:
-            del index[key_of[row]]
-        self.next_row[gone] = NO_ROW
-        self.switch_row[gone] = NO_ROW
-        self._free.extend(rows)
-        return len(rows)
+        return self.update(remove=list(keys))
 
     def _forget_waits(self, row: int) -> None:
         target = (self._key_entity(row), int(self._next_id[row]))
@@ -290,41 +257,129 @@ class Tables:
         switches: Sequence[tuple[int, int, int | None]] = (),
         registers: Sequence[tuple[int, int | None, int]] = (),
     ) -> int:
-        """Apply a whole control-plane batch or none of it; return how many TPs were removed.
+        """Apply a whole control-plane batch or none of it, in one go; return how many TPs were removed."""
+        steps = self.staged_update(insert, remove, switches, registers)
+        while True:
+            try:
+                next(steps)
+            except StopIteration as done:
+                return int(done.value)
 
-        switches: (robot, branching TP, next TP or None to unset); registers: (robot, TP or None to
-        clear, next_time_ns).  Order of application: insert, switches, registers, remove; every
-        check is made against that end state before anything changes.
+    def staged_update(
+        self,
+        insert: Sequence[TP] = (),
+        remove: Sequence[tuple[int, int]] = (),
+        switches: Sequence[tuple[int, int, int | None]] = (),
+        registers: Sequence[tuple[int, int | None, int]] = (),
+        slice_size: int = SLICE,
+    ) -> Generator[None, None, int]:
+        """update() in slices: it yields between them, and the packet path may run at every yield.
+
+        The packet path only reads the arrays, so the batch stays atomic for it:
+        checks read; new TPs go into fresh rows that nothing links to yet; one
+        flip then makes everything visible at once (links into the new TPs,
+        replaced TPs, switches, registers, deleted TPs gone); the deleted rows'
+        bookkeeping is cleaned up afterwards.  The in-use check for deletions is
+        made in the flip, against where the robots are then.  One update at a time.
+
+        switches: (robot, branching TP, next TP or None to unset); registers: (robot, TP or None
+        to clear, next_time_ns).  Returns how many TPs were removed.
         """
-        new_keys = {(self.entity_of(tp.robot), tp.id) for tp in insert}
-        self._check_insert(insert)
+        # --- 1. checks (nothing they rely on changes meanwhile: robots only move) ---------------
+        keys: list[tuple[int, int]] = []
+        for i in range(0, len(insert), slice_size):
+            keys += self._check_tps(insert[i : i + slice_size])
+            yield
+        if len(set(keys)) != len(keys):
+            raise Refused("bad_request", "a TP appears twice in one batch")
+        fresh = [i for i, k in enumerate(keys) if k not in self._row]
+        if len(fresh) > len(self._free):
+            free = len(self._free)
+            why = f"{len(fresh)} new TPs, {free} of {self.capacity} places free (delete some first)"
+            raise Refused("table_full", why)
+        new_keys = set(keys)
 
         def exists(robot: int, tp_id: int) -> bool:
-            return (self.entity_of(robot), tp_id) in self._row or (self.entity_of(robot), tp_id) in new_keys
+            key = (self.entity_of(robot), tp_id)
+            return key in self._row or key in new_keys
 
         for robot, tp_id, _ in switches:
             if not exists(robot, tp_id):
                 raise Refused("unknown_tp", f"switch at TP {tp_id} of robot {robot}: no such TP")
-        moved = {}
+        moved: dict[int, int | None] = {}
         for robot, tp_id, _ in registers:
             if tp_id is not None and not exists(robot, tp_id):
                 raise Refused("unknown_tp", f"registers of robot {robot}: no TP {tp_id}")
             moved[self.entity_of(robot)] = tp_id
-        if remove:
-            gone = {(self.entity_of(r), i) for r, i in remove}
-            # what the entities will follow: TPs named by new registers, else their current and next TPs
-            current = self.reg_tp[: self.entities]
-            upcoming = self.effective_next(current)
-            for e in range(self.entities):
-                if e in moved:
-                    following = set() if moved[e] is None else {(e, moved[e])}
-                else:
-                    following = {self._key[int(r)] for r in (current[e], upcoming[e]) if r != NO_ROW}
-                if busy := following & gone:
-                    tp = sorted(busy)[0][1]
-                    raise Refused("in_use", f"TP {tp} is being followed; switch or stop first")
-        # checked: apply
-        self._insert_checked(insert)
+        gone_keys: dict[tuple[int, int], int] = {}  # key -> row; a key named twice is one row
+        for i in range(0, len(remove), slice_size * 4):
+            for robot, tp_id in remove[i : i + slice_size * 4]:
+                key = (self.entity_of(robot), tp_id)
+                row = self._row.get(key)
+                if row is not None:
+                    gone_keys[key] = row
+            yield
+        gone_rows = list(gone_keys.values())
+        gone = np.array(gone_rows, np.int64)
+        for e, tp_id in moved.items():
+            if tp_id is not None and (e, tp_id) in gone_keys:
+                raise Refused("in_use", f"TP {tp_id} is both started and deleted")
+
+        # --- 2. stage new TPs in fresh rows nothing links to yet (invisible) -------------------
+        staged: dict[tuple[int, int], int] = {}
+        waits: list[tuple[tuple[int, int], int]] = []
+        try:
+            for i in range(0, len(fresh), slice_size):
+                idx = fresh[i : i + slice_size]
+                rows = [self._free.pop() for _ in idx]
+                for row, j in zip(rows, idx, strict=True):
+                    staged[keys[j]] = row
+                    self._key[row] = keys[j]
+                    self._next_id[row] = insert[j].next_id
+                self._write_rows(np.array(rows, np.int64), [insert[j] for j in idx])
+                yield
+            items = list(staged.items())
+            for i in range(0, len(items), slice_size * 2):
+                for key, row in items[i : i + slice_size * 2]:
+                    target = (key[0], int(self._next_id[row]))
+                    to = staged.get(target)
+                    if to is None and target not in gone_keys:
+                        to = self._row.get(target)
+                    self.next_row[row] = NO_ROW if to is None else to
+                    self.switch_row[row] = NO_ROW
+                    if to is None:
+                        waits.append((target, row))
+                yield
+            # --- 3. the flip: everything visible in one step ------------------------------------
+            if gone.size:
+                current = self.reg_tp[: self.entities].astype(np.int64)
+                upcoming = self.effective_next(current)
+                is_gone = np.zeros(self.capacity, bool)
+                is_gone[gone] = True
+                stays = np.ones(self.entities, bool)
+                stays[list(moved)] = False
+                hit = stays & (
+                    ((current != NO_ROW) & is_gone[np.maximum(current, 0)])
+                    | ((upcoming != NO_ROW) & is_gone[np.maximum(upcoming, 0)])
+                )
+                if hit.any():
+                    e = int(np.flatnonzero(hit)[0])
+                    raise Refused(
+                        "in_use", f"a TP entity {e} is following is to be deleted; switch or stop it first"
+                    )
+        except BaseException:
+            self._free.extend(staged.values())  # never visible: just give the rows back
+            raise
+        self._row.update(staged)
+        for target, row in waits:
+            self._waiting[target].add((row, "next"))
+        for key in staged.keys() & self._waiting.keys():  # the few links that waited for these TPs
+            for waiter, kind in self._waiting.pop(key):
+                (self.next_row if kind == "next" else self.switch_row)[waiter] = staged[key]
+        self.valid[list(staged.values())] = True
+        replaced = [insert[i] for i, k in enumerate(keys) if k not in staged]
+        if replaced:
+            self._insert_checked(replaced)  # in place: rare, and small
         for robot, tp_id, nxt in switches:
             if nxt is None:
                 self.unset_switch(robot, tp_id)
@@ -335,9 +390,32 @@ class Tables:
                 self.clear_registers(robot)
             else:
                 self.set_registers(robot, tp_id, next_time)
-        return self.delete(remove) if remove else 0
+        if not gone.size:
+            return 0
+        self.valid[gone] = False
+        for arr, kind in ((self.next_row, "next"), (self.switch_row, "switch")):
+            pointing = np.flatnonzero(self.valid & (arr != NO_ROW) & is_gone[np.maximum(arr, 0)])
+            for w in pointing.tolist():
+                target = self._key[int(arr[w])]
+                arr[w] = NO_ROW
+                self._waiting[target].add((w, kind))
+        yield
+        # --- 4. the deleted rows' bookkeeping, in slices ---------------------------------------
+        for row in gone[self.next_row[gone] == NO_ROW].tolist():
+            self._forget_waits(row)
+        for i in range(0, len(gone_rows), slice_size * 4):
+            for row in gone_rows[i : i + slice_size * 4]:
+                if row in self._switch_id:
+                    self._forget_waits(row)
+                    del self._switch_id[row]
+                del self._row[self._key[row]]
+            yield
+        self.next_row[gone] = NO_ROW
+        self.switch_row[gone] = NO_ROW
+        self._free.extend(gone_rows)
+        return len(gone_rows)
 
-    def _check_insert(self, tps: Sequence[TP]) -> None:
+    def _check_tps(self, tps: Sequence[TP]) -> list[tuple[int, int]]:
         keys = []
         for tp in tps:
             e = self.entity_of(tp.robot)
@@ -349,10 +427,4 @@ class Tables:
             if not (0 <= tp.id < 2**32 and 0 <= tp.next_id < 2**32):
                 raise Refused("bad_request", f"TP ids are u32 (got {tp.id} -> {tp.next_id})")
             keys.append((e, tp.id))
-        if len(set(keys)) != len(keys):
-            raise Refused("bad_request", "a TP appears twice in one batch")
-        new = sum(1 for k in keys if k not in self._row)
-        if new > len(self._free):
-            free = len(self._free)
-            why = f"{new} new TPs, {free} of {self.capacity} places free (delete some first)"
-            raise Refused("table_full", why)
+        return keys

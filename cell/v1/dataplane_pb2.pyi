@@ -67,20 +67,22 @@ class RegisterEntry(_message.Message):
     def __init__(self, robot_id: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., clear: _Optional[bool] = ...) -> None: ...
 
 class UpdateReply(_message.Message):
-    __slots__ = ("inserted", "removed", "loaded", "capacity", "apply_us", "now_ns")
+    __slots__ = ("inserted", "removed", "loaded", "capacity", "apply_us", "now_ns", "total_ms")
     INSERTED_FIELD_NUMBER: _ClassVar[int]
     REMOVED_FIELD_NUMBER: _ClassVar[int]
     LOADED_FIELD_NUMBER: _ClassVar[int]
     CAPACITY_FIELD_NUMBER: _ClassVar[int]
     APPLY_US_FIELD_NUMBER: _ClassVar[int]
     NOW_NS_FIELD_NUMBER: _ClassVar[int]
+    TOTAL_MS_FIELD_NUMBER: _ClassVar[int]
     inserted: int
     removed: int
     loaded: int
     capacity: int
     apply_us: float
     now_ns: int
-    def __init__(self, inserted: _Optional[int] = ..., removed: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., apply_us: _Optional[float] = ..., now_ns: _Optional[int] = ...) -> None: ...
+    total_ms: float
+    def __init__(self, inserted: _Optional[int] = ..., removed: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., apply_us: _Optional[float] = ..., now_ns: _Optional[int] = ..., total_ms: _Optional[float] = ...) -> None: ...
 
 class MergeRequest(_message.Message):
     __slots__ = ("robot_ids",)
