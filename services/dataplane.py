@@ -157,18 +157,21 @@ class DataPlane:
                 switches=[(s.robot_id, s.tp_id, None if s.unset else s.next_id) for s in req.switches],
                 registers=[(r.robot_id, None if r.clear else r.tp_id, r.next_time_ns) for r in req.registers],
             )
-            while True:
-                try:
-                    next(steps)
-                except StopIteration as done:
-                    removed = int(done.value)
-                    break
-                except Refused as exc:
-                    raise RpcFault(exc.code, exc.reason) from None
-                finally:
-                    longest = max(longest, time.perf_counter_ns() - t0)
-                await asyncio.sleep(0)  # the packet path runs here
-                t0 = time.perf_counter_ns()
+            try:
+                while True:
+                    try:
+                        next(steps)
+                    except StopIteration as done:
+                        removed = int(done.value)
+                        break
+                    except Refused as exc:
+                        raise RpcFault(exc.code, exc.reason) from None
+                    finally:
+                        longest = max(longest, time.perf_counter_ns() - t0)
+                    await asyncio.sleep(0)  # the packet path runs here
+                    t0 = time.perf_counter_ns()
+            finally:
+                steps.close()  # cancelled mid-way: the staged rows go back (GeneratorExit in the update)
             return dataplane_pb2.UpdateReply(
                 inserted=len(req.insert),
                 removed=removed,

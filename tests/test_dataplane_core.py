@@ -380,3 +380,15 @@ def test_a_deletion_that_became_in_use_refuses_the_whole_update() -> None:
             pass
     assert (len(t._free), t.loaded) == (free_before, loaded_before)  # the staged rows went back
     assert t.row_of(1, 2) >= 0 and not any(t.valid[r] for r in range(64) if t._key[r][1] >= 50)
+
+
+def test_an_abandoned_staged_update_gives_its_rows_back() -> None:
+    t = Tables(capacity=32)
+    t.add_robot(1)
+    steps = t.staged_update(insert=[hold_tp(1, i, i, [0.0]) for i in range(20)], slice_size=4)
+    for _ in range(8):  # checks done, part of the rows staged
+        next(steps)
+    steps.close()  # e.g. the request was cancelled
+    assert len(t._free) == 32 and t.loaded == 0 and not t.valid.any()
+    t.insert([hold_tp(1, i, i, [0.0]) for i in range(32)])  # every place is usable again
+    assert t.loaded == 32
