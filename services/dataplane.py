@@ -68,18 +68,13 @@ class DataPlane:
             got = udp.recv_batch(self.sock)
             if got is None:
                 break
-            data, seg, sender = got
-            if seg != size:
-                self.rejected["length"] += max(1, -(-len(data) // max(seg, 1)))
-                continue
-            whole = len(data) - len(data) % size
-            if whole != len(data):
-                self.rejected["length"] += 1
-            if whole:
-                chunks.append(data[:whole] if whole != len(data) else data)
-                counts.append(whole // size)
-                senders.append(sender)
-                total += whole // size
+            good, bad = udp.whole_datagrams(got[0], got[1], size)
+            self.rejected["length"] += bad
+            if good:
+                chunks.append(good)
+                counts.append(len(good) // size)
+                senders.append(got[2])
+                total += len(good) // size
         if not chunks:
             return 0
         t0 = time.perf_counter_ns()

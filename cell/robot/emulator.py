@@ -145,17 +145,12 @@ class RobotGroup:
                 got = udp.recv_batch(sock)
                 if got is None:
                     break
-                data, seg, _sender = got
-                if seg != size:  # every datagram of this burst has the wrong length
-                    rejected["length"] += max(1, -(-len(data) // max(seg, 1)))
-                    continue
-                whole = len(data) - len(data) % size
-                if whole != len(data):
-                    rejected["length"] += 1
-                if whole:
-                    chunks.append(data[:whole] if whole != len(data) else data)
+                good, bad = udp.whole_datagrams(got[0], got[1], size)
+                rejected["length"] += bad
+                if good:
+                    chunks.append(good)
                     owners.append(row)
-                    counts.append(whole // size)
+                    counts.append(len(good) // size)
         if not chunks:
             return 0
         recs = datagram.view(b"".join(chunks))

@@ -87,3 +87,15 @@ def recv_batch(sock: socket.socket, bufsize: int = 65536) -> tuple[bytes, int, t
         if level == socket.SOL_UDP and kind == UDP_GRO and len(raw) >= 4:
             seg = struct.unpack("=i", raw[:4])[0]
     return data, seg, sender
+
+
+def whole_datagrams(data: bytes, seg: int, size: int) -> tuple[bytes, int]:
+    """The datagrams of `size` bytes in one recv_batch burst, and how many were the wrong length.
+
+    A burst's datagrams share its segment size (only the last may be shorter),
+    so a wrong segment size makes every one of them malformed.
+    """
+    if seg != size:
+        return b"", max(1, -(-len(data) // max(seg, 1)))
+    whole = len(data) - len(data) % size
+    return (data if whole == len(data) else data[:whole]), int(whole != len(data))
