@@ -123,7 +123,6 @@ class Pipeline:
             c.stalls += int((~ok).sum())
             e, nxt = e[ok], nxt[ok]
             t.reg_tp[e] = nxt
-            t.reg_next_tp[e] = t.effective_next(nxt)
             t.reg_next_time[e] += t.duration[nxt]
             c.steps += e.size
             if not first:

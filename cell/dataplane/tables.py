@@ -57,9 +57,10 @@ class Tables:
         self.robot_joint0 = np.zeros(1 << 16, np.int32)
         self.entity_joints = np.zeros(max_entities, np.int32)
         self.entities = 0
-        # registers, one per entity (Algorithm 1)
+        # registers, one per entity (Algorithm 1).  REG_nextTp is not stored: each step reads it from
+        # the current TP's links (TrajectorySwitcher, then TPStepper; effective_next), because a stored
+        # copy would go stale whenever a switch is set or a streamed link resolves later
         self.reg_tp = np.full(max_entities, NO_ROW, np.int32)
-        self.reg_next_tp = np.full(max_entities, NO_ROW, np.int32)
         self.reg_next_time = np.zeros(max_entities, np.int64)  # data-plane clock, ns
         # TPStepper (+ TargetData), one row per TP
         self.valid = np.zeros(capacity, bool)
@@ -235,14 +236,12 @@ class Tables:
         e = self.entity_of(robot)
         row = self.row_of(robot, tp_id)
         self.reg_tp[e] = row
-        self.reg_next_tp[e] = NO_ROW  # taken from the TP's link when stepping
         self.reg_next_time[e] = next_time_ns
 
     def clear_registers(self, robot: int) -> None:
         """The entity follows nothing: its robots are told to hold (velocity 0)."""
         e = self.entity_of(robot)
         self.reg_tp[e] = NO_ROW
-        self.reg_next_tp[e] = NO_ROW
 
     def current_tp(self, robot: int) -> int | None:
         row = int(self.reg_tp[self.entity_of(robot)])
