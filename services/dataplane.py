@@ -128,24 +128,27 @@ class DataPlane:
     async def update(self, req: dataplane_pb2.TableUpdate) -> dataplane_pb2.UpdateReply:
         """Apply one atomic batch in slices, letting the packet path run between them."""
         async with self._update_lock:  # one update at a time: the staged update relies on it
-            started = time.perf_counter_ns()
+            started = slice_start = time.perf_counter_ns()
             longest = 0
-            t0 = started
+
+            async def pause() -> None:
+                """End a slice (the longest counts as the hold-up) and let the packet path run."""
+                nonlocal longest, slice_start
+                longest = max(longest, time.perf_counter_ns() - slice_start)
+                await asyncio.sleep(0)
+                slice_start = time.perf_counter_ns()
+
             insert: list[TP] = []
             for i, p in enumerate(req.insert):
                 insert.append(
                     TP(p.robot_id, p.id, p.next_id, p.duration_s, list(p.positions), list(p.velocities))
                 )
                 if i % SLICE_DECODE == SLICE_DECODE - 1:
-                    longest = max(longest, time.perf_counter_ns() - t0)
-                    await asyncio.sleep(0)  # the packet path runs here
-                    t0 = time.perf_counter_ns()
+                    await pause()
             remove: list[tuple[int, int]] = []
             for i in range(0, len(req.remove), SLICE_DECODE * 4):
                 remove += [(k.robot_id, k.id) for k in req.remove[i : i + SLICE_DECODE * 4]]
-                longest = max(longest, time.perf_counter_ns() - t0)
-                await asyncio.sleep(0)  # the packet path runs here
-                t0 = time.perf_counter_ns()
+                await pause()
             steps = self.tables.staged_update(
                 insert=insert,
                 remove=remove,
@@ -161,12 +164,10 @@ class DataPlane:
                         break
                     except Refused as exc:
                         raise RpcFault(exc.code, exc.reason) from None
-                    finally:
-                        longest = max(longest, time.perf_counter_ns() - t0)
-                    await asyncio.sleep(0)  # the packet path runs here
-                    t0 = time.perf_counter_ns()
+                    await pause()
             finally:
                 steps.close()  # cancelled mid-way: the staged rows go back (GeneratorExit in the update)
+            longest = max(longest, time.perf_counter_ns() - slice_start)  # the last slice
             return dataplane_pb2.UpdateReply(
                 inserted=len(req.insert),
                 removed=removed,
