@@ -400,13 +400,12 @@ class Tables:
                 self._waiting[target].add((w, kind))
         yield
         # --- 4. the deleted rows' bookkeeping, in slices ---------------------------------------
-        for row in gone[self.next_row[gone] == NO_ROW].tolist():
-            self._forget_waits(row)
+        unresolved = set(gone[self.next_row[gone] == NO_ROW].tolist())  # rows sitting in a wait list
         for i in range(0, len(gone_rows), slice_size * 4):
             for row in gone_rows[i : i + slice_size * 4]:
-                if row in self._switch_id:
-                    self._forget_waits(row)
-                    del self._switch_id[row]
+                if row in unresolved or row in self._switch_id:
+                    self._forget_waits(row)  # both its link's and its switch's waits
+                    self._switch_id.pop(row, None)
                 del self._row[self._key[row]]
             yield
         self.next_row[gone] = NO_ROW
