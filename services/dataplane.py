@@ -12,6 +12,7 @@ announce themselves on the bus (announce/robot/<name>).
 from __future__ import annotations
 
 import asyncio
+import gc
 import time
 
 import numpy as np
@@ -19,14 +20,14 @@ import numpy as np
 from cell.bus import RpcFault
 from cell.config import CellConfig, parse_host_port
 from cell.dataplane.pipeline import ControlConstants, Pipeline
-from cell.dataplane.tables import NO_ROW, TP, Refused, Tables
+from cell.dataplane.tables import NO_ROW, Refused, Tables
+from cell.dataplane.wire import decode_keys, decode_tps
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import dataplane_pb2, robot_pb2
 
 _STATUS = int(Kind.STATUS)
-SLICE_DECODE = 200  # TPs decoded from a request between two yields
 
 
 class DataPlane:
@@ -47,6 +48,10 @@ class DataPlane:
         self.packets_in = self.commands_out = self.unsent = self.batches = 0
         self.batch_ns: list[int] = []
         self._update_lock = asyncio.Lock()
+        # what exists now lives as long as the service: keep it out of the garbage collector's
+        # passes, which would otherwise walk it all and stall the packet path for milliseconds
+        gc.collect()
+        gc.freeze()
 
     def add_robot(self, robot: int, joints: int = 6) -> None:
         self.tables.add_robot(robot, joints)
@@ -138,17 +143,11 @@ class DataPlane:
                 await asyncio.sleep(0)
                 slice_start = time.perf_counter_ns()
 
-            insert: list[TP] = []
-            for i, p in enumerate(req.insert):
-                insert.append(
-                    TP(p.robot_id, p.id, p.next_id, p.duration_s, list(p.positions), list(p.velocities))
-                )
-                if i % SLICE_DECODE == SLICE_DECODE - 1:
-                    await pause()
-            remove: list[tuple[int, int]] = []
-            for i in range(0, len(req.remove), SLICE_DECODE * 4):
-                remove += [(k.robot_id, k.id) for k in req.remove[i : i + SLICE_DECODE * 4]]
-                await pause()
+            try:
+                insert, remove = decode_tps(req.insert), decode_keys(req.remove)
+            except ValueError as exc:
+                raise RpcFault("bad_request", str(exc)) from None
+            await pause()
             steps = self.tables.staged_update(
                 insert=insert,
                 remove=remove,
@@ -169,7 +168,7 @@ class DataPlane:
                 steps.close()  # cancelled mid-way: the staged rows go back (GeneratorExit in the update)
             longest = max(longest, time.perf_counter_ns() - slice_start)  # the last slice
             return dataplane_pb2.UpdateReply(
-                inserted=len(req.insert),
+                inserted=len(insert),
                 removed=removed,
                 loaded=self.tables.loaded,
                 capacity=self.tables.capacity,

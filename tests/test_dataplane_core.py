@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -9,9 +11,11 @@ from hypothesis import strategies as st
 
 from cell.dataplane.approx import LimitVelocity, TransformTable, prefix_entries
 from cell.dataplane.pipeline import ControlConstants, Pipeline, reference_command
-from cell.dataplane.tables import TP, Refused, Tables
+from cell.dataplane.tables import TP, Refused, Tables, TPBatch
+from cell.dataplane.wire import decode_keys, decode_tps, encode_keys, encode_tps
 from cell.robot import datagram
 from cell.robot.datagram import SCALE, Kind
+from cell.v1 import dataplane_pb2
 
 I64 = st.integers(-(2**63), 2**63 - 1)
 
@@ -379,7 +383,9 @@ def test_a_deletion_that_became_in_use_refuses_the_whole_update() -> None:
         for _ in steps:
             pass
     assert (len(t._free), t.loaded) == (free_before, loaded_before)  # the staged rows went back
-    assert t.row_of(1, 2) >= 0 and not any(t.valid[r] for r in range(64) if t._key[r][1] >= 50)
+    assert t.row_of(1, 2) >= 0 and not any(t.valid[r] for r in range(64) if t._key[r] & 0xFFFF_FFFF >= 50)
+    with pytest.raises(Refused, match="unknown_tp"):
+        t.row_of(1, 50)  # the staged keys left the index too
 
 
 def test_an_abandoned_staged_update_gives_its_rows_back() -> None:
@@ -389,6 +395,64 @@ def test_an_abandoned_staged_update_gives_its_rows_back() -> None:
     for _ in range(8):  # checks done, part of the rows staged
         next(steps)
     steps.close()  # e.g. the request was cancelled
-    assert len(t._free) == 32 and t.loaded == 0 and not t.valid.any()
+    assert len(t._free) == 32 and t.loaded == 0 and not t.valid.any() and not t._row
     t.insert([hold_tp(1, i, i, [0.0]) for i in range(32)])  # every place is usable again
     assert t.loaded == 32
+
+
+def test_tp_columns_survive_the_wire_and_disagreeing_columns_are_refused() -> None:
+    tps = [TP(1, 5, 6, 0.1, [0.5] * 6, [-0.5] * 6), TP(2, 6, 6, 0.2, list(np.arange(12) / 10), [0.0] * 12)]
+    msg = dataplane_pb2.TableUpdate()
+    encode_tps(TPBatch.of(tps), msg.insert)
+    encode_keys([(1, 7), (3, 9)], msg.remove)
+    back = dataplane_pb2.TableUpdate.FromString(msg.SerializeToString())
+    got = decode_tps(back.insert)
+    assert got.joints.tolist() == [6, 12] and got.positions.shape == (2, 12)
+    assert got.positions[0, :6].tolist() == [0.5] * 6 and not got.positions[0, 6:].any()  # padded
+    assert got.positions[1].tolist() == tps[1].positions and got.duration_s.tolist() == [0.1, 0.2]
+    assert decode_keys(back.remove).tolist() == [[1, 7], [3, 9]]
+    del back.insert.positions[-1]
+    with pytest.raises(ValueError, match="18 joint values expected"):
+        decode_tps(back.insert)
+    del back.remove.id[-1]
+    with pytest.raises(ValueError, match="2 robot ids, 1 TP ids"):
+        decode_keys(back.remove)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 2e6])
+def test_targets_that_are_not_finite_or_absurd_are_refused(bad: float) -> None:
+    t = Tables(capacity=8)
+    t.add_robot(1)
+    with pytest.raises(Refused, match="not finite or out of range") as info:
+        t.insert([hold_tp(1, 1, 1, [0.0]), TP(1, 2, 2, 0.1, [0.0] * 5 + [bad], [0.0] * 6)])
+    assert info.value.code == "bad_request" and t.loaded == 0
+    with pytest.raises(Refused, match="section duration"):
+        t.insert([TP(1, 2, 2, float("nan"), [0.0] * 6, [0.0] * 6)])
+
+
+def test_a_replaced_tp_never_links_to_a_tp_deleted_in_the_same_batch() -> None:
+    t = Tables(capacity=16)
+    t.add_robot(1)
+    t.insert([hold_tp(1, 1, 2, [0.0]), hold_tp(1, 2, 2, [0.0]), hold_tp(1, 3, 3, [0.0])])
+    t.update(insert=[hold_tp(1, 1, 3, [0.1])], remove=[(1, 3)])  # TP 1 now leads to TP 3, which goes
+    assert t.next_row[t.row_of(1, 1)] == -1  # waits for TP 3 ...
+    t.insert([hold_tp(1, 3, 3, [0.3])])
+    assert t.next_row[t.row_of(1, 1)] == t.row_of(1, 3)  # ... and links when it is back
+
+
+def test_an_update_gives_the_garbage_collector_no_work() -> None:
+    """Per-TP objects the collector tracks (tuples as keys, say) would set off collections in the
+    middle of an update, each a pause of the packet path that grows with the TPs loaded."""
+    t = Tables(capacity=30_000)
+    t.add_robot(1)
+
+    def tps(first: int, n: int) -> TPBatch:
+        ids, zeros = np.arange(first, first + n), np.zeros(n * 6)
+        return TPBatch.from_flat(np.ones(n), ids, ids, np.ones(n), np.full(n, 6), zeros, zeros)
+
+    t.insert(tps(0, 20_000))
+    gc.collect()
+    before = sum(s["collections"] for s in gc.get_stats())
+    removed = t.update(insert=tps(100_000, 1_600), remove=np.stack([np.ones(10_000), np.arange(10_000)], 1))
+    assert (removed, t.loaded) == (10_000, 11_600)
+    assert sum(s["collections"] for s in gc.get_stats()) - before <= 1

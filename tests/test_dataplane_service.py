@@ -15,7 +15,7 @@ from cell.dataplane.tables import TP
 from cell.launcher import fetch_status
 from cell.robot import datagram, udp
 from cell.robot.datagram import Datagram, Kind
-from cell.v1 import robot_pb2
+from cell.v1 import dataplane_pb2, robot_pb2
 from tests.conftest import free_port
 
 Q0 = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
@@ -77,6 +77,13 @@ async def test_refusals_and_bad_datagrams(start_cell) -> None:
             await dp.update(registers=[(1, 42, 0)])
         assert info.value.code == "unknown_tp"
         assert (await dp.state()).loaded == 0  # nothing of a refused batch was applied
+        columns = {"robot_id": [1], "id": [1], "next_id": [1], "duration_s": [0.1], "joints": [6]}
+        tps = dataplane_pb2.TrajectoryPoints(**columns, positions=[0.0] * 5, velocities=[0.0] * 6)
+        bad = dataplane_pb2.TableUpdate(insert=tps)  # columns that disagree: 6 joints said, 5 values given
+        with pytest.raises(RemoteError) as info:
+            await bus.request("dataplane", "update", bad, dataplane_pb2.UpdateReply, 5)
+        assert info.value.code == "bad_request" and "6 joint values expected" in str(info.value)
+        assert (await dp.state()).loaded == 0
         # new controller constants: tables regenerated and swapped in; bad ones refused
         reply = await dp.load_constants([1.0] * 6, [4.0] * 6, 6, [1.0] * 6)
         assert reply.transform_entries == 3 * 6 * 2 * (2**6 + 57 * 2**5)

@@ -49,7 +49,8 @@ def _updating_target(robots: int, out: Any, stop: Any) -> None:
 def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False) -> None:
     pin(1)
     from cell.config import load_config
-    from cell.dataplane.tables import TP
+    from cell.dataplane.tables import TP, TPBatch
+    from cell.dataplane.wire import encode_keys, encode_tps
     from cell.services.dataplane import DataPlane
 
     rob = [{"id": r, "name": f"b{r}", "skill_port": 20000 + r} for r in range(1, robots + 1)]
@@ -78,17 +79,13 @@ def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False) -
         while True:
             await asyncio.sleep(1.0)
             req = dataplane_pb2.TableUpdate()
-            for i in range(fresh, fresh + 1_600):
-                req.insert.add(
-                    robot_id=1 + i % robots,
-                    id=i,
-                    next_id=i,
-                    duration_s=1.0,
-                    positions=[0.0] * 6,
-                    velocities=[0.0] * 6,
-                )
-            for i in range(old, min(old + 10_000, 1000 + PRELOAD)):
-                req.remove.add(robot_id=1 + (i - 1000) % robots, id=i)
+            ids = np.arange(fresh, fresh + 1_600)
+            zeros, n = np.zeros(ids.size * 6), ids.size
+            new = TPBatch.from_flat(1 + ids % robots, ids, ids, np.ones(n), np.full(n, 6), zeros, zeros)
+            encode_tps(new, req.insert)
+            gone = np.arange(old, min(old + 10_000, 1000 + PRELOAD))
+            encode_keys(np.stack([1 + (gone - 1000) % robots, gone], axis=1), req.remove)
+            req = dataplane_pb2.TableUpdate.FromString(req.SerializeToString())  # as it arrives from the bus
             reply = await plane.update(req)
             update_ms.append(reply.total_ms)
             hold_ms.append(reply.apply_us / 1e3)
@@ -268,16 +265,37 @@ def trial(target: str, robots: int, seconds: float = 2.0) -> dict[str, float]:
 
 
 def sustained(target: str, start: int, seconds: float, log: Any = None) -> dict[str, Any]:
-    """The most status datagrams/s answered within the window: R doubles until a trial fails."""
-    trials, best, r = [], None, start
-    while True:
-        t = trial(target, r, seconds)
-        trials.append(t)
-        if log:
-            log(t)
-        if not t["ok"]:
+    """The most status datagrams/s answered within the window: R doubles until a trial fails, then two
+    bisections narrow it down.  A failed trial is run once more (this VM stalls for milliseconds now
+    and then), so a rate counts when one of two trials passes."""
+    trials: list[dict[str, Any]] = []
+    best: dict[str, Any] | None = None
+
+    def passes(r: int) -> bool:
+        nonlocal best
+        for _ in range(2):
+            t = trial(target, r, seconds)
+            trials.append(t)
+            if log:
+                log(t)
+            if t["ok"]:
+                if best is None or t["rate"] > best["rate"]:
+                    best = t
+                return True
+        return False
+
+    ok, r = 0, start
+    while passes(r):
+        ok, r = r, r * 2
+    bad = r
+    for _ in range(2):
+        mid = (ok + bad) // 2
+        if mid <= ok:
             break
-        best, r = t, r * 2
+        if passes(mid):
+            ok = mid
+        else:
+            bad = mid
     return {"target": target, "best": best, "trials": trials}
 
 

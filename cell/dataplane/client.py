@@ -4,8 +4,11 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 
+import numpy as np
+
 from cell.bus import Bus
-from cell.dataplane.tables import TP
+from cell.dataplane.tables import TP, TPBatch
+from cell.dataplane.wire import encode_keys, encode_tps
 from cell.v1 import dataplane_pb2
 
 
@@ -19,24 +22,15 @@ class DataplaneClient:
 
     async def update(
         self,
-        insert: Iterable[TP] = (),
-        remove: Iterable[tuple[int, int]] = (),
+        insert: Iterable[TP] | TPBatch = (),
+        remove: Iterable[tuple[int, int]] | np.ndarray = (),
         switches: Iterable[tuple[int, int, int | None]] = (),
         registers: Iterable[tuple[int, int | None, int]] = (),
     ) -> dataplane_pb2.UpdateReply:
         """One atomic batch (see Tables.update): applied whole, or refused whole with a reason."""
         req = dataplane_pb2.TableUpdate()
-        for tp in insert:
-            req.insert.add(
-                robot_id=tp.robot,
-                id=tp.id,
-                next_id=tp.next_id,
-                duration_s=tp.duration_s,
-                positions=tp.positions,
-                velocities=tp.velocities,
-            )
-        for robot, tp_id in remove:
-            req.remove.add(robot_id=robot, id=tp_id)
+        encode_tps(insert if isinstance(insert, TPBatch) else TPBatch.of(list(insert)), req.insert)
+        encode_keys(remove, req.remove)
         for robot, tp_id, nxt in switches:
             req.switches.add(robot_id=robot, tp_id=tp_id, next_id=nxt or 0, unset=nxt is None)
         for robot, tp_id, next_time in registers:

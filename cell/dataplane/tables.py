@@ -18,13 +18,25 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Generator, Iterable, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.robot.datagram import SCALE
 
 NO_ROW = -1
-SLICE = 256  # TPs handled between two yields of a staged update (each slice well under 1 ms)
+T = TypeVar("T", int, np.ndarray)
+LIMIT_RAD = 1e6  # |target| bound (rad, rad/s): far beyond any arm, far inside int64 fixed point
+SLICE = 512  # keys handled between two yields of a staged update (each slice a few hundred us at most)
+
+
+_ID_MASK = 0xFFFF_FFFF
+
+
+def tpkey(entity: T, tp_id: T) -> T:
+    """The control plane's key of a TP: entity << 32 | TP id (ints or int64 arrays alike)."""
+    return (entity << 32) | tp_id
 
 
 class Refused(Exception):
@@ -45,6 +57,90 @@ class TP:
     duration_s: float  # section duration: the time allotted to reach this TP
     positions: Sequence[float]  # one per joint of the entity (rad)
     velocities: Sequence[float]  # (rad/s)
+
+
+@dataclass(frozen=True)
+class TPBatch:
+    """Many TPs as columns: the form updates travel and are applied in.
+
+    A Python object (or protobuf message) per TP costs microseconds each, so
+    1,600 of them would hold the packet path for milliseconds; columns are
+    checked and written with a few numpy operations.
+    """
+
+    robot: np.ndarray  # (n,) int64
+    id: np.ndarray  # (n,) int64
+    next_id: np.ndarray  # (n,) int64
+    duration_s: np.ndarray  # (n,) float64
+    joints: np.ndarray  # (n,) how many values each TP has
+    positions: np.ndarray  # (n, width) float64 rad; zero beyond a TP's joints
+    velocities: np.ndarray  # (n, width) float64 rad/s
+
+    def __len__(self) -> int:
+        return int(self.robot.size)
+
+    @classmethod
+    def of(cls, tps: Sequence[TP]) -> TPBatch:
+        joints = np.array([len(tp.positions) for tp in tps], np.int64)
+        if any(len(tp.velocities) != len(tp.positions) for tp in tps):
+            raise ValueError("a TP needs as many velocities as positions")
+        flat_p = [x for tp in tps for x in tp.positions]
+        flat_v = [x for tp in tps for x in tp.velocities]
+        return cls.from_flat(
+            [tp.robot for tp in tps],
+            [tp.id for tp in tps],
+            [tp.next_id for tp in tps],
+            [tp.duration_s for tp in tps],
+            joints,
+            flat_p,
+            flat_v,
+        )
+
+    @classmethod
+    def from_flat(
+        cls,
+        robot: ArrayLike,
+        id: ArrayLike,
+        next_id: ArrayLike,
+        duration_s: ArrayLike,
+        joints: ArrayLike,
+        positions: ArrayLike,
+        velocities: ArrayLike,
+    ) -> TPBatch:
+        """From columns, joint values flat TP after TP (the wire form); ValueError if they disagree."""
+        cols = [np.asarray(c, np.int64).reshape(-1) for c in (robot, id, next_id, joints)]
+        dur = np.asarray(duration_s, np.float64).reshape(-1)
+        pos = np.asarray(positions, np.float64).reshape(-1)
+        vel = np.asarray(velocities, np.float64).reshape(-1)
+        n = cols[0].size
+        if any(c.size != n for c in (*cols, dur)):
+            raise ValueError(f"TP columns of different lengths ({[c.size for c in (*cols, dur)]})")
+        j = cols[3]
+        if j.size and (j.min() < 0 or j.max() > 64):
+            raise ValueError("joints per TP must be 0..64")
+        total = int(j.sum())
+        if pos.size != total or vel.size != total:
+            raise ValueError(f"{total} joint values expected: {pos.size} positions, {vel.size} velocities")
+        width = int(j.max(initial=0))
+        if n and (j == width).all():  # the usual batch: one entity shape
+            p2, v2 = pos.reshape(n, width), vel.reshape(n, width)
+        else:
+            mask = np.arange(width) < j[:, None]
+            p2, v2 = np.zeros((n, width)), np.zeros((n, width))
+            p2[mask], v2[mask] = pos, vel
+        return cls(cols[0], cols[1], cols[2], dur, j, p2, v2)
+
+    def take(self, idx: ArrayLike) -> TPBatch:
+        i = np.asarray(idx, np.int64)
+        return TPBatch(
+            self.robot[i],
+            self.id[i],
+            self.next_id[i],
+            self.duration_s[i],
+            self.joints[i],
+            self.positions[i],
+            self.velocities[i],
+        )
 
 
 class Tables:
@@ -71,11 +167,14 @@ class Tables:
         # TrajectorySwitcher: the TP a row's successor is overridden with
         self.switch_row = np.full(capacity, NO_ROW, np.int32)
         # the control plane's indexes
-        self._row: dict[tuple[int, int], int] = {}
-        self._key = [(-1, -1)] * capacity
+        # the control plane's indexes.  A TP's key is one int, entity << 32 | TP id (tpkey()): ints
+        # hash fast and, unlike tuples, are no work for the garbage collector, whose passes over
+        # 50,000 keys would otherwise stall the packet path for milliseconds
+        self._row: dict[int, int] = {}  # key -> row
+        self._key = np.full(capacity, -1, np.int64)  # row -> key
         self._next_id = np.zeros(capacity, np.int64)
         self._switch_id: dict[int, int] = {}  # row -> the TP id it switches to
-        self._waiting: dict[tuple[int, int], set[tuple[int, str]]] = defaultdict(set)
+        self._waiting: dict[int, set[tuple[int, str]]] = defaultdict(set)  # key -> links waiting for it
         self._free = list(range(capacity - 1, -1, -1))
         self._entity: dict[int, int] = {}  # robot -> entity, for the control plane (numpy scalars are slow)
 
@@ -120,57 +219,45 @@ class Tables:
             raise Refused("unknown_robot", f"robot {robot} is not known to the data plane")
         return e
 
+    def entities_of(self, robots: np.ndarray) -> np.ndarray:
+        """entity_of for an array of robot ids, at once."""
+        robots = np.asarray(robots, np.int64)
+        inside = (robots >= 0) & (robots < self.robot_entity.size)
+        ents = np.where(inside, self.robot_entity[np.where(inside, robots, 0)], NO_ROW)
+        unknown = np.flatnonzero(ents == NO_ROW)
+        if unknown.size:
+            raise Refused("unknown_robot", f"robot {int(robots[unknown[0]])} is not known to the data plane")
+        return ents.astype(np.int64)
+
     # --- TPStepper / TargetData ----------------------------------------------------------------
 
     @property
     def loaded(self) -> int:
         return self.capacity - len(self._free)
 
-    def insert(self, tps: Sequence[TP]) -> None:
+    def insert(self, tps: Sequence[TP] | TPBatch) -> None:
         """Insert or replace TPs, atomically; Refused (table_full, unknown_robot, ...) before any change."""
         self.update(insert=tps)
 
-    def _insert_checked(self, tps: Sequence[TP]) -> None:
-        keys = [(self.entity_of(tp.robot), tp.id) for tp in tps]
-        rows = np.array([self._row[k] if k in self._row else self._alloc(k) for k in keys], np.int64)
-        if rows.size == 0:
-            return
-        self._write_rows(rows, tps)
-        for row, (e, _), tp in zip(rows.tolist(), keys, tps, strict=True):
-            self._next_id[row] = tp.next_id
-            self._link(row, "next", (e, tp.next_id))
-        for row, key in zip(rows.tolist(), keys, strict=True):
-            for waiter, kind in self._waiting.pop(key, ()):
-                (self.next_row if kind == "next" else self.switch_row)[waiter] = row
-        self.valid[rows] = True
+    def _replace(self, rows: list[int], batch: TPBatch) -> None:
+        """New contents for TPs already loaded (in the flip: in place, the rows stay where they are)."""
+        self._write_rows(np.array(rows, np.int64), batch)
+        for row, nxt in zip(rows, batch.next_id.tolist(), strict=True):
+            e = self._key_entity(row)
+            self._unwait(tpkey(e, int(self._next_id[row])), (row, "next"))
+            self._next_id[row] = nxt
+            self._link(row, "next", tpkey(e, nxt))
 
-    def _write_rows(self, rows: np.ndarray, tps: Sequence[TP]) -> None:
+    def _write_rows(self, rows: np.ndarray, batch: TPBatch) -> None:
         """TargetData and section durations of the given rows."""
-        n = self.max_joints
-        widths = {len(tp.positions) for tp in tps}
-        if len(widths) == 1:  # the usual batch: one entity shape, one conversion
-            w = widths.pop()
-            pos = np.zeros((rows.size, n))
-            vel = np.zeros((rows.size, n))
-            pos[:, :w] = np.array([tp.positions for tp in tps], np.float64)
-            vel[:, :w] = np.array([tp.velocities for tp in tps], np.float64)
-        else:
-            pos = np.zeros((rows.size, n))
-            vel = np.zeros((rows.size, n))
-            for i, tp in enumerate(tps):
-                pos[i, : len(tp.positions)] = tp.positions
-                vel[i, : len(tp.velocities)] = tp.velocities
-        self.trg_pos[rows] = np.rint(pos * SCALE).astype(np.int64)
-        self.trg_vel[rows] = np.rint(vel * SCALE).astype(np.int64)
-        self.duration[rows] = np.rint(np.array([tp.duration_s for tp in tps]) * 1e9).astype(np.int64)
+        w = batch.positions.shape[1]
+        self.trg_pos[rows, :w] = np.rint(batch.positions * SCALE).astype(np.int64)
+        self.trg_vel[rows, :w] = np.rint(batch.velocities * SCALE).astype(np.int64)
+        self.trg_pos[rows, w:] = 0
+        self.trg_vel[rows, w:] = 0
+        self.duration[rows] = np.rint(batch.duration_s * 1e9).astype(np.int64)
 
-    def _alloc(self, key: tuple[int, int]) -> int:
-        row = self._free.pop()
-        self._row[key] = row
-        self._key[row] = key
-        return row
-
-    def _link(self, row: int, kind: str, target: tuple[int, int]) -> None:
+    def _link(self, row: int, kind: str, target: int) -> None:
         to = self._row.get(target, NO_ROW)
         (self.next_row if kind == "next" else self.switch_row)[row] = to
         if to == NO_ROW:
@@ -185,12 +272,12 @@ class Tables:
         return self.update(remove=list(keys))
 
     def _forget_waits(self, row: int) -> None:
-        target = (self._key_entity(row), int(self._next_id[row]))
-        self._unwait(target, (row, "next"))
+        e = self._key_entity(row)
+        self._unwait(tpkey(e, int(self._next_id[row])), (row, "next"))
         if row in self._switch_id:
-            self._unwait((target[0], self._switch_id[row]), (row, "switch"))
+            self._unwait(tpkey(e, self._switch_id[row]), (row, "switch"))
 
-    def _unwait(self, target: tuple[int, int], waiter: tuple[int, str]) -> None:
+    def _unwait(self, target: int, waiter: tuple[int, str]) -> None:
         waiters = self._waiting.get(target)
         if waiters is not None:
             waiters.discard(waiter)
@@ -198,7 +285,7 @@ class Tables:
                 del self._waiting[target]
 
     def _key_entity(self, row: int) -> int:
-        return self._key[row][0]
+        return int(self._key[row]) >> 32
 
     def effective_next(self, rows: np.ndarray) -> np.ndarray:
         """The row each row steps to: its TrajectorySwitcher entry, else its TPStepper link (NO_ROW: none)."""
@@ -207,7 +294,7 @@ class Tables:
         return np.where(rows == NO_ROW, NO_ROW, nxt)
 
     def row_of(self, robot: int, tp_id: int) -> int:
-        row = self._row.get((self.entity_of(robot), tp_id))
+        row = self._row.get(tpkey(self.entity_of(robot), tp_id))
         if row is None:
             raise Refused("unknown_tp", f"robot {robot} has no TP {tp_id} loaded")
         return row
@@ -220,13 +307,13 @@ class Tables:
         e = self.entity_of(robot)
         self.unset_switch(robot, tp_id)
         self._switch_id[row] = next_id
-        self._link(row, "switch", (e, next_id))
+        self._link(row, "switch", tpkey(e, next_id))
 
     def unset_switch(self, robot: int, tp_id: int) -> None:
         row = self.row_of(robot, tp_id)
         old = self._switch_id.pop(row, None)
         if old is not None:
-            self._unwait((self.entity_of(robot), old), (row, "switch"))
+            self._unwait(tpkey(self.entity_of(robot), old), (row, "switch"))
         self.switch_row[row] = NO_ROW
 
     # --- registers ------------------------------------------------------------------------------
@@ -245,14 +332,14 @@ class Tables:
 
     def current_tp(self, robot: int) -> int | None:
         row = int(self.reg_tp[self.entity_of(robot)])
-        return None if row == NO_ROW else self._key[row][1]
+        return None if row == NO_ROW else int(self._key[row]) & _ID_MASK
 
     # --- one atomic update ------------------------------------------------------------------------
 
     def update(
         self,
-        insert: Sequence[TP] = (),
-        remove: Sequence[tuple[int, int]] = (),
+        insert: Sequence[TP] | TPBatch = (),
+        remove: Sequence[tuple[int, int]] | np.ndarray = (),
         switches: Sequence[tuple[int, int, int | None]] = (),
         registers: Sequence[tuple[int, int | None, int]] = (),
     ) -> int:
@@ -266,8 +353,8 @@ class Tables:
 
     def staged_update(
         self,
-        insert: Sequence[TP] = (),
-        remove: Sequence[tuple[int, int]] = (),
+        insert: Sequence[TP] | TPBatch = (),
+        remove: Sequence[tuple[int, int]] | np.ndarray = (),
         switches: Sequence[tuple[int, int, int | None]] = (),
         registers: Sequence[tuple[int, int | None, int]] = (),
         slice_size: int = SLICE,
@@ -281,17 +368,19 @@ class Tables:
         bookkeeping is cleaned up afterwards.  The in-use check for deletions is
         made in the flip, against where the robots are then.  One update at a time.
 
-        switches: (robot, branching TP, next TP or None to unset); registers: (robot, TP or None
-        to clear, next_time_ns).  Returns how many TPs were removed.
+        remove: (robot, TP id) pairs, or an (n, 2) array of them; switches: (robot, branching TP,
+        next TP or None to unset); registers: (robot, TP or None to clear, next_time_ns).
+        Returns how many TPs were removed.
         """
         # --- 1. checks (nothing they rely on changes meanwhile: robots only move) ---------------
-        keys: list[tuple[int, int]] = []
-        for i in range(0, len(insert), slice_size):
-            keys += self._check_tps(insert[i : i + slice_size])
-            yield
-        if len(set(keys)) != len(keys):
+        batch = insert if isinstance(insert, TPBatch) else TPBatch.of(list(insert))
+        karr = self._check(batch)
+        keys = karr.tolist()
+        yield
+        if np.unique(karr).size != karr.size:
             raise Refused("bad_request", "a TP appears twice in one batch")
-        fresh = [i for i, k in enumerate(keys) if k not in self._row]
+        loaded = np.fromiter([k in self._row for k in keys], bool, len(keys))
+        fresh, replaced = np.flatnonzero(~loaded), np.flatnonzero(loaded)
         if len(fresh) > len(self._free):
             free = len(self._free)
             why = f"{len(fresh)} new TPs, {free} of {self.capacity} places free (delete some first)"
@@ -299,7 +388,7 @@ class Tables:
         new_keys = set(keys)
 
         def exists(robot: int, tp_id: int) -> bool:
-            key = (self.entity_of(robot), tp_id)
+            key = tpkey(self.entity_of(robot), tp_id)
             return key in self._row or key in new_keys
 
         for robot, tp_id, _ in switches:
@@ -310,51 +399,53 @@ class Tables:
             if tp_id is not None and not exists(robot, tp_id):
                 raise Refused("unknown_tp", f"registers of robot {robot}: no TP {tp_id}")
             moved[self.entity_of(robot)] = tp_id
-        gone_keys: dict[tuple[int, int], int] = {}  # key -> row; a key named twice is one row
-        for i in range(0, len(remove), slice_size * 4):
-            for robot, tp_id in remove[i : i + slice_size * 4]:
-                key = (self.entity_of(robot), tp_id)
-                row = self._row.get(key)
-                if row is not None:
-                    gone_keys[key] = row
+        yield
+        pairs = np.asarray(remove, np.int64).reshape(-1, 2)
+        named = (tpkey(self.entities_of(pairs[:, 0]), pairs[:, 1])).tolist()
+        is_gone = np.zeros(self.capacity, bool)  # the rows to delete (unknown TPs: none; twice: once)
+        for i in range(0, len(named), slice_size * 2):
+            found = np.array([self._row.get(k, NO_ROW) for k in named[i : i + slice_size * 2]], np.int64)
+            is_gone[found[found != NO_ROW]] = True
             yield
-        gone_rows = list(gone_keys.values())
-        gone = np.array(gone_rows, np.int64)
+        gone = np.flatnonzero(is_gone)
         for e, tp_id in moved.items():
-            if tp_id is not None and (e, tp_id) in gone_keys:
+            if tp_id is not None and is_gone[self._row[tpkey(e, tp_id)]]:
                 raise Refused("in_use", f"TP {tp_id} is both started and deleted")
 
-        # --- 2. stage new TPs in fresh rows nothing links to yet (invisible) -------------------
-        staged: dict[tuple[int, int], int] = {}
-        waits: list[tuple[tuple[int, int], int]] = []
+        # --- 2. stage new TPs in fresh rows nothing links to yet (invisible to the packet path) ---
+        staged: dict[int, int] = {}  # also entered in the index at once, taken out if refused
+        staged_rows = np.empty(fresh.size, np.int64)  # the row of each fresh TP
+        waits: list[tuple[int, int]] = []
+        targets = tpkey(karr >> 32, batch.next_id)  # the keys they link to
         try:
-            for i in range(0, len(fresh), slice_size):
+            for i in range(0, fresh.size, slice_size):
                 idx = fresh[i : i + slice_size]
-                rows = [self._free.pop() for _ in idx]
-                for row, j in zip(rows, idx, strict=True):
-                    staged[keys[j]] = row
-                    self._key[row] = keys[j]
-                    self._next_id[row] = insert[j].next_id
-                self._write_rows(np.array(rows, np.int64), [insert[j] for j in idx])
+                taken = self._free[len(self._free) - idx.size :]
+                del self._free[len(self._free) - idx.size :]
+                staged.update(zip(karr[idx].tolist(), taken, strict=True))
+                self._row.update(zip(karr[idx].tolist(), taken, strict=True))
+                rows = staged_rows[i : i + idx.size]
+                rows[:] = taken
+                self._key[rows] = karr[idx]
+                self._next_id[rows] = batch.next_id[idx]
+                self._write_rows(rows, batch.take(idx))
                 yield
-            items = list(staged.items())
-            for i in range(0, len(items), slice_size * 2):
-                for key, row in items[i : i + slice_size * 2]:
-                    target = (key[0], int(self._next_id[row]))
-                    to = staged.get(target)
-                    if to is None and target not in gone_keys:
-                        to = self._row.get(target)
-                    self.next_row[row] = NO_ROW if to is None else to
-                    self.switch_row[row] = NO_ROW
-                    if to is None:
-                        waits.append((target, row))
+            for i in range(0, fresh.size, slice_size):
+                rows = staged_rows[i : i + slice_size]
+                wanted = targets[fresh[i : i + slice_size]].tolist()
+                to = [self._row.get(t, NO_ROW) for t in wanted]
+                to = [NO_ROW if x != NO_ROW and is_gone[x] else x for x in to]
+                self.next_row[rows] = to
+                self.switch_row[rows] = NO_ROW
+                waits += [(t, r) for t, r, x in zip(wanted, rows.tolist(), to, strict=True) if x == NO_ROW]
                 yield
+            # the valid rows linking to TPs about to go (the flip adds those it links itself)
+            pointing = [self._links_into(arr, is_gone) for arr in (self.next_row, self.switch_row)]
+            yield
             # --- 3. the flip: everything visible in one step ------------------------------------
             if gone.size:
                 current = self.reg_tp[: self.entities].astype(np.int64)
                 upcoming = self.effective_next(current)
-                is_gone = np.zeros(self.capacity, bool)
-                is_gone[gone] = True
                 stays = np.ones(self.entities, bool)
                 stays[list(moved)] = False
                 hit = stays & (
@@ -367,23 +458,25 @@ class Tables:
                         "in_use", f"a TP entity {e} is following is to be deleted; switch or stop it first"
                     )
         except BaseException:
-            self._free.extend(staged.values())  # never visible: just give the rows back
+            for key in staged:  # never visible: forget them and give the rows back
+                del self._row[key]
+            self._free.extend(staged.values())
             raise
-        self._row.update(staged)
         for target, row in waits:
             self._waiting[target].add((row, "next"))
         for key in staged.keys() & self._waiting.keys():  # the few links that waited for these TPs
             for waiter, kind in self._waiting.pop(key):
                 (self.next_row if kind == "next" else self.switch_row)[waiter] = staged[key]
-        self.valid[list(staged.values())] = True
-        replaced = [insert[i] for i, k in enumerate(keys) if k not in staged]
-        if replaced:
-            self._insert_checked(replaced)  # in place: rare, and small
+        self.valid[staged_rows] = True
+        touched = [self._row[keys[i]] for i in replaced.tolist()]  # rows whose links change in the flip
+        if touched:  # in place: rare, and small
+            self._replace(touched, batch.take(replaced))
         for robot, tp_id, nxt in switches:
             if nxt is None:
                 self.unset_switch(robot, tp_id)
             else:
                 self.set_switch(robot, tp_id, nxt)
+            touched.append(self.row_of(robot, tp_id))
         for robot, tp_id, next_time in registers:
             if tp_id is None:
                 self.clear_registers(robot)
@@ -392,37 +485,59 @@ class Tables:
         if not gone.size:
             return 0
         self.valid[gone] = False
-        for arr, kind in ((self.next_row, "next"), (self.switch_row, "switch")):
-            pointing = np.flatnonzero(self.valid & (arr != NO_ROW) & is_gone[np.maximum(arr, 0)])
-            for w in pointing.tolist():
-                target = self._key[int(arr[w])]
+        links = zip((self.next_row, self.switch_row), ("next", "switch"), pointing, strict=True)
+        for arr, kind, rows in links:
+            for w in self._links_into(arr, is_gone, np.union1d(rows, touched)).tolist():
+                target = int(self._key[arr[w]])
                 arr[w] = NO_ROW
                 self._waiting[target].add((w, kind))
         yield
         # --- 4. the deleted rows' bookkeeping, in slices ---------------------------------------
-        unresolved = set(gone[self.next_row[gone] == NO_ROW].tolist())  # rows sitting in a wait list
-        for i in range(0, len(gone_rows), slice_size * 4):
-            for row in gone_rows[i : i + slice_size * 4]:
-                if row in unresolved or row in self._switch_id:
-                    self._forget_waits(row)  # both its link's and its switch's waits
-                    self._switch_id.pop(row, None)
-                del self._row[self._key[row]]
+        waiting = set(gone[self.next_row[gone] == NO_ROW].tolist())  # few: rows sitting in a wait list,
+        waiting |= {r for r in self._switch_id if is_gone[r]}  # or with a switch
+        for row in waiting:
+            self._forget_waits(row)  # both its link's and its switch's waits
+            self._switch_id.pop(row, None)
+        yield
+        gone_keys = self._key[gone].tolist()
+        for i in range(0, len(gone_keys), slice_size * 2):
+            for key in gone_keys[i : i + slice_size * 2]:
+                del self._row[key]
             yield
         self.next_row[gone] = NO_ROW
         self.switch_row[gone] = NO_ROW
-        self._free.extend(gone_rows)
-        return len(gone_rows)
+        self._free.extend(gone.tolist())
+        return int(gone.size)
 
-    def _check_tps(self, tps: Sequence[TP]) -> list[tuple[int, int]]:
-        keys = []
-        for tp in tps:
-            e = self.entity_of(tp.robot)
-            n = int(self.entity_joints[e])
-            if len(tp.positions) != n or len(tp.velocities) != n:
-                raise Refused("bad_request", f"TP {tp.id} of robot {tp.robot}: {n} joint values expected")
-            if not tp.duration_s > 0:
-                raise Refused("bad_request", f"TP {tp.id}: section duration must be > 0")
-            if not (0 <= tp.id < 2**32 and 0 <= tp.next_id < 2**32):
-                raise Refused("bad_request", f"TP ids are u32 (got {tp.id} -> {tp.next_id})")
-            keys.append((e, tp.id))
-        return keys
+    def _links_into(self, arr: np.ndarray, is_gone: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """The valid rows (of `rows`; default all) whose link in `arr` points at a row marked in is_gone."""
+        if rows is None:
+            hit = self.valid & (arr != NO_ROW) & is_gone[np.maximum(arr, 0)]
+            return np.flatnonzero(hit)
+        rows = rows.astype(np.int64)
+        to = arr[rows]
+        return rows[self.valid[rows] & (to != NO_ROW) & is_gone[np.maximum(to, 0)]]
+
+    def _check(self, batch: TPBatch) -> np.ndarray:
+        """Refused unless every TP fits its entity; their keys (tpkey)."""
+        if not len(batch):
+            return np.zeros(0, np.int64)
+        ents = self.entities_of(batch.robot)
+        want = self.entity_joints[ents]
+
+        def first(bad: np.ndarray) -> str:
+            i = int(np.flatnonzero(bad)[0])
+            return f"TP {int(batch.id[i])} of robot {int(batch.robot[i])}"
+
+        if (bad := batch.joints != want).any():
+            n = int(want[np.flatnonzero(bad)[0]])
+            raise Refused("bad_request", f"{first(bad)}: {n} joint values expected")
+        if (bad := ~(batch.duration_s > 0) | ~np.isfinite(batch.duration_s)).any():
+            raise Refused("bad_request", f"{first(bad)}: section duration must be > 0")
+        ids = np.concatenate([batch.id, batch.next_id])
+        if ((ids < 0) | (ids >= 2**32)).any():
+            raise Refused("bad_request", "TP ids are u32")
+        values = np.concatenate([batch.positions, batch.velocities], axis=1)
+        if (bad := ~(np.abs(values) < LIMIT_RAD).all(axis=1)).any():
+            raise Refused("bad_request", f"{first(bad)}: a joint value is not finite or out of range")
+        return tpkey(ents, batch.id)

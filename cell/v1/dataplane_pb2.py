@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x63\x65ll/v1/dataplane.proto\x12\x07\x63\x65ll.v1\"{\n\x0fTrajectoryPoint\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\n\n\x02id\x18\x02 \x01(\r\x12\x0f\n\x07next_id\x18\x03 \x01(\r\x12\x12\n\nduration_s\x18\x04 \x01(\x01\x12\x11\n\tpositions\x18\x05 \x03(\x01\x12\x12\n\nvelocities\x18\x06 \x03(\x01\"%\n\x05TpKey\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\n\n\x02id\x18\x02 \x01(\r\"\xaa\x01\n\x0bTableUpdate\x12(\n\x06insert\x18\x01 \x03(\x0b\x32\x18.cell.v1.TrajectoryPoint\x12\x1e\n\x06remove\x18\x02 \x03(\x0b\x32\x0e.cell.v1.TpKey\x12&\n\x08switches\x18\x03 \x03(\x0b\x32\x14.cell.v1.SwitchEntry\x12)\n\tregisters\x18\x04 \x03(\x0b\x32\x16.cell.v1.RegisterEntry\"N\n\x0bSwitchEntry\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\r\n\x05tp_id\x18\x02 \x01(\r\x12\x0f\n\x07next_id\x18\x03 \x01(\r\x12\r\n\x05unset\x18\x04 \x01(\x08\"U\n\rRegisterEntry\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\r\n\x05tp_id\x18\x02 \x01(\r\x12\x14\n\x0cnext_time_ns\x18\x03 \x01(\x03\x12\r\n\x05\x63lear\x18\x04 \x01(\x08\"\x86\x01\n\x0bUpdateReply\x12\x10\n\x08inserted\x18\x01 \x01(\r\x12\x0f\n\x07removed\x18\x02 \x01(\r\x12\x0e\n\x06loaded\x18\x03 \x01(\r\x12\x10\n\x08\x63\x61pacity\x18\x04 \x01(\r\x12\x10\n\x08\x61pply_us\x18\x05 \x01(\x01\x12\x0e\n\x06now_ns\x18\x06 \x01(\x03\x12\x10\n\x08total_ms\x18\x07 \x01(\x01\"!\n\x0cMergeRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\"\x1c\n\nMergeReply\x12\x0e\n\x06\x65ntity\x18\x01 \x01(\r\"\x0e\n\x0cStateRequest\"X\n\x0fRobotPlaneState\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0e\n\x06\x65ntity\x18\x02 \x01(\r\x12\r\n\x05tp_id\x18\x03 \x01(\x03\x12\x14\n\x0cnext_time_ns\x18\x04 \x01(\x03\"\xd6\x01\n\x0e\x44\x61taplaneState\x12\x0e\n\x06now_ns\x18\x01 \x01(\x03\x12\x0e\n\x06loaded\x18\x02 \x01(\r\x12\x10\n\x08\x63\x61pacity\x18\x03 \x01(\r\x12(\n\x06robots\x18\x04 \x03(\x0b\x32\x18.cell.v1.RobotPlaneState\x12\x37\n\x08\x63ounters\x18\x05 \x03(\x0b\x32%.cell.v1.DataplaneState.CountersEntry\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"B\n\tConstants\x12\n\n\x02\x63\x31\x18\x01 \x03(\x01\x12\n\n\x02\x63\x32\x18\x02 \x03(\x01\x12\x0e\n\x06n_bits\x18\x03 \x01(\r\x12\r\n\x05v_max\x18\x04 \x03(\x01\"T\n\x0e\x43onstantsReply\x12\x19\n\x11transform_entries\x18\x01 \x01(\r\x12\x15\n\rlimit_entries\x18\x02 \x01(\r\x12\x10\n\x08\x62uild_ms\x18\x03 \x01(\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x63\x65ll/v1/dataplane.proto\x12\x07\x63\x65ll.v1\"\x8c\x01\n\x10TrajectoryPoints\x12\x10\n\x08robot_id\x18\x01 \x03(\r\x12\n\n\x02id\x18\x02 \x03(\r\x12\x0f\n\x07next_id\x18\x03 \x03(\r\x12\x12\n\nduration_s\x18\x04 \x03(\x01\x12\x0e\n\x06joints\x18\x05 \x03(\r\x12\x11\n\tpositions\x18\x06 \x03(\x01\x12\x12\n\nvelocities\x18\x07 \x03(\x01\"&\n\x06TpKeys\x12\x10\n\x08robot_id\x18\x01 \x03(\r\x12\n\n\x02id\x18\x02 \x03(\r\"\xac\x01\n\x0bTableUpdate\x12)\n\x06insert\x18\x01 \x01(\x0b\x32\x19.cell.v1.TrajectoryPoints\x12\x1f\n\x06remove\x18\x02 \x01(\x0b\x32\x0f.cell.v1.TpKeys\x12&\n\x08switches\x18\x03 \x03(\x0b\x32\x14.cell.v1.SwitchEntry\x12)\n\tregisters\x18\x04 \x03(\x0b\x32\x16.cell.v1.RegisterEntry\"N\n\x0bSwitchEntry\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\r\n\x05tp_id\x18\x02 \x01(\r\x12\x0f\n\x07next_id\x18\x03 \x01(\r\x12\r\n\x05unset\x18\x04 \x01(\x08\"U\n\rRegisterEntry\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\r\n\x05tp_id\x18\x02 \x01(\r\x12\x14\n\x0cnext_time_ns\x18\x03 \x01(\x03\x12\r\n\x05\x63lear\x18\x04 \x01(\x08\"\x86\x01\n\x0bUpdateReply\x12\x10\n\x08inserted\x18\x01 \x01(\r\x12\x0f\n\x07removed\x18\x02 \x01(\r\x12\x0e\n\x06loaded\x18\x03 \x01(\r\x12\x10\n\x08\x63\x61pacity\x18\x04 \x01(\r\x12\x10\n\x08\x61pply_us\x18\x05 \x01(\x01\x12\x0e\n\x06now_ns\x18\x06 \x01(\x03\x12\x10\n\x08total_ms\x18\x07 \x01(\x01\"!\n\x0cMergeRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\"\x1c\n\nMergeReply\x12\x0e\n\x06\x65ntity\x18\x01 \x01(\r\"\x0e\n\x0cStateRequest\"X\n\x0fRobotPlaneState\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0e\n\x06\x65ntity\x18\x02 \x01(\r\x12\r\n\x05tp_id\x18\x03 \x01(\x03\x12\x14\n\x0cnext_time_ns\x18\x04 \x01(\x03\"\xd6\x01\n\x0e\x44\x61taplaneState\x12\x0e\n\x06now_ns\x18\x01 \x01(\x03\x12\x0e\n\x06loaded\x18\x02 \x01(\r\x12\x10\n\x08\x63\x61pacity\x18\x03 \x01(\r\x12(\n\x06robots\x18\x04 \x03(\x0b\x32\x18.cell.v1.RobotPlaneState\x12\x37\n\x08\x63ounters\x18\x05 \x03(\x0b\x32%.cell.v1.DataplaneState.CountersEntry\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"B\n\tConstants\x12\n\n\x02\x63\x31\x18\x01 \x03(\x01\x12\n\n\x02\x63\x32\x18\x02 \x03(\x01\x12\x0e\n\x06n_bits\x18\x03 \x01(\r\x12\r\n\x05v_max\x18\x04 \x03(\x01\"T\n\x0e\x43onstantsReply\x12\x19\n\x11transform_entries\x18\x01 \x01(\r\x12\x15\n\rlimit_entries\x18\x02 \x01(\r\x12\x10\n\x08\x62uild_ms\x18\x03 \x01(\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -33,32 +33,32 @@ if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_DATAPLANESTATE_COUNTERSENTRY']._loaded_options = None
   _globals['_DATAPLANESTATE_COUNTERSENTRY']._serialized_options = b'8\001'
-  _globals['_TRAJECTORYPOINT']._serialized_start=36
-  _globals['_TRAJECTORYPOINT']._serialized_end=159
-  _globals['_TPKEY']._serialized_start=161
-  _globals['_TPKEY']._serialized_end=198
-  _globals['_TABLEUPDATE']._serialized_start=201
-  _globals['_TABLEUPDATE']._serialized_end=371
-  _globals['_SWITCHENTRY']._serialized_start=373
-  _globals['_SWITCHENTRY']._serialized_end=451
-  _globals['_REGISTERENTRY']._serialized_start=453
-  _globals['_REGISTERENTRY']._serialized_end=538
-  _globals['_UPDATEREPLY']._serialized_start=541
-  _globals['_UPDATEREPLY']._serialized_end=675
-  _globals['_MERGEREQUEST']._serialized_start=677
-  _globals['_MERGEREQUEST']._serialized_end=710
-  _globals['_MERGEREPLY']._serialized_start=712
-  _globals['_MERGEREPLY']._serialized_end=740
-  _globals['_STATEREQUEST']._serialized_start=742
-  _globals['_STATEREQUEST']._serialized_end=756
-  _globals['_ROBOTPLANESTATE']._serialized_start=758
-  _globals['_ROBOTPLANESTATE']._serialized_end=846
-  _globals['_DATAPLANESTATE']._serialized_start=849
-  _globals['_DATAPLANESTATE']._serialized_end=1063
-  _globals['_DATAPLANESTATE_COUNTERSENTRY']._serialized_start=1016
-  _globals['_DATAPLANESTATE_COUNTERSENTRY']._serialized_end=1063
-  _globals['_CONSTANTS']._serialized_start=1065
-  _globals['_CONSTANTS']._serialized_end=1131
-  _globals['_CONSTANTSREPLY']._serialized_start=1133
-  _globals['_CONSTANTSREPLY']._serialized_end=1217
+  _globals['_TRAJECTORYPOINTS']._serialized_start=37
+  _globals['_TRAJECTORYPOINTS']._serialized_end=177
+  _globals['_TPKEYS']._serialized_start=179
+  _globals['_TPKEYS']._serialized_end=217
+  _globals['_TABLEUPDATE']._serialized_start=220
+  _globals['_TABLEUPDATE']._serialized_end=392
+  _globals['_SWITCHENTRY']._serialized_start=394
+  _globals['_SWITCHENTRY']._serialized_end=472
+  _globals['_REGISTERENTRY']._serialized_start=474
+  _globals['_REGISTERENTRY']._serialized_end=559
+  _globals['_UPDATEREPLY']._serialized_start=562
+  _globals['_UPDATEREPLY']._serialized_end=696
+  _globals['_MERGEREQUEST']._serialized_start=698
+  _globals['_MERGEREQUEST']._serialized_end=731
+  _globals['_MERGEREPLY']._serialized_start=733
+  _globals['_MERGEREPLY']._serialized_end=761
+  _globals['_STATEREQUEST']._serialized_start=763
+  _globals['_STATEREQUEST']._serialized_end=777
+  _globals['_ROBOTPLANESTATE']._serialized_start=779
+  _globals['_ROBOTPLANESTATE']._serialized_end=867
+  _globals['_DATAPLANESTATE']._serialized_start=870
+  _globals['_DATAPLANESTATE']._serialized_end=1084
+  _globals['_DATAPLANESTATE_COUNTERSENTRY']._serialized_start=1037
+  _globals['_DATAPLANESTATE_COUNTERSENTRY']._serialized_end=1084
+  _globals['_CONSTANTS']._serialized_start=1086
+  _globals['_CONSTANTS']._serialized_end=1152
+  _globals['_CONSTANTSREPLY']._serialized_start=1154
+  _globals['_CONSTANTSREPLY']._serialized_end=1238
 # @@protoc_insertion_point(module_scope)

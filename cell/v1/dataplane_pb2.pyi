@@ -6,29 +6,31 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
-class TrajectoryPoint(_message.Message):
-    __slots__ = ("robot_id", "id", "next_id", "duration_s", "positions", "velocities")
+class TrajectoryPoints(_message.Message):
+    __slots__ = ("robot_id", "id", "next_id", "duration_s", "joints", "positions", "velocities")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     ID_FIELD_NUMBER: _ClassVar[int]
     NEXT_ID_FIELD_NUMBER: _ClassVar[int]
     DURATION_S_FIELD_NUMBER: _ClassVar[int]
+    JOINTS_FIELD_NUMBER: _ClassVar[int]
     POSITIONS_FIELD_NUMBER: _ClassVar[int]
     VELOCITIES_FIELD_NUMBER: _ClassVar[int]
-    robot_id: int
-    id: int
-    next_id: int
-    duration_s: float
+    robot_id: _containers.RepeatedScalarFieldContainer[int]
+    id: _containers.RepeatedScalarFieldContainer[int]
+    next_id: _containers.RepeatedScalarFieldContainer[int]
+    duration_s: _containers.RepeatedScalarFieldContainer[float]
+    joints: _containers.RepeatedScalarFieldContainer[int]
     positions: _containers.RepeatedScalarFieldContainer[float]
     velocities: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, robot_id: _Optional[int] = ..., id: _Optional[int] = ..., next_id: _Optional[int] = ..., duration_s: _Optional[float] = ..., positions: _Optional[_Iterable[float]] = ..., velocities: _Optional[_Iterable[float]] = ...) -> None: ...
+    def __init__(self, robot_id: _Optional[_Iterable[int]] = ..., id: _Optional[_Iterable[int]] = ..., next_id: _Optional[_Iterable[int]] = ..., duration_s: _Optional[_Iterable[float]] = ..., joints: _Optional[_Iterable[int]] = ..., positions: _Optional[_Iterable[float]] = ..., velocities: _Optional[_Iterable[float]] = ...) -> None: ...
 
-class TpKey(_message.Message):
+class TpKeys(_message.Message):
     __slots__ = ("robot_id", "id")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     ID_FIELD_NUMBER: _ClassVar[int]
-    robot_id: int
-    id: int
-    def __init__(self, robot_id: _Optional[int] = ..., id: _Optional[int] = ...) -> None: ...
+    robot_id: _containers.RepeatedScalarFieldContainer[int]
+    id: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, robot_id: _Optional[_Iterable[int]] = ..., id: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class TableUpdate(_message.Message):
     __slots__ = ("insert", "remove", "switches", "registers")
@@ -36,11 +38,11 @@ class TableUpdate(_message.Message):
     REMOVE_FIELD_NUMBER: _ClassVar[int]
     SWITCHES_FIELD_NUMBER: _ClassVar[int]
     REGISTERS_FIELD_NUMBER: _ClassVar[int]
-    insert: _containers.RepeatedCompositeFieldContainer[TrajectoryPoint]
-    remove: _containers.RepeatedCompositeFieldContainer[TpKey]
+    insert: TrajectoryPoints
+    remove: TpKeys
     switches: _containers.RepeatedCompositeFieldContainer[SwitchEntry]
     registers: _containers.RepeatedCompositeFieldContainer[RegisterEntry]
-    def __init__(self, insert: _Optional[_Iterable[_Union[TrajectoryPoint, _Mapping]]] = ..., remove: _Optional[_Iterable[_Union[TpKey, _Mapping]]] = ..., switches: _Optional[_Iterable[_Union[SwitchEntry, _Mapping]]] = ..., registers: _Optional[_Iterable[_Union[RegisterEntry, _Mapping]]] = ...) -> None: ...
+    def __init__(self, insert: _Optional[_Union[TrajectoryPoints, _Mapping]] = ..., remove: _Optional[_Union[TpKeys, _Mapping]] = ..., switches: _Optional[_Iterable[_Union[SwitchEntry, _Mapping]]] = ..., registers: _Optional[_Iterable[_Union[RegisterEntry, _Mapping]]] = ...) -> None: ...
 
 class SwitchEntry(_message.Message):
     __slots__ = ("robot_id", "tp_id", "next_id", "unset")
