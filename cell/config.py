@@ -154,6 +154,20 @@ class DataplaneConfig:
 
 
 @dataclass(frozen=True)
+class ControllerConfig:
+    tp_rate_hz: float = _check(lambda v: None if 1 <= v <= 500 else f"must be 1..500 TP/s (got {v})")
+    fine_rate_hz: float = _check(lambda v: None if 1 <= v <= 500 else f"must be 1..500 TP/s (got {v})")
+    episode: int = _check(lambda v: None if v >= 2 else f"must be >= 2 TPs (got {v})")
+    lead_s: float = _check(_positive)
+    a_max: list[float] = field(metadata={"check": _joint_vector})
+    j_max: list[float] = field(metadata={"check": _joint_vector})
+    tool_v_max: float = _check(_positive)
+    tool_a_max: float = _check(_positive)
+    tool_j_max: float = _check(_positive)
+    tool_w_max: float = _check(_positive)
+
+
+@dataclass(frozen=True)
 class SnpConfig:
     listen: str = _check(_host_port)
 
@@ -199,6 +213,7 @@ class CellConfig:
     bus: BusConfig
     services: ServicesConfig
     dataplane: DataplaneConfig
+    controller: ControllerConfig
     snp: SnpConfig
     robot_defaults: RobotDefaults
     robots: list[RobotConfig]

@@ -23,7 +23,7 @@ from cell.dataplane.pipeline import ControlConstants, Pipeline
 from cell.dataplane.tables import NO_ROW, Refused, Tables
 from cell.dataplane.wire import decode_keys, decode_tps
 from cell.robot import datagram, udp
-from cell.robot.datagram import Kind
+from cell.robot.datagram import SCALE, Kind
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import dataplane_pb2, robot_pb2
 
@@ -231,12 +231,16 @@ class DataPlane:
         )
         for robot in np.flatnonzero(t.robot_entity != NO_ROW).tolist():
             e = int(t.robot_entity[robot])
+            n = int(self.robot_joints[robot])
             tp = t.current_tp(robot)
             st.robots.add(
                 robot_id=robot,
                 entity=e,
                 tp_id=-1 if tp is None else tp,
                 next_time_ns=int(t.reg_next_time[e]),
+                position=(t.status_pos[robot, :n] / SCALE).tolist(),
+                velocity=(t.status_vel[robot, :n] / SCALE).tolist(),
+                status_ns=int(t.status_ns[robot]),
             )
         return st
 

@@ -456,3 +456,20 @@ def test_an_update_gives_the_garbage_collector_no_work() -> None:
     removed = t.update(insert=tps(100_000, 1_600), remove=np.stack([np.ones(10_000), np.arange(10_000)], 1))
     assert (removed, t.loaded) == (10_000, 11_600)
     assert sum(s["collections"] for s in gc.get_stats()) - before <= 1
+
+
+def test_one_update_moves_a_robot_onto_new_tps_and_deletes_the_old_ones() -> None:
+    """What a controller does to start a motion: load it, point the registers at it, drop the old."""
+    t = Tables(capacity=16)
+    t.add_robot(1)
+    t.insert([hold_tp(1, 1, 1, [0.0])])
+    t.set_registers(1, 1, 0)
+    assert (
+        t.update(
+            insert=[hold_tp(1, 2, 3, [0.1]), hold_tp(1, 3, 3, [0.2])], registers=[(1, 2, 5)], remove=[(1, 1)]
+        )
+        == 1
+    )
+    assert t.current_tp(1) == 2 and t.loaded == 2 and int(t.reg_next_time[t.entity_of(1)]) == 5
+    with pytest.raises(Refused, match="both started and deleted"):
+        t.update(registers=[(1, 3, 0)], remove=[(1, 3)])

@@ -145,8 +145,9 @@ class Pipeline:
         ent = t.robot_entity[rid].astype(np.int64)
         known = ent != NO_ROW
         if known.any():
-            entities, counts = np.unique(ent[known], return_counts=True)
-            self.ingress(entities, counts, now)
+            counts = np.bincount(ent[known], minlength=t.entities)  # (faster than np.unique here)
+            entities = np.flatnonzero(counts)
+            self.ingress(entities, counts[entities], now)
         # Algorithm 2
         row = np.where(known, t.reg_tp[np.maximum(ent, 0)], NO_ROW)
         has = row != NO_ROW
@@ -156,6 +157,10 @@ class Pipeline:
         p_trg = t.trg_pos[r, j]
         v = np.clip(recs["velocity"].astype(np.int64), -INPUT_LIMIT, INPUT_LIMIT)
         p = np.clip(recs["position"].astype(np.int64), -INPUT_LIMIT, INPUT_LIMIT)
+        mine = jid < t.max_joints
+        t.status_pos[rid[mine], jid[mine]] = p[mine]
+        t.status_vel[rid[mine], jid[mine]] = v[mine]
+        t.status_ns[rid] = now
         diff = np.clip(p_trg - p, -TERM_LIMIT, TERM_LIMIT)
         local = np.minimum(jid, self.joints - 1)
         v_new = (

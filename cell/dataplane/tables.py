@@ -158,6 +158,11 @@ class Tables:
         # copy would go stale whenever a switch is set or a streamed link resolves later
         self.reg_tp = np.full(max_entities, NO_ROW, np.int32)
         self.reg_next_time = np.zeros(max_entities, np.int64)  # data-plane clock, ns
+        # the last status of each robot's joints (wire fixed point) and when it came: registers the
+        # controller reads to plan from where a robot is (re-planning, stops)
+        self.status_pos = np.zeros((1 << 16, max_joints), np.int64)
+        self.status_vel = np.zeros((1 << 16, max_joints), np.int64)
+        self.status_ns = np.zeros(1 << 16, np.int64)
         # TPStepper (+ TargetData), one row per TP
         self.valid = np.zeros(capacity, bool)
         self.next_row = np.full(capacity, NO_ROW, np.int32)
@@ -409,7 +414,8 @@ class Tables:
             yield
         gone = np.flatnonzero(is_gone)
         for e, tp_id in moved.items():
-            if tp_id is not None and is_gone[self._row[tpkey(e, tp_id)]]:
+            row = None if tp_id is None else self._row.get(tpkey(e, tp_id))  # None too: inserted now
+            if row is not None and is_gone[row]:
                 raise Refused("in_use", f"TP {tp_id} is both started and deleted")
 
         # --- 2. stage new TPs in fresh rows nothing links to yet (invisible to the packet path) ---

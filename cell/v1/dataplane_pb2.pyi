@@ -103,16 +103,22 @@ class StateRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class RobotPlaneState(_message.Message):
-    __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns")
+    __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns", "position", "velocity", "status_ns")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     ENTITY_FIELD_NUMBER: _ClassVar[int]
     TP_ID_FIELD_NUMBER: _ClassVar[int]
     NEXT_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    POSITION_FIELD_NUMBER: _ClassVar[int]
+    VELOCITY_FIELD_NUMBER: _ClassVar[int]
+    STATUS_NS_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     entity: int
     tp_id: int
     next_time_ns: int
-    def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ...) -> None: ...
+    position: _containers.RepeatedScalarFieldContainer[float]
+    velocity: _containers.RepeatedScalarFieldContainer[float]
+    status_ns: int
+    def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., position: _Optional[_Iterable[float]] = ..., velocity: _Optional[_Iterable[float]] = ..., status_ns: _Optional[int] = ...) -> None: ...
 
 class DataplaneState(_message.Message):
     __slots__ = ("now_ns", "loaded", "capacity", "robots", "counters")

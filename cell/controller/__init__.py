@@ -1,0 +1,1 @@
+"""The industrial controller: plans motions and loads them into the data plane as TPs."""

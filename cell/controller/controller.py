@@ -1,0 +1,454 @@
+"""The industrial controller: plans motions and streams them into the data plane's tables.
+
+It never commands a joint: it loads TPs, sets switcher entries and registers,
+and deletes what has been driven.  It may sit far from the data plane (10-100
+ms of latency and jitter); what the robots see does not depend on that,
+because each motion is loaded ahead of time:
+
+- a motion is cut into TP sections (cell.controller.tps) and loaded in
+  episodes of n TPs; when a robot enters episode k, episode k+1 goes in and
+  episode k-2 comes out, so at most 3n TPs per robot are loaded (expired,
+  active, upcoming) and the controller has a whole episode's time to deliver
+  the next one;
+- a motion starts at an absolute data-plane time (registers), so robots
+  started together step together; a merged entity steps as one;
+- re-planning branches off at a TP far enough ahead (the measured round trip
+  plus planning time, binned to sections) through TrajectorySwitcher, from a
+  start state predicted with the paper's formula (Sec. 6.1);
+- a stop switches the robots' registers at once to a stop trajectory planned
+  from their last status.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cell.bus import Bus
+from cell.config import CellConfig
+from cell.controller.loop import LoopModel
+from cell.controller.plan import Motion, MotionLimits, PlanError, plan_joint, plan_linear, plan_stop
+from cell.controller.tps import Sections, cut
+from cell.dataplane.client import DataplaneClient
+from cell.dataplane.tables import TPBatch
+from cell.robot.arm import arm_model
+from cell.robot.kinematics import Kinematics
+from cell.v1 import dataplane_pb2
+
+_ID_SPACE = 2**32
+
+
+class MotionStopped(Exception):
+    """The motion was cut short by a stop (or replaced by a re-plan)."""
+
+
+@dataclass
+class MotionResult:
+    start_ns: int  # data-plane clock
+    end_ns: int
+    q_end: np.ndarray  # where the plan ends (rad)
+
+
+@dataclass
+class Switch:
+    """The last re-plan: where it branched, and the start state it predicted there."""
+
+    branch_tp: int
+    t_branch_ns: int  # data-plane clock
+    lead_ms: float  # how long before the branch the switch entry was in place
+    q_pred: np.ndarray
+    v_pred: np.ndarray
+
+
+class Link:
+    """The data-plane clock as seen from here, and the round trip to it, measured on every read."""
+
+    def __init__(self, dp: DataplaneClient) -> None:
+        self.dp = dp
+        self.offset_ns = 0
+        self._best_rtt = None  # the offset comes from the read with the shortest round trip
+        self.rtts: deque[int] = deque(maxlen=32)
+
+    async def state(self) -> dataplane_pb2.DataplaneState:
+        t0 = time.monotonic_ns()
+        st = await self.dp.state()
+        t1 = time.monotonic_ns()
+        rtt = t1 - t0
+        self.rtts.append(rtt)
+        if self._best_rtt is None or rtt <= self._best_rtt * 1.5:
+            self._best_rtt = rtt if self._best_rtt is None else min(rtt, self._best_rtt)
+            self.offset_ns = st.now_ns - (t0 + t1) // 2
+        return st
+
+    def now(self) -> int:
+        return time.monotonic_ns() + self.offset_ns
+
+    @property
+    def rtt_ns(self) -> int:
+        """A pessimistic round trip: the largest of the recent ones."""
+        return max(self.rtts) if self.rtts else 50_000_000
+
+    async def sleep_until(self, t_ns: int) -> None:
+        delay = (t_ns - self.now()) / 1e9
+        if delay > 0:
+            await asyncio.sleep(delay)
+
+
+@dataclass
+class Segment:
+    """A motion as loaded: its TP ids and its start on the data-plane clock."""
+
+    start_ns: int
+    motion: Motion
+    sections: Sections
+    ids: list[int]  # one per section, then the final hold (a self-loop at the end position)
+
+    def __post_init__(self) -> None:
+        s = self.sections
+        assert len(self.ids) == len(s) + 1
+        self.q = np.vstack([s.q, s.q[-1:]])  # the TPs' positions, velocities and durations
+        self.v = np.vstack([s.v_ff, np.zeros_like(s.v_ff[-1:])])
+        self.d = np.append(s.duration, s.duration[-1])
+
+    def t_ns(self, k: int) -> int:
+        """When section k ends (data-plane clock)."""
+        return self.start_ns + int(self.sections.t_end[k] * 1e9)
+
+    @property
+    def end_ns(self) -> int:
+        return self.t_ns(len(self.sections) - 1)
+
+
+@dataclass
+class Track:
+    """One entity as the controller drives it: a robot, or robots merged to move as one."""
+
+    robot: int  # the id the data plane knows the entity by (the first robot of a merged one)
+    robots: list[int]
+    limits: MotionLimits
+    next_id: int = 1
+    q_hold: np.ndarray | None = None  # where it holds after its last motion (None: not started)
+    loaded: list[int] = field(default_factory=list)  # TP ids of this track in the tables
+    segment: Segment | None = None
+    task: asyncio.Task | None = None
+
+    @property
+    def joints(self) -> int:
+        return self.limits.v_max.size
+
+    def take_ids(self, n: int) -> list[int]:
+        ids = [(self.next_id + i) % _ID_SPACE for i in range(n)]
+        self.next_id = (self.next_id + n) % _ID_SPACE
+        return ids
+
+
+class Controller:
+    def __init__(self, bus: Bus, config: CellConfig, service: str = "dataplane") -> None:
+        self.config = config
+        self.dp = DataplaneClient(bus, service)
+        self.link = Link(self.dp)
+        cc = config.controller
+        self.rate_hz, self.fine_hz, self.episode = cc.tp_rate_hz, cc.fine_rate_hz, cc.episode
+        self.lead_ns = int(cc.lead_s * 1e9)
+        dpc = config.dataplane
+        self.gain = np.array(dpc.c2) / np.array(dpc.c1)  # see cell.controller.tps
+        self.kin = Kinematics()
+        lim = arm_model().limits
+        self.arm_limits = MotionLimits(
+            v_max=np.minimum(lim.v_max, np.array(dpc.v_max)),
+            a_max=np.minimum(lim.a_max, np.array(cc.a_max)),
+            j_max=np.array(cc.j_max),
+            tool_v_max=cc.tool_v_max,
+            tool_a_max=cc.tool_a_max,
+            tool_j_max=cc.tool_j_max,
+            tool_w_max=cc.tool_w_max,
+        )
+        self.tracks: dict[int, Track] = {}
+        self.plan_ns = 20_000_000  # how long planning a re-plan takes (measured, smoothed)
+        self.last_switch: Switch | None = None
+
+    # --- robots ------------------------------------------------------------------------------
+
+    def robot_id(self, robot: int | str) -> int:
+        if isinstance(robot, int):
+            return robot
+        return self.config.robot(robot).id
+
+    def track(self, robot: int | str) -> Track:
+        rid = self.robot_id(robot)
+        for t in self.tracks.values():
+            if rid in t.robots:
+                return t
+        t = Track(rid, [rid], self.arm_limits)
+        self.tracks[rid] = t
+        return t
+
+    async def merge(self, robots: list[int | str]) -> Track:
+        """Drive several robots as one entity (their joints side by side): they step together."""
+        ids = [self.robot_id(r) for r in robots]
+        for rid in ids:
+            t = self.tracks.get(rid)
+            if t is not None and t.task is not None and not t.task.done():
+                raise PlanError(f"robot {rid} is moving; stop it before merging")
+        await self.dp.merge(ids)
+        lim = self.arm_limits
+        n = len(ids)
+        merged = MotionLimits(
+            np.tile(lim.v_max, n), np.tile(lim.a_max, n), np.tile(lim.j_max, n),
+            lim.tool_v_max, lim.tool_a_max, lim.tool_j_max, lim.tool_w_max,
+        )  # fmt: skip
+        for rid in ids:
+            self.tracks.pop(rid, None)
+        track = Track(ids[0], ids, merged)
+        self.tracks[ids[0]] = track
+        return track
+
+    async def joints_now(self, track: Track) -> tuple[np.ndarray, np.ndarray, int]:
+        """The last status of the track's robots: positions, velocities, its data-plane time."""
+        st = await self.link.state()
+        by_id = {r.robot_id: r for r in st.robots}
+        missing = [r for r in track.robots if r not in by_id or by_id[r].status_ns == 0]
+        if missing:
+            raise PlanError(f"no status from robot(s) {missing} at the data plane yet")
+        q = np.concatenate([np.array(by_id[r].position) for r in track.robots])
+        v = np.concatenate([np.array(by_id[r].velocity) for r in track.robots])
+        return q, v, min(by_id[r].status_ns for r in track.robots)
+
+    def loop(self, track: Track) -> LoopModel:
+        """The closed loop the track's TPs drive (cell.controller.loop)."""
+        rid = track.robots[0]
+        robot = next((r for r in self.config.robots if r.id == rid), None)
+        status_hz, command_hz = (500, 125) if robot is None else (robot.status_hz, robot.command_hz)
+        dpc, n = self.config.dataplane, track.joints
+        return LoopModel(
+            c1=np.resize(np.array(dpc.c1), n),
+            c2=np.resize(np.array(dpc.c2), n),
+            v_max=np.resize(np.array(dpc.v_max), n),
+            a_max=np.resize(arm_model().limits.a_max, n),
+            status_s=1.0 / status_hz,
+            window=status_hz // command_hz,
+        )
+
+    # --- motions -----------------------------------------------------------------------------
+
+    async def start_q(self, track: Track) -> np.ndarray:
+        if track.task is not None and not track.task.done():
+            raise PlanError(f"robot {track.robot} is moving (wait for it, re-plan or stop it)")
+        if track.q_hold is not None:
+            return track.q_hold
+        return (await self.joints_now(track))[0]
+
+    async def move_joints(
+        self, robot: int | str, q_goal: np.ndarray, speed: float = 1.0, fine: bool = False
+    ) -> MotionResult:
+        track = self.track(robot)
+        q0 = await self.start_q(track)
+        motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
+        return await self.execute({track.robot: motion}, fine)
+
+    async def move_to(
+        self, robot: int | str, pos: np.ndarray, rot: np.ndarray, speed: float = 1.0, fine: bool = False
+    ) -> MotionResult:
+        """A joint-space motion to a tool pose (IK nearest the joints it starts from)."""
+        track = self.track(robot)
+        q0 = await self.start_q(track)
+        q_goal = self.kin.ik(pos, rot, q0)
+        return await self.move_joints(robot, q_goal, speed, fine)
+
+    async def move_linear(
+        self, robot: int | str, pos: np.ndarray, rot: np.ndarray, speed: float = 1.0, fine: bool = False
+    ) -> MotionResult:
+        """The tool along a straight line to (pos, rot)."""
+        track = self.track(robot)
+        q0 = await self.start_q(track)
+        motion = plan_linear(self.kin, q0, pos, rot, track.limits.scaled(speed))
+        return await self.execute({track.robot: motion}, fine)
+
+    async def execute(self, motions: dict[int, Motion], fine: bool = False) -> MotionResult:
+        """Start the motions at one shared data-plane time (one atomic update) and stream them;
+        return when all have ended."""
+        rate = self.fine_hz if fine else self.rate_hz
+        await self.link.state()  # a fresh clock and round trip
+        start = self.link.now() + self.lead_ns + 2 * self.link.rtt_ns
+        first: list[TPBatch] = []
+        registers, remove, segments = [], [], []
+        for robot, motion in motions.items():
+            track = self.track(robot)
+            sections = cut(motion, rate, np.resize(self.gain, track.joints), self.loop(track))
+            hold_id, *ids = track.take_ids(len(sections) + 2)
+            q0 = motion.sample(np.array([0.0]))[0][0]
+            seg = Segment(start, motion, sections, ids)
+            first.append(self._hold_batch(track, hold_id, ids[0], q0))
+            first.append(self._batch(track, seg, 0, min(self.episode, len(ids))))
+            registers.append((track.robot, hold_id, start))
+            remove += [(track.robot, i) for i in track.loaded]
+            track.loaded = [hold_id, *ids[: self.episode]]
+            segments.append((track, seg))
+        await self.dp.update(insert=_concat(first), remove=remove, registers=registers)
+        for track, seg in segments:
+            track.segment = seg
+            track.task = asyncio.ensure_future(self._stream(track, seg, 1))
+        try:
+            await asyncio.gather(*(t.task for t, _ in segments if t.task is not None))
+        except asyncio.CancelledError:
+            me = asyncio.current_task()
+            if me is not None and me.cancelling():
+                raise  # we are cancelled ourselves
+            raise MotionStopped("the motion was stopped or re-planned") from None
+        end = max(seg.end_ns for _, seg in segments)
+        q_end = np.concatenate([seg.sections.q[-1] for _, seg in segments])
+        return MotionResult(start, end, q_end)
+
+    async def _stream(self, track: Track, seg: Segment, next_episode: int) -> None:
+        """Load episode after episode ahead of the robot; then tidy up behind it."""
+        n = self.episode
+        ids = seg.ids
+        k = next_episode
+        while k * n < len(ids):
+            # when the robot enters episode k-1, episode k goes in and episode k-3 comes out
+            await self.link.sleep_until(seg.t_ns(max(0, (k - 1) * n - 1)) if k > 1 else seg.start_ns)
+            old = [i for i in track.loaded if i not in ids[(k - 2) * n :]] if k >= 2 else []
+            await self.dp.update(
+                insert=self._batch(track, seg, k * n, min((k + 1) * n, len(ids))),
+                remove=[(track.robot, i) for i in old],
+            )
+            track.loaded = [i for i in track.loaded if i not in old] + ids[k * n : (k + 1) * n]
+            k += 1
+        await self.link.sleep_until(seg.end_ns)
+        old = [i for i in track.loaded if i != ids[-1]]  # all but the final hold
+        if old:
+            await self.dp.update(remove=[(track.robot, i) for i in old])
+        track.loaded = [ids[-1]]
+        track.q_hold = seg.sections.q[-1].copy()
+
+    def _batch(self, track: Track, seg: Segment, lo: int, hi: int) -> TPBatch:
+        """TPs lo..hi-1 of a segment, each linking to the next; the final hold links to itself."""
+        ids = seg.ids
+        nxt = [ids[min(i + 1, len(ids) - 1)] for i in range(lo, hi)]
+        n = hi - lo
+        return TPBatch(
+            np.full(n, track.robot, np.int64),
+            np.array(ids[lo:hi], np.int64),
+            np.array(nxt, np.int64),
+            seg.d[lo:hi],
+            np.full(n, track.joints, np.int64),
+            seg.q[lo:hi],
+            seg.v[lo:hi],
+        )
+
+    def _hold_batch(self, track: Track, hold_id: int, next_id: int, q: np.ndarray) -> TPBatch:
+        """A TP holding q until the registers' start time, then on to next_id."""
+        return TPBatch(
+            np.array([track.robot], np.int64),
+            np.array([hold_id], np.int64),
+            np.array([next_id], np.int64),
+            np.array([1.0]),
+            np.array([track.joints], np.int64),
+            q[None, :],
+            np.zeros((1, track.joints)),
+        )
+
+    # --- stops ---------------------------------------------------------------------------------
+
+    async def stop(self, robots: list[int | str] | None = None) -> dict[int, MotionResult]:
+        """Protective stop: the robots decelerate within their limits from where they are, taking
+        effect at the data plane's next packet after this update (within one command window)."""
+        if robots is None:
+            tracks = list(self.tracks.values())
+        else:
+            tracks = list({id(t): t for t in map(self.track, robots)}.values())
+        for t in tracks:
+            if t.task is not None and not t.task.done():
+                t.task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await t.task
+        st = await self.link.state()
+        by_id = {r.robot_id: r for r in st.robots}
+        apply_ns = self.link.now() + self.link.rtt_ns
+        batches, registers, remove, results = [], [], [], {}
+        for t in tracks:
+            if any(r not in by_id or by_id[r].status_ns == 0 for r in t.robots):
+                continue  # never heard of: nothing to stop
+            q = np.concatenate([np.array(by_id[r].position) for r in t.robots])
+            v = np.concatenate([np.array(by_id[r].velocity) for r in t.robots])
+            status_ns = min(by_id[r].status_ns for r in t.robots)
+            q_pred = q + v * max(0.0, (apply_ns - status_ns) / 1e9)
+            motion = plan_stop(q_pred, v, t.limits)
+            sections = cut(motion, self.fine_hz, np.resize(self.gain, t.joints), self.loop(t), v)
+            ids = t.take_ids(len(sections) + 1)
+            seg = Segment(apply_ns, motion, sections, ids)
+            batches.append(self._batch(t, seg, 0, len(ids)))
+            registers.append((t.robot, ids[0], seg.t_ns(0)))
+            remove += [(t.robot, i) for i in t.loaded]
+            t.loaded, t.segment, t.q_hold = list(ids), seg, sections.q[-1].copy()
+            results[t.robot] = MotionResult(apply_ns, seg.end_ns, sections.q[-1].copy())
+        if batches:
+            await self.dp.update(insert=_concat(batches), remove=remove, registers=registers)
+        return results
+
+    # --- re-planning -----------------------------------------------------------------------------
+
+    async def replan(self, robot: int | str, q_goal: np.ndarray, speed: float = 1.0) -> MotionResult:
+        """Switch a moving robot onto a new motion to q_goal, branching at a TP far enough ahead."""
+        track = self.track(robot)
+        seg = track.segment
+        if track.task is None or track.task.done() or seg is None:
+            return await self.move_joints(robot, q_goal, speed)
+        t_plan = time.perf_counter_ns()
+        q_s, v_s, status_ns = await self.joints_now(track)
+        dt_ns = self.link.rtt_ns + self.plan_ns
+        ahead = self.link.now() + dt_ns
+        ends = np.array([seg.t_ns(k) for k in range(len(seg.sections))])
+        later = np.flatnonzero(ends >= ahead)
+        k = int(later[0]) if later.size else -1
+        if k < 0 or k >= len(seg.sections) - 1:  # too late to branch: finish, then move
+            await track.task
+            return await self.move_joints(robot, q_goal, speed)
+        t_b = int(ends[k])
+        # the paper's prediction: the plan at the branch, corrected by how far off the robot is now
+        t_rel = (status_ns - seg.start_ns) / 1e9
+        q_traj, v_traj = seg.motion.sample(np.array([t_rel, (t_b - seg.start_ns) / 1e9]))
+        dt = (t_b - status_ns) / 1e9
+        q_pred = q_traj[1] + (q_s - q_traj[0]) + (v_s - v_traj[0]) * dt
+        v_pred = v_traj[1]
+        motion = plan_joint(q_pred, np.asarray(q_goal, np.float64), track.limits.scaled(speed), v0=v_pred)
+        sections = cut(motion, self.rate_hz, np.resize(self.gain, track.joints), self.loop(track), v_pred)
+        ids = track.take_ids(len(sections) + 1)
+        new = Segment(t_b, motion, sections, ids)
+        self.plan_ns = int(0.8 * self.plan_ns + 0.2 * (time.perf_counter_ns() - t_plan))
+        old_task = track.task
+        old_task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await old_task
+        await self.dp.update(
+            insert=self._batch(track, new, 0, min(self.episode, len(ids))),
+            switches=[(track.robot, seg.ids[k], ids[0])],
+        )
+        self.last_switch = Switch(seg.ids[k], t_b, (t_b - self.link.now()) / 1e6, q_pred, v_pred)
+        track.loaded += ids[: self.episode]
+        track.segment = new
+        track.task = asyncio.ensure_future(self._stream(track, new, 1))
+        await track.task
+        return MotionResult(t_b, new.end_ns, sections.q[-1].copy())
+
+
+def _concat(batches: list[TPBatch]) -> TPBatch:
+    width = max(b.positions.shape[1] for b in batches)
+
+    def pad(a: np.ndarray) -> np.ndarray:
+        return np.pad(a, ((0, 0), (0, width - a.shape[1])))
+
+    return TPBatch(
+        np.concatenate([b.robot for b in batches]),
+        np.concatenate([b.id for b in batches]),
+        np.concatenate([b.next_id for b in batches]),
+        np.concatenate([b.duration_s for b in batches]),
+        np.concatenate([b.joints for b in batches]),
+        np.concatenate([pad(b.positions) for b in batches]),
+        np.concatenate([pad(b.velocities) for b in batches]),
+    )

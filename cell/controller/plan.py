@@ -1,0 +1,180 @@
+"""Motions: joint-space with ruckig (jerk-limited, time-optimal, all joints synchronised), linear
+tool motions (Cartesian interpolation timed by a 1-D ruckig profile, then IK with continuity
+checks), and stops (ruckig's velocity interface: to standstill within the limits).
+
+ruckig rather than hand-rolled profiles: it plans from any start state (a moving robot, for
+re-planning and stops) to any target state in microseconds, with velocity, acceleration and
+jerk limits per joint, and is the trajectory generator robot makers and MoveIt use.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
+
+from cell.robot.kinematics import Kinematics, Unreachable
+from cell.robot.pose import rotation_error, slerp
+
+
+class PlanError(ValueError):
+    """A motion that cannot be planned within the limits (its reason says why)."""
+
+
+@dataclass(frozen=True)
+class MotionLimits:
+    """Per-joint limits a motion must keep (SI), and the tool's for linear motions."""
+
+    v_max: np.ndarray  # rad/s
+    a_max: np.ndarray  # rad/s^2
+    j_max: np.ndarray  # rad/s^3
+    tool_v_max: float = 0.25  # m/s
+    tool_a_max: float = 1.0  # m/s^2
+    tool_j_max: float = 10.0  # m/s^3
+    tool_w_max: float = 1.0  # rad/s, turning the tool
+
+    def scaled(self, speed: float) -> MotionLimits:
+        """A speed factor in (0, 1]: velocities x s, accelerations x s^2, jerks x s^3, so that a
+        time-optimal motion keeps its path and takes 1/s as long."""
+        if not 0.0 < speed <= 1.0:
+            raise PlanError(f"speed must be in (0, 100] %, got {speed * 100:g} %")
+        s = speed
+        return replace(
+            self,
+            v_max=self.v_max * s,
+            a_max=self.a_max * s**2,
+            j_max=self.j_max * s**3,
+            tool_v_max=self.tool_v_max * s,
+            tool_a_max=self.tool_a_max * s**2,
+            tool_j_max=self.tool_j_max * s**3,
+            tool_w_max=self.tool_w_max * s,
+        )
+
+
+class Motion:
+    """A planned motion: positions and velocities at any time from its start (0) to `duration`."""
+
+    duration: float
+    dof: int
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+
+class RuckigMotion(Motion):
+    def __init__(self, traj: Trajectory, dof: int) -> None:
+        self.traj, self.dof, self.duration = traj, dof, float(traj.duration)
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q = np.empty((len(t), self.dof))
+        v = np.empty((len(t), self.dof))
+        for i, ti in enumerate(np.clip(t, 0.0, self.duration).tolist()):
+            p, vel, _ = self.traj.at_time(ti)
+            q[i], v[i] = p, vel
+        return q, v
+
+
+def _ruckig(inp: InputParameter, dof: int, what: str) -> RuckigMotion:
+    traj = Trajectory(dof)
+    result = Ruckig(dof).calculate(inp, traj)
+    if result not in (Result.Working, Result.Finished):
+        raise PlanError(f"{what}: ruckig could not plan it ({result.name})")
+    return RuckigMotion(traj, dof)
+
+
+def _input(dof: int, limits: MotionLimits, q0: np.ndarray, v0: np.ndarray | None) -> InputParameter:
+    inp = InputParameter(dof)
+    inp.current_position = np.asarray(q0, np.float64).tolist()
+    inp.current_velocity = (np.zeros(dof) if v0 is None else np.asarray(v0, np.float64)).tolist()
+    inp.current_acceleration = [0.0] * dof
+    inp.max_velocity = np.resize(limits.v_max, dof).tolist()
+    inp.max_acceleration = np.resize(limits.a_max, dof).tolist()
+    inp.max_jerk = np.resize(limits.j_max, dof).tolist()
+    return inp
+
+
+def plan_joint(q0: np.ndarray, q1: np.ndarray, limits: MotionLimits, v0: np.ndarray | None = None) -> Motion:
+    """To joint positions q1 at rest, from q0 (moving at v0, or at rest); all joints arrive together."""
+    q0, q1 = np.asarray(q0, np.float64), np.asarray(q1, np.float64)
+    inp = _input(q0.size, limits, q0, v0)
+    inp.target_position = q1.tolist()
+    inp.target_velocity = [0.0] * q0.size
+    return _ruckig(inp, q0.size, "joint motion")
+
+
+def plan_stop(q0: np.ndarray, v0: np.ndarray, limits: MotionLimits) -> Motion:
+    """From q0 moving at v0 to standstill as soon as the limits allow."""
+    q0 = np.asarray(q0, np.float64)
+    inp = _input(q0.size, limits, q0, v0)
+    inp.control_interface = ControlInterface.Velocity
+    inp.target_velocity = [0.0] * q0.size
+    inp.target_acceleration = [0.0] * q0.size
+    return _ruckig(inp, q0.size, "stop")
+
+
+class SampledMotion(Motion):
+    """Joint positions known at fixed times (a linear motion after IK); linear in between."""
+
+    def __init__(self, t: np.ndarray, q: np.ndarray) -> None:
+        self.t, self.q = t, q
+        self.duration, self.dof = float(t[-1]), q.shape[1]
+        dt = np.diff(t)[:, None]
+        v = np.diff(q, axis=0) / dt
+        self.v = np.vstack([np.zeros((1, self.dof)), (v[1:] + v[:-1]) / 2, np.zeros((1, self.dof))])
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.clip(np.asarray(t, np.float64), 0.0, self.duration)
+        q = np.stack([np.interp(t, self.t, self.q[:, j]) for j in range(self.dof)], axis=1)
+        v = np.stack([np.interp(t, self.t, self.v[:, j]) for j in range(self.dof)], axis=1)
+        return q, v
+
+
+def plan_linear(
+    kin: Kinematics,
+    q0: np.ndarray,
+    pos1: np.ndarray,
+    rot1: np.ndarray,
+    limits: MotionLimits,
+    step_s: float = 0.004,
+) -> Motion:
+    """The tool along a straight line (and turning about one axis) from where q0 puts it to
+    (pos1, rot1), at rest at both ends; PlanError if IK fails on the way, a joint would jump
+    (a singularity or a branch change) or go faster than its limit."""
+    q0 = np.asarray(q0, np.float64)
+    pos0, rot0 = kin.fk(q0)
+    length = float(np.linalg.norm(pos1 - pos0))
+    angle = float(np.linalg.norm(rotation_error(rot1, rot0)))
+    if length < 1e-9 and angle < 1e-9:
+        return SampledMotion(np.array([0.0, 1e-3]), np.vstack([q0, q0]))
+    # one path parameter u in [0, 1], limited by the tool's speed along the line and its turning
+    scale = max(length / limits.tool_v_max, angle / limits.tool_w_max)  # s of travel at full speed
+    inp = InputParameter(1)
+    inp.current_position, inp.target_position = [0.0], [1.0]
+    inp.max_velocity = [1.0 / scale]
+    inp.max_acceleration = [min(limits.tool_a_max / max(length, 1e-9), limits.tool_a_max / max(angle, 1e-9))]
+    inp.max_jerk = [min(limits.tool_j_max / max(length, 1e-9), limits.tool_j_max / max(angle, 1e-9))]
+    timing = _ruckig(inp, 1, "linear motion")
+    n = max(2, math.ceil(timing.duration / step_s) + 1)
+    t = np.linspace(0.0, timing.duration, n)
+    u = timing.sample(t)[0][:, 0]
+    q = np.empty((n, q0.size))
+    q[0] = q0
+    dt = t[1] - t[0]
+    for i in range(1, n):
+        p = pos0 + (pos1 - pos0) * u[i]
+        r = slerp(rot0, rot1, float(u[i]))
+        try:
+            q[i] = kin.ik(p, r, q[i - 1])
+        except Unreachable as exc:
+            raise PlanError(f"linear motion: {100 * u[i]:.0f}% of the way: {exc.reason}") from None
+        jump = np.abs(q[i] - q[i - 1]) / dt
+        over = np.flatnonzero(jump > limits.v_max * 1.05)
+        if over.size:
+            j = int(over[0])
+            raise PlanError(
+                f"linear motion: joint {j + 1} would need {jump[j]:.2f} rad/s {100 * u[i]:.0f}% of the way "
+                f"(limit {limits.v_max[j]:.2f}): a singularity or a branch change; use a joint move"
+            )
+    return SampledMotion(t, q)

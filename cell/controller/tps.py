@@ -1,0 +1,65 @@
+"""A planned motion as trajectory points (TPs): what the data plane's tables hold.
+
+Section k of a motion ends at t_k; its TP holds the planned joint positions
+there and a feed-forward velocity.  The data plane commands, per packet,
+
+    v = v_ff + (c2 / c1) (p_k - p)      (the steady state of Algorithm 2's P-controller)
+
+so with v_ff = (p_k - p_{k-1}) / d_k, the mean velocity of the section, the
+robot would run ahead of the plan by the term (c2 / c1) (p_k - p_plan(t)),
+which is large early in a section.  The controller subtracts its value at the
+section's midpoint: v_ff = mean - (c2 / c1) (p_k - p_plan(mid)).  Then the
+correction averages out over each section and the robot is on the plan at
+every TP (the accuracy bench measures how close).  The last TP holds the end
+position (velocity 0, a self-loop) so a finished robot stays put.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cell.controller.loop import LoopModel
+from cell.controller.plan import Motion
+
+
+@dataclass(frozen=True)
+class Sections:
+    """A motion cut into TP sections, times relative to the motion's start (s)."""
+
+    t_end: np.ndarray  # (n,) end of each section; the last is the motion's end
+    duration: np.ndarray  # (n,) section durations (the last may be shorter)
+    q: np.ndarray  # (n, dof) planned positions at t_end
+    v_ff: np.ndarray  # (n, dof) the TPs' target velocities (feed-forward, see above)
+    q_plan_v: np.ndarray  # (n, dof) planned velocities at t_end (for predictions)
+
+    def __len__(self) -> int:
+        return int(self.t_end.size)
+
+
+def cut(
+    motion: Motion,
+    rate_hz: float,
+    gain: np.ndarray,
+    loop: LoopModel | None = None,
+    v0: np.ndarray | None = None,
+) -> Sections:
+    """Sections of 1/rate_hz s (the last shorter) covering the motion; gain = c2 / c1 per joint.
+    With a loop model and sections long enough for it, the target velocities are fitted to it
+    (cell.controller.loop); v0: the velocity the robot starts with."""
+    d = 1.0 / rate_hz
+    n = max(1, math.ceil(motion.duration / d - 1e-9))
+    t_end = np.minimum(np.arange(1, n + 1) * d, motion.duration)
+    t_start = np.concatenate([[0.0], t_end[:-1]])
+    duration = t_end - t_start
+    q_end, v_end = motion.sample(t_end)
+    q_start, _ = motion.sample(t_start)
+    q_mid, _ = motion.sample((t_start + t_end) / 2)
+    mean = (q_end - q_start) / duration[:, None]
+    v_ff = mean - np.asarray(gain)[None, : q_end.shape[1]] * (q_end - q_mid)
+    if loop is not None and d >= loop.min_section_s():
+        start = np.zeros(q_end.shape[1]) if v0 is None else np.asarray(v0, np.float64)
+        v_ff = loop.fit(q_end, t_end, q_start[0], start)
+    return Sections(t_end, duration, q_end, v_ff, v_end)

@@ -1,0 +1,129 @@
+"""Poses, inverse kinematics and motion planning, sans IO, against the arm's MJCF model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cell.controller.loop import LoopModel
+from cell.controller.plan import MotionLimits, PlanError, plan_joint, plan_linear, plan_stop
+from cell.controller.tps import cut
+from cell.robot.kinematics import Kinematics, Unreachable
+from cell.robot.pose import from_adept, to_adept
+
+Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+KIN = Kinematics()
+LIMITS = MotionLimits(np.full(6, np.pi), np.full(6, 2.5), np.full(6, 25.0))
+
+
+@settings(max_examples=200)
+@given(
+    xyz=st.lists(st.floats(-900, 900), min_size=3, max_size=3),
+    ypr=st.tuples(
+        st.floats(-180, 180), st.sampled_from([0.0, 180.0]) | st.floats(0, 180), st.floats(-180, 180)
+    ),
+)
+def test_adept_poses_round_trip(xyz: list[float], ypr: tuple[float, float, float]) -> None:
+    pos, rot = from_adept([*xyz, *ypr])
+    assert np.allclose(rot @ rot.T, np.eye(3), atol=1e-12)
+    back = to_adept(pos, rot)
+    pos2, rot2 = from_adept(back)
+    assert np.allclose(pos2, pos, atol=1e-12) and np.allclose(rot2, rot, atol=1e-9)
+    assert 0.0 <= back[4] <= 180.0
+
+
+def test_bad_poses_are_refused() -> None:
+    with pytest.raises(ValueError, match="6 finite numbers"):
+        from_adept([1, 2, 3, 4, 5])
+    with pytest.raises(ValueError, match="6 finite numbers"):
+        from_adept([1, 2, 3, 4, float("nan"), 6])
+
+
+def test_ik_finds_the_solution_nearest_the_current_joints() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        q = Q0 + rng.uniform(-0.6, 0.6, 6)
+        pos, rot = KIN.fk(q)
+        got = KIN.ik(pos, rot, q + rng.uniform(-0.1, 0.1, 6))
+        p2, r2 = KIN.fk(got)
+        assert np.abs(p2 - pos).max() < 1e-6 and np.abs(r2 - rot).max() < 1e-6
+        assert np.abs(got - q).max() < 1e-5  # the same branch: no elbow or wrist flip
+
+
+def test_unreachable_poses_and_joint_limits_are_clear_errors() -> None:
+    pos, rot = KIN.fk(Q0)
+    with pytest.raises(Unreachable, match="no joint positions reach"):
+        KIN.ik(np.array([2.0, 0.0, 0.4]), rot, Q0)  # 2 m away: beyond the arm's reach
+    near = Q0.copy()
+    near[0] = 6.2  # the base almost at its +360 deg limit ...
+    pos, rot = KIN.fk(near)
+    turn = np.array([[np.cos(0.3), -np.sin(0.3), 0], [np.sin(0.3), np.cos(0.3), 0], [0, 0, 1]])
+    with pytest.raises(Unreachable, match=r"shoulder_pan would need 37\d\.\d deg, beyond its limits"):
+        KIN.ik(turn @ pos, turn @ rot, near)  # ... and a pose 0.3 rad further round
+
+
+@pytest.mark.parametrize("speed", [1.0, 0.5, 0.1])
+def test_joint_motions_keep_the_limits_and_scale_with_speed(speed: float) -> None:
+    q1 = Q0 + np.array([1.0, -0.5, 0.8, 0.2, -0.3, 2.0])
+    full = plan_joint(Q0, q1, LIMITS)
+    m = plan_joint(Q0, q1, LIMITS.scaled(speed))
+    assert m.duration == pytest.approx(full.duration / speed, rel=1e-6)
+    t = np.linspace(0, m.duration, 2000)
+    q, v = m.sample(t)
+    assert np.allclose(q[0], Q0) and np.allclose(q[-1], q1) and np.allclose(v[-1], 0)
+    assert np.abs(v).max() <= np.pi * speed + 1e-9
+    a = np.diff(v, axis=0) / np.diff(t)[:, None]
+    assert np.abs(a).max() <= 2.5 * speed**2 * 1.01
+    with pytest.raises(PlanError, match="speed"):
+        LIMITS.scaled(1.5)
+
+
+def test_a_stop_comes_to_rest_within_the_limits() -> None:
+    v0 = np.array([1.0, -0.5, 0.2, 0.0, 0.3, -1.2])
+    m = plan_stop(Q0, v0, LIMITS)
+    t = np.linspace(0, m.duration, 500)
+    _, v = m.sample(t)
+    assert np.allclose(v[0], v0) and np.allclose(v[-1], 0)
+    assert m.duration < 1.2 / 2.5 + 25.0 / 2.5 / 25.0 + 0.1  # v/a plus the jerk ramps
+
+
+def test_a_linear_motion_keeps_the_tool_on_the_line() -> None:
+    pos0, rot0 = KIN.fk(Q0)
+    pos1 = pos0 + np.array([0.15, 0.1, -0.05])
+    m = plan_linear(KIN, Q0, pos1, rot0, LIMITS)
+    t = np.linspace(0, m.duration, 200)
+    q, _ = m.sample(t)
+    line = pos1 - pos0
+    worst = 0.0
+    for qi in q:
+        p, r = KIN.fk(qi)
+        off = (p - pos0) - line * np.dot(p - pos0, line) / np.dot(line, line)
+        worst = max(worst, float(np.linalg.norm(off)))
+        assert np.allclose(r, rot0, atol=1e-4)
+    assert worst < 1e-4  # between IK samples the joints are interpolated: well under a mm
+    assert np.allclose(KIN.fk(q[-1])[0], pos1, atol=1e-6)
+    assert np.linalg.norm(line) / m.duration < 0.25  # the tool speed limit
+    with pytest.raises(PlanError, match="of the way"):
+        plan_linear(KIN, Q0, pos0 + np.array([1.5, 0.0, 0.0]), rot0, LIMITS)  # leaves the workspace
+
+
+def test_fitted_tps_put_the_modelled_robot_on_the_plan() -> None:
+    """The loop model's fit against the plain choice (the plan's velocity at each TP)."""
+    loop = LoopModel(np.ones(6), np.full(6, 2.0), np.full(6, np.pi), np.full(6, 5.0))
+    m = plan_joint(Q0, Q0 + np.array([0.4, -0.3, 0.2, 0.1, -0.2, 0.5]), LIMITS)
+
+    def worst_at_tps(sections, v_trg) -> float:
+        q, v, held, t0, tick, worst = Q0.copy(), np.zeros(6), np.zeros(6), 0.0, 0, 0.0
+        for k in range(len(sections)):
+            n = round((sections.t_end[k] - t0) / 0.002)
+            q, v, held = loop.run(q, v, held, tick, n, sections.q[k], v_trg[k])
+            worst = max(worst, float(np.abs(q - sections.q[k]).max()))
+            tick, t0 = tick + n, sections.t_end[k]
+        return worst
+
+    fitted = cut(m, 10.0, np.full(6, 2.0), loop)
+    plain = cut(m, 10.0, np.full(6, 2.0))
+    assert worst_at_tps(fitted, fitted.v_ff) < 1e-4
+    assert worst_at_tps(plain, plain.q_plan_v) > 0.01  # what the fit is for: tens of mrad
