@@ -25,7 +25,7 @@ import asyncio
 import contextlib
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -41,6 +41,8 @@ from cell.robot.kinematics import Kinematics
 from cell.v1 import dataplane_pb2
 
 _ID_SPACE = 2**32
+STOP_JERK = 1000.0  # rad/s^3: a stop reaches full deceleration in a few ms
+STOP_RATE_HZ = 20.0  # TPs of a stop: sections still long enough to fit them to the loop
 
 
 class MotionStopped(Exception):
@@ -251,6 +253,17 @@ class Controller:
         motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
         return await self.execute({track.robot: motion}, fine)
 
+    async def move_together(
+        self, goals: dict[int | str, np.ndarray], speed: float = 1.0, fine: bool = False
+    ) -> MotionResult:
+        """Several robots (or merged entities) to joint goals, started at one data-plane time."""
+        motions: dict[int, Motion] = {}
+        for robot, q_goal in goals.items():
+            track = self.track(robot)
+            q0 = await self.start_q(track)
+            motions[track.robot] = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
+        return await self.execute(motions, fine)
+
     async def move_to(
         self, robot: int | str, pos: np.ndarray, rot: np.ndarray, speed: float = 1.0, fine: bool = False
     ) -> MotionResult:
@@ -378,8 +391,8 @@ class Controller:
             v = np.concatenate([np.array(by_id[r].velocity) for r in t.robots])
             status_ns = min(by_id[r].status_ns for r in t.robots)
             q_pred = q + v * max(0.0, (apply_ns - status_ns) / 1e9)
-            motion = plan_stop(q_pred, v, t.limits)
-            sections = cut(motion, self.fine_hz, np.resize(self.gain, t.joints), self.loop(t), v)
+            motion = plan_stop(q_pred, v, self.stop_limits(t))
+            sections = cut(motion, STOP_RATE_HZ, np.resize(self.gain, t.joints), self.loop(t), v)
             ids = t.take_ids(len(sections) + 1)
             seg = Segment(apply_ns, motion, sections, ids)
             batches.append(self._batch(t, seg, 0, len(ids)))
@@ -388,8 +401,17 @@ class Controller:
             t.loaded, t.segment, t.q_hold = list(ids), seg, sections.q[-1].copy()
             results[t.robot] = MotionResult(apply_ns, seg.end_ns, sections.q[-1].copy())
         if batches:
-            await self.dp.update(insert=_concat(batches), remove=remove, registers=registers)
+            reply = await self.dp.update(insert=_concat(batches), remove=remove, registers=registers)
+            for r in results.values():
+                r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
         return results
+
+    def stop_limits(self, track: Track) -> MotionLimits:
+        """A stop brakes with the drives' full deceleration, reached at once (they limit no jerk)."""
+        n = track.joints
+        return replace(
+            track.limits, a_max=np.resize(arm_model().limits.a_max, n) * 0.95, j_max=np.full(n, STOP_JERK)
+        )
 
     # --- re-planning -----------------------------------------------------------------------------
 
