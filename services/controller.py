@@ -1,0 +1,138 @@
+"""Service `controller`: the industrial controller on the bus (service "controller").
+
+Methods: move (MoveRequest: joints, a pose, or a straight line; absolute or relative to the
+base or the tool; replies when the motion has ended), stop (protective stop of some robots or
+all), resume (re-plan an interrupted motion from where the robot stands), pose (where a robot
+is, from its last status at the data plane).  Errors come back with codes: unknown_robot,
+bad_request, unreachable, plan, stopped, busy.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+
+from cell.bus import RpcFault
+from cell.controller.controller import Controller, MotionResult, MotionStopped
+from cell.controller.plan import PlanError
+from cell.robot.kinematics import Unreachable
+from cell.robot.pose import from_adept, to_adept
+from cell.service import ServiceContext, ServiceSpec
+from cell.v1 import controller_pb2
+
+Kind, Frame = controller_pb2.MoveRequest.Kind, controller_pb2.MoveRequest.Frame
+
+
+class ControllerService:
+    def __init__(self, ctl: Controller) -> None:
+        self.ctl = ctl
+
+    def _robot(self, name: str) -> int:
+        try:
+            return self.ctl.config.robot(name).id
+        except KeyError:
+            raise RpcFault("unknown_robot", f"no robot named {name!r}") from None
+
+    def _reply(self, result: MotionResult) -> controller_pb2.MoveReply:
+        pos, rot = self.ctl.pose_of(result.q_end)
+        return controller_pb2.MoveReply(
+            t_start_ns=result.start_ns,
+            t_end_ns=result.end_ns,
+            joints=result.q_end.tolist(),
+            pose=to_adept(pos, rot),
+        )
+
+    async def _guard(self, coro) -> controller_pb2.MoveReply:
+        try:
+            result = await coro
+        except Unreachable as exc:
+            raise RpcFault("unreachable", exc.reason) from None
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        except MotionStopped as exc:
+            raise RpcFault("stopped", str(exc)) from None
+        return controller_pb2.MoveReply() if result is None else self._reply(result)
+
+    async def move(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
+        rid = self._robot(req.robot)
+        speed = (req.speed or 100.0) / 100.0
+        if not 0.0 < speed <= 1.0:
+            raise RpcFault("bad_request", f"speed must be in (0, 100] %, got {req.speed}")
+        values = np.array(req.values, np.float64)
+        ctl = self.ctl
+        track = ctl.track(rid)
+        if req.kind == Kind.JOINTS:
+            if values.size != track.joints or not np.isfinite(values).all():
+                raise RpcFault("bad_request", f"{track.joints} finite joint positions (rad) expected")
+            if req.frame != Frame.ABSOLUTE:
+                values = values + await self._start(track)
+            return await self._guard(ctl.move_joints(rid, values, speed, req.fine))
+        try:
+            d_pos, d_rot = from_adept(values)
+        except ValueError as exc:
+            raise RpcFault("bad_request", str(exc)) from None
+        pos, rot = d_pos, d_rot
+        if req.frame != Frame.ABSOLUTE:
+            here_pos, here_rot = ctl.pose_of(await self._start(track))
+            if req.frame == Frame.WORLD:
+                pos, rot = here_pos + d_pos, d_rot @ here_rot
+            else:
+                pos, rot = here_pos + here_rot @ d_pos, here_rot @ d_rot
+        if req.kind == Kind.LINEAR:
+            return await self._guard(ctl.move_linear(rid, pos, rot, speed, req.fine))
+        return await self._guard(ctl.move_to(rid, pos, rot, speed, req.fine))
+
+    async def _start(self, track) -> np.ndarray:
+        try:
+            return await self.ctl.start_q(track)
+        except PlanError as exc:
+            raise RpcFault("busy", str(exc)) from None
+
+    async def stop(self, req: controller_pb2.StopRequest) -> controller_pb2.StopReply:
+        names = list(req.robots) or [r.name for r in self.ctl.config.robots]
+        ids = [self._robot(n) for n in names]
+        results = await self.ctl.stop(ids)
+        tracks = [self.ctl.track(i) for i in results]
+        stopped = [r.name for r in self.ctl.config.robots if any(r.id in t.robots for t in tracks)]
+        t_ns = max((r.start_ns for r in results.values()), default=0)
+        return controller_pb2.StopReply(robots=stopped, t_ns=t_ns)
+
+    async def resume(self, req: controller_pb2.RobotRequest) -> controller_pb2.MoveReply:
+        return await self._guard(self.ctl.resume(self._robot(req.robot)))
+
+    async def pose(self, req: controller_pb2.RobotRequest) -> controller_pb2.PoseReply:
+        track = self.ctl.track(self._robot(req.robot))
+        try:
+            q, _, t_ns = await self.ctl.joints_now(track)
+        except PlanError as exc:
+            raise RpcFault("unknown_robot", str(exc)) from None
+        pos, rot = self.ctl.pose_of(q)
+        return controller_pb2.PoseReply(joints=q.tolist(), pose=to_adept(pos, rot), t_ns=t_ns)
+
+
+async def run(ctx: ServiceContext) -> None:
+    async with Controller(ctx.bus, ctx.config) as ctl:
+        await serve(ctx, ControllerService(ctl))
+
+
+async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
+    await ctx.bus.serve(
+        "controller",
+        {
+            "move": (controller_pb2.MoveRequest, svc.move),
+            "stop": (controller_pb2.StopRequest, svc.stop),
+            "resume": (controller_pb2.RobotRequest, svc.resume),
+            "pose": (controller_pb2.RobotRequest, svc.pose),
+        },
+    )
+    ctx.ready()
+    await asyncio.Event().wait()  # requests are served by the bus node's reader
+
+
+SERVICE = ServiceSpec(
+    name="controller",
+    run=run,
+    description="industrial controller: plans motions and streams them into the data plane's tables",
+    ready_on_start=False,
+)
