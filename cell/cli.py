@@ -113,6 +113,16 @@ def _cmd_bench_dataplane(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
+    from cell.bench import accuracy
+
+    result = accuracy.run(args.quick, log=lambda line: print(line, flush=True))
+    print(accuracy.format_result(result))
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cell",
@@ -184,6 +194,13 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--seconds", type=float, default=2.0, help="length of each trial (default 2)")
     q.add_argument("--json", action="store_true", help="also print the result as one JSON line")
     q.set_defaults(func=_cmd_bench_dataplane)
+    q = bsub.add_parser(
+        "accuracy",
+        help="MuJoCo arms driven through the data plane: stop error, tool path error, start shift",
+    )
+    q.add_argument("--quick", action="store_true", help="fewer reference motions (under 4 minutes)")
+    q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
+    q.set_defaults(func=_cmd_bench_accuracy)
     return parser
 
 

@@ -127,3 +127,9 @@ def test_fitted_tps_put_the_modelled_robot_on_the_plan() -> None:
     plain = cut(m, 10.0, np.full(6, 2.0))
     assert worst_at_tps(fitted, fitted.v_ff) < 1e-4
     assert worst_at_tps(plain, plain.q_plan_v) > 0.01  # what the fit is for: tens of mrad
+
+
+def test_a_motion_of_no_length_is_one_section_of_holding() -> None:
+    s = cut(plan_joint(Q0, Q0, LIMITS), 10.0, np.full(6, 2.0))
+    assert len(s) == 1 and s.duration[0] == pytest.approx(0.1) and np.allclose(s.q[0], Q0)
+    assert np.allclose(s.v_ff, 0.0)

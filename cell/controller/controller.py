@@ -197,10 +197,18 @@ class Controller:
     async def merge(self, robots: list[int | str]) -> Track:
         """Drive several robots as one entity (their joints side by side): they step together."""
         ids = [self.robot_id(r) for r in robots]
-        for rid in ids:
-            t = self.tracks.get(rid)
-            if t is not None and t.task is not None and not t.task.done():
-                raise PlanError(f"robot {rid} is moving; stop it before merging")
+        old = [self.track(r) for r in ids]
+        for t in old:
+            if t.task is not None and not t.task.done():
+                raise PlanError(f"robot {t.robot} is moving; stop it before merging")
+        # the robots let go of their own TPs first (they hold where they stand, commanded 0)
+        held = [t for t in old if t.loaded]
+        if held:
+            await self.dp.update(
+                remove=[(t.robot, i) for t in held for i in t.loaded],
+                registers=[(t.robot, None, 0) for t in held],
+            )
+        q_hold = [t.q_hold for t in old]
         await self.dp.merge(ids)
         lim = self.arm_limits
         n = len(ids)
@@ -211,6 +219,8 @@ class Controller:
         for rid in ids:
             self.tracks.pop(rid, None)
         track = Track(ids[0], ids, merged)
+        if all(q is not None for q in q_hold):
+            track.q_hold = np.concatenate(q_hold)  # type: ignore[arg-type]
         self.tracks[ids[0]] = track
         return track
 

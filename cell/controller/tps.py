@@ -51,7 +51,8 @@ def cut(
     (cell.controller.loop); v0: the velocity the robot starts with."""
     d = 1.0 / rate_hz
     n = max(1, math.ceil(motion.duration / d - 1e-9))
-    t_end = np.minimum(np.arange(1, n + 1) * d, motion.duration)
+    # a motion of no length (already there) is one section of holding
+    t_end = np.minimum(np.arange(1, n + 1) * d, motion.duration) if motion.duration > 1e-9 else np.array([d])
     t_start = np.concatenate([[0.0], t_end[:-1]])
     duration = t_end - t_start
     q_end, v_end = motion.sample(t_end)

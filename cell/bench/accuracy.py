@@ -1,0 +1,279 @@
+"""`cell bench accuracy`: how closely MuJoCo-simulated arms follow what the controller planned.
+
+A real cell (bus, data plane, two MuJoCo arms publishing ground truth at 500
+Hz) runs in a child process; the controller runs here and drives reference
+motions through the data plane.  Measured from ground truth:
+
+- stop error: after each motion, |q - goal| once the robot has held on its
+  last TP for SETTLE_S (rad, the largest joint);
+- path error: the tool position at every TP's time against the plan's tool
+  position at that time (mm), for joint moves and straight-line moves;
+- sync shift: how far apart two robots started together begin to move
+  (ms), for a shared start time, a merged entity, and, as the baseline,
+  two robots started one after the other (what independent controllers do).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomli_w
+
+from cell.bus import Bus, BusError
+from cell.config import CellConfig, load_config
+from cell.controller.controller import Controller, MotionStopped, Segment
+from cell.launcher import fetch_status
+from cell.robot.kinematics import Kinematics
+from cell.v1 import robot_pb2
+
+SETTLE_S = 4.0  # held on the final TP this long before the stop error is read (1/K = 0.5 s)
+Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+
+
+def _port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextlib.asynccontextmanager
+async def running_cell(overrides: dict[str, Any]) -> AsyncIterator[CellConfig]:
+    """`cell up` in a child process on free ports, until the block ends."""
+    data = {
+        "bus": {"pub": f"tcp://127.0.0.1:{_port()}", "sub": f"tcp://127.0.0.1:{_port()}"},
+        "dataplane": {"listen": f"127.0.0.1:{_port(socket.SOCK_DGRAM)}"},
+        "snp": {"listen": f"127.0.0.1:{_port(socket.SOCK_DGRAM)}"},
+        **overrides,
+    }
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "bench.toml"
+        path.write_text(tomli_w.dumps(data))
+        config = load_config(path)
+        proc = await asyncio.create_subprocess_exec(
+            *[sys.executable, "-m", "cell", "--log-level", "WARNING", "up", "--config", str(path)],
+            stdin=subprocess.DEVNULL,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        try:
+            want = set(config.services.run)
+            async with asyncio.timeout(30):
+                while True:
+                    try:
+                        st = await fetch_status(config, timeout=1.0)
+                        if want <= {s.name for s in st.services if s.health == "ok"}:
+                            break
+                    except BusError:
+                        pass
+                    await asyncio.sleep(0.1)
+            yield config
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                async with asyncio.timeout(10):
+                    await proc.wait()
+            except TimeoutError:
+                proc.kill()
+                await proc.wait()
+
+
+class Truth:
+    """Ground truth per robot name, in time order."""
+
+    def __init__(self) -> None:
+        self.t: dict[str, list[int]] = {}
+        self.q: dict[str, list[np.ndarray]] = {}
+
+    async def run(self, bus: Bus) -> None:
+        sub = await bus.subscribe("truth/")
+        async for env in sub:
+            name = env.topic.removeprefix("truth/")
+            msg = env.decode(robot_pb2.RobotTruth)
+            ts = self.t.setdefault(name, [])
+            if ts and msg.t_ns <= ts[-1]:
+                continue
+            ts.append(msg.t_ns)
+            self.q.setdefault(name, []).append(np.array(msg.q))
+
+    def at(self, name: str, t_ns: np.ndarray) -> np.ndarray:
+        """Joint positions at the given times, interpolated between samples."""
+        t = np.array(self.t[name], np.float64)
+        q = np.array(self.q[name])
+        return np.stack([np.interp(t_ns, t, q[:, j]) for j in range(q.shape[1])], axis=1)
+
+    async def until(self, name: str, t_ns: int) -> None:
+        while not self.t.get(name) or self.t[name][-1] < t_ns:  # noqa: ASYNC110 (500 Hz anyway)
+            await asyncio.sleep(0.02)
+
+    def start_of_motion(self, name: str, after_ns: int, dist: float = 1e-3) -> float:
+        """When the robot first got `dist` rad from where it was at after_ns (ns, interpolated)."""
+        t = np.array(self.t[name], np.float64)
+        q = np.array(self.q[name])
+        q0 = self.at(name, np.array([after_ns]))[0]
+        d = np.abs(q - q0).max(axis=1)
+        i = int(np.flatnonzero((d >= dist) & (t >= after_ns))[0])
+        return float(t[i - 1] + (t[i] - t[i - 1]) * (dist - d[i - 1]) / (d[i] - d[i - 1]))
+
+
+def _tool_errors_mm(kin: Kinematics, truth: Truth, name: str, seg: Segment, joints: slice) -> np.ndarray:
+    """|tool(truth) - tool(plan)| at each TP's time (mm)."""
+    t_tp = seg.start_ns + seg.sections.t_end * 1e9
+    q_real = truth.at(name, t_tp)
+    q_plan = seg.sections.q[:, joints]
+    return np.array(
+        [np.linalg.norm(kin.fk(a)[0] - kin.fk(b)[0]) * 1000 for a, b in zip(q_real, q_plan, strict=True)]
+    )
+
+
+async def measure(quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
+    robots = [
+        {"id": i, "name": f"r{i}", "skill_port": _port(), "backend": "mujoco", "truth_hz": 500}
+        for i in (1, 2)
+    ]
+    overrides = {"robots": robots, "services": {"run": ["bus", "dataplane", "robots"]}}
+    kin = Kinematics()
+    stop_err: list[float] = []
+    path_joint: list[np.ndarray] = []
+    path_linear: list[np.ndarray] = []
+    shifts: dict[str, list[float]] = {"shared": [], "merged": [], "independent": []}
+    jumps: list[float] = []
+    async with running_cell(overrides) as config, Bus.connect(config.bus, "bench-accuracy") as bus:
+        truth = Truth()
+        watcher = asyncio.ensure_future(truth.run(bus))
+        try:
+            async with Controller(bus, config) as ctl:
+                async with asyncio.timeout(15):
+                    while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} < {1, 2}:  # noqa: ASYNC110
+                        await asyncio.sleep(0.05)
+
+                async def settle_and_read(name: str, goal: np.ndarray, end_ns: int) -> None:
+                    await truth.until(name, end_ns + int(SETTLE_S * 1e9))
+                    q = truth.at(name, np.array([end_ns + SETTLE_S * 1e9]))[0]
+                    stop_err.append(float(np.abs(q - goal).max()))
+
+                # joint moves, each from where the last ended
+                rng = np.random.default_rng(7)
+                n_joint = 2 if quick else 5
+                for i in range(n_joint):
+                    goal = Q0 + rng.uniform(-0.6, 0.6, 6)
+                    res = await ctl.move_joints("r1", goal, speed=0.6)
+                    path_joint.append(_tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
+                    await settle_and_read("r1", goal, res.end_ns)
+                    log(
+                        f"joint move {i + 1}: path error at TPs max {path_joint[-1].max():.2f} mm, "
+                        f"stop error {stop_err[-1]:.1e} rad"
+                    )
+                await ctl.move_joints("r1", Q0, speed=0.6)
+                # straight lines: a square of 200 mm, tool pointing down, and a diagonal down and back
+                pos0, rot0 = kin.fk(Q0)
+                legs = [(0.2, 0, 0), (0, 0.2, 0), (-0.2, 0, 0), (0, -0.2, 0)]
+                if not quick:
+                    legs += [(0.1, 0.1, -0.15), (-0.1, -0.1, 0.15)]
+                pos = pos0.copy()
+                for i, leg in enumerate(legs):
+                    pos = pos + np.array(leg)
+                    res = await ctl.move_linear("r1", pos, rot0, speed=1.0)
+                    path_linear.append(
+                        _tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6))
+                    )
+                    log(f"linear move {i + 1}: path error at TPs max {path_linear[-1].max():.2f} mm")
+                goal = ctl.track("r1").q_hold
+                assert goal is not None
+                await settle_and_read("r1", goal, res.end_ns)
+                log(f"after the lines: stop error {stop_err[-1]:.1e} rad")
+                # re-planning on the fly: branch off a long motion to another goal
+                for k in range(1 if quick else 3):
+                    far = Q0 + np.array([1.0, -0.4, 0.3, 0.2, 0.0, 0.5]) * (1 if k % 2 == 0 else -1)
+                    first = asyncio.ensure_future(ctl.move_joints("r1", far, speed=0.4))
+                    await asyncio.sleep(1.0)
+                    await ctl.replan("r1", Q0 + np.array([0.2, 0.2, -0.2, 0.0, 0.1, 0.0]), speed=0.6)
+                    with contextlib.suppress(MotionStopped):
+                        await first
+                    sw = ctl.last_switch
+                    assert sw is not None
+                    q_real = truth.at("r1", np.array([sw.t_branch_ns]))[0]
+                    jumps.append(float(np.abs(q_real - sw.q_pred).max()))
+                    await ctl.move_joints("r1", Q0, speed=0.6)
+                log(f"re-planning: {max(jumps) * 1000:.2f} mrad from the predicted start at the switch")
+                # synchronised starts
+                await ctl.move_together({"r1": Q0, "r2": Q0}, speed=0.6)
+                trials = 1 if quick else 3
+                for k in range(trials):
+                    delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
+                    here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
+                    res = await ctl.move_together({n: q + delta for n, q in here.items()}, speed=0.6)
+                    t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
+                    shifts["shared"].append(abs(t1 - t2) / 1e6)
+                    # independently: one request after the other, as two controllers would
+                    here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
+                    t_req = ctl.link.now()
+                    await asyncio.gather(*(ctl.move_joints(n, q - delta, speed=0.6) for n, q in here.items()))
+                    t1, t2 = (truth.start_of_motion(n, t_req) for n in ("r1", "r2"))
+                    shifts["independent"].append(abs(t1 - t2) / 1e6)
+                merged = await ctl.merge(["r1", "r2"])
+                for k in range(trials):
+                    delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
+                    here_q = merged.q_hold
+                    assert here_q is not None
+                    res = await ctl.move_joints("r1", here_q + np.tile(delta, 2), speed=0.6)
+                    t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
+                    shifts["merged"].append(abs(t1 - t2) / 1e6)
+                log(
+                    "start shift between two robots (ms): shared start "
+                    f"{max(shifts['shared']):.2f}, merged {max(shifts['merged']):.2f}, "
+                    f"one after the other {max(shifts['independent']):.2f}"
+                )
+        finally:
+            watcher.cancel()
+    joint_all = np.concatenate(path_joint)
+    linear_all = np.concatenate(path_linear)
+    both = np.concatenate([joint_all, linear_all])
+    return {
+        "stop_error_rad_max": max(stop_err),
+        "path_error_mm_max": float(both.max()),
+        "path_error_mm_median": float(np.median(both)),
+        "path_error_mm_max_joint": float(joint_all.max()),
+        "path_error_mm_max_linear": float(linear_all.max()),
+        "switch_error_rad_max": max(jumps),
+        "sync_shift_ms_max": max(max(shifts["shared"]), max(shifts["merged"])),
+        "sync_shift_ms_shared": max(shifts["shared"]),
+        "sync_shift_ms_merged": max(shifts["merged"]),
+        "sync_shift_ms_independent": max(shifts["independent"]),
+        "settle_s": SETTLE_S,
+        "quick": quick,
+    }
+
+
+def run(quick: bool, log: Callable[[str], None] = print) -> dict[str, Any]:
+    t0 = time.monotonic()
+    result = asyncio.run(measure(quick, log))
+    result["seconds"] = round(time.monotonic() - t0, 1)
+    return result
+
+
+def format_result(r: dict[str, Any]) -> str:
+    return "\n".join(
+        [
+            f"stop error (held {r['settle_s']:.0f} s on the last TP): max {r['stop_error_rad_max']:.1e} rad",
+            f"tool path error at TPs: max {r['path_error_mm_max']:.2f} mm, "
+            f"median {r['path_error_mm_median']:.2f} mm (joint moves max {r['path_error_mm_max_joint']:.2f}, "
+            f"lines max {r['path_error_mm_max_linear']:.2f})",
+            f"re-planning: at the switch the robot was {r['switch_error_rad_max'] * 1000:.2f} mrad from the "
+            "predicted start state (the jump the new branch has to absorb)",
+            f"start shift: shared start {r['sync_shift_ms_shared']:.2f} ms, "
+            f"merged {r['sync_shift_ms_merged']:.2f} ms, "
+            f"started one after the other {r['sync_shift_ms_independent']:.2f} ms",
+            f"({r['seconds']} s)",
+        ]
+    )
