@@ -1,0 +1,1 @@
+"""Skill servers and their clients: the AdeptServer-style ASCII protocol over TCP."""

@@ -1,0 +1,214 @@
+"""The skill servers' ASCII protocol (AdeptServer style), sans IO: bytes in, events out.
+
+A command message is ``<id>:<skill>[:<args>]\\r\\n``: an 8-character id (pyadept
+uses the first 8 hex digits of a uuid4), the skill's name, and its arguments
+separated by commas.  Each command gets exactly one reply:
+
+- ``<id>:done:<t_start>,<t_end>:<x>,<y>,<z>,<yaw>,<pitch>,<roll>\\r\\n``
+  (seconds since the server started, 3 decimals; the tool pose in mm and
+  degrees, 3 decimals);
+- ``<id>:error:<code>:<text>\\r\\n`` (new: the published AdeptServer answers
+  nothing and the client hangs); ``00000000`` is the id when none can be read.
+
+TCP delivers a byte stream: several messages may come in one segment and one
+message in several, so ``CommandReader`` buffers; a line longer than
+MAX_LINE is refused (and skipped up to its end) rather than buffered forever.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+MAX_LINE = 1024  # bytes of one command message, \r\n excluded
+NO_ID = "00000000"
+_ID = re.compile(r"[A-Za-z0-9_-]{8}")
+_CODE = re.compile(r"[a-z_]+")
+
+# skill -> number of real arguments
+POSE_SKILLS = ("move_to", "move_rel_world", "move_rel_tool")  # x, y, z mm, yaw, pitch, roll deg
+JOINT_SKILLS = ("move_joints", "move_rel_joints")  # 6 joint values, deg
+SKILLS: dict[str, int] = {
+    **{s: 6 for s in POSE_SKILLS + JOINT_SKILLS},
+    "break": 0,
+    "enable_air": 0,
+    "disable_air": 0,
+    "set_speed": 1,
+}
+MOTIONS = POSE_SKILLS + JOINT_SKILLS
+
+
+class ErrorCode:
+    """The codes of error replies."""
+
+    MALFORMED = "malformed"  # no id, or not <id>:<skill>[:<args>]
+    UNKNOWN_SKILL = "unknown_skill"
+    ARGUMENTS = "arguments"  # wrong number or value of arguments
+    LINE_TOO_LONG = "line_too_long"
+    UNREACHABLE = "unreachable"
+    STOPPED = "stopped"  # the robot was stopped (protective stop) during the command
+    FAILED = "failed"  # anything else the server could not do; the text says what
+
+
+@dataclass(frozen=True)
+class Command:
+    id: str
+    skill: str
+    args: tuple[float, ...] = ()
+
+    def encode(self) -> bytes:
+        if not self.args:
+            return f"{self.id}:{self.skill}\r\n".encode()
+        text = ",".join(_num(a) for a in self.args)
+        return f"{self.id}:{self.skill}:{text}\r\n".encode()
+
+
+@dataclass(frozen=True)
+class Done:
+    id: str
+    t_start: float  # s since the server started
+    t_end: float
+    pose: tuple[float, float, float, float, float, float]  # x, y, z mm, yaw, pitch, roll deg
+
+    def encode(self) -> bytes:
+        pose = ",".join(f"{v:.3f}" for v in self.pose)
+        return f"{self.id}:done:{self.t_start:.3f},{self.t_end:.3f}:{pose}\r\n".encode()
+
+
+@dataclass(frozen=True)
+class Error:
+    id: str
+    code: str
+    text: str
+
+    def encode(self) -> bytes:
+        text = self.text.replace("\r", " ").replace("\n", " ")
+        return f"{self.id}:error:{self.code}:{text}\r\n".encode()
+
+
+Reply = Done | Error
+
+
+def _num(x: float) -> str:
+    return f"{x:.3f}" if isinstance(x, float) else str(x)
+
+
+def parse_command(line: bytes) -> Command | Error:
+    """One command message without its \\r\\n: a Command, or the Error to reply with."""
+    try:
+        text = line.decode("ascii")
+    except UnicodeDecodeError:
+        return Error(NO_ID, ErrorCode.MALFORMED, "not ASCII")
+    parts = text.split(":")
+    if len(parts) < 2 or not _ID.fullmatch(parts[0]):
+        why = f"expected <8-character id>:<skill>[:<args>], got {text[:60]!r}"
+        return Error(NO_ID, ErrorCode.MALFORMED, why)
+    cid, skill = parts[0], parts[1].strip()
+    if len(parts) > 3:
+        return Error(cid, ErrorCode.MALFORMED, "too many ':' fields")
+    if skill not in SKILLS:
+        return Error(cid, ErrorCode.UNKNOWN_SKILL, f"no skill {skill!r} (skills: {', '.join(SKILLS)})")
+    raw = [a.strip() for a in parts[2].split(",")] if len(parts) == 3 and parts[2].strip() else []
+    want = SKILLS[skill]
+    if len(raw) != want:
+        return Error(cid, ErrorCode.ARGUMENTS, f"{skill} takes {want} arguments, got {len(raw)}")
+    try:
+        args = tuple(float(a) for a in raw)
+    except ValueError:
+        return Error(cid, ErrorCode.ARGUMENTS, f"{skill}: arguments must be numbers, got {parts[2]!r}")
+    if not all(math.isfinite(a) for a in args):
+        return Error(cid, ErrorCode.ARGUMENTS, f"{skill}: arguments must be finite")
+    if skill == "set_speed" and not 0 < args[0] <= 100:
+        return Error(cid, ErrorCode.ARGUMENTS, f"set_speed takes a percentage in (0, 100], got {raw[0]}")
+    return Command(cid, skill, args)
+
+
+def parse_reply(line: bytes) -> Reply:
+    """One reply without its \\r\\n; ValueError if it is neither a done nor an error reply."""
+    text = line.decode("ascii")
+    cid, _, rest = text.partition(":")
+    kind, _, rest = rest.partition(":")
+    if kind == "done":
+        times, _, pose = rest.partition(":")
+        t = [float(v) for v in times.split(",")]
+        p = [float(v) for v in pose.split(",")]
+        if len(t) != 2 or len(p) != 6:
+            raise ValueError(f"malformed done reply {text!r}")
+        return Done(cid, t[0], t[1], (p[0], p[1], p[2], p[3], p[4], p[5]))
+    if kind == "error":
+        code, _, msg = rest.partition(":")
+        if not _CODE.fullmatch(code):
+            raise ValueError(f"malformed error reply {text!r}")
+        return Error(cid, code, msg)
+    raise ValueError(f"not a reply: {text!r}")
+
+
+@dataclass(frozen=True)
+class TooLong:
+    """A line over the limit (its first bytes, for the id), skipped up to its end."""
+
+    head: bytes
+
+
+class LineReader:
+    """Bytes of a stream in, complete \\r\\n-terminated lines out; an overlong line comes out once as
+    TooLong, as soon as it is known to be too long, and the rest of it is dropped."""
+
+    def __init__(self, max_line: int = MAX_LINE) -> None:
+        self.max_line = max_line
+        self._buf = bytearray()
+        self._skipping = False  # inside an overlong line: drop bytes up to its \r\n
+
+    def feed(self, data: bytes) -> list[bytes | TooLong]:
+        self._buf += data
+        out: list[bytes | TooLong] = []
+        while True:
+            end = self._buf.find(b"\r\n")
+            if end < 0:
+                if len(self._buf) > self.max_line + 1:  # keep one byte: it may be a split \r\n
+                    if not self._skipping:
+                        self._skipping = True
+                        out.append(TooLong(bytes(self._buf[:16])))
+                    del self._buf[:-1]
+                return out
+            line = bytes(self._buf[:end])
+            del self._buf[: end + 2]
+            if self._skipping:
+                self._skipping = False  # the end of the overlong line: already refused
+                continue
+            out.append(TooLong(line[:16]) if len(line) > self.max_line else line)
+
+
+class CommandReader:
+    """A server connection's input: commands, and the error replies for what is not one."""
+
+    def __init__(self) -> None:
+        self._lines = LineReader()
+
+    def feed(self, data: bytes) -> list[Command | Error]:
+        out: list[Command | Error] = []
+        for line in self._lines.feed(data):
+            if isinstance(line, TooLong):
+                head = line.head.decode("ascii", "replace")
+                cid = head[:8] if _ID.fullmatch(head[:8]) and head[8:9] == ":" else NO_ID
+                why = f"a command message is at most {MAX_LINE} bytes"
+                out.append(Error(cid, ErrorCode.LINE_TOO_LONG, why))
+            elif line.strip():
+                out.append(parse_command(line))
+        return out
+
+
+class ReplyReader:
+    """A client connection's input: replies."""
+
+    def __init__(self) -> None:
+        self._lines = LineReader(max_line=4 * MAX_LINE)
+
+    def feed(self, data: bytes) -> list[Reply]:
+        out = []
+        for line in self._lines.feed(data):
+            if isinstance(line, TooLong):
+                raise ValueError("reply line too long")
+            out.append(parse_reply(line))
+        return out
