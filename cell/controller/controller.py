@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -141,6 +142,7 @@ class Track:
     segment: Segment | None = None
     task: asyncio.Task | None = None  # the motion being streamed
     inflight: set[asyncio.Task] = field(default_factory=set)  # its updates, which always finish
+    starting: asyncio.Lock = field(default_factory=asyncio.Lock)  # motions start one after another
 
     @property
     def joints(self) -> int:
@@ -253,20 +255,98 @@ class Controller:
     # --- motions -----------------------------------------------------------------------------
 
     async def start_q(self, track: Track) -> np.ndarray:
-        if track.task is not None and not track.task.done():
-            raise PlanError(f"robot {track.robot} is moving (wait for it, re-plan or stop it)")
+        """Where the track's next motion starts: after the one under way (it waits for it)."""
+        await self.wait_idle(track)
         if track.q_hold is not None:
             return track.q_hold
         return (await self.joints_now(track))[0]
 
-    async def move_joints(
-        self, robot: int | str, q_goal: np.ndarray, speed: float = 1.0, fine: bool = False
-    ) -> MotionResult:
+    async def wait_idle(self, robot: int | str | Track) -> None:
+        """Until the robot's motion under way has ended; MotionStopped if it was stopped."""
+        track = robot if isinstance(robot, Track) else self.track(robot)
+        task = track.task
+        if task is None or task.done():  # (a task cancelled by an earlier stop: start from the stop)
+            return
+        try:
+            await asyncio.shield(task)
+        except asyncio.CancelledError:
+            me = asyncio.current_task()
+            if me is not None and me.cancelling():
+                raise
+            raise MotionStopped("the motion under way was stopped") from None
+
+    async def arrive(
+        self, robot: int | str, tolerance: float = 2e-4, timeout: float = 10.0
+    ) -> tuple[np.ndarray, int]:
+        """Until the robot has ended its motions and stands within `tolerance` (rad, every joint) of
+        where they end; its measured joints and their data-plane time.  (V+'s BREAK.)"""
         track = self.track(robot)
-        q0 = await self.start_q(track)
-        motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
-        self.unfinished[track.robot] = ("joints", np.asarray(q_goal, np.float64), speed, fine)
-        return await self.execute({track.robot: motion}, fine)
+        await self.wait_idle(track)
+        async with asyncio.timeout(timeout):
+            while True:
+                q, v, t_ns = await self.joints_now(track)
+                goal = track.q_hold if track.q_hold is not None else q
+                if np.abs(q - goal).max() <= tolerance and np.abs(v).max() <= 10 * tolerance:
+                    return q, t_ns
+                await asyncio.sleep(0.01)
+
+    async def _move(
+        self, robot: int | str, plan: Callable[[Track, np.ndarray], Motion], fine: bool, wait: bool
+    ) -> MotionResult:
+        """Plan from where the robot will be and start; motions of one robot start in call order,
+        each after the one before (a queue).  With wait, return when the motion has ended; else
+        once it is loaded and its start time set."""
+        track = self.track(robot)
+        async with track.starting:
+            q0 = await self.start_q(track)
+            result, tracks = await self.launch({track.robot: plan(track, q0)}, fine)
+        return await self.finish(tracks, result) if wait else result
+
+    async def move_joints(
+        self, robot: int | str, q_goal: np.ndarray, speed: float = 1.0, fine: bool = False, wait: bool = True
+    ) -> MotionResult:
+        goal = np.asarray(q_goal, np.float64)
+
+        def plan(track: Track, q0: np.ndarray) -> Motion:
+            self.unfinished[track.robot] = ("joints", goal, speed, fine)
+            return plan_joint(q0, goal, track.limits.scaled(speed))
+
+        return await self._move(robot, plan, fine, wait)
+
+    async def move_to(
+        self,
+        robot: int | str,
+        pos: np.ndarray,
+        rot: np.ndarray,
+        speed: float = 1.0,
+        fine: bool = False,
+        wait: bool = True,
+    ) -> MotionResult:
+        """A joint-space motion to a tool pose (IK nearest the joints it starts from)."""
+
+        def plan(track: Track, q0: np.ndarray) -> Motion:
+            goal = self.kin.ik(pos, rot, q0)
+            self.unfinished[track.robot] = ("joints", goal, speed, fine)
+            return plan_joint(q0, goal, track.limits.scaled(speed))
+
+        return await self._move(robot, plan, fine, wait)
+
+    async def move_linear(
+        self,
+        robot: int | str,
+        pos: np.ndarray,
+        rot: np.ndarray,
+        speed: float = 1.0,
+        fine: bool = False,
+        wait: bool = True,
+    ) -> MotionResult:
+        """The tool along a straight line to (pos, rot)."""
+
+        def plan(track: Track, q0: np.ndarray) -> Motion:
+            self.unfinished[track.robot] = ("linear", (pos, rot), speed, fine)
+            return plan_linear(self.kin, q0, pos, rot, track.limits.scaled(speed))
+
+        return await self._move(robot, plan, fine, wait)
 
     async def move_together(
         self, goals: dict[int | str, np.ndarray], speed: float = 1.0, fine: bool = False
@@ -277,26 +357,8 @@ class Controller:
             track = self.track(robot)
             q0 = await self.start_q(track)
             motions[track.robot] = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
-        return await self.execute(motions, fine)
-
-    async def move_to(
-        self, robot: int | str, pos: np.ndarray, rot: np.ndarray, speed: float = 1.0, fine: bool = False
-    ) -> MotionResult:
-        """A joint-space motion to a tool pose (IK nearest the joints it starts from)."""
-        track = self.track(robot)
-        q0 = await self.start_q(track)
-        q_goal = self.kin.ik(pos, rot, q0)
-        return await self.move_joints(robot, q_goal, speed, fine)
-
-    async def move_linear(
-        self, robot: int | str, pos: np.ndarray, rot: np.ndarray, speed: float = 1.0, fine: bool = False
-    ) -> MotionResult:
-        """The tool along a straight line to (pos, rot)."""
-        track = self.track(robot)
-        q0 = await self.start_q(track)
-        motion = plan_linear(self.kin, q0, pos, rot, track.limits.scaled(speed))
-        self.unfinished[track.robot] = ("linear", (pos, rot), speed, fine)
-        return await self.execute({track.robot: motion}, fine)
+        result, tracks = await self.launch(motions, fine)
+        return await self.finish(tracks, result)
 
     async def resume(self, robot: int | str) -> MotionResult | None:
         """After a stop: the interrupted motion's goal, re-planned from where the robot stands
@@ -315,8 +377,15 @@ class Controller:
         return self.kin.fk(q[:6])
 
     async def execute(self, motions: dict[int, Motion], fine: bool = False) -> MotionResult:
-        """Start the motions at one shared data-plane time (one atomic update) and stream them;
-        return when all have ended."""
+        """Start the motions at one shared data-plane time and return when all have ended."""
+        result, tracks = await self.launch(motions, fine)
+        return await self.finish(tracks, result)
+
+    async def launch(
+        self, motions: dict[int, Motion], fine: bool = False
+    ) -> tuple[MotionResult, list[Track]]:
+        """Load the motions' first episodes and start them at one data-plane time, in one atomic
+        update; they stream on in the background."""
         rate = self.fine_hz if fine else self.rate_hz
         await self.link.state()  # a fresh clock and round trip
         start = self.link.now() + self.lead_ns + 2 * self.link.rtt_ns
@@ -337,19 +406,24 @@ class Controller:
         for track, seg, hold_id in segments:
             track.loaded = [hold_id, *seg.ids[: self.episode]]
             track.segment = seg
+            track.q_hold = None  # moving: where it ends is the segment's end
             track.task = asyncio.ensure_future(self._stream(track, seg, 1))
+        end = max(seg.end_ns for _, seg, _ in segments)
+        q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in segments])
+        return MotionResult(start, end, q_end), [t for t, _, _ in segments]
+
+    async def finish(self, tracks: list[Track], result: MotionResult) -> MotionResult:
+        """Until the tracks' motions have ended; MotionStopped if one was stopped or re-planned."""
         try:
-            await asyncio.gather(*(t.task for t, _, _ in segments if t.task is not None))
+            await asyncio.gather(*(t.task for t in tracks if t.task is not None))
         except asyncio.CancelledError:
             me = asyncio.current_task()
             if me is not None and me.cancelling():
                 raise  # we are cancelled ourselves
             raise MotionStopped("the motion was stopped or re-planned") from None
-        for track, _, _ in segments:
+        for track in tracks:
             self.unfinished.pop(track.robot, None)
-        end = max(seg.end_ns for _, seg, _ in segments)
-        q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in segments])
-        return MotionResult(start, end, q_end)
+        return result
 
     async def _stream(self, track: Track, seg: Segment, next_episode: int) -> None:
         """Load episode after episode ahead of the robot; then tidy up behind it."""
