@@ -168,6 +168,13 @@ class ControllerConfig:
 
 
 @dataclass(frozen=True)
+class SkillsConfig:
+    host: str = _check(lambda v: _host_port(f"{v}:1"))
+    break_tolerance_rad: float = _check(_positive)
+    motion_timeout_s: float = _check(_positive)
+
+
+@dataclass(frozen=True)
 class SnpConfig:
     listen: str = _check(_host_port)
 
@@ -214,6 +221,7 @@ class CellConfig:
     services: ServicesConfig
     dataplane: DataplaneConfig
     controller: ControllerConfig
+    skills: SkillsConfig
     snp: SnpConfig
     robot_defaults: RobotDefaults
     robots: list[RobotConfig]

@@ -18,6 +18,7 @@ BUILTIN: dict[str, str] = {
     "robots": "cell.services.robots",
     "dataplane": "cell.services.dataplane",
     "controller": "cell.services.controller",
+    "skills": "cell.services.skills",
 }
 
 

@@ -1,7 +1,9 @@
 """Service `controller`: the industrial controller on the bus (service "controller").
 
 Methods: move (MoveRequest: joints, a pose, or a straight line; absolute or relative to the
-base or the tool; replies when the motion has ended), stop (protective stop of some robots or
+base or the tool; replies when the motion has ended, or with start_only once it has started;
+a robot's motions run one after another in request order), arrive (until the robot stands at
+the end of its motions: V+'s BREAK), stop (protective stop of some robots or
 all), resume (re-plan an interrupted motion from where the robot stands), pose (where a robot
 is, from its last status at the data plane).  Errors come back with codes: unknown_robot,
 bad_request, unreachable, plan, stopped, busy.
@@ -61,13 +63,14 @@ class ControllerService:
             raise RpcFault("bad_request", f"speed must be in (0, 100] %, got {req.speed}")
         values = np.array(req.values, np.float64)
         ctl = self.ctl
+        wait = not req.start_only
         track = ctl.track(rid)
         if req.kind == Kind.JOINTS:
             if values.size != track.joints or not np.isfinite(values).all():
                 raise RpcFault("bad_request", f"{track.joints} finite joint positions (rad) expected")
             if req.frame != Frame.ABSOLUTE:
                 values = values + await self._start(track)
-            return await self._guard(ctl.move_joints(rid, values, speed, req.fine))
+            return await self._guard(ctl.move_joints(rid, values, speed, req.fine, wait))
         try:
             d_pos, d_rot = from_adept(values)
         except ValueError as exc:
@@ -80,8 +83,8 @@ class ControllerService:
             else:
                 pos, rot = here_pos + here_rot @ d_pos, here_rot @ d_rot
         if req.kind == Kind.LINEAR:
-            return await self._guard(ctl.move_linear(rid, pos, rot, speed, req.fine))
-        return await self._guard(ctl.move_to(rid, pos, rot, speed, req.fine))
+            return await self._guard(ctl.move_linear(rid, pos, rot, speed, req.fine, wait))
+        return await self._guard(ctl.move_to(rid, pos, rot, speed, req.fine, wait))
 
     async def _start(self, track) -> np.ndarray:
         try:
@@ -100,6 +103,19 @@ class ControllerService:
 
     async def resume(self, req: controller_pb2.RobotRequest) -> controller_pb2.MoveReply:
         return await self._guard(self.ctl.resume(self._robot(req.robot)))
+
+    async def arrive(self, req: controller_pb2.ArriveRequest) -> controller_pb2.PoseReply:
+        rid = self._robot(req.robot)
+        try:
+            q, t_ns = await self.ctl.arrive(rid, req.tolerance_rad or 2e-4, req.timeout_s or 60.0)
+        except MotionStopped as exc:
+            raise RpcFault("stopped", str(exc)) from None
+        except TimeoutError:
+            raise RpcFault(
+                "timeout", f"robot {req.robot} did not arrive within {req.timeout_s or 60.0} s"
+            ) from None
+        pos, rot = self.ctl.pose_of(q)
+        return controller_pb2.PoseReply(joints=q.tolist(), pose=to_adept(pos, rot), t_ns=t_ns)
 
     async def pose(self, req: controller_pb2.RobotRequest) -> controller_pb2.PoseReply:
         track = self.ctl.track(self._robot(req.robot))
@@ -124,6 +140,7 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
             "stop": (controller_pb2.StopRequest, svc.stop),
             "resume": (controller_pb2.RobotRequest, svc.resume),
             "pose": (controller_pb2.RobotRequest, svc.pose),
+            "arrive": (controller_pb2.ArriveRequest, svc.arrive),
         },
     )
     ctx.ready()

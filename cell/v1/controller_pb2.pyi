@@ -8,7 +8,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class MoveRequest(_message.Message):
-    __slots__ = ("robot", "kind", "frame", "values", "speed", "fine")
+    __slots__ = ("robot", "kind", "frame", "values", "speed", "fine", "start_only")
     class Kind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         JOINTS: _ClassVar[MoveRequest.Kind]
@@ -31,13 +31,25 @@ class MoveRequest(_message.Message):
     VALUES_FIELD_NUMBER: _ClassVar[int]
     SPEED_FIELD_NUMBER: _ClassVar[int]
     FINE_FIELD_NUMBER: _ClassVar[int]
+    START_ONLY_FIELD_NUMBER: _ClassVar[int]
     robot: str
     kind: MoveRequest.Kind
     frame: MoveRequest.Frame
     values: _containers.RepeatedScalarFieldContainer[float]
     speed: float
     fine: bool
-    def __init__(self, robot: _Optional[str] = ..., kind: _Optional[_Union[MoveRequest.Kind, str]] = ..., frame: _Optional[_Union[MoveRequest.Frame, str]] = ..., values: _Optional[_Iterable[float]] = ..., speed: _Optional[float] = ..., fine: _Optional[bool] = ...) -> None: ...
+    start_only: bool
+    def __init__(self, robot: _Optional[str] = ..., kind: _Optional[_Union[MoveRequest.Kind, str]] = ..., frame: _Optional[_Union[MoveRequest.Frame, str]] = ..., values: _Optional[_Iterable[float]] = ..., speed: _Optional[float] = ..., fine: _Optional[bool] = ..., start_only: _Optional[bool] = ...) -> None: ...
+
+class ArriveRequest(_message.Message):
+    __slots__ = ("robot", "tolerance_rad", "timeout_s")
+    ROBOT_FIELD_NUMBER: _ClassVar[int]
+    TOLERANCE_RAD_FIELD_NUMBER: _ClassVar[int]
+    TIMEOUT_S_FIELD_NUMBER: _ClassVar[int]
+    robot: str
+    tolerance_rad: float
+    timeout_s: float
+    def __init__(self, robot: _Optional[str] = ..., tolerance_rad: _Optional[float] = ..., timeout_s: _Optional[float] = ...) -> None: ...
 
 class MoveReply(_message.Message):
     __slots__ = ("t_start_ns", "t_end_ns", "joints", "pose")

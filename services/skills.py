@@ -1,0 +1,234 @@
+"""Service `skills`: one AdeptServer-style TCP skill server per robot (its `skill_port`).
+
+Clients send `<id>:<skill>[:<args>]\\r\\n` command messages (cell.skills.protocol)
+and get one reply each.  Commands for one robot run in arrival order, across
+all its connections.  Semantics as on the V+ controller:
+
+- a motion (move_to, move_rel_world, move_rel_tool, move_joints,
+  move_rel_joints) is answered once it is planned, loaded into the data plane
+  and started; a motion sent while another runs starts when that one ends
+  (no blending);
+- `break` is answered when the robot has arrived (every joint within
+  [skills] break_tolerance_rad of the goal) with the measured tool pose;
+- `set_speed:N` applies to the next motion only, as V+'s SPEED without
+  ALWAYS does (then 100% again);
+- `enable_air` / `disable_air` set the vacuum valve, published on the bus.
+
+Replies: `done` with the seconds since the server started at which the
+command's turn came and at which it was answered, and a tool pose (the
+motion's end for a motion, the measured one for `break`); or `error` with a
+code.  Every command's life goes on the bus (skills/<robot>/trace) for Gantt
+charts and timing figures.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from google.protobuf.message import Message
+
+from cell.bus import Bus, BusTimeout, RemoteError
+from cell.config import CellConfig, RobotConfig
+from cell.service import ServiceContext, ServiceSpec
+from cell.skills.protocol import MOTIONS, Command, CommandReader, Done, Error, ErrorCode, Reply
+from cell.v1 import controller_pb2, skills_pb2
+
+log = logging.getLogger("cell.skills")
+M = controller_pb2.MoveRequest
+_MOTION = {
+    "move_to": (M.POSE, M.ABSOLUTE),
+    "move_rel_world": (M.POSE, M.WORLD),
+    "move_rel_tool": (M.POSE, M.TOOL),
+    "move_joints": (M.JOINTS, M.ABSOLUTE),
+    "move_rel_joints": (M.JOINTS, M.WORLD),
+}
+_CODES = {  # the controller's error codes -> the protocol's
+    "unreachable": ErrorCode.UNREACHABLE,
+    "plan": ErrorCode.UNREACHABLE,
+    "stopped": ErrorCode.STOPPED,
+    "bad_request": ErrorCode.ARGUMENTS,
+}
+
+
+@dataclass
+class Job:
+    command: Command
+    received_ns: int
+    reply: asyncio.Future[Reply]
+    started_ns: int = 0
+
+
+class RobotSkills:
+    """One robot's skill server: its connections, its command queue, its state (speed, air)."""
+
+    def __init__(self, robot: RobotConfig, config: CellConfig, bus: Bus, t0_ns: int) -> None:
+        self.robot, self.config, self.bus, self.t0_ns = robot, config, bus, t0_ns
+        self.queue: asyncio.Queue[Job] = asyncio.Queue()
+        self.speed: float | None = None  # for the next motion only
+        self.air = False
+        self.counters = {"commands": 0, "errors": 0, "connections": 0}
+
+    def seconds(self, t_ns: int) -> float:
+        return (t_ns - self.t0_ns) / 1e9
+
+    async def serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """Read commands, queue them, write replies in the order the commands came."""
+        peer = writer.get_extra_info("peername")
+        client = f"{peer[0]}:{peer[1]}" if peer else "?"
+        self.counters["connections"] += 1
+        parser = CommandReader()
+        pending: asyncio.Queue[tuple[asyncio.Future[Reply], Job | None]] = asyncio.Queue()
+
+        async def write_replies() -> None:
+            while True:
+                fut, job = await pending.get()
+                reply = await fut
+                writer.write(reply.encode())
+                await writer.drain()
+                if job is not None:
+                    self._trace(job, reply, client)
+
+        async with asyncio.TaskGroup() as tg:
+            writing = tg.create_task(write_replies())
+            try:
+                while data := await reader.read(65536):
+                    now = time.monotonic_ns()
+                    for item in parser.feed(data):
+                        fut: asyncio.Future[Reply] = asyncio.get_running_loop().create_future()
+                        if isinstance(item, Error):
+                            self.counters["errors"] += 1
+                            fut.set_result(item)
+                            pending.put_nowait((fut, None))
+                            continue
+                        job = Job(item, now, fut)
+                        pending.put_nowait((fut, job))
+                        self.queue.put_nowait(job)
+                # the client closed its side: its commands still run (a motion once sent is not
+                # taken back), and the replies it may still read are written until it is gone
+            except (ConnectionError, OSError):
+                pass
+            finally:
+                writing.cancel()
+                writer.close()
+                with contextlib.suppress(Exception):
+                    await writer.wait_closed()
+
+    def _trace(self, job: Job, reply: Reply, client: str) -> None:
+        started = job.started_ns or job.received_ns
+        trace = skills_pb2.SkillTrace(
+            robot=self.robot.name,
+            id=job.command.id,
+            skill=job.command.skill,
+            received_ns=job.received_ns,
+            started_ns=started,
+            answered_ns=time.monotonic_ns(),
+            status="done" if isinstance(reply, Done) else "error",
+            code=reply.code if isinstance(reply, Error) else "",
+            client=client,
+        )
+        self.bus.publish(f"skills/{self.robot.name}/trace", trace)
+
+    async def run_queue(self) -> None:
+        """Execute the robot's commands one at a time, in arrival order."""
+        while True:
+            job = await self.queue.get()
+            started = time.monotonic_ns()
+            job.started_ns = started
+            try:
+                async with asyncio.timeout(self.config.skills.motion_timeout_s):
+                    reply = await self.execute(job.command, started)
+            except TimeoutError:
+                reply = Error(job.command.id, ErrorCode.FAILED, "timed out")
+            except (RemoteError, BusTimeout) as exc:
+                reply = self._error(job.command.id, exc)
+            except Exception as exc:  # a bug must not take the server down: answer, log, go on
+                log.exception("%s: %s failed", self.robot.name, job.command)
+                reply = Error(job.command.id, ErrorCode.FAILED, f"{type(exc).__name__}: {exc}")
+            self.counters["commands"] += 1
+            if isinstance(reply, Error):
+                self.counters["errors"] += 1
+            if not job.reply.done():
+                job.reply.set_result(reply)
+
+    def _error(self, cid: str, exc: Exception) -> Error:
+        if isinstance(exc, RemoteError):
+            return Error(cid, _CODES.get(exc.code, ErrorCode.FAILED), exc.message)
+        return Error(cid, ErrorCode.FAILED, "the controller did not answer in time")
+
+    async def execute(self, cmd: Command, started_ns: int) -> Reply:
+        name = self.robot.name
+        if cmd.skill in MOTIONS:
+            kind, frame = _MOTION[cmd.skill]
+            values = list(cmd.args)
+            if kind == M.JOINTS:
+                values = [math.radians(v) for v in values]
+            speed, self.speed = self.speed or 100.0, None
+            req = M(robot=name, kind=kind, frame=frame, values=values, speed=speed, start_only=True)
+            moved = await self._ask("move", req, controller_pb2.MoveReply)
+            return self._done(cmd, started_ns, moved.pose)
+        if cmd.skill == "break":
+            tolerance = self.config.skills.break_tolerance_rad
+            req = controller_pb2.ArriveRequest(robot=name, tolerance_rad=tolerance, timeout_s=self._timeout())
+            arrived = await self._ask("arrive", req, controller_pb2.PoseReply)
+            return self._done(cmd, started_ns, arrived.pose)
+        if cmd.skill == "set_speed":
+            self.speed = cmd.args[0]
+        elif cmd.skill in ("enable_air", "disable_air"):
+            self.air = cmd.skill == "enable_air"
+            state = skills_pb2.AirState(robot=name, on=self.air, t_ns=time.monotonic_ns())
+            self.bus.publish(f"skills/{name}/air", state)
+        here = await self._ask("pose", controller_pb2.RobotRequest(robot=name), controller_pb2.PoseReply)
+        return self._done(cmd, started_ns, here.pose)
+
+    def _timeout(self) -> float:
+        return self.config.skills.motion_timeout_s
+
+    async def _ask(self, method: str, req: Message, reply_type: type[Message]) -> Any:
+        """A request to the controller service (it answers `arrive` when the robot is there)."""
+        return await self.bus.request("controller", method, req, reply_type, self._timeout() + 1.0)
+
+    def _done(self, cmd: Command, started_ns: int, pose: Sequence[float]) -> Done:
+        p = tuple(float(v) for v in pose)
+        assert len(p) == 6
+        return Done(cmd.id, self.seconds(started_ns), self.seconds(time.monotonic_ns()), p)  # type: ignore[arg-type]
+
+
+async def run(ctx: ServiceContext) -> None:
+    t0 = time.monotonic_ns()
+    servers = [RobotSkills(r, ctx.config, ctx.bus, t0) for r in ctx.config.robots]
+    async with contextlib.AsyncExitStack() as stack, asyncio.TaskGroup() as tg:
+        for s in servers:
+            server = await asyncio.start_server(
+                s.serve_connection, ctx.config.skills.host, s.robot.skill_port, reuse_address=True
+            )
+            await stack.enter_async_context(server)
+            tg.create_task(s.run_queue(), name=f"skills-{s.robot.name}")
+        ctx.log.info(
+            "skill servers: %s",
+            ", ".join(f"{s.robot.name} on {ctx.config.skills.host}:{s.robot.skill_port}" for s in servers),
+        )
+        ctx.ready()
+
+        async def report() -> None:
+            while True:
+                for s in servers:
+                    for k, v in s.counters.items():
+                        ctx.counters[f"{s.robot.name}.{k}"] = v
+                await asyncio.sleep(1.0)
+
+        tg.create_task(report())
+
+
+SERVICE = ServiceSpec(
+    name="skills",
+    run=run,
+    description="AdeptServer-style TCP skill servers, one per robot (ASCII command messages)",
+    ready_on_start=False,
+)
