@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import sys
+from pathlib import Path
 
 from google.protobuf import json_format
 
@@ -42,6 +43,17 @@ def _cmd_service(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     load(args.name, config)
     return aio.run(launcher.service(config, args.name, watch_stdin=args.watch_stdin))
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from cell.master import run_script
+
+    config = load_config(args.config)
+    path = Path(args.script)
+    if not path.is_file():
+        print(f"cell run: no such script: {path}", file=sys.stderr)
+        return 2
+    return aio.run(run_script(path, config, Path(args.config) if args.config else None, up=args.up))
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -141,6 +153,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--processes", action="store_true", help="one OS process per service (default: one process)"
     )
     p.set_defaults(func=_cmd_up)
+
+    p = sub.add_parser("run", help="run a task script's `async def main(cell)` against a running cell")
+    p.add_argument("script", help="a Python file defining async def main(cell)")
+    _config_arg(p)
+    p.add_argument("--up", action="store_true", help="start the cell first (and stop it after)")
+    p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("service", help="run one service alone against a running bus")
     p.add_argument("name", help="a built-in service (e.g. bus) or a [services.plugins] name")

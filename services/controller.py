@@ -16,7 +16,7 @@ import asyncio
 import numpy as np
 
 from cell.bus import RpcFault
-from cell.controller.controller import Controller, MotionResult, MotionStopped
+from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
 from cell.controller.plan import PlanError
 from cell.robot.kinematics import Unreachable
 from cell.robot.pose import from_adept, to_adept
@@ -86,7 +86,25 @@ class ControllerService:
             return await self._guard(ctl.move_linear(rid, pos, rot, speed, req.fine, wait))
         return await self._guard(ctl.move_to(rid, pos, rot, speed, req.fine, wait))
 
-    async def _start(self, track) -> np.ndarray:
+    async def move_together(self, req: controller_pb2.MoveTogetherRequest) -> controller_pb2.MoveReply:
+        if not req.moves:
+            raise RpcFault("bad_request", "no moves")
+        goals: dict[int | str, np.ndarray] = {}
+        for m in req.moves:
+            rid = self._robot(m.robot)
+            track = self.ctl.track(rid)
+            values = np.array(m.values, np.float64)
+            if m.kind != Kind.JOINTS or values.size != track.joints or not np.isfinite(values).all():
+                raise RpcFault(
+                    "bad_request", f"{m.robot}: {track.joints} finite joint positions (rad) expected"
+                )
+            goals[rid] = values + await self._start(track) if m.frame != Frame.ABSOLUTE else values
+        speed = (req.moves[0].speed or 100.0) / 100.0
+        if not 0.0 < speed <= 1.0:
+            raise RpcFault("bad_request", f"speed must be in (0, 100] %, got {req.moves[0].speed}")
+        return await self._guard(self.ctl.move_together(goals, speed))
+
+    async def _start(self, track: Track) -> np.ndarray:
         try:
             return await self.ctl.start_q(track)
         except PlanError as exc:
@@ -141,6 +159,7 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
             "resume": (controller_pb2.RobotRequest, svc.resume),
             "pose": (controller_pb2.RobotRequest, svc.pose),
             "arrive": (controller_pb2.ArriveRequest, svc.arrive),
+            "move_together": (controller_pb2.MoveTogetherRequest, svc.move_together),
         },
     )
     ctx.ready()

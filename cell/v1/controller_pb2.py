@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18\x63\x65ll/v1/controller.proto\x12\x07\x63\x65ll.v1\"\x87\x02\n\x0bMoveRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\'\n\x04kind\x18\x02 \x01(\x0e\x32\x19.cell.v1.MoveRequest.Kind\x12)\n\x05\x66rame\x18\x03 \x01(\x0e\x32\x1a.cell.v1.MoveRequest.Frame\x12\x0e\n\x06values\x18\x04 \x03(\x01\x12\r\n\x05speed\x18\x05 \x01(\x01\x12\x0c\n\x04\x66ine\x18\x06 \x01(\x08\x12\x12\n\nstart_only\x18\x07 \x01(\x08\"(\n\x04Kind\x12\n\n\x06JOINTS\x10\x00\x12\x08\n\x04POSE\x10\x01\x12\n\n\x06LINEAR\x10\x02\"*\n\x05\x46rame\x12\x0c\n\x08\x41\x42SOLUTE\x10\x00\x12\t\n\x05WORLD\x10\x01\x12\x08\n\x04TOOL\x10\x02\"H\n\rArriveRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x15\n\rtolerance_rad\x18\x02 \x01(\x01\x12\x11\n\ttimeout_s\x18\x03 \x01(\x01\"O\n\tMoveReply\x12\x12\n\nt_start_ns\x18\x01 \x01(\x03\x12\x10\n\x08t_end_ns\x18\x02 \x01(\x03\x12\x0e\n\x06joints\x18\x03 \x03(\x01\x12\x0c\n\x04pose\x18\x04 \x03(\x01\"\x1d\n\x0bStopRequest\x12\x0e\n\x06robots\x18\x01 \x03(\t\")\n\tStopReply\x12\x0e\n\x06robots\x18\x01 \x03(\t\x12\x0c\n\x04t_ns\x18\x02 \x01(\x03\"\x1d\n\x0cRobotRequest\x12\r\n\x05robot\x18\x01 \x01(\t\"7\n\tPoseReply\x12\x0e\n\x06joints\x18\x01 \x03(\x01\x12\x0c\n\x04pose\x18\x02 \x03(\x01\x12\x0c\n\x04t_ns\x18\x03 \x01(\x03\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18\x63\x65ll/v1/controller.proto\x12\x07\x63\x65ll.v1\"\x87\x02\n\x0bMoveRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\'\n\x04kind\x18\x02 \x01(\x0e\x32\x19.cell.v1.MoveRequest.Kind\x12)\n\x05\x66rame\x18\x03 \x01(\x0e\x32\x1a.cell.v1.MoveRequest.Frame\x12\x0e\n\x06values\x18\x04 \x03(\x01\x12\r\n\x05speed\x18\x05 \x01(\x01\x12\x0c\n\x04\x66ine\x18\x06 \x01(\x08\x12\x12\n\nstart_only\x18\x07 \x01(\x08\"(\n\x04Kind\x12\n\n\x06JOINTS\x10\x00\x12\x08\n\x04POSE\x10\x01\x12\n\n\x06LINEAR\x10\x02\"*\n\x05\x46rame\x12\x0c\n\x08\x41\x42SOLUTE\x10\x00\x12\t\n\x05WORLD\x10\x01\x12\x08\n\x04TOOL\x10\x02\":\n\x13MoveTogetherRequest\x12#\n\x05moves\x18\x01 \x03(\x0b\x32\x14.cell.v1.MoveRequest\"H\n\rArriveRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x15\n\rtolerance_rad\x18\x02 \x01(\x01\x12\x11\n\ttimeout_s\x18\x03 \x01(\x01\"O\n\tMoveReply\x12\x12\n\nt_start_ns\x18\x01 \x01(\x03\x12\x10\n\x08t_end_ns\x18\x02 \x01(\x03\x12\x0e\n\x06joints\x18\x03 \x03(\x01\x12\x0c\n\x04pose\x18\x04 \x03(\x01\"\x1d\n\x0bStopRequest\x12\x0e\n\x06robots\x18\x01 \x03(\t\")\n\tStopReply\x12\x0e\n\x06robots\x18\x01 \x03(\t\x12\x0c\n\x04t_ns\x18\x02 \x01(\x03\"\x1d\n\x0cRobotRequest\x12\r\n\x05robot\x18\x01 \x01(\t\"7\n\tPoseReply\x12\x0e\n\x06joints\x18\x01 \x03(\x01\x12\x0c\n\x04pose\x18\x02 \x03(\x01\x12\x0c\n\x04t_ns\x18\x03 \x01(\x03\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -37,16 +37,18 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_MOVEREQUEST_KIND']._serialized_end=257
   _globals['_MOVEREQUEST_FRAME']._serialized_start=259
   _globals['_MOVEREQUEST_FRAME']._serialized_end=301
-  _globals['_ARRIVEREQUEST']._serialized_start=303
-  _globals['_ARRIVEREQUEST']._serialized_end=375
-  _globals['_MOVEREPLY']._serialized_start=377
-  _globals['_MOVEREPLY']._serialized_end=456
-  _globals['_STOPREQUEST']._serialized_start=458
-  _globals['_STOPREQUEST']._serialized_end=487
-  _globals['_STOPREPLY']._serialized_start=489
-  _globals['_STOPREPLY']._serialized_end=530
-  _globals['_ROBOTREQUEST']._serialized_start=532
-  _globals['_ROBOTREQUEST']._serialized_end=561
-  _globals['_POSEREPLY']._serialized_start=563
-  _globals['_POSEREPLY']._serialized_end=618
+  _globals['_MOVETOGETHERREQUEST']._serialized_start=303
+  _globals['_MOVETOGETHERREQUEST']._serialized_end=361
+  _globals['_ARRIVEREQUEST']._serialized_start=363
+  _globals['_ARRIVEREQUEST']._serialized_end=435
+  _globals['_MOVEREPLY']._serialized_start=437
+  _globals['_MOVEREPLY']._serialized_end=516
+  _globals['_STOPREQUEST']._serialized_start=518
+  _globals['_STOPREQUEST']._serialized_end=547
+  _globals['_STOPREPLY']._serialized_start=549
+  _globals['_STOPREPLY']._serialized_end=590
+  _globals['_ROBOTREQUEST']._serialized_start=592
+  _globals['_ROBOTREQUEST']._serialized_end=621
+  _globals['_POSEREPLY']._serialized_start=623
+  _globals['_POSEREPLY']._serialized_end=678
 # @@protoc_insertion_point(module_scope)

@@ -2,7 +2,7 @@ from google.protobuf.internal import containers as _containers
 from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
-from collections.abc import Iterable as _Iterable
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
 from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
@@ -40,6 +40,12 @@ class MoveRequest(_message.Message):
     fine: bool
     start_only: bool
     def __init__(self, robot: _Optional[str] = ..., kind: _Optional[_Union[MoveRequest.Kind, str]] = ..., frame: _Optional[_Union[MoveRequest.Frame, str]] = ..., values: _Optional[_Iterable[float]] = ..., speed: _Optional[float] = ..., fine: _Optional[bool] = ..., start_only: _Optional[bool] = ...) -> None: ...
+
+class MoveTogetherRequest(_message.Message):
+    __slots__ = ("moves",)
+    MOVES_FIELD_NUMBER: _ClassVar[int]
+    moves: _containers.RepeatedCompositeFieldContainer[MoveRequest]
+    def __init__(self, moves: _Optional[_Iterable[_Union[MoveRequest, _Mapping]]] = ...) -> None: ...
 
 class ArriveRequest(_message.Message):
     __slots__ = ("robot", "tolerance_rad", "timeout_s")

@@ -35,3 +35,37 @@ class AirState(_message.Message):
     on: bool
     t_ns: int
     def __init__(self, robot: _Optional[str] = ..., on: _Optional[bool] = ..., t_ns: _Optional[int] = ...) -> None: ...
+
+class RequestTrace(_message.Message):
+    __slots__ = ("robot", "id", "skill", "sent_ns", "received_ns", "status", "code", "t_start", "t_end")
+    ROBOT_FIELD_NUMBER: _ClassVar[int]
+    ID_FIELD_NUMBER: _ClassVar[int]
+    SKILL_FIELD_NUMBER: _ClassVar[int]
+    SENT_NS_FIELD_NUMBER: _ClassVar[int]
+    RECEIVED_NS_FIELD_NUMBER: _ClassVar[int]
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    CODE_FIELD_NUMBER: _ClassVar[int]
+    T_START_FIELD_NUMBER: _ClassVar[int]
+    T_END_FIELD_NUMBER: _ClassVar[int]
+    robot: str
+    id: str
+    skill: str
+    sent_ns: int
+    received_ns: int
+    status: str
+    code: str
+    t_start: float
+    t_end: float
+    def __init__(self, robot: _Optional[str] = ..., id: _Optional[str] = ..., skill: _Optional[str] = ..., sent_ns: _Optional[int] = ..., received_ns: _Optional[int] = ..., status: _Optional[str] = ..., code: _Optional[str] = ..., t_start: _Optional[float] = ..., t_end: _Optional[float] = ...) -> None: ...
+
+class RunEvent(_message.Message):
+    __slots__ = ("script", "state", "t_ns", "text")
+    SCRIPT_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    TEXT_FIELD_NUMBER: _ClassVar[int]
+    script: str
+    state: str
+    t_ns: int
+    text: str
+    def __init__(self, script: _Optional[str] = ..., state: _Optional[str] = ..., t_ns: _Optional[int] = ..., text: _Optional[str] = ...) -> None: ...

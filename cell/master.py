@@ -1,0 +1,196 @@
+"""The master control node: `cell run SCRIPT.py` runs a task script's `async def main(cell)`.
+
+The script gets a `Cell`: its robots by name as connected `RobotClient`s, the
+bus, a request helper matched by id with a timeout, a way to wait for a bus
+event, and the controller for what the skill protocol cannot say
+(synchronised starts).  Scripts compose coroutines with asyncio.TaskGroup or
+gather, as pyadept's do.  The run is announced on the bus (run/events), and
+every robot request is traced there (run/<robot>/request).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import importlib.util
+import inspect
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+import traceback
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from google.protobuf.message import Message
+
+from cell.bus import Bus, BusError
+from cell.config import CellConfig
+from cell.launcher import fetch_status
+from cell.skills.client import RobotClient
+from cell.v1 import controller_pb2, skills_pb2
+
+log = logging.getLogger("cell.run")
+
+
+class Cell:
+    """What a task script's main() is given."""
+
+    def __init__(self, config: CellConfig, bus: Bus, robots: dict[str, RobotClient]) -> None:
+        self.config, self.bus, self.robots = config, bus, robots
+
+    def robot(self, name: str) -> RobotClient:
+        try:
+            return self.robots[name]
+        except KeyError:
+            raise KeyError(f"no robot {name!r} in this cell (robots: {', '.join(self.robots)})") from None
+
+    async def request(
+        self, service: str, method: str, msg: Message, reply_type: type[Message], timeout: float = 5.0
+    ) -> Message:
+        """A request over the bus, its reply matched by id; BusTimeout after `timeout` s."""
+        return await self.bus.request(service, method, msg, reply_type, timeout)
+
+    async def expect(
+        self,
+        topic: str,
+        message_type: type[Message],
+        predicate: Callable[[Any], bool] = lambda _m: True,
+        timeout: float | None = None,
+    ) -> asyncio.Task:
+        """A task that ends with the next message on topics starting with `topic` satisfying
+        predicate; the subscription is live when this returns, so nothing sent after is missed."""
+        sub = await self.bus.subscribe(topic)
+
+        async def wait() -> Any:
+            try:
+                async with asyncio.timeout(timeout):
+                    async for env in sub:
+                        msg = env.decode(message_type)
+                        if predicate(msg):
+                            return msg
+            finally:
+                sub.close()
+
+        return asyncio.create_task(wait())
+
+    async def wait_event(
+        self,
+        topic: str,
+        message_type: type[Message],
+        predicate: Callable[[Any], bool] = lambda _m: True,
+        timeout: float | None = None,
+    ) -> Any:
+        """The next such message (see expect)."""
+        return await (await self.expect(topic, message_type, predicate, timeout))
+
+    async def move_together(
+        self, goals_deg: dict[str, list[float]], speed: float = 100.0
+    ) -> tuple[float, float]:
+        """Robots to joint goals (deg) with one shared start time (the skill protocol has no way to
+        say this); (start, end) on the data-plane clock, s."""
+        req = controller_pb2.MoveTogetherRequest(
+            moves=[
+                controller_pb2.MoveRequest(robot=name, values=np.radians(q).tolist(), speed=speed)
+                for name, q in goals_deg.items()
+            ]
+        )
+        reply = await self.request("controller", "move_together", req, controller_pb2.MoveReply, 120.0)
+        return reply.t_start_ns / 1e9, reply.t_end_ns / 1e9  # type: ignore[attr-defined]
+
+
+def load_main(path: Path) -> Callable[[Cell], Any]:
+    """The script's `async def main(cell)`; ValueError saying what is wrong."""
+    spec = importlib.util.spec_from_file_location(f"cell_script_{path.stem}", path)
+    if spec is None or spec.loader is None:
+        raise ValueError(f"{path}: not a Python file")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    main = getattr(module, "main", None)
+    if main is None or not inspect.iscoroutinefunction(main):
+        raise ValueError(f"{path}: defines no `async def main(cell)`")
+    return main
+
+
+@contextlib.asynccontextmanager
+async def cell_process(config_path: Path | None, config: CellConfig) -> AsyncIterator[None]:
+    """`cell up` in a child process until the block ends (for `cell run --up`)."""
+    cmd = [sys.executable, "-m", "cell", "--log-level", "WARNING", "up"]
+    if config_path is not None:
+        cmd += ["--config", str(config_path)]
+    proc = await asyncio.create_subprocess_exec(*cmd, stdin=subprocess.PIPE, env=dict(os.environ))
+    try:
+        want = set(config.services.run)
+        async with asyncio.timeout(60):
+            while True:
+                with contextlib.suppress(BusError):
+                    st = await fetch_status(config, timeout=1.0)
+                    if want <= {s.name for s in st.services if s.health == "ok"}:
+                        break
+                if proc.returncode is not None:
+                    raise RuntimeError(f"the cell exited with code {proc.returncode}")
+                await asyncio.sleep(0.1)
+        yield
+    finally:
+        if proc.returncode is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                async with asyncio.timeout(10):
+                    await proc.wait()
+            except TimeoutError:
+                proc.kill()
+                await proc.wait()
+
+
+async def run_script(
+    path: Path, config: CellConfig, config_path: Path | None = None, up: bool = False
+) -> int:
+    """Run the script against the cell (started first with up); 0 when main() returned."""
+    try:
+        main = load_main(path)
+    except Exception as exc:  # a script that does not even load
+        print(f"cell run: {exc}", file=sys.stderr)
+        return 2
+    async with contextlib.AsyncExitStack() as stack:
+        if up:
+            await stack.enter_async_context(cell_process(config_path, config))
+        bus = await stack.enter_async_context(Bus.connect(config.bus, f"run-{os.getpid()}"))
+        robots: dict[str, RobotClient] = {}
+        host = config.skills.host
+        for r in config.robots:
+            client = RobotClient(r.name, host, r.skill_port, bus)
+            try:
+                await client.connect(timeout=10.0)
+            except TimeoutError:
+                print(
+                    f"cell run: no skill server for {r.name} at {host}:{r.skill_port} "
+                    "(is the `skills` service running? `cell run --up` starts a cell)",
+                    file=sys.stderr,
+                )
+                return 1
+            stack.push_async_callback(client.close)
+            robots[r.name] = client
+        cell = Cell(config, bus, robots)
+        event = skills_pb2.RunEvent(script=str(path), state="started", t_ns=time.monotonic_ns())
+        bus.publish("run/events", event)
+        t0 = time.monotonic()
+        try:
+            await main(cell)
+        except Exception as exc:
+            traceback.print_exc()
+            bus.publish(
+                "run/events",
+                skills_pb2.RunEvent(
+                    script=str(path), state="failed", t_ns=time.monotonic_ns(), text=repr(exc)
+                ),
+            )
+            return 1
+        bus.publish(
+            "run/events", skills_pb2.RunEvent(script=str(path), state="done", t_ns=time.monotonic_ns())
+        )
+        log.info("%s done in %.2f s", path, time.monotonic() - t0)
+    return 0
