@@ -25,12 +25,12 @@ demo: $(STAMP_RUN)
 	$(BIN)/cell up --duration 8
 
 test: $(STAMP_TEST)
-	$(BIN)/ruff check cell services tests
+	$(BIN)/ruff check cell services tests examples
 	$(BIN)/python -m pytest
 
 lint: $(STAMP_TEST)
-	$(BIN)/ruff check cell services tests
-	$(BIN)/ruff format --check cell services tests
+	$(BIN)/ruff check cell services tests examples
+	$(BIN)/ruff format --check cell services tests examples
 
 # regenerate the committed protobuf code (tests/test_proto.py fails when it is stale)
 proto: $(STAMP_TEST)

@@ -135,6 +135,16 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_skills(args: argparse.Namespace) -> int:
+    from cell.bench import skills
+
+    result = skills.run(args.messages, log=lambda line: print(line, flush=True))
+    print(skills.format_result(result))
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cell",
@@ -219,6 +229,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--quick", action="store_true", help="fewer reference motions (under 4 minutes)")
     q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
     q.set_defaults(func=_cmd_bench_accuracy)
+    q = bsub.add_parser(
+        "skills", help="skill-protocol acknowledgement round trip, send gaps and switching, next to TCP echo"
+    )
+    q.add_argument("--messages", type=int, default=2000, help="messages per figure (default 2000)")
+    q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
+    q.set_defaults(func=_cmd_bench_skills)
     return parser
 
 

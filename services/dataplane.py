@@ -224,12 +224,17 @@ class DataPlane:
             out["batch_p99_us"] = ns[min(len(ns) - 1, int(len(ns) * 0.99))] / 1e3
         return out
 
-    def state(self, _req: object = None) -> dataplane_pb2.DataplaneState:
+    def state(self, req: dataplane_pb2.StateRequest | None = None) -> dataplane_pb2.DataplaneState:
         t = self.tables
-        st = dataplane_pb2.DataplaneState(
-            now_ns=time.monotonic_ns(), loaded=t.loaded, capacity=t.capacity, counters=self.counters()
-        )
-        for robot in np.flatnonzero(t.robot_entity != NO_ROW).tolist():
+        brief = req is not None and req.robots_only
+        st = dataplane_pb2.DataplaneState(now_ns=time.monotonic_ns(), loaded=t.loaded, capacity=t.capacity)
+        if not brief:
+            st.counters.update(self.counters())
+        robots = np.flatnonzero(t.robot_entity != NO_ROW).tolist()
+        if req is not None and req.robot_ids:
+            wanted = set(req.robot_ids)
+            robots = [r for r in robots if r in wanted]
+        for robot in robots:
             e = int(t.robot_entity[robot])
             n = int(self.robot_joints[robot])
             tp = t.current_tp(robot)

@@ -17,75 +17,21 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
-import signal
-import socket
-import subprocess
-import sys
-import tempfile
 import time
-from collections.abc import AsyncIterator, Callable
-from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-import tomli_w
 
-from cell.bus import Bus, BusError
-from cell.config import CellConfig, load_config
+from cell.bench.cellproc import free_port as _port
+from cell.bench.cellproc import running_cell
+from cell.bus import Bus
 from cell.controller.controller import Controller, MotionStopped, Segment
-from cell.launcher import fetch_status
 from cell.robot.kinematics import Kinematics
 from cell.v1 import robot_pb2
 
 SETTLE_S = 4.0  # held on the final TP this long before the stop error is read (1/K = 0.5 s)
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
-
-
-def _port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@contextlib.asynccontextmanager
-async def running_cell(overrides: dict[str, Any]) -> AsyncIterator[CellConfig]:
-    """`cell up` in a child process on free ports, until the block ends."""
-    data = {
-        "bus": {"pub": f"tcp://127.0.0.1:{_port()}", "sub": f"tcp://127.0.0.1:{_port()}"},
-        "dataplane": {"listen": f"127.0.0.1:{_port(socket.SOCK_DGRAM)}"},
-        "snp": {"listen": f"127.0.0.1:{_port(socket.SOCK_DGRAM)}"},
-        **overrides,
-    }
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "bench.toml"
-        path.write_text(tomli_w.dumps(data))
-        config = load_config(path)
-        proc = await asyncio.create_subprocess_exec(
-            *[sys.executable, "-m", "cell", "--log-level", "WARNING", "up", "--config", str(path)],
-            stdin=subprocess.DEVNULL,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )
-        try:
-            want = set(config.services.run)
-            async with asyncio.timeout(30):
-                while True:
-                    try:
-                        st = await fetch_status(config, timeout=1.0)
-                        if want <= {s.name for s in st.services if s.health == "ok"}:
-                            break
-                    except BusError:
-                        pass
-                    await asyncio.sleep(0.1)
-            yield config
-        finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                async with asyncio.timeout(10):
-                    await proc.wait()
-            except TimeoutError:
-                proc.kill()
-                await proc.wait()
 
 
 class Truth:

@@ -25,7 +25,7 @@ import asyncio
 import contextlib
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -79,9 +79,10 @@ class Link:
         self._best_rtt = None  # the offset comes from the read with the shortest round trip
         self.rtts: deque[int] = deque(maxlen=32)
 
-    async def state(self) -> dataplane_pb2.DataplaneState:
+    async def state(self, robot_ids: Sequence[int] = ()) -> dataplane_pb2.DataplaneState:
+        """The robots' registers and last status (all robots, or those given), no counters."""
         t0 = time.monotonic_ns()
-        st = await self.dp.state()
+        st = await self.dp.state(robot_ids, robots_only=True)
         t1 = time.monotonic_ns()
         rtt = t1 - t0
         self.rtts.append(rtt)
@@ -228,7 +229,7 @@ class Controller:
 
     async def joints_now(self, track: Track) -> tuple[np.ndarray, np.ndarray, int]:
         """The last status of the track's robots: positions, velocities, its data-plane time."""
-        st = await self.link.state()
+        st = await self.link.state(track.robots)
         by_id = {r.robot_id: r for r in st.robots}
         missing = [r for r in track.robots if r not in by_id or by_id[r].status_ns == 0]
         if missing:

@@ -55,9 +55,11 @@ class DataplaneClient:
         reply = await self.bus.request(self.service, "merge", req, dataplane_pb2.MergeReply, self.timeout)
         return reply.entity  # type: ignore[union-attr]
 
-    async def state(self) -> dataplane_pb2.DataplaneState:
-        reply = await self.bus.request(
-            self.service, "state", dataplane_pb2.StateRequest(), dataplane_pb2.DataplaneState, self.timeout
-        )
+    async def state(
+        self, robot_ids: Sequence[int] = (), robots_only: bool = False
+    ) -> dataplane_pb2.DataplaneState:
+        """Registers and counters; robots_only leaves the counters out (a cheaper poll)."""
+        req = dataplane_pb2.StateRequest(robot_ids=robot_ids, robots_only=robots_only)
+        reply = await self.bus.request(self.service, "state", req, dataplane_pb2.DataplaneState, self.timeout)
         assert isinstance(reply, dataplane_pb2.DataplaneState)
         return reply

@@ -99,8 +99,12 @@ class MergeReply(_message.Message):
     def __init__(self, entity: _Optional[int] = ...) -> None: ...
 
 class StateRequest(_message.Message):
-    __slots__ = ()
-    def __init__(self) -> None: ...
+    __slots__ = ("robot_ids", "robots_only")
+    ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    ROBOTS_ONLY_FIELD_NUMBER: _ClassVar[int]
+    robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    robots_only: bool
+    def __init__(self, robot_ids: _Optional[_Iterable[int]] = ..., robots_only: _Optional[bool] = ...) -> None: ...
 
 class RobotPlaneState(_message.Message):
     __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns", "position", "velocity", "status_ns")
