@@ -19,6 +19,7 @@ BUILTIN: dict[str, str] = {
     "dataplane": "cell.services.dataplane",
     "controller": "cell.services.controller",
     "skills": "cell.services.skills",
+    "snp": "cell.services.snp",
 }
 
 

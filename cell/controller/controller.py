@@ -39,7 +39,7 @@ from cell.dataplane.client import DataplaneClient
 from cell.dataplane.tables import TPBatch
 from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics
-from cell.v1 import dataplane_pb2
+from cell.v1 import controller_pb2, dataplane_pb2
 
 _ID_SPACE = 2**32
 STOP_JERK = 1000.0  # rad/s^3: a stop reaches full deceleration in a few ms
@@ -409,6 +409,7 @@ class Controller:
             track.segment = seg
             track.q_hold = None  # moving: where it ends is the segment's end
             track.task = asyncio.ensure_future(self._stream(track, seg, 1))
+            self._publish_plan(track, seg)
         end = max(seg.end_ns for _, seg, _ in segments)
         q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in segments])
         return MotionResult(start, end, q_end), [t for t, _, _ in segments]
@@ -498,6 +499,27 @@ class Controller:
     async def __aexit__(self, *exc: object) -> None:
         await self.aclose()
 
+    def _publish_plan(self, track: Track, seg: Segment) -> None:
+        """The segment's plan on plan/<robot>, one message per robot of the track."""
+        s = seg.sections
+        t = np.concatenate([[seg.start_ns], seg.start_ns + np.rint(s.t_end * 1e9).astype(np.int64)])
+        q0, v0 = seg.motion.sample(np.array([0.0]))
+        q = np.vstack([q0, s.q])
+        v = np.vstack([v0, s.q_plan_v])
+        for i, rid in enumerate(track.robots):
+            robot = next((r for r in self.config.robots if r.id == rid), None)
+            if robot is None:
+                continue
+            cols = slice(6 * i, 6 * i + 6)
+            msg = controller_pb2.Plan(
+                robot_id=rid,
+                joints=6,
+                t_ns=t.tolist(),
+                positions=q[:, cols].ravel().tolist(),
+                velocities=v[:, cols].ravel().tolist(),
+            )
+            self.dp.bus.publish(f"plan/{robot.name}", msg)
+
     def _batch(self, track: Track, seg: Segment, lo: int, hi: int) -> TPBatch:
         """TPs lo..hi-1 of a segment, each linking to the next; the final hold links to itself."""
         ids = seg.ids
@@ -555,6 +577,7 @@ class Controller:
             registers.append((t.robot, ids[0], seg.t_ns(0)))
             remove += [(t.robot, i) for i in t.loaded]
             t.loaded, t.segment, t.q_hold = list(ids), seg, sections.q[-1].copy()
+            self._publish_plan(t, seg)
             results[t.robot] = MotionResult(apply_ns, seg.end_ns, sections.q[-1].copy())
         if batches:
             reply = await self.dp.update(insert=_concat(batches), remove=remove, registers=registers)
@@ -616,6 +639,7 @@ class Controller:
         self.last_switch = Switch(branch, t_b, (t_b - reply.now_ns) / 1e6, q_pred, v_pred)
         track.segment = new
         track.task = asyncio.ensure_future(self._stream(track, new, 1))
+        self._publish_plan(track, new)
         await track.task
         return MotionResult(t_b, new.end_ns, sections.q[-1].copy())
 

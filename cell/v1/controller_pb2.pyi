@@ -98,3 +98,17 @@ class PoseReply(_message.Message):
     pose: _containers.RepeatedScalarFieldContainer[float]
     t_ns: int
     def __init__(self, joints: _Optional[_Iterable[float]] = ..., pose: _Optional[_Iterable[float]] = ..., t_ns: _Optional[int] = ...) -> None: ...
+
+class Plan(_message.Message):
+    __slots__ = ("robot_id", "joints", "t_ns", "positions", "velocities")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    JOINTS_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    POSITIONS_FIELD_NUMBER: _ClassVar[int]
+    VELOCITIES_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    joints: int
+    t_ns: _containers.RepeatedScalarFieldContainer[int]
+    positions: _containers.RepeatedScalarFieldContainer[float]
+    velocities: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, robot_id: _Optional[int] = ..., joints: _Optional[int] = ..., t_ns: _Optional[_Iterable[int]] = ..., positions: _Optional[_Iterable[float]] = ..., velocities: _Optional[_Iterable[float]] = ...) -> None: ...

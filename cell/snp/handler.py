@@ -1,0 +1,178 @@
+"""The SnP handler, sans IO: datagrams in, datagrams out, with the clock passed in.
+
+- SnP-MrT: a time-bounded query is answered before its deadline or denied.
+  The decision is made up front from a running estimate of the handler's own
+  service time (and made again when the query's turn comes); pending queries
+  are served earliest deadline first; a cancellation removes a pending query
+  (its asker gets a CANCELLED denial).
+- SnP-TSP: a time request is answered with the receive and send times on this
+  node's clock (the cell clock, when this node is the master).
+- PID management: "do you support PID N?", "list your PIDs".
+- Errors: a bad header CRC is dropped (the return path cannot be trusted); a
+  bad data CRC, an unknown protocol id or packet type get their error reply.
+Every outcome is counted; nothing a peer sends raises out of here.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from cell.snp.packet import (
+    Cancel,
+    Denial,
+    Denied,
+    ErrorReply,
+    Header,
+    Item,
+    Packet,
+    PacketError,
+    PacketType,
+    Pid,
+    PidQuery,
+    PidReply,
+    Query,
+    Reply,
+    TimeRequest,
+    TimeResponse,
+    decode,
+    encode,
+)
+
+Address = Any  # whatever the transport uses to answer (a (host, port) pair for UDP)
+
+
+class StateSource(Protocol):
+    """Where the values of items come from."""
+
+    def known(self, item: int) -> bool: ...
+
+    def value(self, item: int, t_ns: int) -> float: ...
+
+    def refine(self, item: Item) -> None: ...
+
+
+@dataclass(order=True)
+class _Pending:
+    deadline: int
+    seq: int
+    query: Query = field(compare=False)
+    header: Header = field(compare=False)
+    addr: Address = field(compare=False)
+
+
+class Handler:
+    PIDS = (Pid.MRT, Pid.TSP, Pid.PID_MANAGEMENT)
+
+    def __init__(self, source: StateSource, clock: Callable[[], int], service_ns: int = 200_000) -> None:
+        self.source, self.clock = source, clock
+        self.service_ns = service_ns  # running estimate of the time to serve one query (ns)
+        self._pending: list[_Pending] = []
+        self._by_id: dict[tuple[Address, int], _Pending] = {}
+        self._seq = itertools.count()
+        self.counters: Counter[str] = Counter()
+
+    # --- input ---------------------------------------------------------------------------------
+
+    def receive(self, datagram: bytes, addr: Address) -> list[tuple[bytes, Address]]:
+        """Take one datagram; the datagrams to send at once (queries wait for serve())."""
+        t_in = self.clock()
+        self.counters["packets_in"] += 1
+        try:
+            pkt = decode(datagram, frozenset(int(p) for p in self.PIDS))
+        except PacketError as exc:
+            self.counters[exc.counter] += 1
+            if exc.reply is None:
+                return []
+            return [(self._encode(exc.reply), addr)]
+        except Exception:  # a bug in decode must not stop the service
+            self.counters["malformed"] += 1
+            return []
+        return self._dispatch(pkt, addr, t_in)
+
+    def _dispatch(self, pkt: Packet, addr: Address, t_in: int) -> list[tuple[bytes, Address]]:
+        back = pkt.header.reversed()
+        body = pkt.body
+        pid = pkt.header.pid
+        if pid == Pid.MRT and isinstance(body, Query):
+            return self._query(body, pkt.header, addr, t_in)
+        if pid == Pid.MRT and isinstance(body, Cancel):
+            pending = self._by_id.pop((addr, body.query_id), None)
+            self.counters["cancellations"] += 1
+            if pending is None:
+                return []  # already served or unknown: nothing to take back
+            pending.seq = -1  # marks it cancelled in the heap
+            self.counters["cancelled"] += 1
+            return [(encode(back, Denied(body.query_id, Denial.CANCELLED)), addr)]
+        if pid == Pid.TSP and isinstance(body, TimeRequest):
+            self.counters["time_requests"] += 1
+            return [(encode(back, TimeResponse(body.t1, t_in, self.clock())), addr)]
+        if pid == Pid.PID_MANAGEMENT and isinstance(body, PidQuery):
+            self.counters["pid_queries"] += 1
+            if pkt.type == PacketType.PID_LIST_QUERY:
+                return [(encode(back, PidReply(tuple(int(p) for p in self.PIDS))), addr)]
+            pids = (body.pid,) if body.pid in self.PIDS else ()
+            return [(encode(back, PidReply(pids), type=PacketType.PID_SUPPORTED_REPLY), addr)]
+        # a valid packet of a type this end does not take (a reply sent to the handler, a time
+        # request on the MrT protocol id, ...): answer that it is unknown here
+        self.counters["unknown_type"] += 1
+        return [(encode(back, ErrorReply(pkt.type), type=PacketType.UNKNOWN_PACKET_TYPE_REPLY), addr)]
+
+    def _query(self, q: Query, header: Header, addr: Address, t_in: int) -> list[tuple[bytes, Address]]:
+        self.counters["queries"] += 1
+        back = header.reversed()
+        for item in q.inputs:
+            if not self.source.known(item.id):
+                return [self._deny(back, q, Denial.UNKNOWN_INPUT_ITEM, addr)]
+        for wanted in q.outputs:
+            if not self.source.known(wanted.id):
+                return [self._deny(back, q, Denial.UNKNOWN_OUTPUT_ITEM, addr)]
+        if t_in + self.service_ns * (1 + len(self._pending)) > q.deadline:
+            return [self._deny(back, q, Denial.DEADLINE_CANNOT_BE_MET, addr)]
+        for item in q.inputs:
+            self.source.refine(item)
+        pending = _Pending(q.deadline, next(self._seq), q, header, addr)
+        heapq.heappush(self._pending, pending)
+        self._by_id[(addr, q.query_id)] = pending
+        return []
+
+    def _deny(self, back: Header, q: Query, why: Denial, addr: Address) -> tuple[bytes, Address]:
+        self.counters[f"denied.{why.name.lower()}"] += 1
+        return encode(back, Denied(q.query_id, why)), addr
+
+    # --- serving ---------------------------------------------------------------------------------
+
+    @property
+    def pending(self) -> int:
+        return len(self._by_id)
+
+    def serve(self) -> tuple[bytes, Address] | None:
+        """Answer the pending query with the earliest deadline (or deny it if it can no longer be
+        met); None when nothing is pending."""
+        while self._pending:
+            p = heapq.heappop(self._pending)
+            if p.seq < 0:
+                continue  # cancelled
+            self._by_id.pop((p.addr, p.query.query_id), None)
+            t0 = self.clock()
+            back = p.header.reversed()
+            if t0 + self.service_ns > p.deadline:
+                return self._deny(back, p.query, Denial.DEADLINE_CANNOT_BE_MET, p.addr)
+            items = tuple(
+                Item(w.id, self.source.value(w.id, w.timestamp), w.timestamp) for w in p.query.outputs
+            )
+            out = encode(back, Reply(p.query.query_id, items))
+            took = self.clock() - t0
+            self.service_ns = max(20_000, int(0.9 * self.service_ns + 0.1 * took * 2))  # 2x: send, wake-up
+            if self.clock() > p.deadline:
+                self.counters["late"] += 1  # should not happen: the estimate was too low
+            self.counters["replies"] += 1
+            return out, p.addr
+        return None
+
+    def _encode(self, pkt: Packet) -> bytes:
+        return encode(pkt.header, pkt.body, type=pkt.type)

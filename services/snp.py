@@ -1,0 +1,108 @@
+"""Service `snp`: the SnP handler (SpW-SnP-MR) on UDP [snp] listen.
+
+Time-bounded queries about the cell's robots (SnP-MrT: answered before their
+deadline or denied), time synchronisation (SnP-TSP: this service's clock is
+the cell clock, CLOCK_REALTIME of its host) and PID management.  The values
+come from the bus: ground truth (truth/<name>), the controller's plans
+(plan/<name>), robots as they announce themselves.  Packet layout:
+docs/protocols/snp-mrt.md.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+
+from cell.config import parse_host_port
+from cell.service import ServiceContext, ServiceSpec
+from cell.snp.handler import Address, Handler
+from cell.snp.state import CellState
+from cell.v1 import controller_pb2, robot_pb2
+
+
+class _Endpoint(asyncio.DatagramProtocol):
+    def __init__(self, handler: Handler) -> None:
+        self.handler = handler
+        self.transport: asyncio.DatagramTransport | None = None
+        self._serving = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+
+    def datagram_received(self, data: bytes, addr: Address) -> None:
+        for out, to in self.handler.receive(data, addr):
+            self._send(out, to)
+        if self.handler.pending and not self._serving:
+            self._serving = True
+            asyncio.get_running_loop().call_soon(self._serve)
+
+    def _serve(self) -> None:
+        """Everything that came in this wake-up is pending: answer it earliest deadline first."""
+        self._serving = False
+        while (out := self.handler.serve()) is not None:
+            self._send(*out)
+
+    def _send(self, data: bytes, addr: Address) -> None:
+        if self.transport is not None:
+            self.transport.sendto(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        self.handler.counters["socket_errors"] += 1
+
+
+async def run(ctx: ServiceContext) -> None:
+    state = CellState()
+    for r in ctx.config.robots:
+        state.add_robot(r.id, 6)
+    handler = Handler(state, time.time_ns)
+    loop = asyncio.get_running_loop()
+    host, port = parse_host_port(ctx.config.snp.listen)
+    transport, _ = await loop.create_datagram_endpoint(lambda: _Endpoint(handler), local_addr=(host, port))
+    try:
+        bus = ctx.bus
+        truth = await bus.subscribe("truth/")
+        plans = await bus.subscribe("plan/")
+        announce = await bus.subscribe("announce/robot/")
+
+        async def follow_truth() -> None:
+            while True:
+                for env in await truth.recv_batch():
+                    m = env.decode(robot_pb2.RobotTruth)
+                    state.observe(m.robot_id, m.t_ns, np.array(m.q), np.array(m.qd), np.array(m.target))
+
+        async def follow_plans() -> None:
+            async for env in plans:
+                p = env.decode(controller_pb2.Plan)
+                n = p.joints
+                pos = np.array(p.positions).reshape(-1, n)
+                vel = np.array(p.velocities).reshape(-1, n)
+                state.set_plan(p.robot_id, np.array(p.t_ns), pos, vel)
+
+        async def follow_robots() -> None:
+            async for env in announce:
+                a = env.decode(robot_pb2.RobotAnnounce)
+                state.add_robot(a.robot_id, a.joints)
+
+        async def report() -> None:
+            while True:
+                ctx.counters.update({k: float(v) for k, v in handler.counters.items()})
+                ctx.counters["service_estimate_us"] = handler.service_ns / 1e3
+                await asyncio.sleep(1.0)
+
+        async with asyncio.TaskGroup() as tg:
+            for f in (follow_truth, follow_plans, follow_robots, report):
+                tg.create_task(f(), name=f"snp-{f.__name__}")
+            ctx.log.info("SnP handler on udp %s:%d", host, port)
+            ctx.ready()
+    finally:
+        transport.close()
+
+
+SERVICE = ServiceSpec(
+    name="snp",
+    run=run,
+    description="SnP-MrT time-bounded query handler, SnP-TSP time sync, PID management (UDP)",
+    ready_on_start=False,
+)

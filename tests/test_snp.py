@@ -1,0 +1,258 @@
+"""SnP packets, the handler (sans IO) and the snp service, byte by byte and end to end."""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import struct
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cell.snp.client import QueryDenied, SnpClient
+from cell.snp.handler import Handler
+from cell.snp.packet import (
+    Cancel,
+    Denial,
+    Denied,
+    ErrorReply,
+    Header,
+    Item,
+    PacketError,
+    PacketType,
+    Pid,
+    PidQuery,
+    PidReply,
+    Quantity,
+    Query,
+    Reply,
+    TimeRequest,
+    TimeResponse,
+    Wanted,
+    crc8,
+    decode,
+    encode,
+    item_id,
+)
+from cell.snp.state import CellState
+from tests.conftest import free_port
+
+
+def crc_bitwise(data: bytes) -> int:
+    """The RMAP CRC the long way: shift register, x^8 + x^2 + x + 1, each byte LSB first."""
+    reg = 0
+    for byte in data:
+        for bit in range(8):
+            inbit = (byte >> bit) & 1
+            top = (reg >> 7) & 1
+            reg = (reg << 1) & 0xFF
+            if top ^ inbit:
+                reg ^= 0x07
+    # the register holds the CRC with its bits reversed (LSB-first convention)
+    return int(f"{reg:08b}"[::-1], 2)
+
+
+def test_crc_vectors() -> None:
+    assert crc8(b"") == 0
+    assert crc8(b"\x01") == 0x91  # by hand: 0x01 -> 0xE0 0x70 0x38 0x1C 0x0E 0x07 0xE3 0x91
+    assert crc_bitwise(b"\x01") == 0x91
+    rng = random.Random(5)
+    for n in (1, 2, 7, 64):
+        data = bytes(rng.randrange(256) for _ in range(n))
+        assert crc8(data) == crc_bitwise(data)
+        assert crc8(data + bytes([crc8(data)])) == 0  # a reflected CRC over data and its CRC is 0
+
+
+def test_a_cancellation_packet_byte_by_byte() -> None:
+    h = Header(destination=0xFE, pid=Pid.MRT, return_address=b"\x05", source_process=1, destination_process=2)
+    got = encode(h, Cancel(7))
+    head = bytes([0xFE, 0xF0, 0x01, 0x05]) + struct.pack("!II", 1, 2)
+    data = bytes([0x00, 0x00, 0x04]) + struct.pack("!I", 7)
+    assert got == head + bytes([crc_bitwise(head)]) + data + bytes([crc_bitwise(data)])
+    pkt = decode(got)
+    assert (
+        pkt.header == h and pkt.body == Cancel(7) and pkt.type == PacketType.TIME_BOUNDED_QUERY_CANCELLATION
+    )
+
+
+def test_every_body_round_trips() -> None:
+    h = Header(1, Pid.MRT, b"", 3, 4)
+    q = Query(9, 10**18, (Item(item_id(1, 1, 0), 0.25, 5),), (Wanted(item_id(1, 2, 5), 6),))
+    assert decode(encode(h, q)).body == q
+    # cargo layout of a query: id, deadline, inputs (count, id, f32, u64), outputs (count, id, u64)
+    cargo = decode(encode(h, q)).raw_cargo
+    assert cargo == struct.pack("!IQIIfQIIQ", 9, 10**18, 1, item_id(1, 1, 0), 0.25, 5, 1, item_id(1, 2, 5), 6)
+    for body in (Reply(9, (Item(1, 2.5, 3),)), Denied(9, Denial.CANCELLED)):
+        assert decode(encode(h, body)).body == body
+    th = Header(1, Pid.TSP)
+    assert decode(encode(th, TimeRequest(5))).body == TimeRequest(5)
+    assert decode(encode(th, TimeResponse(5, 6, 7))).body == TimeResponse(5, 6, 7)
+    ph = Header(1, Pid.PID_MANAGEMENT)
+    assert decode(encode(ph, PidQuery(0xF0), type=PacketType.PID_SUPPORTED_QUERY)).body == PidQuery(0xF0)
+    assert decode(encode(ph, PidReply((0xF0, 0xF1)))).body == PidReply((0xF0, 0xF1))
+
+
+def test_error_paths() -> None:
+    good = bytearray(encode(Header(1, Pid.MRT, b"\x09", 3, 4), Cancel(1)))
+    bad_head = bytearray(good)
+    bad_head[12] ^= 0xFF  # the header CRC
+    with pytest.raises(PacketError) as info:
+        decode(bytes(bad_head))
+    assert info.value.reply is None and info.value.counter == "bad_header_crc"  # dropped: no trusted return
+    bad_data = bytearray(good)
+    bad_data[-1] ^= 0x55
+    with pytest.raises(PacketError) as info:
+        decode(bytes(bad_data))
+    reply = info.value.reply
+    assert reply is not None and reply.type == PacketType.INVALID_DATA_CRC_REPLY
+    assert reply.header.destination_process == 3 and reply.header.source_process == 4  # back to the sender
+    with pytest.raises(PacketError) as info:
+        decode(encode(Header(1, 0x77), Cancel(1), type=PacketType.TIME_BOUNDED_QUERY_CANCELLATION))
+    assert info.value.reply is not None and info.value.reply.type == PacketType.UNKNOWN_PID_REPLY
+    assert info.value.reply.body == ErrorReply(0x77)
+    with pytest.raises(PacketError) as info:
+        decode(encode(Header(1, Pid.MRT), Cancel(1), type=0x0999))
+    assert info.value.reply is not None and info.value.reply.body == ErrorReply(0x0999)
+    # a cargo cut short (with valid CRCs): malformed, dropped
+    head = bytes([1, 0xF0, 0]) + struct.pack("!II", 0, 0)
+    data = bytes([0, 0, 1]) + b"\x00\x00"
+    with pytest.raises(PacketError) as info:
+        decode(head + bytes([crc8(head)]) + data + bytes([crc8(data)]))
+    assert info.value.reply is None and info.value.counter == "malformed"
+
+
+@settings(max_examples=500)
+@given(st.binary(max_size=80))
+def test_no_datagram_makes_decode_fail_another_way(data: bytes) -> None:
+    try:
+        decode(data)
+    except PacketError:
+        pass
+
+
+# --- the handler, sans IO ----------------------------------------------------------------------------
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 10**18
+
+    def __call__(self) -> int:
+        return self.t
+
+
+def state_with_history(clock: Clock) -> CellState:
+    st = CellState(offset_ns=0)
+    st.add_robot(1, 6)
+    for k in range(11):  # 1 rad/s on joint 0 for 100 ms, sampled every 10 ms
+        t = clock.t - 100_000_000 + k * 10_000_000
+        q = np.zeros(6)
+        q[0] = k * 0.01
+        qd = np.zeros(6)
+        qd[0] = 1.0
+        st.observe(1, t, q, qd, qd)
+    return st
+
+
+def ask(handler: Handler, body: object, pid: int = Pid.MRT, type: int | None = None) -> list:
+    out = handler.receive(encode(Header(1, pid, b"", 7, 0), body, type=type), ("peer", 1))  # type: ignore[arg-type]
+    return [decode(d).body for d, _ in out]
+
+
+def test_queries_past_and_future_values_denials_and_edf() -> None:
+    clock = Clock()
+    h = Handler(state_with_history(clock), clock)
+    pos = item_id(1, Quantity.POSITION, 0)
+    now = clock.t
+    assert (
+        ask(h, Query(1, now + 10**7, (), (Wanted(pos, now - 55_000_000), Wanted(pos, now + 20_000_000))))
+        == []
+    )
+    (data, to) = h.serve()  # type: ignore[misc]
+    reply = decode(data).body
+    assert isinstance(reply, Reply) and to == ("peer", 1)
+    past, future = reply.items
+    assert past.value == pytest.approx(0.045, abs=1e-6)  # interpolated from the history
+    assert future.value == pytest.approx(0.1 + 0.02, abs=1e-6)  # extrapolated: 1 rad/s for 20 ms
+    # denials: unknown output item, unknown input item, a deadline that cannot be met
+    assert ask(h, Query(2, now + 10**7, (), (Wanted(item_id(9, 1, 0), now),))) == [
+        Denied(2, Denial.UNKNOWN_OUTPUT_ITEM)
+    ]
+    assert ask(h, Query(3, now + 10**7, (Item(item_id(1, 9, 0), 0.0, now),), ())) == [
+        Denied(3, Denial.UNKNOWN_INPUT_ITEM)
+    ]
+    assert ask(h, Query(4, now + 1000, (), (Wanted(pos, now),))) == [Denied(4, Denial.DEADLINE_CANNOT_BE_MET)]
+    # earliest deadline first, and a cancellation takes a pending query back
+    for qid, dl in ((10, now + 9 * 10**6), (11, now + 3 * 10**6), (12, now + 6 * 10**6)):
+        assert ask(h, Query(qid, dl, (), (Wanted(pos, now),))) == []
+    assert ask(h, Cancel(12)) == [Denied(12, Denial.CANCELLED)]
+    order = []
+    while (out := h.serve()) is not None:
+        order.append(decode(out[0]).body.query_id)  # type: ignore[union-attr]
+    assert order == [11, 10]
+    # one whose deadline passed while it waited is denied when its turn comes
+    assert ask(h, Query(13, now + 5 * 10**6, (), (Wanted(pos, now),))) == []
+    clock.t += 10 * 10**6
+    (data, _) = h.serve()  # type: ignore[misc]
+    assert decode(data).body == Denied(13, Denial.DEADLINE_CANNOT_BE_MET)
+    assert h.counters["denied.deadline_cannot_be_met"] == 2 and h.counters["cancelled"] == 1
+
+
+def test_time_and_pid_requests() -> None:
+    clock = Clock()
+    h = Handler(state_with_history(clock), clock)
+    assert ask(h, TimeRequest(123), pid=Pid.TSP) == [TimeResponse(123, clock.t, clock.t)]
+    assert ask(h, PidQuery(0), pid=Pid.PID_MANAGEMENT, type=PacketType.PID_LIST_QUERY) == [
+        PidReply((0xF0, 0xF1, 0xF2))
+    ]
+    assert ask(h, PidQuery(0xF1), pid=Pid.PID_MANAGEMENT, type=PacketType.PID_SUPPORTED_QUERY) == [
+        PidReply((0xF1,))
+    ]
+    assert ask(h, PidQuery(0x42), pid=Pid.PID_MANAGEMENT, type=PacketType.PID_SUPPORTED_QUERY) == [
+        PidReply(())
+    ]
+    # a valid packet the handler does not take (a reply) is answered as an unknown type
+    assert ask(h, Reply(1, ())) == [ErrorReply(PacketType.TIME_BOUNDED_QUERY_REPLY)]
+
+
+# --- the service ---------------------------------------------------------------------------------------
+
+
+async def test_the_snp_service_answers_about_a_moving_robot(start_cell) -> None:
+    robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "kinematic", "truth_hz": 100}]
+    cell = await start_cell(run=["bus", "dataplane", "robots", "controller", "snp"], robots=robots)
+    host, port = cell.config.snp.listen.split(":")
+    async with SnpClient((host, int(port))) as snp:
+        offset, delay = await snp.sync_time()
+        assert abs(offset) < 2_000_000 and 0 < delay < 10_000_000  # one host: the clocks agree
+        assert set(await snp.pids()) == {0xF0, 0xF1, 0xF2} and await snp.supports(0xF1)
+        pos = item_id(1, Quantity.POSITION, 1)
+        async with asyncio.timeout(10):
+            while True:  # until the handler has heard the robot's truth
+                try:
+                    got = await snp.query([(pos, snp.now() - 20_000_000)], deadline=snp.now() + 20_000_000)
+                    break
+                except QueryDenied:
+                    await asyncio.sleep(0.05)
+        assert got[pos].value == pytest.approx(-1.5708, abs=1e-3)
+        with pytest.raises(QueryDenied) as info:
+            await snp.query([(item_id(7, 1, 0), snp.now())])
+        assert info.value.explanation == Denial.UNKNOWN_OUTPUT_ITEM
+        # junk of every kind does not stop it
+        sock_junk = [b"", b"\x00", bytes(range(40)), encode(Header(1, 0x33), Cancel(1), type=4)]
+        for j in sock_junk:
+            snp._transport.sendto(j)  # type: ignore[union-attr]
+        # many queries under load: every one answered before its deadline or denied
+        answered = denied = 0
+        for _ in range(300):
+            try:
+                t0 = time.time_ns()
+                await snp.query([(pos, snp.now())], deadline=snp.now() + 3_000_000)
+                assert time.time_ns() - t0 < 3_000_000 + 2_000_000
+                answered += 1
+            except QueryDenied:
+                denied += 1
+        assert answered > 250, (answered, denied)
