@@ -145,6 +145,16 @@ def _cmd_bench_skills(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_snp(args: argparse.Namespace) -> int:
+    from cell.bench import snp
+
+    result = snp.run(args.slaves, args.seconds, int(args.budget_us * 1000))
+    print(snp.format_result(result))
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cell",
@@ -235,6 +245,14 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--messages", type=int, default=2000, help="messages per figure (default 2000)")
     q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
     q.set_defaults(func=_cmd_bench_skills)
+    q = bsub.add_parser("snp", help="the modular-robot cycle over SnP-MrT: cycle time and deadline misses")
+    q.add_argument("--slaves", type=int, default=6, help="joint modules, one process each (default 6)")
+    q.add_argument("--seconds", type=float, default=3.0, help="length of each trial (default 3)")
+    q.add_argument(
+        "--budget-us", type=float, default=1000.0, help="each query's deadline after T1 (default 1000)"
+    )
+    q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
+    q.set_defaults(func=_cmd_bench_snp)
     return parser
 
 

@@ -255,3 +255,15 @@ async def test_the_snp_service_answers_about_a_moving_robot(start_cell) -> None:
             except QueryDenied:
                 denied += 1
         assert answered > 250, (answered, denied)
+
+
+def test_the_modular_robot_cycle_runs_and_accounts_for_every_query() -> None:
+    from cell.bench.snp import trial
+
+    r = trial(slaves=2, seconds=0.5, budget_ns=1_000_000)
+    assert r["cycles"] == 2 * 500  # every cycle of every slave ran (a miss uses a guess, never stops it)
+    m = r["master"]
+    assert m["queries"] == 2 * r["cycles"]  # two queries a cycle, none retried
+    denied = sum(v for k, v in m.items() if k.startswith("denied."))
+    assert m["replies"] + denied == m["queries"]  # each answered or denied
+    assert 0 <= r["miss_rate"] <= 1 and r["sync_offset_us_max"] < 1000  # one host: the true offset is 0
