@@ -6,12 +6,13 @@ import argparse
 import json
 import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from google.protobuf import json_format
 
 from cell import __version__, aio
-from cell.config import ConfigError, load_config
+from cell.config import CellConfig, ConfigError, load_config
 
 EXIT_CONFIG = 2
 
@@ -30,10 +31,24 @@ def _cmd_up(args: argparse.Namespace) -> int:
     from cell.services import load_all
 
     config = load_config(args.config)
+    if args.rerun:
+        config = _with_rerun(config, args.rerun)
     load_all(config)  # unknown services are config errors (exit 2), before anything starts
     return aio.run(
         launcher.up(config, duration=args.duration, processes=args.processes, log_level=args.log_level)
     )
+
+
+def _with_rerun(config: CellConfig, words: list[str]) -> CellConfig:
+    """`--rerun spawn | serve | save PATH.rrd | off`: the recorder's mode for this run."""
+    mode, *rest = words
+    if mode not in ("spawn", "serve", "save", "off") or len(rest) != (1 if mode == "save" else 0):
+        raise ConfigError("--rerun", "", "expected spawn, serve, save PATH.rrd or off")
+    recorder = replace(config.recorder, mode=mode, path=rest[0] if rest else config.recorder.path)
+    run = config.services.run
+    if mode != "off" and "recorder" not in run:
+        run = [*run, "recorder"]
+    return replace(config, recorder=recorder, services=replace(config.services, run=run))
 
 
 def _cmd_service(args: argparse.Namespace) -> int:
@@ -171,6 +186,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, metavar="S", help="stop cleanly after S seconds")
     p.add_argument(
         "--processes", action="store_true", help="one OS process per service (default: one process)"
+    )
+    p.add_argument(
+        "--rerun",
+        nargs="+",
+        metavar="MODE",
+        help="draw the run in Rerun: spawn (local viewer), serve (web viewer on 127.0.0.1), "
+        "save PATH.rrd, or off (default: [recorder] mode)",
     )
     p.set_defaults(func=_cmd_up)
 

@@ -175,6 +175,13 @@ class SkillsConfig:
 
 
 @dataclass(frozen=True)
+class RecorderConfig:
+    mode: Literal["off", "save", "serve", "spawn"]
+    path: str
+    hz: float = _check(lambda v: None if 0 < v <= 500 else f"must be in (0, 500] (got {v})")
+
+
+@dataclass(frozen=True)
 class SnpConfig:
     listen: str = _check(_host_port)
 
@@ -222,6 +229,7 @@ class CellConfig:
     dataplane: DataplaneConfig
     controller: ControllerConfig
     skills: SkillsConfig
+    recorder: RecorderConfig
     snp: SnpConfig
     robot_defaults: RobotDefaults
     robots: list[RobotConfig]

@@ -20,6 +20,7 @@ BUILTIN: dict[str, str] = {
     "controller": "cell.services.controller",
     "skills": "cell.services.skills",
     "snp": "cell.services.snp",
+    "recorder": "cell.services.recorder",
 }
 
 

@@ -104,6 +104,17 @@ class ControllerService:
             raise RpcFault("bad_request", f"speed must be in (0, 100] %, got {req.moves[0].speed}")
         return await self._guard(self.ctl.move_together(goals, speed))
 
+    async def replan(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
+        """Switch a moving robot onto a new joint motion on the fly (TrajectorySwitcher); replies
+        when the new motion has ended."""
+        rid = self._robot(req.robot)
+        track = self.ctl.track(rid)
+        values = np.array(req.values, np.float64)
+        if req.kind != Kind.JOINTS or values.size != track.joints or not np.isfinite(values).all():
+            raise RpcFault("bad_request", f"{track.joints} finite joint positions (rad) expected")
+        speed = (req.speed or 100.0) / 100.0
+        return await self._guard(self.ctl.replan(rid, values, speed))
+
     async def _start(self, track: Track) -> np.ndarray:
         try:
             return await self.ctl.start_q(track)
@@ -159,6 +170,7 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
             "resume": (controller_pb2.RobotRequest, svc.resume),
             "pose": (controller_pb2.RobotRequest, svc.pose),
             "arrive": (controller_pb2.ArriveRequest, svc.arrive),
+            "replan": (controller_pb2.MoveRequest, svc.replan),
             "move_together": (controller_pb2.MoveTogetherRequest, svc.move_together),
         },
     )

@@ -1,0 +1,265 @@
+"""Service `recorder`: the cell's bus, drawn in Rerun, live or into an .rrd file.
+
+- 3D: every robot from its MJCF geometry with a pose per link from ground
+  truth; the tool's path; the plan's trajectory points as markers, the one
+  the robot is heading for highlighted.
+- Time series per robot and joint: actual vs planned position, actual vs
+  commanded velocity, tracking error.
+- Data plane: batch time p50/p99, packets/s, drops by reason, resubmits, TPs
+  loaded.
+- Events as text logs (robots, services, runs, SnP and skill errors); skill
+  commands as spans (a step series per robot: the run reads as a Gantt chart).
+One timeline, `cell_time`: the cell clock (this host's CLOCK_REALTIME).
+Ground truth is drawn at [recorder] hz at most, so that the recorder never
+holds up the packet path; it measures its own time per second (busy_ms_per_s).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+from cell.bus import Subscription
+from cell.recorder.scene import ArmDrawer
+from cell.robot.arm import arm_model
+from cell.service import ServiceContext, ServiceSpec
+from cell.snp.state import realtime_offset_ns
+from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2
+
+PATH_POINTS = 600  # tool path points kept per robot
+SPACING = 1.2  # m between robots' bases in the 3D view
+
+
+class Recorder:
+    def __init__(self, ctx: ServiceContext, rec: rr.RecordingStream) -> None:
+        self.ctx, self.rec = ctx, rec
+        cfg = ctx.config
+        self.min_dt = int(1e9 / cfg.recorder.hz)
+        self.offset = realtime_offset_ns()
+        arm = arm_model()
+        n = len(cfg.robots)
+        self.names = {r.id: r.name for r in cfg.robots}
+        self.drawers = {
+            r.id: ArmDrawer(arm, r.name, (0.0, (i - (n - 1) / 2) * SPACING, 0.0))
+            for i, r in enumerate(cfg.robots)
+        }
+        self.last_drawn: dict[int, int] = {}
+        self.paths: dict[int, deque[np.ndarray]] = {rid: deque(maxlen=PATH_POINTS) for rid in self.names}
+        self.plans: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.last_counters: tuple[int, float] | None = None
+        self.busy_ns = 0
+        self.logged = 0
+
+    def at(self, t_mono_ns: int) -> None:
+        self.rec.set_time("cell_time", timestamp=(t_mono_ns + self.offset) / 1e9)
+
+    def start(self) -> None:
+        for d in self.drawers.values():
+            d.log_static(self.rec)
+        self.rec.log("events", rr.TextLog("recorder started", level="INFO"), static=False)
+
+    # --- ground truth ---------------------------------------------------------------------------
+
+    def truth(self, m: robot_pb2.RobotTruth) -> None:
+        rid = m.robot_id
+        drawer = self.drawers.get(rid)
+        if drawer is None or m.t_ns - self.last_drawn.get(rid, 0) < self.min_dt:
+            return
+        self.last_drawn[rid] = m.t_ns
+        name = self.names[rid]
+        q = np.array(m.q)
+        self.at(m.t_ns)
+        rec = self.rec
+        for entity, pos, quat in drawer.poses(q):
+            rec.log(entity, rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=quat)))
+        tool = np.array(m.tool_pose[:3])
+        self.paths[rid].append(tool)
+        rec.log(f"robots/{name}/tool_path", rr.LineStrips3D([np.array(self.paths[rid])]))
+        plan = self.plans.get(rid)
+        qd, target = np.array(m.qd), np.array(m.target)
+        for j in range(q.size):
+            rec.log(f"joints/{name}/position/j{j + 1}/actual", rr.Scalars(q[j]))
+            rec.log(f"joints/{name}/velocity/j{j + 1}/actual", rr.Scalars(qd[j]))
+            rec.log(f"joints/{name}/velocity/j{j + 1}/commanded", rr.Scalars(target[j]))
+        if plan is not None:
+            t, pq, _ = plan
+            if t[0] <= m.t_ns <= t[-1] + 2_000_000_000:
+                planned = np.array([np.interp(m.t_ns, t, pq[:, j]) for j in range(q.size)])
+                for j in range(q.size):
+                    rec.log(f"joints/{name}/position/j{j + 1}/planned", rr.Scalars(planned[j]))
+                    rec.log(f"joints/{name}/tracking_error/j{j + 1}", rr.Scalars(q[j] - planned[j]))
+                k = int(np.searchsorted(t, m.t_ns))
+                if k < len(t):
+                    active = drawer.arm.fk(pq[k])[0]
+                    rec.log(
+                        f"robots/{name}/active_tp", rr.Points3D([active], radii=0.012, colors=[255, 80, 0])
+                    )
+        self.logged += 1
+
+    def plan(self, p: controller_pb2.Plan) -> None:
+        if p.robot_id not in self.drawers or not p.t_ns:
+            return
+        t = np.array(p.t_ns)
+        q = np.array(p.positions).reshape(-1, p.joints)
+        v = np.array(p.velocities).reshape(-1, p.joints)
+        self.plans[p.robot_id] = (t, q, v)
+        arm = self.drawers[p.robot_id].arm
+        points = [arm.fk(qi)[0] for qi in q]
+        self.at(int(t[0]))
+        name = self.names[p.robot_id]
+        self.rec.log(f"robots/{name}/tps", rr.Points3D(points, radii=0.006, colors=[60, 160, 255]))
+        self.rec.log("events", rr.TextLog(f"{name}: a plan of {len(t)} TPs loaded", level="INFO"))
+
+    # --- the data plane -----------------------------------------------------------------------------
+
+    def dataplane(self, st: dataplane_pb2.DataplaneState, t_mono_ns: int) -> None:
+        c = st.counters
+        self.at(t_mono_ns)
+        rec = self.rec
+        for key in ("batch_p50_us", "batch_p99_us", "resubmits", "tps_loaded", "stalls", "holds"):
+            if key in c:
+                rec.log(f"dataplane/{key}", rr.Scalars(c[key]))
+        for key, value in c.items():
+            if key.startswith("rejected."):
+                rec.log(f"dataplane/drops/{key.removeprefix('rejected.')}", rr.Scalars(value))
+        packets = c.get("packets_in", 0.0)
+        if self.last_counters is not None:
+            t0, p0 = self.last_counters
+            dt = (t_mono_ns - t0) / 1e9
+            if dt > 0:
+                rec.log("dataplane/packets_per_s", rr.Scalars((packets - p0) / dt))
+        self.last_counters = (t_mono_ns, packets)
+
+    # --- events and skill commands --------------------------------------------------------------------
+
+    def text(self, t_mono_ns: int, text: str, level: str = "INFO") -> None:
+        self.at(t_mono_ns)
+        self.rec.log("events", rr.TextLog(text, level=level))
+
+    def skill(self, tr: skills_pb2.SkillTrace) -> None:
+        entity = f"skills/{tr.robot}/busy"
+        self.at(tr.started_ns)
+        self.rec.log(entity, rr.Scalars(1.0))
+        self.at(tr.answered_ns)
+        self.rec.log(entity, rr.Scalars(0.0))
+        took = (tr.answered_ns - tr.started_ns) / 1e6
+        level = "INFO" if tr.status == "done" else "WARN"
+        what = (
+            f"{tr.robot}: {tr.id}:{tr.skill} {tr.status}{(' ' + tr.code) if tr.code else ''} in {took:.1f} ms"
+        )
+        self.rec.log(f"skills/{tr.robot}/log", rr.TextLog(what, level=level))
+
+
+def open_recording(mode: str, path: str, name: str) -> rr.RecordingStream:
+    rec = rr.RecordingStream(application_id=f"cell-{name}")
+    if mode == "save":
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        rec.save(path)
+    elif mode == "serve":
+        url = rec.serve_grpc()
+        rr.serve_web_viewer(connect_to=url, open_browser=False)
+    elif mode == "spawn":
+        rec.spawn()
+    return rec
+
+
+async def _each(sub: Subscription, handle) -> None:
+    while True:
+        for env in await sub.recv_batch():
+            handle(env)
+
+
+async def run(ctx: ServiceContext) -> None:
+    cfg = ctx.config.recorder
+    if cfg.mode == "off":
+        ctx.ready()
+        await asyncio.Event().wait()
+    rec = open_recording(cfg.mode, cfg.path, ctx.config.cell.name)
+    r = Recorder(ctx, rec)
+    r.start()
+    bus = ctx.bus
+    subs = {
+        "truth": await bus.subscribe("truth/"),
+        "plan": await bus.subscribe("plan/"),
+        "dataplane": await bus.subscribe("dataplane/counters"),
+        "events": await bus.subscribe("events/", "run/events", "skills/"),
+    }
+
+    def timed(fn):
+        def wrapper(env) -> None:
+            t0 = time.perf_counter_ns()
+            try:
+                fn(env)
+            finally:
+                r.busy_ns += time.perf_counter_ns() - t0
+
+        return wrapper
+
+    @timed
+    def on_event(env) -> None:
+        topic = env.topic
+        if topic.startswith("skills/") and topic.endswith("/trace"):
+            r.skill(env.decode(skills_pb2.SkillTrace))
+        elif topic.startswith("skills/") and topic.endswith("/air"):
+            a = env.decode(skills_pb2.AirState)
+            r.text(a.t_ns, f"{a.robot}: vacuum {'on' if a.on else 'off'}")
+        elif topic == "run/events":
+            e = env.decode(skills_pb2.RunEvent)
+            r.text(
+                e.t_ns,
+                f"task script {e.script}: {e.state} {e.text}".strip(),
+                "ERROR" if e.state == "failed" else "INFO",
+            )
+        elif topic.startswith("events/robot/"):
+            e = env.decode(robot_pb2.RobotEvent)
+            r.text(e.t_ns, f"{e.name}: {robot_pb2.RobotEvent.Kind.Name(e.kind)} {e.text}", "WARN")
+        elif topic.startswith("events/service/"):
+            e = env.decode(health_pb2.ServiceEvent)
+            r.text(
+                time.monotonic_ns(),
+                f"service {e.service}: {health_pb2.ServiceEvent.Kind.Name(e.kind)} {e.text}",
+                "WARN",
+            )
+
+    if cfg.mode == "serve":
+        ctx.log.info("Rerun web viewer: http://127.0.0.1:9090 (gRPC on 127.0.0.1:9876)")
+    elif cfg.mode == "save":
+        ctx.log.info("recording to %s", cfg.path)
+
+    async def report() -> None:
+        last = 0
+        while True:
+            await asyncio.sleep(1.0)
+            ctx.counters["busy_ms_per_s"] = (r.busy_ns - last) / 1e6
+            ctx.counters["truth_logged"] = r.logged
+            last = r.busy_ns
+
+    try:
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(_each(subs["truth"], timed(lambda env: r.truth(env.decode(robot_pb2.RobotTruth)))))
+            tg.create_task(_each(subs["plan"], timed(lambda env: r.plan(env.decode(controller_pb2.Plan)))))
+            tg.create_task(
+                _each(
+                    subs["dataplane"],
+                    timed(lambda env: r.dataplane(env.decode(dataplane_pb2.DataplaneState), env.sent_ns)),
+                )
+            )
+            tg.create_task(_each(subs["events"], on_event))
+            tg.create_task(report())
+            ctx.ready()
+    finally:
+        rec.flush()
+        rec.disconnect()
+
+
+SERVICE = ServiceSpec(
+    name="recorder",
+    run=run,
+    description="draws the cell in Rerun (live viewer, web viewer, or an .rrd file)",
+    ready_on_start=False,
+)
