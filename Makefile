@@ -22,7 +22,7 @@ $(STAMP_TEST): pyproject.toml | $(BIN)/python
 	touch $@ $(STAMP_RUN)
 
 demo: $(STAMP_RUN)
-	$(BIN)/cell up --duration 8
+	$(BIN)/cell demo
 
 test: $(STAMP_TEST)
 	$(BIN)/ruff check cell services tests examples

@@ -17,7 +17,7 @@ import rerun as rr
 
 from cell.robot.arm import ArmModel
 
-_ROUND = (mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_CYLINDER)
+_ROUND = (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER))
 
 
 @dataclass(frozen=True)
@@ -36,10 +36,7 @@ def link_geometry(arm: ArmModel) -> list[LinkGeometry]:
     for b in range(1, m.nbody):
         lengths, radii, trans, quats, colors = [], [], [], [], []
         for g in range(m.ngeom):
-            if m.geom_bodyid[g] != b or m.geom_type[g] not in (
-                mujoco.mjtGeom.mjGEOM_CAPSULE,
-                mujoco.mjtGeom.mjGEOM_CYLINDER,
-            ):
+            if m.geom_bodyid[g] != b or int(m.geom_type[g]) not in _ROUND:
                 continue
             radius, half = float(m.geom_size[g][0]), float(m.geom_size[g][1])
             w, x, y, z = (float(v) for v in m.geom_quat[g])

@@ -1,0 +1,186 @@
+"""The default cell's main job (`make demo`, `cell demo`): the product end to end, in about a minute.
+
+On the embedded two-robot cell, recorded to runs/<timestamp>.rrd:
+1. r1 and r2 start one motion at the same instant (a shared start time);
+2. both do pick-and-place style moves through their skill servers at once;
+3. r1 is switched onto another trajectory on the fly (TrajectorySwitcher);
+4. r2 is stopped (protective stop) in the middle of a motion, then resumes;
+5. a few SnP time-bounded queries about where the robots are and will be;
+then a summary: moves done, path and stop accuracy, the data plane's figures,
+packets, drops, denials.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from typing import Any
+
+import numpy as np
+
+from cell.robot.arm import arm_model
+from cell.skills.client import DisableAir, EnableAir, MoveJoints, MoveRelWorld, MoveToolZ, SetSpeed
+from cell.snp.client import DeadlineMissed, QueryDenied, SnpClient
+from cell.snp.packet import Quantity, item_id
+from cell.v1 import controller_pb2, health_pb2, robot_pb2
+
+HOME = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]  # deg
+M = controller_pb2.MoveRequest
+
+
+class Watch:
+    """Ground truth and plans as they come, for the accuracy figures."""
+
+    def __init__(self) -> None:
+        self.truth: dict[int, list[tuple[int, np.ndarray]]] = {}
+        self.plans: list[tuple[int, np.ndarray, np.ndarray]] = []
+
+    async def run(self, cell: Any) -> None:
+        sub = await cell.bus.subscribe("truth/", "plan/")
+        async for env in sub:
+            if env.topic.startswith("truth/"):
+                m = env.decode(robot_pb2.RobotTruth)
+                self.truth.setdefault(m.robot_id, []).append((m.t_ns, np.array(m.q)))
+            else:
+                p = env.decode(controller_pb2.Plan)
+                self.plans.append((p.robot_id, np.array(p.t_ns), np.array(p.positions).reshape(-1, p.joints)))
+
+    def path_errors_mm(self) -> np.ndarray:
+        """The tool's distance from the plan at each planned point's time (mm); a plan counts only
+        until the robot's next plan (a switch or a stop replaces the rest of it)."""
+        arm = arm_model()
+        out = []
+        for k, (rid, t, q) in enumerate(self.plans):
+            later = [p[1][0] for p in self.plans[k + 1 :] if p[0] == rid]
+            until = min(later) if later else np.inf
+            samples = self.truth.get(rid, [])
+            if len(samples) < 2:
+                continue
+            ts = np.array([s[0] for s in samples], np.float64)
+            qs = np.array([s[1] for s in samples])
+            for ti, qi in zip(t[1:], q[1:], strict=True):  # the first point is where it started
+                if not ts[0] <= ti <= min(ts[-1], until):
+                    continue
+                real = np.array([np.interp(ti, ts, qs[:, j]) for j in range(qs.shape[1])])
+                out.append(np.linalg.norm(arm.fk(real)[0] - arm.fk(qi)[0]) * 1000)
+        return np.array(out)
+
+
+async def ask(cell: Any, method: str, req: Any, reply_type: Any, timeout: float = 60.0) -> Any:
+    """A request to the controller service."""
+    return await cell.request("controller", method, req, reply_type, timeout)
+
+
+async def main(cell: Any) -> None:
+    t0 = time.monotonic()
+    watch = Watch()
+    watcher = asyncio.create_task(watch.run(cell))
+    await asyncio.sleep(0.2)
+    r1, r2 = cell.robot("r1"), cell.robot("r2")
+    moves = 0
+
+    def count(acks: list) -> None:
+        nonlocal moves
+        moves += sum(1 for a in acks if a.skill.startswith("move"))
+
+    print("1. r1 and r2 start together (one start time for both)")
+    out = [HOME[0] + 25.0, HOME[1] - 10.0, HOME[2] + 10.0, *HOME[3:]]
+    await cell.move_together({"r1": out, "r2": out}, speed=70)
+    await cell.move_together({"r1": HOME, "r2": HOME}, speed=70)
+    moves += 4
+
+    print("2. pick and place through the skill servers, both robots at once")
+
+    async def pick_place(robot: Any, dx: float) -> list:
+        acks = await robot.cmdexec(SetSpeed(80), MoveRelWorld(x=dx))
+        acks += await robot.cmdexec(MoveToolZ(50.0), EnableAir(), MoveToolZ(-50.0))
+        acks += await robot.cmdexec(SetSpeed(80), MoveRelWorld(y=80.0))
+        acks += await robot.cmdexec(MoveToolZ(50.0), DisableAir(), MoveToolZ(-50.0))
+        acks += await robot.cmdexec(MoveJoints(joints=tuple(HOME)))
+        return acks
+
+    for acks in await asyncio.gather(pick_place(r1, 80.0), pick_place(r2, -80.0)):
+        count(acks)
+
+    print("3. r1 switches to another trajectory on the fly")
+    far = [HOME[0] + 60.0, HOME[1] - 20.0, HOME[2] + 20.0, *HOME[3:]]
+    new = [HOME[0] - 30.0, HOME[1] - 10.0, HOME[2] + 15.0, *HOME[3:]]
+    far_req = M(robot="r1", values=np.radians(far).tolist(), speed=40)
+    first = asyncio.create_task(ask(cell, "move", far_req, controller_pb2.MoveReply))
+    await asyncio.sleep(1.0)
+    await ask(
+        cell, "replan", M(robot="r1", values=np.radians(new).tolist(), speed=60), controller_pb2.MoveReply
+    )
+    with contextlib.suppress(Exception):  # the first motion's caller learns it was replaced
+        await first
+    moves += 2
+
+    print("4. r2 is stopped in the middle of a motion, then resumes it")
+    long = [HOME[0] - 60.0, HOME[1] - 15.0, HOME[2] + 20.0, *HOME[3:]]
+    moving = asyncio.create_task(r2.cmdexec(SetSpeed(30), MoveJoints(joints=tuple(long))))
+    await asyncio.sleep(1.5)
+    t_stop = time.monotonic_ns()
+    stopped = await ask(cell, "stop", controller_pb2.StopRequest(robots=["r2"]), controller_pb2.StopReply)
+    stop_latency_ms = (stopped.t_ns - t_stop) / 1e6  # the data plane's clock is this host's monotonic
+    with contextlib.suppress(Exception):
+        await moving  # its break is answered with an error: the robot was stopped
+    await asyncio.sleep(0.5)
+    await ask(cell, "resume", controller_pb2.RobotRequest(robot="r2"), controller_pb2.MoveReply)
+    moves += 2
+    for acks in await asyncio.gather(*(r.cmdexec(MoveJoints(joints=tuple(HOME))) for r in (r1, r2))):
+        count(acks)
+    # how close each robot came to rest on its goal, after the P term's settling
+    await asyncio.sleep(2.0)
+    stop_errors = []
+    for name in ("r1", "r2"):
+        here = await ask(cell, "pose", controller_pb2.RobotRequest(robot=name), controller_pb2.PoseReply)
+        stop_errors.append(float(np.abs(np.array(here.joints) - np.radians(HOME)).max()))
+
+    print("5. SnP time-bounded queries")
+    host, port = cell.config.snp.listen.rsplit(":", 1)
+    answered = denied = missed = 0
+    async with SnpClient((host, int(port))) as snp:
+        await snp.sync_time()
+        for _ in range(20):
+            for rid in (1, 2):
+                pos = item_id(rid, Quantity.POSITION, 0)
+                now = snp.now()
+                try:
+                    await snp.query([(pos, now), (pos, now + 50_000_000)], deadline=now + 5_000_000)
+                    answered += 1
+                except QueryDenied:
+                    denied += 1
+                except DeadlineMissed:
+                    missed += 1
+        try:  # one that is denied: an item no robot has
+            await snp.query([(item_id(9, Quantity.POSITION, 0), snp.now())])
+        except QueryDenied:
+            denied += 1
+
+    watcher.cancel()
+    status = await cell.request("cell", "status", health_pb2.StatusRequest(), health_pb2.CellStatus, 5)
+    dp = {k: float(v) for s in status.services if s.name == "dataplane" for k, v in s.last.counters.items()}
+
+    def c(key: str) -> float:
+        return dp.get(key, 0.0)
+
+    path = watch.path_errors_mm()
+    path_text = f"{path.max():.2f} / {np.median(path):.2f} mm" if path.size else "-"
+    drops = f"{c('rejected.length'):.0f}, {c('rejected.kind'):.0f}, {c('rejected.joint'):.0f}"
+    rows = [
+        ("moves done", f"{moves} (one switched on the fly, one stopped and resumed)"),
+        ("tool path error at TPs, max / median", path_text),
+        ("stop error (joints at rest vs goal)", f"{max(stop_errors):.1e} rad"),
+        ("stop in effect after the request", f"{stop_latency_ms:.1f} ms"),
+        ("data plane batch time p50 / p99", f"{c('batch_p50_us'):.0f} / {c('batch_p99_us'):.0f} us"),
+        ("status packets in / commands out", f"{c('packets_in'):,.0f} / {c('commands_out'):,.0f}"),
+        ("drops (length, kind, joint)", drops),
+        ("TP steps / resubmits / stalls", f"{c('steps'):.0f} / {c('resubmits'):.0f} / {c('stalls'):.0f}"),
+        ("SnP queries answered / denied / missed", f"{answered} / {denied} / {missed}"),
+        ("run time", f"{time.monotonic() - t0:.1f} s"),
+    ]
+    width = max(len(k) for k, _ in rows)
+    print("\nsummary")
+    for k, v in rows:
+        print(f"  {k:<{width}}  {v}")
