@@ -187,7 +187,7 @@ async def run(ctx: ServiceContext) -> None:
         "truth": await bus.subscribe("truth/"),
         "plan": await bus.subscribe("plan/"),
         "dataplane": await bus.subscribe("dataplane/counters"),
-        "events": await bus.subscribe("events/", "run/events", "skills/"),
+        "events": await bus.subscribe("events/", "run/events", "skills/", "announce/robot/"),
     }
 
     def timed(fn):
@@ -199,6 +199,8 @@ async def run(ctx: ServiceContext) -> None:
                 r.busy_ns += time.perf_counter_ns() - t0
 
         return wrapper
+
+    joined: set[int] = set()
 
     @timed
     def on_event(env) -> None:
@@ -215,6 +217,13 @@ async def run(ctx: ServiceContext) -> None:
                 f"task script {e.script}: {e.state} {e.text}".strip(),
                 "ERROR" if e.state == "failed" else "INFO",
             )
+        elif topic.startswith("announce/robot/"):
+            a = env.decode(robot_pb2.RobotAnnounce)
+            if a.robot_id not in joined:
+                joined.add(a.robot_id)
+                r.text(
+                    env.sent_ns, f"robot {a.name} (id {a.robot_id}, {a.backend}) joined at {a.udp_address}"
+                )
         elif topic.startswith("events/robot/"):
             e = env.decode(robot_pb2.RobotEvent)
             r.text(e.t_ns, f"{e.name}: {robot_pb2.RobotEvent.Kind.Name(e.kind)} {e.text}", "WARN")
