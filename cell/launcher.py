@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
+import signal
+import subprocess
 import sys
 import time
+from collections.abc import AsyncIterator
 from dataclasses import replace
+from pathlib import Path
 
 from cell.aio import stop_on_signals, stop_on_stdin_eof
 from cell.bus import Bus, BusError
@@ -111,3 +116,34 @@ async def fetch_status(config: CellConfig, timeout: float = 2.0) -> health_pb2.C
         )
     assert isinstance(reply, health_pb2.CellStatus)
     return reply
+
+
+@contextlib.asynccontextmanager
+async def child_cell(config_path: Path | None, config: CellConfig) -> AsyncIterator[None]:
+    """`cell up` in a child process, healthy when the block starts, stopped when it ends (for
+    `cell run --up`, `cell demo` and benchmarks)."""
+    cmd = [sys.executable, "-m", "cell", "--log-level", "WARNING", "up"]
+    if config_path is not None:
+        cmd += ["--config", str(config_path)]
+    proc = await asyncio.create_subprocess_exec(*cmd, stdin=subprocess.DEVNULL, env=dict(os.environ))
+    try:
+        want = set(config.services.run)
+        async with asyncio.timeout(60):
+            while True:
+                with contextlib.suppress(BusError):
+                    st = await fetch_status(config, timeout=1.0)
+                    if want <= {s.name for s in st.services if s.health == "ok"}:
+                        break
+                if proc.returncode is not None:
+                    raise RuntimeError(f"the cell exited with code {proc.returncode}")
+                await asyncio.sleep(0.1)
+        yield
+    finally:
+        if proc.returncode is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                async with asyncio.timeout(10):
+                    await proc.wait()
+            except TimeoutError:
+                proc.kill()
+                await proc.wait()

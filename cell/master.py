@@ -16,21 +16,19 @@ import importlib.util
 import inspect
 import logging
 import os
-import signal
-import subprocess
 import sys
 import time
 import traceback
-from collections.abc import AsyncIterator, Callable
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from google.protobuf.message import Message
 
-from cell.bus import Bus, BusError
+from cell.bus import Bus
 from cell.config import CellConfig
-from cell.launcher import fetch_status
+from cell.launcher import child_cell
 from cell.skills.client import RobotClient
 from cell.v1 import controller_pb2, skills_pb2
 
@@ -116,36 +114,6 @@ def load_main(path: Path) -> Callable[[Cell], Any]:
     return main
 
 
-@contextlib.asynccontextmanager
-async def cell_process(config_path: Path | None, config: CellConfig) -> AsyncIterator[None]:
-    """`cell up` in a child process until the block ends (for `cell run --up`)."""
-    cmd = [sys.executable, "-m", "cell", "--log-level", "WARNING", "up"]
-    if config_path is not None:
-        cmd += ["--config", str(config_path)]
-    proc = await asyncio.create_subprocess_exec(*cmd, stdin=subprocess.PIPE, env=dict(os.environ))
-    try:
-        want = set(config.services.run)
-        async with asyncio.timeout(60):
-            while True:
-                with contextlib.suppress(BusError):
-                    st = await fetch_status(config, timeout=1.0)
-                    if want <= {s.name for s in st.services if s.health == "ok"}:
-                        break
-                if proc.returncode is not None:
-                    raise RuntimeError(f"the cell exited with code {proc.returncode}")
-                await asyncio.sleep(0.1)
-        yield
-    finally:
-        if proc.returncode is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                async with asyncio.timeout(10):
-                    await proc.wait()
-            except TimeoutError:
-                proc.kill()
-                await proc.wait()
-
-
 async def run_script(
     path: Path, config: CellConfig, config_path: Path | None = None, up: bool = False
 ) -> int:
@@ -157,7 +125,7 @@ async def run_script(
         return 2
     async with contextlib.AsyncExitStack() as stack:
         if up:
-            await stack.enter_async_context(cell_process(config_path, config))
+            await stack.enter_async_context(child_cell(config_path, config))
         bus = await stack.enter_async_context(Bus.connect(config.bus, f"run-{os.getpid()}"))
         robots: dict[str, RobotClient] = {}
         host = config.skills.host

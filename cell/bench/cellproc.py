@@ -2,13 +2,8 @@
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
-import os
-import signal
 import socket
-import subprocess
-import sys
 import tempfile
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -16,9 +11,8 @@ from typing import Any
 
 import tomli_w
 
-from cell.bus import BusError
 from cell.config import CellConfig, load_config
-from cell.launcher import fetch_status
+from cell.launcher import child_cell
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -40,28 +34,5 @@ async def running_cell(overrides: dict[str, Any]) -> AsyncIterator[CellConfig]:
         path = Path(tmp) / "bench.toml"
         path.write_text(tomli_w.dumps(data))
         config = load_config(path)
-        proc = await asyncio.create_subprocess_exec(
-            *[sys.executable, "-m", "cell", "--log-level", "WARNING", "up", "--config", str(path)],
-            stdin=subprocess.DEVNULL,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )
-        try:
-            want = set(config.services.run)
-            async with asyncio.timeout(30):
-                while True:
-                    try:
-                        st = await fetch_status(config, timeout=1.0)
-                        if want <= {s.name for s in st.services if s.health == "ok"}:
-                            break
-                    except BusError:
-                        pass
-                    await asyncio.sleep(0.1)
+        async with child_cell(path, config):
             yield config
-        finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                async with asyncio.timeout(10):
-                    await proc.wait()
-            except TimeoutError:
-                proc.kill()
-                await proc.wait()

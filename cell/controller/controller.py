@@ -631,6 +631,11 @@ class Controller:
             reply = await self._apply(track, first, [], [(track.robot, branch, ids[0])])
             if reply.now_ns < t_b - SWITCH_MARGIN_NS // 2:
                 break
+            # in place late: once the branch's time has passed, the data plane says which way it went
+            await self.link.sleep_until(t_b + SWITCH_MARGIN_NS // 2)
+            st = await self.link.state(track.robots)
+            if any(r.tp_id in ids for r in st.robots if r.robot_id == track.robot):
+                break  # it took the branch after all
             await self._apply(track, None, ids[: self.episode], [(track.robot, branch, None)])
             self.plan_ns *= 2  # too slow this time: branch further ahead
         else:
