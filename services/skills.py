@@ -90,10 +90,13 @@ class RobotSkills:
             while True:
                 fut, job = await pending.get()
                 reply = await fut
-                writer.write(reply.encode())
-                await writer.drain()
                 if job is not None:
                     self._trace(job, reply, client)
+                try:
+                    writer.write(reply.encode())
+                    await writer.drain()
+                except (ConnectionError, OSError):
+                    return  # the client is gone: its commands still run, nobody reads the replies
 
         async with asyncio.TaskGroup() as tg:
             writing = tg.create_task(write_replies())
@@ -110,8 +113,8 @@ class RobotSkills:
                         job = Job(item, now, fut)
                         pending.put_nowait((fut, job))
                         self.queue.put_nowait(job)
-                # the client closed its side: its commands still run (a motion once sent is not
-                # taken back), and the replies it may still read are written until it is gone
+                # the client closed: its commands still run (a motion once sent is not taken
+                # back), their replies are not written
             except (ConnectionError, OSError):
                 pass
             finally:
