@@ -112,7 +112,10 @@ async def test_errors_are_answered_and_the_connection_stays_usable(cell) -> None
         await c.send(b"0000000f:disable_air\r\n")
         await c2.send(b"00000010:break\r\n")
         (a,), (b,) = await c.replies(1), await c2.replies(1)
-        assert isinstance(a, Done) and isinstance(b, Done) and a.t_end <= b.t_start + 1e-3
+        assert isinstance(a, Done) and isinstance(b, Done)
+        # one robot's commands run one at a time in arrival order: the two never overlap (which
+        # came first is the network's business: two connections are not ordered)
+        assert a.t_end <= b.t_start + 1e-3 or b.t_end <= a.t_start + 1e-3, (a, b)
         seen = set()
         async with asyncio.timeout(5):
             while not {"0000000f", "00000010"} <= seen:
