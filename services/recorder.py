@@ -28,8 +28,9 @@ from cell.bus import Subscription
 from cell.recorder.scene import ArmDrawer
 from cell.robot.arm import arm_model
 from cell.service import ServiceContext, ServiceSpec
+from cell.snp.packet import Denial
 from cell.snp.state import realtime_offset_ns
-from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2
+from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, snp_pb2
 
 PATH_POINTS = 600  # tool path points kept per robot
 SPACING = 1.2  # m between robots' bases in the 3D view
@@ -224,6 +225,10 @@ async def run(ctx: ServiceContext) -> None:
                 r.text(
                     env.sent_ns, f"robot {a.name} (id {a.robot_id}, {a.backend}) joined at {a.udp_address}"
                 )
+        elif topic == "events/snp/denial":
+            d = env.decode(snp_pb2.SnpDenial)
+            why = Denial(d.explanation).name if d.explanation in iter(Denial) else str(d.explanation)
+            r.text(d.t_ns, f"SnP query {d.query_id} from {d.peer} denied: {why}", "WARN")
         elif topic.startswith("events/robot/"):
             e = env.decode(robot_pb2.RobotEvent)
             r.text(e.t_ns, f"{e.name}: {robot_pb2.RobotEvent.Kind.Name(e.kind)} {e.text}", "WARN")

@@ -19,7 +19,7 @@ from cell.config import parse_host_port
 from cell.service import ServiceContext, ServiceSpec
 from cell.snp.handler import Address, Handler
 from cell.snp.state import CellState
-from cell.v1 import controller_pb2, robot_pb2
+from cell.v1 import controller_pb2, robot_pb2, snp_pb2
 
 
 class _Endpoint(asyncio.DatagramProtocol):
@@ -87,6 +87,12 @@ async def run(ctx: ServiceContext) -> None:
 
         async def report() -> None:
             while True:
+                while handler.denials:  # each denial on the bus, for viewers and logs
+                    qid, why, peer = handler.denials.popleft()
+                    denial = snp_pb2.SnpDenial(
+                        query_id=qid, explanation=why, peer=str(peer), t_ns=time.monotonic_ns()
+                    )
+                    bus.publish("events/snp/denial", denial)
                 ctx.counters.update({k: float(v) for k, v in handler.counters.items()})
                 ctx.counters["service_estimate_us"] = handler.service_ns / 1e3
                 await asyncio.sleep(1.0)

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cell.bus import Bus
 from cell.snp.client import DeadlineMissed, QueryDenied, SnpClient
 from cell.snp.handler import Handler
 from cell.snp.packet import (
@@ -39,6 +40,7 @@ from cell.snp.packet import (
     item_id,
 )
 from cell.snp.state import CellState
+from cell.v1 import snp_pb2
 from tests.conftest import free_port
 
 
@@ -224,10 +226,11 @@ async def test_the_snp_service_answers_about_a_moving_robot(start_cell) -> None:
     robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "kinematic", "truth_hz": 100}]
     cell = await start_cell(run=["bus", "dataplane", "robots", "controller", "snp"], robots=robots)
     host, port = cell.config.snp.listen.split(":")
-    async with SnpClient((host, int(port))) as snp:
+    async with SnpClient((host, int(port))) as snp, Bus.connect(cell.config.bus, "watcher") as bus:
         offset, delay = await snp.sync_time()
         assert abs(offset) < 2_000_000 and 0 < delay < 10_000_000  # one host: the clocks agree
         assert set(await snp.pids()) == {0xF0, 0xF1, 0xF2} and await snp.supports(0xF1)
+        denials = await bus.subscribe("events/snp/denial")
         pos = item_id(1, Quantity.POSITION, 1)
         async with asyncio.timeout(10):
             while True:  # until the handler has heard the robot's truth
@@ -238,8 +241,14 @@ async def test_the_snp_service_answers_about_a_moving_robot(start_cell) -> None:
                     await asyncio.sleep(0.05)
         assert got[pos].value == pytest.approx(-1.5708, abs=1e-3)
         with pytest.raises(QueryDenied) as info:
-            await snp.query([(item_id(7, 1, 0), snp.now())])
+            await snp.query([(item_id(7, 1, 0), snp.now())], query_id=4242)
         assert info.value.explanation == Denial.UNKNOWN_OUTPUT_ITEM
+        async with asyncio.timeout(5):  # every denial also goes on the bus (for viewers and logs)
+            while True:
+                d = (await denials.recv(timeout=5)).decode(snp_pb2.SnpDenial)
+                if d.query_id == 4242:
+                    break
+        assert d.explanation == Denial.UNKNOWN_OUTPUT_ITEM
         # junk of every kind does not stop it
         sock_junk = [b"", b"\x00", bytes(range(40)), encode(Header(1, 0x33), Cancel(1), type=4)]
         for j in sock_junk:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -75,6 +75,7 @@ class Handler:
         self._by_id: dict[tuple[Address, int], _Pending] = {}
         self._seq = itertools.count()
         self.counters: Counter[str] = Counter()
+        self.denials: deque[tuple[int, int, Address]] = deque(maxlen=1000)  # (query id, why, asker)
 
     # --- input ---------------------------------------------------------------------------------
 
@@ -107,6 +108,7 @@ class Handler:
                 return []  # already served or unknown: nothing to take back
             pending.seq = -1  # marks it cancelled in the heap
             self.counters["cancelled"] += 1
+            self.denials.append((body.query_id, int(Denial.CANCELLED), addr))
             return [(encode(back, Denied(body.query_id, Denial.CANCELLED)), addr)]
         if pid == Pid.TSP and isinstance(body, TimeRequest):
             self.counters["time_requests"] += 1
@@ -142,6 +144,7 @@ class Handler:
 
     def _deny(self, back: Header, q: Query, why: Denial, addr: Address) -> tuple[bytes, Address]:
         self.counters[f"denied.{why.name.lower()}"] += 1
+        self.denials.append((q.query_id, int(why), addr))
         return encode(back, Denied(q.query_id, why)), addr
 
     # --- serving ---------------------------------------------------------------------------------
