@@ -17,39 +17,10 @@ import numpy as np
 
 from cell.config import parse_host_port
 from cell.service import ServiceContext, ServiceSpec
-from cell.snp.handler import Address, Handler
+from cell.snp.endpoint import HandlerEndpoint
+from cell.snp.handler import Handler
 from cell.snp.state import CellState
 from cell.v1 import controller_pb2, robot_pb2, snp_pb2
-
-
-class _Endpoint(asyncio.DatagramProtocol):
-    def __init__(self, handler: Handler) -> None:
-        self.handler = handler
-        self.transport: asyncio.DatagramTransport | None = None
-        self._serving = False
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
-
-    def datagram_received(self, data: bytes, addr: Address) -> None:
-        for out, to in self.handler.receive(data, addr):
-            self._send(out, to)
-        if self.handler.pending and not self._serving:
-            self._serving = True
-            asyncio.get_running_loop().call_soon(self._serve)
-
-    def _serve(self) -> None:
-        """Everything that came in this wake-up is pending: answer it earliest deadline first."""
-        self._serving = False
-        while (out := self.handler.serve()) is not None:
-            self._send(*out)
-
-    def _send(self, data: bytes, addr: Address) -> None:
-        if self.transport is not None:
-            self.transport.sendto(data, addr)
-
-    def error_received(self, exc: Exception) -> None:
-        self.handler.counters["socket_errors"] += 1
 
 
 async def run(ctx: ServiceContext) -> None:
@@ -59,7 +30,9 @@ async def run(ctx: ServiceContext) -> None:
     handler = Handler(state, time.time_ns)
     loop = asyncio.get_running_loop()
     host, port = parse_host_port(ctx.config.snp.listen)
-    transport, _ = await loop.create_datagram_endpoint(lambda: _Endpoint(handler), local_addr=(host, port))
+    transport, _ = await loop.create_datagram_endpoint(
+        lambda: HandlerEndpoint(handler), local_addr=(host, port)
+    )
     try:
         bus = ctx.bus
         truth = await bus.subscribe("truth/")

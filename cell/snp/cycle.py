@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from cell.snp.client import DeadlineMissed, QueryDenied, SnpClient
+from cell.snp.endpoint import HandlerEndpoint
 from cell.snp.handler import Handler
 from cell.snp.packet import Item, Quantity, split_item_id
 
@@ -79,25 +80,10 @@ class MasterModel:
         return float(self.pos[joint] if quantity == Quantity.POSITION else self.vel[joint])
 
 
-class _MasterEndpoint(asyncio.DatagramProtocol):
-    def __init__(self, handler: Handler) -> None:
-        self.handler = handler
-        self.transport: Any = None
-
-    def connection_made(self, transport: Any) -> None:
-        self.transport = transport
-
-    def datagram_received(self, data: bytes, addr: Any) -> None:
-        for out, to in self.handler.receive(data, addr):
-            self.transport.sendto(out, to)
-        while (served := self.handler.serve()) is not None:
-            self.transport.sendto(*served)
-
-
 async def run_master(joints: int, port_out: Any, stop: Any) -> dict[str, float]:
     handler = Handler(MasterModel(joints), time.time_ns, service_ns=30_000)  # type: ignore[arg-type]
     loop = asyncio.get_running_loop()
-    endpoint = _MasterEndpoint(handler)
+    endpoint = HandlerEndpoint(handler)
     transport, _ = await loop.create_datagram_endpoint(lambda: endpoint, local_addr=("127.0.0.1", 0))
     port_out.put(transport.get_extra_info("sockname")[1])
     await asyncio.to_thread(stop.wait)
