@@ -230,13 +230,10 @@ class Controller:
     async def joints_now(self, track: Track) -> tuple[np.ndarray, np.ndarray, int]:
         """The last status of the track's robots: positions, velocities, its data-plane time."""
         st = await self.link.state(track.robots)
-        by_id = {r.robot_id: r for r in st.robots}
-        missing = [r for r in track.robots if r not in by_id or by_id[r].status_ns == 0]
-        if missing:
-            raise PlanError(f"no status from robot(s) {missing} at the data plane yet")
-        q = np.concatenate([np.array(by_id[r].position) for r in track.robots])
-        v = np.concatenate([np.array(by_id[r].velocity) for r in track.robots])
-        return q, v, min(by_id[r].status_ns for r in track.robots)
+        status = _status_of(track, {r.robot_id: r for r in st.robots})
+        if status is None:
+            raise PlanError(f"no status from robot(s) {track.robots} at the data plane yet")
+        return status
 
     def loop(self, track: Track) -> LoopModel:
         """The closed loop the track's TPs drive (cell.controller.loop)."""
@@ -563,11 +560,10 @@ class Controller:
         apply_ns = self.link.now() + self.link.rtt_ns
         batches, registers, remove, results = [], [], [], {}
         for t in tracks:
-            if any(r not in by_id or by_id[r].status_ns == 0 for r in t.robots):
+            status = _status_of(t, by_id)
+            if status is None:
                 continue  # never heard of: nothing to stop
-            q = np.concatenate([np.array(by_id[r].position) for r in t.robots])
-            v = np.concatenate([np.array(by_id[r].velocity) for r in t.robots])
-            status_ns = min(by_id[r].status_ns for r in t.robots)
+            q, v, status_ns = status
             q_pred = q + v * max(0.0, (apply_ns - status_ns) / 1e9)
             motion = plan_stop(q_pred, v, self.stop_limits(t))
             sections = cut(motion, STOP_RATE_HZ, np.resize(self.gain, t.joints), self.loop(t), v)
@@ -647,6 +643,17 @@ class Controller:
         self._publish_plan(track, new)
         await track.task
         return MotionResult(t_b, new.end_ns, sections.q[-1].copy())
+
+
+def _status_of(
+    track: Track, by_id: dict[int, dataplane_pb2.RobotPlaneState]
+) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """The track's robots' last status (positions, velocities, the oldest time); None without one."""
+    if any(r not in by_id or by_id[r].status_ns == 0 for r in track.robots):
+        return None
+    q = np.concatenate([np.array(by_id[r].position) for r in track.robots])
+    v = np.concatenate([np.array(by_id[r].velocity) for r in track.robots])
+    return q, v, min(by_id[r].status_ns for r in track.robots)
 
 
 def _concat(batches: list[TPBatch]) -> TPBatch:
