@@ -58,16 +58,13 @@ class ControllerService:
 
     async def move(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
         rid = self._robot(req.robot)
-        speed = (req.speed or 100.0) / 100.0
-        if not 0.0 < speed <= 1.0:
-            raise RpcFault("bad_request", f"speed must be in (0, 100] %, got {req.speed}")
+        speed = _speed(req.speed)
         values = np.array(req.values, np.float64)
         ctl = self.ctl
         wait = not req.start_only
         track = ctl.track(rid)
         if req.kind == Kind.JOINTS:
-            if values.size != track.joints or not np.isfinite(values).all():
-                raise RpcFault("bad_request", f"{track.joints} finite joint positions (rad) expected")
+            values = _joints(req, track)
             if req.frame != Frame.ABSOLUTE:
                 values = values + await self._start(track)
             return await self._guard(ctl.move_joints(rid, values, speed, req.fine, wait))
@@ -93,27 +90,16 @@ class ControllerService:
         for m in req.moves:
             rid = self._robot(m.robot)
             track = self.ctl.track(rid)
-            values = np.array(m.values, np.float64)
-            if m.kind != Kind.JOINTS or values.size != track.joints or not np.isfinite(values).all():
-                raise RpcFault(
-                    "bad_request", f"{m.robot}: {track.joints} finite joint positions (rad) expected"
-                )
+            values = _joints(m, track)
             goals[rid] = values + await self._start(track) if m.frame != Frame.ABSOLUTE else values
-        speed = (req.moves[0].speed or 100.0) / 100.0
-        if not 0.0 < speed <= 1.0:
-            raise RpcFault("bad_request", f"speed must be in (0, 100] %, got {req.moves[0].speed}")
-        return await self._guard(self.ctl.move_together(goals, speed))
+        return await self._guard(self.ctl.move_together(goals, _speed(req.moves[0].speed)))
 
     async def replan(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
         """Switch a moving robot onto a new joint motion on the fly (TrajectorySwitcher); replies
         when the new motion has ended."""
         rid = self._robot(req.robot)
-        track = self.ctl.track(rid)
-        values = np.array(req.values, np.float64)
-        if req.kind != Kind.JOINTS or values.size != track.joints or not np.isfinite(values).all():
-            raise RpcFault("bad_request", f"{track.joints} finite joint positions (rad) expected")
-        speed = (req.speed or 100.0) / 100.0
-        return await self._guard(self.ctl.replan(rid, values, speed))
+        values = _joints(req, self.ctl.track(rid))
+        return await self._guard(self.ctl.replan(rid, values, _speed(req.speed)))
 
     async def _start(self, track: Track) -> np.ndarray:
         try:
@@ -154,6 +140,22 @@ class ControllerService:
             raise RpcFault("unknown_robot", str(exc)) from None
         pos, rot = self.ctl.pose_of(q)
         return controller_pb2.PoseReply(joints=q.tolist(), pose=to_adept(pos, rot), t_ns=t_ns)
+
+
+def _speed(percent: float) -> float:
+    """A request's speed (percent, 0 meaning 100) as a factor; bad_request outside (0, 100]."""
+    speed = (percent or 100.0) / 100.0
+    if not 0.0 < speed <= 1.0:
+        raise RpcFault("bad_request", f"speed must be in (0, 100] %, got {percent}")
+    return speed
+
+
+def _joints(m: controller_pb2.MoveRequest, track: Track) -> np.ndarray:
+    """A joint-space request's joint positions; bad_request unless one finite value per joint."""
+    values = np.array(m.values, np.float64)
+    if m.kind != Kind.JOINTS or values.size != track.joints or not np.isfinite(values).all():
+        raise RpcFault("bad_request", f"{m.robot}: {track.joints} finite joint positions (rad) expected")
+    return values
 
 
 async def run(ctx: ServiceContext) -> None:
