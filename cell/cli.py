@@ -132,14 +132,19 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _report(args: argparse.Namespace, result: dict, text: str) -> int:
+    """A benchmark's figures as text, then with --json as one JSON line, last."""
+    print(text)
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
 def _cmd_bench_bus(args: argparse.Namespace) -> int:
     from cell.bench import bus
 
     result = bus.run(messages=args.messages, pings=args.pings, rounds=args.rounds)
-    print(bus.format_result(result))
-    if args.json:
-        print(json.dumps(result))
-    return 0
+    return _report(args, result, bus.format_result(result))
 
 
 def _cmd_bench_robots(args: argparse.Namespace) -> int:
@@ -151,10 +156,7 @@ def _cmd_bench_robots(args: argparse.Namespace) -> int:
         print(robots.format_trial(trial), flush=True)
 
     result = robots.run_bench(backends, args.seconds, log=log, answer=not args.status_only)
-    print(robots.format_result(result))
-    if args.json:
-        print(json.dumps(result))
-    return 0
+    return _report(args, result, robots.format_result(result))
 
 
 def _cmd_bench_dataplane(args: argparse.Namespace) -> int:
@@ -164,40 +166,28 @@ def _cmd_bench_dataplane(args: argparse.Namespace) -> int:
         print(dataplane.format_trial(trial), flush=True)
 
     result = dataplane.run(args.seconds, log=log)
-    print(dataplane.format_result(result))
-    if args.json:
-        print(json.dumps(result))
-    return 0
+    return _report(args, result, dataplane.format_result(result))
 
 
 def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     from cell.bench import accuracy
 
     result = accuracy.run(args.quick, log=lambda line: print(line, flush=True))
-    print(accuracy.format_result(result))
-    if args.json:
-        print(json.dumps(result))
-    return 0
+    return _report(args, result, accuracy.format_result(result))
 
 
 def _cmd_bench_skills(args: argparse.Namespace) -> int:
     from cell.bench import skills
 
     result = skills.run(args.messages, log=lambda line: print(line, flush=True))
-    print(skills.format_result(result))
-    if args.json:
-        print(json.dumps(result))
-    return 0
+    return _report(args, result, skills.format_result(result))
 
 
 def _cmd_bench_snp(args: argparse.Namespace) -> int:
     from cell.bench import snp
 
     result = snp.run(args.slaves, args.seconds, int(args.budget_us * 1000))
-    print(snp.format_result(result))
-    if args.json:
-        print(json.dumps(result))
-    return 0
+    return _report(args, result, snp.format_result(result))
 
 
 def build_parser() -> argparse.ArgumentParser:
