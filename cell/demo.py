@@ -20,29 +20,29 @@ from typing import Any
 import numpy as np
 
 from cell.robot.arm import arm_model
+from cell.robot.truth import Truth
 from cell.skills.client import DisableAir, EnableAir, MoveJoints, MoveRelWorld, MoveToolZ, SetSpeed
 from cell.snp.client import DeadlineMissed, QueryDenied, SnpClient
 from cell.snp.packet import Quantity, item_id
-from cell.v1 import controller_pb2, health_pb2, robot_pb2
+from cell.v1 import controller_pb2, health_pb2
 
 HOME = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]  # deg
 M = controller_pb2.MoveRequest
 
 
 class Watch:
-    """Ground truth and plans as they come, for the accuracy figures."""
+    """Ground truth (cell.robot.truth) and plans as they come, for the accuracy figures."""
 
-    def __init__(self) -> None:
-        self.truth: dict[int, list[tuple[int, np.ndarray]]] = {}
+    def __init__(self, names: dict[int, str]) -> None:
+        self.names = names  # robot id -> name
+        self.truth = Truth()
         self.plans: list[tuple[int, np.ndarray, np.ndarray]] = []
 
     async def run(self, cell: Any) -> None:
-        sub = await cell.bus.subscribe("truth/", "plan/")
-        async for env in sub:
-            if env.topic.startswith("truth/"):
-                m = env.decode(robot_pb2.RobotTruth)
-                self.truth.setdefault(m.robot_id, []).append((m.t_ns, np.array(m.q)))
-            else:
+        sub = await cell.bus.subscribe("plan/")
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(self.truth.run(cell.bus))
+            async for env in sub:
                 p = env.decode(controller_pb2.Plan)
                 self.plans.append((p.robot_id, np.array(p.t_ns), np.array(p.positions).reshape(-1, p.joints)))
 
@@ -54,16 +54,14 @@ class Watch:
         for k, (rid, t, q) in enumerate(self.plans):
             later = [p[1][0] for p in self.plans[k + 1 :] if p[0] == rid]
             until = min(later) if later else np.inf
-            samples = self.truth.get(rid, [])
-            if len(samples) < 2:
+            ts = self.truth.t.get(self.names[rid], [])
+            if len(ts) < 2:
                 continue
-            ts = np.array([s[0] for s in samples], np.float64)
-            qs = np.array([s[1] for s in samples])
-            for ti, qi in zip(t[1:], q[1:], strict=True):  # the first point is where it started
-                if not ts[0] <= ti <= min(ts[-1], until):
-                    continue
-                real = np.array([np.interp(ti, ts, qs[:, j]) for j in range(qs.shape[1])])
-                out.append(np.linalg.norm(arm.fk(real)[0] - arm.fk(qi)[0]) * 1000)
+            # the first point is where the motion started; the truth must cover the others' times
+            inside = (t > t[0]) & (t >= ts[0]) & (t <= min(ts[-1], until))
+            real = self.truth.at(self.names[rid], t[inside])
+            for a, b in zip(real, q[inside], strict=True):
+                out.append(np.linalg.norm(arm.fk(a)[0] - arm.fk(b)[0]) * 1000)
         return np.array(out)
 
 
@@ -74,7 +72,7 @@ async def ask(cell: Any, method: str, req: Any, reply_type: Any, timeout: float 
 
 async def main(cell: Any) -> None:
     t0 = time.monotonic()
-    watch = Watch()
+    watch = Watch({r.id: r.name for r in cell.config.robots})
     watcher = asyncio.create_task(watch.run(cell))
     await asyncio.sleep(0.2)
     r1, r2 = cell.robot("r1"), cell.robot("r2")

@@ -28,48 +28,10 @@ from cell.bench.cellproc import running_cell
 from cell.bus import Bus
 from cell.controller.controller import Controller, MotionStopped, Segment
 from cell.robot.kinematics import Kinematics
-from cell.v1 import robot_pb2
+from cell.robot.truth import Truth
 
 SETTLE_S = 4.0  # held on the final TP this long before the stop error is read (1/K = 0.5 s)
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
-
-
-class Truth:
-    """Ground truth per robot name, in time order."""
-
-    def __init__(self) -> None:
-        self.t: dict[str, list[int]] = {}
-        self.q: dict[str, list[np.ndarray]] = {}
-
-    async def run(self, bus: Bus) -> None:
-        sub = await bus.subscribe("truth/")
-        async for env in sub:
-            name = env.topic.removeprefix("truth/")
-            msg = env.decode(robot_pb2.RobotTruth)
-            ts = self.t.setdefault(name, [])
-            if ts and msg.t_ns <= ts[-1]:
-                continue
-            ts.append(msg.t_ns)
-            self.q.setdefault(name, []).append(np.array(msg.q))
-
-    def at(self, name: str, t_ns: np.ndarray) -> np.ndarray:
-        """Joint positions at the given times, interpolated between samples."""
-        t = np.array(self.t[name], np.float64)
-        q = np.array(self.q[name])
-        return np.stack([np.interp(t_ns, t, q[:, j]) for j in range(q.shape[1])], axis=1)
-
-    async def until(self, name: str, t_ns: int) -> None:
-        while not self.t.get(name) or self.t[name][-1] < t_ns:  # noqa: ASYNC110 (500 Hz anyway)
-            await asyncio.sleep(0.02)
-
-    def start_of_motion(self, name: str, after_ns: int, dist: float = 1e-3) -> float:
-        """When the robot first got `dist` rad from where it was at after_ns (ns, interpolated)."""
-        t = np.array(self.t[name], np.float64)
-        q = np.array(self.q[name])
-        q0 = self.at(name, np.array([after_ns]))[0]
-        d = np.abs(q - q0).max(axis=1)
-        i = int(np.flatnonzero((d >= dist) & (t >= after_ns))[0])
-        return float(t[i - 1] + (t[i] - t[i - 1]) * (dist - d[i - 1]) / (d[i] - d[i - 1]))
 
 
 def _tool_errors_mm(kin: Kinematics, truth: Truth, name: str, seg: Segment, joints: slice) -> np.ndarray:
