@@ -238,7 +238,9 @@ class Tables:
 
     @property
     def loaded(self) -> int:
-        return self.capacity - len(self._free)
+        """TPs the packet path sees: not the rows a staged update holds but has not flipped in yet,
+        nor those it has taken out but not yet given back to the free list."""
+        return int(np.count_nonzero(self.valid))
 
     def insert(self, tps: Sequence[TP] | TPBatch) -> None:
         """Insert or replace TPs, atomically; Refused (table_full, unknown_robot, ...) before any change."""
