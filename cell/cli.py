@@ -34,10 +34,11 @@ def _cmd_up(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     if args.rerun:
         config = _with_rerun(config, args.rerun)
+    layout = "each" if args.processes else args.layout
+    if layout is not None:
+        config = replace(config, services=replace(config.services, layout=layout))
     load_all(config)  # unknown services are config errors (exit 2), before anything starts
-    return aio.run(
-        launcher.up(config, duration=args.duration, processes=args.processes, log_level=args.log_level)
-    )
+    return aio.run(launcher.up(config, duration=args.duration, log_level=args.log_level))
 
 
 def _with_rerun(config: CellConfig, words: list[str]) -> CellConfig:
@@ -54,11 +55,14 @@ def _with_rerun(config: CellConfig, words: list[str]) -> CellConfig:
 
 def _cmd_service(args: argparse.Namespace) -> int:
     from cell import launcher
-    from cell.services import load
+    from cell.services import load_all
 
+    if bool(args.names) == bool(args.group):
+        print("cell service: name services, or one process group with --group", file=sys.stderr)
+        return EXIT_CONFIG
     config = load_config(args.config)
-    load(args.name, config)
-    return aio.run(launcher.service(config, args.name, watch_stdin=args.watch_stdin))
+    load_all(config, args.names)  # unknown names are config errors, before anything starts
+    return aio.run(launcher.service(config, args.names, group=args.group, watch_stdin=args.watch_stdin))
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -205,8 +209,13 @@ def build_parser() -> argparse.ArgumentParser:
     _config_arg(p)
     p.add_argument("--duration", type=float, metavar="S", help="stop cleanly after S seconds")
     p.add_argument(
-        "--processes", action="store_true", help="one OS process per service (default: one process)"
+        "--layout",
+        choices=["groups", "single", "each"],
+        help="services in processes: groups (the packet path in processes of its own, pinned, real-time "
+        "priority; the rest in one), single (one process: debugging), each (one per service); "
+        "default: [services] layout",
     )
+    p.add_argument("--processes", action="store_true", help="the same as --layout each")
     p.add_argument(
         "--rerun",
         nargs="+",
@@ -227,10 +236,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--up", action="store_true", help="start the cell first (and stop it after)")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("service", help="run one service alone against a running bus")
-    p.add_argument("name", help="a built-in service (e.g. bus) or a [services.plugins] name")
+    p = sub.add_parser(
+        "service",
+        help="run services in one process against a running bus",
+        description="Runs the named services (built-in, e.g. robots, or [services.plugins] names) in "
+        "one process, or with --group the services of a [[services.groups]] entry ('main': those no "
+        "group names). The process takes the CPUs and priority of its group, as `cell up` gives them.",
+    )
+    p.add_argument("names", nargs="*", metavar="NAME", help="services to run")
+    p.add_argument("--group", metavar="GROUP", help="run this process group's services instead")
     _config_arg(p)
-    p.add_argument("--watch-stdin", action="store_true", help=argparse.SUPPRESS)  # set by `up --processes`
+    p.add_argument("--watch-stdin", action="store_true", help=argparse.SUPPRESS)  # set by `cell up`
     p.set_defaults(func=_cmd_service)
 
     p = sub.add_parser(

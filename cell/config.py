@@ -65,6 +65,18 @@ def _zmq_endpoint(v: str) -> str | None:
     return f"must be tcp://HOST:PORT or ipc://PATH (got {v!r})"
 
 
+def _cpus(v: list[int]) -> str | None:
+    return None if all(c >= 0 for c in v) else f"must list CPU numbers >= 0 (got {v})"
+
+
+def _rt_priority(v: int) -> str | None:
+    return None if 0 <= v <= 99 else f"must be 0 (normal scheduling) or a SCHED_FIFO priority 1..99 (got {v})"
+
+
+def _nice(v: int) -> str | None:
+    return None if -20 <= v <= 19 else f"must be a nice value -20..19 (got {v})"
+
+
 def _joint_vector(v: list[float]) -> str | None:
     return None if len(v) == 6 else f"must list 6 joint values in rad (got {len(v)})"
 
@@ -112,13 +124,45 @@ class BusConfig:
             raise err("sub", "must differ from bus.pub")
 
 
+MAIN_GROUP = "main"  # the process of every service no [[services.groups]] entry names
+
+
+@dataclass(frozen=True)
+class GroupDefaults:
+    """Keys every [[services.groups]] entry inherits unless it sets them itself."""
+
+    cpus: list[int] = field(metadata={"check": lambda v: _cpus(v)})
+    rt_priority: int = _check(lambda v: _rt_priority(v))
+    nice: int = _check(lambda v: _nice(v))
+
+
+@dataclass(frozen=True)
+class ProcessGroup:
+    """Services that share one OS process, and how the OS schedules it (layout = "groups")."""
+
+    name: str = _check(_name)
+    services: list[str]
+    cpus: list[int] = field(metadata={"check": lambda v: _cpus(v)})
+    rt_priority: int = _check(lambda v: _rt_priority(v))
+    nice: int = _check(lambda v: _nice(v))
+
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        if self.name == MAIN_GROUP:
+            raise err("name", f"{MAIN_GROUP!r} is the process of the services no group names")
+        if not self.services:
+            raise err("services", "must name at least one service")
+
+
 @dataclass(frozen=True)
 class ServicesConfig:
     run: list[str]
+    layout: Literal["groups", "single", "each"]
     on_failure: Literal["restart", "stop"]
     backoff_initial_s: float = _check(_positive)
     backoff_max_s: float = _check(_positive)
     heartbeat_s: float = _check(_positive)
+    group_defaults: GroupDefaults
+    groups: list[ProcessGroup]
     plugins: dict[str, str] = field(default_factory=dict)
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
@@ -127,6 +171,14 @@ class ServicesConfig:
                 raise err(f"run[{i}]", problem)
         if len(set(self.run)) != len(self.run):
             raise err("run", "lists a service twice")
+        seen: dict[str, str] = {}
+        for i, g in enumerate(self.groups):
+            if any(o.name == g.name for o in self.groups[:i]):
+                raise err(f"groups[{i}].name", f"{g.name!r} is used by another group")
+            for name in g.services:
+                if name in seen:
+                    raise err(f"groups[{i}].services", f"{name!r} is in group {seen[name]!r} already")
+                seen[name] = g.name
         for name, entry in self.plugins.items():
             if problem := _name(name):
                 raise err(f"plugins.{name}", problem)
@@ -179,6 +231,7 @@ class RecorderConfig:
     mode: Literal["off", "save", "serve", "spawn"]
     path: str
     hz: float = _check(lambda v: None if 0 < v <= 500 else f"must be in (0, 500] (got {v})")
+    series_batch_s: float = _check(lambda v: None if 0 < v <= 10 else f"must be in (0, 10] s (got {v})")
 
 
 @dataclass(frozen=True)
@@ -287,10 +340,19 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
 
 
 def config_from_dict(data: dict[str, Any], source: str = DEFAULT_SOURCE) -> CellConfig:
-    robots, defaults = data.get("robots"), data.get("robot_defaults")
-    if isinstance(robots, list) and isinstance(defaults, dict):
-        data = {**data, "robots": [{**defaults, **r} if isinstance(r, dict) else r for r in robots]}
+    data = _with_defaults(data, "robots", data.get("robot_defaults"))
+    services = data.get("services")
+    if isinstance(services, dict):
+        data = {**data, "services": _with_defaults(services, "groups", services.get("group_defaults"))}
     return replace(_build(CellConfig, data, "", source), source=source)
+
+
+def _with_defaults(table: dict[str, Any], key: str, defaults: Any) -> dict[str, Any]:
+    """table[key] (an array of tables) with each entry's missing keys taken from defaults."""
+    entries = table.get(key)
+    if not isinstance(entries, list) or not isinstance(defaults, dict):
+        return table
+    return {**table, key: [{**defaults, **e} if isinstance(e, dict) else e for e in entries]}
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

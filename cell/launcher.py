@@ -9,43 +9,54 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import AsyncIterator
 from dataclasses import replace
 from pathlib import Path
 
+from cell import sched
 from cell.aio import stop_on_signals, stop_on_stdin_eof
 from cell.bus import Bus, BusError
 from cell.config import CellConfig
-from cell.processes import ChildService
+from cell.layout import process_for, process_named, processes
+from cell.processes import ChildProcess
 from cell.registry import StatusRegistry, format_status
-from cell.services import load, load_all
+from cell.services import load_all
 from cell.supervisor import ServiceFailed, Supervisor
 from cell.v1 import health_pb2
 
 log = logging.getLogger("cell")
 
 
-async def up(
-    config: CellConfig, *, duration: float | None = None, processes: bool = False, log_level: str = "INFO"
-) -> int:
-    """Run the cell until SIGINT/SIGTERM or `duration`; print a summary; 0 on a clean stop."""
+async def up(config: CellConfig, *, duration: float | None = None, log_level: str = "INFO") -> int:
+    """Run the cell until SIGINT/SIGTERM or `duration`; print a summary; 0 on a clean stop.
+
+    The services go into processes as `[services] layout` says (cell/layout.py); the
+    launcher itself keeps the status registry and, in the "single" layout, runs everything.
+    """
+    layout = config.services.layout
     specs = load_all(config)
-    mode = "processes" if processes else "single-process"
-    registry = StatusRegistry(config.cell.name, mode, [s.name for s in specs])
+    registry = StatusRegistry(config.cell.name, layout, [s.name for s in specs])
     stop = asyncio.Event()
     t0 = time.monotonic()
     final: health_pb2.CellStatus | None = None
     failed: ServiceFailed | None = None
-    with stop_on_signals(stop):
+    with stop_on_signals(stop), tempfile.TemporaryDirectory(prefix="cell-") as tmp:
         timer = asyncio.get_running_loop().call_later(duration, stop.set) if duration else None
         try:
             async with asyncio.TaskGroup() as tg:
-                if processes:
-                    for spec in specs:
-                        tg.create_task(ChildService(spec.name, config, log_level).run(stop), name=spec.name)
-                else:
+                if layout == "single":
                     tg.create_task(Supervisor(config, specs).run(stop), name="supervisor")
+                else:
+                    # the children read the effective config (command-line changes included)
+                    effective = Path(tmp) / "cell.toml"
+                    effective.write_text(config.to_toml())
+                    for p in processes(config):
+                        child = ChildProcess(
+                            p, config, effective, group=layout == "groups", log_level=log_level
+                        )
+                        tg.create_task(child.run(stop), name=f"process:{p.name}")
                 keeper = tg.create_task(_keep_registry(config, registry, t0), name="registry")
                 await stop.wait()
                 final = registry.status()
@@ -90,14 +101,21 @@ async def _keep_registry(config: CellConfig, registry: StatusRegistry, t0: float
             await asyncio.sleep(0.5)
 
 
-async def service(config: CellConfig, name: str, *, watch_stdin: bool = False) -> int:
-    """Run one service alone (its own supervisor and heartbeats) until SIGINT/SIGTERM."""
-    spec = load(name, config)
+async def service(
+    config: CellConfig, names: list[str] | None = None, *, group: str | None = None, watch_stdin: bool = False
+) -> int:
+    """Run services in this process (the named ones, or process group `group`'s) until SIGINT/SIGTERM,
+    placed on the CPUs and at the priority their group asks for, before anything else starts."""
+    process = process_named(config, group) if group is not None else process_for(config, names or [])
+    for problem in sched.place(process.cpus, process.rt_priority, process.nice):
+        log.warning("process %r: %s", process.name, problem)
+    specs = load_all(config, process.services)
     stop = asyncio.Event()
     with stop_on_signals(stop):
         watch = await stop_on_stdin_eof(stop) if watch_stdin else None
         try:
-            await Supervisor(config, [spec], node_name=f"supervisor-{name}-{os.getpid()}").run(stop)
+            node = f"supervisor-{process.name}-{os.getpid()}"
+            await Supervisor(config, specs, node_name=node, process=process.name).run(stop)
         except ServiceFailed as exc:
             print(f"cell: {exc}", file=sys.stderr)
             return 1

@@ -1,9 +1,10 @@
-"""`cell up --processes`: one OS process per service, supervised by the launcher.
+"""The cell's child processes (layouts "groups" and "each"), supervised by the launcher.
 
-Each child is `python -m cell service NAME` in its own session, so a Ctrl-C at
-the terminal reaches only the launcher, which then stops the children in
-order (SIGTERM, then SIGKILL after a grace period).  A child whose parent dies
-sees its standard input close and stops by itself: no process is left behind.
+Each child is `python -m cell service ...` in its own session, so a Ctrl-C at
+the terminal reaches only the launcher, which then stops the children
+(SIGTERM, then SIGKILL after a grace period).  A child whose parent dies sees
+its standard input close and stops by itself: no process is left behind.
+A child places itself (CPUs, real-time priority) before it starts anything.
 """
 
 from __future__ import annotations
@@ -13,27 +14,36 @@ import contextlib
 import logging
 import signal
 import sys
+from pathlib import Path
 
-from cell.config import DEFAULT_SOURCE, CellConfig
+from cell.config import CellConfig
+from cell.layout import Process
 from cell.supervisor import ServiceFailed
 
 log = logging.getLogger("cell.processes")
 GRACE_S = 1.5  # SIGTERM -> SIGKILL; keeps a whole shutdown inside 2 s
 
 
-class ChildService:
-    def __init__(self, name: str, config: CellConfig, log_level: str = "INFO") -> None:
-        self.name = name
+class ChildProcess:
+    def __init__(
+        self, process: Process, config: CellConfig, config_path: Path, *, group: bool, log_level: str = "INFO"
+    ) -> None:
+        self.process = process
         self.config = config
+        self.config_path = config_path
+        self.group = group  # started as `service --group NAME` (else by service names)
         self.log_level = log_level
         self.proc: asyncio.subprocess.Process | None = None
         self.starts = 0
 
+    @property
+    def name(self) -> str:
+        return self.process.name
+
     def argv(self) -> list[str]:
-        args = [sys.executable, "-m", "cell", "--log-level", self.log_level, "service", self.name]
-        if self.config.source != DEFAULT_SOURCE:
-            args += ["--config", self.config.source]
-        return [*args, "--watch-stdin"]
+        args = [sys.executable, "-m", "cell", "--log-level", self.log_level, "service"]
+        args += ["--group", self.name] if self.group else self.process.services
+        return [*args, "--config", str(self.config_path), "--watch-stdin"]
 
     async def run(self, stop: asyncio.Event) -> None:
         """Keep the child running until `stop`; restart or raise ServiceFailed when it dies."""
@@ -55,9 +65,10 @@ class ChildService:
                 if stop.is_set():
                     break
                 rc = self.proc.returncode
-                log.error("service process %r (pid %d) exited with code %s", self.name, self.proc.pid, rc)
+                what = ", ".join(self.process.services)
+                log.error("process %r (%s; pid %d) exited with code %s", self.name, what, self.proc.pid, rc)
                 if policy.on_failure == "stop":
-                    raise ServiceFailed(self.name, f"process exited with code {rc}")
+                    raise ServiceFailed(self.name, f"exited with code {rc} ({what})", what="process")
                 log.info("restarting %r in %.1f s", self.name, backoff)
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(backoff):
@@ -76,7 +87,7 @@ class ChildService:
             async with asyncio.timeout(GRACE_S):
                 await proc.wait()
         except TimeoutError:
-            log.warning("service process %r did not stop in %.1f s: killing it", self.name, GRACE_S)
+            log.warning("process %r did not stop in %.1f s: killing it", self.name, GRACE_S)
             with contextlib.suppress(ProcessLookupError):
                 proc.kill()
             await proc.wait()

@@ -70,11 +70,23 @@ def _fmt_count(v: float) -> str:
 
 def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
     """A table for people: one row per service, counters below it."""
-    lines = [f"cell {st.cell!r} ({st.mode}), up {st.uptime_s:.1f} s"]
-    rows = [("SERVICE", "HEALTH", "HOST", "PID", "UPTIME", "RESTARTS", "HEARTBEAT", "LAST ERROR")]
+    lines = [f"cell {st.cell!r} (layout {st.mode}), up {st.uptime_s:.1f} s"]
+    head = (
+        "SERVICE",
+        "HEALTH",
+        "HOST",
+        "PID",
+        "PROCESS",
+        "SCHED",
+        "UPTIME",
+        "RESTARTS",
+        "HEARTBEAT",
+        "LAST ERROR",
+    )
+    rows = [head]
     for s in st.services:
         if s.health == "missing":
-            rows.append((s.name, "missing", "-", "-", "-", "-", "never", ""))
+            rows.append((s.name, "missing", "-", "-", "-", "-", "-", "-", "never", ""))
             continue
         hb = s.last
         rows.append(
@@ -83,6 +95,8 @@ def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
                 s.health,
                 hb.host,
                 str(hb.pid),
+                hb.process or "-",
+                hb.sched or "-",
                 f"{hb.uptime_s:.1f} s",
                 str(hb.restarts),
                 f"{s.heartbeat_age_s:.1f} s ago",

@@ -5,6 +5,9 @@ is logged with its traceback and then either restarted with exponential
 backoff or, with on_failure = "stop", ends the whole cell (ServiceFailed);
 it never dies silently.  Heartbeats and events go out through the
 supervisor's own bus node, so a service that is down is still reported.
+Each heartbeat carries the service's share of the event loop
+(`busy_ms_per_s`, cell/meter.py), its process's CPU time per second
+(`process.cpu_ms_per_s`, all threads) and how the OS schedules that process.
 """
 
 from __future__ import annotations
@@ -18,8 +21,9 @@ import time
 from collections import deque
 from collections.abc import Awaitable
 
+from cell import meter, sched
 from cell.bus import Bus, BusError
-from cell.config import CellConfig
+from cell.config import MAIN_GROUP, CellConfig
 from cell.registry import POLL_TOPIC
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import health_pb2
@@ -32,9 +36,9 @@ Event = health_pb2.ServiceEvent
 class ServiceFailed(Exception):
     """A service failed and the policy says the cell stops."""
 
-    def __init__(self, name: str, error: str) -> None:
+    def __init__(self, name: str, error: str, what: str = "service") -> None:
         self.name, self.error = name, error
-        super().__init__(f"service {name!r} failed: {error}")
+        super().__init__(f"{what} {name!r} failed: {error}")
 
 
 class ServiceRunner:
@@ -49,12 +53,15 @@ class ServiceRunner:
         self.last_error = ""
         self.started = time.monotonic()
         self.ctx: ServiceContext | None = None
+        self.account = meter.Account(spec.name)
+        self._busy = meter.Rate(0.8 * config.services.heartbeat_s)
 
     @property
     def name(self) -> str:
         return self.spec.name
 
     async def run(self) -> None:
+        meter.charge_to(self.account)  # this task and every task the service starts
         policy = self.config.services
         backoff = policy.backoff_initial_s
         while True:
@@ -105,12 +112,16 @@ class ServiceRunner:
         self.state = state
         self._sup.event(self, kind, text)
 
-    def heartbeat(self) -> health_pb2.Heartbeat:
-        counters: dict[str, float] = {}
+    def heartbeat(self, process: dict[str, float], placement: str) -> health_pb2.Heartbeat:
+        counters: dict[str, float] = dict(process)
         if self.ctx is not None:
             counters.update(self.ctx.counters)
             if self.ctx.has_bus:
                 counters.update(self.ctx.bus.counters())
+        busy_ms = self.account.busy_ns / 1e6
+        counters["busy_s"] = busy_ms / 1e3  # since the process started (restarts included)
+        if (busy := self._busy.update(busy_ms)) is not None:
+            counters["busy_ms_per_s"] = busy
         return health_pb2.Heartbeat(
             service=self.name,
             host=socket.gethostname(),
@@ -121,16 +132,26 @@ class ServiceRunner:
             last_error=self.last_error,
             counters=counters,
             interval_s=self.config.services.heartbeat_s,
+            process=self._sup.process,
+            sched=placement,
         )
 
 
 class Supervisor:
     """Runs a set of services in this process until stopped."""
 
-    def __init__(self, config: CellConfig, specs: list[ServiceSpec], node_name: str | None = None) -> None:
+    def __init__(
+        self,
+        config: CellConfig,
+        specs: list[ServiceSpec],
+        node_name: str | None = None,
+        process: str = MAIN_GROUP,
+    ) -> None:
         self.config = config
+        self.process = process
         self.runners = [ServiceRunner(spec, config, self) for spec in specs]
         self.node_name = node_name or f"supervisor-{os.getpid()}"
+        self._cpu = meter.Rate(0.8 * config.services.heartbeat_s)
         self._bus: Bus | None = None
         self._wake = asyncio.Event()
         self._events: deque[tuple[str, health_pb2.ServiceEvent]] = deque(maxlen=256)
@@ -140,6 +161,7 @@ class Supervisor:
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run every service until `stop` is set; raises ServiceFailed if the policy stops the cell."""
+        meter.install(asyncio.get_running_loop())
         try:
             async with asyncio.TaskGroup() as tg:
                 services = [tg.create_task(r.run(), name=f"service:{r.name}") for r in self.runners]
@@ -165,9 +187,15 @@ class Supervisor:
             self._bus.publish(topic, ev)
 
     def _publish_heartbeats(self) -> None:
-        if self._bus is not None:
-            for r in self.runners:
-                self._bus.publish(f"health/{r.name}", r.heartbeat())
+        if self._bus is None:
+            return
+        cpu_s = sched.cpu_seconds()
+        process = {"process.cpu_s": cpu_s}
+        if (cpu := self._cpu.update(cpu_s * 1e3)) is not None:
+            process["process.cpu_ms_per_s"] = cpu
+        placement = sched.describe()
+        for r in self.runners:
+            self._bus.publish(f"health/{r.name}", r.heartbeat(process, placement))
 
     async def _heartbeats(self) -> None:
         interval = self.config.services.heartbeat_s

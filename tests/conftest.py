@@ -114,14 +114,15 @@ async def wait_status(config: CellConfig, want: set[str], timeout: float = 20.0)
 
 @pytest.fixture
 async def start_cell(tmp_path: Path) -> AsyncIterator:
-    """start_cell(run=[...], plugins={...}, processes=False) -> RunningCell, up and healthy."""
+    """start_cell(run=[...], plugins={...}, layout=None) -> RunningCell, up and healthy (layout None:
+    the config's, "groups")."""
     cells: list[RunningCell] = []
 
     async def start(
         *,
         run: list[str],
         plugins: dict[str, str] | None = None,
-        processes: bool = False,
+        layout: str | None = None,
         wait_for: set[str] | None = None,
         robots: list[dict] | None = None,
         **services: object,
@@ -130,8 +131,8 @@ async def start_cell(tmp_path: Path) -> AsyncIterator:
         path = write_config(tmp_path / f"cell{len(cells)}.toml", data)
         config = load_config(path)
         cmd = [sys.executable, "-m", "cell", "up", "--config", str(path)]
-        if processes:
-            cmd.append("--processes")
+        if layout is not None:
+            cmd += ["--layout", layout]
         proc = subprocess.Popen(
             cmd, env=cell_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )

@@ -17,6 +17,8 @@ from cell.v1 import bus_pb2
 from tests.conftest import cell_overrides, free_port, run_cell, write_config
 
 ECHO = {"echo": "tests.plugins:echo"}
+SIDE = [{"name": "side", "services": ["echo"]}]  # layout "groups": echo in a process of its own
+LAYOUTS = ["single", "groups", "each"]
 
 
 def pid_alive(pid: int) -> bool:
@@ -43,9 +45,9 @@ def can_bind(endpoint: str) -> bool:
     return True
 
 
-@pytest.mark.parametrize("processes", [False, True], ids=["single-process", "processes"])
-async def test_bus_round_trip_with_services_in_other_processes(start_cell, processes: bool) -> None:
-    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, processes=processes)
+@pytest.mark.parametrize("layout", LAYOUTS)
+async def test_bus_round_trip_with_services_in_other_processes(start_cell, layout: str) -> None:
+    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, layout=layout, groups=SIDE)
     async with Bus.connect(cell.config.bus, "tester") as bus:
         out = await bus.subscribe("test/out/")
         reply = await bus.request("echo", "echo", bus_pb2.BenchPayload(data=b"ping"), bus_pb2.BenchPayload)
@@ -60,18 +62,24 @@ async def test_bus_round_trip_with_services_in_other_processes(start_cell, proce
         assert {e.source for e in got} == {"echo"}
         assert out.lost == 0
     status = await fetch_status(cell.config)
+    assert status.mode == layout
     pids = {s.name: s.last.pid for s in status.services}
+    process = {s.name: s.last.process for s in status.services}
     assert pids["bus"] != os.getpid()
-    if processes:
-        assert pids["bus"] != pids["echo"] != cell.proc.pid
-    else:
+    if layout == "single":
         assert pids["bus"] == pids["echo"] == cell.proc.pid
+        assert process == {"bus": "main", "echo": "main"}
+    else:
+        assert len({pids["bus"], pids["echo"], cell.proc.pid}) == 3
+        assert process == (
+            {"bus": "main", "echo": "side"} if layout == "groups" else {"bus": "bus", "echo": "echo"}
+        )
 
 
-@pytest.mark.parametrize("processes", [False, True], ids=["single-process", "processes"])
+@pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
-async def test_signal_stops_everything_within_2s(start_cell, processes: bool, sig: int) -> None:
-    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, processes=processes)
+async def test_signal_stops_everything_within_2s(start_cell, layout: str, sig: int) -> None:
+    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, layout=layout, groups=SIDE)
     status = await fetch_status(cell.config)
     pids = {s.last.pid for s in status.services} | {cell.proc.pid}
     rc, took, out, err = cell.stop(sig)
@@ -84,7 +92,7 @@ async def test_signal_stops_everything_within_2s(start_cell, processes: bool, si
 
 
 async def test_children_stop_when_the_launcher_is_killed(start_cell) -> None:
-    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, processes=True)
+    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, groups=SIDE)
     status = await fetch_status(cell.config)
     children = [s.last.pid for s in status.services]
     cell.proc.kill()  # no chance to clean up: the children must notice on their own
@@ -96,25 +104,32 @@ async def test_children_stop_when_the_launcher_is_killed(start_cell) -> None:
 
 
 async def test_cell_status_command(start_cell) -> None:
-    cell = await start_cell(run=["bus", "echo"], plugins=ECHO)
+    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, groups=SIDE)
 
     table = run_cell("status", "--config", str(cell.path))
     assert table.returncode == 0, table.stderr
+    assert table.stdout.splitlines()[0].startswith("cell 'default' (layout groups)")
     rows = {
         line.split()[0]: line.split() for line in table.stdout.splitlines()[2:] if not line.startswith(" ")
     }
     assert rows["bus"][1] == "ok" and rows["echo"][1] == "ok"
-    assert int(rows["bus"][3]) == cell.proc.pid
+    assert rows["bus"][4] == "main" and rows["echo"][4] == "side"  # PROCESS
+    assert int(rows["bus"][3]) != int(rows["echo"][3])
     assert "forwarder.messages_in=" in table.stdout
 
     js = run_cell("status", "--config", str(cell.path), "--json")
     assert js.returncode == 0
     data = json.loads(js.stdout)
-    assert data["mode"] == "single-process"
+    assert data["mode"] == "groups"
     by_name = {s["name"]: s for s in data["services"]}
     assert by_name["bus"]["last"]["counters"]["forwarder.messages_in"] > 0
     assert by_name["echo"]["last"]["state"] == "SERVICE_STATE_RUNNING"
     assert by_name["echo"]["last"]["uptime_s"] > 0
+    # every service reports its share of its process's event loop, and the process its CPU time
+    assert by_name["echo"]["last"]["process"] == "side"
+    assert by_name["echo"]["last"]["sched"].startswith("normal, cpu")
+    for s in data["services"]:
+        assert "busy_s" in s["last"]["counters"] and "process.cpu_s" in s["last"]["counters"], s
 
 
 def test_cell_status_without_a_cell(tmp_path) -> None:
@@ -129,12 +144,12 @@ def test_cell_status_without_a_cell(tmp_path) -> None:
     assert time.monotonic() - t0 < 10
 
 
-@pytest.mark.parametrize("processes", [False, True], ids=["single-process", "processes"])
-async def test_failing_service_is_restarted_with_backoff(start_cell, processes: bool) -> None:
+@pytest.mark.parametrize("layout", ["single", "groups"])
+async def test_failing_service_is_restarted_with_backoff(start_cell, layout: str) -> None:
     cell = await start_cell(
         run=["bus", "echo", "crasher"],
         plugins={**ECHO, "crasher": "tests.plugins:crasher"},
-        processes=processes,
+        layout=layout,
         wait_for={"bus", "echo"},
         backoff_initial_s=0.05,
         backoff_max_s=0.2,
@@ -157,15 +172,13 @@ async def test_failing_service_is_restarted_with_backoff(start_cell, processes: 
     assert "Traceback" in err and "RuntimeError: deliberate failure" in err  # never a silent death
 
 
-@pytest.mark.parametrize("processes", [False, True], ids=["single-process", "processes"])
-def test_failing_service_stops_the_cell_when_configured(tmp_path, processes: bool) -> None:
+@pytest.mark.parametrize("layout", ["single", "groups"])
+def test_failing_service_stops_the_cell_when_configured(tmp_path, layout: str) -> None:
     data = cell_overrides(
         run=["bus", "crasher"], plugins={"crasher": "tests.plugins:crasher"}, on_failure="stop"
     )
     path = write_config(tmp_path / "c.toml", data)
-    result = run_cell(
-        "up", "--config", str(path), "--duration", "30", *(["--processes"] if processes else [])
-    )
+    result = run_cell("up", "--config", str(path), "--duration", "30", "--layout", layout)
     assert result.returncode == 1
     assert "service 'crasher' failed" in result.stderr
     assert "RuntimeError: deliberate failure" in result.stderr
@@ -179,5 +192,5 @@ def test_duration_stops_cleanly_with_a_summary(tmp_path) -> None:
     assert 1.5 <= time.monotonic() - t0 < 8
     assert "is up in" in result.stderr
     lines = result.stdout.splitlines()
-    assert lines[0].startswith("cell 'default' (single-process)")
+    assert lines[0].startswith("cell 'default' (layout groups)")
     assert lines[2].split()[:2] == ["bus", "ok"]

@@ -76,6 +76,36 @@ def test_config_show_round_trips() -> None:
         ),
         ("[[robots]]\nid = 1\n", "robots[0].name", "missing"),
         ("robots = 3\n", "robots", "must be an array"),
+        ('[services]\nlayout = "threads"\n', "services.layout", "one of 'groups', 'single', 'each'"),
+        (
+            '[[services.groups]]\nname = "rt"\nservices = ["robots"]\nrt_priority = 120\n',
+            "services.groups[0].rt_priority",
+            "1..99",
+        ),
+        (
+            '[[services.groups]]\nname = "rt"\nservices = ["robots"]\nnice = -40\n',
+            "services.groups[0].nice",
+            "-20..19",
+        ),
+        (
+            '[[services.groups]]\nname = "rt"\nservices = ["robots"]\ncpus = [-1]\n',
+            "services.groups[0].cpus",
+            ">= 0",
+        ),
+        ('[[services.groups]]\nname = "main"\nservices = ["robots"]\n', "services.groups[0].name", "'main'"),
+        ('[[services.groups]]\nname = "rt"\nservices = []\n', "services.groups[0].services", "at least one"),
+        (
+            '[[services.groups]]\nname = "a"\nservices = ["robots"]\n'
+            '[[services.groups]]\nname = "b"\nservices = ["robots", "snp"]\n',
+            "services.groups[1].services",
+            "in group 'a' already",
+        ),
+        (
+            '[[services.groups]]\nname = "a"\nservices = ["robots"]\n'
+            '[[services.groups]]\nname = "a"\nservices = ["snp"]\n',
+            "services.groups[1].name",
+            "used by another group",
+        ),
     ],
 )
 def test_bad_config_names_key_and_file(tmp_path: Path, toml: str, key: str, problem: str) -> None:
@@ -125,3 +155,21 @@ def test_config_show_prints_effective_toml(tmp_path: Path) -> None:
     shown = tomllib.loads(result.stdout)
     assert shown["bus"]["hwm"] == 77
     assert shown["robots"][1]["name"] == "r2"
+
+
+def test_a_process_group_inherits_what_it_leaves_out(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text(
+        "[services.group_defaults]\nnice = 5\n"
+        '[[services.groups]]\nname = "physics"\nservices = ["robots"]\ncpus = [0]\n'
+    )
+    (g,) = load_config(path).services.groups  # the array replaces the default's whole
+    assert (g.name, g.services, g.cpus, g.rt_priority, g.nice) == ("physics", ["robots"], [0], 0, 5)
+
+
+def test_the_default_layout_gives_the_packet_path_real_time_processes() -> None:
+    groups = {g.name: g for g in load_config().services.groups}
+    assert load_config().services.layout == "groups"
+    assert groups["robots"].services == ["robots"] and groups["dataplane"].services == ["dataplane"]
+    # the robots preempt the data plane, and both preempt everything else (SCHED_FIFO > normal)
+    assert groups["robots"].rt_priority > groups["dataplane"].rt_priority > 0

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14\x63\x65ll/v1/health.proto\x12\x07\x63\x65ll.v1\"\x8e\x02\n\tHeartbeat\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x0c\n\x04host\x18\x02 \x01(\t\x12\x0b\n\x03pid\x18\x03 \x01(\r\x12$\n\x05state\x18\x04 \x01(\x0e\x32\x15.cell.v1.ServiceState\x12\x10\n\x08uptime_s\x18\x05 \x01(\x01\x12\x10\n\x08restarts\x18\x06 \x01(\r\x12\x12\n\nlast_error\x18\x07 \x01(\t\x12\x32\n\x08\x63ounters\x18\x08 \x03(\x0b\x32 .cell.v1.Heartbeat.CountersEntry\x12\x12\n\ninterval_s\x18\t \x01(\x01\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xd1\x01\n\x0cServiceEvent\x12\x0f\n\x07service\x18\x01 \x01(\t\x12(\n\x04kind\x18\x02 \x01(\x0e\x32\x1a.cell.v1.ServiceEvent.Kind\x12\x0c\n\x04text\x18\x03 \x01(\t\x12\x10\n\x08restarts\x18\x04 \x01(\r\"f\n\x04Kind\x12\x14\n\x10KIND_UNSPECIFIED\x10\x00\x12\x10\n\x0cKIND_STARTED\x10\x01\x12\x0f\n\x0bKIND_FAILED\x10\x02\x12\x13\n\x0fKIND_RESTARTING\x10\x03\x12\x10\n\x0cKIND_STOPPED\x10\x04\"\x0f\n\rStatusRequest\"h\n\rServiceStatus\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06health\x18\x02 \x01(\t\x12\x17\n\x0fheartbeat_age_s\x18\x03 \x01(\x01\x12 \n\x04last\x18\x04 \x01(\x0b\x32\x12.cell.v1.Heartbeat\"d\n\nCellStatus\x12\x0c\n\x04\x63\x65ll\x18\x01 \x01(\t\x12\x0c\n\x04mode\x18\x02 \x01(\t\x12\x10\n\x08uptime_s\x18\x03 \x01(\x01\x12(\n\x08services\x18\x04 \x03(\x0b\x32\x16.cell.v1.ServiceStatus*\xb4\x01\n\x0cServiceState\x12\x1d\n\x19SERVICE_STATE_UNSPECIFIED\x10\x00\x12\x1a\n\x16SERVICE_STATE_STARTING\x10\x01\x12\x19\n\x15SERVICE_STATE_RUNNING\x10\x02\x12\x19\n\x15SERVICE_STATE_BACKOFF\x10\x03\x12\x18\n\x14SERVICE_STATE_FAILED\x10\x04\x12\x19\n\x15SERVICE_STATE_STOPPED\x10\x05\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14\x63\x65ll/v1/health.proto\x12\x07\x63\x65ll.v1\"\xae\x02\n\tHeartbeat\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x0c\n\x04host\x18\x02 \x01(\t\x12\x0b\n\x03pid\x18\x03 \x01(\r\x12$\n\x05state\x18\x04 \x01(\x0e\x32\x15.cell.v1.ServiceState\x12\x10\n\x08uptime_s\x18\x05 \x01(\x01\x12\x10\n\x08restarts\x18\x06 \x01(\r\x12\x12\n\nlast_error\x18\x07 \x01(\t\x12\x32\n\x08\x63ounters\x18\x08 \x03(\x0b\x32 .cell.v1.Heartbeat.CountersEntry\x12\x12\n\ninterval_s\x18\t \x01(\x01\x12\x0f\n\x07process\x18\n \x01(\t\x12\r\n\x05sched\x18\x0b \x01(\t\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xd1\x01\n\x0cServiceEvent\x12\x0f\n\x07service\x18\x01 \x01(\t\x12(\n\x04kind\x18\x02 \x01(\x0e\x32\x1a.cell.v1.ServiceEvent.Kind\x12\x0c\n\x04text\x18\x03 \x01(\t\x12\x10\n\x08restarts\x18\x04 \x01(\r\"f\n\x04Kind\x12\x14\n\x10KIND_UNSPECIFIED\x10\x00\x12\x10\n\x0cKIND_STARTED\x10\x01\x12\x0f\n\x0bKIND_FAILED\x10\x02\x12\x13\n\x0fKIND_RESTARTING\x10\x03\x12\x10\n\x0cKIND_STOPPED\x10\x04\"\x0f\n\rStatusRequest\"h\n\rServiceStatus\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06health\x18\x02 \x01(\t\x12\x17\n\x0fheartbeat_age_s\x18\x03 \x01(\x01\x12 \n\x04last\x18\x04 \x01(\x0b\x32\x12.cell.v1.Heartbeat\"d\n\nCellStatus\x12\x0c\n\x04\x63\x65ll\x18\x01 \x01(\t\x12\x0c\n\x04mode\x18\x02 \x01(\t\x12\x10\n\x08uptime_s\x18\x03 \x01(\x01\x12(\n\x08services\x18\x04 \x03(\x0b\x32\x16.cell.v1.ServiceStatus*\xb4\x01\n\x0cServiceState\x12\x1d\n\x19SERVICE_STATE_UNSPECIFIED\x10\x00\x12\x1a\n\x16SERVICE_STATE_STARTING\x10\x01\x12\x19\n\x15SERVICE_STATE_RUNNING\x10\x02\x12\x19\n\x15SERVICE_STATE_BACKOFF\x10\x03\x12\x18\n\x14SERVICE_STATE_FAILED\x10\x04\x12\x19\n\x15SERVICE_STATE_STOPPED\x10\x05\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -33,20 +33,20 @@ if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_HEARTBEAT_COUNTERSENTRY']._loaded_options = None
   _globals['_HEARTBEAT_COUNTERSENTRY']._serialized_options = b'8\001'
-  _globals['_SERVICESTATE']._serialized_start=744
-  _globals['_SERVICESTATE']._serialized_end=924
+  _globals['_SERVICESTATE']._serialized_start=776
+  _globals['_SERVICESTATE']._serialized_end=956
   _globals['_HEARTBEAT']._serialized_start=34
-  _globals['_HEARTBEAT']._serialized_end=304
-  _globals['_HEARTBEAT_COUNTERSENTRY']._serialized_start=257
-  _globals['_HEARTBEAT_COUNTERSENTRY']._serialized_end=304
-  _globals['_SERVICEEVENT']._serialized_start=307
-  _globals['_SERVICEEVENT']._serialized_end=516
-  _globals['_SERVICEEVENT_KIND']._serialized_start=414
-  _globals['_SERVICEEVENT_KIND']._serialized_end=516
-  _globals['_STATUSREQUEST']._serialized_start=518
-  _globals['_STATUSREQUEST']._serialized_end=533
-  _globals['_SERVICESTATUS']._serialized_start=535
-  _globals['_SERVICESTATUS']._serialized_end=639
-  _globals['_CELLSTATUS']._serialized_start=641
-  _globals['_CELLSTATUS']._serialized_end=741
+  _globals['_HEARTBEAT']._serialized_end=336
+  _globals['_HEARTBEAT_COUNTERSENTRY']._serialized_start=289
+  _globals['_HEARTBEAT_COUNTERSENTRY']._serialized_end=336
+  _globals['_SERVICEEVENT']._serialized_start=339
+  _globals['_SERVICEEVENT']._serialized_end=548
+  _globals['_SERVICEEVENT_KIND']._serialized_start=446
+  _globals['_SERVICEEVENT_KIND']._serialized_end=548
+  _globals['_STATUSREQUEST']._serialized_start=550
+  _globals['_STATUSREQUEST']._serialized_end=565
+  _globals['_SERVICESTATUS']._serialized_start=567
+  _globals['_SERVICESTATUS']._serialized_end=671
+  _globals['_CELLSTATUS']._serialized_start=673
+  _globals['_CELLSTATUS']._serialized_end=773
 # @@protoc_insertion_point(module_scope)

@@ -23,7 +23,7 @@ SERVICE_STATE_FAILED: ServiceState
 SERVICE_STATE_STOPPED: ServiceState
 
 class Heartbeat(_message.Message):
-    __slots__ = ("service", "host", "pid", "state", "uptime_s", "restarts", "last_error", "counters", "interval_s")
+    __slots__ = ("service", "host", "pid", "state", "uptime_s", "restarts", "last_error", "counters", "interval_s", "process", "sched")
     class CountersEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -40,6 +40,8 @@ class Heartbeat(_message.Message):
     LAST_ERROR_FIELD_NUMBER: _ClassVar[int]
     COUNTERS_FIELD_NUMBER: _ClassVar[int]
     INTERVAL_S_FIELD_NUMBER: _ClassVar[int]
+    PROCESS_FIELD_NUMBER: _ClassVar[int]
+    SCHED_FIELD_NUMBER: _ClassVar[int]
     service: str
     host: str
     pid: int
@@ -49,7 +51,9 @@ class Heartbeat(_message.Message):
     last_error: str
     counters: _containers.ScalarMap[str, float]
     interval_s: float
-    def __init__(self, service: _Optional[str] = ..., host: _Optional[str] = ..., pid: _Optional[int] = ..., state: _Optional[_Union[ServiceState, str]] = ..., uptime_s: _Optional[float] = ..., restarts: _Optional[int] = ..., last_error: _Optional[str] = ..., counters: _Optional[_Mapping[str, float]] = ..., interval_s: _Optional[float] = ...) -> None: ...
+    process: str
+    sched: str
+    def __init__(self, service: _Optional[str] = ..., host: _Optional[str] = ..., pid: _Optional[int] = ..., state: _Optional[_Union[ServiceState, str]] = ..., uptime_s: _Optional[float] = ..., restarts: _Optional[int] = ..., last_error: _Optional[str] = ..., counters: _Optional[_Mapping[str, float]] = ..., interval_s: _Optional[float] = ..., process: _Optional[str] = ..., sched: _Optional[str] = ...) -> None: ...
 
 class ServiceEvent(_message.Message):
     __slots__ = ("service", "kind", "text", "restarts")

@@ -1,0 +1,75 @@
+"""How a cell's services map onto OS processes, and how the OS schedules each (`[services] layout`).
+
+- "groups" (the default): one process per [[services.groups]] entry that has a
+  service to run, and one more, "main", for every service no group names.  The
+  default config gives the packet path (robots, dataplane) processes of their
+  own, pinned and at a real-time priority, so that no bus traffic, planning,
+  recording or rendering ever stands between a robot and its next tick.
+- "single": everything in the launcher's process and event loop (debugging).
+- "each": one process per service (a service in a group keeps the group's scheduling).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from cell.config import MAIN_GROUP, CellConfig, ConfigError, ProcessGroup
+
+
+@dataclass(frozen=True)
+class Process:
+    """One OS process of the cell: its name, its services (in `run` order) and its scheduling."""
+
+    name: str
+    services: list[str]
+    cpus: list[int]
+    rt_priority: int
+    nice: int
+
+    @classmethod
+    def of(cls, name: str, services: list[str], group: ProcessGroup | None) -> Process:
+        if group is None:
+            return cls(name, services, [], 0, 0)
+        return cls(name, services, list(group.cpus), group.rt_priority, group.nice)
+
+
+def processes(config: CellConfig) -> list[Process]:
+    """The processes `cell up` starts for this config's layout, "main" first."""
+    s = config.services
+    group_of = {name: g for g in s.groups for name in g.services}
+    if s.layout == "single":
+        return [Process.of(MAIN_GROUP, list(s.run), None)]
+    if s.layout == "each":
+        return [Process.of(name, [name], group_of.get(name)) for name in s.run]
+    rest = [name for name in s.run if name not in group_of]
+    out = [Process.of(MAIN_GROUP, rest, None)] if rest else []
+    for g in s.groups:
+        names = [name for name in s.run if name in g.services]
+        if names:
+            out.append(Process.of(g.name, names, g))
+    return out
+
+
+def process_named(config: CellConfig, name: str) -> Process:
+    """The process `name` of the "groups" layout (`cell service --group NAME`); ConfigError if none."""
+    s = config.services
+    as_groups = replace(config, services=replace(s, layout="groups"))
+    for p in processes(as_groups):
+        if p.name == name:
+            return p
+    known = [MAIN_GROUP, *(g.name for g in s.groups)]
+    raise ConfigError(
+        config.source,
+        "services.groups",
+        f"no process group {name!r} with services to run ({', '.join(known)})",
+    )
+
+
+def process_for(config: CellConfig, names: list[str]) -> Process:
+    """The process `cell service NAME...` runs: the scheduling of the group holding all of the
+    names, if one does (so `cell service robots` is placed as `cell up` would place it)."""
+    group_of = {name: g for g in config.services.groups for name in g.services}
+    groups = {id(group_of.get(n)): group_of.get(n) for n in names}
+    group = next(iter(groups.values())) if len(groups) == 1 else None
+    label = names[0] if len(names) == 1 else (group.name if group is not None else MAIN_GROUP)
+    return Process.of(label, list(names), group)
