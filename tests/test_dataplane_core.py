@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cell.dataplane.approx import LimitVelocity, TransformTable, prefix_entries
+from cell.dataplane.approx import LimitVelocity, TransformTable, bit_length, prefix_entries
 from cell.dataplane.pipeline import ControlConstants, Pipeline, reference_command
 from cell.dataplane.tables import TP, Refused, Tables, TPBatch
 from cell.dataplane.wire import decode_keys, decode_tps, encode_keys, encode_tps
@@ -31,6 +31,15 @@ def test_transform_error_within_the_bound(n: int, c: float) -> None:
     # relative error 1/2^n (the paper's bound is 1/2^(n-1)), plus rounding to an integer
     assert np.all(err <= np.abs(exact) / 2**n + 1.0)
     assert t.entries == 2 * (2**n + (63 - n) * 2 ** (n - 1))
+
+
+@settings(max_examples=300)
+@given(y=st.lists(st.integers(0, 2**63 - 1), min_size=1, max_size=50))
+def test_bit_length_is_exact_for_every_int64(y: list[int]) -> None:
+    # float64 rounds values above 2^53; around powers of two that would be off by one
+    edges = [(1 << k) + d for k in range(1, 63) for d in (-1, 0, 1)] + [0, 1, 2**63 - 1]
+    values = np.array(y + edges, np.int64)
+    assert bit_length(values).tolist() == [int(v).bit_length() for v in values.tolist()]
 
 
 @settings(max_examples=300)

@@ -16,17 +16,39 @@ from __future__ import annotations
 import numpy as np
 
 WORD = 64
-_SHIFTS = (32, 16, 8, 4, 2, 1)
 
 
 def bit_length(y: np.ndarray) -> np.ndarray:
-    """Bit length of non-negative int64 values: a binary search with integer vector ops only."""
-    n = np.zeros(y.shape, np.int64)
-    for s in _SHIFTS:
-        step = ((y >> s) != 0) * s  # s where the value still has bits above s, else 0
-        n += step
-        y = y >> step
-    return n + (y > 0)
+    """Bit length of non-negative int64 values: where a TCAM's leading-one match lands.
+
+    The float64 exponent gives it in one vector operation (y = m 2^e, 1/2 <= m < 1);
+    above 2^53 the conversion may round y up to the next power of two, which shows
+    as bit e-1 not being set, and is taken back.  Exact for every int64 >= 0, and a
+    few operations instead of a binary search's two dozen: most of a small batch's cost.
+    """
+    e = np.frexp(y.astype(np.float64))[1].astype(np.int64)
+    rounded_up = (y >> np.maximum(e - 1, 0)) == 0
+    rounded_up &= e > 0
+    return e - rounded_up
+
+
+def table_index(x: np.ndarray, n: int) -> np.ndarray:
+    """The Transform entry matching each int64 x, as (sign * entries_per_sign + index).
+
+    Key: the sign, then the bit length b of y (y = x, or ~x for x < 0) and the n
+    leading significant bits p = y >> (b - n); values with b <= n are matched
+    exactly.  Entries run [exact 0 .. 2^n), then 2^(n-1) per bit length above n,
+    so the index is p + (b - n) 2^(n-1) (p itself when b <= n).
+    """
+    y = x ^ (x >> 63)  # ~x where x < 0
+    shift = np.maximum(bit_length(y) - n, 0)
+    idx = (y >> shift) + shift * (1 << (n - 1))
+    idx += (x < 0) * entries_per_sign(n)
+    return idx
+
+
+def entries_per_sign(n: int) -> int:
+    return (1 << n) + (WORD - 1 - n) * (1 << (n - 1))
 
 
 class TransformTable:
@@ -58,18 +80,8 @@ class TransformTable:
     def entries(self) -> int:
         return self.table.size
 
-    def index(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        neg = x < 0
-        y = np.where(neg, ~x, x)
-        b = bit_length(y)
-        shift = np.maximum(b - self.n, 0)
-        p = y >> shift
-        idx = np.where(b <= self.n, p, (1 << self.n) + (b - self.n - 1) * self.half + (p - self.half))
-        return neg.astype(np.int64), idx
-
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        sign, idx = self.index(np.asarray(x, np.int64))
-        return self.table[sign, idx]
+        return self.table.reshape(-1)[table_index(np.asarray(x, np.int64), self.n)]
 
 
 def prefix_entries(c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -136,15 +148,16 @@ class LimitVelocity:
     def __call__(self, x: np.ndarray, joint: np.ndarray) -> np.ndarray:
         x = np.asarray(x, np.int64)
         c, d = self.limits[joint], self.neg[joint]
-        # the one entry per side that can match: where x first differs from the constant
-        hi = bit_length(np.where(x ^ c < 0, 0, x ^ c)) - 1
-        hi = np.where(x ^ c < 0, 63, hi)
-        lo = bit_length(np.where(x ^ d < 0, 0, x ^ d)) - 1
-        lo = np.where(x ^ d < 0, 63, lo)
-        hi, lo = np.maximum(hi, 0), np.maximum(lo, 0)
+        # the one entry per side that can match: the bit where x first differs from the constant
+        # (both sides in one pass; a differing sign bit is bit 63)
+        z = np.concatenate([x ^ c, x ^ d])
+        neg = z < 0
+        bit = np.maximum(bit_length(np.where(neg, 0, z)) - 1, 0)
+        bit[neg] = WORD - 1
+        hi, lo = bit[: x.size], bit[x.size :]
         over = (x & self.hi_m[joint, hi]) == self.hi_v[joint, hi]
         under = (x & self.lo_m[joint, lo]) == self.lo_v[joint, lo]
-        return np.where(over, c, np.where(under, -c, x))
+        return np.where(over, c, np.where(under, d, x))
 
 
 def _lowest_bit(mask: int) -> int:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cell.dataplane.approx import LimitVelocity, TransformTable
+from cell.dataplane.approx import LimitVelocity, TransformTable, table_index
 from cell.dataplane.tables import NO_ROW, Tables
 from cell.robot.datagram import SCALE, Kind
 
@@ -36,14 +36,17 @@ class TransformBank:
     """One TransformTable per joint, stacked so a batch mixing joints is one gather."""
 
     def __init__(self, factors: Sequence[float], n_bits: int) -> None:
+        self.n = n_bits
         self.tables = [TransformTable(c, n_bits) for c in factors]
-        self.stack = np.stack([t.table for t in self.tables])
+        self.stack = np.stack([t.table for t in self.tables])  # (joint, sign, entry)
         np.clip(self.stack, -TERM_LIMIT, TERM_LIMIT, out=self.stack)
-        self._index = self.tables[0].index
 
     def __call__(self, x: np.ndarray, joint: np.ndarray) -> np.ndarray:
-        sign, idx = self._index(x)
-        return self.stack[joint, sign, idx]
+        return self.lookup(table_index(x, self.n), joint)
+
+    def lookup(self, index: np.ndarray, joint: np.ndarray) -> np.ndarray:
+        """The entries at table_index() positions: matching once serves banks of the same n."""
+        return self.stack.reshape(self.stack.shape[0], -1)[joint, index]
 
     @property
     def entries(self) -> int:
@@ -155,18 +158,20 @@ class Pipeline:
         j = np.where(has, t.robot_joint0[rid] + jid, 0)
         v_trg = t.trg_vel[r, j]  # TargetData
         p_trg = t.trg_pos[r, j]
-        v = np.clip(recs["velocity"].astype(np.int64), -INPUT_LIMIT, INPUT_LIMIT)
-        p = np.clip(recs["position"].astype(np.int64), -INPUT_LIMIT, INPUT_LIMIT)
+        v = _clamp(recs["velocity"].astype(np.int64), INPUT_LIMIT)
+        p = _clamp(recs["position"].astype(np.int64), INPUT_LIMIT)
         mine = jid < t.max_joints
         t.status_pos[rid[mine], jid[mine]] = p[mine]
         t.status_vel[rid[mine], jid[mine]] = v[mine]
         t.status_ns[rid] = now
-        diff = np.clip(p_trg - p, -TERM_LIMIT, TERM_LIMIT)
+        diff = _clamp(p_trg - p, TERM_LIMIT)
         local = np.minimum(jid, self.joints - 1)
+        # the three Transform tables share their key: match all three inputs in one pass
+        idx = table_index(np.concatenate([v, v_trg, diff]), self.constants.n_bits)
         v_new = (
-            self.transform_curr_velocity(v, local)
-            + self.transform_trg_velocity(v_trg, local)
-            + self.transform_diff_position(diff, local)
+            self.transform_curr_velocity.lookup(idx[:n], local)
+            + self.transform_trg_velocity.lookup(idx[n : 2 * n], local)
+            + self.transform_diff_position.lookup(idx[2 * n :], local)
             + diff
         )
         out = self.limit_velocity(v_new, local)
@@ -175,6 +180,12 @@ class Pipeline:
         c.holds += int((~has).sum())
         recs["velocity"] = out
         recs["kind"] = Kind.COMMAND
+
+
+def _clamp(x: np.ndarray, limit: int) -> np.ndarray:
+    """x within [-limit, limit], in place (two ufuncs: np.clip's wrapper costs more than the work)."""
+    np.minimum(x, limit, out=x)
+    return np.maximum(x, -limit, out=x)
 
 
 def reference_command(
