@@ -177,7 +177,10 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
         },
     )
     ctx.ready()
-    await asyncio.Event().wait()  # requests are served by the bus node's reader
+    ctl = svc.ctl
+    while True:  # requests are served by the bus node's reader; this only reports
+        ctx.counters["late_starts"] = ctl.late_starts
+        await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
 
 
 SERVICE = ServiceSpec(

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -46,6 +47,8 @@ STOP_JERK = 1000.0  # rad/s^3: a stop reaches full deceleration in a few ms
 SWITCH_MARGIN_NS = 20_000_000  # a switch entry must be in place this long before its TP
 TIDY_NS = 20_000_000  # after a motion's end, when its TPs are deleted
 STOP_RATE_HZ = 20.0  # TPs of a stop: sections still long enough to fit them to the loop
+
+log = logging.getLogger("cell.controller")
 
 
 class MotionStopped(Exception):
@@ -178,6 +181,7 @@ class Controller:
         )
         self.tracks: dict[int, Track] = {}
         self.plan_ns = 100_000_000  # how long planning a re-plan takes (measured, pessimistic)
+        self.late_starts = 0  # motions whose first TPs were in place only after their start time
         self.last_switch: Switch | None = None
         self.unfinished: dict[int, tuple] = {}  # robot -> the motion a stop interrupted (for resume)
 
@@ -385,14 +389,18 @@ class Controller:
         """Load the motions' first episodes and start them at one data-plane time, in one atomic
         update; they stream on in the background."""
         rate = self.fine_hz if fine else self.rate_hz
+        planned = []
+        for robot, motion in motions.items():
+            track = self.track(robot)
+            sections = cut(motion, rate, np.resize(self.gain, track.joints), self.loop(track))
+            planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
+        # the start time is set once the planning is done, so that the lead only has to cover the
+        # update's way to the data plane (planning first would eat it on a busy host: a late start)
         await self.link.state()  # a fresh clock and round trip
         start = self.link.now() + self.lead_ns + 2 * self.link.rtt_ns
         first: list[TPBatch] = []
         registers, remove, segments = [], [], []
-        for robot, motion in motions.items():
-            track = self.track(robot)
-            sections = cut(motion, rate, np.resize(self.gain, track.joints), self.loop(track))
-            hold_id, *ids = track.take_ids(len(sections) + 2)
+        for track, motion, sections, (hold_id, *ids) in planned:
             q0 = motion.sample(np.array([0.0]))[0][0]
             seg = Segment(start, motion, sections, ids)
             first.append(self._hold_batch(track, hold_id, ids[0], q0))
@@ -400,7 +408,16 @@ class Controller:
             registers.append((track.robot, hold_id, start))
             remove += [(track.robot, i) for i in track.loaded]
             segments.append((track, seg, hold_id))
-        await self.dp.update(insert=_concat(first), remove=remove, registers=registers)
+        reply = await self.dp.update(insert=_concat(first), remove=remove, registers=registers)
+        if reply.now_ns > start:  # in place after the start time: the robots catch up with the plan
+            self.late_starts += 1
+            log.warning(
+                "motion of %s in place %.1f ms after its start time (lead %.0f ms, round trip %.1f ms)",
+                ", ".join(str(t.robot) for t, _, _ in segments),
+                (reply.now_ns - start) / 1e6,
+                self.lead_ns / 1e6,
+                self.link.rtt_ns / 1e6,
+            )
         for track, seg, hold_id in segments:
             track.loaded = [hold_id, *seg.ids[: self.episode]]
             track.segment = seg
