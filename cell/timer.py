@@ -51,6 +51,8 @@ class PeriodicTimer:
         self.period_ns = period_ns
         self.ticks = 0  # periods elapsed so far, by the timer's count
         self._fd = -1
+        self._waiter: asyncio.Future[int] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
         if _LIBC is not None:
             fd = _LIBC.timerfd_create(CLOCK_MONOTONIC, TFD_NONBLOCK | TFD_CLOEXEC)
             if fd >= 0:
@@ -72,17 +74,19 @@ class PeriodicTimer:
         if n:
             return n
         loop = asyncio.get_running_loop()
-        fut: asyncio.Future[int] = loop.create_future()
-
-        def ready() -> None:
-            if not fut.done() and (got := self._read()):
-                fut.set_result(got)
-
-        loop.add_reader(self._fd, ready)
+        if self._loop is not loop:  # the reader stays registered: no epoll_ctl pair every period
+            self._loop = loop
+            loop.add_reader(self._fd, self._ready)
+        self._waiter = loop.create_future()
         try:
-            return await fut
+            return await self._waiter
         finally:
-            loop.remove_reader(self._fd)
+            self._waiter = None
+
+    def _ready(self) -> None:
+        fut = self._waiter
+        if fut is not None and not fut.done() and (got := self._read()):
+            fut.set_result(got)
 
     def _read(self) -> int:
         try:
@@ -104,5 +108,7 @@ class PeriodicTimer:
 
     def close(self) -> None:
         if self._fd >= 0:
+            if self._loop is not None and not self._loop.is_closed():
+                self._loop.remove_reader(self._fd)
             os.close(self._fd)
             self._fd = -1

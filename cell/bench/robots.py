@@ -77,7 +77,7 @@ def _trial_child(backend: str, n: int, seconds: float, dataplane: str, out: Any,
         task = asyncio.ensure_future(group.run())
         await asyncio.sleep(0.3)  # warm-up, not measured
         base = group.counters.as_dict()
-        group.counters.lateness_us.clear()
+        group.counters.lateness.clear()
         cpu0 = resource.getrusage(resource.RUSAGE_SELF)
         t0 = time.monotonic()
         await asyncio.sleep(seconds)

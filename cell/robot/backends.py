@@ -65,7 +65,7 @@ class MujocoArms:
         for _ in range(steps):
             v = self.drives.step(h)
             self.q_ref += v * h
-            np.clip(self.q_ref, self.q_min, self.q_max, out=self.q_ref)
+            np.minimum(np.maximum(self.q_ref, self.q_min, out=self.q_ref), self.q_max, out=self.q_ref)
             ctrl = self.q_ref + self.feedforward * self.drives.velocity
             for i, d in enumerate(self.data):
                 d.ctrl[:] = ctrl[i]
