@@ -65,6 +65,41 @@ class Watch:
         return np.array(out)
 
 
+MISSED_AIM = 0.001  # of the robots' status periods
+LATENESS_AIM_US = 500.0  # p99 of how late a tick starts
+
+
+def real_time_rows(status: health_pb2.CellStatus, rb: dict[str, float]) -> list[tuple[str, str]]:
+    """Whether the robots kept their 2 ms ticks (the ground truth of every figure above), and
+    what each service cost: said plainly when the run was not real time."""
+    ticks, missed, late = rb.get("ticks", 0.0), rb.get("missed_ticks", 0.0), rb.get("late_sends", 0.0)
+    periods = ticks + missed
+    share = missed / periods if periods else 1.0
+    p50, p99 = rb.get("lateness_p50_us", float("nan")), rb.get("lateness_p99_us", float("nan"))
+    if share < MISSED_AIM and p99 < LATENESS_AIM_US:
+        verdict = f"yes (aims: < {MISSED_AIM:.1%} of ticks missed, lateness p99 < {LATENESS_AIM_US:.0f} us)"
+    else:
+        verdict = (
+            f"NO: {share:.2%} of ticks missed, lateness p99 {p99:.0f} us (aims < {MISSED_AIM:.1%}, "
+            f"< {LATENESS_AIM_US:.0f} us): the robots fell behind, so the figures above are degraded"
+        )
+    places = {s.last.process: s.last.sched for s in status.services if s.last.process}
+    loads = sorted(
+        (
+            (s.name, 1e3 * s.last.counters.get("busy_s", 0.0) / max(s.last.uptime_s, 1e-9))
+            for s in status.services
+        ),
+        key=lambda x: -x[1],
+    )
+    return [
+        ("robot ticks missed / late sends", f"{missed:,.0f} of {periods:,.0f} ({share:.2%}) / {late:,.0f}"),
+        ("tick lateness p50 / p99 / max", f"{p50:.0f} / {p99:.0f} / {rb.get('lateness_max_us', 0):.0f} us"),
+        ("real time", verdict),
+        (f"processes ({status.mode})", "; ".join(f"{p}: {w}" for p, w in places.items())),
+        ("event-loop time per service, mean", ", ".join(f"{n} {v:.0f}" for n, v in loads) + " ms/s"),
+    ]
+
+
 async def ask(cell: Any, method: str, req: Any, reply_type: Any, timeout: float = 60.0) -> Any:
     """A request to the controller service."""
     return await cell.request("controller", method, req, reply_type, timeout)
@@ -158,7 +193,8 @@ async def main(cell: Any) -> None:
 
     watcher.cancel()
     status = await cell.request("cell", "status", health_pb2.StatusRequest(), health_pb2.CellStatus, 5)
-    dp = {k: float(v) for s in status.services if s.name == "dataplane" for k, v in s.last.counters.items()}
+    counters = {s.name: dict(s.last.counters) for s in status.services}
+    dp, rb = counters.get("dataplane", {}), counters.get("robots", {})
 
     def c(key: str) -> float:
         return dp.get(key, 0.0)
@@ -176,6 +212,7 @@ async def main(cell: Any) -> None:
         ("drops (length, kind, joint)", drops),
         ("TP steps / resubmits / stalls", f"{c('steps'):.0f} / {c('resubmits'):.0f} / {c('stalls'):.0f}"),
         ("SnP queries answered / denied / missed", f"{answered} / {denied} / {missed}"),
+        *real_time_rows(status, rb),
         ("run time", f"{time.monotonic() - t0:.1f} s"),
     ]
     width = max(len(k) for k, _ in rows)

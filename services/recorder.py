@@ -10,8 +10,10 @@
 - Events as text logs (robots, services, runs, SnP and skill errors); skill
   commands as spans (a step series per robot: the run reads as a Gantt chart).
 One timeline, `cell_time`: the cell clock (this host's CLOCK_REALTIME).
-Ground truth is drawn at [recorder] hz at most, so that the recorder never
-holds up the packet path; it measures its own time per second (busy_ms_per_s).
+Ground truth is drawn at [recorder] hz at most: the 3D scene as it comes,
+the time series as columns every [recorder] series_batch_s (cell/recorder/
+series.py), the tool path a few times a second.  Its share of the process
+shows as busy_ms_per_s in `cell status`.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import rerun as rr
 
 from cell.bus import Subscription
 from cell.recorder.scene import ArmDrawer
+from cell.recorder.series import SeriesBatch
 from cell.robot.arm import arm_model
 from cell.service import ServiceContext, ServiceSpec
 from cell.snp.packet import Denial
@@ -33,7 +36,9 @@ from cell.snp.state import realtime_offset_ns
 from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, snp_pb2
 
 PATH_POINTS = 600  # tool path points kept per robot
+PATH_EVERY_NS = 200_000_000  # the tool path (a line of up to PATH_POINTS) is drawn this often
 SPACING = 1.2  # m between robots' bases in the 3D view
+TIMELINE = "cell_time"
 
 
 class Recorder:
@@ -49,15 +54,21 @@ class Recorder:
             r.id: ArmDrawer(arm, r.name, (0.0, (i - (n - 1) / 2) * SPACING, 0.0))
             for i, r in enumerate(cfg.robots)
         }
+        self.ids = {r.name: r.id for r in cfg.robots}
         self.last_drawn: dict[int, int] = {}
         self.paths: dict[int, deque[np.ndarray]] = {rid: deque(maxlen=PATH_POINTS) for rid in self.names}
+        self.path_drawn: dict[int, int] = {}
+        self.active_tp: dict[int, int] = {}
         self.plans: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.series = SeriesBatch(rec, TIMELINE)
         self.last_counters: tuple[int, float] | None = None
-        self.busy_ns = 0
         self.logged = 0
 
+    def seconds(self, t_mono_ns: int) -> float:
+        return (t_mono_ns + self.offset) / 1e9
+
     def at(self, t_mono_ns: int) -> None:
-        self.rec.set_time("cell_time", timestamp=(t_mono_ns + self.offset) / 1e9)
+        self.rec.set_time(TIMELINE, timestamp=self.seconds(t_mono_ns))
 
     def start(self) -> None:
         for d in self.drawers.values():
@@ -66,10 +77,15 @@ class Recorder:
 
     # --- ground truth ---------------------------------------------------------------------------
 
+    def wants_truth(self, name: str, sent_ns: int) -> bool:
+        """Whether a truth message sent at sent_ns is drawn (decided before decoding it)."""
+        rid = self.ids.get(name)
+        return rid is not None and sent_ns - self.last_drawn.get(rid, 0) >= self.min_dt
+
     def truth(self, m: robot_pb2.RobotTruth) -> None:
         rid = m.robot_id
         drawer = self.drawers.get(rid)
-        if drawer is None or m.t_ns - self.last_drawn.get(rid, 0) < self.min_dt:
+        if drawer is None:
             return
         self.last_drawn[rid] = m.t_ns
         name = self.names[rid]
@@ -78,24 +94,25 @@ class Recorder:
         rec = self.rec
         for entity, pos, quat in drawer.poses(q):
             rec.log(entity, rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=quat)))
-        tool = np.array(m.tool_pose[:3])
-        self.paths[rid].append(tool)
-        rec.log(f"robots/{name}/tool_path", rr.LineStrips3D([np.array(self.paths[rid])]))
+        self.paths[rid].append(np.array(m.tool_pose[:3]))
+        if m.t_ns - self.path_drawn.get(rid, 0) >= PATH_EVERY_NS:
+            self.path_drawn[rid] = m.t_ns
+            rec.log(f"robots/{name}/tool_path", rr.LineStrips3D([np.array(self.paths[rid])]))
+        t_s = self.seconds(m.t_ns)
+        joints, series = f"joints/{name}", self.series
+        series.add_joints(f"{joints}/position", "/actual", t_s, q)
+        series.add_joints(f"{joints}/velocity", "/actual", t_s, np.array(m.qd))
+        series.add_joints(f"{joints}/velocity", "/commanded", t_s, np.array(m.target))
         plan = self.plans.get(rid)
-        qd, target = np.array(m.qd), np.array(m.target)
-        for j in range(q.size):
-            rec.log(f"joints/{name}/position/j{j + 1}/actual", rr.Scalars(q[j]))
-            rec.log(f"joints/{name}/velocity/j{j + 1}/actual", rr.Scalars(qd[j]))
-            rec.log(f"joints/{name}/velocity/j{j + 1}/commanded", rr.Scalars(target[j]))
         if plan is not None:
             t, pq, _ = plan
             if t[0] <= m.t_ns <= t[-1] + 2_000_000_000:
                 planned = np.array([np.interp(m.t_ns, t, pq[:, j]) for j in range(q.size)])
-                for j in range(q.size):
-                    rec.log(f"joints/{name}/position/j{j + 1}/planned", rr.Scalars(planned[j]))
-                    rec.log(f"joints/{name}/tracking_error/j{j + 1}", rr.Scalars(q[j] - planned[j]))
+                series.add_joints(f"{joints}/position", "/planned", t_s, planned)
+                series.add_joints(f"{joints}/tracking_error", "", t_s, q - planned)
                 k = int(np.searchsorted(t, m.t_ns))
-                if k < len(t):
+                if k < len(t) and self.active_tp.get(rid) != k:  # drawn when it changes
+                    self.active_tp[rid] = k
                     active = drawer.arm.fk(pq[k])[0]
                     rec.log(
                         f"robots/{name}/active_tp", rr.Points3D([active], radii=0.012, colors=[255, 80, 0])
@@ -109,6 +126,7 @@ class Recorder:
         q = np.array(p.positions).reshape(-1, p.joints)
         v = np.array(p.velocities).reshape(-1, p.joints)
         self.plans[p.robot_id] = (t, q, v)
+        self.active_tp.pop(p.robot_id, None)
         arm = self.drawers[p.robot_id].arm
         points = [arm.fk(qi)[0] for qi in q]
         self.at(int(t[0]))
@@ -191,19 +209,12 @@ async def run(ctx: ServiceContext) -> None:
         "events": await bus.subscribe("events/", "run/events", "skills/", "announce/robot/"),
     }
 
-    def timed(fn):
-        def wrapper(env) -> None:
-            t0 = time.perf_counter_ns()
-            try:
-                fn(env)
-            finally:
-                r.busy_ns += time.perf_counter_ns() - t0
-
-        return wrapper
-
     joined: set[int] = set()
 
-    @timed
+    def on_truth(env) -> None:
+        if r.wants_truth(env.topic.removeprefix("truth/"), env.sent_ns):
+            r.truth(env.decode(robot_pb2.RobotTruth))
+
     def on_event(env) -> None:
         topic = env.topic
         if topic.startswith("skills/") and topic.endswith("/trace"):
@@ -245,28 +256,27 @@ async def run(ctx: ServiceContext) -> None:
     elif cfg.mode == "save":
         ctx.log.info("recording to %s", cfg.path)
 
-    async def report() -> None:
-        last = 0
+    async def flush_series() -> None:
         while True:
-            await asyncio.sleep(1.0)
-            ctx.counters["busy_ms_per_s"] = (r.busy_ns - last) / 1e6
+            await asyncio.sleep(cfg.series_batch_s)
+            r.series.flush()
             ctx.counters["truth_logged"] = r.logged
-            last = r.busy_ns
 
     try:
         async with asyncio.TaskGroup() as tg:
-            tg.create_task(_each(subs["truth"], timed(lambda env: r.truth(env.decode(robot_pb2.RobotTruth)))))
-            tg.create_task(_each(subs["plan"], timed(lambda env: r.plan(env.decode(controller_pb2.Plan)))))
+            tg.create_task(_each(subs["truth"], on_truth))
+            tg.create_task(_each(subs["plan"], lambda env: r.plan(env.decode(controller_pb2.Plan))))
             tg.create_task(
                 _each(
                     subs["dataplane"],
-                    timed(lambda env: r.dataplane(env.decode(dataplane_pb2.DataplaneState), env.sent_ns)),
+                    lambda env: r.dataplane(env.decode(dataplane_pb2.DataplaneState), env.sent_ns),
                 )
             )
             tg.create_task(_each(subs["events"], on_event))
-            tg.create_task(report())
+            tg.create_task(flush_series())
             ctx.ready()
     finally:
+        r.series.flush()
         rec.flush()
         rec.disconnect()
 

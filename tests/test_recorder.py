@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import re
 import subprocess
 import sys
 from collections import Counter
@@ -72,7 +74,8 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
         links = [e for e in rows if e.startswith(f"/robots/{name}/links/") and not e.endswith("/geom")]
         assert len(links) == 6, links  # a pose per link
         assert min(rows[e] for e in links) > 20  # drawn over and over
-        assert rows[f"/robots/{name}/tool_path"] > 20
+        # the tool path (a line of hundreds of points) is redrawn a few times a second, not every time
+        assert 5 < rows[f"/robots/{name}/tool_path"] < min(rows[e] for e in links) / 3
         assert rows[f"/robots/{name}/tps"] >= 1  # the plan's points
         for series in (
             "position/j1/actual",
@@ -101,9 +104,20 @@ def test_cell_demo_runs_the_main_job_end_to_end(tmp_path) -> None:
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = proc.stdout
-    for line in ("moves done", "tool path error at TPs", "SnP queries answered", "verified"):
+    for line in ("moves done", "tool path error at TPs", "SnP queries answered", "verified", "real time"):
         assert line in text, text[-3000:]
     assert "NOT verified" not in text
+    # the default cell keeps real time under the demo's load: the robots (the ground truth of every
+    # figure) miss fewer than 0.5% of their 2 ms ticks (aim 0.1%; single-process missed 15-30%)
+    got = re.search(r"robot ticks missed / late sends\s+([\d,]+) of ([\d,]+)", text)
+    assert got is not None, text[-3000:]
+    missed, periods = (int(g.replace(",", "")) for g in got.groups())
+    assert periods > 8_000  # the whole demo at 500 Hz
+    assert missed / periods < 0.005, text[-3000:]
+    placed = re.search(r"processes \(groups\)\s+(.*)", text)
+    assert placed is not None and "robots: " in placed.group(1), text[-3000:]
+    if os.geteuid() == 0:  # SCHED_FIFO is granted (elsewhere the cell says what it got instead)
+        assert "robots: fifo 70, cpu 1" in placed.group(1)
     rows = rows_by_entity(out)
     assert any(e.startswith("/skills/r1/busy") for e in rows) and any(
         e.startswith("/skills/r2/busy") for e in rows
