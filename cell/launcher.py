@@ -19,7 +19,7 @@ from cell import sched
 from cell.aio import stop_on_signals, stop_on_stdin_eof
 from cell.bus import Bus, BusError
 from cell.config import CellConfig
-from cell.layout import process_for, process_named, processes
+from cell.layout import Process, process_for, process_named, processes
 from cell.processes import ChildProcess
 from cell.registry import StatusRegistry, format_status
 from cell.services import load_all
@@ -49,12 +49,18 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
                 if layout == "single":
                     tg.create_task(Supervisor(config, specs).run(stop), name="supervisor")
                 else:
+                    log.info("layout %s: %s", layout, "; ".join(map(_describe, processes(config))))
                     # the children read the effective config (command-line changes included)
                     effective = Path(tmp) / "cell.toml"
                     effective.write_text(config.to_toml())
                     for p in processes(config):
                         child = ChildProcess(
-                            p, config, effective, group=layout == "groups", log_level=log_level
+                            p,
+                            config,
+                            effective,
+                            group=layout == "groups",
+                            log_level=log_level,
+                            on_restart=registry.process_restarted,
                         )
                         tg.create_task(child.run(stop), name=f"process:{p.name}")
                 keeper = tg.create_task(_keep_registry(config, registry, t0), name="registry")
@@ -73,6 +79,12 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
     if final is not None:
         print(format_status(final))
     return 0
+
+
+def _describe(p: Process) -> str:
+    how = [f"cpus {','.join(map(str, p.cpus))}"] if p.cpus else []
+    how += [f"SCHED_FIFO {p.rt_priority}"] if p.rt_priority else []
+    return f"{p.name} ({', '.join(p.services)}{''.join('; ' + h for h in how)})"
 
 
 async def _keep_registry(config: CellConfig, registry: StatusRegistry, t0: float) -> None:

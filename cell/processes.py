@@ -14,6 +14,7 @@ import contextlib
 import logging
 import signal
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from cell.config import CellConfig
@@ -26,9 +27,17 @@ GRACE_S = 1.5  # SIGTERM -> SIGKILL; keeps a whole shutdown inside 2 s
 
 class ChildProcess:
     def __init__(
-        self, process: Process, config: CellConfig, config_path: Path, *, group: bool, log_level: str = "INFO"
+        self,
+        process: Process,
+        config: CellConfig,
+        config_path: Path,
+        *,
+        group: bool,
+        log_level: str = "INFO",
+        on_restart: Callable[[str, str], None] | None = None,
     ) -> None:
         self.process = process
+        self.on_restart = on_restart  # (process name, why), before each restart
         self.config = config
         self.config_path = config_path
         self.group = group  # started as `service --group NAME` (else by service names)
@@ -69,6 +78,8 @@ class ChildProcess:
                 log.error("process %r (%s; pid %d) exited with code %s", self.name, what, self.proc.pid, rc)
                 if policy.on_failure == "stop":
                     raise ServiceFailed(self.name, f"exited with code {rc} ({what})", what="process")
+                if self.on_restart is not None:
+                    self.on_restart(self.name, f"process {self.name!r} exited with code {rc}")
                 log.info("restarting %r in %.1f s", self.name, backoff)
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(backoff):

@@ -30,6 +30,13 @@ class StatusRegistry:
         self.expected = list(expected)
         self.started = time.monotonic()
         self._last: dict[str, tuple[health_pb2.Heartbeat, float]] = {}
+        self._process_restarts: dict[str, tuple[int, str]] = {}  # process -> (restarts, why)
+
+    def process_restarted(self, process: str, why: str) -> None:
+        """A process the launcher runs died and was started again: its services' restarts count it
+        (their new supervisor starts counting from 0)."""
+        n, _ = self._process_restarts.get(process, (0, ""))
+        self._process_restarts[process] = (n + 1, why)
 
     def observe(self, hb: health_pb2.Heartbeat, at: float | None = None) -> None:
         self._last[hb.service] = (hb, time.monotonic() if at is None else at)
@@ -45,6 +52,10 @@ class StatusRegistry:
                 continue
             hb, at = self._last[name]
             entry.last.CopyFrom(hb)
+            if hb.process in self._process_restarts:
+                n, why = self._process_restarts[hb.process]
+                entry.last.restarts += n
+                entry.last.last_error = entry.last.last_error or why
             entry.heartbeat_age_s = now - at
             stale = entry.heartbeat_age_s > STALE_AFTER * max(hb.interval_s, 0.1)
             alive = hb.state not in (health_pb2.SERVICE_STATE_FAILED, health_pb2.SERVICE_STATE_STOPPED)

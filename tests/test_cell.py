@@ -103,6 +103,25 @@ async def test_children_stop_when_the_launcher_is_killed(start_cell) -> None:
     assert [p for p in children if pid_alive(p)] == []
 
 
+async def test_a_killed_process_is_restarted_and_counted_and_the_rest_runs_on(start_cell) -> None:
+    cell = await start_cell(run=["bus", "echo"], plugins=ECHO, groups=SIDE, backoff_initial_s=0.05)
+    before = {s.name: s.last.pid for s in (await fetch_status(cell.config)).services}
+    os.kill(before["echo"], signal.SIGKILL)
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        status = {s.name: s for s in (await fetch_status(cell.config)).services}
+        echo = status["echo"]
+        if echo.health == "ok" and echo.last.pid != before["echo"]:
+            break
+        await asyncio.sleep(0.05)
+    assert echo.health == "ok" and echo.last.pid != before["echo"]
+    assert echo.last.restarts == 1 and "exited with code -9" in echo.last.last_error
+    assert status["bus"].last.pid == before["bus"] and status["bus"].last.restarts == 0
+    async with Bus.connect(cell.config.bus, "tester") as bus:  # and it serves again
+        reply = await bus.request("echo", "echo", bus_pb2.BenchPayload(data=b"again"), bus_pb2.BenchPayload)
+    assert reply.data == b"again"
+
+
 async def test_cell_status_command(start_cell) -> None:
     cell = await start_cell(run=["bus", "echo"], plugins=ECHO, groups=SIDE)
 
