@@ -29,7 +29,7 @@ def _config_arg(p: argparse.ArgumentParser) -> None:
 
 def _cmd_up(args: argparse.Namespace) -> int:
     from cell import launcher
-    from cell.services import load_all
+    from cell.services import check_all
 
     config = load_config(args.config)
     if args.rerun:
@@ -37,7 +37,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
     layout = "each" if args.processes else args.layout
     if layout is not None:
         config = replace(config, services=replace(config.services, layout=layout))
-    load_all(config)  # unknown services are config errors (exit 2), before anything starts
+    check_all(config)  # unknown services are config errors (exit 2), before anything starts
     return aio.run(launcher.up(config, duration=args.duration, log_level=args.log_level))
 
 

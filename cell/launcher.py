@@ -36,8 +36,7 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
     launcher itself keeps the status registry and, in the "single" layout, runs everything.
     """
     layout = config.services.layout
-    specs = load_all(config)
-    registry = StatusRegistry(config.cell.name, layout, [s.name for s in specs])
+    registry = StatusRegistry(config.cell.name, layout, list(config.services.run))
     stop = asyncio.Event()
     t0 = time.monotonic()
     final: health_pb2.CellStatus | None = None
@@ -47,7 +46,7 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
         try:
             async with asyncio.TaskGroup() as tg:
                 if layout == "single":
-                    tg.create_task(Supervisor(config, specs).run(stop), name="supervisor")
+                    tg.create_task(Supervisor(config, load_all(config)).run(stop), name="supervisor")
                 else:
                     log.info("layout %s: %s", layout, "; ".join(map(_describe, processes(config))))
                     # the children read the effective config (command-line changes included)

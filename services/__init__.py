@@ -51,3 +51,11 @@ def load(name: str, config: CellConfig) -> ServiceSpec:
 
 def load_all(config: CellConfig, names: list[str] | None = None) -> list[ServiceSpec]:
     return [load(n, config) for n in (config.services.run if names is None else names)]
+
+
+def check_all(config: CellConfig, names: list[str] | None = None) -> None:
+    """ConfigError unless every name is a built-in service or a loadable plugin; the built-ins are
+    not imported (a launcher that runs none of them starts its children sooner)."""
+    for name in config.services.run if names is None else names:
+        if name not in BUILTIN or name in config.services.plugins:
+            load(name, config)

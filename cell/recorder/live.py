@@ -1,0 +1,280 @@
+"""What the recorder service draws: the cell's bus in Rerun, live or into an .rrd file.
+
+- 3D: every robot from its MJCF geometry with a pose per link from ground
+  truth; the tool's path; the plan's trajectory points as markers, the one
+  the robot is heading for highlighted.
+- Time series per robot and joint: actual vs planned position, actual vs
+  commanded velocity, tracking error.
+- Data plane: batch time p50/p99, packets/s, drops by reason, resubmits, TPs
+  loaded.
+- Events as text logs (robots, services, runs, SnP and skill errors); skill
+  commands as spans (a step series per robot: the run reads as a Gantt chart).
+One timeline, `cell_time`: the cell clock (this host's CLOCK_REALTIME).
+Ground truth is drawn at [recorder] hz at most: the 3D scene as it comes,
+the time series as columns every [recorder] series_batch_s (cell/recorder/
+series.py), the tool path a few times a second.  Its share of the process
+shows as busy_ms_per_s in `cell status`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+from cell.bus import Subscription
+from cell.recorder.scene import ArmDrawer
+from cell.recorder.series import SeriesBatch
+from cell.robot.arm import arm_model
+from cell.service import ServiceContext
+from cell.snp.packet import Denial
+from cell.snp.state import realtime_offset_ns
+from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, snp_pb2
+
+PATH_POINTS = 600  # tool path points kept per robot
+PATH_EVERY_NS = 200_000_000  # the tool path (a line of up to PATH_POINTS) is drawn this often
+SPACING = 1.2  # m between robots' bases in the 3D view
+TIMELINE = "cell_time"
+
+
+class Recorder:
+    def __init__(self, ctx: ServiceContext, rec: rr.RecordingStream) -> None:
+        self.ctx, self.rec = ctx, rec
+        cfg = ctx.config
+        self.min_dt = int(1e9 / cfg.recorder.hz)
+        self.offset = realtime_offset_ns()
+        arm = arm_model()
+        n = len(cfg.robots)
+        self.names = {r.id: r.name for r in cfg.robots}
+        self.drawers = {
+            r.id: ArmDrawer(arm, r.name, (0.0, (i - (n - 1) / 2) * SPACING, 0.0))
+            for i, r in enumerate(cfg.robots)
+        }
+        self.ids = {r.name: r.id for r in cfg.robots}
+        self.last_drawn: dict[int, int] = {}
+        self.paths: dict[int, deque[np.ndarray]] = {rid: deque(maxlen=PATH_POINTS) for rid in self.names}
+        self.path_drawn: dict[int, int] = {}
+        self.active_tp: dict[int, int] = {}
+        self.plans: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.series = SeriesBatch(rec, TIMELINE)
+        self.last_counters: tuple[int, float] | None = None
+        self.logged = 0
+
+    def seconds(self, t_mono_ns: int) -> float:
+        return (t_mono_ns + self.offset) / 1e9
+
+    def at(self, t_mono_ns: int) -> None:
+        self.rec.set_time(TIMELINE, timestamp=self.seconds(t_mono_ns))
+
+    def start(self) -> None:
+        for d in self.drawers.values():
+            d.log_static(self.rec)
+        self.rec.log("events", rr.TextLog("recorder started", level="INFO"), static=False)
+
+    # --- ground truth ---------------------------------------------------------------------------
+
+    def wants_truth(self, name: str, sent_ns: int) -> bool:
+        """Whether a truth message sent at sent_ns is drawn (decided before decoding it)."""
+        rid = self.ids.get(name)
+        return rid is not None and sent_ns - self.last_drawn.get(rid, 0) >= self.min_dt
+
+    def truth(self, m: robot_pb2.RobotTruth) -> None:
+        rid = m.robot_id
+        drawer = self.drawers.get(rid)
+        if drawer is None:
+            return
+        self.last_drawn[rid] = m.t_ns
+        name = self.names[rid]
+        q = np.array(m.q)
+        self.at(m.t_ns)
+        rec = self.rec
+        for entity, pos, quat in drawer.poses(q):
+            rec.log(entity, rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=quat)))
+        self.paths[rid].append(np.array(m.tool_pose[:3]))
+        if m.t_ns - self.path_drawn.get(rid, 0) >= PATH_EVERY_NS:
+            self.path_drawn[rid] = m.t_ns
+            rec.log(f"robots/{name}/tool_path", rr.LineStrips3D([np.array(self.paths[rid])]))
+        t_s = self.seconds(m.t_ns)
+        joints, series = f"joints/{name}", self.series
+        series.add_joints(f"{joints}/position", "/actual", t_s, q)
+        series.add_joints(f"{joints}/velocity", "/actual", t_s, np.array(m.qd))
+        series.add_joints(f"{joints}/velocity", "/commanded", t_s, np.array(m.target))
+        plan = self.plans.get(rid)
+        if plan is not None:
+            t, pq, _ = plan
+            if t[0] <= m.t_ns <= t[-1] + 2_000_000_000:
+                planned = np.array([np.interp(m.t_ns, t, pq[:, j]) for j in range(q.size)])
+                series.add_joints(f"{joints}/position", "/planned", t_s, planned)
+                series.add_joints(f"{joints}/tracking_error", "", t_s, q - planned)
+                k = int(np.searchsorted(t, m.t_ns))
+                if k < len(t) and self.active_tp.get(rid) != k:  # drawn when it changes
+                    self.active_tp[rid] = k
+                    active = drawer.arm.fk(pq[k])[0]
+                    rec.log(
+                        f"robots/{name}/active_tp", rr.Points3D([active], radii=0.012, colors=[255, 80, 0])
+                    )
+        self.logged += 1
+
+    def plan(self, p: controller_pb2.Plan) -> None:
+        if p.robot_id not in self.drawers or not p.t_ns:
+            return
+        t = np.array(p.t_ns)
+        q = np.array(p.positions).reshape(-1, p.joints)
+        v = np.array(p.velocities).reshape(-1, p.joints)
+        self.plans[p.robot_id] = (t, q, v)
+        self.active_tp.pop(p.robot_id, None)
+        arm = self.drawers[p.robot_id].arm
+        points = [arm.fk(qi)[0] for qi in q]
+        self.at(int(t[0]))
+        name = self.names[p.robot_id]
+        self.rec.log(f"robots/{name}/tps", rr.Points3D(points, radii=0.006, colors=[60, 160, 255]))
+        self.rec.log("events", rr.TextLog(f"{name}: a plan of {len(t)} TPs loaded", level="INFO"))
+
+    # --- the data plane -----------------------------------------------------------------------------
+
+    def dataplane(self, st: dataplane_pb2.DataplaneState, t_mono_ns: int) -> None:
+        c = st.counters
+        self.at(t_mono_ns)
+        rec = self.rec
+        for key in ("batch_p50_us", "batch_p99_us", "resubmits", "tps_loaded", "stalls", "holds"):
+            if key in c:
+                rec.log(f"dataplane/{key}", rr.Scalars(c[key]))
+        for key, value in c.items():
+            if key.startswith("rejected."):
+                rec.log(f"dataplane/drops/{key.removeprefix('rejected.')}", rr.Scalars(value))
+        packets = c.get("packets_in", 0.0)
+        if self.last_counters is not None:
+            t0, p0 = self.last_counters
+            dt = (t_mono_ns - t0) / 1e9
+            if dt > 0:
+                rec.log("dataplane/packets_per_s", rr.Scalars((packets - p0) / dt))
+        self.last_counters = (t_mono_ns, packets)
+
+    # --- events and skill commands --------------------------------------------------------------------
+
+    def text(self, t_mono_ns: int, text: str, level: str = "INFO") -> None:
+        self.at(t_mono_ns)
+        self.rec.log("events", rr.TextLog(text, level=level))
+
+    def skill(self, tr: skills_pb2.SkillTrace) -> None:
+        entity = f"skills/{tr.robot}/busy"
+        self.at(tr.started_ns)
+        self.rec.log(entity, rr.Scalars(1.0))
+        self.at(tr.answered_ns)
+        self.rec.log(entity, rr.Scalars(0.0))
+        took = (tr.answered_ns - tr.started_ns) / 1e6
+        level = "INFO" if tr.status == "done" else "WARN"
+        what = (
+            f"{tr.robot}: {tr.id}:{tr.skill} {tr.status}{(' ' + tr.code) if tr.code else ''} in {took:.1f} ms"
+        )
+        self.rec.log(f"skills/{tr.robot}/log", rr.TextLog(what, level=level))
+
+
+def open_recording(mode: str, path: str, name: str) -> rr.RecordingStream:
+    rec = rr.RecordingStream(application_id=f"cell-{name}")
+    if mode == "save":
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        rec.save(path)
+    elif mode == "serve":
+        url = rec.serve_grpc()
+        rr.serve_web_viewer(connect_to=url, open_browser=False)
+    elif mode == "spawn":
+        rec.spawn()
+    return rec
+
+
+async def _each(sub: Subscription, handle) -> None:
+    while True:
+        for env in await sub.recv_batch():
+            handle(env)
+
+
+async def record(ctx: ServiceContext) -> None:
+    """Draw the cell until cancelled, as [recorder] says (its mode is not "off")."""
+    cfg = ctx.config.recorder
+    rec = open_recording(cfg.mode, cfg.path, ctx.config.cell.name)
+    r = Recorder(ctx, rec)
+    r.start()
+    bus = ctx.bus
+    subs = {
+        "truth": await bus.subscribe("truth/"),
+        "plan": await bus.subscribe("plan/"),
+        "dataplane": await bus.subscribe("dataplane/counters"),
+        "events": await bus.subscribe("events/", "run/events", "skills/", "announce/robot/"),
+    }
+
+    joined: set[int] = set()
+
+    def on_truth(env) -> None:
+        if r.wants_truth(env.topic.removeprefix("truth/"), env.sent_ns):
+            r.truth(env.decode(robot_pb2.RobotTruth))
+
+    def on_event(env) -> None:
+        topic = env.topic
+        if topic.startswith("skills/") and topic.endswith("/trace"):
+            r.skill(env.decode(skills_pb2.SkillTrace))
+        elif topic.startswith("skills/") and topic.endswith("/air"):
+            a = env.decode(skills_pb2.AirState)
+            r.text(a.t_ns, f"{a.robot}: vacuum {'on' if a.on else 'off'}")
+        elif topic == "run/events":
+            e = env.decode(skills_pb2.RunEvent)
+            r.text(
+                e.t_ns,
+                f"task script {e.script}: {e.state} {e.text}".strip(),
+                "ERROR" if e.state == "failed" else "INFO",
+            )
+        elif topic.startswith("announce/robot/"):
+            a = env.decode(robot_pb2.RobotAnnounce)
+            if a.robot_id not in joined:
+                joined.add(a.robot_id)
+                r.text(
+                    env.sent_ns, f"robot {a.name} (id {a.robot_id}, {a.backend}) joined at {a.udp_address}"
+                )
+        elif topic == "events/snp/denial":
+            d = env.decode(snp_pb2.SnpDenial)
+            why = Denial(d.explanation).name if d.explanation in iter(Denial) else str(d.explanation)
+            r.text(d.t_ns, f"SnP query {d.query_id} from {d.peer} denied: {why}", "WARN")
+        elif topic.startswith("events/robot/"):
+            e = env.decode(robot_pb2.RobotEvent)
+            r.text(e.t_ns, f"{e.name}: {robot_pb2.RobotEvent.Kind.Name(e.kind)} {e.text}", "WARN")
+        elif topic.startswith("events/service/"):
+            e = env.decode(health_pb2.ServiceEvent)
+            r.text(
+                time.monotonic_ns(),
+                f"service {e.service}: {health_pb2.ServiceEvent.Kind.Name(e.kind)} {e.text}",
+                "WARN",
+            )
+
+    if cfg.mode == "serve":
+        ctx.log.info("Rerun web viewer: http://127.0.0.1:9090 (gRPC on 127.0.0.1:9876)")
+    elif cfg.mode == "save":
+        ctx.log.info("recording to %s", cfg.path)
+
+    async def flush_series() -> None:
+        while True:
+            await asyncio.sleep(cfg.series_batch_s)
+            r.series.flush()
+            ctx.counters["truth_logged"] = r.logged
+
+    try:
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(_each(subs["truth"], on_truth))
+            tg.create_task(_each(subs["plan"], lambda env: r.plan(env.decode(controller_pb2.Plan))))
+            tg.create_task(
+                _each(
+                    subs["dataplane"],
+                    lambda env: r.dataplane(env.decode(dataplane_pb2.DataplaneState), env.sent_ns),
+                )
+            )
+            tg.create_task(_each(subs["events"], on_event))
+            tg.create_task(flush_series())
+            ctx.ready()
+    finally:
+        r.series.flush()
+        rec.flush()
+        rec.disconnect()
+
