@@ -123,10 +123,14 @@ async def measure(quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
                     res = await ctl.move_together({n: q + delta for n, q in here.items()}, speed=0.6)
                     t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
                     shifts["shared"].append(abs(t1 - t2) / 1e6)
-                    # independently: one request after the other, as two controllers would
+                    # independently: one request after the other (each answered once its motion is
+                    # loaded and started), as two controllers would send them
                     here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
                     t_req = ctl.link.now()
-                    await asyncio.gather(*(ctl.move_joints(n, q - delta, speed=0.6) for n, q in here.items()))
+                    for n, q in here.items():
+                        await ctl.move_joints(n, q - delta, speed=0.6, wait=False)
+                    for n in here:
+                        await ctl.wait_idle(ctl.track(n))
                     t1, t2 = (truth.start_of_motion(n, t_req) for n in ("r1", "r2"))
                     shifts["independent"].append(abs(t1 - t2) / 1e6)
                 merged = await ctl.merge(["r1", "r2"])
