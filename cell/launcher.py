@@ -48,11 +48,12 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
                 if layout == "single":
                     tg.create_task(Supervisor(config, load_all(config)).run(stop), name="supervisor")
                 else:
-                    log.info("layout %s: %s", layout, "; ".join(map(_describe, processes(config))))
+                    children = processes(config)
+                    log.info("layout %s: %s", layout, "; ".join(map(_describe, children)))
                     # the children read the effective config (command-line changes included)
                     effective = Path(tmp) / "cell.toml"
                     effective.write_text(config.to_toml())
-                    for p in processes(config):
+                    for p in children:
                         child = ChildProcess(
                             p,
                             config,

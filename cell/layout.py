@@ -33,10 +33,14 @@ class Process:
         return cls(name, services, list(group.cpus), group.rt_priority, group.nice)
 
 
+def _group_of(config: CellConfig) -> dict[str, ProcessGroup]:
+    return {name: g for g in config.services.groups for name in g.services}
+
+
 def processes(config: CellConfig) -> list[Process]:
     """The processes `cell up` starts for this config's layout, "main" first."""
     s = config.services
-    group_of = {name: g for g in s.groups for name in g.services}
+    group_of = _group_of(config)
     if s.layout == "single":
         return [Process.of(MAIN_GROUP, list(s.run), None)]
     if s.layout == "each":
@@ -68,8 +72,8 @@ def process_named(config: CellConfig, name: str) -> Process:
 def process_for(config: CellConfig, names: list[str]) -> Process:
     """The process `cell service NAME...` runs: the scheduling of the group holding all of the
     names, if one does (so `cell service robots` is placed as `cell up` would place it)."""
-    group_of = {name: g for g in config.services.groups for name in g.services}
-    groups = {id(group_of.get(n)): group_of.get(n) for n in names}
-    group = next(iter(groups.values())) if len(groups) == 1 else None
+    group_of = _group_of(config)
+    first = group_of.get(names[0]) if names else None
+    group = first if all(group_of.get(n) is first for n in names) else None
     label = names[0] if len(names) == 1 else (group.name if group is not None else MAIN_GROUP)
     return Process.of(label, list(names), group)
