@@ -36,15 +36,21 @@ def place(cpus: list[int], rt_priority: int, nice: int) -> list[str]:
     the policy as is) or, failing that, nice `nice`; return what could not be done, in words."""
     problems: list[str] = []
     if cpus and hasattr(os, "sched_setaffinity"):
-        have = os.sched_getaffinity(0)
-        use = set(cpus) & have
+        # the machine's CPUs, not the ones this process inherited: a parent's narrower mask is no limit
+        online = set(range(os.cpu_count() or 1))
+        use = set(cpus) & online
         if not use:
-            problems.append(f"CPUs {cpus} are not among this machine's {sorted(have)}: not pinned")
+            problems.append(f"CPUs {cpus} are not among this machine's {sorted(online)}: not pinned")
         else:
             if use != set(cpus):
-                problems.append(f"CPUs {sorted(set(cpus) - have)} do not exist here: pinned to {sorted(use)}")
-            for tid in _threads():
-                os.sched_setaffinity(tid, use)
+                problems.append(
+                    f"CPUs {sorted(set(cpus) - online)} do not exist here: pinned to {sorted(use)}"
+                )
+            try:
+                for tid in _threads():
+                    os.sched_setaffinity(tid, use)
+            except OSError as exc:  # e.g. outside the cgroup's cpuset
+                problems.append(f"CPUs {sorted(use)} refused ({exc.strerror}): not pinned")
     if rt_priority and hasattr(os, "sched_setscheduler"):
         try:
             for tid in _threads():

@@ -62,6 +62,8 @@ import json, os, sys
 from cell import sched
 if sys.argv[1] == "nobody":
     os.setgid(65534); os.setuid(65534)  # no CAP_SYS_NICE, RLIMIT_RTPRIO 0: real time is refused
+if os.cpu_count() > 1:
+    os.sched_setaffinity(0, {1})  # a parent's narrower mask does not stop the process moving to CPU 0
 problems = sched.place([0, 99], 10, -5)
 print(json.dumps({"problems": problems, "now": sched.describe()}))
 """
@@ -88,6 +90,15 @@ def test_where_real_time_is_refused_the_process_says_so_and_runs_on() -> None:
     assert got["now"] == "normal, cpu 0"
     assert any("SCHED_FIFO 10 refused" in p for p in got["problems"]), got
     assert any("nice -5 refused" in p for p in got["problems"]), got
+
+
+def test_a_benchmark_run_in_process_gives_the_process_its_cpus_back() -> None:
+    from cell.bench import pinned
+
+    before = os.sched_getaffinity(0)
+    with pinned(0):
+        assert os.sched_getaffinity(0) == {0}
+    assert os.sched_getaffinity(0) == before
 
 
 async def test_the_meter_charges_each_service_its_own_loop_time() -> None:

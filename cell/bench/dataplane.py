@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from cell import aio
-from cell.bench import pin
+from cell.bench import pin, pinned
 from cell.robot import datagram, udp
 from cell.robot.datagram import SCALE, Kind
 
@@ -167,7 +167,11 @@ TARGETS = {
 
 def load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float]:
     """Play `robots` robots at 500 Hz against addr for `seconds`; status-to-command times of every answer."""
-    pin(0)
+    with pinned(0):
+        return _load(addr, robots, seconds)
+
+
+def _load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float]:
     sock = udp.open_socket("127.0.0.1")
     sender = udp.Sender(sock, datagram.SIZE)
     n = robots * 6

@@ -277,4 +277,3 @@ async def record(ctx: ServiceContext) -> None:
         r.series.flush()
         rec.flush()
         rec.disconnect()
-
