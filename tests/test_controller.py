@@ -91,6 +91,11 @@ async def test_a_joint_move_ends_on_its_goal_and_holds(start_cell, backend: str)
                 await asyncio.sleep(0.1)
         st = await ctl.dp.state()
         assert st.loaded == 1  # only the final hold stays loaded
+        # resting on it, the hold steps onto itself once per HOLD_S, not on every status packet
+        await asyncio.sleep(1.0)  # a second of holding: the measurement window
+        later = (await ctl.dp.state()).counters
+        assert later["steps"] - st.counters["steps"] <= 2
+        assert later["resubmits"] == st.counters["resubmits"]
         watcher.cancel()
 
 

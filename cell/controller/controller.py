@@ -47,6 +47,10 @@ STOP_JERK = 1000.0  # rad/s^3: a stop reaches full deceleration in a few ms
 SWITCH_MARGIN_NS = 20_000_000  # a switch entry must be in place this long before its TP
 TIDY_NS = 20_000_000  # after a motion's end, when its TPs are deleted
 STOP_RATE_HZ = 20.0  # TPs of a stop: sections still long enough to fit them to the loop
+# a holding TP's section: how often it steps onto itself.  A motion's final hold once took its last
+# section's duration, which can be a fraction of a millisecond: then the resting robot's hold stepped
+# on every status packet, a storm of resubmits costing the data plane CPU for nothing
+HOLD_S = 1.0
 
 log = logging.getLogger("cell.controller")
 
@@ -122,7 +126,7 @@ class Segment:
         assert len(self.ids) == len(s) + 1
         self.q = np.vstack([s.q, s.q[-1:]])  # the TPs' positions, velocities and durations
         self.v = np.vstack([s.v_ff, np.zeros_like(s.v_ff[-1:])])
-        self.d = np.append(s.duration, s.duration[-1])
+        self.d = np.append(s.duration, HOLD_S)
 
     def t_ns(self, k: int) -> int:
         """When section k ends (data-plane clock)."""
@@ -555,7 +559,7 @@ class Controller:
             np.array([track.robot], np.int64),
             np.array([hold_id], np.int64),
             np.array([next_id], np.int64),
-            np.array([1.0]),
+            np.array([HOLD_S]),
             np.array([track.joints], np.int64),
             q[None, :],
             np.zeros((1, track.joints)),
