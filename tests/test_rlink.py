@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
 import itertools
+import socket
 import struct
 
 import pytest
@@ -10,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cell.rlink import fec
+from cell.rlink.link import SLICE, LinkPorts, NodeLink
 from cell.rlink.node import Node
 from cell.rlink.packet import (
     DATA_SIZE,
@@ -24,6 +27,7 @@ from cell.rlink.packet import (
     encode,
 )
 from cell.rlink.routing import Route, RoutingTable
+from tests.conftest import free_port
 
 E, D = Kind.EVENT, Kind.DATA
 
@@ -284,3 +288,101 @@ def test_a_node_takes_any_bytes_without_raising(link: int, kind: Kind, raw: byte
     n = chain_node(1, fec_links=frozenset({3}))
     n.receive(link, kind, raw)
     assert sum(n.drops.values()) + n.pending(1) + n.pending(0) == 1
+
+
+# --- nodes on UDP sockets ------------------------------------------------------------------------------
+
+
+def udp() -> tuple[str, int]:
+    return ("127.0.0.1", free_port(socket.SOCK_DGRAM))
+
+
+def pair(on_b_event, on_b_data=None) -> tuple[NodeLink, NodeLink]:
+    """Node 1's L1 wired to node 2's L2 over loopback, each routing its own address to its host."""
+    a_ev, a_da, b_ev, b_da = udp(), udp(), udp(), udp()
+    a = NodeLink(chain_node(1), [LinkPorts(1, a_ev, a_da, b_ev, b_da)])
+    b_node = Node(2, RoutingTable([Route(links=(2,)), Route(links=(0,), dst=2)]))
+    b = NodeLink(b_node, [LinkPorts(2, b_ev, b_da, a_ev, a_da)], on_event=on_b_event, on_data=on_b_data)
+    return a, b
+
+
+async def test_an_event_round_trip_between_two_nodes() -> None:
+    replies: asyncio.Queue[Packet] = asyncio.Queue()
+
+    def echo(p: Packet) -> None:
+        if p.type == EventType.ECHO:
+            b.send(E, dst=p.src, type=EventType.ECHO_REPLY, payload=p.payload, priority=p.priority)
+
+    a, b = pair(echo)
+    a.on_event = replies.put_nowait
+    try:
+        async with asyncio.timeout(5), asyncio.TaskGroup() as tg:
+            tasks = [tg.create_task(a.run()), tg.create_task(b.run())]
+            for i in range(20):
+                a.send(E, dst=2, type=EventType.ECHO, payload=i.to_bytes(4, "big"), priority=2)
+                got = await replies.get()
+                assert (got.type, got.src, int.from_bytes(got.payload, "big")) == (EventType.ECHO_REPLY, 2, i)
+            for t in tasks:
+                t.cancel()
+    finally:
+        a.close()
+        b.close()
+    assert len(b.event_latency_ns) == 20 and b.node.links[2].packets_in[E] == 20
+
+
+async def test_an_event_overtakes_a_data_backlog_at_the_receiver() -> None:
+    """2,000 data packets wait in node 2's data socket when an e-stop arrives: it is handed over
+    before more than one slice of them has been."""
+    seen: list[tuple[str, int]] = []
+    data_so_far = 0
+
+    def on_data(batch: list[Packet]) -> None:
+        nonlocal data_so_far
+        data_so_far += len(batch)
+
+    a, b = pair(lambda p: seen.append(("event", data_so_far)), on_data)
+    try:
+        for i in range(2000):  # queued in b's socket: b's loop is not running yet
+            a.send(D, dst=2, type=1, payload=i.to_bytes(4, "big"))
+        a.send(E, dst=2, type=EventType.ESTOP, priority=3)
+        async with asyncio.timeout(5):
+            task = asyncio.create_task(b.run())
+            while data_so_far < 2000 or not seen:
+                await asyncio.sleep(0.001)
+            task.cancel()
+    finally:
+        a.close()
+        b.close()
+    assert seen == [("event", seen[0][1])] and seen[0][1] <= SLICE
+    assert b.node.links[2].packets_in == [1, 2000] and sum(b.node.drops.values()) == 0
+
+
+async def test_junk_on_every_socket_is_counted_and_the_node_goes_on() -> None:
+    got: list[Packet] = []
+    a, b = pair(got.append)
+    try:
+        junk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for kind in (E, D):
+            for raw in (
+                b"",
+                b"x" * 15,
+                b"y" * 70,
+                bytes(5000),
+                encode(Packet(E, 2, 9, 0, 1, 0))[:-1] + b"\0",
+            ):
+                junk.sendto(raw, b.address(2, kind))
+        junk.close()
+        async with asyncio.timeout(5):
+            task = asyncio.create_task(b.run())
+            while sum(b.node.drops.values()) < 10:
+                await asyncio.sleep(0.001)
+            a.send(E, dst=2, type=EventType.STOP, priority=1)  # and it still delivers
+            while not got:
+                await asyncio.sleep(0.001)
+            task.cancel()
+    finally:
+        a.close()
+        b.close()
+    assert got[0].type == EventType.STOP
+    drops = {k: v for k, v in b.node.drops.items() if v}
+    assert drops == {"truncated": 4, "oversized": 4, "crc": 2}, drops  # a broken packet is a CRC drop first

@@ -1,0 +1,182 @@
+"""A Responsive Link node on UDP sockets: the message handler of the paper's Sec. 3, on asyncio.
+
+Each of a node's links L1-L4 is two UDP sockets, an event link and a data
+link, each bound locally and sending to its peer's.  L0 is the host: this
+process, which sends with send() and takes what is addressed to it through
+the on_event / on_data callbacks.
+
+Events come first everywhere.  Their sockets are read the moment they are
+readable, each event is routed and sent on at once, and each one addressed
+to the host is handed over by itself (the paper's mailbox); the time from its arrival on a
+link to that is kept (event_latency_ns).  Data are
+handled in slices of at most `slice_packets` packets, and before each slice
+the event sockets are drained, so an event waits behind at most one slice,
+never behind a backlog.  Data for the host are handed over in batches (the
+paper's DMA threshold).  Everything else is counted in the Node (packets,
+bytes, queue depths, drops by reason).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from cell.rlink.node import Node
+from cell.rlink.packet import Kind, Packet
+
+SLICE = 32  # data packets handled between two looks at the event sockets
+RECV_BYTES = 4096  # a datagram larger than any line form, so that oversized ones are seen whole
+
+
+@dataclass(frozen=True)
+class LinkPorts:
+    """Link `link` (1..4) of a node: where its event and data sockets bind and whom they send to."""
+
+    link: int
+    event: tuple[str, int]
+    data: tuple[str, int]
+    peer_event: tuple[str, int]
+    peer_data: tuple[str, int]
+
+
+class NodeLink:
+    def __init__(
+        self,
+        node: Node,
+        links: list[LinkPorts],
+        on_event: Callable[[Packet], None] | None = None,
+        on_data: Callable[[list[Packet]], None] | None = None,
+        slice_packets: int = SLICE,
+    ) -> None:
+        self.node = node
+        self.on_event = on_event or (lambda _p: None)
+        self.on_data = on_data or (lambda _b: None)
+        self.slice = slice_packets
+        self.ports = {p.link: p for p in links}
+        self.socks: dict[tuple[int, Kind], socket.socket] = {}
+        self.event_latency_ns: list[int] = []  # arrival on a link -> handed to the host, recent
+        try:
+            for p in links:
+                for kind, addr in ((Kind.EVENT, p.event), (Kind.DATA, p.data)):
+                    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+                    s.bind(addr)
+                    s.setblocking(False)
+                    self.socks[p.link, kind] = s
+        except BaseException:
+            self.close()
+            raise
+        self._data_ready = asyncio.Event()
+        self._arrived = 0  # when the events being handled were read (perf_counter ns)
+
+    def address(self, link: int, kind: Kind) -> tuple[str, int]:
+        return self.socks[link, kind].getsockname()[:2]
+
+    def close(self) -> None:
+        for s in self.socks.values():
+            s.close()
+
+    # --- the host's side -----------------------------------------------------------------------
+
+    def send(self, kind: Kind, dst: int, type: int, payload: bytes = b"", priority: int = 0) -> Packet:
+        """A packet from this node's host, sent on its way at once."""
+        p = self.node.send(kind, dst, type, payload, priority)
+        self._flush()
+        return p
+
+    # --- the loop --------------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Serve the links until cancelled."""
+        loop = asyncio.get_running_loop()
+        fds = []
+        try:
+            for (_link, kind), s in self.socks.items():
+                if kind == Kind.EVENT:
+                    loop.add_reader(s.fileno(), self._events)
+                else:
+                    loop.add_reader(s.fileno(), self._data_ready.set)
+                fds.append(s.fileno())
+            while True:
+                await self._data_ready.wait()
+                self._data_ready.clear()
+                while self._data_slice():  # more may wait: another slice, after the loop's turn  # noqa: ASYNC110
+                    await asyncio.sleep(0)
+        finally:
+            for fd in fds:
+                with contextlib.suppress(Exception):
+                    loop.remove_reader(fd)
+
+    def _events(self) -> None:
+        """Every event waiting on every link: routed, sent on, handed to the host one by one."""
+        got = False
+        self._arrived = time.perf_counter_ns()
+        for (link, kind), s in self.socks.items():
+            if kind != Kind.EVENT:
+                continue
+            while True:
+                try:
+                    raw = s.recv(RECV_BYTES)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:  # e.g. an ICMP error from a peer that is not up yet
+                    continue
+                self.node.receive(link, Kind.EVENT, raw)
+                got = True
+        if got:
+            self._flush()
+
+    def _data_slice(self) -> bool:
+        """At most one slice of data packets (the events first); True if more may be waiting."""
+        self._events()
+        n = 0
+        for (link, kind), s in self.socks.items():
+            if kind != Kind.DATA:
+                continue
+            while n < self.slice:
+                try:
+                    raw = s.recv(RECV_BYTES)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:
+                    continue
+                self.node.receive(link, Kind.DATA, raw)
+                n += 1
+        self._flush()
+        return n >= self.slice
+
+    def _flush(self) -> None:
+        """Send what every link has queued, in the node's order (events overtake data)."""
+        node = self.node
+        batch: list[Packet] = []
+        while (out := node.next_out(0)) is not None:  # to this host
+            kind, p = out
+            if kind == Kind.EVENT:
+                self._deliver_event(p)
+            else:
+                batch.append(p)
+        if batch:
+            self.on_data(batch)
+        for link, ports in self.ports.items():
+            while (out := node.next_out(link)) is not None:
+                kind, p = out
+                sock = self.socks[link, kind]
+                try:
+                    sock.sendto(
+                        node.wire(link, p), ports.peer_event if kind == Kind.EVENT else ports.peer_data
+                    )
+                except (BlockingIOError, InterruptedError):
+                    node.links[link].overflow[kind] += 1  # the socket's buffer is full: counted, dropped
+                except OSError:
+                    node.links[link].overflow[kind] += 1  # the peer is not there (yet)
+
+    def _deliver_event(self, p: Packet) -> None:
+        lat = self.event_latency_ns
+        lat.append(time.perf_counter_ns() - self._arrived)
+        if len(lat) > 4096:
+            del lat[:2048]
+        self.on_event(p)
