@@ -194,6 +194,16 @@ def _cmd_bench_snp(args: argparse.Namespace) -> int:
     return _report(args, result, snp.format_result(result))
 
 
+def _cmd_bench_rlink(args: argparse.Namespace) -> int:
+    import time
+
+    from cell.bench import rlink
+
+    png = args.png or f"runs/rlink-{time.strftime('%Y%m%d-%H%M%S')}.png"
+    result = rlink.run(args.packets, png=png)
+    return _report(args, result, rlink.format_result(result))
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cell",
@@ -316,6 +326,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
     q.set_defaults(func=_cmd_bench_snp)
+    q = bsub.add_parser(
+        "rlink",
+        help="Responsive Link: event and data round trips between two nodes, unloaded and with the data "
+        "link flooded (Table 1, Fig. 10 of the Responsive Processor paper)",
+    )
+    q.add_argument("--packets", type=int, default=10_000, help="round trips per figure (default 10000)")
+    q.add_argument("--png", metavar="PATH", help="the histogram (default runs/rlink-<time>.png)")
+    q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
+    q.set_defaults(func=_cmd_bench_rlink)
     return parser
 
 

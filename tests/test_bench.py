@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from cell.bench import bus, dataplane
@@ -24,3 +26,21 @@ def test_bus_bench_delivers_everything_it_counts() -> None:
     assert r["throughput"]["bus"]["gaps"] == 0
     assert r["round_trip"]["bus"]["count"] == 50
     assert r["round_trip"]["bus_request_reply"]["p50_us"] > 0
+
+
+@pytest.mark.slow
+def test_rlink_bench_times_every_round_trip_and_draws_them(tmp_path) -> None:
+    from cell.bench import rlink
+
+    png = tmp_path / "rtt.png"
+    r = rlink.run(300, png=str(png), n_loaded_data=5)
+    for key in ("event_unloaded", "data_unloaded", "event_loaded"):
+        assert r[key]["n"] == 300 and r[key]["lost"] == 0, key  # every event echo came back
+        assert 10 < r[key]["p50"] < r[key]["p99"] < 100_000, key
+    assert r["data_loaded"]["n"] + r["data_loaded"]["lost"] == 5
+    assert r["bulk_sent"] > 1000 and r["echo_node"]["data_in"] > 1000  # the flood really flowed
+    for key in ("event_rtt_us_mean", "event_rtt_us_std", "data_rtt_us_mean", "data_rtt_us_std"):
+        assert r[key] > 0, key
+    assert r["event_p99_loaded_over_unloaded"] > 0 and "estop_p99_ms" in r
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    json.dumps(r)  # one JSON line: no samples, nothing unserialisable

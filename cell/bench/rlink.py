@@ -1,0 +1,268 @@
+"""`cell bench rlink`: the Responsive Processor paper's Table 1 and Fig. 10 on the software link.
+
+Two nodes in separate processes, A (address 1) measuring and B (address 2)
+echoing, wired L1 <-> L2 over loopback, each pinned to a core at SCHED_FIFO
+where allowed.  A times the round trip of 10,000 event packets and 10,000
+data packets, one at a time (ECHO -> ECHO_REPLY through B's host), then the
+same while a third process floods B's data link as fast as it can: the event
+link must not notice, the data link does.  Data echoes under load that do
+not come back within LOST_S count as lost.  The paper's break-even condition
+(1), S_p T_e / M < S_p T_d / D, is evaluated with the times measured here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import multiprocessing as mp
+import queue
+import socket
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cell import aio, sched
+from cell.rlink.link import LinkPorts, NodeLink
+from cell.rlink.node import Node
+from cell.rlink.packet import DATA_PAYLOAD, EVENT_PAYLOAD, EventType, Kind, Packet, encode
+from cell.rlink.routing import Route, RoutingTable
+
+ECHO, REPLY = int(EventType.ECHO), int(EventType.ECHO_REPLY)  # the same type numbers on the data link
+LOST_S = 0.2  # a data echo under load that takes longer is lost (most are: the flood fills the buffers)
+WARMUP = 200
+
+
+def _ports() -> dict[str, tuple[str, int]]:
+    out = {}
+    for name in ("a_ev", "a_da", "b_ev", "b_da"):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            out[name] = s.getsockname()
+    return out
+
+
+def _table(me: int, link: int) -> RoutingTable:
+    return RoutingTable([Route(links=(link,)), Route(links=(0,), dst=me)])
+
+
+def _echo_node(ports: dict, stop: Any, out: Any) -> None:
+    sched.place([1], 50, -10)
+
+    async def main() -> None:
+        def echo_event(p: Packet) -> None:
+            if p.type == ECHO:
+                b.send(Kind.EVENT, p.src, REPLY, p.payload, p.priority)
+
+        def echo_data(batch: list[Packet]) -> None:
+            for p in batch:
+                if p.type == ECHO:
+                    b.send(Kind.DATA, p.src, REPLY, p.payload, p.priority)
+
+        links = [LinkPorts(2, ports["b_ev"], ports["b_da"], ports["a_ev"], ports["a_da"])]
+        b = NodeLink(Node(2, _table(2, 2)), links, echo_event, echo_data)
+        task = asyncio.create_task(b.run())
+        out.put("ready")
+        await asyncio.to_thread(stop.wait)  # a multiprocessing event: waited for in a thread
+        task.cancel()
+        c = b.node.links[2]
+        out.put({"data_in": c.packets_in[Kind.DATA], "drops": sum(b.node.drops.values())})
+        b.close()
+
+    aio.run(main())
+
+
+def _bulk(ports: dict, stop: Any, out: Any) -> None:
+    """Data packets from 'node 1' to node 2's data link, as fast as this process can send them."""
+    sched.place([0], 0, 0)
+    raw = encode(Packet(Kind.DATA, 2, 1, 0, 1, 0, bytes(DATA_PAYLOAD)))
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    dst, sent, t0 = ports["b_da"], 0, time.monotonic()
+    while not stop.is_set():
+        for _ in range(256):
+            try:
+                s.sendto(raw, dst)
+                sent += 1
+            except OSError:
+                pass
+    took = time.monotonic() - t0
+    out.put({"bulk_sent": sent, "bulk_rate": sent / took, "bulk_s": took})
+
+
+def _measure(ports: dict, n: int, n_loaded_data: int, load_ready: Any, loaded: Any, out: Any) -> None:
+    problems = sched.place([0], 60, -10)
+
+    async def main() -> dict[str, Any]:
+        waiting: dict[int, asyncio.Future[None]] = {}
+
+        def answered(p: Packet) -> None:
+            fut = waiting.pop(int.from_bytes(p.payload[:4], "big"), None)
+            if fut is not None and not fut.done():
+                fut.set_result(None)
+
+        links = [LinkPorts(1, ports["a_ev"], ports["a_da"], ports["b_ev"], ports["b_da"])]
+        a = NodeLink(Node(1, _table(1, 1)), links, answered, lambda batch: [answered(p) for p in batch])
+        task = asyncio.create_task(a.run())
+        loop = asyncio.get_running_loop()
+        token = 0
+
+        async def rtts(kind: Kind, count: int, timeout: float) -> tuple[list[float], int]:
+            nonlocal token
+            got, lost = [], 0
+            for _ in range(count):
+                token += 1
+                fut = waiting[token] = loop.create_future()
+                t0 = time.perf_counter_ns()
+                a.send(kind, 2, ECHO, token.to_bytes(4, "big"), priority=3 if kind == Kind.EVENT else 0)
+                try:
+                    async with asyncio.timeout(timeout):
+                        await fut
+                    got.append((time.perf_counter_ns() - t0) / 1e3)
+                except TimeoutError:
+                    waiting.pop(token, None)
+                    lost += 1
+            return got, lost
+
+        result: dict[str, Any] = {"placement": sched.describe(), "placement_problems": problems}
+        for kind in (Kind.EVENT, Kind.DATA):
+            await rtts(kind, WARMUP, 1.0)
+            result[f"{kind.name.lower()}_unloaded"] = await rtts(kind, n, 1.0)
+        load_ready.set()  # the flood starts
+        await asyncio.to_thread(loaded.wait, 60)
+        await asyncio.sleep(0.3)  # until B's queues are full
+        for kind in (Kind.EVENT, Kind.DATA):
+            count = n if kind == Kind.EVENT else n_loaded_data
+            result[f"{kind.name.lower()}_loaded"] = await rtts(kind, count, LOST_S)
+        task.cancel()
+        a.close()
+        return result
+
+    out.put(aio.run(main()))
+
+
+def _stats(us: list[float]) -> dict[str, float]:
+    a = np.array(us) if us else np.array([np.nan])
+    return {
+        "n": len(us),
+        "mean": float(a.mean()),
+        "std": float(a.std()),
+        "p50": float(np.percentile(a, 50)),
+        "p99": float(np.percentile(a, 99)),
+        "max": float(a.max()),
+    }
+
+
+def run(n: int = 10_000, png: str | None = None, n_loaded_data: int = 100) -> dict[str, Any]:
+    """The figures; samples are drawn into `png` (if given) and left out of the result."""
+    ctx = mp.get_context("spawn")
+    ports = _ports()
+    out_b, out_a, out_c = ctx.Queue(), ctx.Queue(), ctx.Queue()
+    stop_b, stop_c, load_ready, loaded = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
+    b = ctx.Process(target=_echo_node, args=(ports, stop_b, out_b), daemon=True)
+    b.start()
+    assert out_b.get(timeout=30) == "ready"
+    a = ctx.Process(target=_measure, args=(ports, n, n_loaded_data, load_ready, loaded, out_a), daemon=True)
+    a.start()
+    c = None
+    try:
+        if not load_ready.wait(timeout=600):
+            raise RuntimeError("the unloaded measurements did not finish")
+        c = ctx.Process(target=_bulk, args=(ports, stop_c, out_c), daemon=True)
+        c.start()
+        loaded.set()
+        m = out_a.get(timeout=600)
+    except queue.Empty:
+        raise RuntimeError("the measuring node gave no result") from None
+    finally:
+        stop_c.set()
+        stop_b.set()
+    bulk = out_c.get(timeout=30) if c is not None else {}
+    echo = out_b.get(timeout=30)
+    for p in (a, b, c):
+        if p is not None:
+            p.join(10)
+    r: dict[str, Any] = {"packets": n, **bulk, "echo_node": echo, "placement": m["placement"]}
+    # what the flooded node still took in (the data echoes of the unloaded phase are a rounding error)
+    r["data_handled_per_s"] = echo["data_in"] / bulk["bulk_s"] if bulk.get("bulk_s") else None
+    samples = {}
+    for key in ("event_unloaded", "data_unloaded", "event_loaded", "data_loaded"):
+        got, lost = m[key]
+        r[key] = {**_stats(got), "lost": lost}
+        samples[key] = got
+    ev, da = r["event_unloaded"], r["data_unloaded"]
+    # the JSON keys the issue names
+    r["event_rtt_us_mean"], r["event_rtt_us_std"] = ev["mean"], ev["std"]
+    r["data_rtt_us_mean"], r["data_rtt_us_std"] = da["mean"], da["std"]
+    r["event_p99_loaded_over_unloaded"] = r["event_loaded"]["p99"] / ev["p99"]
+    r["estop_p99_ms"] = None  # the cell's e-stop over the link is not built yet
+    # break-even condition (1): an event keeps the shorter latency while S_p T_e / M < S_p T_d / D
+    mailbox, threshold = EVENT_PAYLOAD, DATA_PAYLOAD  # bytes handed over per event / per data hand-over
+    r["break_even"] = {
+        "T_e_us": ev["mean"],
+        "M_bytes": mailbox,
+        "T_d_us": da["mean"],
+        "D_bytes": threshold,
+        "event_us_per_byte": ev["mean"] / mailbox,
+        "data_us_per_byte": da["mean"] / threshold,
+        "holds": ev["mean"] / mailbox < da["mean"] / threshold,
+    }
+    if png:
+        r["histogram_png"] = histogram(r, samples, png)
+    return r
+
+
+def histogram(r: dict[str, Any], samples: dict[str, list[float]], path: str) -> str:
+    """Fig. 10 (a) and (b), and the event link under a data flood, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [
+        ("event_unloaded", "(a) event packet"),
+        ("data_unloaded", "(b) data packet"),
+        ("event_loaded", "(c) event packet, data link flooded"),
+    ]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
+    for ax, (key, title) in zip(axes, panels, strict=True):
+        us = np.array(samples[key])
+        if us.size:
+            hi = float(np.percentile(us, 99.5))
+            ax.hist(us[us <= hi], bins=60, color="#3a78c2")
+        s = r[key]
+        ax.set_title(f"{title}\nmean {s['mean']:.0f} us, sd {s['std']:.0f}, p99 {s['p99']:.0f}", fontsize=9)
+        ax.set_xlabel("round-trip time (us)")
+        ax.set_ylabel("count")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return str(Path(path).resolve())
+
+
+def format_result(r: dict[str, Any]) -> str:
+    def line(name: str, s: dict[str, float]) -> str:
+        lost = f", {s['lost']} lost (> {LOST_S:.1f} s)" if s["lost"] else ""
+        return (
+            f"  {name:<34} mean {s['mean']:8.1f} us  sd {s['std']:7.1f}  p50 {s['p50']:7.1f}  "
+            f"p99 {s['p99']:8.1f}  ({s['n']:,}{lost})"
+        )
+
+    be = r["break_even"]
+    lines = [
+        f"round trips between two nodes in separate processes ({r['placement']} for the measuring one):",
+        line("event packets", r["event_unloaded"]),
+        line("data packets", r["data_unloaded"]),
+        f"with the data link flooded ({r.get('bulk_rate', 0):,.0f} packets/s offered, "
+        f"{r.get('data_handled_per_s') or 0:,.0f}/s handled by the echo node):",
+        line("event packets", r["event_loaded"]),
+        line("data packets", r["data_loaded"]),
+        f"event p99 flooded / unloaded: {r['event_p99_loaded_over_unloaded']:.2f} (aim <= 1.2)",
+        "paper (Table 1): event 247.8 us mean, sd 6.4; data 663.3 us, sd 20.9",
+        f"break-even (1): T_e/M = {be['T_e_us']:.1f}/{be['M_bytes']} = {be['event_us_per_byte']:.2f} us/byte "
+        f"{'<' if be['holds'] else '>='} T_d/D = {be['T_d_us']:.1f}/{be['D_bytes']} = "
+        f"{be['data_us_per_byte']:.2f} us/byte: "
+        + ("events are the cheaper way per byte too" if be["holds"] else "per byte, data packets win"),
+    ]
+    if r.get("histogram_png"):
+        lines.append(f"histogram: {r['histogram_png']}")
+    return "\n".join(lines)
