@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import sys
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -204,6 +205,16 @@ def _cmd_bench_rlink(args: argparse.Namespace) -> int:
     return _report(args, result, rlink.format_result(result))
 
 
+def _bench(
+    bsub: argparse._SubParsersAction, name: str, func: Callable[[argparse.Namespace], int], help: str
+) -> argparse.ArgumentParser:
+    """A `cell bench NAME` subcommand: its figures as text, with --json also as one JSON line, last."""
+    q = bsub.add_parser(name, help=help)
+    q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
+    q.set_defaults(func=func)
+    return q
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cell",
@@ -279,62 +290,65 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="measure hot paths next to a baseline in the same run")
     bsub = p.add_subparsers(dest="bench_command", required=True, metavar="TARGET")
-    q = bsub.add_parser(
-        "bus", help="bus messages/s and round trip p50/p99 (64-byte payloads) next to raw pyzmq PUB/SUB"
+    q = _bench(
+        bsub,
+        "bus",
+        _cmd_bench_bus,
+        "bus messages/s and round trip p50/p99 (64-byte payloads) next to raw pyzmq PUB/SUB",
     )
     q.add_argument("--messages", type=int, default=200_000, help="messages per throughput round")
     q.add_argument("--pings", type=int, default=2_000, help="round trips per latency round")
     q.add_argument("--rounds", type=int, default=3, help="alternating rounds of each (best is kept)")
-    q.add_argument("--json", action="store_true", help="also print the result as one JSON line")
-    q.set_defaults(func=_cmd_bench_bus)
-    q = bsub.add_parser(
-        "robots", help="the most robots one core runs at 500 Hz status with < 0.1% late sends, per backend"
+    q = _bench(
+        bsub,
+        "robots",
+        _cmd_bench_robots,
+        "the most robots one core runs at 500 Hz status with < 0.1% late sends, per backend",
     )
     q.add_argument("--backend", choices=["kinematic", "mujoco", "all"], default="all")
     q.add_argument("--seconds", type=float, default=3.0, help="length of each trial (default 3)")
     q.add_argument(
         "--status-only", action="store_true", help="nobody answers the status (no command traffic)"
     )
-    q.add_argument("--json", action="store_true", help="also print the result as one JSON line")
-    q.set_defaults(func=_cmd_bench_robots)
-    q = bsub.add_parser(
+    q = _bench(
+        bsub,
         "dataplane",
-        help="status/s answered within the command window, next to a bare reflector and a naive "
+        _cmd_bench_dataplane,
+        "status/s answered within the command window, next to a bare reflector and a naive "
         "asyncio controller; latency at 10, 100, 300 robots",
     )
     q.add_argument("--seconds", type=float, default=2.0, help="length of each trial (default 2)")
-    q.add_argument("--json", action="store_true", help="also print the result as one JSON line")
-    q.set_defaults(func=_cmd_bench_dataplane)
-    q = bsub.add_parser(
+    q = _bench(
+        bsub,
         "accuracy",
-        help="MuJoCo arms driven through the data plane: stop error, tool path error, start shift",
+        _cmd_bench_accuracy,
+        "MuJoCo arms driven through the data plane: stop error, tool path error, start shift",
     )
     q.add_argument("--quick", action="store_true", help="fewer reference motions (under 4 minutes)")
-    q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
-    q.set_defaults(func=_cmd_bench_accuracy)
-    q = bsub.add_parser(
-        "skills", help="skill-protocol acknowledgement round trip, send gaps and switching, next to TCP echo"
+    q = _bench(
+        bsub,
+        "skills",
+        _cmd_bench_skills,
+        "skill-protocol acknowledgement round trip, send gaps and switching, next to TCP echo",
     )
     q.add_argument("--messages", type=int, default=2000, help="messages per figure (default 2000)")
-    q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
-    q.set_defaults(func=_cmd_bench_skills)
-    q = bsub.add_parser("snp", help="the modular-robot cycle over SnP-MrT: cycle time and deadline misses")
+    q = _bench(
+        bsub, "snp", _cmd_bench_snp, "the modular-robot cycle over SnP-MrT: cycle time and deadline misses"
+    )
     q.add_argument("--slaves", type=int, default=6, help="joint modules, one process each (default 6)")
     q.add_argument("--seconds", type=float, default=3.0, help="length of each trial (default 3)")
     q.add_argument(
         "--budget-us", type=float, default=1000.0, help="each query's deadline after T1 (default 1000)"
     )
-    q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
-    q.set_defaults(func=_cmd_bench_snp)
-    q = bsub.add_parser(
+    q = _bench(
+        bsub,
         "rlink",
-        help="Responsive Link: event and data round trips between two nodes, unloaded and with the data "
+        _cmd_bench_rlink,
+        "Responsive Link: event and data round trips between two nodes, unloaded and with the data "
         "link flooded (Table 1, Fig. 10 of the Responsive Processor paper)",
     )
     q.add_argument("--packets", type=int, default=10_000, help="round trips per figure (default 10000)")
     q.add_argument("--png", metavar="PATH", help="the histogram (default runs/rlink-<time>.png)")
-    q.add_argument("--json", action="store_true", help="also print the result as one JSON line, last")
-    q.set_defaults(func=_cmd_bench_rlink)
     return parser
 
 
