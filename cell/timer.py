@@ -74,7 +74,7 @@ class PeriodicTimer:
         if n:
             return n
         loop = asyncio.get_running_loop()
-        if self._loop is not loop:  # the reader stays registered: no epoll_ctl pair every period
+        if self._loop is not loop:  # registered while someone waits each period: no epoll_ctl pair
             self._loop = loop
             loop.add_reader(self._fd, self._ready)
         self._waiter = loop.create_future()
@@ -85,7 +85,14 @@ class PeriodicTimer:
 
     def _ready(self) -> None:
         fut = self._waiter
-        if fut is not None and not fut.done() and (got := self._read()):
+        if fut is None or fut.done():
+            # nobody waits (the owner awaits something else between periods): the fd stays readable,
+            # and a level-triggered reader would run on every turn of the loop; the next wait() re-adds it
+            if self._loop is not None:
+                self._loop.remove_reader(self._fd)
+                self._loop = None
+            return
+        if got := self._read():
             fut.set_result(got)
 
     def _read(self) -> int:

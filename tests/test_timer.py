@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 
 import pytest
@@ -32,5 +33,20 @@ async def test_ticks_on_absolute_deadlines_and_counts_a_stall(precise: bool) -> 
         missed = await timer.wait()
         assert missed >= 5
         assert timer.ticks == before + missed
+    finally:
+        timer.close()
+
+
+async def test_a_timer_nobody_waits_on_costs_no_cpu() -> None:
+    """Between periods its owner may await other things (the SnP cycle awaits replies): the timer's
+    readable fd must not make the loop spin meanwhile, and the next wait() still counts the periods."""
+    timer = PeriodicTimer(time.monotonic_ns() + PERIOD, PERIOD)
+    try:
+        await timer.wait()
+        cpu0 = time.process_time()
+        await asyncio.sleep(25 * PERIOD / 1e9)  # 50 ms of other business, 25 expiries unread
+        busy = time.process_time() - cpu0
+        assert busy < 0.4 * 25 * PERIOD / 1e9, f"{busy * 1e3:.1f} ms of CPU in a 50 ms wait"  # a spin: ~50
+        assert await timer.wait() >= 20
     finally:
         timer.close()
