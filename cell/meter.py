@@ -26,12 +26,11 @@ from typing import Any
 class Account:
     """Loop time used by one service, ns."""
 
-    __slots__ = ("busy_ns", "name", "steps")
+    __slots__ = ("busy_ns", "name")
 
     def __init__(self, name: str) -> None:
         self.name = name
         self.busy_ns = 0
-        self.steps = 0
 
 
 ACCOUNT: contextvars.ContextVar[Account | None] = contextvars.ContextVar("cell_account", default=None)
@@ -83,7 +82,6 @@ def _charge(t0: int) -> None:
     account = ACCOUNT.get()
     if account is not None:
         account.busy_ns += _now() - t0
-        account.steps += 1
 
 
 def install(loop: asyncio.AbstractEventLoop) -> None:

@@ -24,13 +24,11 @@ class SeriesBatch:
         self.timeline = timeline
         self._t: dict[str, list[float]] = defaultdict(list)
         self._v: dict[str, list[float]] = defaultdict(list)
-        self.rows = 0
 
     def add(self, path: str, t_s: float, value: float) -> None:
         """One value at t_s (seconds on the timeline)."""
         self._t[path].append(t_s)
         self._v[path].append(value)
-        self.rows += 1
 
     def add_joints(self, prefix: str, leaf: str, t_s: float, values: np.ndarray) -> None:
         """values[j] on f"{prefix}/j{j+1}{leaf}" for every joint j."""
@@ -46,4 +44,3 @@ class SeriesBatch:
             )
         self._t.clear()
         self._v.clear()
-        self.rows = 0
