@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from cell import aio, sched
+from cell.bench.cellproc import free_port
 from cell.rlink.link import LinkPorts, NodeLink
 from cell.rlink.node import Node
 from cell.rlink.packet import DATA_PAYLOAD, EVENT_PAYLOAD, EventType, Kind, Packet, encode
@@ -34,12 +35,7 @@ WARMUP = 200
 
 
 def _ports() -> dict[str, tuple[str, int]]:
-    out = {}
-    for name in ("a_ev", "a_da", "b_ev", "b_da"):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            s.bind(("127.0.0.1", 0))
-            out[name] = s.getsockname()
-    return out
+    return {name: ("127.0.0.1", free_port(socket.SOCK_DGRAM)) for name in ("a_ev", "a_da", "b_ev", "b_da")}
 
 
 def _table(me: int, link: int) -> RoutingTable:
