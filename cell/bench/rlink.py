@@ -68,8 +68,9 @@ def _echo_node(ports: dict, stop: Any, out: Any) -> None:
     aio.run(main())
 
 
-def _bulk(ports: dict, stop: Any, out: Any) -> None:
-    """Data packets from 'node 1' to node 2's data link, as fast as this process can send them."""
+def _bulk(ports: dict, flowing: Any, stop: Any, out: Any) -> None:
+    """Data packets from 'node 1' to node 2's data link, as fast as this process can send them;
+    `flowing` is set once they do (the measuring node waits for it, not for this process's start)."""
     sched.place([0], 0, 0)
     raw = encode(Packet(Kind.DATA, 2, 1, 0, 1, 0, bytes(DATA_PAYLOAD)))
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -81,6 +82,7 @@ def _bulk(ports: dict, stop: Any, out: Any) -> None:
                 sent += 1
             except OSError:
                 pass
+        flowing.set()
     took = time.monotonic() - t0
     out.put({"bulk_sent": sent, "bulk_rate": sent / took, "bulk_s": took})
 
@@ -124,7 +126,8 @@ def _measure(ports: dict, n: int, n_loaded_data: int, load_ready: Any, loaded: A
             await rtts(kind, WARMUP, 1.0)
             result[f"{kind.name.lower()}_unloaded"] = await rtts(kind, n, 1.0)
         load_ready.set()  # the flood starts
-        await asyncio.to_thread(loaded.wait, 60)
+        if not await asyncio.to_thread(loaded.wait, 60):
+            raise RuntimeError("the flood on the data link never started")
         await asyncio.sleep(0.3)  # until B's queues are full
         for kind in (Kind.EVENT, Kind.DATA):
             count = n if kind == Kind.EVENT else n_loaded_data
@@ -163,9 +166,8 @@ def run(n: int = 10_000, png: str | None = None, n_loaded_data: int = 100) -> di
     try:
         if not load_ready.wait(timeout=600):
             raise RuntimeError("the unloaded measurements did not finish")
-        c = ctx.Process(target=_bulk, args=(ports, stop_c, out_c), daemon=True)
+        c = ctx.Process(target=_bulk, args=(ports, loaded, stop_c, out_c), daemon=True)
         c.start()
-        loaded.set()
         m = out_a.get(timeout=600)
     except queue.Empty:
         raise RuntimeError("the measuring node gave no result") from None
