@@ -16,6 +16,7 @@ Raw variants use blocking loops; rounds alternate and the best of each is kept
 
 from __future__ import annotations
 
+import asyncio
 import multiprocessing as mp
 import queue
 import socket
@@ -213,17 +214,19 @@ def raw_throughput(route: Route, framing: Framing, n: int) -> dict[str, float]:
 def bus_throughput(cfg: BusConfig, n: int) -> dict[str, float]:
     proc, out = _spawn(_bus_sink, cfg, n)
 
-    async def send() -> float:
+    async def send() -> tuple[float, dict[str, float]]:
         async with Bus.connect(cfg, "bench-source") as bus:
             msg = bus_pb2.BenchPayload(data=PAYLOAD)
             publish = bus.publish
             t0 = time.perf_counter()
             for _ in range(n):
                 publish("bench/data", msg)
-            return time.perf_counter() - t0
+            took = time.perf_counter() - t0
+            # connected until the sink has them all: a node closes its sockets with LINGER 0, which
+            # throws away whatever ZeroMQ's I/O thread has not sent yet (lost messages on a slow host)
+            return took, await asyncio.to_thread(out.get, True, 120)
 
-    sent_s = aio.run(send())
-    result = out.get(timeout=120)
+    sent_s, result = aio.run(send())
     proc.join(5)
     return _rate(result, n, sent_s)
 
