@@ -130,6 +130,34 @@ def _cmd_status(args: argparse.Namespace) -> int:
     return 0 if all(s.health == "ok" for s in st.services) else 3
 
 
+def _cmd_event(args: argparse.Namespace) -> int:
+    """cell estop / stop / resume: one order on the Responsive Link, then the robots' reports."""
+    from cell.rlink.client import EventClient
+
+    config = load_config(args.config)
+
+    async def go() -> dict[int, float]:
+        async with EventClient(config) as client:
+            order = getattr(client, args.command)
+            return await order(args.robots or None, wait=not args.no_wait, timeout=args.timeout)
+
+    try:
+        took = aio.run(go())
+    except KeyError as exc:
+        print(f"cell {args.command}: {exc.args[0]}", file=sys.stderr)
+        return 2
+    except TimeoutError as exc:
+        print(f"cell {args.command}: {exc}", file=sys.stderr)
+        return 1
+    names = {r.id: r.name for r in config.robots}
+    what = "released" if args.command == "resume" else "standing still"
+    for rid, ms in sorted(took.items()):
+        print(f"{names.get(rid, rid)}: {what} {ms:.1f} ms after the order")
+    if args.no_wait:
+        print(f"{args.command} sent")
+    return 0
+
+
 def _cmd_config_show(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     print(f"# effective configuration: {config.source} over the embedded default\n")
@@ -281,6 +309,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the status as JSON")
     p.set_defaults(func=_cmd_status)
+
+    for name, what in (
+        ("estop", "emergency stop over the Responsive Link: the drives brake at once"),
+        ("stop", "stop over the Responsive Link on the data plane's ramp (the drives stay on)"),
+        ("resume", "release robots stopped over the Responsive Link"),
+    ):
+        p = sub.add_parser(
+            name,
+            help=what,
+            description=f"{what[0].upper()}{what[1:]}. Robots by name or id (none: every robot); "
+            "waits until each reports (exit code 1 if one does not).",
+        )
+        p.add_argument("robots", nargs="*", metavar="ROBOT")
+        _config_arg(p)
+        p.add_argument("--no-wait", action="store_true", help="send the order and return")
+        p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="wait at most S (default 5)")
+        p.set_defaults(func=_cmd_event)
 
     p = sub.add_parser("config", help="inspect the configuration")
     csub = p.add_subparsers(dest="config_command", required=True, metavar="ACTION")

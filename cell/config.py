@@ -240,6 +240,26 @@ class SnpConfig:
 
 
 @dataclass(frozen=True)
+class RlinkConfig:
+    """The cell's Responsive Link: where its nodes listen, their addresses, the beacon."""
+
+    host: str = _check(lambda v: _host_port(f"{v}:1"))
+    port: int = _check(lambda v: None if 1 <= v <= 65535 - 8 else f"must be 1..{65535 - 8} (got {v})")
+    hub: int = _check(lambda v: None if 1 <= v <= 254 else f"must be 1..254 (got {v})")
+    dataplane: int = _check(lambda v: None if 1 <= v <= 254 else f"must be 1..254 (got {v})")
+    robots: int = _check(lambda v: None if 1 <= v <= 254 else f"must be 1..254 (got {v})")
+    beacon_hz: float = _check(lambda v: None if 0 <= v <= 1000 else f"must be 0..1000 (got {v})")
+    watchdog_s: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
+    stop_decel: float = _check(lambda v: None if 0 < v <= 1 else f"must be in (0, 1] (got {v})")
+
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        if len({self.hub, self.dataplane, self.robots}) != 3:
+            raise err("hub", "the hub, dataplane and robots nodes need addresses of their own")
+        if self.watchdog_s and self.beacon_hz and self.watchdog_s * self.beacon_hz < 2:
+            raise err("watchdog_s", "must cover at least two beacon periods (or be 0: off)")
+
+
+@dataclass(frozen=True)
 class RobotConfig:
     id: int = _check(lambda v: None if 1 <= v <= 0xFFFF else f"must be 1..65535 (got {v})")
     name: str = _check(_name)
@@ -284,6 +304,7 @@ class CellConfig:
     skills: SkillsConfig
     recorder: RecorderConfig
     snp: SnpConfig
+    rlink: RlinkConfig
     robot_defaults: RobotDefaults
     robots: list[RobotConfig]
     source: str = field(default=DEFAULT_SOURCE, metadata={"internal": True})

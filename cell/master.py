@@ -29,6 +29,7 @@ from google.protobuf.message import Message
 from cell.bus import Bus
 from cell.config import CellConfig
 from cell.launcher import child_cell
+from cell.rlink.client import EventClient
 from cell.skills.client import RobotClient
 from cell.v1 import controller_pb2, skills_pb2
 
@@ -38,8 +39,29 @@ log = logging.getLogger("cell.run")
 class Cell:
     """What a task script's main() is given."""
 
-    def __init__(self, config: CellConfig, bus: Bus, robots: dict[str, RobotClient]) -> None:
-        self.config, self.bus, self.robots = config, bus, robots
+    def __init__(
+        self, config: CellConfig, bus: Bus, robots: dict[str, RobotClient], link: EventClient | None = None
+    ) -> None:
+        self.config, self.bus, self.robots, self.link = config, bus, robots, link
+
+    def _link(self) -> EventClient:
+        if self.link is None:
+            raise RuntimeError("this Cell has no Responsive Link client")
+        return self.link
+
+    async def estop(self, *robots: str, timeout: float = 5.0) -> dict[str, float]:
+        """Emergency stop over the Responsive Link (every robot if none is named); returns once each
+        stands still, with the ms it took.  Motions are answered `stopped` until resume()."""
+        took = await self._link().estop(list(robots) or None, timeout=timeout)
+        return self._named(took)
+
+    async def resume(self, *robots: str, timeout: float = 5.0) -> dict[str, float]:
+        """Release robots stopped over the Responsive Link (every robot if none is named)."""
+        return self._named(await self._link().resume(list(robots) or None, timeout=timeout))
+
+    def _named(self, by_id: dict[int, float]) -> dict[str, float]:
+        names = {r.id: r.name for r in self.config.robots}
+        return {names.get(rid, str(rid)): ms for rid, ms in by_id.items()}
 
     def robot(self, name: str) -> RobotClient:
         try:
@@ -142,7 +164,8 @@ async def run_script(
                 return 1
             stack.push_async_callback(client.close)
             robots[r.name] = client
-        cell = Cell(config, bus, robots)
+        link = await stack.enter_async_context(EventClient(config))
+        cell = Cell(config, bus, robots, link)
         event = skills_pb2.RunEvent(script=str(path), state="started", t_ns=time.monotonic_ns())
         bus.publish("run/events", event)
         t0 = time.monotonic()

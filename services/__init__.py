@@ -21,6 +21,7 @@ BUILTIN: dict[str, str] = {
     "skills": "cell.services.skills",
     "snp": "cell.services.snp",
     "recorder": "cell.services.recorder",
+    "rlink": "cell.services.rlink",
 }
 
 

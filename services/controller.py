@@ -21,7 +21,7 @@ from cell.controller.plan import PlanError
 from cell.robot.kinematics import Unreachable
 from cell.robot.pose import from_adept, to_adept
 from cell.service import ServiceContext, ServiceSpec
-from cell.v1 import controller_pb2
+from cell.v1 import controller_pb2, robot_pb2
 
 Kind, Frame = controller_pb2.MoveRequest.Kind, controller_pb2.MoveRequest.Frame
 
@@ -176,11 +176,26 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
             "move_together": (controller_pb2.MoveTogetherRequest, svc.move_together),
         },
     )
-    ctx.ready()
     ctl = svc.ctl
-    while True:  # requests are served by the bus node's reader; this only reports
-        ctx.counters["late_starts"] = ctl.late_starts
-        await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
+    events = await ctx.bus.subscribe("events/robot/")
+
+    async def follow_link() -> None:
+        """Stops and releases over the Responsive Link, as the hub tells them after the fact."""
+        RE = robot_pb2.RobotEvent
+        async for env in events:
+            ev = env.decode(RE)
+            if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP):
+                await ctl.stopped_on_link(ev.robot_id)
+            elif ev.kind == RE.KIND_RESUME:
+                ctl.released_on_link(ev.robot_id)
+
+    async with asyncio.TaskGroup() as tg:
+        tg.create_task(follow_link(), name="follow-link")
+        ctx.ready()
+        while True:  # requests are served by the bus node's reader; this only reports
+            ctx.counters["late_starts"] = ctl.late_starts
+            ctx.counters["stopped_on_link"] = len(ctl.stopped)
+            await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
 
 
 SERVICE = ServiceSpec(

@@ -7,6 +7,12 @@ pipelines in one numpy pass and answers each with a command to its sender
 "dataplane", methods "update" (TableUpdate, atomic), "merge", "state".
 Telemetry on dataplane/counters once a second; robots join as they
 announce themselves on the bus (announce/robot/<name>).
+
+Stops and resumes come on the data plane's own Responsive Link node (its
+event socket, read ahead of any status batch), never over the bus: a stop
+sets the robots' REG_stop, clears their registers and sends each of them a
+first stop command at once, from its last status; until a resume the
+controller's register updates for them are refused (`stopped`).
 """
 
 from __future__ import annotations
@@ -22,7 +28,13 @@ from cell.config import CellConfig, parse_host_port
 from cell.dataplane.pipeline import ControlConstants, Pipeline
 from cell.dataplane.tables import NO_ROW, Refused, Tables
 from cell.dataplane.wire import decode_keys, decode_tps
+from cell.rlink.cellnet import Topology
+from cell.rlink.link import NodeLink, link_counters
+from cell.rlink.node import Node
+from cell.rlink.packet import Packet
+from cell.rlink.station import Order, Station
 from cell.robot import datagram, udp
+from cell.robot.arm import arm_model
 from cell.robot.datagram import SCALE, Kind
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import dataplane_pb2, robot_pb2
@@ -41,6 +53,9 @@ class DataPlane:
             self.add_robot(r.id)
         constants = ControlConstants(tuple(dp.c1), tuple(dp.c2), dp.n_bits, tuple(dp.v_max))
         self.pipeline = Pipeline(self.tables, constants)
+        window = min((1.0 / r.command_hz for r in config.robots), default=1 / 125)
+        self.pipeline.set_stop_ramp(arm_model().limits.a_max * config.rlink.stop_decel, window)
+        self.robot_addr: dict[int, tuple] = {}  # where each robot's status last came from
         self.batch = dp.batch
         self.sock = udp.open_socket(*parse_host_port(dp.listen))
         self.sender = udp.Sender(self.sock, datagram.SIZE)
@@ -86,6 +101,8 @@ class DataPlane:
         now = time.monotonic_ns()
         # join bytes, then view: np.concatenate would turn the wire's big-endian fields native
         recs = datagram.view(bytearray(b"".join(chunks)))
+        firsts = recs["robot_id"][np.cumsum(counts) - counts].tolist()
+        self.robot_addr.update(zip(firsts, senders, strict=True))  # (a socket per robot, as robots do)
         owner = np.repeat(np.arange(len(chunks)), counts)
         self.packets_in += recs.size
         bad_kind = recs["kind"] != _STATUS
@@ -128,6 +145,42 @@ class DataPlane:
         finally:
             loop.remove_reader(fd)
 
+    # --- stops (from the Responsive Link) -----------------------------------------------------
+
+    def _entity_robots(self, robots: list[int]) -> list[int]:
+        """The robots and every robot merged with one of them (an entity stops as one)."""
+        t = self.tables
+        known = [r for r in robots if t.robot_entity[r] != NO_ROW]
+        ents = np.unique(t.robot_entity[known]) if known else np.empty(0, np.int32)
+        return sorted(set(robots) | set(np.flatnonzero(np.isin(t.robot_entity, ents)).tolist()))
+
+    def stop_robots(self, robots: list[int]) -> int:
+        """REG_stop on, registers cleared, and a first stop command to each robot now; how many sent."""
+        robots = self._entity_robots(robots)
+        t, sent = self.tables, 0
+        self.pipeline.stop(robots)
+        for r in robots:
+            if t.robot_entity[r] != NO_ROW:
+                t.clear_registers(r)
+            addr, n = self.robot_addr.get(r), int(self.robot_joints[r])
+            if addr is None or not t.status_ns[r] or n == 0:
+                continue  # never heard of: its first status is answered with the ramp anyway
+            recs = datagram.empty(n)
+            recs["robot_id"], recs["joint_id"], recs["kind"] = r, np.arange(n), Kind.COMMAND
+            recs["position"] = t.status_pos[r, :n]
+            recs["velocity"] = self.pipeline.ramp(t.status_vel[r, :n].copy(), np.arange(n))
+            got = self.sender.send(memoryview(recs.view(np.uint8)), addr)
+            self.commands_out += got
+            sent += got
+        return sent
+
+    def resume_robots(self, robots: list[int]) -> None:
+        """REG_stop off: the robots hold where they are (registers clear) until the controller loads."""
+        self.pipeline.stop(self._entity_robots(robots), False)
+
+    def stopped(self, robot: int) -> bool:
+        return bool(self.pipeline.reg_stop[self._entity_robots([robot])].any())
+
     # --- the control plane -------------------------------------------------------------------
 
     async def update(self, req: dataplane_pb2.TableUpdate) -> dataplane_pb2.UpdateReply:
@@ -147,6 +200,9 @@ class DataPlane:
                 insert, remove = decode_tps(req.insert), decode_keys(req.remove)
             except ValueError as exc:
                 raise RpcFault("bad_request", str(exc)) from None
+            held = [r.robot_id for r in req.registers if not r.clear and self.stopped(r.robot_id)]
+            if held:
+                raise RpcFault("stopped", f"robot(s) {held} stopped over the Responsive Link: resume first")
             await pause()
             steps = self.tables.staged_update(
                 insert=insert,
@@ -215,6 +271,7 @@ class DataPlane:
             "resubmits": c.resubmits,
             "stalls": c.stalls,
             "limited": c.limited,
+            "stop_commands": c.stop_commands,
             "tps_loaded": self.tables.loaded,
         }
         out.update({f"rejected.{k}": v for k, v in self.rejected.items()})
@@ -250,8 +307,66 @@ class DataPlane:
         return st
 
 
+class PlaneNode:
+    """The data plane's Responsive Link node: its orders act on the tables at once, between batches."""
+
+    def __init__(self, plane: DataPlane, config: CellConfig) -> None:
+        topo = Topology(config.rlink)
+        self.plane = plane
+        self.station = Station([r.id for r in config.robots], int(config.rlink.watchdog_s * 1e9))
+        node = Node(topo.address("dataplane"), topo.table("dataplane"))
+        self.link = NodeLink(node, topo.links("dataplane"), self.on_event)
+        self.stop_us: list[float] = []  # event read -> first stop commands sent, recent
+        self.watchdog_s = config.rlink.watchdog_s
+
+    def close(self) -> None:
+        self.link.close()
+
+    def on_event(self, p: Packet) -> None:
+        order = self.station.on_event(p, time.monotonic_ns())
+        if order is not None:
+            self.apply(order)
+
+    def apply(self, order: Order) -> None:
+        if order.stop:
+            self.plane.stop_robots(order.robots)
+            self.stop_us.append((time.perf_counter_ns() - self.link.arrived_ns) / 1e3)
+            del self.stop_us[:-1024]
+        else:
+            self.plane.resume_robots(order.robots)
+
+    def add_robot(self, robot: int) -> None:
+        if robot not in self.station.robots:
+            self.station.robots.append(robot)
+
+    async def run(self) -> None:
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(self.link.run(), name="rlink")
+            if self.watchdog_s:
+                tg.create_task(self._watch(), name="rlink-watchdog")
+
+    async def _watch(self) -> None:
+        while True:
+            await asyncio.sleep(self.watchdog_s / 4)
+            order = self.station.check(time.monotonic_ns())
+            if order is not None:
+                self.apply(order)
+
+    def counters(self) -> dict[str, float]:
+        out = {f"rlink.{k}": v for k, v in self.station.as_dict().items()}
+        out.update(link_counters(self.link))
+        if self.stop_us:
+            out["rlink.stop_us_max"] = max(self.stop_us)
+        return out
+
+
 async def run(ctx: ServiceContext) -> None:
     plane = DataPlane(ctx.config)
+    try:
+        events = PlaneNode(plane, ctx.config)
+    except BaseException:
+        plane.close()
+        raise
     try:
         bus = ctx.bus
         await bus.serve(
@@ -270,22 +385,26 @@ async def run(ctx: ServiceContext) -> None:
                 msg = env.decode(robot_pb2.RobotAnnounce)
                 if plane.tables.robot_entity[msg.robot_id] == NO_ROW:
                     plane.add_robot(msg.robot_id, msg.joints)
+                    events.add_robot(msg.robot_id)
                     ctx.log.info("robot %s (id %d) joined", msg.name, msg.robot_id)
 
         async def telemetry() -> None:
             while True:
                 await asyncio.sleep(1.0)
                 state = plane.state()
+                state.counters.update(events.counters())
                 ctx.counters.update(state.counters)
                 bus.publish("dataplane/counters", state)
 
         async with asyncio.TaskGroup() as tg:
             tg.create_task(plane.run(), name="packets")
+            tg.create_task(events.run(), name="events")
             tg.create_task(join_robots(), name="join")
             tg.create_task(telemetry(), name="telemetry")
             ctx.ready()
     finally:
         plane.close()
+        events.close()
 
 
 SERVICE = ServiceSpec(

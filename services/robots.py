@@ -5,6 +5,11 @@ Every robot streams its joints' status from its own UDP socket to
 announce/robot/<name> (plug and play: id, limits, UDP address) at start and
 every ANNOUNCE_S, truth/<name> (ground truth) at truth_hz, and
 events/robot/<name> for protective stops and resumes.
+
+Stops and resumes come on the robots' own Responsive Link node, read between
+ticks: an emergency stop (or a lost beacon) halts the drives at once, a stop
+leaves them to the data plane's stop ramp; either way each robot reports
+STATE STILL to the hub once it stands, and RESUMED when released.
 """
 
 from __future__ import annotations
@@ -17,11 +22,18 @@ import numpy as np
 
 from cell.bus import Bus
 from cell.config import CellConfig, RobotConfig, parse_host_port
+from cell.rlink.cellnet import Topology
+from cell.rlink.events import Reason, RobotState, StateReport
+from cell.rlink.link import NodeLink, link_counters
+from cell.rlink.node import Node
+from cell.rlink.packet import EventType, Kind, Packet
+from cell.rlink.station import Order, Station
 from cell.robot.emulator import RobotGroup
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import robot_pb2
 
 ANNOUNCE_S = 2.0
+STILL_RAD_S = 1e-3  # a stopped robot stands still once every joint is slower than this
 
 
 def build_groups(config: CellConfig) -> list[RobotGroup]:
@@ -65,13 +77,16 @@ def announcements(group: RobotGroup, dataplane: str) -> list[robot_pb2.RobotAnno
 class Publisher:
     """What one group tells the bus after each tick."""
 
-    def __init__(self, bus: Bus, group: RobotGroup) -> None:
+    def __init__(self, bus: Bus, group: RobotGroup, node: RobotsNode | None = None) -> None:
         self.bus = bus
+        self.node = node
         hz = group.robots[0].truth_hz
         self.every = max(1, round(group.robots[0].status_hz / hz)) if hz > 0 else 0
         self.names = [r.name for r in group.robots]
 
     def __call__(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
+        if self.node is not None:
+            self.node.after_tick(group)
         now = time.monotonic_ns()
         for rows, kind, text in (
             (stopping, robot_pb2.RobotEvent.KIND_PROTECTIVE_STOP, "no command for the watchdog's windows"),
@@ -101,6 +116,89 @@ class Publisher:
                 )
 
 
+class RobotsNode:
+    """The robots' Responsive Link node: halts and releases drives, reports when robots stand."""
+
+    def __init__(self, groups: list[RobotGroup], config: CellConfig) -> None:
+        topo = Topology(config.rlink)
+        self.hub = topo.address("hub")
+        self.rows = {int(rid): (g, row) for g in groups for row, rid in enumerate(g.ids)}
+        self.station = Station(list(self.rows), int(config.rlink.watchdog_s * 1e9))
+        node = Node(topo.address("robots"), topo.table("robots"))
+        self.link = NodeLink(node, topo.links("robots"), self.on_event)
+        self.watchdog_s = config.rlink.watchdog_s
+        self.waiting: dict[int, tuple[int, Reason]] = {}  # robot -> (when its stop came, why)
+        self.halt_us: list[float] = []  # event read -> drives halted
+        self.still_ms: list[float] = []  # stop order -> standing still
+
+    def close(self) -> None:
+        self.link.close()
+
+    def on_event(self, p: Packet) -> None:
+        order = self.station.on_event(p, time.monotonic_ns())
+        if order is not None:
+            self.apply(order)
+
+    def apply(self, order: Order) -> None:
+        brake = order.emergency or order.reason == Reason.WATCHDOG
+        now = time.monotonic_ns()
+        for rid in order.robots:
+            g, row = self.rows[rid]
+            if order.stop:
+                if brake:
+                    g.drives.halt(np.array([row]))
+                self.waiting.setdefault(rid, (now, order.reason))
+                self.report(rid, RobotState.STOPPING, order.reason)
+            else:
+                g.drives.halt(np.array([row]), on=False)
+                self.waiting.pop(rid, None)
+                self.report(rid, RobotState.RESUMED, order.reason)
+        if order.stop and brake:
+            self.halt_us.append((time.perf_counter_ns() - self.link.arrived_ns) / 1e3)
+            del self.halt_us[:-1024]
+
+    def report(self, robot: int, state: RobotState, reason: Reason, detail: int = 0) -> None:
+        payload = StateReport(robot, state, reason, detail).encode()
+        self.link.send(Kind.EVENT, self.hub, EventType.STATE, payload, priority=2)
+
+    def after_tick(self, group: RobotGroup) -> None:
+        """Robots that were stopped and now stand: reported once."""
+        if not self.waiting:
+            return
+        now = time.monotonic_ns()
+        for rid, (since, why) in list(self.waiting.items()):
+            g, row = self.rows[rid]
+            if g is not group:
+                continue
+            if np.abs(g.backend.qd[row]).max() < STILL_RAD_S and not g.drives.velocity[row].any():
+                del self.waiting[rid]
+                self.still_ms.append((now - since) / 1e6)
+                del self.still_ms[:-1024]
+                self.report(rid, RobotState.STILL, why, (now - since) // 1000)
+
+    async def run(self) -> None:
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(self.link.run(), name="rlink")
+            if self.watchdog_s:
+                tg.create_task(self._watch(), name="rlink-watchdog")
+
+    async def _watch(self) -> None:
+        while True:
+            await asyncio.sleep(self.watchdog_s / 4)
+            order = self.station.check(time.monotonic_ns())
+            if order is not None:
+                self.apply(order)
+
+    def counters(self) -> dict[str, float]:
+        out = {f"rlink.{k}": v for k, v in self.station.as_dict().items()}
+        out.update(link_counters(self.link))
+        if self.halt_us:
+            out["rlink.halt_us_max"] = max(self.halt_us)
+        if self.still_ms:
+            out["rlink.still_ms_max"] = max(self.still_ms)
+        return out
+
+
 def counters(groups: list[RobotGroup]) -> dict[str, float]:
     total: dict[str, float] = defaultdict(float)
     for g in groups:
@@ -113,6 +211,12 @@ def counters(groups: list[RobotGroup]) -> dict[str, float]:
 async def run(ctx: ServiceContext) -> None:
     groups = build_groups(ctx.config)
     try:
+        node = RobotsNode(groups, ctx.config)
+    except BaseException:
+        for g in groups:
+            g.close()
+        raise
+    try:
 
         async def announce() -> None:
             while True:
@@ -124,15 +228,18 @@ async def run(ctx: ServiceContext) -> None:
         async def report() -> None:
             while True:
                 ctx.counters.update(counters(groups))
+                ctx.counters.update(node.counters())
                 await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
 
         async with asyncio.TaskGroup() as tg:
             for g in groups:
-                tg.create_task(g.run(Publisher(ctx.bus, g)), name=f"robots:{g.robots[0].backend}")
+                tg.create_task(g.run(Publisher(ctx.bus, g, node)), name=f"robots:{g.robots[0].backend}")
+            tg.create_task(node.run(), name="rlink")
             tg.create_task(announce(), name="announce")
             tg.create_task(report(), name="report")
             ctx.ready()
     finally:
+        node.close()
         for g in groups:
             g.close()
 

@@ -12,7 +12,12 @@ all its connections.  Semantics as on the V+ controller:
   [skills] break_tolerance_rad of the goal) with the measured tool pose;
 - `set_speed:N` applies to the next motion only, as V+'s SPEED without
   ALWAYS does (then 100% again);
-- `enable_air` / `disable_air` set the vacuum valve, published on the bus.
+- `enable_air` / `disable_air` set the vacuum valve, published on the bus;
+- `estop[:<robot>,...]` (new) is an emergency stop over the Responsive Link of
+  this server's robot, the robots named, or `all`: it is sent the moment it is
+  read, ahead of the robot's queue, and answered once every named robot
+  stands still; `resume[:...]` releases them.  Until then motions are
+  answered `error:stopped`.
 
 Replies: `done` with the seconds since the server started at which the
 command's turn came and at which it was answered, and a tool pose (the
@@ -36,8 +41,9 @@ from google.protobuf.message import Message
 
 from cell.bus import Bus, BusTimeout, RemoteError
 from cell.config import CellConfig, RobotConfig
+from cell.rlink.client import EventClient
 from cell.service import ServiceContext, ServiceSpec
-from cell.skills.protocol import MOTIONS, Command, CommandReader, Done, Error, ErrorCode, Reply
+from cell.skills.protocol import MOTIONS, NAMED_SKILLS, Command, CommandReader, Done, Error, ErrorCode, Reply
 from cell.v1 import controller_pb2, skills_pb2
 
 log = logging.getLogger("cell.skills")
@@ -68,8 +74,11 @@ class Job:
 class RobotSkills:
     """One robot's skill server: its connections, its command queue, its state (speed, air)."""
 
-    def __init__(self, robot: RobotConfig, config: CellConfig, bus: Bus, t0_ns: int) -> None:
+    def __init__(
+        self, robot: RobotConfig, config: CellConfig, bus: Bus, t0_ns: int, link: EventClient | None = None
+    ) -> None:
         self.robot, self.config, self.bus, self.t0_ns = robot, config, bus, t0_ns
+        self.link = link
         self.queue: asyncio.Queue[Job] = asyncio.Queue()
         self.speed: float | None = None  # for the next motion only
         self.air = False
@@ -112,7 +121,10 @@ class RobotSkills:
                             continue
                         job = Job(item, now, fut)
                         pending.put_nowait((fut, job))
-                        self.queue.put_nowait(job)
+                        if item.skill in NAMED_SKILLS:  # out of turn: never behind the queue
+                            tg.create_task(self.run_job(job, self.link_order))
+                        else:
+                            self.queue.put_nowait(job)
                 # the client closed: its commands still run (a motion once sent is not taken
                 # back), their replies are not written
             except (ConnectionError, OSError):
@@ -141,24 +153,48 @@ class RobotSkills:
     async def run_queue(self) -> None:
         """Execute the robot's commands one at a time, in arrival order."""
         while True:
-            job = await self.queue.get()
-            started = time.monotonic_ns()
-            job.started_ns = started
-            try:
-                async with asyncio.timeout(self.config.skills.motion_timeout_s):
-                    reply = await self.execute(job.command, started)
-            except TimeoutError:
-                reply = Error(job.command.id, ErrorCode.FAILED, "timed out")
-            except (RemoteError, BusTimeout) as exc:
-                reply = self._error(job.command.id, exc)
-            except Exception as exc:  # a bug must not take the server down: answer, log, go on
-                log.exception("%s: %s failed", self.robot.name, job.command)
-                reply = Error(job.command.id, ErrorCode.FAILED, f"{type(exc).__name__}: {exc}")
-            self.counters["commands"] += 1
-            if isinstance(reply, Error):
-                self.counters["errors"] += 1
-            if not job.reply.done():
-                job.reply.set_result(reply)
+            await self.run_job(await self.queue.get(), self.execute)
+
+    async def run_job(self, job: Job, execute: Any) -> None:
+        """One command, answered whatever happens."""
+        started = time.monotonic_ns()
+        job.started_ns = started
+        try:
+            async with asyncio.timeout(self.config.skills.motion_timeout_s):
+                reply = await execute(job.command, started)
+        except TimeoutError:
+            reply = Error(job.command.id, ErrorCode.FAILED, "timed out")
+        except (RemoteError, BusTimeout) as exc:
+            reply = self._error(job.command.id, exc)
+        except Exception as exc:  # a bug must not take the server down: answer, log, go on
+            log.exception("%s: %s failed", self.robot.name, job.command)
+            reply = Error(job.command.id, ErrorCode.FAILED, f"{type(exc).__name__}: {exc}")
+        self.counters["commands"] += 1
+        if isinstance(reply, Error):
+            self.counters["errors"] += 1
+        if not job.reply.done():
+            job.reply.set_result(reply)
+
+    async def link_order(self, cmd: Command, started_ns: int) -> Reply:
+        """estop / resume over the Responsive Link; done once every named robot has reported."""
+        if self.link is None:
+            return Error(cmd.id, ErrorCode.FAILED, "no Responsive Link in this server")
+        if "all" in cmd.names:
+            robots = None
+        else:
+            robots = list(cmd.names) or [self.robot.name]
+            unknown = [n for n in robots if n not in {r.name for r in self.config.robots}]
+            if unknown:
+                return Error(cmd.id, ErrorCode.ARGUMENTS, f"no robot {unknown[0]!r} in this cell")
+        order = self.link.estop if cmd.skill == "estop" else self.link.resume
+        try:
+            await order(robots)
+        except TimeoutError as exc:
+            return Error(cmd.id, ErrorCode.FAILED, str(exc))
+        here = await self._ask(
+            "pose", controller_pb2.RobotRequest(robot=self.robot.name), controller_pb2.PoseReply
+        )
+        return self._done(cmd, started_ns, here.pose)
 
     def _error(self, cid: str, exc: Exception) -> Error:
         if isinstance(exc, RemoteError):
@@ -205,8 +241,9 @@ class RobotSkills:
 
 async def run(ctx: ServiceContext) -> None:
     t0 = time.monotonic_ns()
-    servers = [RobotSkills(r, ctx.config, ctx.bus, t0) for r in ctx.config.robots]
     async with contextlib.AsyncExitStack() as stack, asyncio.TaskGroup() as tg:
+        link = await stack.enter_async_context(EventClient(ctx.config))
+        servers = [RobotSkills(r, ctx.config, ctx.bus, t0, link) for r in ctx.config.robots]
         for s in servers:
             server = await asyncio.start_server(
                 s.serve_connection, ctx.config.skills.host, s.robot.skill_port, reuse_address=True

@@ -14,8 +14,10 @@ from pathlib import Path
 import pytest
 import tomli_w
 
+from cell.bench.cellproc import free_udp_block
 from cell.bus import BusError, Forwarder
 from cell.config import BusConfig, CellConfig, load_config
+from cell.rlink.cellnet import PORTS
 
 ROOT = Path(__file__).resolve().parent.parent
 _used: set[int] = set()
@@ -43,6 +45,7 @@ def cell_overrides(robots: list[dict] | None = None, **services: object) -> dict
         "bus": {"pub": f"tcp://127.0.0.1:{free_port()}", "sub": f"tcp://127.0.0.1:{free_port()}"},
         "dataplane": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
         "snp": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
+        "rlink": {"port": free_udp_block(PORTS, _used)},
         "robots": robots,
         "services": {"heartbeat_s": 0.2, **services},
     }

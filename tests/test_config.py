@@ -170,6 +170,6 @@ def test_a_process_group_inherits_what_it_leaves_out(tmp_path: Path) -> None:
 def test_the_default_layout_gives_the_packet_path_real_time_processes() -> None:
     groups = {g.name: g for g in load_config().services.groups}
     assert load_config().services.layout == "groups"
-    assert groups["robots"].services == ["robots"] and groups["dataplane"].services == ["dataplane"]
+    assert groups["robots"].services == ["robots", "rlink"] and groups["dataplane"].services == ["dataplane"]
     # the robots preempt the data plane, and both preempt everything else (SCHED_FIFO > normal)
     assert groups["robots"].rt_priority > groups["dataplane"].rt_priority > 0

@@ -188,6 +188,7 @@ class Controller:
         self.late_starts = 0  # motions whose first TPs were in place only after their start time
         self.last_switch: Switch | None = None
         self.unfinished: dict[int, tuple] = {}  # robot -> the motion a stop interrupted (for resume)
+        self.stopped: set[int] = set()  # robots stopped over the Responsive Link, until released
 
     # --- robots ------------------------------------------------------------------------------
 
@@ -304,6 +305,7 @@ class Controller:
         once it is loaded and its start time set."""
         track = self.track(robot)
         async with track.starting:
+            self.check_running(track)
             q0 = await self.start_q(track)
             result, tracks = await self.launch({track.robot: plan(track, q0)}, fine)
         return await self.finish(tracks, result) if wait else result
@@ -396,6 +398,7 @@ class Controller:
         planned = []
         for robot, motion in motions.items():
             track = self.track(robot)
+            self.check_running(track)
             sections = cut(motion, rate, np.resize(self.gain, track.joints), self.loop(track))
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the
@@ -412,7 +415,12 @@ class Controller:
             registers.append((track.robot, hold_id, start))
             remove += [(track.robot, i) for i in track.loaded]
             segments.append((track, seg, hold_id))
-        reply = await self.dp.update(insert=_concat(first), remove=remove, registers=registers)
+        try:
+            reply = await self.dp.update(insert=_concat(first), remove=remove, registers=registers)
+        except RemoteError as exc:
+            if exc.code == "stopped":  # stopped on the link before we heard of it
+                raise MotionStopped(exc.message) from None
+            raise
         if reply.now_ns > start:  # in place after the start time: the robots catch up with the plan
             self.late_starts += 1
             log.warning(
@@ -567,6 +575,25 @@ class Controller:
 
     # --- stops ---------------------------------------------------------------------------------
 
+    async def stopped_on_link(self, robot: int) -> None:
+        """A robot was stopped over the Responsive Link (the data plane has cleared its registers and
+        ramps it down): stop streaming its motion (MotionStopped to whoever waits) and unload it."""
+        self.stopped.add(robot)
+        track = self.track(robot)
+        await self._halt(track)
+        if track.loaded:
+            with contextlib.suppress(RemoteError):
+                await self._apply(track, None, list(track.loaded))
+        track.segment, track.q_hold = None, None  # the next motion starts where the robot stands
+
+    def released_on_link(self, robot: int) -> None:
+        self.stopped.discard(robot)
+
+    def check_running(self, track: Track) -> None:
+        held = [r for r in track.robots if r in self.stopped]
+        if held:
+            raise MotionStopped(f"robot(s) {held} stopped over the Responsive Link: resume first")
+
     async def stop(self, robots: list[int | str] | None = None) -> dict[int, MotionResult]:
         """Protective stop: the robots decelerate within their limits from where they are, taking
         effect at the data plane's next packet after this update (within one command window)."""
@@ -582,8 +609,8 @@ class Controller:
         batches, registers, remove, results = [], [], [], {}
         for t in tracks:
             status = _status_of(t, by_id)
-            if status is None:
-                continue  # never heard of: nothing to stop
+            if status is None or any(r in self.stopped for r in t.robots):
+                continue  # never heard of, or stopping on the data plane's ramp already: nothing to do
             q, v, status_ns = status
             q_pred = q + v * max(0.0, (apply_ns - status_ns) / 1e9)
             motion = plan_stop(q_pred, v, self.stop_limits(t))

@@ -14,6 +14,11 @@ Transform tables give (1 - c1) v_curr, c1 v_trg and (c2 - 1) p_diff (the
 "(c-1)x" trick, p_diff added back exactly), and LimitVelocity clamps the sum.
 Integer arithmetic only, on the wire's fixed-point values; time is
 CLOCK_MONOTONIC in ns.
+
+A stop (from the Responsive Link's event socket, not the controller) sets a
+robot's REG_stop: from then on its commands are the StopRamp, each one its
+status velocity brought StopRamp[joint] closer to 0 (the deceleration over one
+command window), then 0, whatever its trajectory says, until it is cleared.
 """
 
 from __future__ import annotations
@@ -71,12 +76,16 @@ class PipelineCounters:
     resubmits: int = 0  # steps beyond the first of an entity in one batch (resubmitted packets on a switch)
     stalls: int = 0  # a step was due but the next TP is not loaded (a streaming underrun)
     limited: int = 0  # commands clamped by LimitVelocity
+    stop_commands: int = 0  # commands from the StopRamp (robots under REG_stop)
 
 
 class Pipeline:
     def __init__(self, tables: Tables, constants: ControlConstants) -> None:
         self.t = tables
         self.counters = PipelineCounters()
+        self.reg_stop = np.zeros(1 << 16, bool)  # per robot: commands come from the StopRamp
+        self.stopping = 0  # robots with REG_stop set (0: the packet path skips the stop stage)
+        self.stop_ramp = np.zeros(len(constants.c1), np.int64)  # per joint, wire units per window
         self.install(self.build(constants))
 
     @staticmethod
@@ -178,8 +187,30 @@ class Pipeline:
         c.limited += int(((out != v_new) & has).sum())
         out[~has] = 0
         c.holds += int((~has).sum())
+        if self.stopping:
+            stop = self.reg_stop[rid]
+            if stop.any():
+                out[stop] = self.ramp(v[stop], local[stop])
+                c.stop_commands += int(stop.sum())
         recs["velocity"] = out
         recs["kind"] = Kind.COMMAND
+
+    # --- stops -------------------------------------------------------------------------------
+
+    def set_stop_ramp(self, decel: Sequence[float], window_s: float) -> None:
+        """StopRamp: per joint, the velocity a window's braking at `decel` (rad/s^2) takes away."""
+        self.stop_ramp = np.rint(np.resize(np.asarray(decel, np.float64), self.joints) * window_s * SCALE)
+        self.stop_ramp = self.stop_ramp.astype(np.int64)
+
+    def ramp(self, v: np.ndarray, joint: np.ndarray) -> np.ndarray:
+        """Stop commands: each velocity StopRamp[joint] closer to 0, never past it."""
+        dv = self.stop_ramp[np.minimum(joint, self.joints - 1)]
+        return np.sign(v) * np.maximum(np.abs(v) - dv, 0)
+
+    def stop(self, robots: Sequence[int], on: bool = True) -> None:
+        """Set (or clear) REG_stop of these robots."""
+        self.reg_stop[np.asarray(robots, np.int64)] = on
+        self.stopping = int(self.reg_stop.sum())
 
 
 def _clamp(x: np.ndarray, limit: int) -> np.ndarray:

@@ -14,6 +14,12 @@ the event sockets are drained, so an event waits behind at most one slice,
 never behind a backlog.  Data for the host are handed over in batches (the
 paper's DMA threshold).  Everything else is counted in the Node (packets,
 bytes, queue depths, drops by reason).
+
+A node may also open a host interface (`host`): a UDP socket through which
+other local processes act as its host.  What they send there enters the node
+on L0, as the host's own packets do, and every event delivered to L0 is copied
+to each of them that spoke in the last HOST_LEASE_S (clients keep their
+lease with NOP events).
 """
 
 from __future__ import annotations
@@ -26,10 +32,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from cell.rlink.node import Node
-from cell.rlink.packet import Kind, Packet
+from cell.rlink.packet import Kind, Packet, encode
 
 SLICE = 4  # data packets handled between two looks at the event sockets (`cell bench rlink`: at 32 a
 # flooded node made events wait 4x longer; at 4 about 1.1x, and it handles as many data packets a second)
+HOST_LEASE_S = 5.0  # a host-interface client that has not sent anything for this long hears nothing
 RECV_BYTES = 4096  # a datagram larger than any line form, so that oversized ones are seen whole
 
 
@@ -52,6 +59,7 @@ class NodeLink:
         on_event: Callable[[Packet], None] | None = None,
         on_data: Callable[[list[Packet]], None] | None = None,
         slice_packets: int = SLICE,
+        host: tuple[str, int] | None = None,
     ) -> None:
         self.node = node
         self.on_event = on_event or (lambda _p: None)
@@ -60,19 +68,19 @@ class NodeLink:
         self.ports = {p.link: p for p in links}
         self.socks: dict[tuple[int, Kind], socket.socket] = {}
         self.event_latency_ns: list[int] = []  # arrival on a link -> handed to the host, recent
+        self.host_sock: socket.socket | None = None
+        self.clients: dict[tuple[str, int], float] = {}  # host-interface client -> when it last spoke
         try:
+            if host is not None:
+                self.host_sock = _udp(host)
             for p in links:
                 for kind, addr in ((Kind.EVENT, p.event), (Kind.DATA, p.data)):
-                    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-                    s.bind(addr)
-                    s.setblocking(False)
-                    self.socks[p.link, kind] = s
+                    self.socks[p.link, kind] = _udp(addr)
         except BaseException:
             self.close()
             raise
         self._data_ready = asyncio.Event()
-        self._arrived = 0  # when the events being handled were read (perf_counter ns)
+        self.arrived_ns = 0  # when the events being handled were read (perf_counter ns)
 
     def address(self, link: int, kind: Kind) -> tuple[str, int]:
         return self.socks[link, kind].getsockname()[:2]
@@ -80,12 +88,15 @@ class NodeLink:
     def close(self) -> None:
         for s in self.socks.values():
             s.close()
+        if self.host_sock is not None:
+            self.host_sock.close()
 
     # --- the host's side -----------------------------------------------------------------------
 
     def send(self, kind: Kind, dst: int, type: int, payload: bytes = b"", priority: int = 0) -> Packet:
         """A packet from this node's host, sent on its way at once."""
         p = self.node.send(kind, dst, type, payload, priority)
+        self.arrived_ns = time.perf_counter_ns()  # (its own events reach the host at once)
         self._flush()
         return p
 
@@ -96,6 +107,9 @@ class NodeLink:
         loop = asyncio.get_running_loop()
         fds = []
         try:
+            if self.host_sock is not None:
+                loop.add_reader(self.host_sock.fileno(), self._host_events)
+                fds.append(self.host_sock.fileno())
             for (_link, kind), s in self.socks.items():
                 if kind == Kind.EVENT:
                     loop.add_reader(s.fileno(), self._events)
@@ -115,7 +129,7 @@ class NodeLink:
     def _events(self) -> None:
         """Every event waiting on every link: routed, sent on, handed to the host one by one."""
         got = False
-        self._arrived = time.perf_counter_ns()
+        self.arrived_ns = time.perf_counter_ns()
         for (link, kind), s in self.socks.items():
             if kind != Kind.EVENT:
                 continue
@@ -128,6 +142,25 @@ class NodeLink:
                     continue
                 self.node.receive(link, Kind.EVENT, raw)
                 got = True
+        if got:
+            self._flush()
+
+    def _host_events(self) -> None:
+        """Events local processes send through the host interface: they enter on L0."""
+        assert self.host_sock is not None
+        self.arrived_ns = time.perf_counter_ns()
+        now = time.monotonic()
+        got = False
+        while True:
+            try:
+                raw, addr = self.host_sock.recvfrom(RECV_BYTES)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                continue
+            self.clients[addr] = now
+            self.node.receive(0, Kind.EVENT, raw)
+            got = True
         if got:
             self._flush()
 
@@ -177,7 +210,58 @@ class NodeLink:
 
     def _deliver_event(self, p: Packet) -> None:
         lat = self.event_latency_ns
-        lat.append(time.perf_counter_ns() - self._arrived)
+        lat.append(time.perf_counter_ns() - self.arrived_ns)
         if len(lat) > 4096:
             del lat[:2048]
+        if self.clients:
+            self._to_clients(p)
         self.on_event(p)
+
+    def _to_clients(self, p: Packet) -> None:
+        assert self.host_sock is not None
+        raw, now = encode(p), time.monotonic()
+        for addr, seen in list(self.clients.items()):
+            if now - seen > HOST_LEASE_S:
+                del self.clients[addr]
+                continue
+            try:
+                self.host_sock.sendto(raw, addr)
+            except OSError:  # gone, or its buffer is full: it hears this one no more
+                self.node.links[0].overflow[Kind.EVENT] += 1
+
+
+def link_counters(link: NodeLink, prefix: str = "rlink") -> dict[str, float]:
+    """A node's counters as flat names: per link and kind, drops by reason, event latency."""
+    node, out = link.node, {}
+    for n, c in enumerate(node.links):
+        if not any(c.packets_in) and not any(c.packets_out):
+            continue
+        for kind in Kind:
+            k = f"{prefix}.L{n}.{kind.name.lower()}"
+            out[f"{k}.packets_in"] = c.packets_in[kind]
+            out[f"{k}.packets_out"] = c.packets_out[kind]
+            out[f"{k}.bytes_in"] = c.bytes_in[kind]
+            out[f"{k}.bytes_out"] = c.bytes_out[kind]
+            out[f"{k}.overflow"] = c.overflow[kind]
+            out[f"{k}.depth"] = node.pending(n, kind)
+            out[f"{k}.depth_max"] = c.depth_max[kind]
+        if c.fec_corrected:
+            out[f"{prefix}.L{n}.fec_corrected"] = c.fec_corrected
+    out.update({f"{prefix}.drops.{r}": v for r, v in node.drops.items()})
+    if link.event_latency_ns:
+        ns = sorted(link.event_latency_ns)
+        out[f"{prefix}.event_latency_p50_us"] = ns[len(ns) // 2] / 1e3
+        out[f"{prefix}.event_latency_p99_us"] = ns[min(len(ns) - 1, int(len(ns) * 0.99))] / 1e3
+    return out
+
+
+def _udp(addr: tuple[str, int]) -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        s.bind(addr)
+        s.setblocking(False)
+    except BaseException:
+        s.close()
+        raise
+    return s

@@ -7,7 +7,9 @@ windows makes a protective stop (decelerates to 0 within its limits) and
 resumes once every joint is commanded again.  The watchdog arms with a robot's
 first command: a robot nobody has commanded yet simply stands still.  The
 drive never exceeds the
-joint's velocity or acceleration limit, whatever it is told.
+joint's velocity or acceleration limit, whatever it is told.  A halted robot
+(an emergency stop on the Responsive Link) brakes at once with its full
+deceleration and ignores every command until it is released.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ class Drives:
         self.missed = np.zeros(shape, np.int64)  # windows in a row without a command, per joint
         self.stopped = np.zeros(robots, bool)  # protective stop
         self.armed = np.zeros(robots, bool)  # commanded at least once: the watchdog is on
+        self.halted = np.zeros(robots, bool)  # emergency stop: braking or standing, deaf to commands
         self.stops = 0  # protective stops so far
         self.windows = 0
 
@@ -46,21 +49,33 @@ class Drives:
         self.pending.flat[flat[last]] = velocity[last]
         self.has_pending.flat[flat[last]] = True
 
+    def halt(self, rows: np.ndarray, on: bool = True) -> None:
+        """Halt (brake now, ignore commands) or release these robots; released, they stand until
+        commanded (their watchdog re-arms with the next command)."""
+        self.halted[rows] = on
+        self.target[rows] = 0.0
+        self.pending[rows] = 0.0
+        self.has_pending[rows] = False
+        if not on:
+            self.armed[rows] = False
+            self.missed[rows] = 0
+
     def end_window(self) -> tuple[np.ndarray, np.ndarray]:
         """Execute the kept commands; return (robots that just stopped, robots that just resumed)."""
         self.windows += 1
         has = self.has_pending
+        has[self.halted] = False
         self.target[has] = self.pending[has]
         self.missed[has] = 0
         self.missed[~has] += 1
         self.armed |= has.any(axis=1)
-        starved = (self.missed >= self.watchdog).any(axis=1) & self.armed
+        starved = (self.missed >= self.watchdog).any(axis=1) & self.armed & ~self.halted
         fed = has.all(axis=1)
         stopping = starved & ~self.stopped
         resuming = self.stopped & fed
         self.stopped = (self.stopped | stopping) & ~resuming
         self.stops += int(stopping.sum())
-        self.target[self.stopped] = 0.0
+        self.target[self.stopped | self.halted] = 0.0
         has[:] = False
         return np.flatnonzero(stopping), np.flatnonzero(resuming)
 

@@ -37,6 +37,10 @@ SKILLS: dict[str, int] = {
     "set_speed": 1,
 }
 MOTIONS = POSE_SKILLS + JOINT_SKILLS
+# skills that name robots rather than take numbers: none = the server's own robot, "all" = every robot
+# (new: the cell's e-stop and release over the Responsive Link; answered out of turn, at once)
+NAMED_SKILLS = ("estop", "resume")
+_ROBOT_NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 
 
 class ErrorCode:
@@ -47,7 +51,7 @@ class ErrorCode:
     ARGUMENTS = "arguments"  # wrong number or value of arguments
     LINE_TOO_LONG = "line_too_long"
     UNREACHABLE = "unreachable"
-    STOPPED = "stopped"  # the robot was stopped (protective stop) during the command
+    STOPPED = "stopped"  # the robot was stopped (protective stop, e-stop) during or before the command
     FAILED = "failed"  # anything else the server could not do; the text says what
 
 
@@ -56,8 +60,11 @@ class Command:
     id: str
     skill: str
     args: tuple[float, ...] = ()
+    names: tuple[str, ...] = ()  # NAMED_SKILLS: robots
 
     def encode(self) -> bytes:
+        if self.names:
+            return f"{self.id}:{self.skill}:{','.join(self.names)}\r\n".encode()
         if not self.args:
             return f"{self.id}:{self.skill}\r\n".encode()
         text = ",".join(_num(a) for a in self.args)
@@ -107,9 +114,15 @@ def parse_command(line: bytes) -> Command | Error:
     cid, skill = parts[0], parts[1].strip()
     if len(parts) > 3:
         return Error(cid, ErrorCode.MALFORMED, "too many ':' fields")
-    if skill not in SKILLS:
-        return Error(cid, ErrorCode.UNKNOWN_SKILL, f"no skill {skill!r} (skills: {', '.join(SKILLS)})")
     raw = [a.strip() for a in parts[2].split(",")] if len(parts) == 3 and parts[2].strip() else []
+    if skill in NAMED_SKILLS:
+        bad = [n for n in raw if not _ROBOT_NAME.fullmatch(n)]
+        if bad:
+            return Error(cid, ErrorCode.ARGUMENTS, f"{skill} takes robot names or 'all', got {bad[0][:40]!r}")
+        return Command(cid, skill, names=tuple(raw))
+    if skill not in SKILLS:
+        known = ", ".join([*SKILLS, *NAMED_SKILLS])
+        return Error(cid, ErrorCode.UNKNOWN_SKILL, f"no skill {skill!r} (skills: {known})")
     want = SKILLS[skill]
     if len(raw) != want:
         return Error(cid, ErrorCode.ARGUMENTS, f"{skill} takes {want} arguments, got {len(raw)}")

@@ -64,9 +64,17 @@ class RobotEvent(_message.Message):
         KIND_UNSPECIFIED: _ClassVar[RobotEvent.Kind]
         KIND_PROTECTIVE_STOP: _ClassVar[RobotEvent.Kind]
         KIND_RESUMED: _ClassVar[RobotEvent.Kind]
+        KIND_ESTOP: _ClassVar[RobotEvent.Kind]
+        KIND_STOP: _ClassVar[RobotEvent.Kind]
+        KIND_STILL: _ClassVar[RobotEvent.Kind]
+        KIND_RESUME: _ClassVar[RobotEvent.Kind]
     KIND_UNSPECIFIED: RobotEvent.Kind
     KIND_PROTECTIVE_STOP: RobotEvent.Kind
     KIND_RESUMED: RobotEvent.Kind
+    KIND_ESTOP: RobotEvent.Kind
+    KIND_STOP: RobotEvent.Kind
+    KIND_STILL: RobotEvent.Kind
+    KIND_RESUME: RobotEvent.Kind
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
