@@ -229,7 +229,7 @@ def _cmd_bench_rlink(args: argparse.Namespace) -> int:
     from cell.bench import rlink
 
     png = args.png or f"runs/rlink-{time.strftime('%Y%m%d-%H%M%S')}.png"
-    result = rlink.run(args.packets, png=png)
+    result = rlink.run(args.packets, png=png, estop_trials=args.estop_trials, estop_robots=args.estop_robots)
     return _report(args, result, rlink.format_result(result))
 
 
@@ -394,6 +394,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     q.add_argument("--packets", type=int, default=10_000, help="round trips per figure (default 10000)")
     q.add_argument("--png", metavar="PATH", help="the histogram (default runs/rlink-<time>.png)")
+    q.add_argument("--estop-trials", type=int, default=300, help="e-stops timed (default 300; 0: none)")
+    q.add_argument(
+        "--estop-robots",
+        type=int,
+        default=333,
+        help="robots (x 6 joints x 500 Hz) loading the data plane meanwhile (default 333: 1M status/s)",
+    )
     return parser
 
 

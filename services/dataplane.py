@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -40,6 +41,8 @@ from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import dataplane_pb2, robot_pb2
 
 _STATUS = int(Kind.STATUS)
+SLICE = 1024  # records run through the pipeline between two looks at the event socket (a stop
+# waits behind at most one slice: about 0.3 ms, against 0.6 ms for 2048, at ~8% more CPU per record)
 
 
 class DataPlane:
@@ -49,6 +52,7 @@ class DataPlane:
         dp = config.dataplane
         self.tables = Tables(dp.capacity, max_joints=dp.max_joints)
         self.robot_joints = np.zeros(1 << 16, np.int64)
+        self.merged: dict[int, list[int]] = {}  # entity -> its robots, for entities of several
         for r in config.robots:
             self.add_robot(r.id)
         constants = ControlConstants(tuple(dp.c1), tuple(dp.c2), dp.n_bits, tuple(dp.v_max))
@@ -56,6 +60,7 @@ class DataPlane:
         window = min((1.0 / r.command_hz for r in config.robots), default=1 / 125)
         self.pipeline.set_stop_ramp(arm_model().limits.a_max * config.rlink.stop_decel, window)
         self.robot_addr: dict[int, tuple] = {}  # where each robot's status last came from
+        self.poll: Callable[[], None] | None = None  # called between slices (the event socket)
         self.batch = dp.batch
         self.sock = udp.open_socket(*parse_host_port(dp.listen))
         self.sender = udp.Sender(self.sock, datagram.SIZE)
@@ -113,7 +118,14 @@ class DataPlane:
             self.rejected["kind"] += int(bad_kind.sum())
             self.rejected["joint"] += int(bad_joint.sum())
             recs, owner = recs[ok], owner[ok]
-        self.pipeline.process(recs, now)
+        if recs.size <= SLICE or self.poll is None:
+            self.pipeline.process(recs, now)
+        else:
+            for i in range(0, recs.size, SLICE):
+                self.pipeline.process(recs[i : i + SLICE], now)
+                self.poll()  # a stop comes in here, ahead of the rest of the batch
+            if self.pipeline.stopping:
+                self.pipeline.apply_stops(recs)  # slices done before the stop: stop commands too
         # answer each sender with its own records, in one sendto each
         answered = np.bincount(owner, minlength=len(chunks))
         raw = memoryview(recs.view(np.uint8))
@@ -149,10 +161,11 @@ class DataPlane:
 
     def _entity_robots(self, robots: list[int]) -> list[int]:
         """The robots and every robot merged with one of them (an entity stops as one)."""
-        t = self.tables
-        known = [r for r in robots if t.robot_entity[r] != NO_ROW]
-        ents = np.unique(t.robot_entity[known]) if known else np.empty(0, np.int32)
-        return sorted(set(robots) | set(np.flatnonzero(np.isin(t.robot_entity, ents)).tolist()))
+        ent = self.tables.robot_entity
+        out = set(robots)
+        for r in robots:
+            out.update(self.merged.get(int(ent[r]), ()))
+        return sorted(out)
 
     def stop_robots(self, robots: list[int]) -> int:
         """REG_stop on, registers cleared, and a first stop command to each robot now; how many sent."""
@@ -255,7 +268,9 @@ class DataPlane:
 
     def merge(self, req: dataplane_pb2.MergeRequest) -> dataplane_pb2.MergeReply:
         try:
-            return dataplane_pb2.MergeReply(entity=self.tables.merge(list(req.robot_ids)))
+            entity = self.tables.merge(list(req.robot_ids))
+            self.merged[entity] = list(req.robot_ids)
+            return dataplane_pb2.MergeReply(entity=entity)
         except Refused as exc:
             raise RpcFault(exc.code, exc.reason) from None
 
@@ -313,9 +328,10 @@ class PlaneNode:
     def __init__(self, plane: DataPlane, config: CellConfig) -> None:
         topo = Topology(config.rlink)
         self.plane = plane
-        self.station = Station([r.id for r in config.robots], int(config.rlink.watchdog_s * 1e9))
+        self.station = Station({r.id for r in config.robots}, int(config.rlink.watchdog_s * 1e9))
         node = Node(topo.address("dataplane"), topo.table("dataplane"))
         self.link = NodeLink(node, topo.links("dataplane"), self.on_event)
+        plane.poll = self.link.poll_events
         self.stop_us: list[float] = []  # event read -> first stop commands sent, recent
         self.watchdog_s = config.rlink.watchdog_s
 
@@ -336,8 +352,7 @@ class PlaneNode:
             self.plane.resume_robots(order.robots)
 
     def add_robot(self, robot: int) -> None:
-        if robot not in self.station.robots:
-            self.station.robots.append(robot)
+        self.station.robots.add(robot)
 
     async def run(self) -> None:
         async with asyncio.TaskGroup() as tg:

@@ -51,7 +51,7 @@ class Hub:
         try:
             if p.type in (EventType.ESTOP, EventType.STOP, EventType.RESUME, EventType.START):
                 self.counters["orders"] += 1
-                named = events.decode_set(p.payload).ids(self.names)
+                named = events.decode_set(p.payload).ids(self.names.keys())
                 if p.type in _ORDERS:
                     for rid in named:
                         self._tell(rid, _ORDERS[EventType(p.type)], f"{EventType(p.type).name} ordered")

@@ -123,7 +123,7 @@ class RobotsNode:
         topo = Topology(config.rlink)
         self.hub = topo.address("hub")
         self.rows = {int(rid): (g, row) for g in groups for row, rid in enumerate(g.ids)}
-        self.station = Station(list(self.rows), int(config.rlink.watchdog_s * 1e9))
+        self.station = Station(set(self.rows), int(config.rlink.watchdog_s * 1e9))
         node = Node(topo.address("robots"), topo.table("robots"))
         self.link = NodeLink(node, topo.links("robots"), self.on_event)
         self.watchdog_s = config.rlink.watchdog_s

@@ -33,7 +33,7 @@ def test_rlink_bench_times_every_round_trip_and_draws_them(tmp_path) -> None:
     from cell.bench import rlink
 
     png = tmp_path / "rtt.png"
-    r = rlink.run(300, png=str(png), n_loaded_data=5)
+    r = rlink.run(300, png=str(png), n_loaded_data=5, estop_trials=30, estop_robots=50)
     for key in ("event_unloaded", "data_unloaded", "event_loaded"):
         assert r[key]["n"] == 300 and r[key]["lost"] == 0, key  # every event echo came back
         assert 10 < r[key]["p50"] < r[key]["p99"] < 100_000, key
@@ -41,6 +41,9 @@ def test_rlink_bench_times_every_round_trip_and_draws_them(tmp_path) -> None:
     assert r["bulk_sent"] > 1000 and r["echo_node"]["data_in"] > 1000  # the flood really flowed
     for key in ("event_rtt_us_mean", "event_rtt_us_std", "data_rtt_us_mean", "data_rtt_us_std"):
         assert r[key] > 0, key
-    assert r["event_p99_loaded_over_unloaded"] > 0 and "estop_p99_ms" in r
+    assert r["event_p99_loaded_over_unloaded"] > 0
+    e = r["estop"]  # every e-stop timed, through a data plane that really handled the load
+    assert e["trials"] == 30 and e["missed"] == 0 and 0 < e["estop_ms_p50"] <= r["estop_p99_ms"] < 1000
+    assert e["plane_handled_per_s"] > 0.5 * 50 * 6 * 500
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     json.dumps(r)  # one JSON line: no samples, nothing unserialisable

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from cell import aio, sched
+from cell.bench import estop
 from cell.bench.cellproc import free_port
 from cell.rlink.link import LinkPorts, NodeLink
 from cell.rlink.node import Node
@@ -151,8 +152,15 @@ def _stats(us: list[float]) -> dict[str, float]:
     }
 
 
-def run(n: int = 10_000, png: str | None = None, n_loaded_data: int = 100) -> dict[str, Any]:
-    """The figures; samples are drawn into `png` (if given) and left out of the result."""
+def run(
+    n: int = 10_000,
+    png: str | None = None,
+    n_loaded_data: int = 100,
+    estop_trials: int = 300,
+    estop_robots: int = estop.FLOOD_ROBOTS,
+) -> dict[str, Any]:
+    """The figures; samples are drawn into `png` (if given) and left out of the result.  Then the
+    e-stop's end-to-end latency with the data plane loaded (cell.bench.estop); 0 trials: skipped."""
     ctx = mp.get_context("spawn")
     ports = _ports()
     out_b, out_a, out_c = ctx.Queue(), ctx.Queue(), ctx.Queue()
@@ -192,7 +200,13 @@ def run(n: int = 10_000, png: str | None = None, n_loaded_data: int = 100) -> di
     r["event_rtt_us_mean"], r["event_rtt_us_std"] = ev["mean"], ev["std"]
     r["data_rtt_us_mean"], r["data_rtt_us_std"] = da["mean"], da["std"]
     r["event_p99_loaded_over_unloaded"] = r["event_loaded"]["p99"] / ev["p99"]
-    r["estop_p99_ms"] = None  # the cell's e-stop over the link is not built yet
+    if estop_trials:
+        e = estop.run(estop_trials, estop_robots)
+        samples["estop"] = e.pop("samples_ms")
+        r["estop"] = e
+        r["estop_p99_ms"] = e["estop_p99_ms"]
+    else:
+        r["estop_p99_ms"] = None
     # break-even condition (1): an event keeps the shorter latency while S_p T_e / M < S_p T_d / D
     mailbox, threshold = EVENT_PAYLOAD, DATA_PAYLOAD  # bytes handed over per event / per data hand-over
     r["break_even"] = {
@@ -221,8 +235,9 @@ def histogram(r: dict[str, Any], samples: dict[str, list[float]], path: str) -> 
         ("data_unloaded", "(b) data packet"),
         ("event_loaded", "(c) event packet, data link flooded"),
     ]
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
-    for ax, (key, title) in zip(axes, panels, strict=True):
+    with_estop = "estop" in samples and bool(samples["estop"])
+    fig, axes = plt.subplots(1, 3 + with_estop, figsize=(13 + 4 * with_estop, 3.6), constrained_layout=True)
+    for ax, (key, title) in zip(axes, panels, strict=False):
         us = np.array(samples[key])
         if us.size:
             hi = float(np.percentile(us, 99.5))
@@ -230,6 +245,16 @@ def histogram(r: dict[str, Any], samples: dict[str, list[float]], path: str) -> 
         s = r[key]
         ax.set_title(f"{title}\nmean {s['mean']:.0f} us, sd {s['std']:.0f}, p99 {s['p99']:.0f}", fontsize=9)
         ax.set_xlabel("round-trip time (us)")
+        ax.set_ylabel("count")
+    if with_estop:
+        ax, e = axes[3], r["estop"]
+        ax.hist(np.array(samples["estop"]) * 1e3, bins=60, color="#c2453a")
+        ax.set_title(
+            f"(d) e-stop order -> first stop command, data plane at {e['plane_handled_per_s'] / 1e6:.2f}M/s\n"
+            f"mean {e['estop_ms_mean'] * 1e3:.0f} us, p99 {e['estop_p99_ms'] * 1e3:.0f} us",
+            fontsize=9,
+        )
+        ax.set_xlabel("latency (us)")
         ax.set_ylabel("count")
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
@@ -261,6 +286,15 @@ def format_result(r: dict[str, Any]) -> str:
         f"{be['data_us_per_byte']:.2f} us/byte: "
         + ("events are the cheaper way per byte too" if be["holds"] else "per byte, data packets win"),
     ]
+    if r.get("estop"):
+        e = r["estop"]
+        lines += [
+            f"e-stop, order at the hub -> first stop command at the robot, the data plane answering "
+            f"{e['plane_handled_per_s']:,.0f} status/s:",
+            f"  mean {e['estop_ms_mean']:.2f} ms  p50 {e['estop_ms_p50']:.2f}  p99 {e['estop_p99_ms']:.2f} "
+            f"(aim <= 2)  max {e['estop_ms_max']:.2f}  ({e['trials']} trials, {e['missed']} missed); "
+            f"in the data plane, event read -> commands sent: p99 {e['plane_stop_us_p99'] or 0:.0f} us",
+        ]
     if r.get("histogram_png"):
         lines.append(f"histogram: {r['histogram_png']}")
     return "\n".join(lines)

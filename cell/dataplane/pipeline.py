@@ -187,13 +187,10 @@ class Pipeline:
         c.limited += int(((out != v_new) & has).sum())
         out[~has] = 0
         c.holds += int((~has).sum())
-        if self.stopping:
-            stop = self.reg_stop[rid]
-            if stop.any():
-                out[stop] = self.ramp(v[stop], local[stop])
-                c.stop_commands += int(stop.sum())
         recs["velocity"] = out
         recs["kind"] = Kind.COMMAND
+        if self.stopping:
+            self.apply_stops(recs)
 
     # --- stops -------------------------------------------------------------------------------
 
@@ -201,6 +198,21 @@ class Pipeline:
         """StopRamp: per joint, the velocity a window's braking at `decel` (rad/s^2) takes away."""
         self.stop_ramp = np.rint(np.resize(np.asarray(decel, np.float64), self.joints) * window_s * SCALE)
         self.stop_ramp = self.stop_ramp.astype(np.int64)
+
+    def apply_stops(self, cmds: np.ndarray) -> int:
+        """Commands (processed records) of robots under REG_stop replaced by their StopRamp, from each
+        joint's last status; the packet path runs it again over a whole batch before sending, so a
+        stop set while the batch was being processed in slices holds for all of it."""
+        rid = cmds["robot_id"].astype(np.int64)
+        stop = self.reg_stop[rid]
+        if not stop.any():
+            return 0
+        rid, jid = rid[stop], cmds["joint_id"][stop].astype(np.int64)
+        jid = np.minimum(jid, self.t.max_joints - 1)
+        cmds["velocity"][stop] = self.ramp(self.t.status_vel[rid, jid], jid)
+        n = int(stop.sum())
+        self.counters.stop_commands += n
+        return n
 
     def ramp(self, v: np.ndarray, joint: np.ndarray) -> np.ndarray:
         """Stop commands: each velocity StopRamp[joint] closer to 0, never past it."""
@@ -210,7 +222,7 @@ class Pipeline:
     def stop(self, robots: Sequence[int], on: bool = True) -> None:
         """Set (or clear) REG_stop of these robots."""
         self.reg_stop[np.asarray(robots, np.int64)] = on
-        self.stopping = int(self.reg_stop.sum())
+        self.stopping = int(np.count_nonzero(self.reg_stop))
 
 
 def _clamp(x: np.ndarray, limit: int) -> np.ndarray:

@@ -126,6 +126,11 @@ class NodeLink:
                 with contextlib.suppress(Exception):
                     loop.remove_reader(fd)
 
+    def poll_events(self) -> None:
+        """Take the events waiting now, from outside the loop's turn: a host busy with a long piece of
+        work (the data plane's batch) calls this between its slices."""
+        self._events()
+
     def _events(self) -> None:
         """Every event waiting on every link: routed, sent on, handed to the host one by one."""
         got = False

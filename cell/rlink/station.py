@@ -40,7 +40,7 @@ class StationCounters:
 
 @dataclass
 class Station:
-    robots: list[int]
+    robots: set[int]
     watchdog_ns: int = 0  # 0: no watchdog
     stopped: dict[int, Reason] = field(default_factory=dict)
     counters: StationCounters = field(default_factory=StationCounters)
@@ -94,7 +94,7 @@ class Station:
             return None  # not armed until the first beacon
         if now_ns - self.last_beacon_ns < self.watchdog_ns:
             return None
-        fresh = [r for r in self.robots if r not in self.stopped]
+        fresh = sorted(r for r in self.robots if r not in self.stopped)
         self.last_beacon_ns = None  # tripped: re-armed by the next beacon
         if not fresh:
             return None
