@@ -119,6 +119,51 @@ def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
     if counters:
         for s in st.services:
             if s.last.counters:
-                items = sorted(s.last.counters.items())
+                items = sorted((k, v) for k, v in s.last.counters.items() if not _link_counter(k))
                 lines.append(f"  {s.name}: " + ", ".join(f"{k}={_fmt_count(v)}" for k, v in items))
+        lines += format_links(st)
     return "\n".join(lines)
+
+
+def _link_counter(key: str) -> bool:
+    return key.startswith(("rlink.L", "rlink.drops.", "rlink.event_latency"))
+
+
+_LINK_FIELDS = ("packets_in", "packets_out", "bytes_in", "bytes_out", "overflow", "depth", "depth_max")
+
+
+def format_links(st: health_pb2.CellStatus) -> list[str]:
+    """The Responsive Link nodes' links (those that carried anything), drops and event latency."""
+    head = ("NODE", "LINK", "KIND", "PKTS IN", "PKTS OUT", "BYTES IN", "BYTES OUT", "OVERFLOW", "DEPTH/MAX")
+    rows, notes = [head], []
+    for s in st.services:
+        c = s.last.counters
+        links: dict[tuple[str, str], dict[str, float]] = {}
+        for key, v in c.items():
+            parts = key.split(".")
+            if (
+                len(parts) == 4
+                and parts[0] == "rlink"
+                and parts[1].startswith("L")
+                and parts[3] in _LINK_FIELDS
+            ):
+                links.setdefault((parts[1], parts[2]), {})[parts[3]] = v
+        if not links:
+            continue
+        for (link, kind), f in sorted(links.items()):
+            if not f.get("packets_in") and not f.get("packets_out"):
+                continue
+            depth = f"{_fmt_count(f.get('depth', 0))}/{_fmt_count(f.get('depth_max', 0))}"
+            rows.append((s.name, link, kind, *(_fmt_count(f.get(k, 0)) for k in _LINK_FIELDS[:5]), depth))
+        drops = {k.split(".")[-1]: v for k, v in c.items() if k.startswith("rlink.drops.") and v}
+        dropped = ", ".join(f"{r} {_fmt_count(v)}" for r, v in sorted(drops.items())) or "none"
+        lat = ""
+        if "rlink.event_latency_p99_us" in c:
+            p50, p99 = c["rlink.event_latency_p50_us"], c["rlink.event_latency_p99_us"]
+            lat = f"; event arrival -> host p50 {p50:.0f} us, p99 {p99:.0f} us"
+        notes.append(f"  {s.name}: drops {dropped}{lat}")
+    if len(rows) == 1 and not notes:
+        return []
+    widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
+    table = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows]
+    return ["Responsive Link", *table, *notes]

@@ -83,8 +83,12 @@ async def test_an_estop_skill_stops_a_moving_robot_and_motions_are_refused_until
         later = await truth(bus, "r1")
         assert abs(math.degrees(later.q[0]) - q0) < 0.01, "a stopped robot moved"
         # the stop went over the link: the data plane and the robots counted it
-        await counters_until(config, "dataplane", lambda c: c.get("rlink.estops", 0) >= 1 and c.get("stop_commands", 0) > 0)
-        await counters_until(config, "robots", lambda c: c.get("rlink.estops", 0) >= 1 and c.get("rlink.stopped") == 1)
+        await counters_until(
+            config, "dataplane", lambda c: c.get("rlink.estops", 0) >= 1 and c.get("stop_commands", 0) > 0
+        )
+        await counters_until(
+            config, "robots", lambda c: c.get("rlink.estops", 0) >= 1 and c.get("rlink.stopped") == 1
+        )
         # released, it moves again, from where it stands
         await r1.send(b"rs000001:resume\r\n")
         (resumed,) = await r1.replies(1)

@@ -16,6 +16,7 @@ from rerun.chunk import RrdReader
 from cell.bus import Bus
 from cell.controller.controller import Controller
 from cell.launcher import fetch_status
+from cell.rlink.client import EventClient
 from tests.conftest import cell_env, cell_overrides, free_port, write_config
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
@@ -34,7 +35,7 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
         {"id": i, "name": f"r{i}", "skill_port": free_port(), "backend": "kinematic", "truth_hz": 100}
         for i in (1, 2)
     ]
-    services = ["bus", "dataplane", "robots", "controller", "recorder"]
+    services = ["bus", "dataplane", "robots", "rlink", "controller", "recorder"]
     cell = await start_cell(run=services, robots=robots)  # recorder off by the default config ...
     code, _, _, _ = cell.stop()
     assert code == 0
@@ -60,6 +61,9 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
                 while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} != {1, 2}:
                     await asyncio.sleep(0.05)
             await ctl.move_together({"r1": Q0 + 0.2, "r2": Q0 - 0.2}, speed=0.8)
+            async with EventClient(config) as link:  # an e-stop and a release, for the event log
+                await link.estop(["r2"])
+                await link.resume(["r2"])
             busy = next(
                 s for s in (await fetch_status(config)).services if s.name == "recorder"
             ).last.counters
@@ -84,7 +88,10 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
             "tracking_error/j3",
         ):
             assert rows[f"/joints/{name}/{series}"] > 5, series
-    assert rows["/dataplane/batch_p99_us"] >= 1 and rows["/events"] >= 1
+    assert rows["/dataplane/batch_p99_us"] >= 1 and rows["/events"] >= 4  # joins, e-stop, still, release
+    for node in ("dataplane", "robots", "rlink"):  # every node's links, from the heartbeats
+        assert rows[f"/rlink/{node}/L1/event/packets_in"] + rows[f"/rlink/{node}/L1/event/packets_out"] > 2
+        assert rows[f"/rlink/{node}/drops/crc"] >= 1
     rerun = Path(sys.executable).parent / "rerun"
     check = subprocess.run(
         [str(rerun), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120

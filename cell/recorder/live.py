@@ -154,6 +154,25 @@ class Recorder:
                 rec.log("dataplane/packets_per_s", rr.Scalars((packets - p0) / dt))
         self.last_counters = (t_mono_ns, packets)
 
+    # --- the Responsive Link ---------------------------------------------------------------------------
+
+    def link(self, hb: health_pb2.Heartbeat, t_mono_ns: int) -> None:
+        """A node's link counters from its service's heartbeat: rlink/<service>/L<n>/<kind>/..., drops
+        by reason and the event latency."""
+        self.at(t_mono_ns)
+        rec = self.rec
+        for key, value in hb.counters.items():
+            parts = key.split(".")
+            if parts[0] != "rlink" or len(parts) < 3:
+                continue
+            if parts[1][:1] == "L" and parts[-1] in ("packets_in", "packets_out", "overflow", "depth"):
+                rec.log(f"rlink/{hb.service}/{parts[1]}/{parts[2]}/{parts[3]}", rr.Scalars(value))
+            elif parts[1] == "drops":
+                rec.log(f"rlink/{hb.service}/drops/{parts[2]}", rr.Scalars(value))
+        for key in ("rlink.event_latency_p50_us", "rlink.event_latency_p99_us"):
+            if key in hb.counters:
+                rec.log(f"rlink/{hb.service}/{key.removeprefix('rlink.')}", rr.Scalars(hb.counters[key]))
+
     # --- events and skill commands --------------------------------------------------------------------
 
     def text(self, t_mono_ns: int, text: str, level: str = "INFO") -> None:
@@ -205,6 +224,7 @@ async def record(ctx: ServiceContext) -> None:
         "plan": await bus.subscribe("plan/"),
         "dataplane": await bus.subscribe("dataplane/counters"),
         "events": await bus.subscribe("events/", "run/events", "skills/", "announce/robot/"),
+        "health": await bus.subscribe("health/"),
     }
 
     joined: set[int] = set()
@@ -212,6 +232,11 @@ async def record(ctx: ServiceContext) -> None:
     def on_truth(env) -> None:
         if r.wants_truth(env.topic.removeprefix("truth/"), env.sent_ns):
             r.truth(env.decode(robot_pb2.RobotTruth))
+
+    def on_health(env) -> None:
+        hb = env.decode(health_pb2.Heartbeat)
+        if any(k.startswith("rlink.L") for k in hb.counters):
+            r.link(hb, env.sent_ns)
 
     def on_event(env) -> None:
         topic = env.topic
@@ -271,6 +296,7 @@ async def record(ctx: ServiceContext) -> None:
                 )
             )
             tg.create_task(_each(subs["events"], on_event))
+            tg.create_task(_each(subs["health"], on_health))
             tg.create_task(flush_series())
             ctx.ready()
     finally:

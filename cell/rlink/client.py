@@ -117,19 +117,18 @@ class EventClient:
         if not wait:
             return {}
         try:
-            async with asyncio.timeout(timeout):
-                await asyncio.gather(*futs.values())
-        except TimeoutError:
-            late = [rid for rid, f in futs.items() if not f.done()]
-            raise TimeoutError(
-                f"robot(s) {late} did not report {until.name.lower()} within {timeout} s "
-                "(is the robots service up?)"
-            ) from None
+            _, late = await asyncio.wait(futs.values(), timeout=timeout)
         finally:
             for rid, fut in futs.items():
                 fut.cancel()
                 with contextlib.suppress(ValueError):
                     self._waiters[rid].remove((until, fut))
+        if late:
+            missing = sorted(rid for rid, f in futs.items() if f in late)
+            raise TimeoutError(
+                f"robot(s) {missing} did not report {until.name.lower()} within {timeout} s "
+                "(is the robots service up?)"
+            )
         return {rid: (f.result() - t0) * 1e3 for rid, f in futs.items()}
 
     # --- the socket --------------------------------------------------------------------------

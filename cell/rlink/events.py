@@ -63,7 +63,7 @@ class RobotSet:
     def ids(self, known: Collection[int]) -> list[int]:
         """Which of the `known` robot ids the set names (a set: fast for fleets)."""
         if self.base == ALL:
-            return list(known)
+            return sorted(known)
         named = (self.base + i for i in range(MASK_BITS) if self.mask >> i & 1)
         return [r for r in named if r in known]
 
