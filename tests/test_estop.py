@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from tests.conftest import free_port, run_cell
 from tests.test_skills_server import Conn
 
 SERVICES = ["bus", "dataplane", "robots", "rlink", "controller", "skills"]
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "estop.py"
 Q0_DEG = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]
 
 
@@ -120,3 +122,12 @@ async def test_estop_from_the_cli_and_a_client_names_robots_and_bad_names_are_re
     assert isinstance(unknown, Error) and unknown.code == "arguments" and "ghost" in unknown.text
     assert isinstance(malformed, Error) and malformed.code == "arguments"
     r2.close()
+
+
+async def test_a_task_script_estops_and_resumes_a_robot(cell) -> None:
+    done = await asyncio.to_thread(run_cell, "run", str(EXAMPLE), "--config", str(cell.path))
+    assert done.returncode == 0, done.stdout + done.stderr
+    out = done.stdout
+    assert "r1 e-stopped: standing still" in out
+    assert "the interrupted move: stopped" in out and "a motion while stopped: stopped" in out
+    assert "released; moved on to" in out
