@@ -29,11 +29,8 @@ from cell.config import CellConfig, parse_host_port
 from cell.dataplane.pipeline import ControlConstants, Pipeline
 from cell.dataplane.tables import NO_ROW, Refused, Tables
 from cell.dataplane.wire import decode_keys, decode_tps
-from cell.rlink.cellnet import Topology
-from cell.rlink.link import NodeLink, link_counters
-from cell.rlink.node import Node
-from cell.rlink.packet import Packet
-from cell.rlink.station import Order, Station
+from cell.rlink.leaf import LeafNode
+from cell.rlink.station import Order
 from cell.robot import datagram, udp
 from cell.robot.arm import arm_model
 from cell.robot.datagram import SCALE, Kind
@@ -322,26 +319,16 @@ class DataPlane:
         return st
 
 
-class PlaneNode:
+class PlaneNode(LeafNode):
     """The data plane's Responsive Link node: its orders act on the tables at once, between batches."""
 
+    role = "dataplane"
+
     def __init__(self, plane: DataPlane, config: CellConfig) -> None:
-        topo = Topology(config.rlink)
+        super().__init__(config, {r.id for r in config.robots})
         self.plane = plane
-        self.station = Station({r.id for r in config.robots}, int(config.rlink.watchdog_s * 1e9))
-        node = Node(topo.address("dataplane"), topo.table("dataplane"))
-        self.link = NodeLink(node, topo.links("dataplane"), self.on_event)
         plane.poll = self.link.poll_events
         self.stop_us: list[float] = []  # event read -> first stop commands sent, recent
-        self.watchdog_s = config.rlink.watchdog_s
-
-    def close(self) -> None:
-        self.link.close()
-
-    def on_event(self, p: Packet) -> None:
-        order = self.station.on_event(p, time.monotonic_ns())
-        if order is not None:
-            self.apply(order)
 
     def apply(self, order: Order) -> None:
         if order.stop:
@@ -354,22 +341,8 @@ class PlaneNode:
     def add_robot(self, robot: int) -> None:
         self.station.robots.add(robot)
 
-    async def run(self) -> None:
-        async with asyncio.TaskGroup() as tg:
-            tg.create_task(self.link.run(), name="rlink")
-            if self.watchdog_s:
-                tg.create_task(self._watch(), name="rlink-watchdog")
-
-    async def _watch(self) -> None:
-        while True:
-            await asyncio.sleep(self.watchdog_s / 4)
-            order = self.station.check(time.monotonic_ns())
-            if order is not None:
-                self.apply(order)
-
     def counters(self) -> dict[str, float]:
-        out = {f"rlink.{k}": v for k, v in self.station.as_dict().items()}
-        out.update(link_counters(self.link))
+        out = super().counters()
         if self.stop_us:
             out["rlink.stop_us_max"] = max(self.stop_us)
         return out

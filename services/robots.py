@@ -22,12 +22,10 @@ import numpy as np
 
 from cell.bus import Bus
 from cell.config import CellConfig, RobotConfig, parse_host_port
-from cell.rlink.cellnet import Topology
 from cell.rlink.events import Reason, RobotState, StateReport
-from cell.rlink.link import NodeLink, link_counters
-from cell.rlink.node import Node
-from cell.rlink.packet import EventType, Kind, Packet
-from cell.rlink.station import Order, Station
+from cell.rlink.leaf import LeafNode
+from cell.rlink.packet import EventType, Kind
+from cell.rlink.station import Order
 from cell.robot.emulator import RobotGroup
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import robot_pb2
@@ -116,28 +114,17 @@ class Publisher:
                 )
 
 
-class RobotsNode:
+class RobotsNode(LeafNode):
     """The robots' Responsive Link node: halts and releases drives, reports when robots stand."""
 
+    role = "robots"
+
     def __init__(self, groups: list[RobotGroup], config: CellConfig) -> None:
-        topo = Topology(config.rlink)
-        self.hub = topo.address("hub")
         self.rows = {int(rid): (g, row) for g in groups for row, rid in enumerate(g.ids)}
-        self.station = Station(set(self.rows), int(config.rlink.watchdog_s * 1e9))
-        node = Node(topo.address("robots"), topo.table("robots"))
-        self.link = NodeLink(node, topo.links("robots"), self.on_event)
-        self.watchdog_s = config.rlink.watchdog_s
+        super().__init__(config, set(self.rows))
         self.waiting: dict[int, tuple[int, Reason]] = {}  # robot -> (when its stop came, why)
         self.halt_us: list[float] = []  # event read -> drives halted
         self.still_ms: list[float] = []  # stop order -> standing still
-
-    def close(self) -> None:
-        self.link.close()
-
-    def on_event(self, p: Packet) -> None:
-        order = self.station.on_event(p, time.monotonic_ns())
-        if order is not None:
-            self.apply(order)
 
     def apply(self, order: Order) -> None:
         brake = order.emergency or order.reason == Reason.WATCHDOG
@@ -176,22 +163,8 @@ class RobotsNode:
                 del self.still_ms[:-1024]
                 self.report(rid, RobotState.STILL, why, (now - since) // 1000)
 
-    async def run(self) -> None:
-        async with asyncio.TaskGroup() as tg:
-            tg.create_task(self.link.run(), name="rlink")
-            if self.watchdog_s:
-                tg.create_task(self._watch(), name="rlink-watchdog")
-
-    async def _watch(self) -> None:
-        while True:
-            await asyncio.sleep(self.watchdog_s / 4)
-            order = self.station.check(time.monotonic_ns())
-            if order is not None:
-                self.apply(order)
-
     def counters(self) -> dict[str, float]:
-        out = {f"rlink.{k}": v for k, v in self.station.as_dict().items()}
-        out.update(link_counters(self.link))
+        out = super().counters()
         if self.halt_us:
             out["rlink.halt_us_max"] = max(self.halt_us)
         if self.still_ms:

@@ -89,8 +89,11 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
         ):
             assert rows[f"/joints/{name}/{series}"] > 5, series
     assert rows["/dataplane/batch_p99_us"] >= 1 and rows["/events"] >= 4  # joins, e-stop, still, release
-    for node in ("dataplane", "robots", "rlink"):  # every node's links, from the heartbeats
-        assert rows[f"/rlink/{node}/L1/event/packets_in"] + rows[f"/rlink/{node}/L1/event/packets_out"] > 2
+    for node in ("dataplane", "robots", "rlink"):  # every node's links, from the heartbeats (1/s at most)
+        assert (
+            rows[f"/rlink/{node}/L1/event/packets_in"] >= 1
+            and rows[f"/rlink/{node}/L1/event/packets_out"] >= 1
+        )
         assert rows[f"/rlink/{node}/drops/crc"] >= 1
     rerun = Path(sys.executable).parent / "rerun"
     check = subprocess.run(

@@ -262,6 +262,9 @@ async def test_clients_of_the_host_interface_reach_the_nodes_and_hear_their_repo
     async with asyncio.TaskGroup() as tg:
         tasks = [tg.create_task(hub.link.run()), tg.create_task(leaf.run())]
         async with EventClient(cfg) as one, EventClient(cfg) as other:
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as junk:  # counted, dropped, harmless
+                for raw in (b"", b"\x00" * 15, b"\xff" * 16, b"\x00" * 4000):
+                    junk.sendto(raw, topo.host)
             took = await one.estop(["r1"])
             assert set(took) == {1} and took[1] < 1000
             async with asyncio.timeout(2):
@@ -275,6 +278,8 @@ async def test_clients_of_the_host_interface_reach_the_nodes_and_hear_their_repo
             t.cancel()
     assert [p.type for p in seen] == [EventType.ESTOP, EventType.RESUME]
     assert hub.link.node.drops["no_route"] == 0 and hub.counters["reports"] == 1
+    drops = hub.link.node.drops
+    assert drops["truncated"] == 2 and drops["crc"] == 1 and drops["oversized"] == 1, drops
     hub.close()
     leaf.close()
 

@@ -37,6 +37,7 @@ from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills
 
 PATH_POINTS = 600  # tool path points kept per robot
 PATH_EVERY_NS = 200_000_000  # the tool path (a line of up to PATH_POINTS) is drawn this often
+LINK_EVERY_NS = 1_000_000_000  # a node's link counters are drawn at most this often
 SPACING = 1.2  # m between robots' bases in the 3D view
 TIMELINE = "cell_time"
 
@@ -62,6 +63,7 @@ class Recorder:
         self.plans: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.series = SeriesBatch(rec, TIMELINE)
         self.last_counters: tuple[int, float] | None = None
+        self.link_logged: dict[str, int] = {}  # service -> when its link counters were last drawn
         self.logged = 0
 
     def seconds(self, t_mono_ns: int) -> float:
@@ -158,7 +160,12 @@ class Recorder:
 
     def link(self, hb: health_pb2.Heartbeat, t_mono_ns: int) -> None:
         """A node's link counters from its service's heartbeat: rlink/<service>/L<n>/<kind>/..., drops
-        by reason and the event latency."""
+        by reason and the event latency; once a second per node at most (heartbeats may come faster,
+        and each is some forty series)."""
+        last = self.link_logged.get(hb.service, 0)
+        if t_mono_ns - last < LINK_EVERY_NS:
+            return
+        self.link_logged[hb.service] = t_mono_ns
         self.at(t_mono_ns)
         rec = self.rec
         for key, value in hb.counters.items():
