@@ -119,10 +119,10 @@ class DataPlane:
             self.pipeline.process(recs, now)
         else:
             for i in range(0, recs.size, SLICE):
-                self.pipeline.process(recs[i : i + SLICE], now)
+                self.pipeline.process(recs[i : i + SLICE], now, stops=False)
                 self.poll()  # a stop comes in here, ahead of the rest of the batch
             if self.pipeline.stopping:
-                self.pipeline.apply_stops(recs)  # slices done before the stop: stop commands too
+                self.pipeline.apply_stops(recs)  # once, over every slice: before the stop or after
         # answer each sender with its own records, in one sendto each
         answered = np.bincount(owner, minlength=len(chunks))
         raw = memoryview(recs.view(np.uint8))

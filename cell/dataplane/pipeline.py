@@ -145,8 +145,9 @@ class Pipeline:
 
     # --- the whole packet path ---------------------------------------------------------------
 
-    def process(self, recs: np.ndarray, now: int) -> None:
-        """Turn valid status records (datagram.DTYPE) into commands, in place; `now` in ns."""
+    def process(self, recs: np.ndarray, now: int, stops: bool = True) -> None:
+        """Turn valid status records (datagram.DTYPE) into commands, in place; `now` in ns.  stops=False
+        leaves the stop stage to the caller (a batch run in slices takes it once, over all of it)."""
         t, c = self.t, self.counters
         n = recs.size
         if n == 0:
@@ -189,7 +190,7 @@ class Pipeline:
         c.holds += int((~has).sum())
         recs["velocity"] = out
         recs["kind"] = Kind.COMMAND
-        if self.stopping:
+        if stops and self.stopping:
             self.apply_stops(recs)
 
     # --- stops -------------------------------------------------------------------------------
