@@ -233,6 +233,70 @@ def _cmd_bench_rlink(args: argparse.Namespace) -> int:
     return _report(args, result, rlink.format_result(result))
 
 
+def _cmd_bench_bilateral(args: argparse.Namespace) -> int:
+    import time
+
+    from cell.teleop import experiment
+
+    out = args.out or f"runs/bilateral-{time.strftime('%Y%m%d-%H%M%S')}"
+    result = experiment.bench(out)
+    return _report(args, result, experiment.format_result(result))
+
+
+def _pushes(text: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected forces in N separated by commas (got {text!r})") from None
+    if not out or any(not 0.5 < v <= 20 for v in out):
+        raise argparse.ArgumentTypeError("each push aims at more than 0.5 N and at most 20 N")
+    return out
+
+
+def _cmd_teleop(args: argparse.Namespace) -> int:
+    from cell.teleop import experiment
+    from cell.teleop.experiment import USUAL_GEAR
+    from cell.teleop.law import Mode
+    from cell.teleop.realtime import Setup
+    from cell.teleop.twindrive import COULOMB
+
+    if args.jitter_ms > args.delay_ms:
+        print("error: --jitter-ms must not exceed --delay-ms", file=sys.stderr)
+        return 2
+    setup = Setup(
+        obj=args.object,
+        delay_ms=args.delay_ms,
+        jitter_ms=args.jitter_ms,
+        mode=Mode[args.mode.upper()],
+        coulomb_nm=COULOMB * (args.gear or USUAL_GEAR) if args.drive == "usual" else 0.0,
+        estop_at_s=args.estop_at,
+        **({"pushes": args.pushes} if args.pushes else {}),
+    )
+    r = experiment.teleop(setup, args.rerun, args.png)
+    if "peak_force_remote_n" in r:
+        print(
+            f"{args.object}: peak force local {r['peak_force_local_n']:.2f} N, "
+            f"remote {r['peak_force_remote_n']:.2f} N; "
+            f"|f_l + f_r| rms {r['force_error_rms_n']:.3f} N (max {r['force_error_max_n']:.2f}); "
+            f"tip z p-p remote {r['position_pp_remote_mm']:.2f} mm, local {r['position_pp_local_mm']:.2f} mm"
+        )
+    print(
+        f"loops: period p50 {r['period_p50_ms']:.3f} ms, p99 {r['period_p99_ms']:.3f} ms, "
+        f"missed {r['missed_periods_pct']:.3f}% ({r['placement']['local']} / {r['placement']['remote']})"
+    )
+    if "estop" in r:
+        e = r["estop"]
+        print(
+            f"e-stop taken after {e['taken_ms']} ms (skew {e['skew_ms']} ms), "
+            f"still after {e['still_after_ms']} ms"
+        )
+    if args.png:
+        print(f"figure: {r['png']}")
+    if args.json:
+        print(json.dumps(r))
+    return 0
+
+
 def _bench(
     bsub: argparse._SubParsersAction, name: str, func: Callable[[argparse.Namespace], int], help: str
 ) -> argparse.ArgumentParser:
@@ -327,6 +391,43 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="wait at most S (default 5)")
         p.set_defaults(func=_cmd_event)
 
+    p = sub.add_parser(
+        "teleop",
+        help="bilateral teleoperation over the Responsive Link: an operator pushes an object through "
+        "two arms, and feels it",
+        description="Two MuJoCo arms, one process each, run the Fig. 14 force-reflecting servo at 1 ms over "
+        "the Responsive Link (docs/teleop.md). A scripted operator pushes the object several times.",
+    )
+    p.add_argument("--object", choices=["sponge", "wood"], default="sponge")
+    p.add_argument("--delay-ms", type=float, default=0.0, metavar="D", help="added data-link delay")
+    p.add_argument("--jitter-ms", type=float, default=0.0, metavar="J", help="+/- J ms on that delay")
+    p.add_argument("--mode", choices=["modified", "conventional", "unilateral"], default="modified")
+    p.add_argument(
+        "--drive",
+        choices=["twin", "usual"],
+        default="twin",
+        help="the joints' drives (usual: Coulomb friction)",
+    )
+    p.add_argument(
+        "--gear",
+        type=float,
+        help="usual drive: the gear ratio the motor's friction is seen through (default 100)",
+    )
+    p.add_argument(
+        "--pushes",
+        type=_pushes,
+        default=None,
+        metavar="N,N,...",
+        help="the operator's pushes: the force each aims at, in N (default 4,6,5,6)",
+    )
+    p.add_argument("--estop-at", type=float, metavar="S", help="the console's e-stop, S seconds after start")
+    p.add_argument(
+        "--rerun", nargs="+", metavar="MODE", help="spawn, serve, save PATH.rrd or off (default: off)"
+    )
+    p.add_argument("--png", metavar="PATH", help="force and position over time, as a PNG")
+    p.add_argument("--json", action="store_true", help="also print the figures as one JSON line, last")
+    p.set_defaults(func=_cmd_teleop)
+
     p = sub.add_parser("config", help="inspect the configuration")
     csub = p.add_subparsers(dest="config_command", required=True, metavar="ACTION")
     q = csub.add_parser("show", help="print the effective configuration as TOML")
@@ -401,6 +502,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=333,
         help="robots (x 6 joints x 500 Hz) loading the data plane meanwhile (default 333: 1M status/s)",
     )
+    q = _bench(
+        bsub,
+        "bilateral",
+        _cmd_bench_bilateral,
+        "bilateral teleoperation: forces, transparency and the 1 ms loops on the sponge and the wood, the "
+        "twin drive's ramp, delay and the e-stop (Responsive Processor paper, Figs. 12-17)",
+    )
+    q.add_argument("--out", metavar="DIR", help="where the PNGs go (default runs/bilateral-<time>)")
     return parser
 
 

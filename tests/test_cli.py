@@ -17,6 +17,8 @@ COMMANDS = [
     ["bench", "bus"],
     ["bench", "robots"],
     ["bench", "dataplane"],
+    ["bench", "bilateral"],
+    ["teleop"],
 ]
 
 
@@ -31,7 +33,7 @@ def test_help(command: list[str], capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_every_subcommand_is_listed() -> None:
     text = build_parser().format_help()
-    for name in ("up", "service", "status", "config", "bench"):
+    for name in ("up", "service", "status", "config", "bench", "teleop"):
         assert f"    {name} " in text
 
 
