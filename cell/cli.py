@@ -272,7 +272,11 @@ def _cmd_teleop(args: argparse.Namespace) -> int:
         estop_at_s=args.estop_at,
         **({"pushes": args.pushes} if args.pushes else {}),
     )
-    r = experiment.teleop(setup, args.rerun, args.png)
+    try:
+        r = experiment.teleop(setup, args.rerun, args.png)
+    except RuntimeError as exc:  # a side died or never came up: say which, no traceback
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     if "peak_force_remote_n" in r:
         print(
             f"{args.object}: peak force local {r['peak_force_local_n']:.2f} N, "

@@ -6,9 +6,13 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import os
+import signal
+import socket
 import struct
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -261,6 +265,40 @@ def test_an_estop_on_the_event_link_overtakes_a_delayed_data_link() -> None:
     e = summarize(res)["estop"]
     assert e["taken_ms"]["remote"] < 25  # ... and the e-stop did not
     assert e["skew_ms"] < 25
+
+
+def test_junk_on_every_socket_is_counted_and_the_experiment_goes_on() -> None:
+    from cell.rlink.packet import Kind, Packet, encode
+
+    def junk(ports: dict, _pids: dict) -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for name in ("l_ev", "l_da", "r_ev", "r_da", "host"):
+                s.sendto(b"junk", ports[name])  # truncated
+                s.sendto(bytes(64), ports[name])  # a bad CRC (or the wrong kind)
+            # a sound packet whose SAMPLE payload is not one
+            s.sendto(encode(Packet(Kind.DATA, 2, 1, 0, wire.SAMPLE_TYPE, 0, bytes(10))), ports["r_da"])
+
+    res = realtime.run(realtime.Setup(obj="wood", pushes=(5.0,), max_s=8), on_ready=junk)
+    lo, re = res["local"], res["remote"]
+    assert re["bad_payloads"] == 1 and lo["bad_payloads"] == 0
+    for side in (lo, re):
+        c = side["counters"]
+        assert c["rlink.drops.truncated"] >= 2 and c["rlink.drops.crc"] + c["rlink.drops.kind"] >= 2
+    f = figures.transparency(lo["trace"], re["trace"], lo["contact_t"], lo["lift_t"])
+    assert f["peak_force_remote_n"] == pytest.approx(5.0, rel=0.1) and f["peak_force_diff_pct"] < 10
+
+
+def test_a_killed_side_is_named_and_the_other_stops_and_holds() -> None:
+    def kill_remote_soon(_ports: dict, pids: dict) -> None:
+        threading.Timer(1.0, os.kill, (pids[Role.REMOTE], signal.SIGKILL)).start()
+
+    with pytest.raises(realtime.SideDied) as info:
+        realtime.run(realtime.Setup(obj="sponge", max_s=8), on_ready=kill_remote_soon)
+    died = info.value
+    assert died.role == Role.REMOTE and died.code == -signal.SIGKILL
+    assert died.survivor is not None and died.survivor["role"] == "local"
+    assert any("stale" in what for _, what in died.survivor["log"])
+    assert "remote side died" in str(died)
 
 
 def test_cell_teleop_runs_the_experiment_and_draws_it(tmp_path) -> None:

@@ -247,8 +247,24 @@ class Console:
         self.sock.close()
 
 
-def run(setup: Setup, on_rows: Callable[[Role, np.ndarray], None] | None = None) -> dict[str, Any]:
-    """Run the experiment; `on_rows` sees each side's trace rows as they come (live drawing)."""
+class SideDied(RuntimeError):
+    """A side's process ended without its result; `survivor` is the other side's result (it holds where
+    it was once the dead side's data stop), if it gave one."""
+
+    def __init__(self, role: Role, code: int | None, survivor: dict[str, Any] | None) -> None:
+        self.role, self.code, self.survivor = role, code, survivor
+        other = "local" if role == Role.REMOTE else "remote"
+        said = f"; the {other} side: {survivor['log'][-1][1]}" if survivor and survivor["log"] else ""
+        super().__init__(f"the {role.name.lower()} side died (exit code {code}){said}")
+
+
+def run(
+    setup: Setup,
+    on_rows: Callable[[Role, np.ndarray], None] | None = None,
+    on_ready: Callable[[dict[str, tuple[str, int]], dict[Role, int]], None] | None = None,
+) -> dict[str, Any]:
+    """Run the experiment; `on_rows` sees each side's trace rows as they come (live drawing), `on_ready`
+    the link's addresses and the sides' pids once both are up, before START."""
     ctx = mp.get_context("spawn")
     ports = _ports()
     out, quit = ctx.Queue(), ctx.Event()
@@ -270,6 +286,8 @@ def run(setup: Setup, on_rows: Callable[[Role, np.ndarray], None] | None = None)
                 raise RuntimeError(f"the {Role(role).name.lower()} side failed: {what}")
             if kind == "ready":
                 ready.add(Role(role))
+        if on_ready is not None:
+            on_ready(ports, {r: p.pid for r, p in procs.items()})
         if setup.mode != Mode.MODIFIED:
             console.send(EventType.MODE, bytes((setup.mode,)))
         start_ns = time.monotonic_ns() + int(START_AFTER_S * 1e9)
@@ -278,8 +296,14 @@ def run(setup: Setup, on_rows: Callable[[Role, np.ndarray], None] | None = None)
         give_up = start_ns + int((setup.max_s + 10) * 1e9)
         stopped_ns: int | None = None
         keepalive = 0
+        dead: dict[Role, int] = {}  # a side whose process ended, and when that was seen
         while len(results) < 2:
             now = time.monotonic_ns()
+            for r, p in procs.items():
+                if r not in results and p.exitcode is not None:
+                    dead.setdefault(r, now)
+                    if now - dead[r] > 1e9:  # (its result, if it put one, had a second to arrive)
+                        raise SideDied(r, p.exitcode, _survivor(out, results, quit))
             if now >= keepalive:  # the host interface forgets a console that keeps quiet
                 console.send(EventType.NOP)
                 keepalive = now + int(KEEPALIVE_S * 1e9)
@@ -318,6 +342,20 @@ def run(setup: Setup, on_rows: Callable[[Role, np.ndarray], None] | None = None)
         "console_sent_ns": console.sent,
         **{r.name.lower(): results[r] for r in Role},
     }
+
+
+def _survivor(out: Any, results: dict[Role, dict[str, Any]], quit: Any) -> dict[str, Any] | None:
+    """The other side's result, once it is told to finish."""
+    quit.set()
+    deadline = time.monotonic() + 5
+    while not results and time.monotonic() < deadline:
+        try:
+            kind, role, what = out.get(timeout=0.1)
+        except queue.Empty:
+            continue
+        if kind == "result":
+            results[Role(role)] = what
+    return next(iter(results.values()), None)
 
 
 def _get(q: Any, timeout: float) -> tuple[str, int, Any]:
