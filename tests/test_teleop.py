@@ -23,6 +23,7 @@ from cell.teleop import figures, lockstep, realtime, stability, twindrive, wire
 from cell.teleop.delay import DelayLine
 from cell.teleop.law import Mode
 from cell.teleop.model import CONTACT_STIFFNESS, HOME, OBJECTS, SURFACE_Z, TIP_RADIUS, Arm, ik
+from cell.teleop.operator import Operator
 from cell.teleop.side import STALE_PERIODS, Side
 from cell.teleop.wire import Role, Sample, State
 from tests.conftest import cell_env
@@ -211,7 +212,7 @@ def test_a_side_whose_peer_goes_quiet_stops_and_holds() -> None:
 
 
 def test_events_change_the_state_at_once() -> None:
-    side = Side(Role.LOCAL, operator=lockstep.Operator(np.array(HOME)))
+    side = Side(Role.LOCAL, operator=Operator(np.array(HOME)))
     assert side.state == State.IDLE
     assert side.event(EventType.START) == State.RUNNING
     side.event(EventType.MODE, bytes((Mode.UNILATERAL,)))

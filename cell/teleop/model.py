@@ -139,14 +139,14 @@ class Arm:
         mujoco.mj_forward(self.model, self.data)
         self.hand = np.zeros(2)  # N: an external force on the tip (the operator's hand), world x, z
 
-    def _jacobian(self) -> np.ndarray:
+    def jacobian(self) -> np.ndarray:
         mujoco.mj_jacSite(self.model, self.data, self._jacp, None, self.site)
         return self._jacp[[0, 2], :2]  # x and z rows, the two arm joints
 
     def tip(self) -> TipState:
         d = self.data
         x = d.site_xpos[self.site][[0, 2]].copy()
-        v = self._jacobian() @ d.qvel[:2]
+        v = self.jacobian() @ d.qvel[:2]
         # the sensor gives the force on the tip body from the forearm, in the site's frame; the outside's
         # force on the tip is its opposite (the tip's own inertia is left in, as with a real sensor)
         f_site = d.sensordata[self._adr : self._adr + 3]
@@ -157,7 +157,7 @@ class Arm:
 
     def drive(self, force: np.ndarray) -> None:
         """Joint torques for a tip force (world x, z), with the arm's gravity and Coriolis compensated."""
-        tau = self._jacobian().T @ force + self.data.qfrc_bias[:2]
+        tau = self.jacobian().T @ force + self.data.qfrc_bias[:2]
         self.data.ctrl[:2] = tau
 
     def step(self, n: int = 2) -> None:

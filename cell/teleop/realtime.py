@@ -46,6 +46,7 @@ from cell.teleop.model import HOME, OBJECTS
 from cell.teleop.operator import PUSHES, Operator
 from cell.teleop.side import PERIOD_S, Side
 from cell.teleop.wire import Role, Sample, State
+from cell.timer import PeriodicTimer
 
 ADDRESS = {Role.LOCAL: 1, Role.REMOTE: 2}
 BROADCAST = 255
@@ -102,8 +103,6 @@ def side_process(role: Role, setup: Setup, ports: dict, out: Any, quit: Any) -> 
 
 
 async def _side(role: Role, setup: Setup, ports: dict, out: Any, quit: Any) -> dict[str, Any]:
-    from cell.timer import PeriodicTimer
-
     op = Operator(np.array(HOME), pushes=setup.pushes) if role == Role.LOCAL else None
     obj = OBJECTS[setup.obj] if role == Role.REMOTE else None
     side = Side(role, obj, setup.gains, op, setup.coulomb_nm, capacity=int(setup.max_s / PERIOD_S) + 16)

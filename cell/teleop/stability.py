@@ -41,7 +41,7 @@ def tip_inertia() -> tuple[float, float]:
     m, d = arm.model, arm.data
     full = np.zeros((m.nv, m.nv))
     mujoco.mj_fullM(m, d, full)
-    jac = arm._jacobian()[1:2]  # the z row
+    jac = arm.jacobian()[1:2]  # the z row
     lam = 1.0 / float((jac @ np.linalg.solve(full, jac.T))[0, 0])
     # joint damping B maps to the tip as (J B^-1 J^T)^-1
     damping = np.diag(m.dof_damping[:2])
