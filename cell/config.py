@@ -239,6 +239,37 @@ class SnpConfig:
     listen: str = _check(_host_port)
 
 
+def _vector3(v: Any) -> str | None:
+    if not isinstance(v, list) or len(v) != 3 or not all(isinstance(x, int | float) for x in v):
+        return f"must be a list of 3 numbers (got {v!r})"
+    return None
+
+
+@dataclass(frozen=True)
+class VisionConfig:
+    """The simulated close-range camera (service `vision`) and its frame buffer."""
+
+    robot: str = _check(lambda v: None if v == "" else _name(v))  # "": the cell's first robot
+    fps: float = _check(lambda v: None if 0 < v <= 120 else f"must be in (0, 120] (got {v})")
+    buffer: int = _check(lambda v: None if 1 <= v <= 1000 else f"must be 1..1000 (got {v})")
+    width_px: int = _check(lambda v: None if 64 <= v <= 4096 else f"must be 64..4096 (got {v})")
+    height_px: int = _check(lambda v: None if 48 <= v <= 4096 else f"must be 48..4096 (got {v})")
+    position_m: list[float] = field(metadata={"check": _vector3})
+    axis: list[float] = field(metadata={"check": _vector3})
+    focal_mm: float = _check(_positive)
+    f_number: float = _check(_positive)
+    focus_mm: float = _check(_positive)
+    pixel_um: float = _check(_positive)
+    noise_dn: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
+    rerun_every: int = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
+
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        if self.focus_mm <= self.focal_mm:
+            raise err("focus_mm", "must be farther than the focal length")
+        if not any(self.axis):
+            raise err("axis", "must not be the zero vector")
+
+
 @dataclass(frozen=True)
 class RlinkConfig:
     """The cell's Responsive Link: where its nodes listen, their addresses, the beacon."""
@@ -305,6 +336,7 @@ class CellConfig:
     recorder: RecorderConfig
     snp: SnpConfig
     rlink: RlinkConfig
+    vision: VisionConfig
     robot_defaults: RobotDefaults
     robots: list[RobotConfig]
     source: str = field(default=DEFAULT_SOURCE, metadata={"internal": True})
@@ -317,6 +349,9 @@ class CellConfig:
                 if value in seen:
                     raise err(f"robots[{i}].{attr}", f"{value!r} is used by another robot")
                 seen.add(value)
+        names = {r.name for r in self.robots}
+        if "vision" in self.services.run and self.vision.robot and self.vision.robot not in names:
+            raise err("vision.robot", f"{self.vision.robot!r} is not a robot of this cell")
 
     def robot(self, name: str) -> RobotConfig:
         for robot in self.robots:

@@ -32,6 +32,7 @@ from cell.launcher import child_cell
 from cell.rlink.client import EventClient
 from cell.skills.client import RobotClient
 from cell.v1 import controller_pb2, skills_pb2
+from cell.vision.client import VisionClient
 
 log = logging.getLogger("cell.run")
 
@@ -43,6 +44,7 @@ class Cell:
         self, config: CellConfig, bus: Bus, robots: dict[str, RobotClient], link: EventClient | None = None
     ) -> None:
         self.config, self.bus, self.robots, self.link = config, bus, robots, link
+        self.vision = VisionClient(bus)  # the camera service: `await cell.vision.request()`
 
     def _link(self) -> EventClient:
         if self.link is None:

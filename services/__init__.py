@@ -22,6 +22,7 @@ BUILTIN: dict[str, str] = {
     "snp": "cell.services.snp",
     "recorder": "cell.services.recorder",
     "rlink": "cell.services.rlink",
+    "vision": "cell.services.vision",
 }
 
 

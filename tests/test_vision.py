@@ -1,0 +1,130 @@
+"""Vision: the Fig. 7 sharpness pipeline step by step, the thin lens, the frame buffer, the MuJoCo
+camera, and the focus calibration (`ufloop`) on a whole cell."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from cell.vision import sharpness as sh
+from cell.vision.camera import Camera, CameraSpec
+from cell.vision.frames import Frame, FrameBuffer
+from cell.vision.optics import ThinLens, expose, psf_sigma
+from cell.vision.target import target_image
+from tests.conftest import cell_env
+
+Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+
+
+def scene(card_px_per_mm: float = 8.0, blur_px: float = 0.0, noise: float = 0.0) -> np.ndarray:
+    """The card on a dark background, as a camera would see it, blurred by `blur_px`."""
+    img = np.full((480, 640), 60, np.uint8)
+    card = target_image(card_px_per_mm)
+    h, w = card.shape
+    y, x = (480 - h) // 2, (640 - w) // 2
+    img[y : y + h, x : x + w] = card
+    return expose(img, blur_px, noise, np.random.default_rng(1))
+
+
+def test_each_step_of_the_pipeline_does_its_part() -> None:
+    p = sh.Params()
+    img = scene()
+    light = sh.highlight_light(img, p)
+    assert set(np.unique(light)) == {0, 255}
+    card_rows = light[(480 - 240) // 2 : (480 + 240) // 2]
+    assert (card_rows == 0).any()  # the black lines cut the light card ...
+    closed = sh.erosion(light, p)
+    stats = sh.find_ccomp(closed)
+    region = sh.identify_object_region(stats, p, img.shape)
+    assert region is not None  # ... and after the erosion of the lines the card is one component
+    x, y, w, h = region
+    assert (w, h) == (320, 240) and (x, y) == (160, 120)
+    roi = sh.crop_roi(img, region)
+    assert roi.shape == (240, 320)
+    profile = sh.h_profile_sobelx(sh.sobel_x(roi))
+    assert profile.shape == (320,)
+    assert sh.measure_sharpness(profile) == pytest.approx(float(np.std(profile)))
+
+
+def test_sharpness_falls_as_the_blur_grows() -> None:
+    values = [sh.sharpness(scene(blur_px=b, noise=1.5)).sharpness for b in (0, 1, 2, 4, 8)]
+    assert all(a > b for a, b in itertools.pairwise(values)), values
+
+
+@pytest.mark.parametrize(
+    "image, why",
+    [
+        (np.zeros((480, 640), np.uint8), "no calibration object"),
+        (np.full((480, 640), 255, np.uint8), "no calibration object"),  # all light: no card shape
+        (np.zeros((480, 640), np.float32), "not an 8-bit"),
+        (np.zeros((0, 0), np.uint8), "not an 8-bit"),
+    ],
+)
+def test_no_card_is_an_answer_not_a_crash(image: np.ndarray, why: str) -> None:
+    r = sh.sharpness(image)
+    assert not r.found and why in r.reason
+
+
+def test_a_colour_frame_is_measured_as_grey() -> None:
+    grey = scene()
+    colour = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    assert sh.sharpness(colour).sharpness == pytest.approx(sh.sharpness(grey).sharpness, rel=1e-6)
+
+
+def test_the_thin_lens_blurs_by_distance_from_the_focus_plane() -> None:
+    lens = ThinLens(35.0, 2.0, 350.0, 11.25)
+    assert lens.coc_px(350.0) == 0.0
+    # c = (f/N) |d - s| / d * f / (s - f), in pixels
+    assert lens.coc_px(360.0) == pytest.approx(17.5 * 10 / 360 * 35 / 315 * 1000 / 11.25)
+    assert lens.coc_px(340.0) > lens.coc_px(345.0) > 0
+    assert psf_sigma(2 * np.sqrt(2)) == pytest.approx(1.0)  # the disc's second moment: r^2 / 2 per axis
+
+
+def test_the_buffer_answers_with_the_frame_closest_in_time() -> None:
+    buf = FrameBuffer(3)
+    assert buf.closest(5) is None
+    for t in (10, 20, 30, 40):
+        buf.add(Frame(t, np.zeros((1, 1), np.uint8), 0.0, 0.0, 0))
+    assert [buf.closest(t).t_ns for t in (0, 24, 26, 35, 99)] == [20, 20, 30, 40, 40]  # 10 fell out
+    assert buf.newest().t_ns == 40 and buf.added == 4
+
+
+def test_the_camera_sees_the_card_sharpest_at_its_focus_distance() -> None:
+    values = {}
+    for offset_mm in (-8.0, 0.0, 8.0):  # move the camera so that the card is off, at and past focus
+        spec = CameraSpec(position_m=(-0.4919, -0.1333, 0.05 + 0.0859 + offset_mm / 1000))
+        cam = Camera(spec)
+        try:
+            img, dist = cam.capture(Q0)
+        finally:
+            cam.close()
+        r = sh.sharpness(img)
+        assert r.found, r.reason
+        values[round(dist)] = r.sharpness
+    assert set(values) == {358, 350, 342}
+    assert values[350] > 1.3 * max(values[358], values[342])
+
+
+@pytest.mark.slow
+def test_the_focus_calibration_finds_the_focus_plane_on_a_whole_cell(tmp_path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "cell", "run", "examples/focus_calibration.py", "--up"],
+        env=cell_env(),
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    line = next(x for x in reversed(proc.stdout.splitlines()) if x.startswith("{"))
+    r = json.loads(line)
+    assert abs(r["focus_error_mm"]) <= r["delta_z_mm"]
+    s = r["sharpness"]
+    assert r["increments"] == len(s) - 1 >= 3
+    assert 0 < r["peak_index"] < len(s) - 1  # the peak is inside the sweep, not at its ends
+    assert s[-1] < s[-2]  # the loop stopped because the sharpness fell
