@@ -11,6 +11,7 @@ import sys
 import cv2
 import numpy as np
 import pytest
+from rerun.chunk import RrdReader
 
 from cell.vision import sharpness as sh
 from cell.vision.camera import Camera, CameraSpec
@@ -113,8 +114,20 @@ def test_the_camera_sees_the_card_sharpest_at_its_focus_distance() -> None:
 
 @pytest.mark.slow
 def test_the_focus_calibration_finds_the_focus_plane_on_a_whole_cell(tmp_path) -> None:
+    rrd = tmp_path / "focus.rrd"
+    config = tmp_path / "rec.toml"
+    config.write_text(f'[recorder]\nmode = "save"\npath = "{rrd}"\n')
     proc = subprocess.run(
-        [sys.executable, "-m", "cell", "run", "examples/focus_calibration.py", "--up"],
+        [
+            sys.executable,
+            "-m",
+            "cell",
+            "run",
+            "examples/focus_calibration.py",
+            "--up",
+            "--config",
+            str(config),
+        ],
         env=cell_env(),
         capture_output=True,
         text=True,
@@ -128,3 +141,9 @@ def test_the_focus_calibration_finds_the_focus_plane_on_a_whole_cell(tmp_path) -
     assert r["increments"] == len(s) - 1 >= 3
     assert 0 < r["peak_index"] < len(s) - 1  # the peak is inside the sweep, not at its ends
     assert s[-1] < s[-2]  # the loop stopped because the sharpness fell
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(rrd).stream():
+        rows[str(chunk.entity_path)] = rows.get(str(chunk.entity_path), 0) + chunk.num_rows
+    assert rows.get("/vision/camera", 0) > 10  # the camera's frames
+    assert rows.get("/vision/sharpness", 0) >= len(s)  # the curve: every measurement
+    assert rows.get("/gantt/requests", 0) >= 1  # vision and robot requests as bars

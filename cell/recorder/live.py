@@ -33,13 +33,15 @@ from cell.robot.arm import arm_model
 from cell.service import ServiceContext
 from cell.snp.packet import Denial
 from cell.snp.state import realtime_offset_ns
-from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, snp_pb2
+from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, snp_pb2, vision_pb2
 
 PATH_POINTS = 600  # tool path points kept per robot
 PATH_EVERY_NS = 200_000_000  # the tool path (a line of up to PATH_POINTS) is drawn this often
 LINK_EVERY_NS = 1_000_000_000  # a node's link counters are drawn at most this often
 SPACING = 1.2  # m between robots' bases in the 3D view
 TIMELINE = "cell_time"
+GANTT_BARS = 600  # the newest requests drawn in the Gantt chart
+VISION_COLOR, ROBOT_COLOR = (255, 150, 30), (40, 110, 220)  # Fig. 10: vision orange, robot blue
 
 
 class Recorder:
@@ -65,6 +67,10 @@ class Recorder:
         self.last_counters: tuple[int, float] | None = None
         self.link_logged: dict[str, int] = {}  # service -> when its link counters were last drawn
         self.logged = 0
+        self.t0_ns = time.monotonic_ns()
+        self.lanes = ["vision", *(r.name for r in cfg.robots)]  # the Gantt chart's rows, top down
+        self.bars: deque[tuple[float, float, int, str]] = deque(maxlen=GANTT_BARS)
+        self.bars_dirty = False
 
     def seconds(self, t_mono_ns: int) -> float:
         return (t_mono_ns + self.offset) / 1e9
@@ -199,6 +205,47 @@ class Recorder:
         )
         self.rec.log(f"skills/{tr.robot}/log", rr.TextLog(what, level=level))
 
+    # --- vision and the Gantt chart of requests (the Adept paper's Figs. 9 and 10) ------------------
+
+    def image(self, m: vision_pb2.VisionImage) -> None:
+        self.at(m.t_ns)
+        self.rec.log("vision/camera", rr.EncodedImage(contents=m.jpeg, media_type="image/jpeg"))
+
+    def measurement(self, m: vision_pb2.VisionReply) -> None:
+        self.at(m.frame_t_ns)
+        if m.found:
+            self.rec.log("vision/sharpness", rr.Scalars(m.sharpness))
+        else:
+            self.rec.log("vision/log", rr.TextLog(f"vision {m.id}: {m.reason}", level="WARN"))
+
+    def request(self, tr: skills_pb2.RequestTrace) -> None:
+        """One request as a bar from its sending to its answer, on its lane (seconds since the start)."""
+        lane = self.lanes.index(tr.robot) if tr.robot in self.lanes else len(self.lanes)
+        if lane == len(self.lanes):
+            self.lanes.append(tr.robot)
+        self.bars.append(
+            ((tr.sent_ns - self.t0_ns) / 1e9, (tr.received_ns - self.t0_ns) / 1e9, lane, tr.skill)
+        )
+        self.bars_dirty = True
+
+    def gantt(self) -> None:
+        if not self.bars_dirty:
+            return
+        self.bars_dirty = False
+        bars = list(self.bars)
+        self.rec.set_time(TIMELINE, timestamp=self.seconds(time.monotonic_ns()))
+        self.rec.log(
+            "gantt/requests",
+            rr.Boxes2D(
+                mins=[(t0, lane) for t0, _, lane, _ in bars],
+                sizes=[(max(t1 - t0, 1e-5), 0.8) for t0, t1, _, _ in bars],
+                colors=[
+                    VISION_COLOR if self.lanes[lane] == "vision" else ROBOT_COLOR for _, _, lane, _ in bars
+                ],
+                labels=[f"{self.lanes[lane]}: {skill}" for _, _, lane, skill in bars],
+            ),
+        )
+
 
 def open_recording(mode: str, path: str, name: str) -> rr.RecordingStream:
     rec = rr.RecordingStream(application_id=f"cell-{name}")
@@ -232,6 +279,10 @@ async def record(ctx: ServiceContext) -> None:
         "dataplane": await bus.subscribe("dataplane/counters"),
         "events": await bus.subscribe("events/", "run/events", "skills/", "announce/robot/"),
         "health": await bus.subscribe("health/"),
+        "vision": await bus.subscribe("vision/image", "vision/measurement"),
+        "requests": await bus.subscribe(
+            "run/vision/request", *(f"run/{rb.name}/request" for rb in ctx.config.robots)
+        ),
     }
 
     joined: set[int] = set()
@@ -286,10 +337,17 @@ async def record(ctx: ServiceContext) -> None:
     elif cfg.mode == "save":
         ctx.log.info("recording to %s", cfg.path)
 
+    def on_vision(env) -> None:
+        if env.topic == "vision/image":
+            r.image(env.decode(vision_pb2.VisionImage))
+        else:
+            r.measurement(env.decode(vision_pb2.VisionReply))
+
     async def flush_series() -> None:
         while True:
             await asyncio.sleep(cfg.series_batch_s)
             r.series.flush()
+            r.gantt()
             ctx.counters["truth_logged"] = r.logged
 
     try:
@@ -304,9 +362,14 @@ async def record(ctx: ServiceContext) -> None:
             )
             tg.create_task(_each(subs["events"], on_event))
             tg.create_task(_each(subs["health"], on_health))
+            tg.create_task(_each(subs["vision"], on_vision))
+            tg.create_task(
+                _each(subs["requests"], lambda env: r.request(env.decode(skills_pb2.RequestTrace)))
+            )
             tg.create_task(flush_series())
             ctx.ready()
     finally:
         r.series.flush()
+        r.gantt()
         rec.flush()
         rec.disconnect()
