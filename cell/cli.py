@@ -210,9 +210,13 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_skills(args: argparse.Namespace) -> int:
+    import time
+
     from cell.bench import skills
 
-    result = skills.run(args.messages, log=lambda line: print(line, flush=True))
+    out = args.out or f"runs/skills-{time.strftime('%Y%m%d-%H%M%S')}"
+    log = lambda line: print(line, flush=True)  # noqa: E731
+    result = skills.run(args.messages, log=log, increments=args.increments, png_dir=out)
     return _report(args, result, skills.format_result(result))
 
 
@@ -479,9 +483,18 @@ def build_parser() -> argparse.ArgumentParser:
         bsub,
         "skills",
         _cmd_bench_skills,
-        "skill-protocol acknowledgement round trip, send gaps and switching, next to TCP echo",
+        "skill-protocol acknowledgement round trip, send gaps and switching, next to TCP echo; the Adept "
+        "paper's tau_r, switching and send gaps over ufloop's approach with the camera (Figs. 10-13)",
     )
     q.add_argument("--messages", type=int, default=2000, help="messages per figure (default 2000)")
+    q.add_argument(
+        "--increments",
+        type=int,
+        default=4,
+        help="ufloop approach increments per (speed, delta_z) of the paper's sweep, with the camera "
+        "(default 4; 0: skip)",
+    )
+    q.add_argument("--out", metavar="DIR", help="where the PNGs go (default runs/skills-<time>)")
     q = _bench(
         bsub, "snp", _cmd_bench_snp, "the modular-robot cycle over SnP-MrT: cycle time and deadline misses"
     )

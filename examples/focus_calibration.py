@@ -1,7 +1,8 @@
 """The Adept paper's application: find a close-range camera's focus plane with vision feedback.
 
 The robot carries a calibration card on its tool flange, over a camera that
-looks up at it (service `vision`).  `init_move` brings it home and then to the
+looks up at it (service `vision`).  The paper's coroutines are in
+cell/vision/focus.py: `init_move` brings the robot home and then to the
 approach pose; `ufloop` asks the camera for the card's sharpness, moves the
 tool one `delta_z` towards the camera (SetSpeed + MoveToolZ, joined: three
 messages sent at once), and repeats until the sharpness falls: the focus
@@ -19,38 +20,10 @@ from __future__ import annotations
 import json
 import os
 
-from cell.skills.client import MoveJoints, MoveRelTool, MoveToolZ, SetSpeed
+from cell.vision.focus import ufloop  # the paper's init_move, move_tool_z and ufloop
 
-HOME_DEG = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]  # the cell's start pose: the tool down, over the camera
-APPROACH_MM = 60.0  # from home along the tool's z to the approach pose: a little short of the focus plane
 DELTA_Z = float(os.environ.get("DELTA_Z", "2.0"))  # mm per increment
 SPEED = float(os.environ.get("APPR_SPEED", "25"))  # percent
-
-
-async def init_move(rc):
-    return await rc.cmdexec(MoveJoints(tuple(HOME_DEG)), MoveRelTool(0, 0, APPROACH_MM, 0, 0, 0))
-
-
-async def move_tool_z(rc, appr_speed, delta_z):
-    return await rc.cmdexec_joined(SetSpeed(appr_speed), MoveToolZ(delta_z))
-
-
-async def ufloop(cell, rc, delta_z, appr_speed, limit=60):
-    await init_move(rc)
-    sharpness = []
-    while True:
-        m = await cell.vision.request()
-        if not m.found:
-            raise RuntimeError(f"the camera does not see the calibration card: {m.reason}")
-        sharpness.append(m.sharpness)
-        # break the loop when the sharpness falls: the focus plane is behind us
-        if len(sharpness) > 1 and sharpness[-1] < sharpness[-2]:
-            break
-        if len(sharpness) > limit:
-            raise RuntimeError(f"no sharpness peak within {limit} increments")
-        await move_tool_z(rc, appr_speed, delta_z)
-    await move_tool_z(rc, appr_speed, -delta_z)  # retract back
-    return sharpness
 
 
 async def main(cell):

@@ -21,9 +21,11 @@ all its connections.  Semantics as on the V+ controller:
 
 Replies: `done` with the seconds since the server started at which the
 command's turn came and at which it was answered, and a tool pose (the
-motion's end for a motion, the measured one for `break`); or `error` with a
-code.  Every command's life goes on the bus (skills/<robot>/trace) for Gantt
-charts and timing figures.
+motion's end for a motion, the measured one for `break`, and for the rest the
+latest the server holds from the robot's state broadcast, `truth/<robot>`, at
+most one broadcast period old plus the bus's delivery; the controller's if the
+broadcast is off or stalled); or `error` with a code.  Every command's life
+goes on the bus (skills/<robot>/trace) for Gantt charts and timing figures.
 """
 
 from __future__ import annotations
@@ -37,14 +39,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import mujoco
+import numpy as np
 from google.protobuf.message import Message
 
 from cell.bus import Bus, BusTimeout, RemoteError
 from cell.config import CellConfig, RobotConfig
 from cell.rlink.client import EventClient
+from cell.robot.pose import to_adept
 from cell.service import ServiceContext, ServiceSpec
 from cell.skills.protocol import MOTIONS, NAMED_SKILLS, Command, CommandReader, Done, Error, ErrorCode, Reply
-from cell.v1 import controller_pb2, skills_pb2
+from cell.v1 import controller_pb2, robot_pb2, skills_pb2
 
 log = logging.getLogger("cell.skills")
 M = controller_pb2.MoveRequest
@@ -82,7 +87,27 @@ class RobotSkills:
         self.queue: asyncio.Queue[Job] = asyncio.Queue()
         self.speed: float | None = None  # for the next motion only
         self.air = False
-        self.counters = {"commands": 0, "errors": 0, "connections": 0}
+        self.counters = {"commands": 0, "errors": 0, "connections": 0, "held_pose_acks": 0}
+        # the robot's last state broadcast (truth/<robot>): the tool pose a non-motion ack reports
+        self.held: tuple[tuple[float, ...], int] | None = None
+        self.held_max_age_ns = int(2e9 / robot.truth_hz) if robot.truth_hz else 0
+
+    def hold(self, m: robot_pb2.RobotTruth) -> None:
+        p = m.tool_pose  # x, y, z (m), qw, qx, qy, qz
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, np.array(p[3:7]))
+        self.held = (to_adept(np.array(p[:3]), rot.reshape(3, 3)), m.t_ns)
+
+    async def here(self) -> tuple[float, ...]:
+        """The tool pose now: the held one if it is fresh (not older than two broadcast periods: at most
+        one period plus the bus), else the controller's, asked over the bus."""
+        if self.held is not None and time.monotonic_ns() - self.held[1] <= self.held_max_age_ns:
+            self.counters["held_pose_acks"] += 1
+            return self.held[0]
+        name = self.robot.name
+        return tuple(
+            (await self._ask("pose", controller_pb2.RobotRequest(robot=name), controller_pb2.PoseReply)).pose
+        )
 
     def seconds(self, t_ns: int) -> float:
         return (t_ns - self.t0_ns) / 1e9
@@ -191,10 +216,7 @@ class RobotSkills:
             await order(robots)
         except TimeoutError as exc:
             return Error(cmd.id, ErrorCode.FAILED, str(exc))
-        here = await self._ask(
-            "pose", controller_pb2.RobotRequest(robot=self.robot.name), controller_pb2.PoseReply
-        )
-        return self._done(cmd, started_ns, here.pose)
+        return self._done(cmd, started_ns, await self.here())
 
     def _error(self, cid: str, exc: Exception) -> Error:
         if isinstance(exc, RemoteError):
@@ -223,8 +245,7 @@ class RobotSkills:
             self.air = cmd.skill == "enable_air"
             state = skills_pb2.AirState(robot=name, on=self.air, t_ns=time.monotonic_ns())
             self.bus.publish(f"skills/{name}/air", state)
-        here = await self._ask("pose", controller_pb2.RobotRequest(robot=name), controller_pb2.PoseReply)
-        return self._done(cmd, started_ns, here.pose)
+        return self._done(cmd, started_ns, await self.here())
 
     def _timeout(self) -> float:
         return self.config.skills.motion_timeout_s
@@ -254,6 +275,17 @@ async def run(ctx: ServiceContext) -> None:
             "skill servers: %s",
             ", ".join(f"{s.robot.name} on {ctx.config.skills.host}:{s.robot.skill_port}" for s in servers),
         )
+        by_id = {s.robot.id: s for s in servers}
+        truth = await ctx.bus.subscribe("truth/")
+
+        async def follow_truth() -> None:
+            while True:
+                for env in await truth.recv_batch():
+                    m = env.decode(robot_pb2.RobotTruth)
+                    if (s := by_id.get(m.robot_id)) is not None:
+                        s.hold(m)
+
+        tg.create_task(follow_truth(), name="skills-truth")
         ctx.ready()
 
         async def report() -> None:

@@ -69,6 +69,8 @@ async def test_cmdexec_acks_errors_sharing_and_joined(start_cell) -> None:
             joined = await robot.cmdexec_joined(MoveRelWorld(y=30.0, brk=False), MoveRelWorld(y=-30.0))
             assert [a.skill for a in joined] == ["move_rel_world", "move_rel_world", "break"]
             assert joined[0].t_end <= joined[1].t_start + 1e-3
+            # each joined message carries its own send time (the gaps between them are measured, not 0)
+            assert joined[0].sent_ns < joined[1].sent_ns < joined[2].sent_ns
             t = (await traces.recv(timeout=5)).decode(skills_pb2.RequestTrace)
             assert t.robot == "r1" and t.sent_ns < t.received_ns and t.skill == "set_speed"
             # a per-call timeout

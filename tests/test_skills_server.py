@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from cell.bus import Bus
+from cell.launcher import fetch_status
 from cell.robot.arm import arm_model
 from cell.robot.pose import to_adept
 from cell.skills.protocol import Done, Error, ReplyReader
@@ -124,3 +125,25 @@ async def test_errors_are_answered_and_the_connection_stays_usable(cell) -> None
                 seen.add(t.id)
         c.close()
         c2.close()
+
+
+async def test_a_non_motion_ack_reports_the_pose_the_server_holds_without_asking_anyone(cell) -> None:
+    """set_speed and the air skills answer with the tool pose of the robot's latest state broadcast
+    (truth/<robot>, at most one period old): the same pose `break` measures, without two bus hops."""
+    c = await Conn.open(cell.config.robots[0].skill_port)
+    goal = Q0 + np.array([0.2, -0.1, 0.1, 0.0, 0.1, 0.0])
+    deg = ",".join(f"{math.degrees(v):.3f}" for v in goal)
+    await c.send(f"00000011:move_joints:{deg}\r\n00000012:break\r\n".encode())
+    _, brk = await c.replies(2)
+    await c.send(b"00000013:set_speed:30\r\n00000014:enable_air\r\n00000015:disable_air\r\n")
+    acks = await c.replies(3)
+    for ack in acks:
+        assert isinstance(ack, Done)
+        assert np.allclose(ack.pose[:3], brk.pose[:3], atol=0.2)  # mm: the same place, by another path
+        assert np.allclose(ack.pose[3:], brk.pose[3:], atol=0.1)  # deg
+    held = 0.0
+    async with asyncio.timeout(10):  # the server reports its counters once a second
+        while held < 3:
+            status = await fetch_status(cell.config)
+            held = next(s for s in status.services if s.name == "skills").last.counters["r1.held_pose_acks"]
+    c.close()

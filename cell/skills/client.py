@@ -253,18 +253,18 @@ class RobotClient:
             raise ConnectionLost(f"{self.name}: not connected")
         loop = asyncio.get_running_loop()
         sent = []
-        async with self._send_lock:  # one batch's messages go out together
-            data = bytearray()
+        writer = self._writer
+        async with self._send_lock:  # one batch's messages go out together, nothing between them
             for skill, args in messages:
                 cmd = Command(self._new_id(), skill, args)
                 fut: asyncio.Future[Done | Error] = loop.create_future()
                 self._waiting[cmd.id] = fut
-                data += cmd.encode()
-                sent.append((cmd, fut, 0))
-            t = time.monotonic_ns()
-            self._writer.write(bytes(data))
-            await self._writer.drain()
-        return [(c, f, t) for c, f, _ in sent]
+                data = cmd.encode()
+                t = time.monotonic_ns()  # each message's own send time: the gaps between them are real
+                writer.write(data)
+                sent.append((cmd, fut, t))
+            await writer.drain()
+        return sent
 
     async def _await(self, cmd: Command, fut: asyncio.Future, sent_ns: int, timeout: float | None) -> Ack:
         try:
