@@ -6,7 +6,10 @@ separated by commas.  Each command gets exactly one reply:
 
 - ``<id>:done:<t_start>,<t_end>:<x>,<y>,<z>,<yaw>,<pitch>,<roll>\\r\\n``
   (seconds since the server started, 3 decimals; the tool pose in mm and
-  degrees, 3 decimals);
+  degrees, 3 decimals: a motion's end for a motion, the measured pose on
+  arrival for ``break``, and for ``set_speed`` and the air skills the latest
+  pose the server holds from the robot's state broadcast, at most one
+  broadcast period old plus the bus's delivery);
 - ``<id>:error:<code>:<text>\\r\\n`` (new: the published AdeptServer answers
   nothing and the client hangs); ``00000000`` is the id when none can be read.
 

@@ -71,12 +71,15 @@ def scene_xml(spec: CameraSpec, model: str = "ur5e") -> str:
           rgba="0.15 0.15 0.15 1"/>
   </worldbody>"""
     text = text.replace("</worldbody>", world, 1)
-    assets = """
+    assets = f"""
   <asset>
     <texture name="card" type="2d" file="card.png"/>
     <material name="card" texture="card" rgba="1 1 1 1" specular="0" shininess="0"/>
   </asset>
-  <visual><headlight ambient="0.25 0.25 0.25" diffuse="0.3 0.3 0.3"/><quality shadowsize="0"/></visual>
+  <visual>
+    <global offwidth="{spec.width_px}" offheight="{spec.height_px}"/>
+    <headlight ambient="0.25 0.25 0.25" diffuse="0.3 0.3 0.3"/><quality shadowsize="0"/>
+  </visual>
   <worldbody>"""
     return text.replace("<worldbody>", assets, 1)
 
