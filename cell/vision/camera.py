@@ -11,7 +11,6 @@ robot's base frame; the camera looks along `axis` from `position`.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from importlib import resources
 
@@ -88,8 +87,7 @@ class Camera:
     """Renders what the camera sees of the robot at joint positions q (rad)."""
 
     def __init__(self, spec: CameraSpec | None = None, model: str = "ur5e", seed: int = 0) -> None:
-        os.environ.setdefault("MUJOCO_GL", "egl")
-        import mujoco
+        import mujoco  # (its GL backend: see cell/__init__.py)
 
         self.mujoco = mujoco
         self.spec = spec or CameraSpec()
