@@ -89,21 +89,19 @@ class RobotSkills:
         self.air = False
         self.counters = {"commands": 0, "errors": 0, "connections": 0, "held_pose_acks": 0}
         # the robot's last state broadcast (truth/<robot>): the tool pose a non-motion ack reports
-        self.held: tuple[tuple[float, ...], int] | None = None
+        self.held: robot_pb2.RobotTruth | None = None  # (converted only when an ack needs it)
         self.held_max_age_ns = int(2e9 / robot.truth_hz) if robot.truth_hz else 0
-
-    def hold(self, m: robot_pb2.RobotTruth) -> None:
-        p = m.tool_pose  # x, y, z (m), qw, qx, qy, qz
-        rot = np.zeros(9)
-        mujoco.mju_quat2Mat(rot, np.array(p[3:7]))
-        self.held = (to_adept(np.array(p[:3]), rot.reshape(3, 3)), m.t_ns)
 
     async def here(self) -> tuple[float, ...]:
         """The tool pose now: the held one if it is fresh (not older than two broadcast periods: at most
         one period plus the bus), else the controller's, asked over the bus."""
-        if self.held is not None and time.monotonic_ns() - self.held[1] <= self.held_max_age_ns:
+        m = self.held
+        if m is not None and time.monotonic_ns() - m.t_ns <= self.held_max_age_ns:
             self.counters["held_pose_acks"] += 1
-            return self.held[0]
+            p = m.tool_pose  # x, y, z (m), qw, qx, qy, qz
+            rot = np.zeros(9)
+            mujoco.mju_quat2Mat(rot, np.array(p[3:7]))
+            return to_adept(np.array(p[:3]), rot.reshape(3, 3))
         name = self.robot.name
         return tuple(
             (await self._ask("pose", controller_pb2.RobotRequest(robot=name), controller_pb2.PoseReply)).pose
@@ -283,7 +281,7 @@ async def run(ctx: ServiceContext) -> None:
                 for env in await truth.recv_batch():
                     m = env.decode(robot_pb2.RobotTruth)
                     if (s := by_id.get(m.robot_id)) is not None:
-                        s.hold(m)
+                        s.held = m
 
         tg.create_task(follow_truth(), name="skills-truth")
         ctx.ready()
