@@ -132,3 +132,61 @@ def test_cell_demo_runs_the_main_job_end_to_end(tmp_path) -> None:
     assert any(e.startswith("/skills/r1/busy") for e in rows) and any(
         e.startswith("/skills/r2/busy") for e in rows
     )
+
+
+def _listeners(port: int) -> set[str]:
+    """The addresses a TCP port listens on, from the kernel's tables (IPv4 and IPv6)."""
+    found: set[str] = set()
+    for table, width in (("/proc/net/tcp", 8), ("/proc/net/tcp6", 32)):
+        with open(table) as f:
+            for line in list(f)[1:]:
+                local, state = line.split()[1], line.split()[3]
+                addr, hexport = local.split(":")
+                if state == "0A" and int(hexport, 16) == port:  # 0A: LISTEN
+                    if width == 8:
+                        found.add(".".join(str(int(addr[i : i + 2], 16)) for i in (6, 4, 2, 0)))
+                    else:
+                        found.add("::" if int(addr, 16) == 0 else addr)
+    return found
+
+
+def test_rerun_serve_listens_on_loopback_only() -> None:
+    import urllib.request
+
+    import rerun as rr
+
+    from cell.recorder import serve
+
+    rec = rr.RecordingStream(application_id="cell-test-serve")
+    grpc_port, web_port = free_port(), free_port()
+    url = serve.serve(rec, grpc_port, web_port)
+    try:
+        assert url.startswith(f"http://127.0.0.1:{web_port}")
+        rec.log("x", rr.Scalars(1.0))
+        assert _listeners(grpc_port) == {"127.0.0.1"}  # never 0.0.0.0 or ::
+        assert _listeners(web_port) == {"127.0.0.1"}
+        with urllib.request.urlopen(f"http://127.0.0.1:{web_port}", timeout=10) as page:
+            assert page.status == 200  # the web viewer is there, on loopback
+    finally:
+        serve.close(rec)
+    assert _listeners(grpc_port) == set() and _listeners(web_port) == set()  # and gone with the recording
+
+
+def test_rerun_serve_refuses_a_taken_port_and_says_what_to_do_instead() -> None:
+    import socket
+
+    import rerun as rr
+
+    from cell.recorder import serve
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        rec = rr.RecordingStream(application_id="cell-test-serve")
+        try:
+            serve.serve(rec, port, free_port())
+        except serve.ServeError as exc:
+            assert "taken" in str(exc) and "save" in str(exc)
+        else:
+            raise AssertionError("a taken port was not refused")

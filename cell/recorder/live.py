@@ -27,6 +27,7 @@ import numpy as np
 import rerun as rr
 
 from cell.bus import Subscription
+from cell.recorder import serve
 from cell.recorder.scene import ArmDrawer
 from cell.recorder.series import SeriesBatch
 from cell.robot.arm import arm_model
@@ -252,9 +253,8 @@ def open_recording(mode: str, path: str, name: str) -> rr.RecordingStream:
     if mode == "save":
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         rec.save(path)
-    elif mode == "serve":
-        url = rec.serve_grpc()
-        rr.serve_web_viewer(connect_to=url, open_browser=False)
+    elif mode == "serve":  # loopback only (cell/recorder/serve.py): the SDK's own serve binds everything
+        serve.serve(rec)
     elif mode == "spawn":
         rec.spawn()
     return rec
@@ -333,7 +333,7 @@ async def record(ctx: ServiceContext) -> None:
             )
 
     if cfg.mode == "serve":
-        ctx.log.info("Rerun web viewer: http://127.0.0.1:9090 (gRPC on 127.0.0.1:9876)")
+        ctx.log.info("Rerun web viewer (loopback only): http://127.0.0.1:9090 (gRPC on 127.0.0.1:9876)")
     elif cfg.mode == "save":
         ctx.log.info("recording to %s", cfg.path)
 
@@ -371,5 +371,4 @@ async def record(ctx: ServiceContext) -> None:
     finally:
         r.series.flush()
         r.gantt()
-        rec.flush()
-        rec.disconnect()
+        serve.close(rec)

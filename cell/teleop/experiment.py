@@ -78,10 +78,12 @@ def teleop(setup: Setup, rerun: list[str] | None = None, png: str | None = None)
     res = realtime.run(replace(setup, stream=view is not None), on_rows=view.rows if view else None)
     out = summarize(res)
     if view is not None:
+        from cell.recorder.serve import close
+
         for r in Role:
             for tick, what in res[r.name.lower()]["log"]:
                 view.text(tick * 1e-3, f"{r.name.lower()}: {what}")
-        view.rec.flush()
+        close(view.rec)
     if png:
         out["png"] = figures.plot_runs(
             {setup.obj: (res["local"]["trace"], res["remote"]["trace"])}, png, _title(setup)
