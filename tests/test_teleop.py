@@ -140,9 +140,7 @@ def both() -> dict[str, dict]:
     for name in ("sponge", "wood"):
         run = lockstep.run(name, pushes=(4.0, 6.0))
         assert run.operator.done
-        out[name] = figures.transparency(
-            run.local.trace.since(0), run.remote.trace.since(0), run.operator.contact_t, run.operator.lift_t
-        )
+        out[name] = run.transparency()
     return out
 
 
@@ -171,9 +169,7 @@ def test_the_modified_law_outlasts_the_conventional_one_under_delay() -> None:
     peaks = {}
     for mode in (Mode.MODIFIED, Mode.CONVENTIONAL):
         run = lockstep.run("wood", delay_s=between, mode=mode, pushes=(6.0,), max_s=6)
-        f = figures.transparency(
-            run.local.trace.since(0), run.remote.trace.since(0), run.operator.contact_t, run.operator.lift_t
-        )
+        f = run.transparency()
         peaks[mode] = f["peak_force_remote_n"]
     assert peaks[Mode.MODIFIED] < 7.0  # still about the 6 N aimed at
     assert peaks[Mode.CONVENTIONAL] > 9.0  # bouncing on the wood

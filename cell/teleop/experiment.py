@@ -107,12 +107,7 @@ def delay_sweep(delays_ms: tuple[int, ...] = SWEEP_DELAYS_MS) -> list[dict[str, 
         for mode in (Mode.MODIFIED, Mode.CONVENTIONAL):
             for d in delays_ms:
                 run = lockstep.run(obj, delay_s=d / 1e3, mode=mode, pushes=SWEEP_PUSHES, max_s=8.0)
-                f = figures.transparency(
-                    run.local.trace.since(0),
-                    run.remote.trace.since(0),
-                    run.operator.contact_t,
-                    run.operator.lift_t,
-                )
+                f = run.transparency()
                 rho = stability.spectral_radius(obj, mode=mode, delay_s=d / 1e3)
                 rows.append({
                     "object": obj, "mode": mode.name.lower(), "delay_ms": d,
@@ -130,9 +125,7 @@ def drive_comparison(gear: float = USUAL_GEAR) -> dict[str, dict[str, float]]:
     out = {}
     for name, coulomb in (("twin", 0.0), ("usual", twindrive.COULOMB * gear)):
         run = lockstep.run("sponge", pushes=(4.0, 6.0), coulomb_nm=coulomb)
-        f = figures.transparency(
-            run.local.trace.since(0), run.remote.trace.since(0), run.operator.contact_t, run.operator.lift_t
-        )
+        f = run.transparency()
         out[name] = {
             "coulomb_nm": coulomb,
             "force_error_rms_n": f["force_error_rms_n"],

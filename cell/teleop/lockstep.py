@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cell.rlink.packet import EventType
+from cell.teleop import figures
 from cell.teleop.delay import DelayLine
 from cell.teleop.law import Gains, Mode
 from cell.teleop.model import HOME, OBJECTS
@@ -29,6 +30,15 @@ class Run:
     remote: Side
     operator: Operator
     seconds: float
+
+    def transparency(self) -> dict[str, float]:
+        """The run's figures over the pushing (cell.teleop.figures)."""
+        return figures.transparency(
+            self.local.trace.since(0),
+            self.remote.trace.since(0),
+            self.operator.contact_t,
+            self.operator.lift_t,
+        )
 
 
 def run(

@@ -14,6 +14,7 @@ inside the unit circle.  `spectral_radius` is that largest magnitude.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import mujoco
@@ -35,6 +36,7 @@ class Plant:
     object_b: float  # N s/m
 
 
+@functools.cache  # (a MuJoCo model built once, not once per delay a scan tries)
 def tip_inertia() -> tuple[float, float]:
     """The arm's apparent mass and viscous friction along z at the start pose (MuJoCo's model)."""
     arm = Arm()
