@@ -147,3 +147,44 @@ def test_the_focus_calibration_finds_the_focus_plane_on_a_whole_cell(tmp_path) -
     assert rows.get("/vision/camera", 0) > 10  # the camera's frames
     assert rows.get("/vision/sharpness", 0) >= len(s)  # the curve: every measurement
     assert rows.get("/gantt/requests", 0) >= 1  # vision and robot requests as bars
+
+
+async def test_requests_for_odd_instants_get_a_frame_and_a_killed_camera_comes_back(start_cell) -> None:
+    """vision.measure with instants it cannot have (far ahead, before any frame, negative) is answered
+    with the closest frame it has, in bounded time; SIGKILL of the camera's process is restarted and
+    measures again."""
+    import asyncio
+    import os
+    import signal
+    import time
+
+    from cell.bus import Bus
+    from cell.launcher import fetch_status
+    from cell.v1 import vision_pb2
+    from cell.vision.client import VisionClient
+    from tests.conftest import free_port
+
+    robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "kinematic"}]
+    cell = await start_cell(run=["bus", "dataplane", "robots", "vision"], robots=robots)
+    async with Bus.connect(cell.config.bus, "test") as bus:
+        vision = VisionClient(bus)
+        now = time.monotonic_ns()
+        for t_ns in (now + 10**12, 1, -(10**9)):  # 1000 s ahead; the boot; before the clock began
+            t0 = time.monotonic()
+            req = vision_pb2.VisionRequest(id="odd", t_ns=t_ns)
+            r = await bus.request("vision", "measure", req, vision_pb2.VisionReply, 5.0)
+            assert r.id == "odd" and r.found and r.sharpness > 0 and r.frame_t_ns > 0
+            assert time.monotonic() - t0 < 1.0  # at most two frame periods (0.2 s) waited, plus work
+        assert (await vision.request()).found  # and an ordinary request after them
+        status = await fetch_status(cell.config)
+        pid = next(s for s in status.services if s.name == "vision").last.pid
+        os.kill(pid, signal.SIGKILL)
+        async with asyncio.timeout(30):
+            while True:
+                s = next(s for s in (await fetch_status(cell.config)).services if s.name == "vision")
+                if s.health == "ok" and s.last.pid not in (0, pid):
+                    break
+                await asyncio.sleep(0.2)
+        assert s.last.restarts >= 1
+        m = await vision.request(timeout=10.0)
+        assert m.found and m.sharpness > 0
