@@ -10,7 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cell.dataplane.approx import LimitVelocity, TransformTable, bit_length, prefix_entries
-from cell.dataplane.pipeline import ControlConstants, Pipeline, reference_command
+from cell.dataplane.pipeline import (
+    DROP_UNDERRUN,
+    DROP_WATCHDOG,
+    STALL_DROP_NS,
+    ControlConstants,
+    Pipeline,
+    reference_command,
+)
 from cell.dataplane.tables import TP, Refused, Tables, TPBatch
 from cell.dataplane.wire import decode_keys, decode_tps, encode_keys, encode_tps
 from cell.robot import datagram
@@ -482,3 +489,89 @@ def test_one_update_moves_a_robot_onto_new_tps_and_deletes_the_old_ones() -> Non
     assert t.current_tp(1) == 2 and t.loaded == 2 and int(t.reg_next_time[t.entity_of(1)]) == 5
     with pytest.raises(Refused, match="both started and deleted"):
         t.update(registers=[(1, 3, 0)], remove=[(1, 3)])
+
+
+# --- faults: underruns, robots gone quiet ------------------------------------------------------------
+
+MS = 1_000_000
+
+
+def moving_tp(robot: int, tp: int, nxt: int, q: float, v: float, dur: float = 0.1) -> TP:
+    return TP(robot, tp, nxt, dur, [q] * 6, [v] * 6)
+
+
+def test_an_underrun_holds_the_tp_without_coasting_and_a_long_one_drops_the_trajectory() -> None:
+    t = Tables(capacity=8)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    t.insert([moving_tp(1, 1, 2, 0.5, 1.0)])  # moving at 1 rad/s toward 0.5; TP 2 never comes
+    t.set_registers(1, 1, 10 * MS)
+    recs = batch(*(status(1, j, 0.0, 0.5) for j in range(6)))
+    pipe.process(recs, now=5 * MS)  # on time: the target velocity counts
+    assert datagram.velocities(recs)[0] == pytest.approx(0.5 * 1.0, rel=1 / 2**7)  # c1 v_trg
+    recs = batch(*(status(1, j, 0.0, 0.5) for j in range(6)))
+    pipe.process(recs, now=20 * MS)  # due, nowhere to go: hold TP 1's position, target velocity 0
+    assert t.reg_stalled[0] and t.current_tp(1) == 1
+    assert np.abs(datagram.velocities(recs)).max() < 1e-6
+    recs = batch(*(status(1, j, 0.0, 0.4) for j in range(6)))
+    pipe.process(recs, now=20 * MS + STALL_DROP_NS + 1)  # stalled too long: the plan is gone
+    assert t.current_tp(1) is None and t.reg_dropped_why[0] == DROP_UNDERRUN
+    assert t.reg_dropped_ns[0] == 20 * MS + STALL_DROP_NS + 1
+    assert datagram.velocities(recs).tolist() == [0.0] * 6  # it stands, not pulled to 0.5
+    assert pipe.counters.dropped == 1
+
+
+def test_a_short_underrun_resumes_when_the_tp_arrives() -> None:
+    t = Tables(capacity=8)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    t.insert([moving_tp(1, 1, 2, 0.5, 1.0)])
+    t.set_registers(1, 1, 10 * MS)
+    assert steps_to(pipe, 1, 20 * MS) == 1 and t.reg_stalled[0]
+    t.insert([moving_tp(1, 2, 2, 0.6, 0.0)])
+    assert steps_to(pipe, 1, 30 * MS) == 2 and not t.reg_stalled[0]
+    assert pipe.counters.dropped == 0
+
+
+def test_a_robot_back_after_its_watchdog_finds_its_trajectory_dropped() -> None:
+    t = Tables(capacity=8)
+    t.add_robot(1)
+    t.add_robot(2)
+    pipe = Pipeline(t, CONSTANTS)
+    pipe.stale_ns[[1, 2]] = 32 * MS
+    t.insert([moving_tp(1, 1, 1, 0.5, 0.0), moving_tp(2, 1, 1, 0.5, 0.0)])
+    t.set_registers(1, 1, 10**18)
+    t.set_registers(2, 1, 10**18)
+    pipe.process(batch(status(1, 0, 0, 0), status(2, 0, 0, 0)), now=100 * MS)
+    pipe.process(batch(status(2, 0, 0, 0)), now=130 * MS)  # robot 2 speaks on, robot 1 is quiet
+    recs = batch(status(1, 0, 0.0, 0.0), status(2, 0, 0.0, 0.0))
+    pipe.process(recs, now=133 * MS)  # robot 1 back after 33 ms: a step past its watchdog
+    assert t.current_tp(1) is None and t.current_tp(2) == 1
+    assert t.reg_dropped_why[t.entity_of(1)] == DROP_WATCHDOG
+    v = datagram.velocities(recs)
+    assert v[0] == 0.0 and v[1] > 0.5  # robot 1 told to stand; robot 2 still pulled to its TP
+
+
+def test_the_sweep_drops_a_robot_that_went_quiet_without_a_packet() -> None:
+    t = Tables(capacity=8)
+    t.add_robot(1)
+    pipe = Pipeline(t, CONSTANTS)
+    pipe.stale_ns[1] = 32 * MS
+    t.insert([moving_tp(1, 1, 1, 0.5, 0.0)])
+    t.set_registers(1, 1, 10**18)
+    pipe.process(status(1, 0, 0, 0), now=100 * MS)
+    pipe.sweep(np.array([1]), 120 * MS)
+    assert t.current_tp(1) == 1
+    pipe.sweep(np.array([1]), 140 * MS)
+    assert t.current_tp(1) is None and t.reg_dropped_ns[0] == 140 * MS
+
+
+def test_keys_of_lists_every_tp_of_a_robots_entity() -> None:
+    t = Tables(capacity=8)
+    for r in (1, 2):
+        t.add_robot(r)
+    t.insert([hold_tp(1, 5, 6, [0.0]), hold_tp(1, 6, 6, [0.0]), hold_tp(2, 5, 5, [0.0])])
+    assert sorted(t.keys_of(1)) == [(1, 5), (1, 6)]
+    assert t.keys_of(2) == [(2, 5)]
+    with pytest.raises(Refused):
+        t.keys_of(3)

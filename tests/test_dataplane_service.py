@@ -117,3 +117,15 @@ async def test_refusals_and_bad_datagrams(start_cell) -> None:
                 break
             assert time.monotonic() < deadline, dict(c)
             await asyncio.sleep(0.1)
+        # a controller taking over flushes what it did not load: every TP of the robot, its registers
+        await dp.update(insert=[TP(1, 7, 8, 0.1, Q0, [0.0] * 6), TP(1, 8, 8, 0.1, Q0, [0.0] * 6)])
+        reply = await dp.update(registers=[(1, 7, 0)])
+        boot = reply.boot_id
+        assert boot != 0 and (await dp.state()).boot_id == boot  # one per data-plane start
+        reply = await dp.update(flush=[1])
+        assert reply.removed == 2 and reply.loaded == 0 and reply.boot_id == boot
+        st = await dp.state()
+        assert next(r.tp_id for r in st.robots if r.robot_id == 1) == -1
+        with pytest.raises(RemoteError) as info:
+            await dp.update(flush=[99])
+        assert info.value.code == "unknown_robot"

@@ -26,9 +26,11 @@ class DataplaneClient:
         remove: Iterable[tuple[int, int]] | np.ndarray = (),
         switches: Iterable[tuple[int, int, int | None]] = (),
         registers: Iterable[tuple[int, int | None, int]] = (),
+        flush: Iterable[int] = (),
     ) -> dataplane_pb2.UpdateReply:
-        """One atomic batch (see Tables.update): applied whole, or refused whole with a reason."""
-        req = dataplane_pb2.TableUpdate()
+        """One atomic batch (see Tables.update): applied whole, or refused whole with a reason.  The
+        robots in `flush` lose every TP and their registers first (a controller taking over)."""
+        req = dataplane_pb2.TableUpdate(flush_robots=flush)
         encode_tps(insert if isinstance(insert, TPBatch) else TPBatch.of(list(insert)), req.insert)
         encode_keys(remove, req.remove)
         for robot, tp_id, nxt in switches:
@@ -56,10 +58,11 @@ class DataplaneClient:
         return reply.entity  # type: ignore[union-attr]
 
     async def state(
-        self, robot_ids: Sequence[int] = (), robots_only: bool = False
+        self, robot_ids: Sequence[int] = (), robots_only: bool = False, timeout: float | None = None
     ) -> dataplane_pb2.DataplaneState:
         """Registers and counters; robots_only leaves the counters out (a cheaper poll)."""
         req = dataplane_pb2.StateRequest(robot_ids=robot_ids, robots_only=robots_only)
-        reply = await self.bus.request(self.service, "state", req, dataplane_pb2.DataplaneState, self.timeout)
+        timeout = self.timeout if timeout is None else timeout
+        reply = await self.bus.request(self.service, "state", req, dataplane_pb2.DataplaneState, timeout)
         assert isinstance(reply, dataplane_pb2.DataplaneState)
         return reply

@@ -15,6 +15,13 @@ Transform tables give (1 - c1) v_curr, c1 v_trg and (c2 - 1) p_diff (the
 Integer arithmetic only, on the wire's fixed-point values; time is
 CLOCK_MONOTONIC in ns.
 
+A trajectory is dropped (registers cleared, its robots told 0: they stand) when
+resuming it would make a robot lunge after a plan that went on without it: a
+robot whose statuses stopped coming for longer than its watchdog (it has
+protective-stopped, or we were held up), or an underrun (the next TP missing)
+that lasts longer than STALL_DROP_NS (the controller is gone or far behind).
+A short underrun holds the last TP's position and goes on when the TP comes.
+
 A stop (from the Responsive Link's event socket, not the controller) sets a
 robot's REG_stop: from then on its commands are the StopRamp, each one its
 status velocity brought StopRamp[joint] closer to 0 (the deceleration over one
@@ -35,6 +42,8 @@ from cell.robot.datagram import SCALE, Kind
 # inputs from the wire are clamped to this magnitude (about 1e11 rad) so no sum can overflow int64
 INPUT_LIMIT = 1 << 60
 TERM_LIMIT = 1 << 60
+STALL_DROP_NS = 50_000_000  # an underrun this long ends the trajectory (catching up would be a lunge)
+DROP_WATCHDOG, DROP_UNDERRUN = 1, 2  # why a trajectory was dropped (Tables.reg_dropped_why)
 
 
 class TransformBank:
@@ -77,6 +86,7 @@ class PipelineCounters:
     stalls: int = 0  # a step was due but the next TP is not loaded (a streaming underrun)
     limited: int = 0  # commands clamped by LimitVelocity
     stop_commands: int = 0  # commands from the StopRamp (robots under REG_stop)
+    dropped: int = 0  # trajectories dropped: their robot went longer than its watchdog without commands
 
 
 class Pipeline:
@@ -86,6 +96,10 @@ class Pipeline:
         self.reg_stop = np.zeros(1 << 16, bool)  # per robot: commands come from the StopRamp
         self.stopping = 0  # robots with REG_stop set (0: the packet path skips the stop stage)
         self.stop_ramp = np.zeros(len(constants.c1), np.int64)  # per joint, wire units per window
+        # per robot: a gap between two of its statuses longer than this (ns) means it went that long
+        # without a command and has protective-stopped (its watchdog): its trajectory is dropped
+        # rather than resumed where the clock now is, which would make it lunge after the plan.  0: off
+        self.stale_ns = np.zeros(1 << 16, np.int64)
         self.install(self.build(constants))
 
     @staticmethod
@@ -132,8 +146,15 @@ class Pipeline:
             e, cur = entities[due], cur[due]
             nxt = t.effective_next(cur)
             ok = nxt != NO_ROW
-            c.stalls += int((~ok).sum())
+            if not ok.all():
+                c.stalls += int((~ok).sum())
+                stuck = e[~ok]
+                fresh = stuck[~t.reg_stalled[stuck]]
+                t.reg_stalled[fresh] = True
+                t.reg_stall_ns[fresh] = now
+                self.drop(stuck[now - t.reg_stall_ns[stuck] > STALL_DROP_NS], now, DROP_UNDERRUN)
             e, nxt = e[ok], nxt[ok]
+            t.reg_stalled[e] = False
             t.reg_tp[e] = nxt
             t.reg_next_time[e] += t.duration[nxt]
             c.steps += e.size
@@ -157,6 +178,10 @@ class Pipeline:
         jid = recs["joint_id"].astype(np.int64)
         ent = t.robot_entity[rid].astype(np.int64)
         known = ent != NO_ROW
+        last = t.status_ns[rid]
+        stale = known & (last > 0) & (now - last > self.stale_ns[rid]) & (self.stale_ns[rid] > 0)
+        if stale.any():
+            self.drop(ent[stale], now, DROP_WATCHDOG)
         if known.any():
             counts = np.bincount(ent[known], minlength=t.entities)  # (faster than np.unique here)
             entities = np.flatnonzero(counts)
@@ -167,6 +192,7 @@ class Pipeline:
         r = np.maximum(row, 0)
         j = np.where(has, t.robot_joint0[rid] + jid, 0)
         v_trg = t.trg_vel[r, j]  # TargetData
+        v_trg[t.reg_stalled[np.maximum(ent, 0)]] = 0  # stalled: hold the TP's position, no coasting
         p_trg = t.trg_pos[r, j]
         v = _clamp(recs["velocity"].astype(np.int64), INPUT_LIMIT)
         p = _clamp(recs["position"].astype(np.int64), INPUT_LIMIT)
@@ -192,6 +218,28 @@ class Pipeline:
         recs["kind"] = Kind.COMMAND
         if stops and self.stopping:
             self.apply_stops(recs)
+
+    def sweep(self, robots: np.ndarray, now: int) -> None:
+        """Drop the trajectories of these robots that have gone quiet past their watchdog (the P4
+        design would send itself a packet on a timer for this: no status, no packet to act on)."""
+        t = self.t
+        last = t.status_ns[robots]
+        quiet = (last > 0) & (now - last > self.stale_ns[robots]) & (self.stale_ns[robots] > 0)
+        if quiet.any():
+            ent = t.robot_entity[robots[quiet]].astype(np.int64)
+            self.drop(ent[ent != NO_ROW], now, DROP_WATCHDOG)
+
+    def drop(self, entities: np.ndarray, now: int, why: int) -> None:
+        """Clear the registers of these entities (see the module's docstring), noting when and why."""
+        t = self.t
+        e = np.unique(entities)
+        e = e[t.reg_tp[e] != NO_ROW]
+        if e.size:
+            t.reg_tp[e] = NO_ROW
+            t.reg_stalled[e] = False
+            t.reg_dropped_ns[e] = now
+            t.reg_dropped_why[e] = why
+            self.counters.dropped += int(e.size)
 
     # --- stops -------------------------------------------------------------------------------
 

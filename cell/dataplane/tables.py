@@ -158,6 +158,14 @@ class Tables:
         # copy would go stale whenever a switch is set or a streamed link resolves later
         self.reg_tp = np.full(max_entities, NO_ROW, np.int32)
         self.reg_next_time = np.zeros(max_entities, np.int64)  # data-plane clock, ns
+        # a step was due but the next TP is not loaded (the controller fell behind or died): the
+        # entity holds its TP's position with target velocity 0, never coasting on past it
+        self.reg_stalled = np.zeros(max_entities, bool)
+        self.reg_stall_ns = np.zeros(max_entities, np.int64)  # when the stall began
+        # when, and why (DROP_*), the entity's trajectory was last dropped (Pipeline.drop): its
+        # robots then hold still with commands of 0 until the controller sets its registers again
+        self.reg_dropped_ns = np.zeros(max_entities, np.int64)
+        self.reg_dropped_why = np.zeros(max_entities, np.int8)
         # the last status of each robot's joints (wire fixed point) and when it came: registers the
         # controller reads to plan from where a robot is (re-planning, stops)
         self.status_pos = np.zeros((1 << 16, max_joints), np.int64)
@@ -331,11 +339,18 @@ class Tables:
         row = self.row_of(robot, tp_id)
         self.reg_tp[e] = row
         self.reg_next_time[e] = next_time_ns
+        self.reg_stalled[e] = False
 
     def clear_registers(self, robot: int) -> None:
         """The entity follows nothing: its robots are told to hold (velocity 0)."""
         e = self.entity_of(robot)
         self.reg_tp[e] = NO_ROW
+        self.reg_stalled[e] = False
+
+    def keys_of(self, robot: int) -> list[tuple[int, int]]:
+        """Every loaded TP of the robot's entity, as (robot, TP id) keys (a scan: for flushes, not hot)."""
+        e = self.entity_of(robot)
+        return [(robot, key & _ID_MASK) for key in self._row if key >> 32 == e]
 
     def current_tp(self, robot: int) -> int | None:
         row = int(self.reg_tp[self.entity_of(robot)])

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x63\x65ll/v1/dataplane.proto\x12\x07\x63\x65ll.v1\"\x8c\x01\n\x10TrajectoryPoints\x12\x10\n\x08robot_id\x18\x01 \x03(\r\x12\n\n\x02id\x18\x02 \x03(\r\x12\x0f\n\x07next_id\x18\x03 \x03(\r\x12\x12\n\nduration_s\x18\x04 \x03(\x01\x12\x0e\n\x06joints\x18\x05 \x03(\r\x12\x11\n\tpositions\x18\x06 \x03(\x01\x12\x12\n\nvelocities\x18\x07 \x03(\x01\"&\n\x06TpKeys\x12\x10\n\x08robot_id\x18\x01 \x03(\r\x12\n\n\x02id\x18\x02 \x03(\r\"\xac\x01\n\x0bTableUpdate\x12)\n\x06insert\x18\x01 \x01(\x0b\x32\x19.cell.v1.TrajectoryPoints\x12\x1f\n\x06remove\x18\x02 \x01(\x0b\x32\x0f.cell.v1.TpKeys\x12&\n\x08switches\x18\x03 \x03(\x0b\x32\x14.cell.v1.SwitchEntry\x12)\n\tregisters\x18\x04 \x03(\x0b\x32\x16.cell.v1.RegisterEntry\"N\n\x0bSwitchEntry\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\r\n\x05tp_id\x18\x02 \x01(\r\x12\x0f\n\x07next_id\x18\x03 \x01(\r\x12\r\n\x05unset\x18\x04 \x01(\x08\"U\n\rRegisterEntry\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\r\n\x05tp_id\x18\x02 \x01(\r\x12\x14\n\x0cnext_time_ns\x18\x03 \x01(\x03\x12\r\n\x05\x63lear\x18\x04 \x01(\x08\"\x86\x01\n\x0bUpdateReply\x12\x10\n\x08inserted\x18\x01 \x01(\r\x12\x0f\n\x07removed\x18\x02 \x01(\r\x12\x0e\n\x06loaded\x18\x03 \x01(\r\x12\x10\n\x08\x63\x61pacity\x18\x04 \x01(\r\x12\x10\n\x08\x61pply_us\x18\x05 \x01(\x01\x12\x0e\n\x06now_ns\x18\x06 \x01(\x03\x12\x10\n\x08total_ms\x18\x07 \x01(\x01\"!\n\x0cMergeRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\"\x1c\n\nMergeReply\x12\x0e\n\x06\x65ntity\x18\x01 \x01(\r\"6\n\x0cStateRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\x12\x13\n\x0brobots_only\x18\x02 \x01(\x08\"\x8f\x01\n\x0fRobotPlaneState\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0e\n\x06\x65ntity\x18\x02 \x01(\r\x12\r\n\x05tp_id\x18\x03 \x01(\x03\x12\x14\n\x0cnext_time_ns\x18\x04 \x01(\x03\x12\x10\n\x08position\x18\x05 \x03(\x01\x12\x10\n\x08velocity\x18\x06 \x03(\x01\x12\x11\n\tstatus_ns\x18\x07 \x01(\x03\"\xd6\x01\n\x0e\x44\x61taplaneState\x12\x0e\n\x06now_ns\x18\x01 \x01(\x03\x12\x0e\n\x06loaded\x18\x02 \x01(\r\x12\x10\n\x08\x63\x61pacity\x18\x03 \x01(\r\x12(\n\x06robots\x18\x04 \x03(\x0b\x32\x18.cell.v1.RobotPlaneState\x12\x37\n\x08\x63ounters\x18\x05 \x03(\x0b\x32%.cell.v1.DataplaneState.CountersEntry\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"B\n\tConstants\x12\n\n\x02\x63\x31\x18\x01 \x03(\x01\x12\n\n\x02\x63\x32\x18\x02 \x03(\x01\x12\x0e\n\x06n_bits\x18\x03 \x01(\r\x12\r\n\x05v_max\x18\x04 \x03(\x01\"T\n\x0e\x43onstantsReply\x12\x19\n\x11transform_entries\x18\x01 \x01(\r\x12\x15\n\rlimit_entries\x18\x02 \x01(\r\x12\x10\n\x08\x62uild_ms\x18\x03 \x01(\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x63\x65ll/v1/dataplane.proto\x12\x07\x63\x65ll.v1\"\x8c\x01\n\x10TrajectoryPoints\x12\x10\n\x08robot_id\x18\x01 \x03(\r\x12\n\n\x02id\x18\x02 \x03(\r\x12\x0f\n\x07next_id\x18\x03 \x03(\r\x12\x12\n\nduration_s\x18\x04 \x03(\x01\x12\x0e\n\x06joints\x18\x05 \x03(\r\x12\x11\n\tpositions\x18\x06 \x03(\x01\x12\x12\n\nvelocities\x18\x07 \x03(\x01\"&\n\x06TpKeys\x12\x10\n\x08robot_id\x18\x01 \x03(\r\x12\n\n\x02id\x18\x02 \x03(\r\"\xc2\x01\n\x0bTableUpdate\x12)\n\x06insert\x18\x01 \x01(\x0b\x32\x19.cell.v1.TrajectoryPoints\x12\x1f\n\x06remove\x18\x02 \x01(\x0b\x32\x0f.cell.v1.TpKeys\x12&\n\x08switches\x18\x03 \x03(\x0b\x32\x14.cell.v1.SwitchEntry\x12)\n\tregisters\x18\x04 \x03(\x0b\x32\x16.cell.v1.RegisterEntry\x12\x14\n\x0c\x66lush_robots\x18\x05 \x03(\r\"N\n\x0bSwitchEntry\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\r\n\x05tp_id\x18\x02 \x01(\r\x12\x0f\n\x07next_id\x18\x03 \x01(\r\x12\r\n\x05unset\x18\x04 \x01(\x08\"U\n\rRegisterEntry\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\r\n\x05tp_id\x18\x02 \x01(\r\x12\x14\n\x0cnext_time_ns\x18\x03 \x01(\x03\x12\r\n\x05\x63lear\x18\x04 \x01(\x08\"\x97\x01\n\x0bUpdateReply\x12\x10\n\x08inserted\x18\x01 \x01(\r\x12\x0f\n\x07removed\x18\x02 \x01(\r\x12\x0e\n\x06loaded\x18\x03 \x01(\r\x12\x10\n\x08\x63\x61pacity\x18\x04 \x01(\r\x12\x10\n\x08\x61pply_us\x18\x05 \x01(\x01\x12\x0e\n\x06now_ns\x18\x06 \x01(\x03\x12\x10\n\x08total_ms\x18\x07 \x01(\x01\x12\x0f\n\x07\x62oot_id\x18\x08 \x01(\x06\"!\n\x0cMergeRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\"\x1c\n\nMergeReply\x12\x0e\n\x06\x65ntity\x18\x01 \x01(\r\"6\n\x0cStateRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\x12\x13\n\x0brobots_only\x18\x02 \x01(\x08\"\xc9\x01\n\x0fRobotPlaneState\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0e\n\x06\x65ntity\x18\x02 \x01(\r\x12\r\n\x05tp_id\x18\x03 \x01(\x03\x12\x14\n\x0cnext_time_ns\x18\x04 \x01(\x03\x12\x10\n\x08position\x18\x05 \x03(\x01\x12\x10\n\x08velocity\x18\x06 \x03(\x01\x12\x11\n\tstatus_ns\x18\x07 \x01(\x03\x12\x12\n\ndropped_ns\x18\x08 \x01(\x03\x12\x0f\n\x07stalled\x18\t \x01(\x08\x12\x13\n\x0b\x64ropped_why\x18\n \x01(\t\"\xe7\x01\n\x0e\x44\x61taplaneState\x12\x0e\n\x06now_ns\x18\x01 \x01(\x03\x12\x0e\n\x06loaded\x18\x02 \x01(\r\x12\x10\n\x08\x63\x61pacity\x18\x03 \x01(\r\x12(\n\x06robots\x18\x04 \x03(\x0b\x32\x18.cell.v1.RobotPlaneState\x12\x37\n\x08\x63ounters\x18\x05 \x03(\x0b\x32%.cell.v1.DataplaneState.CountersEntry\x12\x0f\n\x07\x62oot_id\x18\x06 \x01(\x06\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"B\n\tConstants\x12\n\n\x02\x63\x31\x18\x01 \x03(\x01\x12\n\n\x02\x63\x32\x18\x02 \x03(\x01\x12\x0e\n\x06n_bits\x18\x03 \x01(\r\x12\r\n\x05v_max\x18\x04 \x03(\x01\"T\n\x0e\x43onstantsReply\x12\x19\n\x11transform_entries\x18\x01 \x01(\r\x12\x15\n\rlimit_entries\x18\x02 \x01(\r\x12\x10\n\x08\x62uild_ms\x18\x03 \x01(\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -38,27 +38,27 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_TPKEYS']._serialized_start=179
   _globals['_TPKEYS']._serialized_end=217
   _globals['_TABLEUPDATE']._serialized_start=220
-  _globals['_TABLEUPDATE']._serialized_end=392
-  _globals['_SWITCHENTRY']._serialized_start=394
-  _globals['_SWITCHENTRY']._serialized_end=472
-  _globals['_REGISTERENTRY']._serialized_start=474
-  _globals['_REGISTERENTRY']._serialized_end=559
-  _globals['_UPDATEREPLY']._serialized_start=562
-  _globals['_UPDATEREPLY']._serialized_end=696
-  _globals['_MERGEREQUEST']._serialized_start=698
-  _globals['_MERGEREQUEST']._serialized_end=731
-  _globals['_MERGEREPLY']._serialized_start=733
-  _globals['_MERGEREPLY']._serialized_end=761
-  _globals['_STATEREQUEST']._serialized_start=763
-  _globals['_STATEREQUEST']._serialized_end=817
-  _globals['_ROBOTPLANESTATE']._serialized_start=820
-  _globals['_ROBOTPLANESTATE']._serialized_end=963
-  _globals['_DATAPLANESTATE']._serialized_start=966
-  _globals['_DATAPLANESTATE']._serialized_end=1180
-  _globals['_DATAPLANESTATE_COUNTERSENTRY']._serialized_start=1133
-  _globals['_DATAPLANESTATE_COUNTERSENTRY']._serialized_end=1180
-  _globals['_CONSTANTS']._serialized_start=1182
-  _globals['_CONSTANTS']._serialized_end=1248
-  _globals['_CONSTANTSREPLY']._serialized_start=1250
-  _globals['_CONSTANTSREPLY']._serialized_end=1334
+  _globals['_TABLEUPDATE']._serialized_end=414
+  _globals['_SWITCHENTRY']._serialized_start=416
+  _globals['_SWITCHENTRY']._serialized_end=494
+  _globals['_REGISTERENTRY']._serialized_start=496
+  _globals['_REGISTERENTRY']._serialized_end=581
+  _globals['_UPDATEREPLY']._serialized_start=584
+  _globals['_UPDATEREPLY']._serialized_end=735
+  _globals['_MERGEREQUEST']._serialized_start=737
+  _globals['_MERGEREQUEST']._serialized_end=770
+  _globals['_MERGEREPLY']._serialized_start=772
+  _globals['_MERGEREPLY']._serialized_end=800
+  _globals['_STATEREQUEST']._serialized_start=802
+  _globals['_STATEREQUEST']._serialized_end=856
+  _globals['_ROBOTPLANESTATE']._serialized_start=859
+  _globals['_ROBOTPLANESTATE']._serialized_end=1060
+  _globals['_DATAPLANESTATE']._serialized_start=1063
+  _globals['_DATAPLANESTATE']._serialized_end=1294
+  _globals['_DATAPLANESTATE_COUNTERSENTRY']._serialized_start=1247
+  _globals['_DATAPLANESTATE_COUNTERSENTRY']._serialized_end=1294
+  _globals['_CONSTANTS']._serialized_start=1296
+  _globals['_CONSTANTS']._serialized_end=1362
+  _globals['_CONSTANTSREPLY']._serialized_start=1364
+  _globals['_CONSTANTSREPLY']._serialized_end=1448
 # @@protoc_insertion_point(module_scope)

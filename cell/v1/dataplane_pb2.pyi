@@ -33,16 +33,18 @@ class TpKeys(_message.Message):
     def __init__(self, robot_id: _Optional[_Iterable[int]] = ..., id: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class TableUpdate(_message.Message):
-    __slots__ = ("insert", "remove", "switches", "registers")
+    __slots__ = ("insert", "remove", "switches", "registers", "flush_robots")
     INSERT_FIELD_NUMBER: _ClassVar[int]
     REMOVE_FIELD_NUMBER: _ClassVar[int]
     SWITCHES_FIELD_NUMBER: _ClassVar[int]
     REGISTERS_FIELD_NUMBER: _ClassVar[int]
+    FLUSH_ROBOTS_FIELD_NUMBER: _ClassVar[int]
     insert: TrajectoryPoints
     remove: TpKeys
     switches: _containers.RepeatedCompositeFieldContainer[SwitchEntry]
     registers: _containers.RepeatedCompositeFieldContainer[RegisterEntry]
-    def __init__(self, insert: _Optional[_Union[TrajectoryPoints, _Mapping]] = ..., remove: _Optional[_Union[TpKeys, _Mapping]] = ..., switches: _Optional[_Iterable[_Union[SwitchEntry, _Mapping]]] = ..., registers: _Optional[_Iterable[_Union[RegisterEntry, _Mapping]]] = ...) -> None: ...
+    flush_robots: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, insert: _Optional[_Union[TrajectoryPoints, _Mapping]] = ..., remove: _Optional[_Union[TpKeys, _Mapping]] = ..., switches: _Optional[_Iterable[_Union[SwitchEntry, _Mapping]]] = ..., registers: _Optional[_Iterable[_Union[RegisterEntry, _Mapping]]] = ..., flush_robots: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class SwitchEntry(_message.Message):
     __slots__ = ("robot_id", "tp_id", "next_id", "unset")
@@ -69,7 +71,7 @@ class RegisterEntry(_message.Message):
     def __init__(self, robot_id: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., clear: _Optional[bool] = ...) -> None: ...
 
 class UpdateReply(_message.Message):
-    __slots__ = ("inserted", "removed", "loaded", "capacity", "apply_us", "now_ns", "total_ms")
+    __slots__ = ("inserted", "removed", "loaded", "capacity", "apply_us", "now_ns", "total_ms", "boot_id")
     INSERTED_FIELD_NUMBER: _ClassVar[int]
     REMOVED_FIELD_NUMBER: _ClassVar[int]
     LOADED_FIELD_NUMBER: _ClassVar[int]
@@ -77,6 +79,7 @@ class UpdateReply(_message.Message):
     APPLY_US_FIELD_NUMBER: _ClassVar[int]
     NOW_NS_FIELD_NUMBER: _ClassVar[int]
     TOTAL_MS_FIELD_NUMBER: _ClassVar[int]
+    BOOT_ID_FIELD_NUMBER: _ClassVar[int]
     inserted: int
     removed: int
     loaded: int
@@ -84,7 +87,8 @@ class UpdateReply(_message.Message):
     apply_us: float
     now_ns: int
     total_ms: float
-    def __init__(self, inserted: _Optional[int] = ..., removed: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., apply_us: _Optional[float] = ..., now_ns: _Optional[int] = ..., total_ms: _Optional[float] = ...) -> None: ...
+    boot_id: int
+    def __init__(self, inserted: _Optional[int] = ..., removed: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., apply_us: _Optional[float] = ..., now_ns: _Optional[int] = ..., total_ms: _Optional[float] = ..., boot_id: _Optional[int] = ...) -> None: ...
 
 class MergeRequest(_message.Message):
     __slots__ = ("robot_ids",)
@@ -107,7 +111,7 @@ class StateRequest(_message.Message):
     def __init__(self, robot_ids: _Optional[_Iterable[int]] = ..., robots_only: _Optional[bool] = ...) -> None: ...
 
 class RobotPlaneState(_message.Message):
-    __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns", "position", "velocity", "status_ns")
+    __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns", "position", "velocity", "status_ns", "dropped_ns", "stalled", "dropped_why")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     ENTITY_FIELD_NUMBER: _ClassVar[int]
     TP_ID_FIELD_NUMBER: _ClassVar[int]
@@ -115,6 +119,9 @@ class RobotPlaneState(_message.Message):
     POSITION_FIELD_NUMBER: _ClassVar[int]
     VELOCITY_FIELD_NUMBER: _ClassVar[int]
     STATUS_NS_FIELD_NUMBER: _ClassVar[int]
+    DROPPED_NS_FIELD_NUMBER: _ClassVar[int]
+    STALLED_FIELD_NUMBER: _ClassVar[int]
+    DROPPED_WHY_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     entity: int
     tp_id: int
@@ -122,10 +129,13 @@ class RobotPlaneState(_message.Message):
     position: _containers.RepeatedScalarFieldContainer[float]
     velocity: _containers.RepeatedScalarFieldContainer[float]
     status_ns: int
-    def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., position: _Optional[_Iterable[float]] = ..., velocity: _Optional[_Iterable[float]] = ..., status_ns: _Optional[int] = ...) -> None: ...
+    dropped_ns: int
+    stalled: bool
+    dropped_why: str
+    def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., position: _Optional[_Iterable[float]] = ..., velocity: _Optional[_Iterable[float]] = ..., status_ns: _Optional[int] = ..., dropped_ns: _Optional[int] = ..., stalled: _Optional[bool] = ..., dropped_why: _Optional[str] = ...) -> None: ...
 
 class DataplaneState(_message.Message):
-    __slots__ = ("now_ns", "loaded", "capacity", "robots", "counters")
+    __slots__ = ("now_ns", "loaded", "capacity", "robots", "counters", "boot_id")
     class CountersEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -138,12 +148,14 @@ class DataplaneState(_message.Message):
     CAPACITY_FIELD_NUMBER: _ClassVar[int]
     ROBOTS_FIELD_NUMBER: _ClassVar[int]
     COUNTERS_FIELD_NUMBER: _ClassVar[int]
+    BOOT_ID_FIELD_NUMBER: _ClassVar[int]
     now_ns: int
     loaded: int
     capacity: int
     robots: _containers.RepeatedCompositeFieldContainer[RobotPlaneState]
     counters: _containers.ScalarMap[str, float]
-    def __init__(self, now_ns: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., robots: _Optional[_Iterable[_Union[RobotPlaneState, _Mapping]]] = ..., counters: _Optional[_Mapping[str, float]] = ...) -> None: ...
+    boot_id: int
+    def __init__(self, now_ns: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., robots: _Optional[_Iterable[_Union[RobotPlaneState, _Mapping]]] = ..., counters: _Optional[_Mapping[str, float]] = ..., boot_id: _Optional[int] = ...) -> None: ...
 
 class Constants(_message.Message):
     __slots__ = ("c1", "c2", "n_bits", "v_max")
