@@ -97,7 +97,8 @@ class ServiceRunner:
         async with contextlib.AsyncExitStack() as stack:
             bus = None
             if self.spec.needs_bus:
-                bus = await stack.enter_async_context(Bus.connect(self.config.bus, self.name))
+                # never held up by the bus: a service serves its own sockets from the start
+                bus = await stack.enter_async_context(Bus.connect(self.config.bus, self.name, wait=False))
             self.ctx = ServiceContext(
                 self.name,
                 self.config,

@@ -281,3 +281,66 @@ async def test_junk_on_a_served_topic_is_counted_and_the_server_still_answers(fo
         reply = await client.request("svc", "echo", payload(5), bus_pb2.BenchPayload)
         assert reply == payload(5)
         assert server.served == 1  # junk was never mistaken for a request
+
+
+async def test_a_patient_node_starts_without_a_forwarder_and_joins_when_one_comes(bus_config: BusConfig) -> None:
+    cfg = replace(bus_config, connect_timeout_s=0.2)
+    t0 = time.monotonic()
+    async with Bus.connect(cfg, "early", wait=False) as early:
+        assert time.monotonic() - t0 < 0.2  # yielded at once: the service serves its own sockets
+        early.publish("x/lost", payload(0))  # into the void: never an error
+        serving = asyncio.ensure_future(early.serve("svc", {"echo": (bus_pb2.BenchPayload, lambda r: r)}))
+        await asyncio.sleep(0.5)  # past connect_timeout_s: a patient node keeps waiting
+        assert not serving.done()
+        fwd = Forwarder(cfg)
+        fwd.start()
+        try:
+            async with asyncio.timeout(5):
+                await serving
+            async with Bus.connect(cfg, "client") as client:
+                assert await client.request("svc", "echo", payload(3), bus_pb2.BenchPayload) == payload(3)
+        finally:
+            fwd.stop()
+
+
+async def test_abandon_answers_waiting_requests_at_once(forwarder: BusConfig) -> None:
+    async with Bus.connect(forwarder, "client") as client:
+        waiting = [
+            asyncio.ensure_future(client.request("gone", "move", payload(i), timeout=30)) for i in range(2)
+        ]
+        other = asyncio.ensure_future(client.request("other", "x", payload(9), timeout=30))
+        await asyncio.sleep(0)  # (the requests are on their way)
+        assert client.abandon("gone", "stopped", "the service died") == 2
+        for w in waiting:
+            with pytest.raises(RemoteError) as info:
+                await w
+            assert (info.value.code, info.value.message, info.value.method) == ("stopped", "the service died", "move")
+        assert not other.done()  # only the dead service's requests
+        other.cancel()
+
+
+async def test_requests_waiting_when_the_forwarder_dies_are_answered_at_once(bus_config: BusConfig) -> None:
+    fwd = Forwarder(bus_config)
+    fwd.start()
+    release = asyncio.Event()
+
+    async def slow(req: bus_pb2.BenchPayload) -> bus_pb2.BenchPayload:
+        await release.wait()
+        return req
+
+    try:
+        async with Bus.connect(bus_config, "server") as server, Bus.connect(bus_config, "client") as client:
+            await server.serve("svc", {"slow": (bus_pb2.BenchPayload, slow)})
+            waiting = asyncio.ensure_future(client.request("svc", "slow", payload(1), timeout=30))
+            async with asyncio.timeout(5):
+                while server.requests == 0 and not server._handlers:  # (the request has reached it)
+                    await asyncio.sleep(0.01)
+            t0 = time.monotonic()
+            fwd.stop()
+            with pytest.raises(RemoteError) as info:
+                await waiting
+            assert info.value.code == "bus_lost" and time.monotonic() - t0 < 2.0
+            assert client.counters()["bus.disconnects"] >= 1
+            release.set()
+    finally:
+        fwd.stop()

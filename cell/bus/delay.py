@@ -6,6 +6,11 @@ to and from a real bus, each message `delay` +/- `jitter` seconds late
 Nodes that connect to its endpoints see the whole bus through a slow link.
 `tc netem` would do this in the kernel; it is not available everywhere
 (not on this project's CI machines), so it is done here in user space.
+
+Loss is loss on a TCP connection, which the bus runs on: a lost segment is
+sent again after the retransmission timeout (Linux's minimum, 200 ms), and
+everything behind it waits (head-of-line blocking); nothing is lost for good.
+delay, jitter and loss may be changed while the link runs (a fault campaign).
 """
 
 from __future__ import annotations
@@ -24,11 +29,23 @@ from cell.config import BusConfig
 
 class DelayLink:
     def __init__(
-        self, bus: BusConfig, pub: str, sub: str, delay: float, jitter: float, seed: int = 0
+        self,
+        bus: BusConfig,
+        pub: str,
+        sub: str,
+        delay: float,
+        jitter: float,
+        seed: int = 0,
+        loss: float = 0.0,
+        rto: float = 0.2,
     ) -> None:
         if jitter > delay:
             raise ValueError("jitter must not exceed the delay")
+        if not 0.0 <= loss < 1.0:
+            raise ValueError("loss must be in [0, 1)")
         self.bus, self.delay, self.jitter = bus, delay, jitter
+        self.loss, self.rto = loss, rto
+        self.retransmitted = 0
         self.config = replace(bus, pub=pub, sub=sub)  # what nodes behind the link connect with
         self._rng = random.Random(seed)
         self.forwarded = 0
@@ -98,6 +115,9 @@ class DelayLink:
                         break
                     now = time.monotonic()
                     due = now + self.delay + self._rng.uniform(-self.jitter, self.jitter)
+                    if self.loss and self._rng.random() < self.loss:
+                        due += self.rto  # lost once, sent again after the retransmission timeout
+                        self.retransmitted += 1
                     last_due = max(due, last_due)  # no overtaking
                     queue.append((last_due, frames))
                     wake.set()

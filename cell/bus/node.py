@@ -25,6 +25,7 @@ from typing import Any, TypeVar
 
 import zmq
 from google.protobuf.message import Message
+from zmq.utils.monitor import parse_monitor_message
 
 from cell.bus.envelope import (
     Encoder,
@@ -210,6 +211,7 @@ class Bus:
         self._reply_topic = f"{_REPLY}{self.instance:08x}"
         self._topics: dict[str, bytes] = {}
         self._pending: dict[int, asyncio.Future[Envelope]] = {}
+        self._pending_to: dict[int, tuple[str, str]] = {}  # correlation -> (service, method)
         self._methods: dict[str, _Method] = {}
         self._syncs: dict[bytes, asyncio.Future[None]] = {}
         self._corr = itertools.count(1)
@@ -219,20 +221,30 @@ class Bus:
         self._retired = {"received": 0, "lost": 0, "malformed": 0}
         self._handlers: set[asyncio.Task[None]] = set()
         self._reader: asyncio.Task[None] | None = None
+        self._watcher: asyncio.Task[None] | None = None
+        self._monitor: zmq.Socket | None = None
+        self.disconnects = 0
         self.published = 0
         self.dropped = 0
         self.requests = 0
         self.served = 0
         self.late_replies = 0
         self.malformed = 0
+        self.patient = False  # see connect(wait=False)
+        self._ctl_live = False  # a ping has come back on the control socket: replies will reach us
 
     # --- lifetime ----------------------------------------------------------------------------
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def connect(cls, config: BusConfig, source: str) -> AsyncIterator[Bus]:
-        """Connect, wait until the bus carries our messages both ways, yield; close everything on exit."""
+    async def connect(cls, config: BusConfig, source: str, *, wait: bool = True) -> AsyncIterator[Bus]:
+        """Connect, wait until the bus carries our messages both ways, yield; close everything on exit.
+
+        wait=False (services under a supervisor) yields at once and never gives up: the node's
+        subscribe() and serve() wait for the forwarder however long it is away, publishing meanwhile
+        drops, so a service serves its own sockets whether or not the bus is up yet."""
         bus = cls(config, source)
+        bus.patient = not wait
         ctx = zmq_context()
         bus._pub = ctx.socket(zmq.PUB)
         bus._ctl = ctx.socket(zmq.SUB)
@@ -248,14 +260,39 @@ class Bus:
             # the node owns its reader and handler tasks (no TaskGroup here: it would wrap
             # the caller's own exceptions in ExceptionGroups); they are awaited on the way out
             bus._reader = asyncio.create_task(bus._read_control(), name=f"bus-reader:{source}")
-            await bus._sync(f"c{next(bus._tokens)}", bus._ctl_token_wait)
+            bus._monitor = bus._pub.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+            bus._watcher = asyncio.create_task(bus._watch_connection(), name=f"bus-watch:{source}")
+            if wait:
+                await bus._sync_control()
             yield bus
         finally:
             await bus._stop_tasks()
             bus._close()
 
+    async def _watch_connection(self) -> None:
+        """The forwarder dropped our connection (it died): a request or a reply on its way then was
+        lost with it, so every request waiting is answered now (RemoteError, code bus_lost), not
+        with a timeout much later.  Requests sent from now on wait in ZeroMQ's queue until the
+        connection is back."""
+        mon = self._monitor
+        while True:
+            await readable(mon)
+            while True:
+                try:
+                    frames = mon.recv_multipart(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                if parse_monitor_message(frames)["event"] == zmq.EVENT_DISCONNECTED:
+                    self.disconnects += 1
+                    n = self.abandon(
+                        None, "bus_lost", "the bus connection dropped; it may or may not have been done"
+                    )
+                    log.warning(
+                        "%s: the bus connection dropped (%d waiting request(s) answered)", self.source, n
+                    )
+
     async def _stop_tasks(self) -> None:
-        tasks = [t for t in (self._reader, *self._handlers) if t is not None]
+        tasks = [t for t in (self._reader, self._watcher, *self._handlers) if t is not None]
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -263,6 +300,10 @@ class Bus:
     def _close(self) -> None:
         for sub in list(self._subs):
             sub.close()
+        if self._monitor is not None:
+            with contextlib.suppress(zmq.ZMQError):
+                self._pub.disable_monitor()
+            self._monitor.close(linger=0)
         for sock in (self._pub, self._ctl):
             if not sock.closed:
                 sock.close(linger=0)
@@ -281,6 +322,7 @@ class Bus:
             "bus.requests": self.requests,
             "bus.served": self.served,
             "bus.late_replies": self.late_replies,
+            "bus.disconnects": self.disconnects,
         }
 
     # --- sync: prove a path end to end -------------------------------------------------------
@@ -289,21 +331,30 @@ class Bus:
         token = _SYNC + f"{self.instance:08x}/{name}".encode()
         done = asyncio.ensure_future(wait(token))
         delay = 0.0005
+        deadline = asyncio.get_running_loop().time() + self.config.connect_timeout_s
+        warned = False
         try:
-            async with asyncio.timeout(self.config.connect_timeout_s):
-                while not done.done():
-                    with contextlib.suppress(zmq.Again):
-                        self._pub.send(token + b"\0", zmq.NOBLOCK)
-                    await asyncio.wait([done], timeout=delay)
-                    delay = min(delay * 2, 0.05)
+            while not done.done():
+                if asyncio.get_running_loop().time() > deadline:
+                    if not self.patient:
+                        raise BusUnavailable(
+                            f"no bus forwarder answered at {self.config.pub} / {self.config.sub} within "
+                            f"{self.config.connect_timeout_s:g} s (is the cell's 'bus' service running?)"
+                        )
+                    if not warned:
+                        log.warning("%s: waiting for the bus forwarder at %s", self.source, self.config.sub)
+                        warned = True
+                with contextlib.suppress(zmq.Again):
+                    self._pub.send(token + b"\0", zmq.NOBLOCK)
+                await asyncio.wait([done], timeout=delay)
+                delay = min(delay * 2, 0.05 if not warned else 0.25)
             await done
-        except TimeoutError:
-            raise BusUnavailable(
-                f"no bus forwarder answered at {self.config.pub} / {self.config.sub} "
-                f"within {self.config.connect_timeout_s:g} s (is the cell's 'bus' service running?)"
-            ) from None
         finally:
             done.cancel()
+
+    async def _sync_control(self) -> None:
+        await self._sync(f"c{next(self._tokens)}", self._ctl_token_wait)
+        self._ctl_live = True
 
     async def _ctl_token_wait(self, token: bytes) -> None:
         fut = self._syncs[token] = asyncio.get_running_loop().create_future()
@@ -380,9 +431,16 @@ class Bus:
     ) -> M | Message:
         """Ask `service` to run `method`; its reply, or BusTimeout, or RemoteError if it answered an error."""
         timeout = self.config.request_timeout_s if timeout is None else timeout
+        if not self._ctl_live:  # connected without waiting: a reply could go nowhere until then
+            try:
+                async with asyncio.timeout(timeout):
+                    await self._sync_control()
+            except TimeoutError:
+                raise BusTimeout(f"no bus to reach {service}.{method} within {timeout:g} s") from None
         corr = next(self._corr)
         fut: asyncio.Future[Envelope] = asyncio.get_running_loop().create_future()
         self._pending[corr] = fut
+        self._pending_to[corr] = (service, method)
         self.requests += 1
         try:
             self._send(self._topic(f"rpc/{service}/{method}"), msg, Kind.REQUEST, corr)
@@ -394,17 +452,29 @@ class Bus:
             ) from None
         finally:
             self._pending.pop(corr, None)
+            self._pending_to.pop(corr, None)
         if env.kind == Kind.ERROR:
             err = env.decode(bus_pb2.RpcError)
             raise RemoteError(service, method, err.code, err.message)
         return env.decode(reply_type) if reply_type is not None else env.message()
+
+    def abandon(self, service: str | None, code: str, reason: str) -> int:
+        """Answer every request waiting on `service` (None: on any) with RemoteError(code, reason) now,
+        rather than a timeout later (the serving process is known to have died); how many there were."""
+        n = 0
+        for corr, (svc, method) in list(self._pending_to.items()):
+            fut = self._pending.get(corr)
+            if service in (None, svc) and fut is not None and not fut.done():
+                fut.set_exception(RemoteError(service, method, code, reason))
+                n += 1
+        return n
 
     async def serve(self, service: str, methods: Mapping[str, tuple[type[Message], Handler]]) -> None:
         """Answer requests to service.<method>; handlers may be sync or async and may raise RpcFault."""
         for name, (request_type, handler) in methods.items():
             self._methods[f"rpc/{service}/{name}"] = _Method(request_type, handler)
         self._ctl.subscribe(check_topic(f"rpc/{service}/"))
-        await self._sync(f"c{next(self._tokens)}", self._ctl_token_wait)
+        await self._sync_control()
 
     # --- the control reader ------------------------------------------------------------------
 
