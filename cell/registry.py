@@ -31,12 +31,24 @@ class StatusRegistry:
         self.started = time.monotonic()
         self._last: dict[str, tuple[health_pb2.Heartbeat, float]] = {}
         self._process_restarts: dict[str, tuple[int, str]] = {}  # process -> (restarts, why)
+        self._bus: Bus | None = None
+        self._dead_pid: dict[str, int] = {}  # service -> the pid of its process that died
 
     def process_restarted(self, process: str, why: str) -> None:
         """A process the launcher runs died and was started again: its services' restarts count it
         (their new supervisor starts counting from 0)."""
         n, _ = self._process_restarts.get(process, (0, ""))
         self._process_restarts[process] = (n + 1, why)
+        for name, (hb, _) in self._last.items():
+            if hb.process == process:  # down until a heartbeat from its new process says otherwise
+                self._dead_pid[name] = hb.pid
+        if self._bus is not None:  # its services' supervisor died with it: say so in its stead, now
+            for name, (hb, _) in self._last.items():
+                if hb.process == process:
+                    ev = health_pb2.ServiceEvent(
+                        service=name, kind=health_pb2.ServiceEvent.KIND_FAILED, text=why, restarts=hb.restarts
+                    )
+                    self._bus.publish(f"events/service/{name}", ev)
 
     def observe(self, hb: health_pb2.Heartbeat, at: float | None = None) -> None:
         self._last[hb.service] = (hb, time.monotonic() if at is None else at)
@@ -60,12 +72,16 @@ class StatusRegistry:
             stale = entry.heartbeat_age_s > STALE_AFTER * max(hb.interval_s, 0.1)
             alive = hb.state not in (health_pb2.SERVICE_STATE_FAILED, health_pb2.SERVICE_STATE_STOPPED)
             entry.health = "stale" if stale and alive else _HEALTH.get(hb.state, "unknown")
+            if self._dead_pid.get(name) == hb.pid:  # its process died: its last heartbeat is a ghost's
+                entry.health = "backoff"
+                entry.last.state = health_pb2.SERVICE_STATE_BACKOFF
         return out
 
     async def run(self, bus: Bus) -> None:
         """Serve `cell.status` and keep up with heartbeats until cancelled."""
         health = await bus.subscribe("health/")
         await bus.serve("cell", {"status": (health_pb2.StatusRequest, self.status)})
+        self._bus = bus
         bus.publish(POLL_TOPIC, health_pb2.StatusRequest())  # no waiting a whole period to hear everyone
         while True:
             for env in await health.recv_batch():

@@ -15,7 +15,7 @@ import asyncio
 
 import numpy as np
 
-from cell.bus import RpcFault
+from cell.bus import BusError, RpcFault
 from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
 from cell.controller.plan import PlanError
 from cell.robot.kinematics import Unreachable
@@ -54,6 +54,8 @@ class ControllerService:
             raise RpcFault("plan", str(exc)) from None
         except MotionStopped as exc:
             raise RpcFault("stopped", str(exc)) from None
+        except BusError as exc:
+            raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
         return controller_pb2.MoveReply() if result is None else self._reply(result)
 
     async def move(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
@@ -125,6 +127,8 @@ class ControllerService:
             q, t_ns = await self.ctl.arrive(rid, req.tolerance_rad or 2e-4, req.timeout_s or 60.0)
         except MotionStopped as exc:
             raise RpcFault("stopped", str(exc)) from None
+        except BusError as exc:  # (a BusTimeout is a TimeoutError too: not the robot's)
+            raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
         except TimeoutError:
             raise RpcFault(
                 "timeout", f"robot {req.robot} did not arrive within {req.timeout_s or 60.0} s"
@@ -191,10 +195,12 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
 
     async with asyncio.TaskGroup() as tg:
         tg.create_task(follow_link(), name="follow-link")
+        tg.create_task(ctl.supervise(), name="supervise-dataplane")
         ctx.ready()
         while True:  # requests are served by the bus node's reader; this only reports
             ctx.counters["late_starts"] = ctl.late_starts
             ctx.counters["stopped_on_link"] = len(ctl.stopped)
+            ctx.counters["motions_lost"] = len(ctl.lost)
             await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
 
 

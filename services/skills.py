@@ -49,7 +49,7 @@ from cell.rlink.client import EventClient
 from cell.robot.pose import to_adept
 from cell.service import ServiceContext, ServiceSpec
 from cell.skills.protocol import MOTIONS, NAMED_SKILLS, Command, CommandReader, Done, Error, ErrorCode, Reply
-from cell.v1 import controller_pb2, robot_pb2, skills_pb2
+from cell.v1 import controller_pb2, health_pb2, robot_pb2, skills_pb2
 
 log = logging.getLogger("cell.skills")
 M = controller_pb2.MoveRequest
@@ -64,6 +64,7 @@ _CODES = {  # the controller's error codes -> the protocol's
     "unreachable": ErrorCode.UNREACHABLE,
     "plan": ErrorCode.UNREACHABLE,
     "stopped": ErrorCode.STOPPED,
+    "bus_lost": ErrorCode.STOPPED,  # the controller stops what it can no longer see through
     "bad_request": ErrorCode.ARGUMENTS,
 }
 
@@ -284,6 +285,26 @@ async def run(ctx: ServiceContext) -> None:
                         s.held = m
 
         tg.create_task(follow_truth(), name="skills-truth")
+        controller_events = await ctx.bus.subscribe("events/service/controller")
+
+        async def follow_controller() -> None:
+            """A controller that died or failed will never answer what we asked it: every waiting
+            command is answered `stopped` now (its motions end where the new controller stops them),
+            not with a timeout minutes later."""
+            SE = health_pb2.ServiceEvent
+            async for env in controller_events:
+                ev = env.decode(SE)
+                if ev.kind in (SE.KIND_FAILED, SE.KIND_RESTARTING):  # (not STARTED: the new one's own)
+                    why = ev.text or "restarted"
+                    n = ctx.bus.abandon(
+                        "controller", "stopped", f"the controller failed ({why}); motion stopped"
+                    )
+                    if n:
+                        ctx.log.warning(
+                            "controller failed (%s): %d waiting command(s) answered stopped", why, n
+                        )
+
+        tg.create_task(follow_controller(), name="skills-controller")
         ctx.ready()
 
         async def report() -> None:

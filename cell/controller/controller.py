@@ -16,7 +16,12 @@ because each motion is loaded ahead of time:
   plus planning time, binned to sections) through TrajectorySwitcher, from a
   start state predicted with the paper's formula (Sec. 6.1);
 - a stop switches the robots' registers at once to a stop trajectory planned
-  from their last status.
+  from their last status;
+- the controller watches the data plane (supervise()): a data plane that stops
+  answering, comes back with new (empty) tables, or drops a robot's trajectory
+  because the robot protective-stopped, ends the motions it carried: whoever
+  waits on them gets MotionStopped with the reason at once, and the next
+  motion plans from where the robots are measured to stand.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from cell.bus import Bus, RemoteError
+from cell.bus import Bus, BusError, RemoteError
 from cell.config import CellConfig
 from cell.controller.loop import LoopModel
 from cell.controller.plan import Motion, MotionLimits, PlanError, plan_joint, plan_linear, plan_stop
@@ -51,6 +56,9 @@ STOP_RATE_HZ = 20.0  # TPs of a stop: sections still long enough to fit them to 
 # section's duration, which can be a fraction of a millisecond: then the resting robot's hold stepped
 # on every status packet, a storm of resubmits costing the data plane CPU for nothing
 HOLD_S = 1.0
+STALE_STATUS_NS = 50_000_000  # a robot's status older than this: no command reached it, it stands
+WATCH_S = 0.1  # how often supervise() reads the data plane's registers
+DEAD_S = 0.5  # a data plane silent this long has lost the motions it carried (for us)
 
 log = logging.getLogger("cell.controller")
 
@@ -83,14 +91,20 @@ class Link:
     def __init__(self, dp: DataplaneClient) -> None:
         self.dp = dp
         self.offset_ns = 0
+        self.boot_id: int | None = None  # the data plane's start (DataplaneState.boot_id)
         self._best_rtt = None  # the offset comes from the read with the shortest round trip
         self.rtts: deque[int] = deque(maxlen=32)
 
-    async def state(self, robot_ids: Sequence[int] = ()) -> dataplane_pb2.DataplaneState:
+    async def state(
+        self, robot_ids: Sequence[int] = (), timeout: float | None = None
+    ) -> dataplane_pb2.DataplaneState:
         """The robots' registers and last status (all robots, or those given), no counters."""
         t0 = time.monotonic_ns()
-        st = await self.dp.state(robot_ids, robots_only=True)
+        st = await self.dp.state(robot_ids, robots_only=True, timeout=timeout)
         t1 = time.monotonic_ns()
+        if st.boot_id != self.boot_id:  # a new data plane: its clock may differ, measure afresh
+            self._best_rtt = None
+            self.boot_id = st.boot_id
         rtt = t1 - t0
         self.rtts.append(rtt)
         if self._best_rtt is None or rtt <= self._best_rtt * 1.5:
@@ -151,6 +165,9 @@ class Track:
     task: asyncio.Task | None = None  # the motion being streamed
     inflight: set[asyncio.Task] = field(default_factory=set)  # its updates, which always finish
     starting: asyncio.Lock = field(default_factory=asyncio.Lock)  # motions start one after another
+    stop_reason: str | None = None  # why its last motion ended early (for MotionStopped)
+    generation: int = 0  # bumped when its TPs are lost: bookkeeping of older updates is void
+    epoch: int = 0  # bumped by every stop or loss: an `arrive` waiting across one answers stopped
 
     @property
     def joints(self) -> int:
@@ -189,6 +206,12 @@ class Controller:
         self.last_switch: Switch | None = None
         self.unfinished: dict[int, tuple] = {}  # robot -> the motion a stop interrupted (for resume)
         self.stopped: set[int] = set()  # robots stopped over the Responsive Link, until released
+        self.lost: list[tuple[float, str]] = []  # (monotonic s, reason) of each loss, for the record
+        self._dropped_seen: dict[int, int] = {}  # robot -> the data plane's dropped_ns last seen
+        # set while supervise() has the tables in hand: motions wait for it (a take-over's flush
+        # must not sweep away a motion loaded meanwhile); None: not supervised (tests, benches)
+        self.tables_ready: asyncio.Event | None = None
+        self.pending_flush: set[int] = set()  # robots whose TPs supervise() removes once it can
 
     # --- robots ------------------------------------------------------------------------------
 
@@ -280,7 +303,9 @@ class Controller:
             me = asyncio.current_task()
             if me is not None and me.cancelling():
                 raise
-            raise MotionStopped("the motion under way was stopped") from None
+            raise MotionStopped(track.stop_reason or "the motion under way was stopped") from None
+        except BusError as exc:
+            raise MotionStopped(f"the data plane did not take the motion's next TPs: {exc}") from None
 
     async def arrive(
         self, robot: int | str, tolerance: float = 2e-4, timeout: float = 10.0
@@ -289,8 +314,11 @@ class Controller:
         where they end; its measured joints and their data-plane time.  (V+'s BREAK.)"""
         track = self.track(robot)
         await self.wait_idle(track)
+        epoch = track.epoch
         async with asyncio.timeout(timeout):
             while True:
+                if track.epoch != epoch:  # stopped or lost while we waited for it to settle
+                    raise MotionStopped(track.stop_reason or "the robot was stopped")
                 q, v, t_ns = await self.joints_now(track)
                 goal = track.q_hold if track.q_hold is not None else q
                 if np.abs(q - goal).max() <= tolerance and np.abs(v).max() <= 10 * tolerance:
@@ -395,6 +423,12 @@ class Controller:
         """Load the motions' first episodes and start them at one data-plane time, in one atomic
         update; they stream on in the background."""
         rate = self.fine_hz if fine else self.rate_hz
+        if self.tables_ready is not None and not self.tables_ready.is_set():
+            try:
+                async with asyncio.timeout(self.config.bus.request_timeout_s):
+                    await self.tables_ready.wait()
+            except TimeoutError:
+                raise MotionStopped("the data plane is not answering: no motion can start") from None
         planned = []
         for robot, motion in motions.items():
             track = self.track(robot)
@@ -421,6 +455,11 @@ class Controller:
             if exc.code == "stopped":  # stopped on the link before we heard of it
                 raise MotionStopped(exc.message) from None
             raise
+        except BusError as exc:  # it may yet be applied, late: it must not start unseen
+            tracks = [t for t, _, _ in planned]
+            self.lose(tracks, f"the data plane did not confirm the motion's start: {exc}")
+            self.pending_flush.update(r for t in tracks for r in t.robots)
+            raise MotionStopped(tracks[0].stop_reason or str(exc)) from None
         if reply.now_ns > start:  # in place after the start time: the robots catch up with the plan
             self.late_starts += 1
             log.warning(
@@ -431,6 +470,7 @@ class Controller:
                 self.link.rtt_ns / 1e6,
             )
         for track, seg, hold_id in segments:
+            track.stop_reason = None
             track.loaded = [hold_id, *seg.ids[: self.episode]]
             track.segment = seg
             track.q_hold = None  # moving: where it ends is the segment's end
@@ -448,7 +488,10 @@ class Controller:
             me = asyncio.current_task()
             if me is not None and me.cancelling():
                 raise  # we are cancelled ourselves
-            raise MotionStopped("the motion was stopped or re-planned") from None
+            why = next((t.stop_reason for t in tracks if t.stop_reason), None)
+            raise MotionStopped(why or "the motion was stopped or re-planned") from None
+        except BusError as exc:
+            raise MotionStopped(f"the data plane did not take the motion's next TPs: {exc}") from None
         for track in tracks:
             self.unfinished.pop(track.robot, None)
         return result
@@ -489,15 +532,18 @@ class Controller:
         """One update of a track's TPs with its bookkeeping, carried through even if the caller is
         cancelled (a stop): the controller always knows what it has loaded."""
 
+        generation = track.generation
+
         async def go() -> dataplane_pb2.UpdateReply:
             reply = await self.dp.update(
                 insert=() if insert is None else insert,
                 remove=[(track.robot, i) for i in remove],
                 switches=switches or [],
             )
-            gone = set(remove)
-            new = [] if insert is None else insert.id.tolist()
-            track.loaded = [i for i in track.loaded if i not in gone] + new
+            if track.generation == generation:  # (else the tables it went into are gone)
+                gone = set(remove)
+                new = [] if insert is None else insert.id.tolist()
+                track.loaded = [i for i in track.loaded if i not in gone] + new
             return reply
 
         task = asyncio.ensure_future(go())
@@ -573,6 +619,92 @@ class Controller:
             np.zeros((1, track.joints)),
         )
 
+    # --- the data plane's faults -----------------------------------------------------------------
+
+    async def supervise(self) -> None:
+        """Watch the data plane for as long as the controller runs (see the module's docstring).
+
+        The first answer is a take-over: whatever an earlier controller left in the tables goes
+        (robots in motion get a stop planned from their status).  Every later loss of the tables,
+        for whatever reason, ends the motions they carried and flushes what is left of them."""
+        self.tables_ready = ready = asyncio.Event()
+        boot: int | None = None
+        silent_since: float | None = None
+        gone = False  # the motions were declared lost for silence; flush once it answers again
+        while True:
+            try:
+                st = await self.link.state(timeout=DEAD_S)
+            except BusError:
+                now = time.monotonic()
+                silent_since = silent_since if silent_since is not None else now - DEAD_S
+                if not gone and now - silent_since >= DEAD_S:
+                    gone = True
+                    ready.clear()
+                    self.lose(
+                        list(self.tracks.values()),
+                        f"the data plane stopped answering ({now - silent_since:.1f} s): "
+                        "its motions are lost",
+                    )
+                await asyncio.sleep(WATCH_S)
+                continue
+            silent_since = None
+            if boot is None or st.boot_id != boot or gone:
+                if boot is not None and st.boot_id != boot:
+                    ready.clear()
+                    self.lose(list(self.tracks.values()), "the data plane restarted: its tables were lost")
+                with contextlib.suppress(BusError):
+                    # at our start robots may be moving on an earlier controller's TPs: stop them; after a
+                    # loss they went without commands and stand in a protective stop: hold them there
+                    # (a stop planned from the status registers of a data plane that just came back
+                    # could start from a status it had queued before it went away)
+                    await self.take_over(plan_stops=boot is None and not gone)
+                    boot, gone = st.boot_id, False
+                    self._dropped_seen = {r.robot_id: r.dropped_ns for r in st.robots}
+                    ready.set()
+                await asyncio.sleep(WATCH_S)
+                continue
+            if self.pending_flush:
+                robots = sorted(self.pending_flush)
+                with contextlib.suppress(BusError):
+                    await self.dp.update(flush=robots)
+                    self.pending_flush.difference_update(robots)
+            for r in st.robots:
+                seen = self._dropped_seen.get(r.robot_id, 0)
+                self._dropped_seen[r.robot_id] = r.dropped_ns
+                if r.dropped_ns > seen:
+                    track = self.track(r.robot_id)
+                    why = _DROPPED.get(r.dropped_why, "the data plane dropped its trajectory")
+                    self.lose([track], f"robot {r.robot_id} stopped: {why}")
+                    with contextlib.suppress(BusError):
+                        await self.dp.update(flush=track.robots)
+            await asyncio.sleep(WATCH_S)
+
+    def lose(self, tracks: list[Track], reason: str) -> None:
+        """The tables no longer hold these tracks' TPs: end their motions (MotionStopped(reason) to
+        whoever waits), forget what was loaded, and plan the next motion from the measured state."""
+        hit = [t for t in tracks if (t.task is not None and not t.task.done()) or t.loaded]
+        for t in hit:
+            t.stop_reason = reason
+            t.generation += 1
+            t.epoch += 1
+            if t.task is not None and not t.task.done():
+                t.task.cancel()
+            t.loaded, t.segment, t.q_hold = [], None, None
+        if any(t.stop_reason == reason for t in hit):
+            self.lost.append((time.monotonic(), reason))
+            log.warning("%s (robots %s)", reason, sorted(r for t in hit for r in t.robots))
+
+    async def take_over(self, plan_stops: bool = True) -> None:
+        """Flush every configured robot's TPs (an earlier controller's, or a lost set); with plan_stops,
+        stop the robots that are moving from their measured state, else they hold (commands of 0)."""
+        robots = {r.id for r in self.config.robots} | {r for t in self.tracks.values() for r in t.robots}
+        for t in self.tracks.values():
+            await self._halt(t)
+        if plan_stops:
+            await self.stop(sorted(robots), flush=True)
+        else:
+            await self.dp.update(flush=sorted(robots))
+
     # --- stops ---------------------------------------------------------------------------------
 
     async def stopped_on_link(self, robot: int) -> None:
@@ -580,6 +712,8 @@ class Controller:
         ramps it down): stop streaming its motion (MotionStopped to whoever waits) and unload it."""
         self.stopped.add(robot)
         track = self.track(robot)
+        track.stop_reason = f"robot {robot} was stopped over the Responsive Link"
+        track.epoch += 1
         await self._halt(track)
         if track.loaded:
             with contextlib.suppress(RemoteError):
@@ -594,9 +728,12 @@ class Controller:
         if held:
             raise MotionStopped(f"robot(s) {held} stopped over the Responsive Link: resume first")
 
-    async def stop(self, robots: list[int | str] | None = None) -> dict[int, MotionResult]:
+    async def stop(
+        self, robots: list[int | str] | None = None, flush: bool = False
+    ) -> dict[int, MotionResult]:
         """Protective stop: the robots decelerate within their limits from where they are, taking
-        effect at the data plane's next packet after this update (within one command window)."""
+        effect at the data plane's next packet after this update (within one command window).  With
+        flush, every TP of these robots goes first, also those this controller did not load."""
         if robots is None:
             tracks = list(self.tracks.values())
         else:
@@ -612,6 +749,8 @@ class Controller:
             if status is None or any(r in self.stopped for r in t.robots):
                 continue  # never heard of, or stopping on the data plane's ramp already: nothing to do
             q, v, status_ns = status
+            if self.link.now() - status_ns > STALE_STATUS_NS:  # no news: it stands (its watchdog)
+                v = np.zeros_like(v)
             q_pred = q + v * max(0.0, (apply_ns - status_ns) / 1e9)
             motion = plan_stop(q_pred, v, self.stop_limits(t))
             sections = cut(motion, STOP_RATE_HZ, np.resize(self.gain, t.joints), self.loop(t), v)
@@ -621,10 +760,15 @@ class Controller:
             registers.append((t.robot, ids[0], seg.t_ns(0)))
             remove += [(t.robot, i) for i in t.loaded]
             t.loaded, t.segment, t.q_hold = list(ids), seg, sections.q[-1].copy()
+            t.stop_reason, t.epoch = t.stop_reason or "the robot was stopped", t.epoch + 1
             self._publish_plan(t, seg)
             results[t.robot] = MotionResult(apply_ns, seg.end_ns, sections.q[-1].copy())
-        if batches:
-            reply = await self.dp.update(insert=_concat(batches), remove=remove, registers=registers)
+        flushed = sorted({r for t in tracks for r in t.robots}) if flush else []
+        if flushed:
+            remove = []
+        if batches or flushed:
+            insert = _concat(batches) if batches else ()
+            reply = await self.dp.update(insert=insert, remove=remove, registers=registers, flush=flushed)
             for r in results.values():
                 r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
         return results
@@ -691,6 +835,12 @@ class Controller:
         self._publish_plan(track, new)
         await track.task
         return MotionResult(t_b, new.end_ns, sections.q[-1].copy())
+
+
+_DROPPED = {
+    "watchdog": "it went past its watchdog without commands (protective stop): its trajectory was dropped",
+    "underrun": "its next TPs did not come in time (the controller fell behind): its trajectory was dropped",
+}
 
 
 def _status_of(
