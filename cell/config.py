@@ -134,6 +134,8 @@ class GroupDefaults:
     cpus: list[int] = field(metadata={"check": lambda v: _cpus(v)})
     rt_priority: int = _check(lambda v: _rt_priority(v))
     nice: int = _check(lambda v: _nice(v))
+    bus_pub: str
+    bus_sub: str
 
 
 @dataclass(frozen=True)
@@ -145,12 +147,20 @@ class ProcessGroup:
     cpus: list[int] = field(metadata={"check": lambda v: _cpus(v)})
     rt_priority: int = _check(lambda v: _rt_priority(v))
     nice: int = _check(lambda v: _nice(v))
+    # the bus endpoints this group's services connect to instead of [bus] pub/sub ("": those): a group
+    # that reaches the bus over another path (a WAN link, a delay emulator, a remote host's bus)
+    bus_pub: str
+    bus_sub: str
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         if self.name == MAIN_GROUP:
             raise err("name", f"{MAIN_GROUP!r} is the process of the services no group names")
         if not self.services:
             raise err("services", "must name at least one service")
+        if bool(self.bus_pub) != bool(self.bus_sub):
+            raise err("bus_pub", "bus_pub and bus_sub go together (or neither)")
+        if self.bus_pub and "bus" in self.services:
+            raise err("bus_pub", "the bus service binds [bus] pub/sub itself: no bus override in its group")
 
 
 @dataclass(frozen=True)

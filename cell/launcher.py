@@ -121,6 +121,7 @@ async def service(
     process = process_named(config, group) if group is not None else process_for(config, names or [])
     for problem in sched.place(process.cpus, process.rt_priority, process.nice):
         log.warning("process %r: %s", process.name, problem)
+    config = process.config_for(config)
     specs = load_all(config, process.services)
     stop = asyncio.Event()
     with stop_on_signals(stop):

@@ -25,12 +25,20 @@ class Process:
     cpus: list[int]
     rt_priority: int
     nice: int
+    bus: tuple[str, str] | None = None  # (pub, sub) in place of [bus]'s, if its group says so
 
     @classmethod
     def of(cls, name: str, services: list[str], group: ProcessGroup | None) -> Process:
         if group is None:
             return cls(name, services, [], 0, 0)
-        return cls(name, services, list(group.cpus), group.rt_priority, group.nice)
+        bus = (group.bus_pub, group.bus_sub) if group.bus_pub else None
+        return cls(name, services, list(group.cpus), group.rt_priority, group.nice, bus)
+
+    def config_for(self, config: CellConfig) -> CellConfig:
+        """The config this process's services run with (its bus endpoints, if they differ)."""
+        if self.bus is None:
+            return config
+        return replace(config, bus=replace(config.bus, pub=self.bus[0], sub=self.bus[1]))
 
 
 def _group_of(config: CellConfig) -> dict[str, ProcessGroup]:

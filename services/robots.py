@@ -20,7 +20,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from cell.bus import Bus
+from cell.bus import Bus, RpcFault
 from cell.config import CellConfig, RobotConfig, parse_host_port
 from cell.rlink.events import Reason, RobotState, StateReport
 from cell.rlink.leaf import LeafNode
@@ -204,9 +204,25 @@ async def run(ctx: ServiceContext) -> None:
                 ctx.counters.update(node.counters())
                 await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
 
+        def silence(req: robot_pb2.SilenceRequest) -> robot_pb2.SilenceReply:
+            if not 0 < req.seconds <= 60:
+                raise RpcFault("bad_request", f"seconds must be in (0, 60], got {req.seconds}")
+            try:
+                rid = ctx.config.robot(req.robot).id
+            except KeyError:
+                raise RpcFault("unknown_robot", f"no robot named {req.robot!r}") from None
+            if not any(g.silence(rid, req.seconds) for g in groups):
+                raise RpcFault("unknown_robot", f"robot {req.robot!r} is not emulated here")
+            ctx.log.warning("fault injected: robot %s silent for %.1f s", req.robot, req.seconds)
+            return robot_pb2.SilenceReply(until_ns=time.monotonic_ns() + int(req.seconds * 1e9))
+
+        async def control() -> None:  # (after the packet path is running: it never waits for the bus)
+            await ctx.bus.serve("robots", {"silence": (robot_pb2.SilenceRequest, silence)})
+
         async with asyncio.TaskGroup() as tg:
             for g in groups:
                 tg.create_task(g.run(Publisher(ctx.bus, g, node)), name=f"robots:{g.robots[0].backend}")
+            tg.create_task(control(), name="control")
             tg.create_task(node.run(), name="rlink")
             tg.create_task(announce(), name="announce")
             tg.create_task(report(), name="report")

@@ -108,12 +108,17 @@ async def test_a_killed_process_is_restarted_and_counted_and_the_rest_runs_on(st
     before = {s.name: s.last.pid for s in (await fetch_status(cell.config)).services}
     os.kill(before["echo"], signal.SIGKILL)
     deadline = time.monotonic() + 15
+    seen = []  # (health, whether the heartbeat is the dead process's)
     while time.monotonic() < deadline:
         status = {s.name: s for s in (await fetch_status(cell.config)).services}
         echo = status["echo"]
+        seen.append((echo.health, echo.last.pid == before["echo"]))
         if echo.health == "ok" and echo.last.pid != before["echo"]:
             break
         await asyncio.sleep(0.05)
+    # the dead process's last heartbeat is never shown as ok once the launcher saw it die
+    ghost = [h for h, old in seen if old]
+    assert "backoff" in ghost and "ok" not in ghost[ghost.index("backoff") :], seen
     assert echo.health == "ok" and echo.last.pid != before["echo"]
     assert echo.last.restarts == 1 and "exited with code -9" in echo.last.last_error
     assert status["bus"].last.pid == before["bus"] and status["bus"].last.restarts == 0

@@ -93,6 +93,16 @@ def test_config_show_round_trips() -> None:
             ">= 0",
         ),
         ('[[services.groups]]\nname = "main"\nservices = ["robots"]\n', "services.groups[0].name", "'main'"),
+        (
+            '[[services.groups]]\nname = "far"\nservices = ["controller"]\nbus_pub = "tcp://127.0.0.1:1"\n',
+            "services.groups[0].bus_pub",
+            "go together",
+        ),
+        (
+            '[[services.groups]]\nname = "b"\nservices = ["bus"]\nbus_pub = "tcp://h:1"\nbus_sub = "tcp://h:2"\n',
+            "services.groups[0].bus_pub",
+            "binds [bus] pub/sub itself",
+        ),
         ('[[services.groups]]\nname = "rt"\nservices = []\n', "services.groups[0].services", "at least one"),
         (
             '[[services.groups]]\nname = "a"\nservices = ["robots"]\n'
@@ -173,3 +183,19 @@ def test_the_default_layout_gives_the_packet_path_real_time_processes() -> None:
     assert groups["robots"].services == ["robots", "rlink"] and groups["dataplane"].services == ["dataplane"]
     # the robots preempt the data plane, and both preempt everything else (SCHED_FIFO > normal)
     assert groups["robots"].rt_priority > groups["dataplane"].rt_priority > 0
+
+
+def test_a_group_may_reach_the_bus_through_other_endpoints(tmp_path: Path) -> None:
+    from cell.layout import process_for
+
+    path = tmp_path / "c.toml"
+    path.write_text(
+        '[[services.groups]]\nname = "far"\nservices = ["controller"]\n'
+        'bus_pub = "tcp://10.0.0.2:6000"\nbus_sub = "tcp://10.0.0.2:6001"\n'
+    )
+    config = load_config(path)
+    far = process_for(config, ["controller"]).config_for(config)
+    assert (far.bus.pub, far.bus.sub) == ("tcp://10.0.0.2:6000", "tcp://10.0.0.2:6001")
+    assert far.bus.hwm == config.bus.hwm  # the rest of [bus] as it was
+    near = process_for(config, ["skills"]).config_for(config)
+    assert near.bus == config.bus

@@ -129,6 +129,30 @@ def test_watchdog_stops_then_commands_resume(plant) -> None:
     assert not g.drives.stopped[0]
 
 
+def test_a_silenced_robot_sends_nothing_hears_nothing_and_its_watchdog_stops_it(plant) -> None:
+    dp, make = plant
+    g = make(n=2)
+    ticks(g, 1)
+    command_all(dp, g, 0, [0.5] * 6)
+    command_all(dp, g, 1, [0.5] * 6)
+    ticks(g, 4)  # a fed window: both drives armed and moving
+    status_from(dp)
+    assert g.silence(11, 5.0) and not g.silence(99, 5.0)
+    for _ in range(16):  # both are commanded on; robot 11 hears none of it
+        command_all(dp, g, 0, [0.5] * 6)
+        command_all(dp, g, 1, [0.25] * 6)
+        ticks(g, 1)
+    got = status_from(dp)
+    assert got and {d.robot_id for d in got} == {10}  # and says nothing
+    assert not g.drives.stopped[0] and g.drives.stopped[1]  # its watchdog stopped it
+    g.silent_until[:] = 0.0  # the cable is back: fed again, it resumes
+    for _ in range(8):
+        command_all(dp, g, 1, [0.25] * 6)
+        command_all(dp, g, 0, [0.5] * 6)
+        ticks(g, 1)
+    assert not g.drives.stopped[1] and g.drives.target[1, 0] == pytest.approx(0.25, abs=1e-7)
+
+
 def test_mujoco_group_follows_commands(plant) -> None:
     dp, make = plant
     g = make("mujoco")

@@ -141,6 +141,17 @@ class RobotGroup:
         self.state_time = time.monotonic()
         self.tick_no = -1  # index of the last status period served (period k is due at start + k T)
         self.counters = GroupCounters()
+        # fault injection (`cell chaos`): a robot silent until this monotonic time sends no status and
+        # takes no command, as with its cable pulled; its watchdog goes on running
+        self.silent_until = np.zeros(self.n)
+
+    def silence(self, robot_id: int, seconds: float) -> bool:
+        """Make one robot stop answering for `seconds`; False if it is not in this group."""
+        rows = np.flatnonzero(self.ids == robot_id)
+        if rows.size == 0:
+            return False
+        self.silent_until[rows] = time.monotonic() + seconds
+        return True
 
     def addresses(self) -> list[str]:
         return [f"{h}:{p}" for h, p, *_ in (s.getsockname() for s in self.socks)]
@@ -193,6 +204,9 @@ class RobotGroup:
             rejected["robot"] += int(bad_robot.sum())
             rejected["joint"] += int(bad_joint.sum())
             recs, rows = recs[ok], rows[ok]
+        if n_ok and self.silent_until.any():  # (a silent robot hears nothing)
+            heard = self.silent_until[rows] <= time.monotonic()
+            recs, rows, n_ok = recs[heard], rows[heard], int(heard.sum())
         if n_ok:
             self.drives.command(rows, recs["joint_id"].astype(np.int64), datagram.velocities(recs))
             self.counters.commands += n_ok
@@ -236,7 +250,10 @@ class RobotGroup:
         chunk = self.dof * datagram.SIZE
         buf, addr, c = self._status_bytes, self.dataplane, self.counters
         late_after = deadline + self.period
+        silent = self.silent_until > clock() if self.silent_until.any() else None
         for r, sender in enumerate(self.senders):
+            if silent is not None and silent[r]:
+                continue
             sent = sender.send(buf[r * chunk : (r + 1) * chunk], addr)
             c.status_sent += sent
             c.status_unsent += self.dof - sent

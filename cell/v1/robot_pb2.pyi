@@ -86,3 +86,17 @@ class RobotEvent(_message.Message):
     text: str
     t_ns: int
     def __init__(self, robot_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[RobotEvent.Kind, str]] = ..., text: _Optional[str] = ..., t_ns: _Optional[int] = ...) -> None: ...
+
+class SilenceRequest(_message.Message):
+    __slots__ = ("robot", "seconds")
+    ROBOT_FIELD_NUMBER: _ClassVar[int]
+    SECONDS_FIELD_NUMBER: _ClassVar[int]
+    robot: str
+    seconds: float
+    def __init__(self, robot: _Optional[str] = ..., seconds: _Optional[float] = ...) -> None: ...
+
+class SilenceReply(_message.Message):
+    __slots__ = ("until_ns",)
+    UNTIL_NS_FIELD_NUMBER: _ClassVar[int]
+    until_ns: int
+    def __init__(self, until_ns: _Optional[int] = ...) -> None: ...

@@ -1,0 +1,1 @@
+"""Fault campaigns against a running cell (`cell chaos`): cell.chaos.faults, cell.chaos.campaign."""

@@ -1,0 +1,496 @@
+"""`cell chaos`: the default cell in --processes mode, driven through motions while faults hit it.
+
+For each fault (cell.chaos.faults) the campaign waits until the cell is
+healthy and the robots rest, starts a motion on every robot through its
+skill server (a move and a `break` that waits for the arrival), injects the
+fault mid-motion, and watches: what each waiting command is answered and
+when, the robots' true joint states and protective stops (from the bus), the
+counters and restarts in `cell status`, and whether motions work again.  It
+then judges each promise of faults.PROMISES that applies and reports, per
+fault, whether all held, the time to detect (the first reaction: a stop, a
+`stopped` answer, a status change) and the time to recover (until a motion
+on every robot worked again).
+
+The controller reaches the bus through a DelayLink run here (its process
+group's bus override), so its link can be slowed and made lossy on demand.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import socket
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from cell.bench.cellproc import free_port, running_cell
+from cell.bus import Bus, BusError
+from cell.bus.delay import DelayLink
+from cell.chaos.faults import PROMISES, Action, Fault, catalogue
+from cell.config import CellConfig, load_config
+from cell.launcher import fetch_status
+from cell.skills.client import ConnectionLost, MoveJoints, RobotClient, SetSpeed, SkillError
+from cell.v1 import health_pb2, robot_pb2
+
+log = logging.getLogger("cell.chaos")
+
+REST = 2e-3  # rad/s: a robot whose every joint is slower than this is at rest
+LUNGE = 2e-3  # rad: moving further than this from where it came to rest is an unplanned motion
+ARRIVED = 2e-3  # rad: a motion answered done ended within this of its goal
+LINK = (0.050, 0.020, 0.05)  # the controller's slow link: delay, jitter (s), loss
+SWING = np.array([0.6, -0.25, 0.25, 0.0, 0.0, 0.5])  # rad: the motion driven back and forth
+
+
+@dataclass
+class Outcome:
+    """What one waiting command (a move and its break) was answered."""
+
+    robot: str
+    status: str  # done, stopped, failed, lost (connection), timeout
+    text: str
+    after_s: float  # from the fault (negative: before it)
+
+
+@dataclass
+class FaultResult:
+    name: str
+    held: dict[str, bool]
+    detail: dict[str, str]
+    detect_ms: float | None
+    recover_s: float | None
+    figures: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return all(self.held.values())
+
+
+class Observer:
+    """The robots' truth and events, and the services' events, as they come over the bus."""
+
+    def __init__(self, bus: Bus, robots: list[str]) -> None:
+        self.bus = bus
+        self.truth: dict[str, deque[tuple[int, float, np.ndarray, bool]]] = {
+            r: deque(maxlen=20_000) for r in robots
+        }
+        self.stops: list[tuple[int, str]] = []  # (t_ns, robot) of protective stops
+        self.service_events: list[tuple[int, str, int, str]] = []
+        self._sampled = asyncio.Event()
+
+    async def sample(self) -> None:
+        """Until the next truth sample."""
+        self._sampled.clear()
+        await self._sampled.wait()
+
+    async def run(self) -> None:
+        subs = await asyncio.gather(
+            self.bus.subscribe("truth/"),
+            self.bus.subscribe("events/robot/"),
+            self.bus.subscribe("events/service/"),
+        )
+        truth, robot_events, service_events = subs
+
+        async def follow_truth() -> None:
+            while True:
+                for env in await truth.recv_batch():
+                    m = env.decode(robot_pb2.RobotTruth)
+                    name = env.topic.removeprefix("truth/")
+                    if name in self.truth:
+                        qd = np.abs(np.array(m.qd)).max() if m.qd else 0.0
+                        self.truth[name].append((m.t_ns, float(qd), np.array(m.q), m.stopped))
+                self._sampled.set()
+
+        async def follow_robots() -> None:
+            RE = robot_pb2.RobotEvent
+            async for env in robot_events:
+                ev = env.decode(RE)
+                if ev.kind == RE.KIND_PROTECTIVE_STOP:
+                    self.stops.append((ev.t_ns, ev.name))
+
+        async def follow_services() -> None:
+            async for env in service_events:
+                ev = env.decode(health_pb2.ServiceEvent)
+                self.service_events.append((time.monotonic_ns(), ev.service, ev.kind, ev.text))
+
+        async with asyncio.TaskGroup() as tg:
+            for f in (follow_truth, follow_robots, follow_services):
+                tg.create_task(f())
+
+    def latest(self, robot: str) -> tuple[int, float, np.ndarray, bool] | None:
+        t = self.truth[robot]
+        return t[-1] if t else None
+
+    def at_rest(self, robot: str, fresh_ns: int = 200_000_000) -> bool:
+        last = self.latest(robot)
+        return last is not None and time.monotonic_ns() - last[0] < fresh_ns and last[1] < REST
+
+    def lunge(self, robot: str, t0: int, t1: int) -> tuple[float, float, float]:
+        """After the robot first came to rest in [t0, t1]: how far it went from there (rad, the largest
+        joint), its fastest joint speed (rad/s), and when that was (s after t0); zeros if it never rested."""
+        samples = [(t, qd, q) for t, qd, q, _ in self.truth[robot] if t0 <= t <= t1]
+        rested = next((i for i, (_, qd, _) in enumerate(samples) if qd < REST), None)
+        if rested is None or rested == len(samples) - 1:
+            return 0.0, 0.0, 0.0
+        q_rest = samples[rested][2]
+        after = samples[rested + 1 :]
+        moved = max(float(np.abs(q - q_rest).max()) for _, _, q in after)
+        t, qd, _ = max(after, key=lambda s: s[1])
+        return moved, qd, (t - t0) / 1e9
+
+
+class Campaign:
+    def __init__(self, config: CellConfig, link: DelayLink, observer: Observer) -> None:
+        self.config = config
+        self.link = link
+        self.obs = observer
+        self.robots = [r.name for r in config.robots]
+        self.home = {r.name: np.array(r.q0, np.float64) for r in config.robots}
+        self.window_ms = {r.name: 1e3 / r.command_hz for r in config.robots}
+        self.watchdog = {r.name: r.watchdog_windows for r in config.robots}
+        self.out = {r: False for r in self.robots}  # which end of the swing each robot is at
+        self.last_status: health_pb2.CellStatus | None = None
+
+    # --- the cell's state ------------------------------------------------------------------------
+
+    async def status(self, timeout: float = 1.0) -> health_pb2.CellStatus | None:
+        with contextlib.suppress(BusError, OSError):
+            return await fetch_status(self.config, timeout=timeout)
+        return None
+
+    async def healthy(self, timeout: float = 60.0) -> health_pb2.CellStatus:
+        """Until every service is ok and every robot rests; the status then."""
+        want = set(self.config.services.run)
+        async with asyncio.timeout(timeout):
+            while True:
+                st = self.last_status = await self.status()
+                healthy = st is not None and want <= {s.name for s in st.services if s.health == "ok"}
+                if healthy and all(self.obs.at_rest(r) for r in self.robots):
+                    return st  # type: ignore[return-value]
+                await asyncio.sleep(0.1)
+
+    # --- driving -----------------------------------------------------------------------------------
+
+    def goal(self, robot: str) -> np.ndarray:
+        return self.home[robot] + (0.0 if self.out[robot] else 1.0) * SWING
+
+    async def drive(self, robot: str, goal: np.ndarray, t_fault: list[int], speed: float = 60.0) -> Outcome:
+        """A move and its break on a fresh connection to the robot's skill server; what it was answered."""
+        rc = self.config.robot(robot)
+        client = RobotClient(robot, self.config.skills.host, rc.skill_port)
+
+        def since() -> float:
+            return (time.monotonic_ns() - t_fault[0]) / 1e9 if t_fault else -1.0
+
+        try:
+            async with asyncio.timeout(30.0):
+                await client.connect(timeout=10.0)
+                try:
+                    await client.cmdexec(SetSpeed(speed))
+                    await client.cmdexec(MoveJoints(tuple(np.degrees(goal).tolist())))
+                finally:
+                    await client.close()
+        except SkillError as exc:
+            return Outcome(robot, exc.code, f"{exc.skill}: {exc.text}", since())
+        except ConnectionLost as exc:
+            return Outcome(robot, "lost", str(exc), since())
+        except TimeoutError:
+            return Outcome(robot, "timeout", "no answer within 30 s", since())
+        except OSError as exc:
+            return Outcome(robot, "lost", f"could not connect: {exc}", since())
+        self.out[robot] = not self.out[robot]
+        return Outcome(robot, "done", "", since())
+
+    async def moving(self, timeout: float = 3.0) -> None:
+        """Until every robot is under way (or timeout)."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout):
+                while not all((x := self.obs.latest(r)) is not None and x[1] > 0.1 for r in self.robots):
+                    await self.obs.sample()
+
+    # --- faults ------------------------------------------------------------------------------------
+
+    def pids(self, st: health_pb2.CellStatus) -> dict[str, int]:
+        return {s.name: s.last.pid for s in st.services if s.last.pid}
+
+    async def inject(self, action: Action, pids: dict[str, int]) -> None:
+        """Start the action; it ends by itself after its seconds (see end())."""
+        if action.kind == "kill":
+            os.kill(pids[action.target], signal.SIGKILL)
+        elif action.kind == "stop":
+            os.kill(pids[action.target], signal.SIGSTOP)
+        elif action.kind == "link":
+            self.link.delay, self.link.jitter, self.link.loss = LINK
+        elif action.kind == "silence":
+            async with Bus.connect(self.config.bus, "chaos-silence") as bus:
+                await bus.request(
+                    "robots", "silence", robot_pb2.SilenceRequest(robot=action.target, seconds=action.seconds)
+                )
+
+    def end(self, action: Action, pids: dict[str, int]) -> None:
+        if action.kind == "stop":
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pids[action.target], signal.SIGCONT)
+        elif action.kind == "link":
+            self.link.delay = self.link.jitter = self.link.loss = 0.0
+
+    async def run(self, fault: Fault) -> FaultResult:
+        held: dict[str, bool] = {}
+        detail: dict[str, str] = {}
+        before = await self.healthy()
+        pids = self.pids(before)
+        counters_before = _counters(before)
+        restarts_before = {s.name: s.last.restarts for s in before.services}
+        t_fault: list[int] = []
+        slow_link = any(a.kind == "link" for a in fault.actions)
+        others = [a for a in fault.actions if a.kind != "link"]
+        if slow_link:  # motions planned over the slow link: it comes first
+            for a in fault.actions:
+                if a.kind == "link":
+                    await self.inject(a, pids)
+        goals = {r: self.goal(r) for r in self.robots}
+        drives = [asyncio.ensure_future(self.drive(r, goals[r], t_fault)) for r in self.robots]
+        await self.moving()
+        if not others:
+            t_fault.append(time.monotonic_ns())
+        stale_seen: set[str] = set()
+        try:
+            if others:
+                t_fault.append(time.monotonic_ns())
+                for a in others:
+                    await self.inject(a, pids)
+            deadline = time.monotonic() + fault.seconds
+            outcomes: list[Outcome] = []
+            pending = set(drives)
+            ended = False
+            while pending or not ended:
+                if not ended and time.monotonic() >= deadline:
+                    for a in fault.actions:
+                        self.end(a, pids)
+                    ended = True
+                wait = 0.1 if ended else min(0.1, max(0.0, deadline - time.monotonic()))
+                if pending:
+                    done, pending = await asyncio.wait(pending, timeout=wait)
+                    outcomes += [d.result() for d in done]
+                else:
+                    await asyncio.sleep(wait)
+                hanging = not ended and any(a.kind == "stop" for a in others)
+                if hanging:
+                    if (st := await self.status(timeout=0.3)) is not None:
+                        stale_seen |= {s.name for s in st.services if s.health == "stale"}
+                    else:
+                        stale_seen.add("bus")  # no status at all: the bus is down
+        finally:
+            for a in fault.actions:
+                self.end(a, pids)
+        t_end = time.monotonic_ns()
+        # recovery: every service ok again, then a motion on every robot (back where each came from)
+        recovered_st = None
+        with contextlib.suppress(TimeoutError):
+            recovered_st = await self.healthy(timeout=60.0)
+        t_check = time.monotonic_ns()
+        back = await asyncio.gather(*(self.drive(r, self.goal(r), [t_check]) for r in self.robots))
+        t_recovered = time.monotonic_ns()
+        t0 = t_fault[0]
+
+        # --- judgement -----------------------------------------------------------------------------
+        killed_skills = any(a.kind == "kill" and a.target == "skills" for a in fault.actions)
+        ok_status = {"done", "stopped"} | ({"lost"} if killed_skills else set())
+        bad = [o for o in outcomes if o.status not in ok_status]
+        held["answered"] = not bad and len(outcomes) == len(self.robots)
+        detail["answered"] = "; ".join(
+            f"{o.robot}: {o.status} after {o.after_s:.2f} s {o.text}" for o in outcomes
+        )
+        if "answered_1s" in fault.promises:
+            stopped = [o for o in outcomes if o.status == "stopped"]
+            late = [o.robot for o in stopped if o.after_s > 1.0]
+            held["answered_1s"] = not late and (bool(stopped) or killed_skills)
+            detail["answered_1s"] = f"late: {late}" if late else ("" if stopped else "none answered stopped")
+        # completed: done means at the goal; a lost connection (skills killed) must still end at the goal
+        # or be at rest where a stop left it (the controller's new start stops it)
+        far = []
+        for o in outcomes:
+            if o.status in ("done", "lost"):
+                last = self.obs.latest(o.robot)
+                q_at = self._q_near(o.robot, t_end) if last is not None else None
+                if o.status == "done" and (q_at is None or np.abs(q_at - goals[o.robot]).max() > ARRIVED):
+                    far.append(o.robot)
+            if o.status == "lost":  # whether it moved is for us to find out: it went on to its goal
+                self.out[o.robot] = np.abs(self._q_near(o.robot, t_check) - goals[o.robot]).max() < ARRIVED
+        held["completed"] = not far
+        detail["completed"] = f"done but not at the goal: {far}" if far else ""
+        # no lunge between the fault and the recovery check
+        lunge_at = {r: self.obs.lunge(r, t0, t_check) for r in self.robots}
+        lunges = {r: moved for r, (moved, _, _) in lunge_at.items()}
+        held["no_lunge"] = all(v < LUNGE for v in lunges.values())
+        detail["no_lunge"] = ", ".join(
+            f"{r} moved {m * 1e3:.2f} mrad (up to {v:.3f} rad/s at {t:.2f} s)"
+            for r, (m, v, t) in lunge_at.items()
+        )
+        # the robots' protective stops after the fault
+        stops = [(t - t0) / 1e6 for t, r in self.obs.stops if t0 <= t <= t_check]
+        if "stop_windows" in fault.promises:
+            bound = max((self.watchdog[r] + 1) * self.window_ms[r] for r in self.robots)
+            first = {}
+            for t, r in self.obs.stops:
+                if t0 <= t <= t_check:
+                    first.setdefault(r, (t - t0) / 1e6)
+            held["stop_windows"] = len(first) == len(self.robots) and max(first.values()) <= bound
+            detail["stop_windows"] = f"stops after {sorted(first.values())} ms (bound {bound:.0f} ms)"
+        after = recovered_st
+        if "packet_path" in fault.promises:
+            c0, c1 = counters_before, _counters(after) if after is not None else {}
+            grew = {
+                k: c1.get(k, 0.0) - c0.get(k, 0.0)
+                for k in ("robots.protective_stops", "dataplane.dropped")
+                if c1.get(k, 0.0) != c0.get(k, 0.0)
+            }
+            held["packet_path"] = not grew and not stops
+            detail["packet_path"] = f"grew: {grew}" if grew else ""
+        if "status" in fault.promises:
+            held["status"], detail["status"] = self._status_held(fault, after, restarts_before, stale_seen)
+        works = [o for o in back if o.status == "done"]
+        held["recovered"] = recovered_st is not None and len(works) == len(self.robots)
+        detail["recovered"] = "; ".join(f"{o.robot}: {o.status} {o.text}" for o in back if o.status != "done")
+        # the first reaction: a stopped answer, a protective stop, or a service event
+        reactions = [o.after_s * 1e3 for o in outcomes if o.status == "stopped"] + stops
+        reactions += [(t - t0) / 1e6 for t, _, _, _ in self.obs.service_events if t >= t0]
+        detect = min(reactions) if reactions else None
+        recover = (t_recovered - t0) / 1e9
+        figures = {
+            "stop_ms_max": max(stops) if stops else 0.0,
+            "moved_after_rest_mrad": max(lunges.values()) * 1e3,
+        }
+        return FaultResult(fault.name, held, detail, detect, recover, figures)
+
+    def _q_near(self, robot: str, t_ns: int) -> np.ndarray:
+        """The robot's joints at the last truth sample before t_ns."""
+        best = None
+        for t, _, q, _ in self.obs.truth[robot]:
+            if t <= t_ns:
+                best = q
+        return best if best is not None else np.full(6, np.nan)
+
+    def _status_held(
+        self,
+        fault: Fault,
+        st: health_pb2.CellStatus | None,
+        restarts_before: dict[str, int],
+        stale_seen: set[str],
+    ) -> tuple[bool, str]:
+        if st is None:
+            last = self.last_status
+            sick = [f"{s.name} {s.health}" for s in last.services if s.health != "ok"] if last else ["none"]
+            rest = [r for r in self.robots if not self.obs.at_rest(r)]
+            return False, f"the cell did not come back to health: {sick}, not at rest: {rest}"
+        by = {s.name: s for s in st.services}
+        notes, ok = [], True
+        for a in fault.actions:
+            s = by.get(a.target)
+            if s is None:
+                continue
+            if a.kind == "kill":
+                grew = s.last.restarts - restarts_before.get(a.target, 0)
+                good = grew >= 1 and bool(s.last.last_error) and s.health == "ok"
+                notes.append(f"{a.target}: restarts +{grew}, last error {s.last.last_error!r}")
+            elif a.kind == "stop" and a.target == "bus":  # status goes over the bus: none comes
+                good = "bus" in stale_seen and s.health == "ok"
+                notes.append("bus: status unavailable while it hung" if good else "bus: status answered?")
+            elif a.kind == "stop":
+                good = a.target in stale_seen and s.health == "ok"
+                notes.append(f"{a.target}: {'stale seen' if a.target in stale_seen else 'never seen stale'}")
+            else:
+                continue
+            ok = ok and good
+        return ok, "; ".join(notes)
+
+
+def _counters(st: health_pb2.CellStatus | None) -> dict[str, float]:
+    if st is None:
+        return {}
+    return {f"{s.name}.{k}": v for s in st.services for k, v in s.last.counters.items()}
+
+
+def _cell_overrides(link_pub: str, link_sub: str) -> dict[str, Any]:
+    """The default cell, one process per service, its controller behind the campaign's link."""
+    base = load_config(None)
+    groups = [asdict(g) for g in base.services.groups]
+    groups.append(
+        {"name": "remote-controller", "services": ["controller"], "bus_pub": link_pub, "bus_sub": link_sub}
+    )
+    robots = [{**asdict(r), "skill_port": free_port()} for r in base.robots]
+    return {
+        "services": {"layout": "each", "groups": groups},
+        "robots": robots,
+    }
+
+
+async def campaign(rounds: int = 1, only: list[str] | None = None, log_fn=print) -> dict[str, Any]:
+    """Run the campaign; the figures (faults, held, failed, per fault) as a dict."""
+    bus_pub, bus_sub = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    link_pub, link_sub = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    overrides = {"bus": {"pub": bus_pub, "sub": bus_sub}, **_cell_overrides(link_pub, link_sub)}
+    base_bus = load_config(None).bus
+    link = DelayLink(replace(base_bus, pub=bus_pub, sub=bus_sub), link_pub, link_sub, 0.0, 0.0, seed=1)
+    results: list[FaultResult] = []
+    async with asyncio.TaskGroup() as tg:
+        link_task = tg.create_task(link.run(), name="controller-link")
+        try:
+            async with running_cell(overrides) as config, Bus.connect(config.bus, "chaos", wait=False) as bus:
+                obs = Observer(bus, [r.name for r in config.robots])
+                watch = tg.create_task(obs.run(), name="observer")
+                try:
+                    camp = Campaign(config, link, obs)
+                    faults = catalogue(camp.robots)
+                    if only:
+                        faults = [f for f in faults if any(o in f.name for o in only)]
+                    for k in range(rounds):
+                        for f in faults:
+                            r = await camp.run(f)
+                            results.append(r)
+                            log_fn(_row(k + 1, r))
+                finally:
+                    watch.cancel()
+        finally:
+            link_task.cancel()
+    return summary(results, rounds)
+
+
+def _row(round_no: int, r: FaultResult) -> str:
+    failed = [k for k, v in r.held.items() if not v]
+    det = "-" if r.detect_ms is None else f"{r.detect_ms:.0f} ms"
+    rec = "-" if r.recover_s is None else f"{r.recover_s:.1f} s"
+    why = "; ".join(f"{k}: {r.detail.get(k, '')}" for k in failed)
+    return f"{round_no:>2} {r.name:<28} {'held' if r.ok else 'FAILED':<7} {det:>8} {rec:>8}  {why}"
+
+
+def summary(results: list[FaultResult], rounds: int) -> dict[str, Any]:
+    faults = len(results)
+    held = sum(r.ok for r in results)
+    per: dict[str, Any] = {}
+    for r in results:
+        e = per.setdefault(r.name, {"runs": 0, "held": 0, "detect_ms": [], "recover_s": [], "failed": []})
+        e["runs"] += 1
+        e["held"] += r.ok
+        for k, v in r.figures.items():
+            e[k] = round(max(e.get(k, 0.0), v), 2)
+        if r.detect_ms is not None:
+            e["detect_ms"].append(round(r.detect_ms, 1))
+        if r.recover_s is not None:
+            e["recover_s"].append(round(r.recover_s, 2))
+        e["failed"] += [k for k, v in r.held.items() if not v]
+    return {
+        "faults": faults,
+        "held": held,
+        "failed": faults - held,
+        "rounds": rounds,
+        "promises": PROMISES,
+        "per_fault": per,
+        "host": socket.gethostname(),
+    }

@@ -1,0 +1,100 @@
+"""The faults a chaos campaign injects, and what the cell promises under each.
+
+A fault acts on the running cell from outside, as the world would: a signal
+to a service's process (SIGKILL: it dies; SIGSTOP ... SIGCONT: it hangs),
+the bus forwarder frozen for seconds, delay and loss on the controller's bus
+link (cell.bus.delay), a robot that stops answering (robots.silence).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+# services on the packet path: the robots' commands stop when one of them does
+PACKET_PATH = ("dataplane", "robots")
+# the services of the default cell a campaign faults, in the order it faults them
+SERVICES = ("bus", "dataplane", "robots", "controller", "skills", "snp", "recorder", "rlink", "vision")
+
+
+@dataclass(frozen=True)
+class Action:
+    """One thing done to the cell: kind is kill, stop (SIGSTOP for `seconds`), link (the controller's
+    bus link slowed for `seconds`) or silence (a robot mute for `seconds`)."""
+
+    kind: str
+    target: str  # a service, or for silence a robot's name
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class Fault:
+    name: str
+    actions: tuple[Action, ...]
+    promises: tuple[str, ...]  # keys of PROMISES that apply
+    figures: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def services(self) -> set[str]:
+        return {a.target for a in self.actions if a.kind in ("kill", "stop")}
+
+    @property
+    def seconds(self) -> float:
+        return max((a.seconds for a in self.actions), default=0.0)
+
+    @property
+    def touches_packet_path(self) -> bool:
+        return bool(self.services & set(PACKET_PATH)) or any(a.kind == "silence" for a in self.actions)
+
+
+PROMISES = {
+    "answered": "every waiting command answered done or error:stopped:<reason>; none timed out or failed",
+    "answered_1s": "waiting commands answered error:stopped within 1 s of the fault",
+    "completed": "a command answered done really ended at its goal (nothing acknowledged is lost)",
+    "packet_path": "the packet path ran on: no protective stop, no trajectory dropped",
+    "stop_windows": "robots on a stop within the watchdog's windows (+1 for the one under way)",
+    "no_lunge": "no unplanned motion: once at rest after the fault, robots stay at rest",
+    "status": "cell status shows the restart (count, last error) or the hang (stale), then ok",
+    "recovered": "motions work again on every robot after the fault",
+}
+_BASE = ("answered", "completed", "no_lunge", "recovered")
+
+
+def _promises(actions: tuple[Action, ...]) -> tuple[str, ...]:
+    out = list(_BASE)
+    services = {a.target for a in actions if a.kind in ("kill", "stop")}
+    silent = any(a.kind == "silence" for a in actions)
+    if services & set(PACKET_PATH) or silent:
+        out += ["answered_1s"]
+    if services & {"dataplane"} and not services & {"robots"}:
+        out += ["stop_windows"]
+    if not services & {*PACKET_PATH, "rlink"} and not silent:
+        out += ["packet_path"]
+    if services:
+        out += ["status"]
+    return tuple(out)
+
+
+def fault(name: str, *actions: Action) -> Fault:
+    return Fault(name, actions, _promises(actions))
+
+
+def catalogue(
+    robots: list[str], hang_s: float = 3.5, bus_gone_s: float = 5.0, link_s: float = 4.0
+) -> list[Fault]:
+    """Every fault of a campaign round: each service killed, each hung, the bus gone, the controller's
+    link slow and lossy, a robot mute; then a few of them together."""
+    out = [fault(f"kill:{s}", Action("kill", s)) for s in SERVICES]
+    out += [fault(f"hang:{s}", Action("stop", s, hang_s)) for s in SERVICES if s != "bus"]
+    out.append(fault("bus-gone", Action("stop", "bus", bus_gone_s)))
+    out.append(fault("controller-link", Action("link", "controller", link_s)))
+    out.append(fault(f"mute:{robots[-1]}", Action("silence", robots[-1], hang_s)))
+    out += [
+        fault("kill:dataplane+controller", Action("kill", "dataplane"), Action("kill", "controller")),
+        fault(
+            "bus-gone+controller-link",
+            Action("stop", "bus", bus_gone_s),
+            Action("link", "controller", link_s),
+        ),
+        fault("kill:skills+mute", Action("kill", "skills"), Action("silence", robots[-1], hang_s)),
+    ]
+    return out
