@@ -33,6 +33,7 @@ class StatusRegistry:
         self._process_restarts: dict[str, tuple[int, str]] = {}  # process -> (restarts, why)
         self._bus: Bus | None = None
         self._dead_pid: dict[str, int] = {}  # service -> the pid of its process that died
+        self._carried: dict[str, int] = {}  # service -> restarts counted by processes that died since
 
     def process_restarted(self, process: str, why: str) -> None:
         """A process the launcher runs died and was started again: its services' restarts count it
@@ -40,8 +41,9 @@ class StatusRegistry:
         n, _ = self._process_restarts.get(process, (0, ""))
         self._process_restarts[process] = (n + 1, why)
         for name, (hb, _) in self._last.items():
-            if hb.process == process:  # down until a heartbeat from its new process says otherwise
-                self._dead_pid[name] = hb.pid
+            if hb.process == process and self._dead_pid.get(name) != hb.pid:
+                self._dead_pid[name] = hb.pid  # down until a heartbeat from its new process says otherwise
+                self._carried[name] = self._carried.get(name, 0) + hb.restarts  # its in-process restarts
         if self._bus is not None:  # its services' supervisor died with it: say so in its stead, now
             for name, (hb, _) in self._last.items():
                 if hb.process == process:
@@ -68,11 +70,14 @@ class StatusRegistry:
                 n, why = self._process_restarts[hb.process]
                 entry.last.restarts += n
                 entry.last.last_error = entry.last.last_error or why
+            ghost = self._dead_pid.get(name) == hb.pid
+            # restarts counted by processes that died (a ghost's own count is in it already)
+            entry.last.restarts += self._carried.get(name, 0) - (hb.restarts if ghost else 0)
             entry.heartbeat_age_s = now - at
             stale = entry.heartbeat_age_s > STALE_AFTER * max(hb.interval_s, 0.1)
             alive = hb.state not in (health_pb2.SERVICE_STATE_FAILED, health_pb2.SERVICE_STATE_STOPPED)
             entry.health = "stale" if stale and alive else _HEALTH.get(hb.state, "unknown")
-            if self._dead_pid.get(name) == hb.pid:  # its process died: its last heartbeat is a ghost's
+            if ghost:  # its process died: its last heartbeat is a ghost's
                 entry.health = "backoff"
                 entry.last.state = health_pb2.SERVICE_STATE_BACKOFF
         return out

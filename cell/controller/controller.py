@@ -838,6 +838,7 @@ class Controller:
 
 
 _DROPPED = {
+    "stop": "it was stopped over the Responsive Link (an e-stop, a stop, or a node's beacon watchdog)",
     "watchdog": "it went past its watchdog without commands (protective stop): its trajectory was dropped",
     "underrun": "its next TPs did not come in time (the controller fell behind): its trajectory was dropped",
 }

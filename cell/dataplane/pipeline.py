@@ -43,7 +43,7 @@ from cell.robot.datagram import SCALE, Kind
 INPUT_LIMIT = 1 << 60
 TERM_LIMIT = 1 << 60
 STALL_DROP_NS = 50_000_000  # an underrun this long ends the trajectory (catching up would be a lunge)
-DROP_WATCHDOG, DROP_UNDERRUN = 1, 2  # why a trajectory was dropped (Tables.reg_dropped_why)
+DROP_WATCHDOG, DROP_UNDERRUN, DROP_STOP = 1, 2, 3  # why a trajectory was dropped (Tables.reg_dropped_why)
 
 
 class TransformBank:
