@@ -305,6 +305,23 @@ def _cmd_teleop(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_keys_generate(args: argparse.Namespace) -> int:
+    from cell.bus import curve
+
+    bad = [c for c in args.client if not c.replace("-", "").replace("_", "").isalnum() or c == curve.SERVER]
+    if bad:
+        print(
+            f"error: bad client name {bad[0]!r} (letters, digits, - and _; not {curve.SERVER!r})",
+            file=sys.stderr,
+        )
+        return 2
+    written = curve.generate(args.dir, args.client)
+    for path in written:
+        print(path)
+    print(f"{len(written)} file(s) in {args.dir}; the .key_secret files are private (mode 600)")
+    return 0
+
+
 def _cmd_chaos(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -462,6 +479,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="also print the figures as one JSON line, last")
     p.set_defaults(func=_cmd_chaos)
+
+    p = sub.add_parser("keys", help="CurveZMQ keys for a bus that leaves loopback")
+    ksub = p.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
+    q = ksub.add_parser(
+        "generate",
+        help="the forwarder's certificate and one per client, each client allow-listed",
+        description="Writes DIR/server.key(_secret), DIR/<client>.key(_secret) and DIR/allowed/<client>.key "
+        "(cell/bus/curve.py). Existing certificates are kept: run it again to add clients. Then set "
+        "[bus] curve = true, keys = DIR and client = NAME on every host.",
+    )
+    q.add_argument("--dir", default="keys", help="where (default: keys)")
+    q.add_argument(
+        "--client", nargs="+", default=["cell"], metavar="NAME", help="client names (default: cell)"
+    )
+    q.set_defaults(func=_cmd_keys_generate)
 
     p = sub.add_parser("config", help="inspect the configuration")
     csub = p.add_subparsers(dest="config_command", required=True, metavar="ACTION")

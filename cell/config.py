@@ -118,10 +118,15 @@ class BusConfig:
     hwm: int = _check(_positive)
     connect_timeout_s: float = _check(_positive)
     request_timeout_s: float = _check(_positive)
+    curve: bool  # CurveZMQ on every bus connection (cell/bus/curve.py)
+    keys: str  # the directory `cell keys generate` wrote
+    client: str = _check(_name)  # this host's client certificate in it
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         if self.pub == self.sub:
             raise err("sub", "must differ from bus.pub")
+        if self.curve and not self.keys:
+            raise err("keys", "curve = true needs the keys directory (`cell keys generate`)")
 
 
 MAIN_GROUP = "main"  # the process of every service no [[services.groups]] entry names

@@ -283,7 +283,9 @@ async def test_junk_on_a_served_topic_is_counted_and_the_server_still_answers(fo
         assert server.served == 1  # junk was never mistaken for a request
 
 
-async def test_a_patient_node_starts_without_a_forwarder_and_joins_when_one_comes(bus_config: BusConfig) -> None:
+async def test_a_patient_node_starts_without_a_forwarder_and_joins_when_one_comes(
+    bus_config: BusConfig,
+) -> None:
     cfg = replace(bus_config, connect_timeout_s=0.2)
     t0 = time.monotonic()
     async with Bus.connect(cfg, "early", wait=False) as early:
@@ -314,7 +316,11 @@ async def test_abandon_answers_waiting_requests_at_once(forwarder: BusConfig) ->
         for w in waiting:
             with pytest.raises(RemoteError) as info:
                 await w
-            assert (info.value.code, info.value.message, info.value.method) == ("stopped", "the service died", "move")
+            assert (info.value.code, info.value.message, info.value.method) == (
+                "stopped",
+                "the service died",
+                "move",
+            )
         assert not other.done()  # only the dead service's requests
         other.cancel()
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import zmq
 
+from cell.bus import curve
 from cell.bus.node import BusError, readable, zmq_context
 from cell.config import BusConfig
 
@@ -48,14 +49,20 @@ class Forwarder:
         self._thread: threading.Thread | None = None
         self._control_ep = f"inproc://cell-forwarder-{next(_ids)}"
         self._ctl = None
+        self._auth = None
 
     def start(self) -> None:
         """Bind both endpoints (BusError if taken) and start forwarding."""
         ctx = zmq_context()
+        if self.config.curve:  # the allow-list's guard comes first: no connection gets in before it
+            self._auth = curve.start_authenticator(ctx, self.config)
         xsub, xpub, rep = ctx.socket(zmq.XSUB), ctx.socket(zmq.XPUB), ctx.socket(zmq.REP)
         self._sockets = (xsub, xpub, rep)
         for sock in self._sockets:
             sock.setsockopt(zmq.LINGER, 0)
+        if self.config.curve:
+            for sock in (xsub, xpub):
+                curve.secure_server(sock, self.config)
         for sock in (xsub, xpub):
             sock.setsockopt(zmq.SNDHWM, self.config.hwm)
             sock.setsockopt(zmq.RCVHWM, self.config.hwm)
@@ -115,3 +122,6 @@ class Forwarder:
         for sock in self._sockets:
             if not sock.closed:
                 sock.close(linger=0)
+        if self._auth is not None:
+            self._auth.stop()
+            self._auth = None

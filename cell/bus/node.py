@@ -27,6 +27,7 @@ import zmq
 from google.protobuf.message import Message
 from zmq.utils.monitor import parse_monitor_message
 
+from cell.bus import curve
 from cell.bus.envelope import (
     Encoder,
     Envelope,
@@ -45,6 +46,11 @@ M = TypeVar("M", bound=Message)
 Handler = Callable[[Any], Message | Awaitable[Message]]
 
 _SYNC = b"_sync/"
+_HANDSHAKE_FAILED = (
+    zmq.EVENT_HANDSHAKE_FAILED_AUTH
+    | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+    | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+)
 _REPLY = "_reply/"
 
 
@@ -224,6 +230,7 @@ class Bus:
         self._watcher: asyncio.Task[None] | None = None
         self._monitor: zmq.Socket | None = None
         self.disconnects = 0
+        self.refused = ""  # why the forwarder refused us, if it did (CurveZMQ)
         self.published = 0
         self.dropped = 0
         self.requests = 0
@@ -249,6 +256,9 @@ class Bus:
         bus._pub = ctx.socket(zmq.PUB)
         bus._ctl = ctx.socket(zmq.SUB)
         try:
+            if config.curve:
+                curve.secure_client(bus._pub, config)
+                curve.secure_client(bus._ctl, config)
             bus._pub.setsockopt(zmq.LINGER, 0)
             bus._pub.setsockopt(zmq.SNDHWM, config.hwm)
             bus._pub.connect(config.pub)
@@ -260,7 +270,7 @@ class Bus:
             # the node owns its reader and handler tasks (no TaskGroup here: it would wrap
             # the caller's own exceptions in ExceptionGroups); they are awaited on the way out
             bus._reader = asyncio.create_task(bus._read_control(), name=f"bus-reader:{source}")
-            bus._monitor = bus._pub.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+            bus._monitor = bus._pub.get_monitor_socket(zmq.EVENT_DISCONNECTED | _HANDSHAKE_FAILED)
             bus._watcher = asyncio.create_task(bus._watch_connection(), name=f"bus-watch:{source}")
             if wait:
                 await bus._sync_control()
@@ -282,7 +292,15 @@ class Bus:
                     frames = mon.recv_multipart(zmq.NOBLOCK)
                 except zmq.Again:
                     break
-                if parse_monitor_message(frames)["event"] == zmq.EVENT_DISCONNECTED:
+                event = parse_monitor_message(frames)["event"]
+                if event & _HANDSHAKE_FAILED:
+                    self.refused = "the bus refused this node's CurveZMQ key (not in its allow-list?)"
+                    if event == zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL:
+                        self.refused = (
+                            "the CurveZMQ handshake with the bus failed (keys or curve setting differ?)"
+                        )
+                    log.warning("%s: %s", self.source, self.refused)
+                elif event == zmq.EVENT_DISCONNECTED:
                     self.disconnects += 1
                     n = self.abandon(
                         None, "bus_lost", "the bus connection dropped; it may or may not have been done"
@@ -337,9 +355,10 @@ class Bus:
             while not done.done():
                 if asyncio.get_running_loop().time() > deadline:
                     if not self.patient:
+                        why = self.refused or "is the cell's 'bus' service running?"
                         raise BusUnavailable(
                             f"no bus forwarder answered at {self.config.pub} / {self.config.sub} within "
-                            f"{self.config.connect_timeout_s:g} s (is the cell's 'bus' service running?)"
+                            f"{self.config.connect_timeout_s:g} s ({why})"
                         )
                     if not warned:
                         log.warning("%s: waiting for the bus forwarder at %s", self.source, self.config.sub)
@@ -392,6 +411,8 @@ class Bus:
         sock = zmq_context().socket(zmq.SUB)
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.RCVHWM, self.config.hwm)
+        if self.config.curve:
+            curve.secure_client(sock, self.config)
         for p in raw:
             sock.subscribe(p)
         sub = Subscription(self, sock, tuple(prefixes))
