@@ -10,6 +10,10 @@ Stops and resumes come on the robots' own Responsive Link node, read between
 ticks: an emergency stop (or a lost beacon) halts the drives at once, a stop
 leaves them to the data plane's stop ramp; either way each robot reports
 STATE STILL to the hub once it stands, and RESUMED when released.
+
+Method robots.silence (SilenceRequest) is fault injection for `cell chaos`: a
+robot stops answering for a while (no status, deaf to commands), as with its
+cable pulled.  The robots tick from the start, bus or no bus.
 """
 
 from __future__ import annotations
