@@ -108,7 +108,9 @@ async def readable(sock: zmq.Socket) -> None:
     _waiting.add(fd)
 
     def check() -> None:
-        if not fut.done() and sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+        if fut.done() or sock.closed:  # (a wake-up queued before the socket was closed)
+            return
+        if sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
             fut.set_result(None)
 
     loop.add_reader(fd, check)

@@ -168,6 +168,7 @@ class Track:
     stop_reason: str | None = None  # why its last motion ended early (for MotionStopped)
     generation: int = 0  # bumped when its TPs are lost: bookkeeping of older updates is void
     epoch: int = 0  # bumped by every stop or loss: an `arrive` waiting across one answers stopped
+    loaded_ns: int = 0  # when (data-plane clock) its current TPs went in: older drops are old news
 
     @property
     def joints(self) -> int:
@@ -471,6 +472,7 @@ class Controller:
             )
         for track, seg, hold_id in segments:
             track.stop_reason = None
+            track.loaded_ns = reply.now_ns
             track.loaded = [hold_id, *seg.ids[: self.episode]]
             track.segment = seg
             track.q_hold = None  # moving: where it ends is the segment's end
@@ -671,8 +673,8 @@ class Controller:
             for r in st.robots:
                 seen = self._dropped_seen.get(r.robot_id, 0)
                 self._dropped_seen[r.robot_id] = r.dropped_ns
-                if r.dropped_ns > seen:
-                    track = self.track(r.robot_id)
+                track = self.track(r.robot_id)
+                if r.dropped_ns > seen and r.dropped_ns >= track.loaded_ns:  # (not what it carries now)
                     why = _DROPPED.get(r.dropped_why, "the data plane dropped its trajectory")
                     self.lose([track], f"robot {r.robot_id} stopped: {why}")
                     with contextlib.suppress(BusError):
@@ -771,6 +773,8 @@ class Controller:
             reply = await self.dp.update(insert=insert, remove=remove, registers=registers, flush=flushed)
             for r in results.values():
                 r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
+            for t in tracks:
+                t.loaded_ns = reply.now_ns
         return results
 
     def stop_limits(self, track: Track) -> MotionLimits:
