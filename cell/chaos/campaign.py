@@ -363,9 +363,11 @@ class Campaign:
         reactions += [(t - t0) / 1e6 for t, _, _, _ in self.obs.service_events if t >= t0]
         detect = min(reactions) if reactions else None
         recover = (t_recovered - t0) / 1e9
+        answers = [o.after_s for o in outcomes if o.status == "stopped"]
         figures = {
             "stop_ms_max": max(stops) if stops else 0.0,
             "moved_after_rest_mrad": max(lunges.values()) * 1e3,
+            "stopped_answer_s_max": max(answers) if answers else 0.0,
         }
         return FaultResult(fault.name, held, detail, detect, recover, figures)
 
