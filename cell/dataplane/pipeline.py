@@ -178,8 +178,8 @@ class Pipeline:
         jid = recs["joint_id"].astype(np.int64)
         ent = t.robot_entity[rid].astype(np.int64)
         known = ent != NO_ROW
-        last = t.status_ns[rid]
-        stale = known & (last > 0) & (now - last > self.stale_ns[rid]) & (self.stale_ns[rid] > 0)
+        last, bound = t.status_ns[rid], self.stale_ns[rid]
+        stale = known & (last > 0) & (now - last > bound) & (bound > 0)
         if stale.any():
             self.drop(ent[stale], now, DROP_WATCHDOG)
         if known.any():
