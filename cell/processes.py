@@ -64,6 +64,7 @@ class ChildProcess:
                     *self.argv(), stdin=asyncio.subprocess.PIPE, start_new_session=True
                 )
                 self.starts += 1
+                started = asyncio.get_running_loop().time()
                 exited = asyncio.ensure_future(self.proc.wait())
                 stopping = asyncio.ensure_future(stop.wait())
                 try:
@@ -80,6 +81,8 @@ class ChildProcess:
                     raise ServiceFailed(self.name, f"exited with code {rc} ({what})", what="process")
                 if self.on_restart is not None:
                     self.on_restart(self.name, f"process {self.name!r} exited with code {rc}")
+                if asyncio.get_running_loop().time() - started > policy.backoff_max_s:
+                    backoff = policy.backoff_initial_s  # it had been up a while: start over gently
                 log.info("restarting %r in %.1f s", self.name, backoff)
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(backoff):
