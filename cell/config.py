@@ -239,6 +239,11 @@ class SkillsConfig:
     host: str = _check(lambda v: _host_port(f"{v}:1"))
     break_tolerance_rad: float = _check(_positive)
     motion_timeout_s: float = _check(_positive)
+    # what one peer can take of a skill server (refusals are counted, and said in an error reply)
+    max_connections: int = _check(_positive)  # connections per skill server, all peers together
+    max_connections_per_peer: int = _check(_positive)  # of those, from one IP address
+    max_pending: int = _check(_positive)  # commands of one connection not yet answered: reading pauses
+    line_timeout_s: float = _check(_positive)  # a started command message must end within this
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,7 @@ import contextlib
 import logging
 import math
 import time
+from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -48,7 +49,17 @@ from cell.config import CellConfig, RobotConfig
 from cell.rlink.client import EventClient
 from cell.robot.pose import to_adept
 from cell.service import ServiceContext, ServiceSpec
-from cell.skills.protocol import MOTIONS, NAMED_SKILLS, Command, CommandReader, Done, Error, ErrorCode, Reply
+from cell.skills.protocol import (
+    MOTIONS,
+    NAMED_SKILLS,
+    NO_ID,
+    Command,
+    CommandReader,
+    Done,
+    Error,
+    ErrorCode,
+    Reply,
+)
 from cell.v1 import controller_pb2, health_pb2, robot_pb2, skills_pb2
 
 log = logging.getLogger("cell.skills")
@@ -88,7 +99,17 @@ class RobotSkills:
         self.queue: asyncio.Queue[Job] = asyncio.Queue()
         self.speed: float | None = None  # for the next motion only
         self.air = False
-        self.counters = {"commands": 0, "errors": 0, "connections": 0, "held_pose_acks": 0}
+        self.counters = {
+            "commands": 0,
+            "errors": 0,
+            "connections": 0,
+            "held_pose_acks": 0,
+            "refused_connections": 0,  # over max_connections(_per_peer)
+            "slow_lines": 0,  # connections closed for a message not ended within line_timeout_s
+            "paused_reads": 0,  # times a connection had max_pending unanswered and was not read
+        }
+        self.open = 0  # connections open now
+        self.per_peer: dict[str, int] = defaultdict(int)
         # the robot's last state broadcast (truth/<robot>): the tool pose a non-motion ack reports
         self.held: robot_pb2.RobotTruth | None = None  # (converted only when an ack needs it)
         self.held_max_age_ns = int(2e9 / robot.truth_hz) if robot.truth_hz else 0
@@ -111,18 +132,40 @@ class RobotSkills:
     def seconds(self, t_ns: int) -> float:
         return (t_ns - self.t0_ns) / 1e9
 
+    def _refusal(self, ip: str) -> str | None:
+        cfg = self.config.skills
+        if self.open >= cfg.max_connections:
+            return f"too many connections ({cfg.max_connections} open)"
+        if self.per_peer[ip] >= cfg.max_connections_per_peer:
+            return f"too many connections from {ip} ({cfg.max_connections_per_peer} open)"
+        return None
+
     async def serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """Read commands, queue them, write replies in the order the commands came."""
+        """Read commands, queue them, write replies in the order the commands came.  A peer gets at
+        most [skills] max_connections(_per_peer) connections, max_pending unanswered commands each
+        (then the server stops reading it: TCP pushes back) and line_timeout_s to finish a message."""
         peer = writer.get_extra_info("peername")
-        client = f"{peer[0]}:{peer[1]}" if peer else "?"
+        ip = peer[0] if peer else "?"
+        client = f"{ip}:{peer[1]}" if peer else "?"
+        if (why := self._refusal(ip)) is not None:
+            self.counters["refused_connections"] += 1
+            with contextlib.suppress(ConnectionError, OSError):
+                writer.write(Error(NO_ID, ErrorCode.BUSY, why).encode())
+                writer.close()
+            return
+        self.open += 1
+        self.per_peer[ip] += 1
         self.counters["connections"] += 1
+        cfg = self.config.skills
         parser = CommandReader()
         pending: asyncio.Queue[tuple[asyncio.Future[Reply], Job | None]] = asyncio.Queue()
+        slots = asyncio.Semaphore(cfg.max_pending)
 
         async def write_replies() -> None:
             while True:
                 fut, job = await pending.get()
                 reply = await fut
+                slots.release()
                 if job is not None:
                     self._trace(job, reply, client)
                 try:
@@ -131,33 +174,56 @@ class RobotSkills:
                 except (ConnectionError, OSError):
                     return  # the client is gone: its commands still run, nobody reads the replies
 
-        async with asyncio.TaskGroup() as tg:
-            writing = tg.create_task(write_replies())
-            try:
-                while data := await reader.read(65536):
-                    now = time.monotonic_ns()
-                    for item in parser.feed(data):
-                        fut: asyncio.Future[Reply] = asyncio.get_running_loop().create_future()
-                        if isinstance(item, Error):
-                            self.counters["errors"] += 1
-                            fut.set_result(item)
-                            pending.put_nowait((fut, None))
-                            continue
-                        job = Job(item, now, fut)
-                        pending.put_nowait((fut, job))
-                        if item.skill in NAMED_SKILLS:  # out of turn: never behind the queue
-                            tg.create_task(self.run_job(job, self.link_order))
+        try:
+            async with asyncio.TaskGroup() as tg:
+                writing = tg.create_task(write_replies())
+                line_began: float | None = None
+                try:
+                    while True:
+                        if parser.partial:  # a message has begun: it has line_timeout_s to end
+                            line_began = line_began if line_began is not None else time.monotonic()
+                            left: float | None = line_began + cfg.line_timeout_s - time.monotonic()
                         else:
-                            self.queue.put_nowait(job)
-                # the client closed: its commands still run (a motion once sent is not taken
-                # back), their replies are not written
-            except (ConnectionError, OSError):
-                pass
-            finally:
-                writing.cancel()
-                writer.close()
-                with contextlib.suppress(Exception):
-                    await writer.wait_closed()
+                            line_began, left = None, None
+                        try:
+                            async with asyncio.timeout(left):
+                                data = await reader.read(65536)
+                        except TimeoutError:
+                            self.counters["slow_lines"] += 1
+                            why = f"a command message must end within {cfg.line_timeout_s:g} s"
+                            writer.write(Error(NO_ID, ErrorCode.BUSY, why).encode())
+                            break
+                        if not data:
+                            break
+                        now = time.monotonic_ns()
+                        for item in parser.feed(data):
+                            if slots.locked():  # max_pending unanswered: read no more until one is
+                                self.counters["paused_reads"] += 1
+                            await slots.acquire()
+                            fut: asyncio.Future[Reply] = asyncio.get_running_loop().create_future()
+                            if isinstance(item, Error):
+                                self.counters["errors"] += 1
+                                fut.set_result(item)
+                                pending.put_nowait((fut, None))
+                                continue
+                            job = Job(item, now, fut)
+                            pending.put_nowait((fut, job))
+                            if item.skill in NAMED_SKILLS:  # out of turn: never behind the queue
+                                tg.create_task(self.run_job(job, self.link_order))
+                            else:
+                                self.queue.put_nowait(job)
+                    # the client closed: its commands still run (a motion once sent is not taken
+                    # back), their replies are not written
+                except (ConnectionError, OSError):
+                    pass
+                finally:
+                    writing.cancel()
+                    writer.close()
+                    with contextlib.suppress(Exception):
+                        await writer.wait_closed()
+        finally:
+            self.open -= 1
+            self.per_peer[ip] -= 1
 
     def _trace(self, job: Job, reply: Reply, client: str) -> None:
         started = job.started_ns or job.received_ns

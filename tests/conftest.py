@@ -117,8 +117,8 @@ async def wait_status(config: CellConfig, want: set[str], timeout: float = 20.0)
 
 @pytest.fixture
 async def start_cell(tmp_path: Path) -> AsyncIterator:
-    """start_cell(run=[...], plugins={...}, layout=None) -> RunningCell, up and healthy (layout None:
-    the config's, "groups")."""
+    """start_cell(run=[...], plugins={...}, layout=None, sections={...}) -> RunningCell, up and healthy
+    (layout None: the config's, "groups"; sections: more config tables, e.g. {"skills": {...}})."""
     cells: list[RunningCell] = []
 
     async def start(
@@ -128,9 +128,10 @@ async def start_cell(tmp_path: Path) -> AsyncIterator:
         layout: str | None = None,
         wait_for: set[str] | None = None,
         robots: list[dict] | None = None,
+        sections: dict | None = None,
         **services: object,
     ) -> RunningCell:
-        data = cell_overrides(robots, run=run, plugins=plugins or {}, **services)
+        data = {**cell_overrides(robots, run=run, plugins=plugins or {}, **services), **(sections or {})}
         path = write_config(tmp_path / f"cell{len(cells)}.toml", data)
         config = load_config(path)
         cmd = [sys.executable, "-m", "cell", "up", "--config", str(path)]

@@ -147,3 +147,40 @@ async def test_a_non_motion_ack_reports_the_pose_the_server_holds_without_asking
             status = await fetch_status(cell.config)
             held = next(s for s in status.services if s.name == "skills").last.counters["r1.held_pose_acks"]
     c.close()
+
+
+async def test_what_one_peer_can_take_is_capped_and_counted(start_cell) -> None:
+    robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "kinematic"}]
+    caps = {"max_connections": 3, "max_connections_per_peer": 2, "max_pending": 4, "line_timeout_s": 0.5}
+    cell = await start_cell(run=SKILLS, robots=robots, sections={"skills": caps})
+    port = robots[0]["skill_port"]
+    a, b = await Conn.open(port), await Conn.open(port)
+    await a.send(b"sp000001:set_speed:50\r\n")
+    assert isinstance((await a.replies(1))[0], Done)  # (both are in)
+    c = await Conn.open(port)  # a third from the same address: refused, told why, closed
+    (busy,) = await c.replies(1)
+    assert isinstance(busy, Error) and busy.code == "busy" and "127.0.0.1" in busy.text
+    assert await c.reader.read(100) == b""
+    # a message begun and not ended in line_timeout_s: told busy, closed; the other connection lives on
+    await b.send(b"sp000002:set_sp")
+    (slow,) = await b.replies(1, timeout=5)
+    assert isinstance(slow, Error) and slow.code == "busy" and "must end within" in slow.text
+    # a flood of commands: the server reads max_pending ahead, answers every one, in order
+    await a.send(b"".join(b"sp%06d:set_speed:50\r\n" % i for i in range(200)))
+    flood = await a.replies(200, timeout=30)
+    assert [r.id for r in flood] == [f"sp{i:06d}" for i in range(200)]
+    assert all(isinstance(r, Done) for r in flood)
+    # a 1 MB line is refused as too long, and the connection still serves
+    await a.send(b"x" * 1_000_000 + b"\r\nsp999999:set_speed:20\r\n")
+    long, ok = await a.replies(2)
+    assert isinstance(long, Error) and long.code == "line_too_long" and isinstance(ok, Done)
+    wanted = ("r1.refused_connections", "r1.slow_lines", "r1.paused_reads")
+    async with asyncio.timeout(10):  # (counters reach `cell status` with the next heartbeats)
+        while True:
+            c = next(
+                s for s in (await fetch_status(cell.config)).services if s.name == "skills"
+            ).last.counters
+            if all(c[k] >= 1 for k in wanted):
+                break
+            await asyncio.sleep(0.1)
+    a.close()

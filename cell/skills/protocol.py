@@ -55,6 +55,7 @@ class ErrorCode:
     LINE_TOO_LONG = "line_too_long"
     UNREACHABLE = "unreachable"
     STOPPED = "stopped"  # the robot was stopped (protective stop, e-stop) during or before the command
+    BUSY = "busy"  # the server refuses this connection (too many, or a message too slow to come)
     FAILED = "failed"  # anything else the server could not do; the text says what
 
 
@@ -176,6 +177,11 @@ class LineReader:
         self._buf = bytearray()
         self._skipping = False  # inside an overlong line: drop bytes up to its \r\n
 
+    @property
+    def partial(self) -> bool:
+        """A line has begun (or an overlong one is being skipped) and its \\r\\n has not come."""
+        return self._skipping or bool(self._buf.strip())
+
     def feed(self, data: bytes) -> list[bytes | TooLong]:
         self._buf += data
         out: list[bytes | TooLong] = []
@@ -201,6 +207,11 @@ class CommandReader:
 
     def __init__(self) -> None:
         self._lines = LineReader()
+
+    @property
+    def partial(self) -> bool:
+        """Part of a command message has come, its end not yet."""
+        return self._lines.partial
 
     def feed(self, data: bytes) -> list[Command | Error]:
         out: list[Command | Error] = []
