@@ -27,7 +27,14 @@ import numpy as np
 
 from cell.bus import RpcFault
 from cell.config import CellConfig, parse_host_port
-from cell.dataplane.pipeline import DROP_STOP, DROP_UNDERRUN, DROP_WATCHDOG, ControlConstants, Pipeline
+from cell.dataplane.pipeline import (
+    DROP_STOP,
+    DROP_UNDERRUN,
+    DROP_WATCHDOG,
+    QUIET_NS,
+    ControlConstants,
+    Pipeline,
+)
 from cell.dataplane.tables import NO_ROW, Refused, Tables
 from cell.dataplane.wire import decode_keys, decode_tps
 from cell.rlink.leaf import LeafNode
@@ -59,7 +66,8 @@ class DataPlane:
         window = min((1.0 / r.command_hz for r in config.robots), default=1 / 125)
         self.pipeline.set_stop_ramp(arm_model().limits.a_max * config.rlink.stop_decel, window)
         for r in config.robots:  # one window beyond the robot's watchdog: it has surely stopped
-            self.pipeline.stale_ns[r.id] = int((r.watchdog_windows + 1) * 1e9 / r.command_hz)
+            self.pipeline.stale_periods[r.id] = (r.watchdog_windows + 1) * (r.status_hz // r.command_hz)
+            self.pipeline.quiet_ns[r.id] = QUIET_NS
         self.boot_id = int.from_bytes(os.urandom(8), "little")  # tells a controller our tables are new
         self.robot_addr: dict[int, tuple] = {}  # where each robot's status last came from
         self.poll: Callable[[], None] | None = None  # called between slices (the event socket)
@@ -146,7 +154,7 @@ class DataPlane:
 
     async def sweep(self, period: float = 0.01) -> None:
         """Drop the trajectories of robots gone quiet (Pipeline.sweep), every `period`, until cancelled."""
-        robots = np.flatnonzero(self.pipeline.stale_ns > 0)
+        robots = np.flatnonzero(self.pipeline.quiet_ns > 0)
         while True:
             await asyncio.sleep(period)
             self.pipeline.sweep(robots, time.monotonic_ns())

@@ -13,6 +13,7 @@ from cell.dataplane.approx import LimitVelocity, TransformTable, bit_length, pre
 from cell.dataplane.pipeline import (
     DROP_UNDERRUN,
     DROP_WATCHDOG,
+    QUIET_NS,
     STALL_DROP_NS,
     ControlConstants,
     Pipeline,
@@ -535,35 +536,42 @@ def test_a_short_underrun_resumes_when_the_tp_arrives() -> None:
 
 def test_a_robot_back_after_its_watchdog_finds_its_trajectory_dropped() -> None:
     t = Tables(capacity=8)
-    t.add_robot(1)
-    t.add_robot(2)
+    for r in (1, 2, 3):
+        t.add_robot(r)
     pipe = Pipeline(t, CONSTANTS)
-    pipe.stale_ns[[1, 2]] = 32 * MS
-    t.insert([moving_tp(1, 1, 1, 0.5, 0.0), moving_tp(2, 1, 1, 0.5, 0.0)])
-    t.set_registers(1, 1, 10**18)
-    t.set_registers(2, 1, 10**18)
-    pipe.process(batch(status(1, 0, 0, 0), status(2, 0, 0, 0)), now=100 * MS)
-    pipe.process(batch(status(2, 0, 0, 0)), now=130 * MS)  # robot 2 speaks on, robot 1 is quiet
-    recs = batch(status(1, 0, 0.0, 0.0), status(2, 0, 0.0, 0.0))
-    pipe.process(recs, now=133 * MS)  # robot 1 back after 33 ms: a step past its watchdog
-    assert t.current_tp(1) is None and t.current_tp(2) == 1
+    pipe.stale_periods[[1, 2, 3]] = 16  # (3 + 1) windows of 4 status periods
+    pipe.quiet_ns[[1, 2, 3]] = QUIET_NS
+    t.insert([moving_tp(r, 1, 1, 0.5, 0.0) for r in (1, 2, 3)])
+    for r in (1, 2, 3):
+        t.set_registers(r, 1, 10**18)
+    pipe.process(
+        batch(status(1, 0, 0, 0, seq=100), status(2, 0, 0, 0, seq=100), status(3, 0, 0, 0, seq=7)), MS
+    )
+    # robot 1 lived 17 periods without hearing us (its numbers jumped): its watchdog stopped it.
+    # robot 2 was held up 60 ms and goes on with its next number: its watchdog never fired
+    recs = batch(status(1, 0, 0.0, 0.0, seq=117), status(2, 0, 0.0, 0.0, seq=101), status(3, 0, 0, 0, seq=8))
+    pipe.process(recs, now=60 * MS)
+    assert t.current_tp(1) is None and t.current_tp(2) == 1 and t.current_tp(3) == 1
     assert t.reg_dropped_why[t.entity_of(1)] == DROP_WATCHDOG
     v = datagram.velocities(recs)
     assert v[0] == 0.0 and v[1] > 0.5  # robot 1 told to stand; robot 2 still pulled to its TP
+    # a robot not heard for QUIET_NS (it, or we, hung): its plan is stale whatever its numbers say
+    pipe.process(batch(status(3, 0, 0.0, 0.0, seq=9)), now=60 * MS + QUIET_NS + 1)
+    assert t.current_tp(3) is None
 
 
 def test_the_sweep_drops_a_robot_that_went_quiet_without_a_packet() -> None:
     t = Tables(capacity=8)
     t.add_robot(1)
     pipe = Pipeline(t, CONSTANTS)
-    pipe.stale_ns[1] = 32 * MS
+    pipe.quiet_ns[1] = QUIET_NS
     t.insert([moving_tp(1, 1, 1, 0.5, 0.0)])
     t.set_registers(1, 1, 10**18)
     pipe.process(status(1, 0, 0, 0), now=100 * MS)
-    pipe.sweep(np.array([1]), 120 * MS)
+    pipe.sweep(np.array([1]), 100 * MS + QUIET_NS)
     assert t.current_tp(1) == 1
-    pipe.sweep(np.array([1]), 140 * MS)
-    assert t.current_tp(1) is None and t.reg_dropped_ns[0] == 140 * MS
+    pipe.sweep(np.array([1]), 100 * MS + QUIET_NS + 1)
+    assert t.current_tp(1) is None and t.reg_dropped_ns[0] == 100 * MS + QUIET_NS + 1
 
 
 def test_keys_of_lists_every_tp_of_a_robots_entity() -> None:

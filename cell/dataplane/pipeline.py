@@ -17,9 +17,10 @@ CLOCK_MONOTONIC in ns.
 
 A trajectory is dropped (registers cleared, its robots told 0: they stand) when
 resuming it would make a robot lunge after a plan that went on without it: a
-robot whose statuses stopped coming for longer than its watchdog (it has
-protective-stopped, or we were held up), or an underrun (the next TP missing)
-that lasts longer than STALL_DROP_NS (the controller is gone or far behind).
+robot whose status numbers jumped past its watchdog (it lived on without our
+commands and has protective-stopped), a robot not heard for QUIET_NS (it, or
+we, hung), or an underrun (the next TP missing) that lasts longer than
+STALL_DROP_NS (the controller is gone or far behind).
 A short underrun holds the last TP's position and goes on when the TP comes.
 
 A stop (from the Responsive Link's event socket, not the controller) sets a
@@ -42,6 +43,7 @@ from cell.robot.datagram import SCALE, Kind
 # inputs from the wire are clamped to this magnitude (about 1e11 rad) so no sum can overflow int64
 INPUT_LIMIT = 1 << 60
 TERM_LIMIT = 1 << 60
+QUIET_NS = 500_000_000  # no status from a robot this long: it, or we, hung; its plan is stale
 STALL_DROP_NS = 50_000_000  # an underrun this long ends the trajectory (catching up would be a lunge)
 DROP_WATCHDOG, DROP_UNDERRUN, DROP_STOP = 1, 2, 3  # why a trajectory was dropped (Tables.reg_dropped_why)
 
@@ -96,10 +98,14 @@ class Pipeline:
         self.reg_stop = np.zeros(1 << 16, bool)  # per robot: commands come from the StopRamp
         self.stopping = 0  # robots with REG_stop set (0: the packet path skips the stop stage)
         self.stop_ramp = np.zeros(len(constants.c1), np.int64)  # per joint, wire units per window
-        # per robot: a gap between two of its statuses longer than this (ns) means it went that long
-        # without a command and has protective-stopped (its watchdog): its trajectory is dropped
-        # rather than resumed where the clock now is, which would make it lunge after the plan.  0: off
-        self.stale_ns = np.zeros(1 << 16, np.int64)
+        # per robot, when resuming its plan would be a lunge (0: never judged): a jump in its status
+        # sequence numbers beyond stale_periods means it lived that many periods without hearing us
+        # (a robot ticks, and numbers its statuses, on its own clock: its watchdog has stopped it);
+        # no status at all for quiet_ns means it, or we, hung that long.  A time gap alone is not
+        # enough: a robot process held up by the OS for 40 ms resumes with the next number, its
+        # watchdog never fired, and its plan goes on
+        self.stale_periods = np.zeros(1 << 16, np.int64)
+        self.quiet_ns = np.zeros(1 << 16, np.int64)
         self.install(self.build(constants))
 
     @staticmethod
@@ -178,8 +184,10 @@ class Pipeline:
         jid = recs["joint_id"].astype(np.int64)
         ent = t.robot_entity[rid].astype(np.int64)
         known = ent != NO_ROW
-        last, bound = t.status_ns[rid], self.stale_ns[rid]
-        stale = known & (last > 0) & (now - last > bound) & (bound > 0)
+        last, quiet = t.status_ns[rid], self.quiet_ns[rid]
+        seq = recs["seq"].astype(np.int64)
+        jump = (seq - t.status_seq[rid]) & 0xFFFFFFFF
+        stale = known & (last > 0) & (quiet > 0) & ((now - last > quiet) | (jump > self.stale_periods[rid]))
         if stale.any():
             self.drop(ent[stale], now, DROP_WATCHDOG)
         if known.any():
@@ -200,6 +208,7 @@ class Pipeline:
         t.status_pos[rid[mine], jid[mine]] = p[mine]
         t.status_vel[rid[mine], jid[mine]] = v[mine]
         t.status_ns[rid] = now
+        t.status_seq[rid] = seq
         diff = _clamp(p_trg - p, TERM_LIMIT)
         local = np.minimum(jid, self.joints - 1)
         # the three Transform tables share their key: match all three inputs in one pass
@@ -223,8 +232,8 @@ class Pipeline:
         """Drop the trajectories of these robots that have gone quiet past their watchdog (the P4
         design would send itself a packet on a timer for this: no status, no packet to act on)."""
         t = self.t
-        last = t.status_ns[robots]
-        quiet = (last > 0) & (now - last > self.stale_ns[robots]) & (self.stale_ns[robots] > 0)
+        last, bound = t.status_ns[robots], self.quiet_ns[robots]
+        quiet = (last > 0) & (bound > 0) & (now - last > bound)
         if quiet.any():
             ent = t.robot_entity[robots[quiet]].astype(np.int64)
             self.drop(ent[ent != NO_ROW], now, DROP_WATCHDOG)

@@ -171,6 +171,7 @@ class Tables:
         self.status_pos = np.zeros((1 << 16, max_joints), np.int64)
         self.status_vel = np.zeros((1 << 16, max_joints), np.int64)
         self.status_ns = np.zeros(1 << 16, np.int64)
+        self.status_seq = np.zeros(1 << 16, np.int64)  # its sequence number (the robot's own tick count)
         # TPStepper (+ TargetData), one row per TP
         self.valid = np.zeros(capacity, bool)
         self.next_row = np.full(capacity, NO_ROW, np.int32)
