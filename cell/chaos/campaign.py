@@ -400,7 +400,9 @@ class Campaign:
             if a.kind == "kill":
                 grew = s.last.restarts - restarts_before.get(a.target, 0)
                 good = grew >= 1 and bool(s.last.last_error) and s.health == "ok"
-                notes.append(f"{a.target}: restarts +{grew}, last error {s.last.last_error!r}")
+                notes.append(
+                    f"{a.target}: restarts +{grew} (pid {s.last.pid}), last error {s.last.last_error!r}"
+                )
             elif a.kind == "stop" and a.target == "bus":  # status goes over the bus: none comes
                 good = "bus" in stale_seen and s.health == "ok"
                 notes.append("bus: status unavailable while it hung" if good else "bus: status answered?")
