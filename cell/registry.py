@@ -41,16 +41,16 @@ class StatusRegistry:
         n, _ = self._process_restarts.get(process, (0, ""))
         self._process_restarts[process] = (n + 1, why)
         for name, (hb, _) in self._last.items():
-            if hb.process == process and self._dead_pid.get(name) != hb.pid:
+            if hb.process != process:
+                continue
+            if self._dead_pid.get(name) != hb.pid:
                 self._dead_pid[name] = hb.pid  # down until a heartbeat from its new process says otherwise
                 self._carried[name] = self._carried.get(name, 0) + hb.restarts  # its in-process restarts
-        if self._bus is not None:  # its services' supervisor died with it: say so in its stead, now
-            for name, (hb, _) in self._last.items():
-                if hb.process == process:
-                    ev = health_pb2.ServiceEvent(
-                        service=name, kind=health_pb2.ServiceEvent.KIND_FAILED, text=why, restarts=hb.restarts
-                    )
-                    self._bus.publish(f"events/service/{name}", ev)
+            if self._bus is not None:  # its supervisor died with it: say so in its stead, now
+                ev = health_pb2.ServiceEvent(
+                    service=name, kind=health_pb2.ServiceEvent.KIND_FAILED, text=why, restarts=hb.restarts
+                )
+                self._bus.publish(f"events/service/{name}", ev)
 
     def observe(self, hb: health_pb2.Heartbeat, at: float | None = None) -> None:
         self._last[hb.service] = (hb, time.monotonic() if at is None else at)

@@ -123,6 +123,13 @@ async def readable(sock: zmq.Socket) -> None:
 
 
 @dataclass(slots=True)
+class _Waiting:
+    fut: asyncio.Future[Envelope]
+    service: str
+    method: str
+
+
+@dataclass(slots=True)
 class _Method:
     request_type: type[Message]
     handler: Handler
@@ -218,8 +225,7 @@ class Bus:
         self.instance = self._enc.instance
         self._reply_topic = f"{_REPLY}{self.instance:08x}"
         self._topics: dict[str, bytes] = {}
-        self._pending: dict[int, asyncio.Future[Envelope]] = {}
-        self._pending_to: dict[int, tuple[str, str]] = {}  # correlation -> (service, method)
+        self._pending: dict[int, _Waiting] = {}  # correlation -> the request waiting for its reply
         self._methods: dict[str, _Method] = {}
         self._syncs: dict[bytes, asyncio.Future[None]] = {}
         self._corr = itertools.count(1)
@@ -327,8 +333,8 @@ class Bus:
         for sock in (self._pub, self._ctl):
             if not sock.closed:
                 sock.close(linger=0)
-        for fut in self._pending.values():
-            fut.cancel()
+        for w in self._pending.values():
+            w.fut.cancel()
 
     def counters(self) -> dict[str, float]:
         """What this node has done so far, for heartbeats."""
@@ -462,8 +468,7 @@ class Bus:
                 raise BusTimeout(f"no bus to reach {service}.{method} within {timeout:g} s") from None
         corr = next(self._corr)
         fut: asyncio.Future[Envelope] = asyncio.get_running_loop().create_future()
-        self._pending[corr] = fut
-        self._pending_to[corr] = (service, method)
+        self._pending[corr] = _Waiting(fut, service, method)
         self.requests += 1
         try:
             self._send(self._topic(f"rpc/{service}/{method}"), msg, Kind.REQUEST, corr)
@@ -475,7 +480,6 @@ class Bus:
             ) from None
         finally:
             self._pending.pop(corr, None)
-            self._pending_to.pop(corr, None)
         if env.kind == Kind.ERROR:
             err = env.decode(bus_pb2.RpcError)
             raise RemoteError(service, method, err.code, err.message)
@@ -485,10 +489,9 @@ class Bus:
         """Answer every request waiting on `service` (None: on any) with RemoteError(code, reason) now,
         rather than a timeout later (the serving process is known to have died); how many there were."""
         n = 0
-        for corr, (svc, method) in list(self._pending_to.items()):
-            fut = self._pending.get(corr)
-            if service in (None, svc) and fut is not None and not fut.done():
-                fut.set_exception(RemoteError(service, method, code, reason))
+        for w in list(self._pending.values()):
+            if service in (None, w.service) and not w.fut.done():
+                w.fut.set_exception(RemoteError(w.service, w.method, code, reason))
                 n += 1
         return n
 
@@ -529,7 +532,8 @@ class Bus:
             log.debug("%s: dropped malformed control message: %s", self.source, exc)
             return
         if env.topic == self._reply_topic:
-            fut = self._pending.pop(env.correlation, None)
+            waiting = self._pending.pop(env.correlation, None)
+            fut = None if waiting is None else waiting.fut
             if fut is None or fut.done():
                 self.late_replies += 1
             elif env.kind in (Kind.REPLY, Kind.ERROR):

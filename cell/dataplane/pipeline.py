@@ -88,7 +88,7 @@ class PipelineCounters:
     stalls: int = 0  # a step was due but the next TP is not loaded (a streaming underrun)
     limited: int = 0  # commands clamped by LimitVelocity
     stop_commands: int = 0  # commands from the StopRamp (robots under REG_stop)
-    dropped: int = 0  # trajectories dropped: their robot went longer than its watchdog without commands
+    dropped: int = 0  # trajectories dropped (Tables.reg_dropped_why says why: watchdog, underrun, stop)
 
 
 class Pipeline:
@@ -184,10 +184,11 @@ class Pipeline:
         jid = recs["joint_id"].astype(np.int64)
         ent = t.robot_entity[rid].astype(np.int64)
         known = ent != NO_ROW
-        last, quiet = t.status_ns[rid], self.quiet_ns[rid]
         seq = recs["seq"].astype(np.int64)
         jump = (seq - t.status_seq[rid]) & 0xFFFFFFFF
-        stale = known & (last > 0) & (quiet > 0) & ((now - last > quiet) | (jump > self.stale_periods[rid]))
+        last, quiet = t.status_ns[rid], self.quiet_ns[rid]
+        judged = known & (last > 0) & (quiet > 0)  # configured robots heard of before
+        stale = judged & ((now - last > quiet) | (jump > self.stale_periods[rid]))
         if stale.any():
             self.drop(ent[stale], now, DROP_WATCHDOG)
         if known.any():
@@ -195,12 +196,13 @@ class Pipeline:
             entities = np.flatnonzero(counts)
             self.ingress(entities, counts[entities], now)
         # Algorithm 2
-        row = np.where(known, t.reg_tp[np.maximum(ent, 0)], NO_ROW)
+        ent0 = np.maximum(ent, 0)
+        row = np.where(known, t.reg_tp[ent0], NO_ROW)
         has = row != NO_ROW
         r = np.maximum(row, 0)
         j = np.where(has, t.robot_joint0[rid] + jid, 0)
         v_trg = t.trg_vel[r, j]  # TargetData
-        v_trg[t.reg_stalled[np.maximum(ent, 0)]] = 0  # stalled: hold the TP's position, no coasting
+        v_trg[t.reg_stalled[ent0]] = 0  # stalled: hold the TP's position, no coasting
         p_trg = t.trg_pos[r, j]
         v = _clamp(recs["velocity"].astype(np.int64), INPUT_LIMIT)
         p = _clamp(recs["position"].astype(np.int64), INPUT_LIMIT)
@@ -231,11 +233,10 @@ class Pipeline:
     def sweep(self, robots: np.ndarray, now: int) -> None:
         """Drop the trajectories of these robots that have gone quiet past their watchdog (the P4
         design would send itself a packet on a timer for this: no status, no packet to act on)."""
-        t = self.t
-        last, bound = t.status_ns[robots], self.quiet_ns[robots]
-        quiet = (last > 0) & (bound > 0) & (now - last > bound)
-        if quiet.any():
-            ent = t.robot_entity[robots[quiet]].astype(np.int64)
+        last, quiet = self.t.status_ns[robots], self.quiet_ns[robots]
+        gone = (last > 0) & (quiet > 0) & (now - last > quiet)  # (process()'s rule, without a packet)
+        if gone.any():
+            ent = self.t.robot_entity[robots[gone]].astype(np.int64)
             self.drop(ent[ent != NO_ROW], now, DROP_WATCHDOG)
 
     def drop(self, entities: np.ndarray, now: int, why: int) -> None:
