@@ -169,6 +169,7 @@ class Track:
     generation: int = 0  # bumped when its TPs are lost: bookkeeping of older updates is void
     epoch: int = 0  # bumped by every stop or loss: an `arrive` waiting across one answers stopped
     loaded_ns: int = 0  # when (data-plane clock) its current TPs went in: older drops are old news
+    loads: int = 0  # registers set by this controller so far (a flush decided before one must not follow it)
 
     @property
     def joints(self) -> int:
@@ -212,7 +213,10 @@ class Controller:
         # set while supervise() has the tables in hand: motions wait for it (a take-over's flush
         # must not sweep away a motion loaded meanwhile); None: not supervised (tests, benches)
         self.tables_ready: asyncio.Event | None = None
-        self.pending_flush: set[int] = set()  # robots whose TPs supervise() removes once it can
+        # robot -> its track's `loads` when its TPs were last lost: supervise() flushes them once it can,
+        # unless a motion was loaded since (a flush decided before a load must never land after it)
+        self.pending_flush: dict[int, int] = {}
+        self.loading = asyncio.Lock()  # held around every update that sets registers, and every flush
 
     # --- robots ------------------------------------------------------------------------------
 
@@ -306,7 +310,7 @@ class Controller:
                 raise
             raise MotionStopped(track.stop_reason or "the motion under way was stopped") from None
         except BusError as exc:
-            raise MotionStopped(f"the data plane did not take the motion's next TPs: {exc}") from None
+            raise _untaken(exc) from None
 
     async def arrive(
         self, robot: int | str, tolerance: float = 2e-4, timeout: float = 10.0
@@ -451,7 +455,10 @@ class Controller:
             remove += [(track.robot, i) for i in track.loaded]
             segments.append((track, seg, hold_id))
         try:
-            reply = await self.dp.update(insert=_concat(first), remove=remove, registers=registers)
+            async with self.loading:
+                reply = await self.dp.update(insert=_concat(first), remove=remove, registers=registers)
+                for track, _, _ in segments:
+                    track.loads += 1
         except RemoteError as exc:
             if exc.code == "stopped":  # stopped on the link before we heard of it
                 raise MotionStopped(exc.message) from None
@@ -459,7 +466,7 @@ class Controller:
         except BusError as exc:  # it may yet be applied, late: it must not start unseen
             tracks = [t for t, _, _ in planned]
             self.lose(tracks, f"the data plane did not confirm the motion's start: {exc}")
-            self.pending_flush.update(r for t in tracks for r in t.robots)
+            self.pending_flush.update({r: t.loads for t in tracks for r in t.robots})
             raise MotionStopped(tracks[0].stop_reason or str(exc)) from None
         if reply.now_ns > start:  # in place after the start time: the robots catch up with the plan
             self.late_starts += 1
@@ -493,7 +500,7 @@ class Controller:
             why = next((t.stop_reason for t in tracks if t.stop_reason), None)
             raise MotionStopped(why or "the motion was stopped or re-planned") from None
         except BusError as exc:
-            raise MotionStopped(f"the data plane did not take the motion's next TPs: {exc}") from None
+            raise _untaken(exc) from None
         for track in tracks:
             self.unfinished.pop(track.robot, None)
         return result
@@ -665,11 +672,6 @@ class Controller:
                     ready.set()
                 await asyncio.sleep(WATCH_S)
                 continue
-            if self.pending_flush:
-                robots = sorted(self.pending_flush)
-                with contextlib.suppress(BusError):
-                    await self.dp.update(flush=robots)
-                    self.pending_flush.difference_update(robots)
             for r in st.robots:
                 seen = self._dropped_seen.get(r.robot_id, 0)
                 self._dropped_seen[r.robot_id] = r.dropped_ns
@@ -677,9 +679,19 @@ class Controller:
                 if r.dropped_ns > seen and r.dropped_ns >= track.loaded_ns:  # (not what it carries now)
                     why = _DROPPED.get(r.dropped_why, "the data plane dropped its trajectory")
                     self.lose([track], f"robot {r.robot_id} stopped: {why}")
-                    with contextlib.suppress(BusError):
-                        await self.dp.update(flush=track.robots)
+                    self.pending_flush.update({rid: track.loads for rid in track.robots})
+            if self.pending_flush:
+                with contextlib.suppress(BusError):
+                    await self._flush_lost()
             await asyncio.sleep(WATCH_S)
+
+    async def _flush_lost(self) -> None:
+        """Remove the TPs of lost motions from the tables, for the robots not loaded anew since."""
+        async with self.loading:
+            robots = sorted(r for r, loads in self.pending_flush.items() if self.track(r).loads == loads)
+            if robots:
+                await self.dp.update(flush=robots)
+            self.pending_flush.clear()
 
     def lose(self, tracks: list[Track], reason: str) -> None:
         """The tables no longer hold these tracks' TPs: end their motions (MotionStopped(reason) to
@@ -692,7 +704,7 @@ class Controller:
             if t.task is not None and not t.task.done():
                 t.task.cancel()
             t.loaded, t.segment, t.q_hold = [], None, None
-        if any(t.stop_reason == reason for t in hit):
+        if hit:
             self.lost.append((time.monotonic(), reason))
             log.warning("%s (robots %s)", reason, sorted(r for t in hit for r in t.robots))
 
@@ -705,7 +717,8 @@ class Controller:
         if plan_stops:
             await self.stop(sorted(robots), flush=True)
         else:
-            await self.dp.update(flush=sorted(robots))
+            async with self.loading:
+                await self.dp.update(flush=sorted(robots))
 
     # --- stops ---------------------------------------------------------------------------------
 
@@ -770,7 +783,10 @@ class Controller:
             remove = []
         if batches or flushed:
             insert = _concat(batches) if batches else ()
-            reply = await self.dp.update(insert=insert, remove=remove, registers=registers, flush=flushed)
+            async with self.loading:
+                reply = await self.dp.update(insert=insert, remove=remove, registers=registers, flush=flushed)
+                for t in tracks:
+                    t.loads += 1
             for r in results.values():
                 r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
             for t in tracks:
@@ -839,6 +855,11 @@ class Controller:
         self._publish_plan(track, new)
         await track.task
         return MotionResult(t_b, new.end_ns, sections.q[-1].copy())
+
+
+def _untaken(exc: BusError) -> MotionStopped:
+    """A motion's streaming failed on the bus: the data plane may have run out of its TPs."""
+    return MotionStopped(f"the data plane did not take the motion's next TPs: {exc}")
 
 
 _DROPPED = {
