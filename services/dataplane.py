@@ -69,12 +69,16 @@ class DataPlane:
             self.pipeline.stale_periods[r.id] = (r.watchdog_windows + 1) * (r.status_hz // r.command_hz)
             self.pipeline.quiet_ns[r.id] = QUIET_NS
         self.boot_id = int.from_bytes(os.urandom(8), "little")  # tells a controller our tables are new
-        self.robot_addr: dict[int, tuple] = {}  # where each robot's status last came from
+        # each robot is pinned to the address its first status came from: another sender's statuses
+        # for it are dropped (counted `spoofed`) until it has been quiet for QUIET_NS (a restart)
+        self.robot_addr: dict[int, tuple] = {}
+        self.pin = np.full(1 << 16, -1, np.int32)  # robot -> its sender's number in _sender_ids
+        self._sender_ids: dict[tuple, int] = {}
         self.poll: Callable[[], None] | None = None  # called between slices (the event socket)
         self.batch = dp.batch
         self.sock = udp.open_socket(*parse_host_port(dp.listen))
         self.sender = udp.Sender(self.sock, datagram.SIZE)
-        self.rejected = {"length": 0, "kind": 0, "joint": 0}
+        self.rejected = {"length": 0, "kind": 0, "joint": 0, "spoofed": 0}
         self.packets_in = self.commands_out = self.unsent = self.batches = 0
         self.batch_ns: list[int] = []
         self._update_lock = asyncio.Lock()
@@ -116,8 +120,6 @@ class DataPlane:
         now = time.monotonic_ns()
         # join bytes, then view: np.concatenate would turn the wire's big-endian fields native
         recs = datagram.view(bytearray(b"".join(chunks)))
-        firsts = recs["robot_id"][np.cumsum(counts) - counts].tolist()
-        self.robot_addr.update(zip(firsts, senders, strict=True))  # (a socket per robot, as robots do)
         owner = np.repeat(np.arange(len(chunks)), counts)
         self.packets_in += recs.size
         bad_kind = recs["kind"] != _STATUS
@@ -128,6 +130,13 @@ class DataPlane:
             self.rejected["kind"] += int(bad_kind.sum())
             self.rejected["joint"] += int(bad_joint.sum())
             recs, owner = recs[ok], owner[ok]
+        sid = np.array([self._sender_ids.get(s, -2) for s in senders], np.int32)[owner]
+        strange = self.pin[recs["robot_id"]] != sid
+        if strange.any():
+            spoofed = self._check_senders(recs["robot_id"], owner, strange, senders, now)
+            if spoofed.any():
+                self.rejected["spoofed"] += int(spoofed.sum())
+                recs, owner = recs[~spoofed], owner[~spoofed]
         if recs.size <= SLICE or self.poll is None:
             self.pipeline.process(recs, now)
         else:
@@ -151,6 +160,33 @@ class DataPlane:
         if len(self.batch_ns) > 8192:
             del self.batch_ns[:4096]
         return recs.size
+
+    def _check_senders(
+        self, robot: np.ndarray, owner: np.ndarray, strange: np.ndarray, senders: list[tuple], now: int
+    ) -> np.ndarray:
+        """Pin robots heard of first (or again after QUIET_NS of silence); mark the records of the rest."""
+        bad: list[int] = []
+        fresh: set[int] = set()  # pinned in this batch: a second sender for it is not a restart
+        pairs = np.unique(np.stack([robot[strange], owner[strange]], axis=1), axis=0)
+        for r, k in pairs.tolist():
+            if self.robot_addr.get(r) == senders[k]:
+                continue
+            if self.pin[r] < 0 or r not in fresh and now - int(self.tables.status_ns[r]) > QUIET_NS:
+                self._pin(r, senders[k])
+                fresh.add(r)
+            else:
+                bad.append(r << 20 | k)
+        key = robot.astype(np.int64) << 20 | owner
+        return np.isin(key, bad) if bad else np.zeros(robot.size, bool)
+
+    def _pin(self, robot: int, addr: tuple) -> None:
+        self.robot_addr[robot] = addr
+        if addr not in self._sender_ids:
+            if len(self._sender_ids) > 2 * len(self.robot_addr) + 64:  # forget senders no robot uses
+                used = set(self.robot_addr.values())
+                self._sender_ids = {a: i for a, i in self._sender_ids.items() if a in used}
+            self._sender_ids[addr] = max(self._sender_ids.values(), default=-1) + 1
+        self.pin[robot] = self._sender_ids[addr]
 
     async def sweep(self, period: float = 0.01) -> None:
         """Drop the trajectories of robots gone quiet (Pipeline.sweep), every `period`, until cancelled."""

@@ -129,3 +129,40 @@ async def test_refusals_and_bad_datagrams(start_cell) -> None:
         with pytest.raises(RemoteError) as info:
             await dp.update(flush=[99])
         assert info.value.code == "unknown_robot"
+
+
+def test_a_robot_is_pinned_to_its_first_sender_until_it_goes_quiet() -> None:
+    from cell.config import load_config
+    from cell.dataplane.pipeline import QUIET_NS
+    from services.dataplane import DataPlane
+
+    rob = [{"id": 1, "name": "r1", "skill_port": free_port()}]
+    dp = {"listen": f"127.0.0.1:{free_port()}"}
+    plane = DataPlane(load_config(overrides={"robots": rob, "dataplane": dp}))
+    addr = plane.sock.getsockname()
+    robot, intruder = udp.open_socket("127.0.0.1"), udp.open_socket("127.0.0.1")
+    try:
+
+        def send(sock, pos: float) -> int:
+            recs = datagram.empty(6)
+            datagram.pack(recs, 1, np.arange(6), Kind.STATUS, 1, 0.0, pos)
+            udp.Sender(sock, datagram.SIZE).send(memoryview(recs.view(np.uint8)), addr)
+            return plane.handle()
+
+        def answered(sock) -> bool:
+            return udp.recv_batch(sock) is not None
+
+        assert send(robot, 0.1) == 6 and answered(robot)
+        registers = plane.tables.status_pos[1].copy()
+        assert send(intruder, 0.9) == 0 and not answered(intruder)  # dropped, counted, not answered
+        assert plane.rejected["spoofed"] == 6
+        assert (plane.tables.status_pos[1] == registers).all()  # its registers untouched
+        assert plane.robot_addr[1] == robot.getsockname()  # stop commands still go to the robot
+        assert send(robot, 0.2) == 6 and answered(robot)
+        plane.tables.status_ns[1] -= QUIET_NS + 1  # the robot fell silent (a restart on a new port)
+        assert send(intruder, 0.3) == 6 and answered(intruder)  # re-pinned to the new address
+        assert send(robot, 0.4) == 0 and plane.rejected["spoofed"] == 12
+        assert plane.robot_addr[1] == intruder.getsockname()
+    finally:
+        for s in (robot, intruder, plane.sock):
+            s.close()
