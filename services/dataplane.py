@@ -171,7 +171,7 @@ class DataPlane:
         for r, k in pairs.tolist():
             if self.robot_addr.get(r) == senders[k]:
                 continue
-            if self.pin[r] < 0 or r not in fresh and now - int(self.tables.status_ns[r]) > QUIET_NS:
+            if self.pin[r] < 0 or (r not in fresh and now - int(self.tables.status_ns[r]) > QUIET_NS):
                 self._pin(r, senders[k])
                 fresh.add(r)
             else:
