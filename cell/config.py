@@ -7,6 +7,8 @@ naming the key and the file, which the CLI turns into exit code 2.
 
 from __future__ import annotations
 
+import copy
+import functools
 import ipaddress
 import re
 import tomllib
@@ -395,16 +397,30 @@ def default_text() -> str:
     return resources.files("cell").joinpath("default.toml").read_text()
 
 
+@functools.cache
+def _default_data() -> dict[str, Any]:
+    return tomllib.loads(default_text())
+
+
+_hints = functools.cache(get_type_hints)  # (evaluating a dataclass's hints is most of a config's load)
+
+
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> CellConfig:
     """The effective config: `path` (if any) merged over the embedded default, then `overrides`."""
-    data = tomllib.loads(default_text())
-    source = DEFAULT_SOURCE
-    if path is not None:
-        source = str(path)
-        try:
-            text = Path(path).read_text()
-        except OSError as exc:
-            raise ConfigError(source, "", f"cannot read: {exc.strerror}") from None
+    if path is None:
+        return config_from_text("", DEFAULT_SOURCE, overrides)
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) else f"not UTF-8 text ({exc.reason})"
+        raise ConfigError(str(path), "", f"cannot read: {why}") from None
+    return config_from_text(text, str(path), overrides)
+
+
+def config_from_text(text: str, source: str, overrides: dict[str, Any] | None = None) -> CellConfig:
+    """The effective config of a config file's text merged over the embedded default."""
+    data = copy.deepcopy(_default_data())
+    if text:
         try:
             user = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
@@ -448,7 +464,7 @@ def _join(path: str, key: str) -> str:
 def _build(cls: type, data: Any, path: str, source: str) -> Any:
     if not isinstance(data, dict):
         raise ConfigError(source, path, f"must be a table (got {_kind(data)})")
-    hints = get_type_hints(cls)
+    hints = _hints(cls)
     known = {f.name: f for f in fields(cls) if not f.metadata.get("internal")}
     for key in data:
         if key not in known:

@@ -91,8 +91,7 @@ class Cell:
         async def wait() -> Any:
             try:
                 async with asyncio.timeout(timeout):
-                    async for env in sub:
-                        msg = env.decode(message_type)
+                    async for msg in sub.messages(message_type):
                         if predicate(msg):
                             return msg
             finally:

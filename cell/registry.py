@@ -89,9 +89,8 @@ class StatusRegistry:
         self._bus = bus
         bus.publish(POLL_TOPIC, health_pb2.StatusRequest())  # no waiting a whole period to hear everyone
         while True:
-            for env in await health.recv_batch():
-                if env.type_name == health_pb2.Heartbeat.DESCRIPTOR.full_name:
-                    self.observe(env.decode(health_pb2.Heartbeat))
+            for beat in await health.recv_messages(health_pb2.Heartbeat):
+                self.observe(beat)
 
 
 def _fmt_count(v: float) -> str:

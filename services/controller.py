@@ -186,8 +186,7 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
     async def follow_link() -> None:
         """Stops and releases over the Responsive Link, as the hub tells them after the fact."""
         RE = robot_pb2.RobotEvent
-        async for env in events:
-            ev = env.decode(RE)
+        async for ev in events.messages(RE):
             if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP):
                 await ctl.stopped_on_link(ev.robot_id)
             elif ev.kind == RE.KIND_RESUME:

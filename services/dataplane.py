@@ -443,8 +443,7 @@ async def run(ctx: ServiceContext) -> None:
             )
             announcements = await bus.subscribe("announce/robot/")
             ctx.ready()
-            async for env in announcements:
-                msg = env.decode(robot_pb2.RobotAnnounce)
+            async for msg in announcements.messages(robot_pb2.RobotAnnounce):
                 if plane.tables.robot_entity[msg.robot_id] == NO_ROW:
                     plane.add_robot(msg.robot_id, msg.joints)
                     events.add_robot(msg.robot_id)

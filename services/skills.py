@@ -345,8 +345,7 @@ async def run(ctx: ServiceContext) -> None:
 
         async def follow_truth() -> None:
             while True:
-                for env in await truth.recv_batch():
-                    m = env.decode(robot_pb2.RobotTruth)
+                for m in await truth.recv_messages(robot_pb2.RobotTruth):
                     if (s := by_id.get(m.robot_id)) is not None:
                         s.held = m
 
@@ -358,8 +357,7 @@ async def run(ctx: ServiceContext) -> None:
             command is answered `stopped` now (its motions end where the new controller stops them),
             not with a timeout minutes later."""
             SE = health_pb2.ServiceEvent
-            async for env in controller_events:
-                ev = env.decode(SE)
+            async for ev in controller_events.messages(SE):
                 if ev.kind in (SE.KIND_FAILED, SE.KIND_RESTARTING):  # (not STARTED: the new one's own)
                     why = ev.text or "restarted"
                     n = ctx.bus.abandon(

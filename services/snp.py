@@ -41,21 +41,18 @@ async def run(ctx: ServiceContext) -> None:
 
         async def follow_truth() -> None:
             while True:
-                for env in await truth.recv_batch():
-                    m = env.decode(robot_pb2.RobotTruth)
+                for m in await truth.recv_messages(robot_pb2.RobotTruth):
                     state.observe(m.robot_id, m.t_ns, np.array(m.q), np.array(m.qd), np.array(m.target))
 
         async def follow_plans() -> None:
-            async for env in plans:
-                p = env.decode(controller_pb2.Plan)
+            async for p in plans.messages(controller_pb2.Plan):
                 n = p.joints
                 pos = np.array(p.positions).reshape(-1, n)
                 vel = np.array(p.velocities).reshape(-1, n)
                 state.set_plan(p.robot_id, np.array(p.t_ns), pos, vel)
 
         async def follow_robots() -> None:
-            async for env in announce:
-                a = env.decode(robot_pb2.RobotAnnounce)
+            async for a in announce.messages(robot_pb2.RobotAnnounce):
                 state.add_robot(a.robot_id, a.joints)
 
         async def report() -> None:

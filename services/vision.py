@@ -195,8 +195,7 @@ async def run(ctx: ServiceContext) -> None:
 
         async def follow() -> None:
             while True:
-                for env in await truth.recv_batch():
-                    m = env.decode(robot_pb2.RobotTruth)
+                for m in await truth.recv_messages(robot_pb2.RobotTruth):
                     if m.robot_id == robot.id:  # (the topic is a prefix: truth/r1 is also truth/r10's)
                         acq.state = (np.array(m.q), m.t_ns)
 

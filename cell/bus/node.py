@@ -200,6 +200,30 @@ class Subscription:
     def __aiter__(self) -> AsyncIterator[Envelope]:
         return self._iter()
 
+    def decoded(self, cls: type[M], batch: list[Envelope]) -> list[M]:
+        """The `cls` messages of a batch: other types are passed over, and a payload that does not
+        parse is counted malformed and dropped (no peer's message may end a subscriber)."""
+        want, out = cls.DESCRIPTOR.full_name, []
+        for env in batch:
+            if env.type_name != want:
+                continue
+            try:
+                out.append(env.decode(cls))
+            except EnvelopeError as exc:
+                self.malformed += 1
+                log.debug("dropped %s: %s", want, exc)
+        return out
+
+    async def recv_messages(self, cls: type[M], timeout: float | None = None) -> list[M]:
+        """The `cls` messages waiting (see decoded()); waits for one message at least."""
+        return self.decoded(cls, await self.recv_batch(timeout=timeout))
+
+    async def messages(self, cls: type[M]) -> AsyncIterator[M]:
+        """Every `cls` message, one by one, until cancelled."""
+        while True:
+            for m in await self.recv_messages(cls):
+                yield m
+
     async def _iter(self) -> AsyncIterator[Envelope]:
         while True:
             yield await self.recv()

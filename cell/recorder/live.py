@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
-from cell.bus import Subscription
+from cell.bus import EnvelopeError, Subscription
 from cell.recorder import serve
 from cell.recorder.scene import ArmDrawer
 from cell.recorder.series import SeriesBatch
@@ -263,7 +263,10 @@ def open_recording(mode: str, path: str, name: str) -> rr.RecordingStream:
 async def _each(sub: Subscription, handle) -> None:
     while True:
         for env in await sub.recv_batch():
-            handle(env)
+            try:
+                handle(env)
+            except EnvelopeError:  # a payload that does not parse: counted, dropped, never the recorder's end
+                sub.malformed += 1
 
 
 async def record(ctx: ServiceContext) -> None:
