@@ -67,6 +67,8 @@ class Recorder:
         self.series = SeriesBatch(rec, TIMELINE)
         self.last_counters: tuple[int, float] | None = None
         self.link_logged: dict[str, int] = {}  # service -> when its link counters were last drawn
+        self.restarts: dict[str, int] = {}  # service -> its restart count as last drawn
+        self.failed_ns: dict[str, int] = {}  # service -> when it failed, until it is back
         self.logged = 0
         self.t0_ns = time.monotonic_ns()
         self.lanes = ["vision", *(r.name for r in cfg.robots)]  # the Gantt chart's rows, top down
@@ -187,6 +189,34 @@ class Recorder:
             if key in hb.counters:
                 rec.log(f"rlink/{hb.service}/{key.removeprefix('rlink.')}", rr.Scalars(hb.counters[key]))
 
+    # --- the services' lives ---------------------------------------------------------------------------
+
+    def health(self, hb: health_pb2.Heartbeat, t_mono_ns: int) -> None:
+        """services/<name>/restarts whenever it changes (from 0 at first sight), with the last error."""
+        if self.restarts.get(hb.service) == hb.restarts:
+            return
+        self.at(t_mono_ns)
+        self.rec.log(f"services/{hb.service}/restarts", rr.Scalars(hb.restarts))
+        if hb.service in self.restarts:
+            why = f": {hb.last_error}" if hb.last_error else ""
+            self.rec.log(
+                "events", rr.TextLog(f"service {hb.service} restarted ({hb.restarts}){why}", level="WARN")
+            )
+        self.restarts[hb.service] = hb.restarts
+
+    def service_event(self, e: health_pb2.ServiceEvent, t_mono_ns: int) -> None:
+        """A service's lifecycle event; from its failure to its next start: services/<name>/recover_s."""
+        SE = health_pb2.ServiceEvent
+        text = f"service {e.service}: {SE.Kind.Name(e.kind)} {e.text}".strip()
+        if e.kind == SE.KIND_FAILED:
+            self.failed_ns.setdefault(e.service, t_mono_ns)
+        elif e.kind == SE.KIND_STARTED and e.service in self.failed_ns:
+            took = (t_mono_ns - self.failed_ns.pop(e.service)) / 1e9
+            self.at(t_mono_ns)
+            self.rec.log(f"services/{e.service}/recover_s", rr.Scalars(took))
+            text += f" (back {took:.2f} s after it failed)"
+        self.text(t_mono_ns, text, "WARN" if e.kind != SE.KIND_STARTED else "INFO")
+
     # --- events and skill commands --------------------------------------------------------------------
 
     def text(self, t_mono_ns: int, text: str, level: str = "INFO") -> None:
@@ -295,7 +325,10 @@ async def record(ctx: ServiceContext) -> None:
             r.truth(env.decode(robot_pb2.RobotTruth))
 
     def on_health(env) -> None:
+        if env.type_name != health_pb2.Heartbeat.DESCRIPTOR.full_name:
+            return
         hb = env.decode(health_pb2.Heartbeat)
+        r.health(hb, env.sent_ns)
         if any(k.startswith("rlink.L") for k in hb.counters):
             r.link(hb, env.sent_ns)
 
@@ -328,12 +361,7 @@ async def record(ctx: ServiceContext) -> None:
             e = env.decode(robot_pb2.RobotEvent)
             r.text(e.t_ns, f"{e.name}: {robot_pb2.RobotEvent.Kind.Name(e.kind)} {e.text}", "WARN")
         elif topic.startswith("events/service/"):
-            e = env.decode(health_pb2.ServiceEvent)
-            r.text(
-                time.monotonic_ns(),
-                f"service {e.service}: {health_pb2.ServiceEvent.Kind.Name(e.kind)} {e.text}",
-                "WARN",
-            )
+            r.service_event(env.decode(health_pb2.ServiceEvent), env.sent_ns)
 
     if cfg.mode == "serve":
         ctx.log.info("Rerun web viewer (loopback only): http://127.0.0.1:9090 (gRPC on 127.0.0.1:9876)")
