@@ -709,7 +709,7 @@ async def campaign(
                     rep.hangs += 1
                     rep.detail["why"] = f"{type(exc).__name__}: {exc}"
                 rep.seconds = time.monotonic() - t0
-                await _settle(config)
+                await _settle()
                 after = await _snapshot(config)
                 rep.crashed += _broken(before, after)
                 service = name if name in before else ("dataplane" if "UDP" in name else "skills")
@@ -745,7 +745,7 @@ async def _healthy(config: CellConfig, timeout: float = 60.0) -> dict[str, dict[
             await asyncio.sleep(0.2)
 
 
-async def _settle(config: CellConfig) -> None:
+async def _settle() -> None:
     """Give a service that just died time to be seen as such (a heartbeat period), then go on."""
     await asyncio.sleep(1.2)
 
@@ -754,7 +754,8 @@ def _row(r: Report) -> str:
     probe = "-" if r.probe_ms is None else f"{r.probe_ms:.2f} ms"
     why = "; ".join(r.crashed) or r.detail.get("why", "")
     return (
-        f"{r.name:<32} {'ok' if r.ok else 'FAILED':<6} {r.inputs:>10,} inputs {r.answers:>9,} answers"
+        f"{r.name:<32} {'ok' if r.ok else 'FAILED':<6} {r.inputs:>10,} inputs"
+        f" {sum(r.detail.get('counted', {}).values()):>11,.0f} counted"
         f" {r.seconds:6.1f} s  probe {probe:>9}  {why}"
     )
 
