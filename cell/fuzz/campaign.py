@@ -38,7 +38,7 @@ from cell.bus import Bus
 from cell.bus.envelope import Encoder, EnvelopeError
 from cell.bus.envelope import Kind as BusKind
 from cell.bus.envelope import decode as decode_frame
-from cell.config import CellConfig, ConfigError, config_from_text, load_config
+from cell.config import CellConfig, ConfigError, config_from_text, load_config, parse_host_port
 from cell.fuzz import strategies
 from cell.fuzz.mutate import Mutator
 from cell.launcher import fetch_status
@@ -46,7 +46,7 @@ from cell.rlink import packet as rlp
 from cell.rlink.cellnet import Topology
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
-from cell.skills.protocol import Command, CommandReader, parse_reply
+from cell.skills.protocol import Command, CommandReader, Done, parse_reply
 from cell.snp import packet as snp
 from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2
 
@@ -96,8 +96,8 @@ class Probes:
         self.config = config
         self.robot = config.robots[0]
         self.dp_sock = udp.open_socket("127.0.0.1")
-        self.snp_sock = _udp_socket()
-        self.rlink_sock = _udp_socket()
+        self.snp_sock = udp.open_socket("127.0.0.1", gro=False)
+        self.rlink_sock = udp.open_socket("127.0.0.1", gro=False)
         self.hub = Topology(config.rlink).address("hub")
         self.token = 0
 
@@ -117,7 +117,7 @@ class Probes:
         try:
             writer.write(Command(f"p{self._next():07d}"[-8:], "break").encode())
             reply = parse_reply((await reader.readuntil(b"\r\n"))[:-2])
-            if type(reply).__name__ != "Done":
+            if not isinstance(reply, Done):
                 raise Hang(f"break answered {reply}")
         finally:
             writer.close()
@@ -128,13 +128,13 @@ class Probes:
         seq = self._next()
         rec = datagram.empty(1)
         datagram.pack(rec, PROBE_ROBOT, 0, Kind.STATUS, seq, 0.0, 0.0)
-        addr = _addr(self.config.dataplane.listen)
+        addr = parse_host_port(self.config.dataplane.listen)
         return await _ask(sock, lambda: sock.sendto(rec.tobytes(), addr), lambda data: _has_answer(data, seq))
 
     async def snp(self) -> int:
         t1 = self._next()
         raw = snp.encode(snp.Header(0, snp.Pid.TSP, b"", 1, 0), snp.TimeRequest(t1))
-        addr = _addr(self.config.snp.listen)
+        addr = parse_host_port(self.config.snp.listen)
         return await _ask(
             self.snp_sock, lambda: self.snp_sock.sendto(raw, addr), lambda d: _snp_time(d) == t1
         )
@@ -162,19 +162,6 @@ class Probes:
                 raise Hang(f"no answer within {HANG_S:.0f} s") from None
             out.append((time.perf_counter() - t) * 1e3)
         return out
-
-
-def _udp_socket() -> socket.socket:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    s.setblocking(False)
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-    return s
-
-
-def _addr(listen: str) -> tuple[str, int]:
-    host, _, port = listen.rpartition(":")
-    return host, int(port)
 
 
 async def _ask(sock: socket.socket, send: Callable[[], Any], found: Callable[[bytes], bool]) -> int:
@@ -289,7 +276,7 @@ class Listeners:
         datagrams of wrong lengths; the probe after each burst."""
         rng = np.random.default_rng(self.seed)
         corpus = self.corpus(strategies.datagrams)
-        sock, addr = self.probes.dp_sock, _addr(self.config.dataplane.listen)
+        sock, addr = self.probes.dp_sock, parse_host_port(self.config.dataplane.listen)
         sender = udp.Sender(sock, datagram.SIZE)
         ids = np.array([r.id for r in self.config.robots] + [0, 65535, PROBE_ROBOT, 4000], np.int64)
         wild = np.array([0, 1, -1, 2**31 - 1, -(2**31), 2**30, 12345], np.int64)
@@ -340,7 +327,7 @@ class Listeners:
         await self._datagrams(
             rep,
             self.probes.snp_sock,
-            _addr(self.config.snp.listen),
+            parse_host_port(self.config.snp.listen),
             lambda: self.mut.snp(self.mut.rng.choice(corpus), corpus),
             self.probes.snp,
         )
@@ -571,7 +558,7 @@ class Attacks:
         recs = datagram.empty(64)
         datagram.pack(recs, np.arange(1000, 1064), 0, Kind.STATUS, 1, 0.0, 0.0)
         raw = memoryview(recs.view(np.uint8))
-        addr = _addr(self.config.dataplane.listen)
+        addr = parse_host_port(self.config.dataplane.listen)
         sent = 0
         during: list[float] = []
         probe_sock = udp.open_socket("127.0.0.1")
