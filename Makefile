@@ -25,6 +25,9 @@ demo: $(STAMP_RUN)
 	$(BIN)/cell demo
 
 test: $(STAMP_TEST)
+	@# the two-host test needs `ip` (iproute2) and root; installed here where apt and root allow
+	@command -v ip >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+		apt-get install -y -q iproute2 >/dev/null 2>&1; } || true
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/python -m pytest
 

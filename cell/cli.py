@@ -26,13 +26,22 @@ def _config_arg(p: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="TOML merged over the embedded default (default: the embedded one)",
     )
+    p.add_argument("--host", metavar="NAME", help="which of the config's [hosts] this is (a cell of several)")
+
+
+def _load(args: argparse.Namespace, overrides: dict | None = None) -> CellConfig:
+    """The effective config of a command: --config over the default, --host and `overrides` on top."""
+    host = getattr(args, "host", None)
+    if host is not None:
+        overrides = {**(overrides or {}), "cell": {"host": host}}
+    return load_config(args.config, overrides=overrides)
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
     from cell import launcher
     from cell.services import check_all
 
-    config = load_config(args.config)
+    config = _load(args)
     if args.rerun:
         config = _with_rerun(config, args.rerun)
     layout = "each" if args.processes else args.layout
@@ -61,7 +70,7 @@ def _cmd_service(args: argparse.Namespace) -> int:
     if bool(args.names) == bool(args.group):
         print("cell service: name services, or one process group with --group", file=sys.stderr)
         return EXIT_CONFIG
-    config = load_config(args.config)
+    config = _load(args)
     load_all(config, args.names)  # unknown names are config errors, before anything starts
     return aio.run(launcher.service(config, args.names, group=args.group, watch_stdin=args.watch_stdin))
 
@@ -69,7 +78,7 @@ def _cmd_service(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from cell.master import run_script
 
-    config = load_config(args.config)
+    config = _load(args)
     path = Path(args.script)
     if not path.is_file():
         print(f"cell run: no such script: {path}", file=sys.stderr)
@@ -89,7 +98,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     rrd = Path(args.out or f"runs/{stamp}.rrd").resolve()
     rrd.parent.mkdir(parents=True, exist_ok=True)
-    config = load_config(args.config, overrides={"recorder": {"mode": "save", "path": str(rrd)}})
+    config = _load(args, {"recorder": {"mode": "save", "path": str(rrd)}})
     config = _with_rerun(config, ["save", str(rrd)])
     effective = rrd.with_suffix(".toml")
     effective.write_text(config.to_toml())
@@ -111,7 +120,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
     from cell.bus import BusError
     from cell.registry import format_status
 
-    config = load_config(args.config)
+    config = _load(args)
     try:
         st = aio.run(launcher.fetch_status(config, args.timeout))
     except BusError as exc:
@@ -134,7 +143,7 @@ def _cmd_event(args: argparse.Namespace) -> int:
     """cell estop / stop / resume: one order on the Responsive Link, then the robots' reports."""
     from cell.rlink.client import EventClient
 
-    config = load_config(args.config)
+    config = _load(args)
 
     async def go() -> dict[int, float]:
         async with EventClient(config) as client:
@@ -153,13 +162,17 @@ def _cmd_event(args: argparse.Namespace) -> int:
     what = "released" if args.command == "resume" else "standing still"
     for rid, ms in sorted(took.items()):
         print(f"{names.get(rid, rid)}: {what} {ms:.1f} ms after the order")
+    named = set(args.robots)
+    for r in config.robots:
+        if not args.no_wait and r.id not in took and (not named or {r.name, str(r.id)} & named):
+            print(f"{r.name}: ordered (on host {r.host}, whose robots the data plane stops: no report)")
     if args.no_wait:
         print(f"{args.command} sent")
     return 0
 
 
 def _cmd_config_show(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
+    config = _load(args)
     print(f"# effective configuration: {config.source} over the embedded default\n")
     print(config.to_toml(), end="")
     return 0

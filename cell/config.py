@@ -111,6 +111,22 @@ def parse_host_port(text: str) -> tuple[str, int]:
 @dataclass(frozen=True)
 class CellSection:
     name: str = _check(_name)
+    host: str = _check(lambda v: None if v == "" else _name(v))  # this host, in a cell of [hosts]
+
+
+@dataclass(frozen=True)
+class HostConfig:
+    """One host of a cell that spans several: its address and the services it runs."""
+
+    address: str = _check(lambda v: _host_port(f"{v}:1"))
+    run: list[str]
+
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        for i, name in enumerate(self.run):
+            if problem := _name(name):
+                raise err(f"run[{i}]", problem)
+        if len(set(self.run)) != len(self.run):
+            raise err("run", "lists a service twice")
 
 
 @dataclass(frozen=True)
@@ -324,6 +340,7 @@ class RobotConfig:
     truth_hz: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
     watchdog_windows: int = _check(_positive)
     q0: list[float] = field(metadata={"check": _joint_vector})
+    host: str = _check(lambda v: None if v == "" else _name(v))  # the host emulating it ("": the only one)
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         if self.command_hz > self.status_hz:
@@ -345,6 +362,26 @@ class RobotDefaults:
     truth_hz: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
     watchdog_windows: int = _check(_positive)
     q0: list[float] = field(metadata={"check": _joint_vector})
+    host: str = _check(lambda v: None if v == "" else _name(v))
+
+
+# the key of the address each of these services binds: it must run on the host with that address
+_BINDS = {
+    "bus": "bus.pub",
+    "dataplane": "dataplane.listen",
+    "snp": "snp.listen",
+    "skills": "skills.host",
+    "rlink": "rlink.host",
+}
+
+
+def _bound_host(config: CellConfig, service: str) -> str:
+    """The address `service` binds ("": nothing to check, as for an ipc:// bus)."""
+    if service == "bus":
+        return parse_host_port(config.bus.pub[6:])[0] if config.bus.pub.startswith("tcp://") else ""
+    if service in ("dataplane", "snp"):
+        return parse_host_port(getattr(config, service).listen)[0]
+    return str(getattr(config, service).host)
 
 
 @dataclass(frozen=True)
@@ -361,6 +398,7 @@ class CellConfig:
     vision: VisionConfig
     robot_defaults: RobotDefaults
     robots: list[RobotConfig]
+    hosts: dict[str, HostConfig]
     source: str = field(default=DEFAULT_SOURCE, metadata={"internal": True})
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
@@ -374,6 +412,66 @@ class CellConfig:
         names = {r.name for r in self.robots}
         if "vision" in self.services.run and self.vision.robot and self.vision.robot not in names:
             raise err("vision.robot", f"{self.vision.robot!r} is not a robot of this cell")
+        self._validate_hosts(err)
+
+    def _validate_hosts(self, err: Callable[[str, str], ConfigError]) -> None:
+        """A cell of several hosts: every robot on one of them, every bound address on the host that
+        runs the service binding it (a robot on host b sending to 127.0.0.1 would reach nobody)."""
+        for name in self.hosts:
+            if problem := _name(name):
+                raise err(f"hosts.{name}", problem)
+        if not self.hosts:
+            if self.cell.host:
+                raise err("cell.host", f"{self.cell.host!r} is not one of [hosts] (there are none)")
+            for i, r in enumerate(self.robots):
+                if r.host:
+                    raise err(f"robots[{i}].host", f"{r.host!r}: this cell has no [hosts]")
+            return
+        known = ", ".join(sorted(self.hosts))
+        if self.cell.host not in self.hosts:
+            what = f"{self.cell.host!r} is not one of" if self.cell.host else "must name this host, one of"
+            raise err("cell.host", f"{what} {known} (`--host NAME`)")
+        for i, r in enumerate(self.robots):
+            if r.host not in self.hosts:
+                raise err(f"robots[{i}].host", f"must name the host emulating {r.name}, one of {known}")
+            if "robots" not in self.hosts[r.host].run:
+                raise err(f"robots[{i}].host", f"host {r.host!r} does not run service 'robots'")
+        owner: dict[str, str] = {}
+        for host, h in self.hosts.items():
+            for svc in h.run:
+                if svc in _BINDS:
+                    if svc in owner:
+                        raise err(f"hosts.{host}.run", f"{svc!r} runs on host {owner[svc]!r} already")
+                    owner[svc] = host
+                    bound = _bound_host(self, svc)
+                    if bound and bound not in (h.address, "0.0.0.0", "::"):
+                        raise err(
+                            _BINDS[svc],
+                            f"{svc!r} runs on host {host!r}: it must bind that host's address {h.address} "
+                            f"(got {bound})",
+                        )
+
+        if owner.get("dataplane", owner.get("rlink")) != owner.get("rlink", owner.get("dataplane")):
+            raise err(
+                "hosts",
+                "dataplane and rlink must run on one host (the data plane's link node binds [rlink] host)",
+            )
+
+    def here(self) -> HostConfig | None:
+        """This host, in a cell of several (None: the cell has one)."""
+        return self.hosts.get(self.cell.host)
+
+    def local_robots(self) -> list[RobotConfig]:
+        """The robots this host emulates."""
+        return [r for r in self.robots if r.host == self.cell.host]
+
+    def rlink_robots(self) -> list[RobotConfig]:
+        """The robots on the host of the Responsive Link's hub: their node halts them and reports
+        them still (robots of other hosts stop on the data plane's stop ramp, unreported)."""
+        if not self.hosts:
+            return list(self.robots)
+        hub = next((h for h, c in self.hosts.items() if "rlink" in c.run), None)
+        return [r for r in self.robots if r.host == hub]
 
     def robot(self, name: str) -> RobotConfig:
         for robot in self.robots:
@@ -436,7 +534,12 @@ def config_from_dict(data: dict[str, Any], source: str = DEFAULT_SOURCE) -> Cell
     services = data.get("services")
     if isinstance(services, dict):
         data = {**data, "services": _with_defaults(services, "groups", services.get("group_defaults"))}
-    return replace(_build(CellConfig, data, "", source), source=source)
+    config = replace(_build(CellConfig, data, "", source), source=source)
+    here = config.here()
+    if here is not None:  # a host of several: it runs its own services, with its own bus certificate
+        services = replace(config.services, run=list(here.run))
+        config = replace(config, services=services, bus=replace(config.bus, client=config.cell.host))
+    return config
 
 
 def _with_defaults(table: dict[str, Any], key: str, defaults: Any) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from cell.bus import Bus, BusError
 from cell.config import CellConfig
 from cell.layout import Process, process_for, process_named, processes
 from cell.processes import ChildProcess
-from cell.registry import StatusRegistry, format_status
+from cell.registry import StatusRegistry, format_status, status_names
 from cell.services import load_all
 from cell.supervisor import ServiceFailed, Supervisor
 from cell.v1 import health_pb2
@@ -36,7 +36,7 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
     launcher itself keeps the status registry and, in the "single" layout, runs everything.
     """
     layout = config.services.layout
-    registry = StatusRegistry(config.cell.name, layout, list(config.services.run))
+    registry = StatusRegistry.of(config)
     stop = asyncio.Event()
     t0 = time.monotonic()
     final: health_pb2.CellStatus | None = None
@@ -89,19 +89,20 @@ def _describe(p: Process) -> str:
 
 async def _keep_registry(config: CellConfig, registry: StatusRegistry, t0: float) -> None:
     announced = False
+    mine = set(status_names(config))
     while True:
         try:
             async with Bus.connect(config.bus, "cell") as bus:
                 reader = asyncio.ensure_future(registry.run(bus))
                 try:
                     while not announced and not reader.done():
-                        if all(s.health == "ok" for s in registry.status().services):
+                        if all(s.health == "ok" for s in registry.status().services if s.name in mine):
                             announced = True
                             log.info(
                                 "cell %r is up in %.2f s (%s): `cell status` to inspect, Ctrl-C to stop",
                                 config.cell.name,
                                 time.monotonic() - t0,
-                                ", ".join(registry.expected),
+                                ", ".join(sorted(mine)),
                             )
                             break
                         await asyncio.wait([reader], timeout=0.05)
@@ -156,9 +157,11 @@ async def child_cell(config_path: Path | None, config: CellConfig) -> AsyncItera
     cmd = [sys.executable, "-m", "cell", "--log-level", "WARNING", "up"]
     if config_path is not None:
         cmd += ["--config", str(config_path)]
+    if config.cell.host:
+        cmd += ["--host", config.cell.host]
     proc = await asyncio.create_subprocess_exec(*cmd, stdin=subprocess.DEVNULL, env=dict(os.environ))
     try:
-        want = set(config.services.run)
+        want = set(status_names(config))
         async with asyncio.timeout(60):
             while True:
                 with contextlib.suppress(BusError):

@@ -7,9 +7,11 @@ heartbeats arrive.
 
 from __future__ import annotations
 
+import socket
 import time
 
 from cell.bus import Bus
+from cell.config import CellConfig
 from cell.v1 import health_pb2
 
 POLL_TOPIC = "health-poll"  # supervisors answer a message here with their heartbeats at once
@@ -23,11 +25,29 @@ _HEALTH = {
 }
 
 
+def status_names(config: CellConfig, everywhere: bool = False) -> list[str]:
+    """The names `cell status` gives this host's services (every host's with `everywhere`): in a
+    cell of several hosts a service is `name@host`, since two hosts may both run `robots`."""
+    if not config.hosts:
+        return list(config.services.run)
+    hosts = config.hosts.items() if everywhere else [(config.cell.host, config.hosts[config.cell.host])]
+    return [f"{s}@{h}" for h, c in hosts for s in c.run]
+
+
+def host_name(config: CellConfig) -> str:
+    """This host in heartbeats: its name among [hosts], else the machine's."""
+    return config.cell.host or socket.gethostname()
+
+
 class StatusRegistry:
-    def __init__(self, cell: str, mode: str, expected: list[str]) -> None:
+    """Every service's last heartbeat, by its status name, with every expected one listed."""
+
+    def __init__(self, cell: str, mode: str, expected: list[str], *, host: str = "", qualify: bool = False):
         self.cell = cell
         self.mode = mode
         self.expected = list(expected)
+        self.host = host
+        self.qualify = qualify  # key services by name@host (a cell of several hosts)
         self.started = time.monotonic()
         self._last: dict[str, tuple[health_pb2.Heartbeat, float]] = {}
         self._process_restarts: dict[str, tuple[int, str]] = {}  # process -> (restarts, why)
@@ -41,7 +61,7 @@ class StatusRegistry:
         n, _ = self._process_restarts.get(process, (0, ""))
         self._process_restarts[process] = (n + 1, why)
         for name, (hb, _) in self._last.items():
-            if hb.process != process:
+            if hb.process != process or (self.qualify and hb.host != self.host):
                 continue
             if self._dead_pid.get(name) != hb.pid:
                 self._dead_pid[name] = hb.pid  # down until a heartbeat from its new process says otherwise
@@ -52,8 +72,19 @@ class StatusRegistry:
                 )
                 self._bus.publish(f"events/service/{name}", ev)
 
+    @classmethod
+    def of(cls, config: CellConfig) -> StatusRegistry:
+        return cls(
+            config.cell.name,
+            config.services.layout,
+            status_names(config, everywhere=True),
+            host=host_name(config),
+            qualify=bool(config.hosts),
+        )
+
     def observe(self, hb: health_pb2.Heartbeat, at: float | None = None) -> None:
-        self._last[hb.service] = (hb, time.monotonic() if at is None else at)
+        key = f"{hb.service}@{hb.host}" if self.qualify else hb.service
+        self._last[key] = (hb, time.monotonic() if at is None else at)
 
     def status(self, _request: object = None) -> health_pb2.CellStatus:
         now = time.monotonic()

@@ -16,7 +16,6 @@ import asyncio
 import contextlib
 import logging
 import os
-import socket
 import time
 from collections import deque
 from collections.abc import Awaitable
@@ -24,7 +23,7 @@ from collections.abc import Awaitable
 from cell import meter, sched
 from cell.bus import Bus, BusError
 from cell.config import MAIN_GROUP, CellConfig
-from cell.registry import POLL_TOPIC
+from cell.registry import POLL_TOPIC, host_name
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import health_pb2
 
@@ -125,7 +124,7 @@ class ServiceRunner:
             counters["busy_ms_per_s"] = busy
         return health_pb2.Heartbeat(
             service=self.name,
-            host=socket.gethostname(),
+            host=host_name(self.config),
             pid=os.getpid(),
             state=self.state,
             uptime_s=time.monotonic() - self.started,

@@ -11,8 +11,8 @@ ticks: an emergency stop (or a lost beacon) halts the drives at once, a stop
 leaves them to the data plane's stop ramp; either way each robot reports
 STATE STILL to the hub once it stands, and RESUMED when released.
 
-Method robots.silence (SilenceRequest) is fault injection for `cell chaos`: a
-robot stops answering for a while (no status, deaf to commands), as with its
+Method robot/<name>.silence (SilenceRequest) is fault injection for `cell chaos`:
+the robot stops answering for a while (no status, deaf to commands), as with its
 cable pulled.  The robots tick from the start, bus or no bus.
 """
 
@@ -25,6 +25,7 @@ from collections import defaultdict
 import numpy as np
 
 from cell.bus import Bus, RpcFault
+from cell.bus.node import Handler
 from cell.config import CellConfig, RobotConfig, parse_host_port
 from cell.rlink.events import Reason, RobotState, StateReport
 from cell.rlink.leaf import LeafNode
@@ -39,11 +40,13 @@ STILL_RAD_S = 1e-3  # a stopped robot stands still once every joint is slower th
 
 
 def build_groups(config: CellConfig) -> list[RobotGroup]:
-    """One group per (backend, model, rates); robots bind the data plane's host."""
+    """This host's robots, one group per (backend, model, rates); they bind this host's address (in a
+    cell of one host: the data plane's)."""
     by_key: dict[tuple, list[RobotConfig]] = defaultdict(list)
-    for r in config.robots:
+    for r in config.local_robots():
         by_key[(r.backend, r.model, r.status_hz, r.command_hz)].append(r)
-    host, _ = parse_host_port(config.dataplane.listen)
+    here = config.here()
+    host = here.address if here is not None else parse_host_port(config.dataplane.listen)[0]
     groups: list[RobotGroup] = []
     try:
         groups.extend(RobotGroup(robots, config.dataplane.listen, host=host) for robots in by_key.values())
@@ -185,10 +188,16 @@ def counters(groups: list[RobotGroup]) -> dict[str, float]:
     return dict(total)
 
 
+def has_node(config: CellConfig) -> bool:
+    """The robots' Responsive Link node runs beside the hub (in a cell of several hosts, on its host;
+    robots elsewhere stop on the data plane's stop ramp)."""
+    return not config.hosts or "rlink" in config.services.run
+
+
 async def run(ctx: ServiceContext) -> None:
     groups = build_groups(ctx.config)
     try:
-        node = RobotsNode(groups, ctx.config)
+        node = RobotsNode(groups, ctx.config) if has_node(ctx.config) else None
     except BaseException:
         for g in groups:
             g.close()
@@ -205,34 +214,40 @@ async def run(ctx: ServiceContext) -> None:
         async def report() -> None:
             while True:
                 ctx.counters.update(counters(groups))
-                ctx.counters.update(node.counters())
+                if node is not None:
+                    ctx.counters.update(node.counters())
                 await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
 
-        def silence(req: robot_pb2.SilenceRequest) -> robot_pb2.SilenceReply:
-            if not 0 < req.seconds <= 60:
-                raise RpcFault("bad_request", f"seconds must be in (0, 60], got {req.seconds}")
-            try:
-                rid = ctx.config.robot(req.robot).id
-            except KeyError:
-                raise RpcFault("unknown_robot", f"no robot named {req.robot!r}") from None
-            if not any(g.silence(rid, req.seconds) for g in groups):
-                raise RpcFault("unknown_robot", f"robot {req.robot!r} is not emulated here")
-            ctx.log.warning("fault injected: robot %s silent for %.1f s", req.robot, req.seconds)
-            return robot_pb2.SilenceReply(until_ns=time.monotonic_ns() + int(req.seconds * 1e9))
+        def silencer(g: RobotGroup, rid: int, name: str) -> Handler:
+            def silence(req: robot_pb2.SilenceRequest) -> robot_pb2.SilenceReply:
+                if req.robot not in ("", name):
+                    raise RpcFault("bad_request", f"this is robot {name}, not {req.robot!r}")
+                if not 0 < req.seconds <= 60:
+                    raise RpcFault("bad_request", f"seconds must be in (0, 60], got {req.seconds}")
+                g.silence(rid, req.seconds)
+                ctx.log.warning("fault injected: robot %s silent for %.1f s", name, req.seconds)
+                return robot_pb2.SilenceReply(until_ns=time.monotonic_ns() + int(req.seconds * 1e9))
+
+            return silence
 
         async def control() -> None:  # (after the packet path is running: it never waits for the bus)
-            await ctx.bus.serve("robots", {"silence": (robot_pb2.SilenceRequest, silence)})
+            for g in groups:  # each robot answers where it lives (hosts may split the cell's robots)
+                for r in g.robots:
+                    method = (robot_pb2.SilenceRequest, silencer(g, r.id, r.name))
+                    await ctx.bus.serve(f"robot/{r.name}", {"silence": method})
 
         async with asyncio.TaskGroup() as tg:
             for g in groups:
                 tg.create_task(g.run(Publisher(ctx.bus, g, node)), name=f"robots:{g.robots[0].backend}")
             tg.create_task(control(), name="control")
-            tg.create_task(node.run(), name="rlink")
+            if node is not None:
+                tg.create_task(node.run(), name="rlink")
             tg.create_task(announce(), name="announce")
             tg.create_task(report(), name="report")
             ctx.ready()
     finally:
-        node.close()
+        if node is not None:
+            node.close()
         for g in groups:
             g.close()
 

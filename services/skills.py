@@ -107,6 +107,7 @@ class RobotSkills:
             "refused_connections": 0,  # over max_connections(_per_peer)
             "slow_lines": 0,  # connections closed for a message not ended within line_timeout_s
             "paused_reads": 0,  # times a connection had max_pending unanswered and was not read
+            "open": 0,  # connections open now (a gauge)
         }
         self.open = 0  # connections open now
         self.per_peer: dict[str, int] = defaultdict(int)
@@ -154,6 +155,7 @@ class RobotSkills:
                 writer.close()
             return
         self.open += 1
+        self.counters["open"] = self.open
         self.per_peer[ip] += 1
         self.counters["connections"] += 1
         cfg = self.config.skills
@@ -223,7 +225,10 @@ class RobotSkills:
                         await writer.wait_closed()
         finally:
             self.open -= 1
+            self.counters["open"] = self.open
             self.per_peer[ip] -= 1
+            if not self.per_peer[ip]:
+                del self.per_peer[ip]  # (peers come and go: the table holds only those connected)
 
     def _trace(self, job: Job, reply: Reply, client: str) -> None:
         started = job.started_ns or job.received_ns

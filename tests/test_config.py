@@ -199,3 +199,40 @@ def test_a_group_may_reach_the_bus_through_other_endpoints(tmp_path: Path) -> No
     assert far.bus.hwm == config.bus.hwm  # the rest of [bus] as it was
     near = process_for(config, ["skills"]).config_for(config)
     assert near.bus == config.bus
+
+
+PLANT = Path(__file__).resolve().parent.parent / "deploy" / "plant.toml"
+
+
+def test_a_plant_file_gives_each_host_its_services_robots_and_certificate() -> None:
+    a = load_config(PLANT, overrides={"cell": {"host": "a"}})
+    b = load_config(PLANT, overrides={"cell": {"host": "b"}})
+    assert "bus" in a.services.run and b.services.run == ["robots"]
+    assert (a.bus.client, b.bus.client) == ("a", "b")
+    assert [r.name for r in a.local_robots()] == ["r1"] and [r.name for r in b.local_robots()] == ["r2"]
+    assert [r.name for r in b.rlink_robots()] == ["r1"]  # the hub's host's robots report to it
+    assert a.here().address == "10.0.0.1"
+    assert load_config().local_robots() == load_config().robots  # one host: every robot is its
+
+
+@pytest.mark.parametrize(
+    ("change", "key", "problem"),
+    [
+        ({"cell": {"host": ""}}, "cell.host", "must name this host, one of a, b"),
+        ({"cell": {"host": "c"}}, "cell.host", "'c' is not one of a, b"),
+        ({"dataplane": {"listen": "10.0.0.2:50000"}}, "dataplane.listen", "must bind that host's address"),
+        ({"skills": {"host": "127.0.0.1"}}, "skills.host", "must bind that host's address 10.0.0.1"),
+        ({"hosts": {"b": {"run": ["robots", "snp"]}}}, "hosts.b.run", "'snp' runs on host 'a' already"),
+        ({"hosts": {"b": {"run": ["vision"]}}}, "robots[1].host", "does not run service 'robots'"),
+    ],
+)
+def test_a_plant_file_that_cannot_work_is_refused(change: dict, key: str, problem: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(PLANT, overrides={"cell": {"host": "a"}} | change)
+    assert info.value.key == key and problem in info.value.problem, info.value
+
+
+def test_robots_name_no_host_in_a_cell_of_one() -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(overrides={"robot_defaults": {"host": "a"}})
+    assert info.value.key == "robots[0].host" and "no [hosts]" in info.value.problem

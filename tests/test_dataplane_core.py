@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from cell.dataplane.approx import LimitVelocity, TransformTable, bit_length, prefix_entries
 from cell.dataplane.pipeline import (
+    DROP_QUIET,
     DROP_UNDERRUN,
     DROP_WATCHDOG,
     QUIET_NS,
@@ -557,7 +558,7 @@ def test_a_robot_back_after_its_watchdog_finds_its_trajectory_dropped() -> None:
     assert v[0] == 0.0 and v[1] > 0.5  # robot 1 told to stand; robot 2 still pulled to its TP
     # a robot not heard for QUIET_NS (it, or we, hung): its plan is stale whatever its numbers say
     pipe.process(batch(status(3, 0, 0.0, 0.0, seq=9)), now=60 * MS + QUIET_NS + 1)
-    assert t.current_tp(3) is None
+    assert t.current_tp(3) is None and t.reg_dropped_why[t.entity_of(3)] == DROP_QUIET
 
 
 def test_the_sweep_drops_a_robot_that_went_quiet_without_a_packet() -> None:

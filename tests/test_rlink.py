@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cell.rlink import fec
-from cell.rlink.link import SLICE, LinkPorts, NodeLink
+from cell.rlink.link import MAX_CLIENTS, SLICE, LinkPorts, NodeLink
 from cell.rlink.node import Node
 from cell.rlink.packet import (
     DATA_SIZE,
@@ -386,3 +386,41 @@ async def test_junk_on_every_socket_is_counted_and_the_node_goes_on() -> None:
     assert got[0].type == EventType.STOP
     drops = {k: v for k, v in b.node.drops.items() if v}
     assert drops == {"truncated": 4, "oversized": 4, "crc": 2}, drops  # a broken packet is a CRC drop first
+
+
+async def test_the_host_interface_answers_at_most_max_clients_and_still_takes_the_rest() -> None:
+    """A peer sending from many ports cannot make every event cost a copy to each of them."""
+    at_a: list[Packet] = []
+    a_ev, a_da, b_ev, b_da, host = udp(), udp(), udp(), udp(), udp()
+    a = NodeLink(chain_node(1), [LinkPorts(1, a_ev, a_da, b_ev, b_da)], on_event=at_a.append)
+    b_node = Node(2, RoutingTable([Route(links=(2,)), Route(links=(0,), dst=2)]))
+    b = NodeLink(b_node, [LinkPorts(2, b_ev, b_da, a_ev, a_da)], host=host)
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(MAX_CLIENTS + 8)]
+    try:
+        async with asyncio.timeout(5), asyncio.TaskGroup() as tg:
+            tasks = [tg.create_task(a.run()), tg.create_task(b.run())]
+            for i, s in enumerate(socks):  # each a client of b's host interface, sending to node 1
+                s.bind(("127.0.0.1", 0))
+                s.setblocking(False)
+                s.sendto(encode(Packet(E, 1, 2, 1, EventType.NOP, i % 256)), host)
+                while len(at_a) <= i:  # (one at a time: a burst would overflow the link's event queue)
+                    await asyncio.sleep(0.001)
+            a.send(E, dst=2, type=EventType.STOP, priority=3)  # an event for b's host: copied to clients
+            while not b.node.links[0].packets_out[E]:
+                await asyncio.sleep(0.001)
+            for t in tasks:
+                t.cancel()
+        heard = []
+        for s in socks:
+            try:
+                heard.append(len(s.recv(256)) > 0)
+            except BlockingIOError:
+                heard.append(False)
+    finally:
+        a.close()
+        b.close()
+        for s in socks:
+            s.close()
+    assert len(at_a) == MAX_CLIENTS + 8  # every client's event went on its way
+    assert len(b.clients) == MAX_CLIENTS and b.clients_refused == 8
+    assert sum(heard) == MAX_CLIENTS and not any(heard[MAX_CLIENTS:])  # the refused hear nothing back

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from cell.bus import Bus
+from cell.bus import Bus, BusTimeout, RemoteError
 from cell.config import parse_host_port
 from cell.launcher import fetch_status
 from cell.robot import datagram, udp
@@ -140,5 +140,21 @@ async def test_bad_datagrams_are_counted_and_the_robots_go_on(start_cell) -> Non
         before = plane.count
         await plane.run(0.2, velocity=None)
         assert plane.count - before > 0.2 * 500 * 12 * 0.8  # still streaming
+
+        # fault injection is a bus method of each robot: bad requests are refused, saying why
+        async with Bus.connect(cell.config.bus, "tester") as bus:
+            for robot, seconds, why in ((("r2", 0.0, "seconds")), ("r2", 61.0, "seconds"), ("r1", 1.0, "r1")):
+                with pytest.raises(RemoteError) as err:
+                    await bus.request(
+                        "robot/r2", "silence", robot_pb2.SilenceRequest(robot=robot, seconds=seconds)
+                    )
+                assert err.value.code == "bad_request" and why in err.value.message
+            with pytest.raises(BusTimeout):  # nobody serves a robot the cell does not have
+                await bus.request("robot/r9", "silence", robot_pb2.SilenceRequest(seconds=1.0), timeout=0.3)
+            await bus.request("robot/r2", "silence", robot_pb2.SilenceRequest(robot="r2", seconds=0.5))
+            plane.pump(None)  # (what r2 sent before: loopback delivered it before the reply left)
+            plane.last.clear()
+            await plane.run(0.2, velocity=None)
+            assert {rid for rid, _ in plane.last} == {1}  # r2 is mute, r1 streams on
     finally:
         plane.close()

@@ -229,9 +229,8 @@ class Campaign:
             self.link.delay, self.link.jitter, self.link.loss = LINK
         elif action.kind == "silence":
             async with Bus.connect(self.config.bus, "chaos-silence") as bus:
-                await bus.request(
-                    "robots", "silence", robot_pb2.SilenceRequest(robot=action.target, seconds=action.seconds)
-                )
+                req = robot_pb2.SilenceRequest(robot=action.target, seconds=action.seconds)
+                await bus.request(f"robot/{action.target}", "silence", req)
 
     def end(self, action: Action, pids: dict[str, int]) -> None:
         if action.kind == "stop":

@@ -3,7 +3,7 @@
 A fault acts on the running cell from outside, as the world would: a signal
 to a service's process (SIGKILL: it dies; SIGSTOP ... SIGCONT: it hangs),
 the bus forwarder frozen for seconds, delay and loss on the controller's bus
-link (cell.bus.delay), a robot that stops answering (robots.silence).
+link (cell.bus.delay), a robot that stops answering (robot/<name>.silence).
 """
 
 from __future__ import annotations

@@ -865,6 +865,8 @@ def _untaken(exc: BusError) -> MotionStopped:
 _DROPPED = {
     "stop": "it was stopped over the Responsive Link (an e-stop, a stop, or a node's beacon watchdog)",
     "watchdog": "it went past its watchdog without commands (protective stop): its trajectory was dropped",
+    "quiet": "no status from it for over 0.5 s (the robot, its host or its link went silent, or the data "
+    "plane hung): its trajectory was dropped",
     "underrun": "its next TPs did not come in time (the controller fell behind): its trajectory was dropped",
 }
 

@@ -45,7 +45,8 @@ INPUT_LIMIT = 1 << 60
 TERM_LIMIT = 1 << 60
 QUIET_NS = 500_000_000  # no status from a robot this long: it, or we, hung; its plan is stale
 STALL_DROP_NS = 50_000_000  # an underrun this long ends the trajectory (catching up would be a lunge)
-DROP_WATCHDOG, DROP_UNDERRUN, DROP_STOP = 1, 2, 3  # why a trajectory was dropped (Tables.reg_dropped_why)
+# why a trajectory was dropped (Tables.reg_dropped_why)
+DROP_WATCHDOG, DROP_UNDERRUN, DROP_STOP, DROP_QUIET = 1, 2, 3, 4
 
 
 class TransformBank:
@@ -88,7 +89,7 @@ class PipelineCounters:
     stalls: int = 0  # a step was due but the next TP is not loaded (a streaming underrun)
     limited: int = 0  # commands clamped by LimitVelocity
     stop_commands: int = 0  # commands from the StopRamp (robots under REG_stop)
-    dropped: int = 0  # trajectories dropped (Tables.reg_dropped_why says why: watchdog, underrun, stop)
+    dropped: int = 0  # trajectories dropped (Tables.reg_dropped_why says why)
 
 
 class Pipeline:
@@ -188,9 +189,12 @@ class Pipeline:
         jump = (seq - t.status_seq[rid]) & 0xFFFFFFFF
         last, quiet = t.status_ns[rid], self.quiet_ns[rid]
         judged = known & (last > 0) & (quiet > 0)  # configured robots heard of before
-        stale = judged & ((now - last > quiet) | (jump > self.stale_periods[rid]))
-        if stale.any():
-            self.drop(ent[stale], now, DROP_WATCHDOG)
+        jumped = judged & (jump > self.stale_periods[rid])
+        if jumped.any():
+            self.drop(ent[jumped], now, DROP_WATCHDOG)
+        silent = judged & (now - last > quiet) & ~jumped
+        if silent.any():
+            self.drop(ent[silent], now, DROP_QUIET)
         if known.any():
             counts = np.bincount(ent[known], minlength=t.entities)  # (faster than np.unique here)
             entities = np.flatnonzero(counts)
@@ -237,7 +241,7 @@ class Pipeline:
         gone = (last > 0) & (quiet > 0) & (now - last > quiet)  # (process()'s rule, without a packet)
         if gone.any():
             ent = self.t.robot_entity[robots[gone]].astype(np.int64)
-            self.drop(ent[ent != NO_ROW], now, DROP_WATCHDOG)
+            self.drop(ent[ent != NO_ROW], now, DROP_QUIET)
 
     def drop(self, entities: np.ndarray, now: int, why: int) -> None:
         """Clear the registers of these entities (see the module's docstring), noting when and why."""

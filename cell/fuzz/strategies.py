@@ -108,7 +108,7 @@ BUS_TOPICS = (
     "rpc/controller/pose",
     "rpc/vision/info",
     "rpc/dataplane/update",
-    "rpc/robots/silence",
+    "rpc/robot/r1/silence",
     "rpc/controller/move",
     "rpc/dataplane/nope",
     "health/fuzz",

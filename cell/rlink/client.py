@@ -78,7 +78,9 @@ class EventClient:
     async def estop(
         self, robots: Sequence[int | str] | None = None, wait: bool = True, timeout: float = 5.0
     ) -> dict[int, float]:
-        """Emergency stop; with wait, until every robot stands (ms from the order, per robot id)."""
+        """Emergency stop; with wait, until every robot stands (ms from the order, per robot id; in a
+        cell of several hosts, for the robots on the hub's host: the others stop on the data plane's
+        stop ramp, and no node of theirs reports it)."""
         return await self._order(EventType.ESTOP, robots, RobotState.STILL, wait, timeout)
 
     async def stop(
@@ -105,7 +107,8 @@ class EventClient:
         loop = asyncio.get_running_loop()
         futs = {}
         if wait:
-            for rid in ids:
+            reported = {r.id for r in self.config.rlink_robots()}  # (others are on a host without a node)
+            for rid in (i for i in ids if i in reported):
                 fut: asyncio.Future[float] = loop.create_future()
                 self._waiters.setdefault(rid, []).append((until, fut))
                 futs[rid] = fut

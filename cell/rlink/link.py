@@ -37,6 +37,10 @@ from cell.rlink.packet import Kind, Packet, encode
 SLICE = 4  # data packets handled between two looks at the event sockets (`cell bench rlink`: at 32 a
 # flooded node made events wait 4x longer; at 4 about 1.1x, and it handles as many data packets a second)
 HOST_LEASE_S = 5.0  # a host-interface client that has not sent anything for this long hears nothing
+# host-interface clients that hear the events at once: each costs a sendto per event, so a peer sending
+# from thousands of ports must not make every e-stop wait for thousands of copies (beyond: counted,
+# their events still enter the node, they hear nothing back)
+MAX_CLIENTS = 64
 RECV_BYTES = 4096  # a datagram larger than any line form, so that oversized ones are seen whole
 
 
@@ -70,6 +74,7 @@ class NodeLink:
         self.event_latency_ns: list[int] = []  # arrival on a link -> handed to the host, recent
         self.host_sock: socket.socket | None = None
         self.clients: dict[tuple[str, int], float] = {}  # host-interface client -> when it last spoke
+        self.clients_refused = 0  # events from a client beyond MAX_CLIENTS (served, not answered)
         try:
             if host is not None:
                 self.host_sock = _udp(host)
@@ -163,11 +168,22 @@ class NodeLink:
                 break
             except OSError:
                 continue
-            self.clients[addr] = now
+            self._lease(addr, now)
             self.node.receive(0, Kind.EVENT, raw)
             got = True
         if got:
             self._flush()
+
+    def _lease(self, addr: tuple[str, int], now: float) -> None:
+        clients = self.clients
+        if addr not in clients and len(clients) >= MAX_CLIENTS:
+            for old, seen in list(clients.items()):  # make room from the expired leases, if any
+                if now - seen > HOST_LEASE_S:
+                    del clients[old]
+        if addr in clients or len(clients) < MAX_CLIENTS:
+            clients[addr] = now
+        else:
+            self.clients_refused += 1
 
     def _data_slice(self) -> bool:
         """At most one slice of data packets (the events first); True if more may be waiting."""
@@ -253,6 +269,9 @@ def link_counters(link: NodeLink, prefix: str = "rlink") -> dict[str, float]:
         if c.fec_corrected:
             out[f"{prefix}.L{n}.fec_corrected"] = c.fec_corrected
     out.update({f"{prefix}.drops.{r}": v for r, v in node.drops.items()})
+    if link.host_sock is not None:
+        out[f"{prefix}.host_clients"] = len(link.clients)
+        out[f"{prefix}.host_clients_refused"] = link.clients_refused
     if link.event_latency_ns:
         ns = sorted(link.event_latency_ns)
         out[f"{prefix}.event_latency_p50_us"] = ns[len(ns) // 2] / 1e3
