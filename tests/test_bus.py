@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import time
 from dataclasses import replace
 
 import pytest
 import zmq
 
-from cell.bus import Bus, BusError, BusTimeout, BusUnavailable, Forwarder, RemoteError, RpcFault
+from cell.bus import Bus, BusError, BusTimeout, BusUnavailable, Forwarder, RemoteError, RpcFault, node
 from cell.bus.envelope import Encoder
 from cell.bus.node import zmq_context
 from cell.config import BusConfig
@@ -350,3 +351,46 @@ async def test_requests_waiting_when_the_forwarder_dies_are_answered_at_once(bus
             release.set()
     finally:
         fwd.stop()
+
+
+async def test_a_subscriber_wakes_though_its_fd_number_was_left_registered_by_a_closed_file(
+    forwarder: BusConfig,
+) -> None:
+    """ZeroMQ closes a socket's FD in its own thread; the number comes back for a new socket while
+    the event loop may still hold the old registration.  Then asyncio would only update its map,
+    never tell epoll about the new file, and the subscriber would sleep on a full queue."""
+    loop = asyncio.get_running_loop()
+    async with Bus.connect(forwarder, "pub") as pub, Bus.connect(forwarder, "sub") as sub_bus:
+        r, w = os.pipe()
+        os.close(w)
+        loop.add_reader(r, lambda: None)  # registered, then closed behind the loop's back ...
+        os.close(r)
+        stale = node.wakeups["stale"]
+        sub = await sub_bus.subscribe("t/")  # ... and its number taken by the new socket's FD
+        if sub._sock.getsockopt(zmq.FD) != r:
+            loop.remove_reader(r)
+            pytest.skip("the subscription's FD did not take the closed file's number")
+        got = asyncio.ensure_future(sub.recv(timeout=node.RECHECK_S / 2))  # the FD must wake it
+        await asyncio.sleep(0)  # (it is waiting now)
+        pub.publish("t/x", bus_pb2.BenchPayload(data=b"wake"))
+        env = await got
+    assert env.decode(bus_pb2.BenchPayload).data == b"wake" and node.wakeups["stale"] == stale + 1
+
+
+async def test_a_subscriber_whose_wake_up_edge_was_consumed_still_gets_its_message(
+    forwarder: BusConfig,
+) -> None:
+    """ZeroMQ's FD is edge-like: whoever reads EVENTS first takes the edge.  Taken behind the waiter's
+    back, the waiter still looks at EVENTS every RECHECK_S and is counted as a missed wake-up."""
+    async with Bus.connect(forwarder, "pub") as pub, Bus.connect(forwarder, "sub") as sub_bus:
+        sub = await sub_bus.subscribe("t/")
+        missed = node.wakeups["missed"]
+        got = asyncio.ensure_future(sub.recv(timeout=5 * node.RECHECK_S))
+        await asyncio.sleep(0)  # (it is waiting on the FD now)
+        pub.publish("t/x", bus_pb2.BenchPayload(data=b"edge"))
+        deadline = time.monotonic() + 2
+        while not sub._sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # (this read takes the edge)
+            assert time.monotonic() < deadline
+            time.sleep(0.001)  # noqa: ASYNC251 (the event loop must not run: it would take the edge itself)
+        env = await got
+    assert env.decode(bus_pb2.BenchPayload).data == b"edge" and node.wakeups["missed"] == missed + 1

@@ -7,6 +7,7 @@ import random
 import socket
 import tempfile
 from collections.abc import AsyncIterator
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,17 @@ def free_udp_block(n: int, taken: set[int] | None = None) -> int:
         taken.update(range(base, base + n))
         return base
     raise RuntimeError(f"no {n} consecutive free UDP ports")
+
+
+def default_robots() -> list[dict[str, Any]]:
+    """The default cell's [[robots]], each on a skill port free now (a campaign's cell beside a
+    running one)."""
+    return [{**asdict(r), "skill_port": free_port()} for r in load_config(None).robots]
+
+
+def ok_services(st: Any) -> set[str]:
+    """The services a CellStatus says are ok."""
+    return {s.name for s in st.services if s.health == "ok"}
 
 
 @contextlib.asynccontextmanager

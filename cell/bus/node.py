@@ -88,6 +88,9 @@ def zmq_context() -> zmq.Context:
 
 
 _waiting: set[int] = set()
+RECHECK_S = 0.5  # a waiter looks at EVENTS this often even if the FD never says so (see readable())
+# how often that happened, and how often a stale registration of the FD's number had to be cleared
+wakeups = {"missed": 0, "stale": 0}
 
 
 async def readable(sock: zmq.Socket) -> None:
@@ -97,6 +100,14 @@ async def readable(sock: zmq.Socket) -> None:
     checked before sleeping and on every wake-up.  A direct add_reader costs a
     fraction of zmq.asyncio's poll machinery on every bus hop.  One waiter per
     socket at a time.
+
+    Two guards against a wake-up that never comes: ZeroMQ closes a socket's FD
+    in its own thread, so the FD's number may come back for a new socket while
+    the event loop still holds the old registration (asyncio would then only
+    update its map and never tell epoll about the new file): any registration
+    of the number is cleared first.  And EVENTS is looked at every RECHECK_S
+    whatever the FD says, so that a lost edge costs at most that much, counted
+    in `wakeups["missed"]`, never a subscriber asleep on a full queue.
     """
     if sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
         return
@@ -113,11 +124,25 @@ async def readable(sock: zmq.Socket) -> None:
         if sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
             fut.set_result(None)
 
+    def recheck() -> None:
+        nonlocal timer
+        if fut.done() or sock.closed:
+            return
+        if sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+            wakeups["missed"] += 1
+            fut.set_result(None)
+        else:
+            timer = loop.call_later(RECHECK_S, recheck)
+
+    if loop.remove_reader(fd):  # a registration left by a closed socket whose FD had this number
+        wakeups["stale"] += 1
     loop.add_reader(fd, check)
+    timer = loop.call_later(RECHECK_S, recheck)
     try:
         check()  # a message may have come between the first look and add_reader
         await fut
     finally:
+        timer.cancel()
         loop.remove_reader(fd)
         _waiting.discard(fd)
 
@@ -329,7 +354,9 @@ class Bus:
                     self.refused = "the bus refused this node's CurveZMQ key (not in its allow-list?)"
                     if event == zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL:
                         self.refused = (
-                            "the CurveZMQ handshake with the bus failed (keys or curve setting differ?)"
+                            "the handshake with the bus failed: it went away mid-handshake, or the "
+                            "curve settings differ (this node: curve = "
+                            f"{'true' if self.config.curve else 'false'})"
                         )
                     log.warning("%s: %s", self.source, self.refused)
                 elif event == zmq.EVENT_DISCONNECTED:
@@ -373,6 +400,7 @@ class Bus:
             "bus.served": self.served,
             "bus.late_replies": self.late_replies,
             "bus.disconnects": self.disconnects,
+            "bus.missed_wakeups": wakeups["missed"],  # (the process's, all its nodes together)
         }
 
     # --- sync: prove a path end to end -------------------------------------------------------

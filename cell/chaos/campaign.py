@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.bench.cellproc import free_port, running_cell
+from cell.bench.cellproc import default_robots, free_port, ok_services, running_cell
 from cell.bus import Bus, BusError
 from cell.bus.delay import DelayLink
 from cell.chaos.faults import PROMISES, Action, Fault, catalogue
@@ -127,6 +127,13 @@ class Observer:
         t = self.truth[robot]
         return t[-1] if t else None
 
+    def describe(self, robot: str) -> str:
+        """What the truth last said of a robot, and how old that is (for a promise that failed)."""
+        last = self.latest(robot)
+        if last is None:
+            return f"{robot}: no truth heard"
+        return f"{robot}: truth {(time.monotonic_ns() - last[0]) / 1e6:.0f} ms old, |qd| {last[1]:.4f} rad/s"
+
     def at_rest(self, robot: str, fresh_ns: int = 200_000_000) -> bool:
         last = self.latest(robot)
         return last is not None and time.monotonic_ns() - last[0] < fresh_ns and last[1] < REST
@@ -170,7 +177,7 @@ class Campaign:
         async with asyncio.timeout(timeout):
             while True:
                 st = self.last_status = await self.status()
-                healthy = st is not None and want <= {s.name for s in st.services if s.health == "ok"}
+                healthy = st is not None and want <= ok_services(st)
                 if healthy and all(self.obs.at_rest(r) for r in self.robots):
                     return st  # type: ignore[return-value]
                 await asyncio.sleep(0.1)
@@ -388,7 +395,7 @@ class Campaign:
         if st is None:
             last = self.last_status
             sick = [f"{s.name} {s.health}" for s in last.services if s.health != "ok"] if last else ["none"]
-            rest = [r for r in self.robots if not self.obs.at_rest(r)]
+            rest = [self.obs.describe(r) for r in self.robots if not self.obs.at_rest(r)]
             return False, f"the cell did not come back to health: {sick}, not at rest: {rest}"
         by = {s.name: s for s in st.services}
         notes, ok = [], True
@@ -427,11 +434,7 @@ def _cell_overrides(link_pub: str, link_sub: str) -> dict[str, Any]:
     groups.append(
         {"name": "remote-controller", "services": ["controller"], "bus_pub": link_pub, "bus_sub": link_sub}
     )
-    robots = [{**asdict(r), "skill_port": free_port()} for r in base.robots]
-    return {
-        "services": {"layout": "each", "groups": groups},
-        "robots": robots,
-    }
+    return {"services": {"layout": "each", "groups": groups}, "robots": default_robots()}
 
 
 async def campaign(rounds: int = 1, only: list[str] | None = None, log_fn=print) -> dict[str, Any]:

@@ -26,14 +26,14 @@ import socket
 import statistics
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import zmq
 import zmq.asyncio
 
-from cell.bench.cellproc import free_port, running_cell
+from cell.bench.cellproc import default_robots, running_cell
 from cell.bus import Bus
 from cell.bus.envelope import Encoder, EnvelopeError
 from cell.bus.envelope import Kind as BusKind
@@ -661,7 +661,7 @@ async def campaign(
     inputs: int = 1_000_000, seed: int = 1, only: list[str] | None = None, log_fn=print
 ) -> dict:
     """Run it; the figures as a dict (see summary())."""
-    overrides = {"services": {"layout": "each"}, "robots": _robots()}
+    overrides = {"services": {"layout": "each"}, "robots": default_robots()}
     reports: list[Report] = []
     async with running_cell(overrides) as config, Bus.connect(config.bus, "fuzz") as bus:
         probes = Probes(config)
@@ -726,10 +726,6 @@ async def campaign(
         finally:
             probes.close()
     return summary(reports, start, end, usual, inputs)
-
-
-def _robots() -> list[dict[str, Any]]:
-    return [{**asdict(r), "skill_port": free_port()} for r in load_config(None).robots]
 
 
 async def _healthy(config: CellConfig, timeout: float = 60.0) -> dict[str, dict[str, Any]]:
