@@ -171,13 +171,19 @@ class Campaign:
             return await fetch_status(self.config, timeout=timeout)
         return None
 
-    async def healthy(self, timeout: float = 60.0) -> health_pb2.CellStatus:
-        """Until every service is ok and every robot rests; the status then."""
+    async def healthy(
+        self, timeout: float = 60.0, dead: dict[str, int] | None = None
+    ) -> health_pb2.CellStatus:
+        """Until every service is ok and every robot rests (and the services in `dead` run in a process
+        other than the pid given: a status taken before the launcher has seen a kill is no recovery);
+        the status then."""
         want = set(self.config.services.run)
+        dead = dead or {}
         async with asyncio.timeout(timeout):
             while True:
                 st = self.last_status = await self.status()
                 healthy = st is not None and want <= ok_services(st)
+                healthy = healthy and not any(s.last.pid == dead.get(s.name) for s in st.services)
                 if healthy and all(self.obs.at_rest(r) for r in self.robots):
                     return st  # type: ignore[return-value]
                 await asyncio.sleep(0.1)
@@ -299,7 +305,8 @@ class Campaign:
         # recovery: every service ok again, then a motion on every robot (back where each came from)
         recovered_st = None
         with contextlib.suppress(TimeoutError):
-            recovered_st = await self.healthy(timeout=60.0)
+            killed = {a.target: pids[a.target] for a in fault.actions if a.kind == "kill"}
+            recovered_st = await self.healthy(timeout=60.0, dead=killed)
         t_check = time.monotonic_ns()
         back = await asyncio.gather(*(self.drive(r, self.goal(r), [t_check]) for r in self.robots))
         t_recovered = time.monotonic_ns()
