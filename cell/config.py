@@ -83,6 +83,15 @@ def _joint_vector(v: list[float]) -> str | None:
     return None if len(v) == 6 else f"must list 6 joint values in rad (got {len(v)})"
 
 
+def _check_run(run: list[str], err: Callable[[str, str], ConfigError]) -> None:
+    """A `run` list: service names, each once."""
+    for i, name in enumerate(run):
+        if problem := _name(name):
+            raise err(f"run[{i}]", problem)
+    if len(set(run)) != len(run):
+        raise err("run", "lists a service twice")
+
+
 def _check(fn: Callable[[Any], str | None]) -> Any:
     return field(metadata={"check": fn})
 
@@ -122,11 +131,7 @@ class HostConfig:
     run: list[str]
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
-        for i, name in enumerate(self.run):
-            if problem := _name(name):
-                raise err(f"run[{i}]", problem)
-        if len(set(self.run)) != len(self.run):
-            raise err("run", "lists a service twice")
+        _check_run(self.run, err)
 
 
 @dataclass(frozen=True)
@@ -199,11 +204,7 @@ class ServicesConfig:
     plugins: dict[str, str] = field(default_factory=dict)
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
-        for i, name in enumerate(self.run):
-            if problem := _name(name):
-                raise err(f"run[{i}]", problem)
-        if len(set(self.run)) != len(self.run):
-            raise err("run", "lists a service twice")
+        _check_run(self.run, err)
         seen: dict[str, str] = {}
         for i, g in enumerate(self.groups):
             if any(o.name == g.name for o in self.groups[:i]):

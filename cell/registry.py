@@ -61,16 +61,19 @@ class StatusRegistry:
         n, _ = self._process_restarts.get(process, (0, ""))
         self._process_restarts[process] = (n + 1, why)
         for name, (hb, _) in self._last.items():
-            if hb.process != process or (self.qualify and hb.host != self.host):
+            if hb.process != process or not self._mine(hb):
                 continue
             if self._dead_pid.get(name) != hb.pid:
                 self._dead_pid[name] = hb.pid  # down until a heartbeat from its new process says otherwise
                 self._carried[name] = self._carried.get(name, 0) + hb.restarts  # its in-process restarts
             if self._bus is not None:  # its supervisor died with it: say so in its stead, now
-                ev = health_pb2.ServiceEvent(
-                    service=name, kind=health_pb2.ServiceEvent.KIND_FAILED, text=why, restarts=hb.restarts
-                )
-                self._bus.publish(f"events/service/{name}", ev)
+                kind = health_pb2.ServiceEvent.KIND_FAILED
+                ev = health_pb2.ServiceEvent(service=hb.service, kind=kind, text=why, restarts=hb.restarts)
+                self._bus.publish(f"events/service/{hb.service}", ev)  # (a topic has no '@')
+
+    def _mine(self, hb: health_pb2.Heartbeat) -> bool:
+        """A heartbeat of a process this launcher runs (process names repeat across hosts)."""
+        return not self.qualify or hb.host == self.host
 
     @classmethod
     def of(cls, config: CellConfig) -> StatusRegistry:
@@ -97,7 +100,7 @@ class StatusRegistry:
                 continue
             hb, at = self._last[name]
             entry.last.CopyFrom(hb)
-            if hb.process in self._process_restarts:
+            if hb.process in self._process_restarts and self._mine(hb):
                 n, why = self._process_restarts[hb.process]
                 entry.last.restarts += n
                 entry.last.last_error = entry.last.last_error or why

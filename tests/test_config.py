@@ -236,3 +236,27 @@ def test_robots_name_no_host_in_a_cell_of_one() -> None:
     with pytest.raises(ConfigError) as info:
         load_config(overrides={"robot_defaults": {"host": "a"}})
     assert info.value.key == "robots[0].host" and "no [hosts]" in info.value.problem
+
+
+def test_status_names_a_service_by_host_and_a_restart_counts_only_on_its_own() -> None:
+    from cell.registry import StatusRegistry
+    from cell.v1 import health_pb2
+
+    a = load_config(PLANT, overrides={"cell": {"host": "a"}})
+    reg = StatusRegistry.of(a)
+    assert "robots@a" in reg.expected and "robots@b" in reg.expected and "bus@a" in reg.expected
+    ok = health_pb2.SERVICE_STATE_RUNNING
+    for host, pid in (("a", 10), ("b", 20)):  # both hosts run a process named "robots"
+        hb = health_pb2.Heartbeat(
+            service="robots", host=host, pid=pid, state=ok, process="robots", interval_s=5
+        )
+        reg.observe(hb)
+    reg.process_restarted("robots", "process 'robots' exited with code -9")
+    by = {s.name: s for s in reg.status().services}
+    assert (by["robots@a"].health, by["robots@a"].last.restarts) == ("backoff", 1)
+    assert (by["robots@b"].health, by["robots@b"].last.restarts, by["robots@b"].last.last_error) == (
+        "ok",
+        0,
+        "",
+    )
+    assert by["bus@a"].health == "missing"
