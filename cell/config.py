@@ -139,6 +139,8 @@ class BusConfig:
     pub: str = _check(_zmq_endpoint)
     sub: str = _check(_zmq_endpoint)
     hwm: int = _check(_positive)
+    heartbeat_s: float = _check(_positive)  # ZMTP PING on every bus connection this often ...
+    heartbeat_timeout_s: float = _check(_positive)  # ... and one that stays silent this long is reconnected
     connect_timeout_s: float = _check(_positive)
     request_timeout_s: float = _check(_positive)
     curve: bool  # CurveZMQ on every bus connection (cell/bus/curve.py)
@@ -148,6 +150,8 @@ class BusConfig:
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         if self.pub == self.sub:
             raise err("sub", "must differ from bus.pub")
+        if self.heartbeat_timeout_s <= self.heartbeat_s:
+            raise err("heartbeat_timeout_s", "must exceed bus.heartbeat_s")
         if self.curve and not self.keys:
             raise err("keys", "curve = true needs the keys directory (`cell keys generate`)")
 

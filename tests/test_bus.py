@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
+import signal
+import subprocess
+import sys
 import time
 from dataclasses import replace
 
@@ -15,7 +19,7 @@ from cell.bus.envelope import Encoder
 from cell.bus.node import zmq_context
 from cell.config import BusConfig
 from cell.v1 import bus_pb2
-from tests.conftest import free_port
+from tests.conftest import cell_env, free_port
 
 
 def payload(i: int) -> bus_pb2.BenchPayload:
@@ -394,3 +398,47 @@ async def test_a_subscriber_whose_wake_up_edge_was_consumed_still_gets_its_messa
             time.sleep(0.001)  # noqa: ASYNC251 (the event loop must not run: it would take the edge itself)
         env = await got
     assert env.decode(bus_pb2.BenchPayload).data == b"edge" and node.wakeups["missed"] == missed + 1
+
+
+async def test_a_hung_forwarder_is_noticed_by_heartbeats_and_the_bus_works_once_it_is_back(
+    bus_config: BusConfig,
+) -> None:
+    """A peer that hangs keeps its TCP connections open; only ZMTP heartbeats notice (and get a
+    connection out of a stream stalled behind a shut receive window).  The forwarder runs in a child
+    process here, so that SIGSTOP hangs it and nothing else."""
+    cfg = replace(bus_config, heartbeat_s=0.1, heartbeat_timeout_s=0.3)
+    code = (
+        "import sys, time; from cell.bus import Forwarder; from cell.config import load_config\n"
+        "from dataclasses import replace\n"
+        f"fwd = Forwarder(replace(load_config(None).bus, pub={cfg.pub!r}, sub={cfg.sub!r},"
+        " heartbeat_s=0.1, heartbeat_timeout_s=0.3)); fwd.start(); print('up', flush=True)\n"
+        "sys.stdin.read()\n"
+    )
+    child = subprocess.Popen(
+        [sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=cell_env()
+    )
+    try:
+        assert child.stdout is not None and child.stdout.readline() == "up\n"
+        async with Bus.connect(cfg, "node") as bus, Bus.connect(cfg, "server") as server:
+            await server.serve("svc", {"echo": (bus_pb2.BenchPayload, lambda r: r)})
+            sub = await bus.subscribe("hb/")
+            os.kill(child.pid, signal.SIGSTOP)
+            try:
+                async with asyncio.timeout(5):  # heartbeat_timeout_s after the last PONG
+                    while bus.counters()["bus.disconnects"] == 0:
+                        await asyncio.sleep(0.05)
+            finally:
+                os.kill(child.pid, signal.SIGCONT)
+            # at once: a request is not lost in the reconnection (it proves the path first)
+            assert await bus.request("svc", "echo", payload(8), bus_pb2.BenchPayload, timeout=5) == payload(8)
+            async with asyncio.timeout(5):  # subscriptions were sent anew: messages flow
+                while True:
+                    bus.publish("hb/x", payload(7))
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(0.2):
+                            got = await sub.recv_batch()
+                            assert got[0].decode(bus_pb2.BenchPayload) == payload(7)
+                            break
+    finally:
+        child.kill()
+        child.wait()

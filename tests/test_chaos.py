@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+from collections import deque
 
-from cell.chaos.campaign import campaign
+import numpy as np
+
+from cell.chaos.campaign import Observer, campaign
 from cell.chaos.faults import PROMISES, catalogue
 
 
@@ -21,6 +24,30 @@ def test_every_fault_has_the_promises_its_targets_call_for() -> None:
     assert "packet_path" in faults["kill:controller"].promises  # the packet path must not notice
     assert "packet_path" not in faults["kill:robots"].promises
     assert "status" not in faults["controller-link"].promises  # nothing restarts there
+
+
+def test_truth_that_arrives_out_of_order_is_judged_by_its_own_times() -> None:
+    """After a reconnection the forwarder drains the old connection's backlog while the new one brings
+    fresh samples: a motion's last samples arrive after its rest.  That is no lunge."""
+    t = np.arange(0, 300) * 10_000_000
+    q = np.minimum(t / 2e9, 1.0)  # moves for 2 s, then rests at 1 rad
+    qd = np.where(t < 2e9, 0.5, 0.0)
+    samples = [(int(ti), float(v), np.full(6, qi), False) for ti, qi, v in zip(t, q, qd, strict=True)]
+    arrival = samples[:50] + [x for pair in zip(samples[50:150], samples[200:], strict=True) for x in pair]
+    arrival += samples[150:200]
+    obs = Observer.__new__(Observer)
+    obs.truth = {"r1": deque(arrival)}
+    obs.newest = {"r1": max(arrival, key=lambda s: s[0])}
+    moved, _, _ = obs.lunge("r1", 0, int(t[-1]))
+    assert moved < 1e-9
+    assert obs.latest("r1")[0] == t[-1]
+    shuffled = Observer.__new__(Observer)  # and a real lunge is still seen in a shuffled arrival
+    back = [
+        (ti, 0.5, np.full(6, 1.0 - (ti - 3e9) / 2e9), False)
+        for ti in range(3_000_000_000, 4_000_000_000, 10**7)
+    ]
+    shuffled.truth = {"r1": deque(arrival + back)}
+    assert shuffled.lunge("r1", 0, 4_000_000_000)[0] > 0.4
 
 
 async def test_a_campaign_on_the_default_cell_holds_its_promises() -> None:

@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import zmq
 
-from cell.bus.node import readable, zmq_context
+from cell.bus.node import readable, tune, zmq_context
 from cell.config import BusConfig
 
 
@@ -60,7 +60,7 @@ class DelayLink:
         socks = (up_in, up_out, down_in, down_out)
         try:
             for s in socks:
-                s.linger = 0
+                tune(s, self.bus)
             up_in.bind(self.config.pub)
             up_in.send(b"\x01")  # subscribe to everything the far publishers send
             up_out.connect(self.bus.pub)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import zmq
 
 from cell.bus import curve
-from cell.bus.node import BusError, readable, zmq_context
+from cell.bus.node import BusError, readable, tune, zmq_context
 from cell.config import BusConfig
 
 _ids = itertools.count()
@@ -64,8 +64,7 @@ class Forwarder:
             for sock in (xsub, xpub):
                 curve.secure_server(sock, self.config)
         for sock in (xsub, xpub):
-            sock.setsockopt(zmq.SNDHWM, self.config.hwm)
-            sock.setsockopt(zmq.RCVHWM, self.config.hwm)
+            tune(sock, self.config)
         try:
             xsub.bind(self.config.pub)
             xpub.bind(self.config.sub)

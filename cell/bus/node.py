@@ -87,6 +87,28 @@ def zmq_context() -> zmq.Context:
     return zmq.Context.instance()
 
 
+def tune(sock: zmq.Socket, config: BusConfig) -> zmq.Socket:
+    """The options every bus socket has: no linger, the configured HWM, and ZMTP heartbeats.
+
+    Heartbeats are what gets a connection out of a stalled TCP stream: after a
+    peer hung (SIGSTOP) with its receive window shut, Linux's zero-window probes
+    back off so far that the stream stayed stuck for a minute after the peer came
+    back (measured by `cell chaos`, bus-gone).  A connection that carries no PONG
+    within the timeout is dropped, ZeroMQ connects anew (subscriptions included)
+    and what was queued on the old one is lost, as the bus's gap counters say."""
+    ms = round(config.heartbeat_s * 1000), round(config.heartbeat_timeout_s * 1000)
+    for opt, value in (
+        (zmq.LINGER, 0),
+        (zmq.SNDHWM, config.hwm),
+        (zmq.RCVHWM, config.hwm),
+        (zmq.HEARTBEAT_IVL, ms[0]),
+        (zmq.HEARTBEAT_TIMEOUT, ms[1]),
+        (zmq.HEARTBEAT_TTL, ms[1]),
+    ):
+        sock.setsockopt(opt, value)
+    return sock
+
+
 _waiting: set[int] = set()
 RECHECK_S = 0.5  # a waiter looks at EVENTS this often even if the FD never says so (see readable())
 # how often that happened, and how often a stale registration of the FD's number had to be cleared
@@ -284,8 +306,8 @@ class Bus:
         self._retired = {"received": 0, "lost": 0, "malformed": 0}
         self._handlers: set[asyncio.Task[None]] = set()
         self._reader: asyncio.Task[None] | None = None
-        self._watcher: asyncio.Task[None] | None = None
-        self._monitor: zmq.Socket | None = None
+        self._watchers: list[asyncio.Task[None]] = []
+        self._monitors: list[tuple[zmq.Socket, zmq.Socket]] = []  # (watched socket, its monitor)
         self.disconnects = 0
         self.refused = ""  # why the forwarder refused us, if it did (CurveZMQ)
         self.published = 0
@@ -310,25 +332,24 @@ class Bus:
         bus = cls(config, source)
         bus.patient = not wait
         ctx = zmq_context()
-        bus._pub = ctx.socket(zmq.PUB)
-        bus._ctl = ctx.socket(zmq.SUB)
+        bus._pub = tune(ctx.socket(zmq.PUB), config)
+        bus._ctl = tune(ctx.socket(zmq.SUB), config)
         try:
             if config.curve:
                 curve.secure_client(bus._pub, config)
                 curve.secure_client(bus._ctl, config)
-            bus._pub.setsockopt(zmq.LINGER, 0)
-            bus._pub.setsockopt(zmq.SNDHWM, config.hwm)
             bus._pub.connect(config.pub)
-            bus._ctl.setsockopt(zmq.LINGER, 0)
-            bus._ctl.setsockopt(zmq.RCVHWM, config.hwm)
             bus._ctl.subscribe(bus._reply_topic.encode())
             bus._ctl.subscribe(_SYNC + f"{bus.instance:08x}/c".encode())
             bus._ctl.connect(config.sub)
             # the node owns its reader and handler tasks (no TaskGroup here: it would wrap
             # the caller's own exceptions in ExceptionGroups); they are awaited on the way out
             bus._reader = asyncio.create_task(bus._read_control(), name=f"bus-reader:{source}")
-            bus._monitor = bus._pub.get_monitor_socket(zmq.EVENT_DISCONNECTED | _HANDSHAKE_FAILED)
-            bus._watcher = asyncio.create_task(bus._watch_connection(), name=f"bus-watch:{source}")
+            for sock, events in ((bus._pub, zmq.EVENT_DISCONNECTED | _HANDSHAKE_FAILED), (bus._ctl, 0)):
+                mon = sock.get_monitor_socket(events | zmq.EVENT_DISCONNECTED)
+                bus._monitors.append((sock, mon))
+                watch = bus._watch_connection(mon)
+                bus._watchers.append(asyncio.create_task(watch, name=f"bus-watch:{source}"))
             if wait:
                 await bus._sync_control()
             yield bus
@@ -336,12 +357,13 @@ class Bus:
             await bus._stop_tasks()
             bus._close()
 
-    async def _watch_connection(self) -> None:
-        """The forwarder dropped our connection (it died): a request or a reply on its way then was
-        lost with it, so every request waiting is answered now (RemoteError, code bus_lost), not
-        with a timeout much later.  Requests sent from now on wait in ZeroMQ's queue until the
-        connection is back."""
-        mon = self._monitor
+    async def _watch_connection(self, mon: zmq.Socket) -> None:
+        """A connection to the forwarder dropped (it died, or a heartbeat went unanswered): a
+        request or a reply on its way then was lost with it, so every request waiting is answered
+        now (RemoteError, code bus_lost), not with a timeout much later.  Either way (the request
+        path or the reply path) the next request first proves the path anew with a sync ping: a
+        request sent while the new connection has not yet carried its subscriptions would be lost
+        without a word."""
         while True:
             await readable(mon)
             while True:
@@ -361,6 +383,7 @@ class Bus:
                     log.warning("%s: %s", self.source, self.refused)
                 elif event == zmq.EVENT_DISCONNECTED:
                     self.disconnects += 1
+                    self._ctl_live = False
                     n = self.abandon(
                         None, "bus_lost", "the bus connection dropped; it may or may not have been done"
                     )
@@ -369,7 +392,7 @@ class Bus:
                     )
 
     async def _stop_tasks(self) -> None:
-        tasks = [t for t in (self._reader, self._watcher, *self._handlers) if t is not None]
+        tasks = [t for t in (self._reader, *self._watchers, *self._handlers) if t is not None]
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -377,10 +400,10 @@ class Bus:
     def _close(self) -> None:
         for sub in list(self._subs):
             sub.close()
-        if self._monitor is not None:
+        for sock, mon in self._monitors:
             with contextlib.suppress(zmq.ZMQError):
-                self._pub.disable_monitor()
-            self._monitor.close(linger=0)
+                sock.disable_monitor()
+            mon.close(linger=0)
         for sock in (self._pub, self._ctl):
             if not sock.closed:
                 sock.close(linger=0)
@@ -468,9 +491,7 @@ class Bus:
     async def subscribe(self, *prefixes: str) -> Subscription:
         """A Subscription to topics starting with any of prefixes ('' is everything), live on return."""
         raw = [check_topic(p) if p else b"" for p in prefixes] or [b""]
-        sock = zmq_context().socket(zmq.SUB)
-        sock.setsockopt(zmq.LINGER, 0)
-        sock.setsockopt(zmq.RCVHWM, self.config.hwm)
+        sock = tune(zmq_context().socket(zmq.SUB), self.config)
         if self.config.curve:
             curve.secure_client(sock, self.config)
         for p in raw:
@@ -610,13 +631,19 @@ class Bus:
             result = method.handler(env.decode(method.request_type))
             if inspect.isawaitable(result):
                 result = await result
-            self._send(reply_to, result, Kind.REPLY, corr)
+            kind = Kind.REPLY
         except RpcFault as fault:
-            self._send(reply_to, bus_pb2.RpcError(code=fault.code, message=fault.message), Kind.ERROR, corr)
+            result, kind = bus_pb2.RpcError(code=fault.code, message=fault.message), Kind.ERROR
         except EnvelopeError as exc:
-            self._send(reply_to, bus_pb2.RpcError(code="bad_request", message=str(exc)), Kind.ERROR, corr)
+            result, kind = bus_pb2.RpcError(code="bad_request", message=str(exc)), Kind.ERROR
         except Exception as exc:
             log.exception("%s: handler for %s failed", self.source, env.topic)
-            err = bus_pb2.RpcError(code="internal", message=f"{type(exc).__name__}: {exc}")
-            self._send(reply_to, err, Kind.ERROR, corr)
+            result = bus_pb2.RpcError(code="internal", message=f"{type(exc).__name__}: {exc}")
+            kind = Kind.ERROR
+        if not self._ctl_live:  # our connection was made anew since: a reply sent before the forwarder
+            # has subscribed to it would be lost without a word (the requester waits out its timeout)
+            with contextlib.suppress(TimeoutError, BusError):
+                async with asyncio.timeout(self.config.request_timeout_s):
+                    await self._sync_control()
+        self._send(reply_to, result, kind, corr)
         self.served += 1

@@ -80,6 +80,10 @@ class Observer:
         self.truth: dict[str, deque[tuple[int, float, np.ndarray, bool]]] = {
             r: deque(maxlen=20_000) for r in robots
         }
+        # truth may arrive out of order: after a heartbeat dropped a stalled connection, the forwarder
+        # still drains the old connection's backlog while the new one brings fresh samples; every
+        # judgement goes by the samples' own times
+        self.newest: dict[str, tuple[int, float, np.ndarray, bool]] = {}
         self.stops: list[tuple[int, str]] = []  # (t_ns, robot) of protective stops
         self.service_events: list[tuple[int, str, int, str]] = []
         self._sampled = asyncio.Event()
@@ -104,7 +108,10 @@ class Observer:
                     name = env.topic.removeprefix("truth/")
                     if name in self.truth:
                         qd = np.abs(np.array(m.qd)).max() if m.qd else 0.0
-                        self.truth[name].append((m.t_ns, float(qd), np.array(m.q), m.stopped))
+                        sample = (m.t_ns, float(qd), np.array(m.q), m.stopped)
+                        self.truth[name].append(sample)
+                        if m.t_ns >= self.newest.get(name, sample)[0]:
+                            self.newest[name] = sample
                 self._sampled.set()
 
         async def follow_robots() -> None:
@@ -124,8 +131,11 @@ class Observer:
                 tg.create_task(f())
 
     def latest(self, robot: str) -> tuple[int, float, np.ndarray, bool] | None:
-        t = self.truth[robot]
-        return t[-1] if t else None
+        return self.newest.get(robot)
+
+    def between(self, robot: str, t0: int, t1: int) -> list[tuple[int, float, np.ndarray, bool]]:
+        """The robot's truth samples in [t0, t1] in the order of their times."""
+        return sorted((s for s in self.truth[robot] if t0 <= s[0] <= t1), key=lambda s: s[0])
 
     def describe(self, robot: str) -> str:
         """What the truth last said of a robot, and how old that is (for a promise that failed)."""
@@ -141,7 +151,7 @@ class Observer:
     def lunge(self, robot: str, t0: int, t1: int) -> tuple[float, float, float]:
         """After the robot first came to rest in [t0, t1]: how far it went from there (rad, the largest
         joint), its fastest joint speed (rad/s), and when that was (s after t0); zeros if it never rested."""
-        samples = [(t, qd, q) for t, qd, q, _ in self.truth[robot] if t0 <= t <= t1]
+        samples = [(t, qd, q) for t, qd, q, _ in self.between(robot, t0, t1)]
         rested = next((i for i, (_, qd, _) in enumerate(samples) if qd < REST), None)
         if rested is None or rested == len(samples) - 1:
             return 0.0, 0.0, 0.0
@@ -386,11 +396,8 @@ class Campaign:
 
     def _q_near(self, robot: str, t_ns: int) -> np.ndarray:
         """The robot's joints at the last truth sample before t_ns."""
-        best = None
-        for t, _, q, _ in self.obs.truth[robot]:
-            if t <= t_ns:
-                best = q
-        return best if best is not None else np.full(6, np.nan)
+        before = self.obs.between(robot, 0, t_ns)
+        return before[-1][2] if before else np.full(6, np.nan)
 
     def _status_held(
         self,
