@@ -129,6 +129,26 @@ def test_watchdog_stops_then_commands_resume(plant) -> None:
     assert not g.drives.stopped[0]
 
 
+def test_a_catch_up_after_the_process_was_held_up_stops_on_the_watchdog_not_on_the_last_command(
+    plant,
+) -> None:
+    """A robot process the OS held up for 2 s catches up in one tick; the robot it stands for would
+    have seen each of those windows pass without a command and stopped: so must the emulated one."""
+    dp, make = plant
+    g = make()
+    ticks(g, 1)
+    command_all(dp, g, 0, [0.5] * 6)
+    ticks(g, 4)  # the window ends: the robot runs at up to 0.5 rad/s
+    q_before = g.backend.q[0].copy()
+    stopping, _ = g.tick(deadline=float("inf"), periods=round(2.0 / g.period))
+    assert stopping.tolist() == [0] and g.drives.stopped[0]
+    moved = float(np.abs(g.backend.q[0] - q_before).max())
+    # at most the watchdog's windows (+1 under way) at 0.5 rad/s, then the braking from it
+    window_s = g.window_ticks * g.period
+    bound = 0.5 * (g.drives.watchdog + 1) * window_s + 0.5**2 / (2 * float(g.drives.a_max.min()))
+    assert moved <= bound < 0.2, (moved, bound)  # (2 s at 0.5 rad/s would be 1 rad)
+
+
 def test_a_silenced_robot_sends_nothing_hears_nothing_and_its_watchdog_stops_it(plant) -> None:
     dp, make = plant
     g = make(n=2)

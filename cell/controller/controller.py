@@ -36,7 +36,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from cell.bus import Bus, BusError, RemoteError
+from cell.bus import Bus, BusError, BusTimeout, RemoteError
 from cell.config import CellConfig
 from cell.controller.loop import LoopModel
 from cell.controller.plan import Motion, MotionLimits, PlanError, plan_joint, plan_linear, plan_stop
@@ -58,6 +58,7 @@ STOP_RATE_HZ = 20.0  # TPs of a stop: sections still long enough to fit them to 
 HOLD_S = 1.0
 STALE_STATUS_NS = 50_000_000  # a robot's status older than this: no command reached it, it stands
 WATCH_S = 0.1  # how often supervise() reads the data plane's registers
+RETRY_READ_S = 0.5  # a read of the data plane's state unanswered this long is asked again
 DEAD_S = 0.5  # a data plane silent this long has lost the motions it carried (for us)
 
 log = logging.getLogger("cell.controller")
@@ -98,9 +99,20 @@ class Link:
     async def state(
         self, robot_ids: Sequence[int] = (), timeout: float | None = None
     ) -> dataplane_pb2.DataplaneState:
-        """The robots' registers and last status (all robots, or those given), no counters."""
+        """The robots' registers and last status (all robots, or those given), no counters.
+
+        A read, so a request lost on the way (a connection of the data plane's made anew as it
+        came back from a hang) is asked again once, within the same timeout."""
+        total = timeout or self.dp.timeout or self.dp.bus.config.request_timeout_s
+        first = RETRY_READ_S if total >= 2 * RETRY_READ_S else total  # (a short poll is not retried)
         t0 = time.monotonic_ns()
-        st = await self.dp.state(robot_ids, robots_only=True, timeout=timeout)
+        try:
+            st = await self.dp.state(robot_ids, robots_only=True, timeout=first)
+        except BusTimeout:
+            if first >= total:
+                raise
+            t0 = time.monotonic_ns()
+            st = await self.dp.state(robot_ids, robots_only=True, timeout=total - first)
         t1 = time.monotonic_ns()
         if st.boot_id != self.boot_id:  # a new data plane: its clock may differ, measure afresh
             self._best_rtt = None
@@ -319,6 +331,8 @@ class Controller:
         where they end; its measured joints and their data-plane time.  (V+'s BREAK.)"""
         track = self.track(robot)
         await self.wait_idle(track)
+        if track.stop_reason:  # its last motion ended early (lost or stopped before we were asked):
+            raise MotionStopped(track.stop_reason)  # it will not arrive where that motion was to end
         epoch = track.epoch
         async with asyncio.timeout(timeout):
             while True:
