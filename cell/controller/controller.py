@@ -332,7 +332,8 @@ class Controller:
         track = self.track(robot)
         await self.wait_idle(track)
         if track.stop_reason:  # its last motion ended early (lost or stopped before we were asked):
-            raise MotionStopped(track.stop_reason)  # it will not arrive where that motion was to end
+            why, track.stop_reason = track.stop_reason, None  # it will not arrive where that motion
+            raise MotionStopped(why)  # was to end; said once (the next break finds it standing)
         epoch = track.epoch
         async with asyncio.timeout(timeout):
             while True:
