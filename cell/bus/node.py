@@ -345,8 +345,9 @@ class Bus:
             # the node owns its reader and handler tasks (no TaskGroup here: it would wrap
             # the caller's own exceptions in ExceptionGroups); they are awaited on the way out
             bus._reader = asyncio.create_task(bus._read_control(), name=f"bus-reader:{source}")
-            for sock, events in ((bus._pub, zmq.EVENT_DISCONNECTED | _HANDSHAKE_FAILED), (bus._ctl, 0)):
-                mon = sock.get_monitor_socket(events | zmq.EVENT_DISCONNECTED)
+            gone = zmq.EVENT_DISCONNECTED
+            for sock, events in ((bus._pub, gone | _HANDSHAKE_FAILED), (bus._ctl, gone)):
+                mon = sock.get_monitor_socket(events)
                 bus._monitors.append((sock, mon))
                 watch = bus._watch_connection(mon)
                 bus._watchers.append(asyncio.create_task(watch, name=f"bus-watch:{source}"))

@@ -46,7 +46,7 @@ from cell.rlink import packet as rlp
 from cell.rlink.cellnet import Topology
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
-from cell.skills.protocol import Command, CommandReader, Done, parse_reply
+from cell.skills.protocol import Command, CommandReader, Done, Error, ErrorCode, parse_reply
 from cell.snp import packet as snp
 from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2
 
@@ -119,7 +119,8 @@ class Probes:
             writer.write(Command(f"p{self._next():07d}"[-8:], "break").encode())
             reply = parse_reply((await reader.readuntil(b"\r\n"))[:-2])
             # alive: done, or stopped (the first break after a fuzzed `stop` says the motion ended early)
-            if not isinstance(reply, Done) and getattr(reply, "code", "") != "stopped":
+            stopped = isinstance(reply, Error) and reply.code == ErrorCode.STOPPED
+            if not isinstance(reply, Done) and not stopped:
                 raise Hang(f"break answered {reply}")
         finally:
             writer.close()
