@@ -11,6 +11,7 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 from rerun.chunk import RrdReader
 
 from cell.bus import Bus
@@ -20,6 +21,15 @@ from cell.rlink.client import EventClient
 from tests.conftest import cell_env, cell_overrides, free_port, write_config
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+
+
+def cell_times(path: Path, entity: str) -> np.ndarray:
+    """The `cell_time` (ns) of every row logged to one entity."""
+    times: list[int] = []
+    for chunk in RrdReader(path).stream():
+        if str(chunk.entity_path) == entity:
+            times += chunk.to_record_batch().column("cell_time").cast(pa.int64()).to_pylist()
+    return np.array(times, dtype=np.int64)
 
 
 def rows_by_entity(path: Path) -> Counter[str]:
@@ -67,8 +77,10 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
             busy = next(
                 s for s in (await fetch_status(config)).services if s.name == "recorder"
             ).last.counters
-        # the recorder's own time stays a small share of a core (it draws at 30 Hz, not 100)
-        assert 0 < busy["busy_ms_per_s"] < 250, dict(busy)
+        # the recorder's own loop time stays well under a core; it is wall time, which a loaded
+        # 2-core machine stretches (250-320 ms/s seen in a full test run), so the bound is loose and
+        # the drawing rate is checked exactly below
+        assert 0 < busy["busy_ms_per_s"] < 500, dict(busy)
     finally:
         proc.terminate()
         proc.communicate(timeout=20)
@@ -78,6 +90,9 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
         links = [e for e in rows if e.startswith(f"/robots/{name}/links/") and not e.endswith("/geom")]
         assert len(links) == 6, links  # a pose per link
         assert min(rows[e] for e in links) > 20  # drawn over and over
+        # ... at [recorder] hz = 30 at most on the cell's timeline, although the truth comes at 100 Hz
+        gaps = np.diff(np.sort(cell_times(rrd, links[0])))
+        assert gaps.min() >= 1e9 / 30 - 1e6, gaps / 1e6
         # the tool path (a line of hundreds of points) is redrawn a few times a second, not every time
         assert 5 < rows[f"/robots/{name}/tool_path"] < min(rows[e] for e in links) / 3
         assert rows[f"/robots/{name}/tps"] >= 1  # the plan's points
