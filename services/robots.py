@@ -59,6 +59,7 @@ def build_groups(config: CellConfig) -> list[RobotGroup]:
 
 def announcements(group: RobotGroup, dataplane: str) -> list[robot_pb2.RobotAnnounce]:
     lim = group.arm.limits
+    origin = group.origin_ns + (time.time_ns() - time.monotonic_ns()) if group.origin_ns else 0
     return [
         robot_pb2.RobotAnnounce(
             robot_id=r.id,
@@ -74,6 +75,7 @@ def announcements(group: RobotGroup, dataplane: str) -> list[robot_pb2.RobotAnno
             status_hz=r.status_hz,
             command_hz=r.command_hz,
             dataplane=dataplane,
+            window_origin_ns=origin,
         )
         for r, addr in zip(group.robots, group.addresses(), strict=True)
     ]

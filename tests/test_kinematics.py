@@ -132,10 +132,10 @@ def test_fitted_tps_put_the_modelled_robot_on_the_plan() -> None:
 def stepwise(loop: LoopModel, q, v, held, tick, n, p_trg, v_trg):
     """The loop as its docstring tells it, one status period at a time: the reference."""
     for i in range(n):
+        goal = np.clip(held, -loop.v_max, loop.v_max)  # in effect during this period
         cmd = (1 - loop.c1) * v + loop.c1 * v_trg + loop.c2 * (p_trg - q)
-        if (tick + i) % loop.window == loop.window - 1:  # the window's last command is kept
-            held = cmd
-        goal = np.clip(held, -loop.v_max, loop.v_max)
+        if (tick + i) % loop.window == loop.window - 1:  # the window's last command is kept ...
+            held = cmd  # ... and acts from the next period, when the window ends
         dv = np.clip(goal - v, -loop.a_max * loop.status_s, loop.a_max * loop.status_s)
         q, v = q + (v + 0.5 * dv) * loop.status_s, v + dv
     return q, v, held
@@ -170,3 +170,25 @@ def test_a_motion_of_no_length_is_one_section_of_holding() -> None:
     s = cut(plan_joint(Q0, Q0, LIMITS), 10.0, np.full(6, 2.0))
     assert len(s) == 1 and s.duration[0] == pytest.approx(0.1) and np.allclose(s.q[0], Q0)
     assert np.allclose(s.v_ff, 0.0)
+
+
+def test_a_motion_starts_on_a_status_period_that_begins_a_command_window() -> None:
+    """Controller.grid_start: TPs are fitted for window phase 0, so the start must be on such a
+    period of the robot's announced grid, its register a quarter period before it."""
+    import time
+
+    from cell.config import load_config
+    from cell.controller.controller import Controller
+
+    ctl = Controller(None, load_config(None))  # type: ignore[arg-type]  (no bus needed for this)
+    assert ctl.grid_start(1, 123_456_789) == (123_456_789, 123_456_789, None)  # not announced yet
+    period, w = 2_000_000, 4
+    origin_mono = time.monotonic_ns() - 1_000_000_007
+    ctl.grids[1] = (origin_mono + time.time_ns() - time.monotonic_ns(), period, w)
+    for earliest in (time.monotonic_ns() + d for d in (0, 1_234_567, 5_000_001, 7_999_999)):
+        start, at, tick0 = ctl.grid_start(1, earliest)
+        assert tick0 == 0 and at == start - period // 4
+        assert earliest <= start + period // 4 and start - earliest < period * w + period
+        k = round((start - origin_mono) / period)
+        # on period k of the grid (to the two clocks' reads), and k begins a window
+        assert k % w == 0 and abs(start - origin_mono - k * period) < 50_000

@@ -45,7 +45,7 @@ from cell.dataplane.client import DataplaneClient
 from cell.dataplane.tables import TPBatch
 from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics
-from cell.v1 import controller_pb2, dataplane_pb2
+from cell.v1 import controller_pb2, dataplane_pb2, robot_pb2
 
 _ID_SPACE = 2**32
 STOP_JERK = 1000.0  # rad/s^3: a stop reaches full deceleration in a few ms
@@ -146,6 +146,8 @@ class Segment:
     motion: Motion
     sections: Sections
     ids: list[int]  # one per section, then the final hold (a self-loop at the end position)
+    tick0: int | None = None  # the robot's status period in its window at start_ns (None: unknown)
+    robot: int = 0  # whose tick grid start_ns is on (with tick0)
 
     def __post_init__(self) -> None:
         s = self.sections
@@ -196,6 +198,7 @@ class Track:
 class Controller:
     def __init__(self, bus: Bus, config: CellConfig, service: str = "dataplane") -> None:
         self.config = config
+        self.bus = bus
         self.dp = DataplaneClient(bus, service)
         self.link = Link(self.dp)
         cc = config.controller
@@ -229,6 +232,10 @@ class Controller:
         # unless a motion was loaded since (a flush decided before a load must never land after it)
         self.pending_flush: dict[int, int] = {}
         self.loading = asyncio.Lock()  # held around every update that sets registers, and every flush
+        # robot -> (window origin, cell clock ns; status period ns; periods a window): its tick grid,
+        # from its announcements (see grid_start())
+        self.grids: dict[int, tuple[int, int, int]] = {}
+        self._announcements: asyncio.Task | None = None
 
     # --- robots ------------------------------------------------------------------------------
 
@@ -453,20 +460,24 @@ class Controller:
         for robot, motion in motions.items():
             track = self.track(robot)
             self.check_running(track)
-            sections = cut(motion, rate, np.resize(self.gain, track.joints), self.loop(track))
+            sections = cut(motion, rate, np.resize(self.gain, track.joints), self.loop(track), tick0=0)
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the
         # update's way to the data plane (planning first would eat it on a busy host: a late start)
         await self.link.state()  # a fresh clock and round trip
-        start = self.link.now() + self.lead_ns + 2 * self.link.rtt_ns
+        start, at, tick0 = self.grid_start(
+            planned[0][0].robot, self.link.now() + self.lead_ns + 2 * self.link.rtt_ns
+        )
         first: list[TPBatch] = []
         registers, remove, segments = [], [], []
         for track, motion, sections, (hold_id, *ids) in planned:
             q0 = motion.sample(np.array([0.0]))[0][0]
-            seg = Segment(start, motion, sections, ids)
+            # (the other robots of a shared start have grids of their own: phase unknown to the fit)
+            phase = tick0 if track is planned[0][0] else None
+            seg = Segment(start, motion, sections, ids, phase, track.robot)
             first.append(self._hold_batch(track, hold_id, ids[0], q0))
             first.append(self._batch(track, seg, 0, min(self.episode, len(ids))))
-            registers.append((track.robot, hold_id, start))
+            registers.append((track.robot, hold_id, at))
             remove += [(track.robot, i) for i in track.loaded]
             segments.append((track, seg, hold_id))
         try:
@@ -586,11 +597,58 @@ class Controller:
 
     async def aclose(self) -> None:
         """Stop streaming (the robots hold where their loaded TPs take them) and wait for it."""
+        if self._announcements is not None:
+            self._announcements.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._announcements
+            self._announcements = None
         for t in list(self.tracks.values()):
             await self._halt(t)
 
     async def __aenter__(self) -> Controller:
+        sub = await self.bus.subscribe("announce/robot/")
+        self._announcements = asyncio.ensure_future(self._follow_announcements(sub))
         return self
+
+    async def _follow_announcements(self, sub) -> None:
+        """Keep each robot's tick grid (RobotAnnounce.window_origin_ns) as robots (re)announce."""
+        while True:
+            for env in await sub.recv_batch():
+                with contextlib.suppress(Exception):  # (a malformed one is the bus's to count)
+                    a = env.decode(robot_pb2.RobotAnnounce)
+                    if a.window_origin_ns and a.status_hz and a.command_hz:
+                        w = max(1, a.status_hz // a.command_hz)
+                        self.grids[a.robot_id] = (a.window_origin_ns, round(1e9 / a.status_hz), w)
+
+    def grid_start(self, robot: int, earliest_ns: int) -> tuple[int, int, int | None]:
+        """When to start a motion of the robot at or after earliest_ns (data-plane clock):
+        (plan start, register time, the model's window phase there).
+
+        The data plane steps a trajectory at the first status after the register's time, and
+        the robot keeps the answer to its window's last status: a start between two statuses,
+        or in another window phase than the TPs were fitted for, puts the robot up to a status
+        period behind the plan and its commands up to a window off (about 1 mm at the tool in a
+        brisk move).  So a motion starts on a status period that begins a command window, its
+        register a quarter period earlier (the status comes a little after it is due), and the
+        TPs are fitted for phase 0.  Robots not heard announcing start at earliest_ns as before.
+        """
+        grid = self.grids.get(robot)
+        if grid is None:
+            return earliest_ns, earliest_ns, None
+        origin_rt, period, w = grid
+        origin = origin_rt - (time.time_ns() - time.monotonic_ns()) + self.link.offset_ns
+        window = period * w
+        k = -(-(earliest_ns + period // 4 - origin) // window)  # the next window's start
+        start = origin + k * window
+        return start, start - period // 4, 0
+
+    def phase_at(self, seg: Segment, t_ns: int) -> int:
+        """The model's window phase at a time on a segment started on its robot's grid (else 0)."""
+        grid = self.grids.get(seg.robot)
+        if seg.tick0 is None or grid is None:
+            return 0
+        _, period, w = grid
+        return (seg.tick0 + round((t_ns - seg.start_ns) / period)) % w
 
     async def __aexit__(self, *exc: object) -> None:
         await self.aclose()
@@ -842,9 +900,12 @@ class Controller:
             v_pred = v_traj[1]
             lim = track.limits.scaled(speed)
             motion = plan_joint(q_pred, np.asarray(q_goal, np.float64), lim, v0=v_pred)
-            sections = cut(motion, self.rate_hz, np.resize(self.gain, track.joints), self.loop(track), v_pred)
+            tick0 = self.phase_at(seg, t_b)
+            sections = cut(
+                motion, self.rate_hz, np.resize(self.gain, track.joints), self.loop(track), v_pred, tick0
+            )
             ids = track.take_ids(len(sections) + 1)
-            new = Segment(t_b, motion, sections, ids)
+            new = Segment(t_b, motion, sections, ids, tick0 if seg.tick0 is not None else None, seg.robot)
             took = time.perf_counter_ns() - t_plan
             self.plan_ns = max(took, int(0.7 * self.plan_ns + 0.3 * took))
             # the switch goes in while the old motion still streams; it counts only if it is in place

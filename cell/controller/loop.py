@@ -1,8 +1,9 @@
 """A model of the closed loop a TP drives, for choosing the TPs' target velocities.
 
 Within a section the data plane commands v = (1-c1) v + c1 v_trg + c2 (p_trg - p)
-on every status packet; the robot keeps the latest command of each window and
-executes it at the window's end, within its acceleration limit.  A TP has
+on every status packet; the robot keeps the latest command of each window (the
+answer to the window's last status) and executes it from the window's end,
+within its acceleration limit.  A TP has
 one free number per joint that matters (v_trg: p_trg is the plan's position
 at the section's end), and where the robot ends up at the section's end
 grows monotonically with it.  So the controller simulates the section from
@@ -47,30 +48,36 @@ class LoopModel:
         p_trg: np.ndarray,
         v_trg: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """n status periods of the loop from (q, v, the command the drive holds); arrays broadcast
-        over leading axes (candidates).  Returns the state at the end.
+        """n status periods of the loop from (q, v, the latest command kept); arrays broadcast over
+        leading axes (candidates).  Returns the state at the end.
 
-        Only the command of a window's last status is kept, so it is computed there alone;
-        between two such points the drive's goal is constant and its acceleration-limited
-        velocity has a closed form, v_j = v + clip(goal - v, +-j a dt), whose trapezoid sum
-        moves q: a few array operations per window instead of a dozen per status period.
+        The robot keeps the command answering a window's last status (tick % w == w - 1) and
+        executes it from the next period on, when the window ends: so the command is computed
+        there alone, and acts one period later.  Between two changes the drive's goal is
+        constant and its acceleration-limited velocity has a closed form,
+        v_j = v + clip(goal - v, +-j a dt), whose trapezoid sum moves q: a few array operations
+        per window instead of a dozen per status period.  A command computed in a section's
+        last period takes effect at the start of the next run (the next section).
         """
         w = self.window
         pull = self.c1 * v_trg + self.c2 * p_trg  # the command's part that is fixed in the section
         goal = np.minimum(np.maximum(held, -self.v_max), self.v_max)
         i = 0
         while i < n:
-            if (tick + i) % w == w - 1:
+            kept = (tick + i) % w == w - 1
+            if kept:  # this status's answer is kept; it acts from the next period
                 held = (1.0 - self.c1) * v + pull - self.c2 * q
-                goal = np.minimum(np.maximum(held, -self.v_max), self.v_max)
-            # periods until the next command takes over (at the next window's last status)
-            m = min(n - i, w - (tick + i + 1) % w if (tick + i) % w != w - 1 else w)
+                m = 1
+            else:  # periods until the window's last status
+                m = min(n - i, w - 1 - (tick + i) % w)
             gap = goal - v
             bound = self._bounds[:m].reshape((m,) + (1,) * (gap.ndim - 1) + (-1,))
             ramp = np.minimum(np.maximum(gap, -bound), bound)  # v_j - v, j = 1..m
             # trapezoid over the m periods: m v + (v_1 - v) + ... + (v_(m-1) - v) + (v_m - v) / 2
             q = q + (m * v + ramp.sum(axis=0) - 0.5 * ramp[-1]) * self.status_s
             v = v + ramp[-1]
+            if kept:
+                goal = np.minimum(np.maximum(held, -self.v_max), self.v_max)
             i += m
         return q, v, np.broadcast_to(held, np.broadcast_shapes(np.shape(held), np.shape(q)))
 
@@ -82,7 +89,9 @@ class LoopModel:
     def min_section_s(self) -> float:
         return 6 * self.window * self.status_s
 
-    def fit(self, q_end: np.ndarray, t_end: np.ndarray, q0: np.ndarray, v0: np.ndarray) -> np.ndarray:
+    def fit(
+        self, q_end: np.ndarray, t_end: np.ndarray, q0: np.ndarray, v0: np.ndarray, tick0: int = 0
+    ) -> np.ndarray:
         """v_trg for each section (rows of q_end, ending at t_end s) so that the modelled robot,
         starting at (q0, v0), is on q_end at each section's end.
 
@@ -93,7 +102,7 @@ class LoopModel:
         dof = q0.size
         joint = np.arange(dof)
         q, v, held = q0.astype(np.float64), v0.astype(np.float64), v0.astype(np.float64)
-        tick, t0 = 0, 0.0
+        tick, t0 = tick0, 0.0
         out = np.empty((len(t_end), dof))
         span = 4.0 * self.v_max + 1.0
         for k in range(len(t_end)):

@@ -45,6 +45,7 @@ def cut(
     gain: np.ndarray,
     loop: LoopModel | None = None,
     v0: np.ndarray | None = None,
+    tick0: int = 0,
 ) -> Sections:
     """Sections of 1/rate_hz s (the last shorter) covering the motion; gain = c2 / c1 per joint.
     With a loop model and sections long enough for it, the target velocities are fitted to it
@@ -62,5 +63,5 @@ def cut(
     v_ff = mean - np.asarray(gain)[None, : q_end.shape[1]] * (q_end - q_mid)
     if loop is not None and d >= loop.min_section_s():
         start = np.zeros(q_end.shape[1]) if v0 is None else np.asarray(v0, np.float64)
-        v_ff = loop.fit(q_end, t_end, q_start[0], start)
+        v_ff = loop.fit(q_end, t_end, q_start[0], start, tick0)
     return Sections(t_end, duration, q_end, v_ff, v_end)

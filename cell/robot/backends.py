@@ -39,7 +39,11 @@ class MujocoArms:
 
     The drive's velocity reference is integrated into a position reference and
     fed forward, ctrl = q_ref + (kv/kp) v_ref, so the servo tracks velocity
-    without the lag of a plain position servo; gravity is compensated by the model.
+    without the lag of a plain position servo; gravity is compensated by the model
+    (gravcomp), and so are inertia and joint friction, as an industrial drive's
+    model-based feed-forward does: tau_ff = M(q) a_ref + damping v_ref.  Without
+    it the servo lags its reference by M a / kp (about 0.3 mrad in a brisk joint
+    move), an error no controller upstream could see coming.
     """
 
     def __init__(self, arm: ArmModel, q0: np.ndarray, watchdog: int) -> None:
@@ -55,6 +59,8 @@ class MujocoArms:
             mujoco.mj_forward(m, d)
         self.q_ref = np.array(q0, np.float64)
         self.feedforward = -m.actuator_biasprm[:, 2] / m.actuator_gainprm[:, 0]  # kv / kp
+        self.damping = m.dof_damping.copy()
+        self._tau = np.zeros(m.nv)
         self.q = np.array(q0, np.float64)
         self.qd = np.zeros_like(self.q)
         self.limit_hits = 0
@@ -62,13 +68,18 @@ class MujocoArms:
     def step(self, dt: float) -> None:
         h = self.model.opt.timestep
         steps = max(1, round(dt / h))
+        drives, tau = self.drives, self._tau
         for _ in range(steps):
-            v = self.drives.step(h)
+            before = drives.velocity.copy()
+            v = drives.step(h)
+            accel = (drives.velocity - before) / h
             self.q_ref += v * h
             np.minimum(np.maximum(self.q_ref, self.q_min, out=self.q_ref), self.q_max, out=self.q_ref)
-            ctrl = self.q_ref + self.feedforward * self.drives.velocity
+            ctrl = self.q_ref + self.feedforward * drives.velocity
             for i, d in enumerate(self.data):
                 d.ctrl[:] = ctrl[i]
+                mujoco.mj_mulM(self.model, d, tau, accel[i])  # (M from the last step: no extra pass)
+                d.qfrc_applied[:] = tau + self.damping * drives.velocity[i]
                 mujoco.mj_step(self.model, d)
         for i, d in enumerate(self.data):
             self.q[i] = d.qpos

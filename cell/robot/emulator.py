@@ -141,6 +141,7 @@ class RobotGroup:
         self._pack()  # the first status: the start pose
         self.state_time = time.monotonic()
         self.tick_no = -1  # index of the last status period served (period k is due at start + k T)
+        self.origin_ns = 0  # CLOCK_MONOTONIC ns period 0 was due at (0: not ticking yet)
         self.counters = GroupCounters()
         # fault injection (`cell chaos`): a robot silent until this monotonic time sends no status and
         # takes no command, as with its cable pulled; its watchdog goes on running
@@ -283,6 +284,7 @@ class RobotGroup:
         """Tick forever on absolute deadlines; on_tick(group, stopped rows, resumed rows) after each."""
         period_ns = round(self.period * 1e9)
         timer = PeriodicTimer(time.monotonic_ns() + period_ns, period_ns)
+        self.origin_ns = timer.start_ns  # period 0's deadline (CLOCK_MONOTONIC): the tick grid
         lateness = self.counters.lateness
         try:
             while True:

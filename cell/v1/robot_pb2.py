@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13\x63\x65ll/v1/robot.proto\x12\x07\x63\x65ll.v1\"\xea\x01\n\rRobotAnnounce\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\r\n\x05model\x18\x03 \x01(\t\x12\x0f\n\x07\x62\x61\x63kend\x18\x04 \x01(\t\x12\x0e\n\x06joints\x18\x05 \x01(\r\x12\r\n\x05q_min\x18\x06 \x03(\x01\x12\r\n\x05q_max\x18\x07 \x03(\x01\x12\r\n\x05v_max\x18\x08 \x03(\x01\x12\r\n\x05\x61_max\x18\t \x03(\x01\x12\x13\n\x0budp_address\x18\n \x01(\t\x12\x11\n\tstatus_hz\x18\x0b \x01(\r\x12\x12\n\ncommand_hz\x18\x0c \x01(\r\x12\x11\n\tdataplane\x18\r \x01(\t\"\x85\x01\n\nRobotTruth\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04t_ns\x18\x02 \x01(\x04\x12\t\n\x01q\x18\x03 \x03(\x01\x12\n\n\x02qd\x18\x04 \x03(\x01\x12\x11\n\ttool_pose\x18\x05 \x03(\x01\x12\x0e\n\x06target\x18\x06 \x03(\x01\x12\x0f\n\x07stopped\x18\x07 \x01(\x08\x12\x0c\n\x04tick\x18\x08 \x01(\x04\"\xfb\x01\n\nRobotEvent\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04name\x18\x02 \x01(\t\x12&\n\x04kind\x18\x03 \x01(\x0e\x32\x18.cell.v1.RobotEvent.Kind\x12\x0c\n\x04text\x18\x04 \x01(\t\x12\x0c\n\x04t_ns\x18\x05 \x01(\x04\"\x88\x01\n\x04Kind\x12\x14\n\x10KIND_UNSPECIFIED\x10\x00\x12\x18\n\x14KIND_PROTECTIVE_STOP\x10\x01\x12\x10\n\x0cKIND_RESUMED\x10\x02\x12\x0e\n\nKIND_ESTOP\x10\x03\x12\r\n\tKIND_STOP\x10\x04\x12\x0e\n\nKIND_STILL\x10\x05\x12\x0f\n\x0bKIND_RESUME\x10\x06\"0\n\x0eSilenceRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x0f\n\x07seconds\x18\x02 \x01(\x01\" \n\x0cSilenceReply\x12\x10\n\x08until_ns\x18\x01 \x01(\x04\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13\x63\x65ll/v1/robot.proto\x12\x07\x63\x65ll.v1\"\x84\x02\n\rRobotAnnounce\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\r\n\x05model\x18\x03 \x01(\t\x12\x0f\n\x07\x62\x61\x63kend\x18\x04 \x01(\t\x12\x0e\n\x06joints\x18\x05 \x01(\r\x12\r\n\x05q_min\x18\x06 \x03(\x01\x12\r\n\x05q_max\x18\x07 \x03(\x01\x12\r\n\x05v_max\x18\x08 \x03(\x01\x12\r\n\x05\x61_max\x18\t \x03(\x01\x12\x13\n\x0budp_address\x18\n \x01(\t\x12\x11\n\tstatus_hz\x18\x0b \x01(\r\x12\x12\n\ncommand_hz\x18\x0c \x01(\r\x12\x11\n\tdataplane\x18\r \x01(\t\x12\x18\n\x10window_origin_ns\x18\x0e \x01(\x03\"\x85\x01\n\nRobotTruth\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04t_ns\x18\x02 \x01(\x04\x12\t\n\x01q\x18\x03 \x03(\x01\x12\n\n\x02qd\x18\x04 \x03(\x01\x12\x11\n\ttool_pose\x18\x05 \x03(\x01\x12\x0e\n\x06target\x18\x06 \x03(\x01\x12\x0f\n\x07stopped\x18\x07 \x01(\x08\x12\x0c\n\x04tick\x18\x08 \x01(\x04\"\xfb\x01\n\nRobotEvent\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04name\x18\x02 \x01(\t\x12&\n\x04kind\x18\x03 \x01(\x0e\x32\x18.cell.v1.RobotEvent.Kind\x12\x0c\n\x04text\x18\x04 \x01(\t\x12\x0c\n\x04t_ns\x18\x05 \x01(\x04\"\x88\x01\n\x04Kind\x12\x14\n\x10KIND_UNSPECIFIED\x10\x00\x12\x18\n\x14KIND_PROTECTIVE_STOP\x10\x01\x12\x10\n\x0cKIND_RESUMED\x10\x02\x12\x0e\n\nKIND_ESTOP\x10\x03\x12\r\n\tKIND_STOP\x10\x04\x12\x0e\n\nKIND_STILL\x10\x05\x12\x0f\n\x0bKIND_RESUME\x10\x06\"0\n\x0eSilenceRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x0f\n\x07seconds\x18\x02 \x01(\x01\" \n\x0cSilenceReply\x12\x10\n\x08until_ns\x18\x01 \x01(\x04\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,15 +32,15 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'cell.v1.robot_pb2', _global
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_ROBOTANNOUNCE']._serialized_start=33
-  _globals['_ROBOTANNOUNCE']._serialized_end=267
-  _globals['_ROBOTTRUTH']._serialized_start=270
-  _globals['_ROBOTTRUTH']._serialized_end=403
-  _globals['_ROBOTEVENT']._serialized_start=406
-  _globals['_ROBOTEVENT']._serialized_end=657
-  _globals['_ROBOTEVENT_KIND']._serialized_start=521
-  _globals['_ROBOTEVENT_KIND']._serialized_end=657
-  _globals['_SILENCEREQUEST']._serialized_start=659
-  _globals['_SILENCEREQUEST']._serialized_end=707
-  _globals['_SILENCEREPLY']._serialized_start=709
-  _globals['_SILENCEREPLY']._serialized_end=741
+  _globals['_ROBOTANNOUNCE']._serialized_end=293
+  _globals['_ROBOTTRUTH']._serialized_start=296
+  _globals['_ROBOTTRUTH']._serialized_end=429
+  _globals['_ROBOTEVENT']._serialized_start=432
+  _globals['_ROBOTEVENT']._serialized_end=683
+  _globals['_ROBOTEVENT_KIND']._serialized_start=547
+  _globals['_ROBOTEVENT_KIND']._serialized_end=683
+  _globals['_SILENCEREQUEST']._serialized_start=685
+  _globals['_SILENCEREQUEST']._serialized_end=733
+  _globals['_SILENCEREPLY']._serialized_start=735
+  _globals['_SILENCEREPLY']._serialized_end=767
 # @@protoc_insertion_point(module_scope)

@@ -8,7 +8,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class RobotAnnounce(_message.Message):
-    __slots__ = ("robot_id", "name", "model", "backend", "joints", "q_min", "q_max", "v_max", "a_max", "udp_address", "status_hz", "command_hz", "dataplane")
+    __slots__ = ("robot_id", "name", "model", "backend", "joints", "q_min", "q_max", "v_max", "a_max", "udp_address", "status_hz", "command_hz", "dataplane", "window_origin_ns")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     MODEL_FIELD_NUMBER: _ClassVar[int]
@@ -22,6 +22,7 @@ class RobotAnnounce(_message.Message):
     STATUS_HZ_FIELD_NUMBER: _ClassVar[int]
     COMMAND_HZ_FIELD_NUMBER: _ClassVar[int]
     DATAPLANE_FIELD_NUMBER: _ClassVar[int]
+    WINDOW_ORIGIN_NS_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     name: str
     model: str
@@ -35,7 +36,8 @@ class RobotAnnounce(_message.Message):
     status_hz: int
     command_hz: int
     dataplane: str
-    def __init__(self, robot_id: _Optional[int] = ..., name: _Optional[str] = ..., model: _Optional[str] = ..., backend: _Optional[str] = ..., joints: _Optional[int] = ..., q_min: _Optional[_Iterable[float]] = ..., q_max: _Optional[_Iterable[float]] = ..., v_max: _Optional[_Iterable[float]] = ..., a_max: _Optional[_Iterable[float]] = ..., udp_address: _Optional[str] = ..., status_hz: _Optional[int] = ..., command_hz: _Optional[int] = ..., dataplane: _Optional[str] = ...) -> None: ...
+    window_origin_ns: int
+    def __init__(self, robot_id: _Optional[int] = ..., name: _Optional[str] = ..., model: _Optional[str] = ..., backend: _Optional[str] = ..., joints: _Optional[int] = ..., q_min: _Optional[_Iterable[float]] = ..., q_max: _Optional[_Iterable[float]] = ..., v_max: _Optional[_Iterable[float]] = ..., a_max: _Optional[_Iterable[float]] = ..., udp_address: _Optional[str] = ..., status_hz: _Optional[int] = ..., command_hz: _Optional[int] = ..., dataplane: _Optional[str] = ..., window_origin_ns: _Optional[int] = ...) -> None: ...
 
 class RobotTruth(_message.Message):
     __slots__ = ("robot_id", "t_ns", "q", "qd", "tool_pose", "target", "stopped", "tick")
