@@ -36,7 +36,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from cell.bus import Bus, BusError, BusTimeout, RemoteError
+from cell.bus import Bus, BusError, BusTimeout, RemoteError, Subscription
 from cell.config import CellConfig
 from cell.controller.loop import LoopModel
 from cell.controller.plan import Motion, MotionLimits, PlanError, plan_joint, plan_linear, plan_stop
@@ -610,7 +610,7 @@ class Controller:
         self._announcements = asyncio.ensure_future(self._follow_announcements(sub))
         return self
 
-    async def _follow_announcements(self, sub) -> None:
+    async def _follow_announcements(self, sub: Subscription) -> None:
         """Keep each robot's tick grid (RobotAnnounce.window_origin_ns) as robots (re)announce."""
         while True:
             for env in await sub.recv_batch():
