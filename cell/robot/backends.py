@@ -42,8 +42,10 @@ class MujocoArms:
     without the lag of a plain position servo; gravity is compensated by the model
     (gravcomp), and so are inertia and joint friction, as an industrial drive's
     model-based feed-forward does: tau_ff = M(q) a_ref + damping v_ref.  Without
-    it the servo lags its reference by M a / kp (about 0.3 mrad in a brisk joint
-    move), an error no controller upstream could see coming.
+    it the servo lags its reference by about M a / kp whenever the arm
+    accelerates, an error no controller upstream can see coming (in an offline
+    loop of the accuracy bench's joint moves it took the tool path error at TPs
+    from 0.43 to 0.93 mm max, 0.20 to 0.32 mm median).
     """
 
     def __init__(self, arm: ArmModel, q0: np.ndarray, watchdog: int) -> None:
