@@ -77,7 +77,7 @@ class DataPlane:
         self._sender_ids: dict[tuple, int] = {}
         self.poll: Callable[[], None] | None = None  # called between slices (the event socket)
         self.batch = dp.batch
-        self.sock = udp.open_socket(*parse_host_port(dp.listen))
+        self.sock = udp.open_socket(*parse_host_port(dp.listen), timestamps=True)
         self.sender = udp.Sender(self.sock, datagram.SIZE)
         self.rejected = {"length": 0, "kind": 0, "joint": 0, "spoofed": 0}
         self.packets_in = self.commands_out = self.unsent = self.batches = 0
@@ -102,6 +102,7 @@ class DataPlane:
         chunks: list[bytes] = []
         counts: list[int] = []
         senders: list[tuple] = []
+        stamps: list[int] = []  # each chunk's kernel receive time (CLOCK_REALTIME)
         total = 0
         size = datagram.SIZE
         while total < self.batch:
@@ -114,11 +115,15 @@ class DataPlane:
                 chunks.append(good)
                 counts.append(len(good) // size)
                 senders.append(got[2])
+                stamps.append(got[3])
                 total += len(good) // size
         if not chunks:
             return 0
         t0 = time.perf_counter_ns()
         now = time.monotonic_ns()
+        # the packets' arrival on this clock; a chunk without a timestamp counts as arriving now
+        rx = np.array(stamps, np.int64) - (time.time_ns() - now)
+        rx[(rx > now) | (np.array(stamps) == 0)] = now
         # join bytes, then view: np.concatenate would turn the wire's big-endian fields native
         recs = datagram.view(bytearray(b"".join(chunks)))
         owner = np.repeat(np.arange(len(chunks)), counts)
@@ -131,18 +136,19 @@ class DataPlane:
             self.rejected["kind"] += int(bad_kind.sum())
             self.rejected["joint"] += int(bad_joint.sum())
             recs, owner = recs[ok], owner[ok]
+        arrival = rx[owner]
         sid = np.array([self._sender_ids.get(s, -2) for s in senders], np.int32)[owner]
         strange = self.pin[recs["robot_id"]] != sid
         if strange.any():
             spoofed = self._check_senders(recs["robot_id"], owner, strange, senders, now)
             if spoofed.any():
                 self.rejected["spoofed"] += int(spoofed.sum())
-                recs, owner = recs[~spoofed], owner[~spoofed]
+                recs, owner, arrival = recs[~spoofed], owner[~spoofed], arrival[~spoofed]
         if recs.size <= SLICE or self.poll is None:
-            self.pipeline.process(recs, now)
+            self.pipeline.process(recs, now, arrival=arrival)
         else:
             for i in range(0, recs.size, SLICE):
-                self.pipeline.process(recs[i : i + SLICE], now, stops=False)
+                self.pipeline.process(recs[i : i + SLICE], now, stops=False, arrival=arrival[i : i + SLICE])
                 self.poll()  # a stop comes in here, ahead of the rest of the batch
             if self.pipeline.stopping:
                 self.pipeline.apply_stops(recs)  # once, over every slice: before the stop or after
@@ -364,8 +370,13 @@ class DataPlane:
     def state(self, req: dataplane_pb2.StateRequest | None = None) -> dataplane_pb2.DataplaneState:
         t = self.tables
         brief = req is not None and req.robots_only
+        mono = time.monotonic_ns()
         st = dataplane_pb2.DataplaneState(
-            now_ns=time.monotonic_ns(), loaded=t.loaded, capacity=t.capacity, boot_id=self.boot_id
+            now_ns=mono,
+            loaded=t.loaded,
+            capacity=t.capacity,
+            boot_id=self.boot_id,
+            realtime_offset_ns=time.time_ns() - mono,
         )
         if not brief:
             st.counters.update(self.counters())

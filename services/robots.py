@@ -232,11 +232,20 @@ async def run(ctx: ServiceContext) -> None:
 
             return silence
 
+        def announcer(g: RobotGroup, row: int) -> Handler:
+            def announce(_req: robot_pb2.AnnounceRequest) -> robot_pb2.RobotAnnounce:
+                return announcements(g, ctx.config.dataplane.listen)[row]
+
+            return announce
+
         async def control() -> None:  # (after the packet path is running: it never waits for the bus)
             for g in groups:  # each robot answers where it lives (hosts may split the cell's robots)
-                for r in g.robots:
-                    method = (robot_pb2.SilenceRequest, silencer(g, r.id, r.name))
-                    await ctx.bus.serve(f"robot/{r.name}", {"silence": method})
+                for row, r in enumerate(g.robots):
+                    methods = {
+                        "silence": (robot_pb2.SilenceRequest, silencer(g, r.id, r.name)),
+                        "announce": (robot_pb2.AnnounceRequest, announcer(g, row)),
+                    }
+                    await ctx.bus.serve(f"robot/{r.name}", methods)
 
         async with asyncio.TaskGroup() as tg:
             for g in groups:

@@ -176,6 +176,48 @@ def test_one_step_per_packet_counts_resubmissions() -> None:
     assert pipe.counters.steps == 3 and pipe.counters.resubmits == 2
 
 
+def test_tps_step_by_when_packets_arrived_not_when_they_were_processed() -> None:
+    """A switch steps by its ingress timestamp; so does the pipeline given arrival times."""
+    t = Tables(capacity=16)
+    t.add_robot(1)
+    t.add_robot(2)
+    pipe = Pipeline(t, CONSTANTS)
+    ms = 1_000_000
+    for r in (1, 2):
+        t.insert([hold_tp(r, 10, 11, [0.1]), hold_tp(r, 11, 11, [0.2])])
+        t.set_registers(r, 10, 100 * ms)
+    # processed at 101 ms: robot 1's statuses came in at 98.5 ms (before its deadline), robot 2's at 100.2
+    recs = batch(*(status(r, j, 0.0, 0.0) for r in (1, 2) for j in range(6)))
+    arrival = np.repeat([98 * ms + ms // 2, 100 * ms + ms // 5], 6).astype(np.int64)
+    pipe.process(recs, 101 * ms, arrival=arrival)
+    assert (t.current_tp(1), t.current_tp(2)) == (10, 11)
+    pipe.process(batch(*(status(1, j, 0.0, 0.0) for j in range(6))), 101 * ms)  # no arrival: `now`
+    assert t.current_tp(1) == 11
+
+
+def test_the_kernel_stamps_each_burst_as_it_arrives() -> None:
+    import time
+
+    from cell.robot import udp
+
+    rx, tx = udp.open_socket(timestamps=True), udp.open_socket()
+    try:
+        before = time.time_ns()
+        tx.sendto(datagram.encode(datagram.Datagram(1, 0, Kind.STATUS, 1, 0.0, 0.0)), rx.getsockname())
+        while (got := udp.recv_batch(rx)) is None:
+            time.sleep(0.001)  # (polling a non-blocking socket, not synchronisation)
+        stamped = got[3]
+        assert before <= stamped <= time.time_ns()
+        # a socket opened without them says 0
+        rx.sendto(b"x" * datagram.SIZE, tx.getsockname())
+        while (got := udp.recv_batch(tx)) is None:
+            time.sleep(0.001)
+        assert got[3] == 0
+    finally:
+        rx.close()
+        tx.close()
+
+
 def test_commands_steer_toward_the_current_tp() -> None:
     t = Tables(capacity=4)
     t.add_robot(1)
@@ -301,7 +343,7 @@ def test_a_batch_from_many_senders_is_answered_in_network_order() -> None:
         for robot, sock in zip((1, 2), socks, strict=True):
             got = []
             while (r := udp.recv_batch(sock)) is not None:
-                data, seg, _ = r
+                data, seg, _, _ = r
                 got += [
                     datagram.decode(data[i : i + seg], kind=Kind.COMMAND) for i in range(0, len(data), seg)
                 ]

@@ -41,7 +41,7 @@ def plant():
 def status_from(dp: socket.socket) -> list[Datagram]:
     out = []
     while (got := udp.recv_batch(dp)) is not None:
-        data, seg, _ = got
+        data, seg, _, _ = got
         out += [datagram.decode(data[i : i + seg]) for i in range(0, len(data), seg)]
     return out
 

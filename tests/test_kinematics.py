@@ -109,6 +109,20 @@ def test_a_linear_motion_keeps_the_tool_on_the_line() -> None:
         plan_linear(KIN, Q0, pos0 + np.array([1.5, 0.0, 0.0]), rot0, LIMITS)  # leaves the workspace
 
 
+
+
+def test_a_line_the_tool_limits_would_make_too_hard_for_a_joint_is_slowed_down() -> None:
+    """The accuracy bench's second leg of its square: timed by the tool's limits alone the base
+    and wrist-3 joints would need 3.7 rad/s^2 of 2.5, more than the loop can follow."""
+    pos0, rot0 = KIN.fk(Q0)
+    q1 = plan_linear(KIN, Q0, pos0 + np.array([0.2, 0.0, 0.0]), rot0, LIMITS).sample(np.array([1e9]))[0][0]
+    m = plan_linear(KIN, q1, pos0 + np.array([0.2, 0.2, 0.0]), rot0, LIMITS)
+    t = np.arange(0, m.duration, 0.002)
+    q, _ = m.sample(t)
+    a = np.gradient(np.gradient(q, t, axis=0), t, axis=0)
+    assert np.abs(a).max() <= 2.5 * 1.02  # (finite differences of the sampled motion)
+    assert np.allclose(KIN.fk(q[-1])[0], pos0 + np.array([0.2, 0.2, 0.0]), atol=1e-6)
+    assert m.duration > 0.2 / 0.25 + 0.3  # slower than the tool's own limits would take it
 def test_fitted_tps_put_the_modelled_robot_on_the_plan() -> None:
     """The loop model's fit against the plain choice (the plan's velocity at each TP)."""
     loop = LoopModel(np.ones(6), np.full(6, 2.0), np.full(6, np.pi), np.full(6, 5.0))
@@ -192,3 +206,19 @@ def test_a_motion_starts_on_a_status_period_that_begins_a_command_window() -> No
         k = round((start - origin_mono) / period)
         # on period k of the grid (to the two clocks' reads), and k begins a window
         assert k % w == 0 and abs(start - origin_mono - k * period) < 50_000
+
+
+def test_a_line_ruckig_fails_on_for_its_exact_limits_is_planned_all_the_same() -> None:
+    """ruckig 0.19 raises on a 0-to-1 profile with exactly these limits (a 21 mm line in the cell's
+    tests hit it); the planner retries a hair under the jerk limit."""
+    from ruckig import InputParameter
+
+    from cell.controller.plan import _ruckig
+
+    inp = InputParameter(1)
+    inp.current_position, inp.target_position = [0.0], [1.0]
+    inp.max_velocity, inp.max_acceleration = [12.2214030136737], [47.79606131924241]
+    inp.max_jerk = [467.3079422789776]
+    m = _ruckig(inp, 1, "a line")
+    assert 0.40 < m.duration < 0.42
+    assert m.sample(np.array([m.duration]))[0][0, 0] == pytest.approx(1.0)

@@ -35,7 +35,7 @@ class Plane:
         """Drain the status waiting; answer each with its joint's velocity (None: do not answer)."""
         n = 0
         while (got := udp.recv_batch(self.sock)) is not None:
-            data, seg, sender = got
+            data, seg, sender, _ = got
             for i in range(0, len(data), seg):
                 d = datagram.decode(data[i : i + seg], kind=Kind.STATUS)
                 self.senders[d.robot_id] = sender

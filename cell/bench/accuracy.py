@@ -79,7 +79,8 @@ async def measure(quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
                     path_joint.append(_tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
                     await settle_and_read("r1", goal, res.end_ns)
                     log(
-                        f"joint move {i + 1}: path error at TPs max {path_joint[-1].max():.2f} mm, "
+                        f"joint move {i + 1}: path error at TPs max {path_joint[-1].max():.2f} mm "
+                        f"(TP {int(path_joint[-1].argmax()) + 1} of {path_joint[-1].size}), "
                         f"stop error {stop_err[-1]:.1e} rad"
                     )
                 await ctl.move_joints("r1", Q0, speed=0.6)
@@ -95,7 +96,11 @@ async def measure(quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
                     path_linear.append(
                         _tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6))
                     )
-                    log(f"linear move {i + 1}: path error at TPs max {path_linear[-1].max():.2f} mm")
+                    e = path_linear[-1]
+                    log(
+                        f"linear move {i + 1}: path error at TPs max {e.max():.2f} mm "
+                        f"(TP {int(e.argmax()) + 1} of {e.size}), median {np.median(e):.2f} mm"
+                    )
                 goal = ctl.track("r1").q_hold
                 assert goal is not None
                 await settle_and_read("r1", goal, res.end_ns)

@@ -46,7 +46,7 @@ def reflector(out: Any, stop: Any, answer: bool = True, core: int = 1) -> None:
         if not poller.poll(0.1):
             continue
         while (got := udp.recv_batch(sock)) is not None:
-            data, seg, sender_addr = got
+            data, seg, sender_addr, _ = got
             if seg != datagram.SIZE or len(data) % seg:
                 continue
             received += len(data) // seg

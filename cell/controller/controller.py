@@ -92,6 +92,7 @@ class Link:
     def __init__(self, dp: DataplaneClient) -> None:
         self.dp = dp
         self.offset_ns = 0
+        self.realtime_offset_ns: int | None = None  # the cell clock less the data plane's (exact)
         self.boot_id: int | None = None  # the data plane's start (DataplaneState.boot_id)
         self._best_rtt = None  # the offset comes from the read with the shortest round trip
         self.rtts: deque[int] = deque(maxlen=32)
@@ -117,6 +118,8 @@ class Link:
         if st.boot_id != self.boot_id:  # a new data plane: its clock may differ, measure afresh
             self._best_rtt = None
             self.boot_id = st.boot_id
+        if st.realtime_offset_ns:
+            self.realtime_offset_ns = st.realtime_offset_ns
         rtt = t1 - t0
         self.rtts.append(rtt)
         if self._best_rtt is None or rtt <= self._best_rtt * 1.5:
@@ -235,6 +238,7 @@ class Controller:
         # robot -> (window origin, cell clock ns; status period ns; periods a window): its tick grid,
         # from its announcements (see grid_start())
         self.grids: dict[int, tuple[int, int, int]] = {}
+        self._asked: set[int] = set()  # robots asked for their announcement (see know_grid())
         self._announcements: asyncio.Task | None = None
 
     # --- robots ------------------------------------------------------------------------------
@@ -464,6 +468,7 @@ class Controller:
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the
         # update's way to the data plane (planning first would eat it on a busy host: a late start)
+        await self.know_grid(planned[0][0].robot)
         await self.link.state()  # a fresh clock and round trip
         start, at, tick0 = self.grid_start(
             planned[0][0].robot, self.link.now() + self.lead_ns + 2 * self.link.rtt_ns
@@ -616,9 +621,28 @@ class Controller:
             for env in await sub.recv_batch():
                 with contextlib.suppress(Exception):  # (a malformed one is the bus's to count)
                     a = env.decode(robot_pb2.RobotAnnounce)
-                    if a.window_origin_ns and a.status_hz and a.command_hz:
-                        w = max(1, a.status_hz // a.command_hz)
-                        self.grids[a.robot_id] = (a.window_origin_ns, round(1e9 / a.status_hz), w)
+                    self._take_announcement(a)
+
+    def _take_announcement(self, a: robot_pb2.RobotAnnounce) -> None:
+        if a.window_origin_ns and a.status_hz and a.command_hz:
+            w = max(1, a.status_hz // a.command_hz)
+            self.grids[a.robot_id] = (a.window_origin_ns, round(1e9 / a.status_hz), w)
+
+    async def know_grid(self, robot: int) -> None:
+        """The robot's tick grid, asked of it once if no announcement has come yet (a controller
+        that has just come up would otherwise start its first motions off the grid); a robot that
+        does not answer within a second is driven without one."""
+        if robot in self.grids or robot in self._asked:
+            return
+        self._asked.add(robot)
+        name = next((r.name for r in self.config.robots if r.id == robot), None)
+        if name is None:
+            return
+        with contextlib.suppress(BusError, ValueError):
+            a = await self.bus.request(
+                f"robot/{name}", "announce", robot_pb2.AnnounceRequest(), robot_pb2.RobotAnnounce, timeout=1.0
+            )
+            self._take_announcement(a)
 
     def grid_start(self, robot: int, earliest_ns: int) -> tuple[int, int, int | None]:
         """When to start a motion of the robot at or after earliest_ns (data-plane clock):
@@ -636,7 +660,13 @@ class Controller:
         if grid is None:
             return earliest_ns, earliest_ns, None
         origin_rt, period, w = grid
-        origin = origin_rt - (time.time_ns() - time.monotonic_ns()) + self.link.offset_ns
+        # the grid is on the cell clock; the data plane says how its clock stands to that exactly
+        # (going through our own clock and the offset estimated over the bus is up to half a
+        # round trip off: a start a fraction of a period off the grid, tenths of a mm at the tool)
+        rt = self.link.realtime_offset_ns
+        if rt is None:
+            rt = (time.time_ns() - time.monotonic_ns()) - self.link.offset_ns
+        origin = origin_rt - rt
         window = period * w
         k = -(-(earliest_ns + period // 4 - origin) // window)  # the next window's start
         start = origin + k * window

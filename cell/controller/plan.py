@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
+from ruckig import ControlInterface, InputParameter, Result, Ruckig, RuckigError, Trajectory
 
 from cell.robot.kinematics import Kinematics, Unreachable
 from cell.robot.pose import rotation_error, slerp
@@ -78,7 +78,17 @@ class RuckigMotion(Motion):
 
 def _ruckig(inp: InputParameter, dof: int, what: str) -> RuckigMotion:
     traj = Trajectory(dof)
-    result = Ruckig(dof).calculate(inp, traj)
+    try:
+        result = Ruckig(dof).calculate(inp, traj)
+    except RuckigError:
+        # ruckig 0.19 fails on a few exact limit combinations (v 12.2214030136737, a 47.796061319242,
+        # j 467.307942278978 for a 0-to-1 profile): the same with the jerk limit 0.01 % lower plans
+        inp.max_jerk = [j * 0.9999 for j in inp.max_jerk]
+        try:
+            result = Ruckig(dof).calculate(inp, traj)
+        except RuckigError as exc:
+            first = str(exc).strip().splitlines()[0]
+            raise PlanError(f"{what}: ruckig could not plan it ({first})") from None
     if result not in (Result.Working, Result.Finished):
         raise PlanError(f"{what}: ruckig could not plan it ({result.name})")
     return RuckigMotion(traj, dof)
@@ -141,14 +151,59 @@ def plan_linear(
 ) -> Motion:
     """The tool along a straight line (and turning about one axis) from where q0 puts it to
     (pos1, rot1), at rest at both ends; PlanError if IK fails on the way, a joint would jump
-    (a singularity or a branch change) or go faster than its limit."""
+    (a singularity or a branch change) or go faster than its limit.
+
+    The line is timed by the tool's limits first; where that asks a joint for more velocity or
+    acceleration than its own limits allow (near the base or a wrist singularity a few
+    cm/s of tool speed can take rad/s), the whole line is slowed down by the factor that
+    brings the worst joint within them: the path stays, the joints keep their limits, and
+    the data plane is never handed a reference its drives cannot follow."""
     q0 = np.asarray(q0, np.float64)
     pos0, rot0 = kin.fk(q0)
     length = float(np.linalg.norm(pos1 - pos0))
     angle = float(np.linalg.norm(rotation_error(rot1, rot0)))
     if length < 1e-9 and angle < 1e-9:
         return SampledMotion(np.array([0.0, 1e-3]), np.vstack([q0, q0]))
-    # one path parameter u in [0, 1], limited by the tool's speed along the line and its turning
+    t, q = _line(kin, q0, (pos0, pos1), (rot0, rot1), (length, angle), limits, step_s, check=False)
+    dt = t[1] - t[0]
+    v = np.abs(np.gradient(q, dt, axis=0)).max(axis=0)
+    a = np.abs(np.gradient(np.gradient(q, dt, axis=0), dt, axis=0)).max(axis=0)
+    f = min(
+        1.0,
+        float((limits.v_max / np.maximum(v, 1e-12)).min()),
+        float(np.sqrt(limits.a_max / np.maximum(a, 1e-12)).min()),
+    )
+    if f < 1.0:
+        f = max(f * 0.98, _SLOWEST)
+        slow = replace(
+            limits,
+            tool_v_max=limits.tool_v_max * f,
+            tool_a_max=limits.tool_a_max * f**2,
+            tool_j_max=limits.tool_j_max * f**3,
+            tool_w_max=limits.tool_w_max * f,
+        )
+        t, q = _line(kin, q0, (pos0, pos1), (rot0, rot1), (length, angle), slow, step_s, check=True)
+    else:
+        _check_jumps(t, q, limits)
+    return SampledMotion(t, q)
+
+
+_SLOWEST = 0.05  # a line slowed further than this is a singularity or a branch change: refused
+
+
+def _line(
+    kin: Kinematics,
+    q0: np.ndarray,
+    pos: tuple[np.ndarray, np.ndarray],
+    rot: tuple[np.ndarray, np.ndarray],
+    extent: tuple[float, float],
+    limits: MotionLimits,
+    step_s: float,
+    check: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The line timed by one path parameter u in [0, 1] (the tool's speed along it and its turning
+    limit it), sampled every step_s and solved by IK from sample to sample."""
+    (pos0, pos1), (rot0, rot1), (length, angle) = pos, rot, extent
     scale = max(length / limits.tool_v_max, angle / limits.tool_w_max)  # s of travel at full speed
     inp = InputParameter(1)
     inp.current_position, inp.target_position = [0.0], [1.0]
@@ -161,7 +216,6 @@ def plan_linear(
     u = timing.sample(t)[0][:, 0]
     q = np.empty((n, q0.size))
     q[0] = q0
-    dt = t[1] - t[0]
     for i in range(1, n):
         p = pos0 + (pos1 - pos0) * u[i]
         r = slerp(rot0, rot1, float(u[i]))
@@ -169,12 +223,19 @@ def plan_linear(
             q[i] = kin.ik(p, r, q[i - 1])
         except Unreachable as exc:
             raise PlanError(f"linear motion: {100 * u[i]:.0f}% of the way: {exc.reason}") from None
-        jump = np.abs(q[i] - q[i - 1]) / dt
-        over = np.flatnonzero(jump > limits.v_max * 1.05)
-        if over.size:
-            j = int(over[0])
-            raise PlanError(
-                f"linear motion: joint {j + 1} would need {jump[j]:.2f} rad/s {100 * u[i]:.0f}% of the way "
-                f"(limit {limits.v_max[j]:.2f}): a singularity or a branch change; use a joint move"
-            )
-    return SampledMotion(t, q)
+    if check:
+        _check_jumps(t, q, limits, u)
+    return t, q
+
+
+def _check_jumps(t: np.ndarray, q: np.ndarray, limits: MotionLimits, u: np.ndarray | None = None) -> None:
+    """PlanError where a joint would go faster than its limit between two samples."""
+    jump = np.abs(np.diff(q, axis=0)) / (t[1] - t[0])
+    over = np.argwhere(jump > limits.v_max * 1.05)
+    if over.size:
+        i, j = (int(x) for x in over[0])
+        where = "" if u is None else f" {100 * u[i + 1]:.0f}% of the way"
+        raise PlanError(
+            f"linear motion: joint {j + 1} would need {jump[i, j]:.2f} rad/s{where} "
+            f"(limit {limits.v_max[j]:.2f}): a singularity or a branch change; use a joint move"
+        )

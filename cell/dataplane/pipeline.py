@@ -140,27 +140,33 @@ class Pipeline:
 
     # --- Algorithm 1 -------------------------------------------------------------------------
 
-    def ingress(self, entities: np.ndarray, packets: np.ndarray, now: int) -> None:
-        """Step the given entities (each with its packet count in this batch) along their trajectories."""
+    def ingress(self, entities: np.ndarray, packets: np.ndarray, now: int | np.ndarray) -> None:
+        """Step the given entities (each with its packet count in this batch) along their trajectories;
+        `now`: when their packets came in (ns; one time for all, or one per entity)."""
         t, c = self.t, self.counters
         budget = packets.copy()
+        at = np.broadcast_to(np.asarray(now, np.int64), entities.shape)
         first = True
         while entities.size:
             cur = t.reg_tp[entities]
-            due = (cur != NO_ROW) & (now >= t.reg_next_time[entities])
+            due = (cur != NO_ROW) & (at >= t.reg_next_time[entities])
             if not due.any():
                 return
-            e, cur = entities[due], cur[due]
+            e, cur, at = entities[due], cur[due], at[due]
             nxt = t.effective_next(cur)
             ok = nxt != NO_ROW
             if not ok.all():
                 c.stalls += int((~ok).sum())
-                stuck = e[~ok]
-                fresh = stuck[~t.reg_stalled[stuck]]
-                t.reg_stalled[fresh] = True
-                t.reg_stall_ns[fresh] = now
-                self.drop(stuck[now - t.reg_stall_ns[stuck] > STALL_DROP_NS], now, DROP_UNDERRUN)
-            e, nxt = e[ok], nxt[ok]
+                stuck, at_stuck = e[~ok], at[~ok]
+                fresh = ~t.reg_stalled[stuck]
+                t.reg_stalled[stuck[fresh]] = True
+                t.reg_stall_ns[stuck[fresh]] = at_stuck[fresh]
+                self.drop(
+                    stuck[at_stuck - t.reg_stall_ns[stuck] > STALL_DROP_NS],
+                    int(at_stuck.max()),
+                    DROP_UNDERRUN,
+                )
+            e, nxt, at = e[ok], nxt[ok], at[ok]
             t.reg_stalled[e] = False
             t.reg_tp[e] = nxt
             t.reg_next_time[e] += t.duration[nxt]
@@ -169,13 +175,21 @@ class Pipeline:
                 c.resubmits += e.size
             first = False
             left = budget[due][ok] - 1
-            entities, budget = e[left > 0], left[left > 0]
+            more = left > 0
+            entities, budget, at = e[more], left[more], at[more]
 
     # --- the whole packet path ---------------------------------------------------------------
 
-    def process(self, recs: np.ndarray, now: int, stops: bool = True) -> None:
+    def process(
+        self, recs: np.ndarray, now: int, stops: bool = True, arrival: np.ndarray | None = None
+    ) -> None:
         """Turn valid status records (datagram.DTYPE) into commands, in place; `now` in ns.  stops=False
-        leaves the stop stage to the caller (a batch run in slices takes it once, over all of it)."""
+        leaves the stop stage to the caller (a batch run in slices takes it once, over all of it).
+
+        arrival: when each record came in (ns, the kernel's receive timestamp), as a switch's
+        ingress timestamp: TPs step by it, so a batch that waited for the CPU still steps on the
+        status period its packets belong to (stepping by `now` shifted whole sections by a
+        period whenever the packet path ran more than 1.5 ms behind)."""
         t, c = self.t, self.counters
         n = recs.size
         if n == 0:
@@ -198,7 +212,12 @@ class Pipeline:
         if known.any():
             counts = np.bincount(ent[known], minlength=t.entities)  # (faster than np.unique here)
             entities = np.flatnonzero(counts)
-            self.ingress(entities, counts[entities], now)
+            if arrival is None:
+                self.ingress(entities, counts[entities], now)
+            else:
+                at = np.empty(t.entities, np.int64)
+                at[ent[known]] = arrival[known]  # (records in arrival order: an entity's latest wins)
+                self.ingress(entities, counts[entities], at[entities])
         # Algorithm 2
         ent0 = np.maximum(ent, 0)
         row = np.where(known, t.reg_tp[ent0], NO_ROW)

@@ -17,11 +17,16 @@ from cell.config import parse_host_port
 UDP_SEGMENT = 103  # linux/udp.h
 UDP_GRO = 104
 BUFFER_BYTES = 4 * 1024 * 1024  # the system maximum here; the default 212 KB loses bursts
-_GRO_CMSG = socket.CMSG_SPACE(4)
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # asm-generic/socket.h (also SCM_TIMESTAMPNS)
+_CMSG = socket.CMSG_SPACE(4) + socket.CMSG_SPACE(16)  # a GRO segment size and a receive timestamp
+_TIMESPEC = struct.Struct("=qq")
 
 
-def open_socket(host: str = "127.0.0.1", port: int = 0, *, gro: bool = True) -> socket.socket:
-    """A non-blocking UDP socket with large buffers, bound to (host, port)."""
+def open_socket(
+    host: str = "127.0.0.1", port: int = 0, *, gro: bool = True, timestamps: bool = False
+) -> socket.socket:
+    """A non-blocking UDP socket with large buffers, bound to (host, port); timestamps: the kernel
+    stamps each datagram as it comes in (recv_batch returns it)."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_DGRAM)
     try:
@@ -30,6 +35,9 @@ def open_socket(host: str = "127.0.0.1", port: int = 0, *, gro: bool = True) -> 
         if gro:
             with contextlib.suppress(OSError):  # no GRO: recv_batch still works, one datagram a call
                 sock.setsockopt(socket.SOL_UDP, UDP_GRO, 1)
+        if timestamps:
+            with contextlib.suppress(OSError):  # no timestamps: recv_batch gives 0 for them
+                sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         sock.bind((host, port))
         sock.setblocking(False)
     except BaseException:
@@ -72,21 +80,26 @@ class Sender:
         return sent
 
 
-def recv_batch(sock: socket.socket, bufsize: int = 65536) -> tuple[bytes, int, tuple] | None:
-    """One recvmsg: (data, segment size, sender) or None if nothing waits.
+def recv_batch(sock: socket.socket, bufsize: int = 65536) -> tuple[bytes, int, tuple, int] | None:
+    """One recvmsg: (data, segment size, sender, receive time) or None if nothing waits.
 
     With GRO, data may hold several datagrams of `segment size` bytes each (the
-    last may be shorter); without it, segment size is len(data).
+    last may be shorter); without it, segment size is len(data).  The receive
+    time is the kernel's timestamp of the burst (CLOCK_REALTIME ns) on a socket
+    opened with timestamps, else 0.
     """
     try:
-        data, anc, _flags, sender = sock.recvmsg(bufsize, _GRO_CMSG)
+        data, anc, _flags, sender = sock.recvmsg(bufsize, _CMSG)
     except (BlockingIOError, InterruptedError):
         return None
-    seg = len(data)
+    seg, stamp = len(data), 0
     for level, kind, raw in anc:
         if level == socket.SOL_UDP and kind == UDP_GRO and len(raw) >= 4:
             seg = struct.unpack("=i", raw[:4])[0]
-    return data, seg, sender
+        elif level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= 16:
+            sec, nsec = _TIMESPEC.unpack_from(raw)
+            stamp = sec * 1_000_000_000 + nsec
+    return data, seg, sender, stamp
 
 
 def whole_datagrams(data: bytes, seg: int, size: int) -> tuple[bytes, int]:

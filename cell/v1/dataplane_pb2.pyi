@@ -135,7 +135,7 @@ class RobotPlaneState(_message.Message):
     def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., position: _Optional[_Iterable[float]] = ..., velocity: _Optional[_Iterable[float]] = ..., status_ns: _Optional[int] = ..., dropped_ns: _Optional[int] = ..., stalled: _Optional[bool] = ..., dropped_why: _Optional[str] = ...) -> None: ...
 
 class DataplaneState(_message.Message):
-    __slots__ = ("now_ns", "loaded", "capacity", "robots", "counters", "boot_id")
+    __slots__ = ("now_ns", "loaded", "capacity", "robots", "counters", "boot_id", "realtime_offset_ns")
     class CountersEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -149,13 +149,15 @@ class DataplaneState(_message.Message):
     ROBOTS_FIELD_NUMBER: _ClassVar[int]
     COUNTERS_FIELD_NUMBER: _ClassVar[int]
     BOOT_ID_FIELD_NUMBER: _ClassVar[int]
+    REALTIME_OFFSET_NS_FIELD_NUMBER: _ClassVar[int]
     now_ns: int
     loaded: int
     capacity: int
     robots: _containers.RepeatedCompositeFieldContainer[RobotPlaneState]
     counters: _containers.ScalarMap[str, float]
     boot_id: int
-    def __init__(self, now_ns: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., robots: _Optional[_Iterable[_Union[RobotPlaneState, _Mapping]]] = ..., counters: _Optional[_Mapping[str, float]] = ..., boot_id: _Optional[int] = ...) -> None: ...
+    realtime_offset_ns: int
+    def __init__(self, now_ns: _Optional[int] = ..., loaded: _Optional[int] = ..., capacity: _Optional[int] = ..., robots: _Optional[_Iterable[_Union[RobotPlaneState, _Mapping]]] = ..., counters: _Optional[_Mapping[str, float]] = ..., boot_id: _Optional[int] = ..., realtime_offset_ns: _Optional[int] = ...) -> None: ...
 
 class Constants(_message.Message):
     __slots__ = ("c1", "c2", "n_bits", "v_max")

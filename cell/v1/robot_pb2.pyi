@@ -89,6 +89,10 @@ class RobotEvent(_message.Message):
     t_ns: int
     def __init__(self, robot_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[RobotEvent.Kind, str]] = ..., text: _Optional[str] = ..., t_ns: _Optional[int] = ...) -> None: ...
 
+class AnnounceRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
 class SilenceRequest(_message.Message):
     __slots__ = ("robot", "seconds")
     ROBOT_FIELD_NUMBER: _ClassVar[int]
