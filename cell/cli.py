@@ -219,7 +219,19 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     from cell.bench import accuracy
 
     result = accuracy.run(args.quick, log=lambda line: print(line, flush=True))
+    result.pop("samples")
     return _report(args, result, accuracy.format_result(result))
+
+
+def _cmd_bench_paper(args: argparse.Namespace) -> int:
+    import time
+
+    from cell.bench import paper
+
+    out = args.out or f"runs/paper-{time.strftime('%Y%m%d-%H%M%S')}"
+    only = [x for x in args.only.split(",") if x] if args.only else None
+    result = paper.run(args.quick, out, only, log=lambda line: print(line, flush=True))
+    return _report(args, result, paper.format_result(result))
 
 
 def _cmd_bench_skills(args: argparse.Namespace) -> int:
@@ -586,6 +598,16 @@ def build_parser() -> argparse.ArgumentParser:
         "MuJoCo arms driven through the data plane: stop error, tool path error, start shift",
     )
     q.add_argument("--quick", action="store_true", help="fewer reference motions (under 4 minutes)")
+    q = _bench(
+        bsub,
+        "paper",
+        _cmd_bench_paper,
+        "the NSDI'22 paper's evaluation in one run: every experiment, our figures next to the paper's, "
+        "written to DIR/index.html with plots",
+    )
+    q.add_argument("--quick", action="store_true", help="every experiment smaller (under 5 minutes)")
+    q.add_argument("--out", help="where to write index.html and the plots (default runs/paper-<time>)")
+    q.add_argument("--only", help="comma-separated experiments: accuracy,pid,latency,resubmission,scaling")
     q = _bench(
         bsub,
         "skills",

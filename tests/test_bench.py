@@ -47,3 +47,42 @@ def test_rlink_bench_times_every_round_trip_and_draws_them(tmp_path) -> None:
     assert e["plane_handled_per_s"] > 0.5 * 50 * 6 * 500
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     json.dumps(r)  # one JSON line: no samples, nothing unserialisable
+
+
+@pytest.mark.slow
+def test_the_paper_bench_writes_a_page_with_its_numbers(tmp_path) -> None:
+    """`cell bench paper --quick` on a reduced set: the page, its plots and the JSON line agree."""
+    import html
+    import re
+    import subprocess
+    import sys
+
+    from cell.config import load_config
+
+    out = tmp_path / "paper"
+    run = subprocess.run(
+        [sys.executable, "-m", "cell", "bench", "paper", "--quick", "--only", "resubmission,scaling",
+         "--out", str(out), "--json"],
+        capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "[1/2] resubmission" in run.stdout and "[2/2] scaling" in run.stdout  # progress as it runs
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    page = (out / "index.html").read_text()
+    for key in ("resubmission", "scaling"):
+        assert f"<h2 id={key}>" in page
+        assert (out / f"{key}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for label in ("host", "cpu", "commit", "date"):
+        assert f"<th>{label}</th>" in page
+    embedded = re.search(r"<script type=application/json id=figures>(.*?)</script>", page, re.S)
+    assert embedded is not None and json.loads(html.unescape(embedded.group(1))) == result["figures"]
+    cfg = load_config(None)
+    scaling = result["figures"]["scaling"]
+    assert scaling["largest_fleet"] == cfg.dataplane.capacity // (3 * cfg.controller.episode)
+    assert f"{scaling['largest_fleet']:,} robots" in page
+    assert scaling["t_upd_ms_5000"] > scaling["t_upd_ms_10"] > 0
+    resub = result["figures"]["resubmission"]
+    # TPs at or below the status rate never need a second pass; at 2 kHz, 4 TPs fall due each 2 ms
+    # tick and the tick's first pass takes one of them: 3 of every 4 steps are resubmissions
+    assert resub["resubmits_per_step_10hz"] == 0 and resub["resubmits_per_step_500hz"] == 0
+    assert resub["resubmits_per_step_2000hz"] == pytest.approx(0.75, abs=0.01)

@@ -1,0 +1,535 @@
+"""`cell bench paper`: the NSDI'22 evaluation reproduced in one run, written as one web page.
+
+Each experiment measures what one figure or table of the paper shows, with our
+figures beside the paper's in a table and our plot (matplotlib PNG) beside
+them.  The page says on what machine, at which commit and when it ran, and
+how long each part took.  `--quick` runs every experiment smaller (fewer
+moves, shorter trials); `--only` picks experiments by name.
+
+What each experiment runs:
+- accuracy: a live cell (bus, data plane, two MuJoCo arms) and the controller:
+  stop error (Sec. 7.3), tool path error at TPs (Sec. 7.4, Fig. 11),
+  synchronised starts (Sec. 7.2, Fig. 9), re-planning and the start-state
+  prediction of Sec. 6.1 (Fig. 8), ours next to the paper's binned formula;
+- pid: the closed loop without sockets (cell.bench.loopsim) with the data
+  plane's controller and a host PID on the same MuJoCo arm and motions, the
+  baseline of Fig. 11;
+- latency: status-to-command time of the data plane service at 10-300 robots
+  at 500 Hz x 6 joints (Sec. 7.1; the paper's is a Tofino's, in ns);
+- churn: the same under the paper's table churn (+1.6K / -10K TPs a second);
+- resubmission: Algorithm 1's one TP step per pass, and what each further
+  pass (resubmission) costs, for TP rates up to 4x the status rate;
+- scaling: the table capacity against robots x episode x TP rate
+  (Appendix A, Fig. 13) and the update time t_upd against batch size.
+"""
+
+from __future__ import annotations
+
+import datetime
+import html
+import json
+import os
+import platform
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+Log = Callable[[str], None]
+
+
+@dataclass
+class Section:
+    """One figure of the paper: our plot and the numbers side by side."""
+
+    key: str
+    title: str
+    paper_ref: str
+    rows: list[tuple[str, str, str]] = field(default_factory=list)  # (what, the paper's, ours)
+    png: str | None = None
+    notes: str = ""
+    figures: dict[str, Any] = field(default_factory=dict)  # ours, machine-readable
+    seconds: float = 0.0
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig: Any, out: Path, name: str) -> str:
+    fig.tight_layout()
+    fig.savefig(out / name, dpi=90)
+    _plt().close(fig)
+    return name
+
+
+# --- the experiments ------------------------------------------------------------------------------
+
+
+def accuracy(quick: bool, out: Path, log: Log) -> list[Section]:
+    import asyncio
+
+    from cell.bench import accuracy as acc
+
+    r = asyncio.run(acc.measure(quick, log))
+    s = r["samples"]
+    plt = _plt()
+    joint, linear = np.concatenate(s["path_joint_mm"]), np.concatenate(s["path_linear_mm"])
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    for i, e in enumerate(s["path_joint_mm"] + s["path_linear_mm"]):
+        ax.plot(np.arange(1, len(e) + 1), e, marker=".", lw=0.8, label="joint moves" if i == 0 else None)
+    ax.axhline(1.0, color="k", ls="--", lw=0.8, label="1 mm")
+    ax.set_xlabel("TP of the move")
+    ax.set_ylabel("tool path error (mm)")
+    ax.set_title("tool path error at TPs, every move (MuJoCo arm)")
+    path = Section(
+        "path",
+        "Path accuracy",
+        "Sec. 7.4, Fig. 11",
+        [
+            (
+                "tool path error at TPs, max",
+                "3.2 mm (P4); 0.1 mm (ROS PID)",
+                f"{r['path_error_mm_max']:.2f} mm",
+            ),
+            (
+                "tool path error at TPs, median",
+                "2.23 mm (P4); 0.04 mm (ROS PID)",
+                f"{r['path_error_mm_median']:.3f} mm",
+            ),
+            ("joint moves / straight lines, max", "-", f"{joint.max():.2f} / {linear.max():.2f} mm"),
+        ],
+        _save(fig, out, "path.png"),
+        "Our TPs carry target velocities fitted to a model of the loop (cell.controller.loop); the "
+        "paper's carry the plan's own velocity.",
+        {k: r[k] for k in ("path_error_mm_max", "path_error_mm_median")},
+    )
+    fig, ax = plt.subplots(figsize=(6, 3))
+    ax.semilogy(np.arange(1, len(s["stop_rad"]) + 1), s["stop_rad"], "o")
+    ax.axhline(1e-7, color="k", ls="--", lw=0.8, label="1e-7 rad")
+    ax.set_xlabel("stop")
+    ax.set_ylabel("|q - goal| (rad)")
+    ax.legend()
+    stop = Section(
+        "stop",
+        "Stop error",
+        "Sec. 7.3",
+        [("largest joint error after stopping", "~0.5e-7 rad", f"{r['stop_error_rad_max']:.1e} rad")],
+        _save(fig, out, "stop.png"),
+        f"Read {r['settle_s']:.0f} s after the last TP.",
+        {"stop_error_rad_max": r["stop_error_rad_max"]},
+    )
+    fig, ax = plt.subplots(figsize=(6, 3))
+    kinds = ["shared", "merged", "independent"]
+    ax.boxplot(
+        [s["shift_ms"][k] for k in kinds],
+        tick_labels=["shared start", "merged entity", "one after the other"],
+    )
+    ax.set_yscale("symlog", linthresh=1)
+    ax.set_ylabel("start shift between two robots (ms)")
+    sync = Section(
+        "sync",
+        "Synchronised robots",
+        "Sec. 7.2, Fig. 9",
+        [
+            ("start shift, robots started apart", "up to 8 ms", f"{r['sync_shift_ms_independent']:.1f} ms"),
+            ("start shift, merged entity", "0 (one register set)", f"{r['sync_shift_ms_merged']:.2f} ms"),
+            ("start shift, shared start time", "-", f"{r['sync_shift_ms_shared']:.2f} ms"),
+        ],
+        _save(fig, out, "sync.png"),
+        f"{len(s['shift_ms']['merged'])} repetitions each (the paper: 20; the full run: more).",
+        {k: r[k] for k in ("sync_shift_ms_independent", "sync_shift_ms_merged", "sync_shift_ms_shared")},
+    )
+    fig, ax = plt.subplots(figsize=(6, 3))
+    n = len(s["switch_rad"])
+    ax.plot(np.arange(1, n + 1), np.array(s["switch_rad"]) * 1000, "o", label="ours (loop model)")
+    ax.plot(
+        np.arange(1, n + 1), np.array(s["switch_paper_rad"]) * 1000, "s", label="Sec. 6.1 formula, binned"
+    )
+    ax.set_xlabel("re-plan")
+    ax.set_ylabel("|p_start - p_status(switch)| (mrad)")
+    ax.legend()
+    switch = Section(
+        "switch",
+        "Re-planning: the predicted start state",
+        "Sec. 6.1, Fig. 8",
+        [
+            ("start-state error at the switch, ours", "-", f"{r['switch_error_rad_max'] * 1000:.2f} mrad"),
+            (
+                "the same switches, the paper's p_start (binned, g from M_rel)",
+                "~1e-3 rad (Fig. 8)",
+                f"{r['switch_error_paper_rad_max'] * 1000:.2f} mrad",
+            ),
+        ],
+        _save(fig, out, "switch.png"),
+        "The largest joint's error; both predictions from the same status, for the same switch.",
+        {k: r[k] for k in ("switch_error_rad_max", "switch_error_paper_rad_max")},
+    )
+    return [path, stop, sync, switch]
+
+
+def pid(quick: bool, out: Path, log: Log) -> list[Section]:
+    from cell.bench import loopsim
+
+    r = loopsim.compare(3 if quick else 6)
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 3))
+    for name, e in r.items():
+        ax.plot(np.sort(e), np.linspace(0, 1, e.size), label=name)
+    ax.set_xlabel("tool path error at TPs (mm)")
+    ax.set_ylabel("fraction of TPs")
+    ax.legend()
+    dp, host = r["dataplane"], r["pid"]
+    log(f"offline loop: data plane max {dp.max():.3f} mm, host PID max {host.max():.3f} mm")
+    return [
+        Section(
+            "pid",
+            "The data plane's controller against a host PID",
+            "Sec. 7.4, Fig. 11",
+            [
+                ("max, data plane / host PID", "3.2 / 0.1 mm", f"{dp.max():.3f} / {host.max():.3f} mm"),
+                (
+                    "median, data plane / host PID",
+                    "2.23 / 0.04 mm",
+                    f"{np.median(dp):.3f} / {np.median(host):.3f} mm",
+                ),
+            ],
+            _save(fig, out, "pid.png"),
+            "No sockets, exact timing, the same MuJoCo arm and motions for both (cell.bench.loopsim): "
+            "the control laws' own error.  The PID (kp 40/s, ki 100/s^2) answers every status with the "
+            "plan's velocity plus PID on the position error, from the whole plan, as the ROS driver does.",
+            {
+                "dataplane_mm_max": float(dp.max()),
+                "dataplane_mm_median": float(np.median(dp)),
+                "pid_mm_max": float(host.max()),
+                "pid_mm_median": float(np.median(host)),
+            },
+        )
+    ]
+
+
+def latency(quick: bool, out: Path, log: Log) -> list[Section]:
+    from cell.bench import dataplane
+
+    seconds = 2.0 if quick else 3.0
+    trials = [dataplane.trial("dataplane", n, seconds) for n in ((10, 100) if quick else (10, 100, 300))]
+    for t in trials:
+        log(dataplane.format_trial(t))
+    quiet = trials[1] if len(trials) > 1 else trials[0]
+    busy = dataplane.trial("dataplane+updates", 100, max(seconds, 3.5))
+    log(dataplane.format_trial(busy))
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 3))
+    x = np.arange(len(trials))
+    ax.bar(x - 0.2, [t["p50_us"] for t in trials], 0.4, label="p50")
+    ax.bar(x + 0.2, [t["p99_us"] for t in trials], 0.4, label="p99")
+    ax.set_xticks(x, [f"{t['robots']} robots" for t in trials])
+    ax.set_ylabel("status to command (us)")
+    ax.legend()
+    lat = Section(
+        "latency",
+        "Response time",
+        "Sec. 7.1, Fig. 14",
+        [
+            (f"status to command, {t['robots']} robots, p50 / p99", "0.6-1.3 us (Tofino, 64 B)", _us(t))
+            for t in trials
+        ]
+        + [
+            (
+                "answered within the 8 ms command window",
+                ">= 99 %",
+                f"{100 * trials[-1]['on_time_fraction']:.2f} %",
+            )
+        ],
+        _save(fig, out, "latency.png"),
+        "A load generator on one core plays the robots (real UDP on loopback); the data plane runs on "
+        "the other.  Background traffic and priority queueing (Appendix C) are not reproduced yet.",
+        {f"p99_us_{t['robots']}": t["p99_us"] for t in trials}
+        | {f"p50_us_{t['robots']}": t["p50_us"] for t in trials},
+    )
+    ms = busy.get("update_ms") or [float("nan")]
+    churn = Section(
+        "churn",
+        "Table churn under load",
+        "Sec. 7.1",
+        [
+            ("TPs inserted / deleted a second", "+1.6K / -10K", "+1.6K / -10K"),
+            ("update time", "-", f"{np.mean(ms):.1f} ms mean, {max(ms):.1f} ms max"),
+            (
+                "p99 with / without churn (100 robots)",
+                "-",
+                f"{busy['p99_us']:.0f} / {quiet['p99_us']:.0f} us",
+            ),
+        ],
+        None,
+        "",
+        {
+            "update_ms_mean": float(np.mean(ms)),
+            "p99_us_churn": busy["p99_us"],
+            "p99_us_quiet": quiet["p99_us"],
+        },
+    )
+    return [lat, churn]
+
+
+def _us(t: dict[str, Any]) -> str:
+    return f"{t['p50_us']:.0f} / {t['p99_us']:.0f} us"
+
+
+def resubmission(quick: bool, out: Path, log: Log) -> list[Section]:
+    """Algorithm 1 steps a trajectory once per pass: a status that finds k TPs due takes k passes (k-1
+    resubmissions).  Measured on the real pipeline with 100 robots at 500 Hz."""
+    from cell.dataplane.pipeline import ControlConstants, Pipeline
+    from cell.dataplane.tables import Tables, TPBatch
+    from cell.robot import datagram
+    from cell.robot.datagram import Kind
+
+    robots, period = 100, 2_000_000
+    rows = []
+    figures: dict[str, Any] = {}
+    rates = (10, 500, 1000, 2000)
+    ticks = 200 if quick else 1000
+    cost = {}
+    for rate in rates:
+        t = Tables(capacity=robots * 4100)
+        pipe = Pipeline(t, ControlConstants((1.0,) * 6, (2.0,) * 6, 8, (np.pi,) * 6))
+        n_tp = 4000
+        for r in range(1, robots + 1):
+            t.add_robot(r)
+            ids = np.arange(n_tp)
+            nxt = np.append(ids[1:], 0)  # a loop: the trajectory never runs out
+            zeros = np.zeros((n_tp, 6))
+            t.insert(
+                TPBatch(np.full(n_tp, r), ids, nxt, np.full(n_tp, 1 / rate), np.full(n_tp, 6), zeros, zeros)
+            )
+            t.set_registers(r, 0, 0)
+        recs0 = datagram.empty(robots * 6)
+        datagram.pack(
+            recs0,
+            np.repeat(np.arange(1, robots + 1), 6),
+            np.tile(np.arange(6), robots),
+            Kind.STATUS,
+            1,
+            0.0,
+            0.0,
+        )
+        spent = 0
+        for k in range(ticks):
+            recs = recs0.copy()
+            recs["seq"] = k + 1
+            t0 = time.perf_counter_ns()
+            pipe.process(recs, k * period)
+            spent += time.perf_counter_ns() - t0
+        c = pipe.counters
+        per_step = c.resubmits / max(c.steps, 1)
+        cost[rate] = spent / (ticks * robots * 6)
+        figures[f"resubmits_per_step_{rate}hz"] = per_step
+        figures[f"ns_per_packet_{rate}hz"] = cost[rate]
+        rows.append(
+            (f"TP rate {rate} Hz: resubmissions per TP step; time per status", "1 per extra step",
+             f"{per_step:.2f}; {cost[rate]:.0f} ns")
+        )  # fmt: skip
+        log(f"TP rate {rate} Hz: {c.steps} steps, {c.resubmits} resubmissions, {cost[rate]:.0f} ns a status")
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 3))
+    ax.plot(rates, [cost[r] for r in rates], "o-")
+    ax.set_xscale("log")
+    ax.set_xlabel("TP rate (Hz), status 500 Hz x 6 joints")
+    ax.set_ylabel("pipeline time per status (ns)")
+    return [
+        Section(
+            "resubmission",
+            "Resubmission (Algorithm 1)",
+            "Sec. 5, Algorithm 1",
+            rows,
+            _save(fig, out, "resubmission.png"),
+            "A status packet steps its trajectory at most once per pass through the pipeline, as a "
+            "switch reads a register once per pass: with TPs due faster than statuses come, each "
+            "further step is a resubmission (counted as the paper counts them: every step of an "
+            "entity after its first in a batch of packets).  Steps are vectorised over entities, "
+            "so the time per status stays flat as resubmissions grow.",
+            figures,
+        )
+    ]
+
+
+def scaling(quick: bool, out: Path, log: Log) -> list[Section]:
+    from cell.config import load_config
+    from cell.dataplane.tables import Tables, TPBatch
+
+    cfg = load_config(None)
+    cap, episode, rate = cfg.dataplane.capacity, cfg.controller.episode, cfg.controller.tp_rate_hz
+    # at most 3 episodes of each robot in the tables (the one running, the next, the one leaving)
+    per_robot = 3 * episode
+    fleet = cap // per_robot
+    sizes = (10, 100, 1000, 5000) if quick else (10, 100, 1000, 5000, 20000)
+    t_upd = {}
+    for n in sizes:
+        t = Tables(capacity=cap)
+        t.add_robot(1)
+        ids = np.arange(n)
+        batch = TPBatch(
+            np.full(n, 1), ids, ids, np.full(n, 0.1), np.full(n, 6), np.zeros((n, 6)), np.zeros((n, 6))
+        )
+        reps = 5
+        t0 = time.perf_counter_ns()
+        for _ in range(reps):
+            t.update(insert=batch)
+            t.update(remove=[(1, int(i)) for i in ids])
+        t_upd[n] = (time.perf_counter_ns() - t0) / reps / 2 / 1e6
+        log(f"t_upd for {n} TPs: {t_upd[n]:.2f} ms")
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.2))
+    robots = np.array([1, 10, 100, 1000, 10000])
+    for ep_s, style in ((2.0, "-"), (10.0, "--")):
+        for hz in (10, 125):
+            a1.loglog(robots, robots * ep_s * hz, style, label=f"{ep_s:.0f} s episodes, {hz} TP/s")
+    a1.axhline(cap, color="k", lw=0.8)
+    a1.text(1, cap * 1.2, f"capacity {cap:,}")
+    a1.set_xlabel("robots")
+    a1.set_ylabel("TPs in the tables")
+    a1.legend(fontsize=7)
+    a2.loglog(list(t_upd), list(t_upd.values()), "o-")
+    a2.set_xlabel("TPs in one update")
+    a2.set_ylabel("t_upd (ms)")
+    return [
+        Section(
+            "scaling",
+            "Scaling",
+            "Appendix A, Fig. 13",
+            [
+                ("table capacity", "50K TPs (the paper's switch)", f"{cap:,} TPs"),
+                (
+                    "largest fleet at the default (episodes of "
+                    f"{episode} TPs at {rate:g} TP/s, 3 in the tables)",
+                    "-",
+                    f"{fleet:,} robots",
+                ),
+            ]
+            + [(f"t_upd, {n:,} TPs", "-", f"{v:.2f} ms") for n, v in t_upd.items()],
+            _save(fig, out, "scaling.png"),
+            "t_upd: inserting a batch into the Tables and deleting it again, in process (the bus adds "
+            "its own time: see churn).",
+            {"capacity": cap, "largest_fleet": fleet} | {f"t_upd_ms_{n}": v for n, v in t_upd.items()},
+        )
+    ]
+
+
+EXPERIMENTS: dict[str, Callable[[bool, Path, Log], list[Section]]] = {
+    "accuracy": accuracy,
+    "pid": pid,
+    "latency": latency,
+    "resubmission": resubmission,
+    "scaling": scaling,
+}
+
+
+# --- the page -------------------------------------------------------------------------------------
+
+
+def machine() -> dict[str, str]:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).resolve().parent,
+            timeout=5,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    return {
+        "host": platform.node(),
+        "cpu": f"{cpu}, {os.cpu_count()} cores",
+        "os": f"{platform.system()} {platform.release()}",
+        "python": platform.python_version(),
+        "commit": commit or "unknown",
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+    }
+
+
+def write_page(
+    out: Path, sections: list[Section], about: dict[str, str], seconds: float, quick: bool
+) -> Path:
+    e = html.escape
+    parts = [
+        "<!doctype html><meta charset=utf-8><title>cell: the NSDI'22 evaluation</title>",
+        "<style>body{font-family:sans-serif;max-width:60em;margin:2em auto}table{border-collapse:collapse}"
+        "td,th{border:1px solid #bbb;padding:.25em .6em;text-align:left}img{max-width:100%}</style>",
+        "<h1>In-network velocity control: the paper's evaluation, reproduced</h1>",
+        f"<p>{'Quick run' if quick else 'Full run'} of <code>cell bench paper</code> in {seconds:.0f} s.</p>",
+        "<table id=machine>"
+        + "".join(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>" for k, v in about.items())
+        + "</table>",
+    ]
+    for s in sections:
+        parts.append(f"<h2 id={e(s.key)}>{e(s.title)} <small>({e(s.paper_ref)})</small></h2>")
+        if s.png:
+            parts.append(f"<img src='{e(s.png)}' alt='{e(s.title)}'>")
+        parts.append("<table class=figures><tr><th>measure</th><th>the paper</th><th>ours</th></tr>")
+        parts += [f"<tr><td>{e(a)}</td><td>{e(b)}</td><td>{e(c)}</td></tr>" for a, b, c in s.rows]
+        parts.append("</table>")
+        if s.notes:
+            parts.append(f"<p>{e(s.notes)}</p>")
+        parts.append(f"<p><small>{s.seconds:.1f} s</small></p>")
+    parts.append(
+        "<script type=application/json id=figures>"
+        + e(json.dumps({s.key: s.figures for s in sections}))
+        + "</script>"
+    )
+    page = out / "index.html"
+    page.write_text("\n".join(parts))
+    return page
+
+
+def run(quick: bool, out: str, only: list[str] | None = None, log: Log = print) -> dict[str, Any]:
+    names = only or list(EXPERIMENTS)
+    unknown = [n for n in names if n not in EXPERIMENTS]
+    if unknown:
+        raise ValueError(f"no experiment {', '.join(unknown)} (there are: {', '.join(EXPERIMENTS)})")
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    t_start = time.monotonic()
+    sections: list[Section] = []
+    for i, name in enumerate(names, 1):
+        log(f"[{i}/{len(names)}] {name} ({time.monotonic() - t_start:.0f} s so far)")
+        t0 = time.monotonic()
+        got = EXPERIMENTS[name](quick, folder, log)
+        for s in got:
+            s.seconds = (time.monotonic() - t0) / len(got)
+        sections += got
+    seconds = time.monotonic() - t_start
+    page = write_page(folder, sections, machine(), seconds, quick)
+    log(f"wrote {page}")
+    return {
+        "page": str(page),
+        "seconds": round(seconds, 1),
+        "quick": quick,
+        "experiments": names,
+        "figures": {s.key: s.figures for s in sections},
+    }
+
+
+def format_result(r: dict[str, Any]) -> str:
+    lines = [f"{r['page']} ({r['seconds']} s)"]
+    for key, figs in r["figures"].items():
+        shown = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in figs.items())
+        lines.append(f"  {key}: {shown}")
+    return "\n".join(lines)
