@@ -123,6 +123,53 @@ class Cell:
         reply = await self.request("controller", "move_together", req, controller_pb2.MoveReply, 120.0)
         return reply.t_start_ns / 1e9, reply.t_end_ns / 1e9  # type: ignore[attr-defined]
 
+    async def prepare_alternates(
+        self, robot: str, goals_deg: dict[str, list[float]], speed: float = 100.0, every: int = 1
+    ) -> int:
+        """For the robot's running motion (started with start_only): branches to other joint goals
+        (deg), prepared from its TPs ahead and loaded (Sec. 6.1 of the NSDI'22 paper); the TPs
+        loaded.  take_alternate(), or an event on alternate/<robot>, switches onto one."""
+        req = controller_pb2.AlternatesRequest(
+            robot=robot,
+            alternates=[
+                controller_pb2.Alternate(name=n, values=np.radians(q).tolist()) for n, q in goals_deg.items()
+            ],
+            speed=speed,
+            every=every,
+        )
+        reply = await self.request(
+            "controller", "prepare_alternates", req, controller_pb2.AlternatesReply, 60.0
+        )
+        return int(reply.tps_loaded)  # type: ignore[attr-defined]
+
+    async def take_alternate(self, robot: str, name: str) -> tuple[float, float]:
+        """Onto a prepared alternate at the next TP in reach (no planning); (start, end) when it has
+        ended, on the data-plane clock, s."""
+        req = controller_pb2.TakeAlternate(robot=robot, name=name)
+        reply = await self.request("controller", "take_alternate", req, controller_pb2.MoveReply, 120.0)
+        return reply.t_start_ns / 1e9, reply.t_end_ns / 1e9  # type: ignore[attr-defined]
+
+    def arm_alternate(self, robot: str, name: str) -> None:
+        """The same as an event anyone on the bus may send (topic alternate/<robot>): no reply."""
+        self.bus.publish(f"alternate/{robot}", controller_pb2.TakeAlternate(robot=robot, name=name))
+
+    async def loop(
+        self, robot: str, waypoints_deg: list[list[float]], laps: int = 0, speed: float = 100.0
+    ) -> int:
+        """A repetitive task as a TPStepper loop: from where the robot stands through the waypoints
+        (deg) and back, loaded once, run `laps` times; returns the laps run.  With laps=0 it runs
+        until end_loop() (run this in a task)."""
+        values = np.radians(np.asarray(waypoints_deg, np.float64)).ravel().tolist()
+        req = controller_pb2.LoopRequest(robot=robot, values=values, laps=laps, speed=speed)
+        reply = await self.request("controller", "loop", req, controller_pb2.LoopReply, 3600.0)
+        return int(reply.laps)  # type: ignore[attr-defined]
+
+    async def end_loop(self, robot: str) -> int:
+        """End the robot's loop at the end of the lap in reach; the laps it runs."""
+        req = controller_pb2.RobotRequest(robot=robot)
+        reply = await self.request("controller", "end_loop", req, controller_pb2.LoopReply, 10.0)
+        return int(reply.laps)  # type: ignore[attr-defined]
+
 
 def load_main(path: Path) -> Callable[[Cell], Any]:
     """The script's `async def main(cell)`; ValueError saying what is wrong."""

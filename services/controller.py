@@ -15,7 +15,7 @@ import asyncio
 
 import numpy as np
 
-from cell.bus import BusError, RpcFault
+from cell.bus import BusError, RemoteError, RpcFault
 from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
 from cell.controller.plan import PlanError
 from cell.robot.kinematics import Unreachable
@@ -145,6 +145,63 @@ class ControllerService:
         pos, rot = self.ctl.pose_of(q)
         return controller_pb2.PoseReply(joints=q.tolist(), pose=to_adept(pos, rot), t_ns=t_ns)
 
+    # --- prepared ahead (cell.controller.prepared) --------------------------------------------
+
+    def _goal(self, values, track: Track) -> np.ndarray:
+        q = np.array(values, np.float64)
+        if q.size != track.joints or not np.isfinite(q).all():
+            raise RpcFault("bad_request", f"a goal takes {track.joints} finite joint values, got {q.size}")
+        return q
+
+    async def prepare_alternates(
+        self, req: controller_pb2.AlternatesRequest
+    ) -> controller_pb2.AlternatesReply:
+        rid = self._robot(req.robot)
+        track = self.ctl.track(rid)
+        if not req.alternates or len({a.name for a in req.alternates}) != len(req.alternates):
+            raise RpcFault("bad_request", "alternates need distinct names, at least one")
+        goals = {a.name: self._goal(a.values, track) for a in req.alternates}
+        try:
+            n = await self.ctl.prepare_alternates(rid, goals, _speed(req.speed), req.every or 1)
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        except RemoteError as exc:  # the data plane refused them (a full table says why)
+            raise RpcFault(exc.code, exc.message) from None
+        _, branches = self.ctl.alternates[rid]
+        return controller_pb2.AlternatesReply(tps_loaded=n, branch_points=len(next(iter(branches.values()))))
+
+    async def take_alternate(self, req: controller_pb2.TakeAlternate) -> controller_pb2.MoveReply:
+        return await self._guard(self.ctl.take_alternate(self._robot(req.robot), req.name))
+
+    async def loop(self, req: controller_pb2.LoopRequest) -> controller_pb2.LoopReply:
+        rid = self._robot(req.robot)
+        track = self.ctl.track(rid)
+        values = np.array(req.values, np.float64)
+        if values.size == 0 or values.size % track.joints or not np.isfinite(values).all():
+            raise RpcFault("bad_request", f"waypoints take {track.joints} finite joint values each")
+        waypoints = list(values.reshape(-1, track.joints))
+        try:
+            run = await self.ctl.run_loop(rid, waypoints, _speed(req.speed), req.laps)
+            laps = 0
+            if not req.start_only:
+                laps = await asyncio.shield(run.done)
+                await self.ctl.wait_idle(rid)  # (back where it began)
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        except MotionStopped as exc:
+            raise RpcFault("stopped", str(exc)) from None
+        return controller_pb2.LoopReply(t_start_ns=run.start_ns, lap_ns=run.lap_ns, laps=laps)
+
+    async def end_loop(self, req: controller_pb2.RobotRequest) -> controller_pb2.LoopReply:
+        rid = self._robot(req.robot)
+        run = self.ctl.loops.get(rid)
+        try:
+            laps = await self.ctl.end_loop(rid)
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        assert run is not None
+        return controller_pb2.LoopReply(t_start_ns=run.start_ns, lap_ns=run.lap_ns, laps=laps)
+
 
 def _speed(percent: float) -> float:
     """A request's speed (percent, 0 meaning 100) as a factor; bad_request outside (0, 100]."""
@@ -178,10 +235,31 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
             "arrive": (controller_pb2.ArriveRequest, svc.arrive),
             "replan": (controller_pb2.MoveRequest, svc.replan),
             "move_together": (controller_pb2.MoveTogetherRequest, svc.move_together),
+            "prepare_alternates": (controller_pb2.AlternatesRequest, svc.prepare_alternates),
+            "take_alternate": (controller_pb2.TakeAlternate, svc.take_alternate),
+            "loop": (controller_pb2.LoopRequest, svc.loop),
+            "end_loop": (controller_pb2.RobotRequest, svc.end_loop),
         },
     )
     ctl = svc.ctl
     events = await ctx.bus.subscribe("events/robot/")
+    armings = await ctx.bus.subscribe("alternate/")
+
+    async def follow_armings() -> None:
+        """Alternates armed by an event on the bus (alternate/<robot>): taken as if requested."""
+        ctx.counters["alternates_taken"] = ctx.counters["alternates_refused"] = 0
+
+        async def take(ev: controller_pb2.TakeAlternate) -> None:
+            try:
+                await svc.take_alternate(ev)
+                ctx.counters["alternates_taken"] += 1
+            except Exception as exc:  # (a bad event is the sender's: said, never fatal here)
+                ctx.counters["alternates_refused"] += 1
+                ctx.log.warning("alternate %r of %r not taken: %s", ev.name, ev.robot, exc)
+
+        async with asyncio.TaskGroup() as takes:  # (each returns when its branch ends: not inline)
+            async for ev in armings.messages(controller_pb2.TakeAlternate):
+                takes.create_task(take(ev))
 
     async def follow_link() -> None:
         """Stops and releases over the Responsive Link, as the hub tells them after the fact."""
@@ -194,6 +272,7 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
 
     async with asyncio.TaskGroup() as tg:
         tg.create_task(follow_link(), name="follow-link")
+        tg.create_task(follow_armings(), name="follow-armings")
         tg.create_task(ctl.supervise(), name="supervise-dataplane")
         ctx.ready()
         while True:  # requests are served by the bus node's reader; this only reports

@@ -150,8 +150,17 @@ async def test_a_long_motion_streams_through_a_slow_jittery_link_without_a_stall
 
 def max_accel(t: np.ndarray, v: np.ndarray, span: int = 5) -> float:
     """The largest joint acceleration over `span` truth periods (10 ms at 500 Hz): a jump in velocity
-    shows; one emulator tick served late (two periods in one, under load) does not."""
-    return float((np.abs(v[span:] - v[:-span]) / (t[span:] - t[:-span])[:, None]).max())
+    shows; one emulator tick served late (two periods in one, under load) does not, and nor does
+    what the emulator did around a stall of its own process (a gap of several periods in its truth,
+    seen in full-suite runs as 34-50 ms: its first state after one can be stale)."""
+    dt = np.diff(t)
+    stall = dt > 3 * np.median(dt)
+    # window i spans samples i..i+span; it is judged only if no stall lies within one sample of it
+    near = np.convolve(stall.astype(int), np.ones(span + 2, int), mode="full")[span : span + len(t) - span]
+    a = (np.abs(v[span:] - v[:-span]) / (t[span:] - t[:-span])[:, None]).max(axis=1)
+    judged = near[: a.size] == 0
+    assert judged.sum() > a.size // 2, "the emulator stalled through most of it"
+    return float(a[judged].max())
 
 
 def fast_truth(backend: str, n: int = 1) -> list[dict]:

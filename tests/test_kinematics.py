@@ -109,8 +109,6 @@ def test_a_linear_motion_keeps_the_tool_on_the_line() -> None:
         plan_linear(KIN, Q0, pos0 + np.array([1.5, 0.0, 0.0]), rot0, LIMITS)  # leaves the workspace
 
 
-
-
 def test_a_line_the_tool_limits_would_make_too_hard_for_a_joint_is_slowed_down() -> None:
     """The accuracy bench's second leg of its square: timed by the tool's limits alone the base
     and wrist-3 joints would need 3.7 rad/s^2 of 2.5, more than the loop can follow."""
@@ -123,6 +121,8 @@ def test_a_line_the_tool_limits_would_make_too_hard_for_a_joint_is_slowed_down()
     assert np.abs(a).max() <= 2.5 * 1.02  # (finite differences of the sampled motion)
     assert np.allclose(KIN.fk(q[-1])[0], pos0 + np.array([0.2, 0.2, 0.0]), atol=1e-6)
     assert m.duration > 0.2 / 0.25 + 0.3  # slower than the tool's own limits would take it
+
+
 def test_fitted_tps_put_the_modelled_robot_on_the_plan() -> None:
     """The loop model's fit against the plain choice (the plan's velocity at each TP)."""
     loop = LoopModel(np.ones(6), np.full(6, 2.0), np.full(6, np.pi), np.full(6, 5.0))

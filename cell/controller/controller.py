@@ -38,6 +38,7 @@ import numpy as np
 
 from cell.bus import Bus, BusError, BusTimeout, RemoteError, Subscription
 from cell.config import CellConfig
+from cell.controller import prepared
 from cell.controller.loop import LoopModel
 from cell.controller.plan import Motion, MotionLimits, PlanError, plan_joint, plan_linear, plan_stop
 from cell.controller.tps import Sections, cut
@@ -239,6 +240,11 @@ class Controller:
         # from its announcements (see grid_start())
         self.grids: dict[int, tuple[int, int, int]] = {}
         self._asked: set[int] = set()  # robots asked for their announcement (see know_grid())
+        # motions prepared ahead (cell.controller.prepared): loops under way, alternates loaded for a
+        # robot's running motion, and the start of each robot of the last armed start
+        self.loops: dict[int, prepared.LoopRun] = {}
+        self.alternates: dict[int, tuple[Segment, dict[str, list[prepared.Alternate]]]] = {}
+        self.last_fire: dict[int, int] = {}
         self._announcements: asyncio.Task | None = None
 
     # --- robots ------------------------------------------------------------------------------
@@ -448,23 +454,32 @@ class Controller:
         result, tracks = await self.launch(motions, fine)
         return await self.finish(tracks, result)
 
-    async def launch(
-        self, motions: dict[int, Motion], fine: bool = False
-    ) -> tuple[MotionResult, list[Track]]:
-        """Load the motions' first episodes and start them at one data-plane time, in one atomic
-        update; they stream on in the background."""
-        rate = self.fine_hz if fine else self.rate_hz
+    async def tables_in_hand(self) -> None:
+        """Until supervise() has the data plane's tables in hand (its take-over at our start, or after
+        a loss, clears them: a motion loaded before would be swept away)."""
         if self.tables_ready is not None and not self.tables_ready.is_set():
             try:
                 async with asyncio.timeout(self.config.bus.request_timeout_s):
                     await self.tables_ready.wait()
             except TimeoutError:
                 raise MotionStopped("the data plane is not answering: no motion can start") from None
+
+    async def launch(
+        self, motions: dict[int, Motion], fine: bool = False
+    ) -> tuple[MotionResult, list[Track]]:
+        """Load the motions' first episodes and start them at one data-plane time, in one atomic
+        update; they stream on in the background."""
+        rate = self.fine_hz if fine else self.rate_hz
+        await self.tables_in_hand()
         planned = []
         for robot, motion in motions.items():
             track = self.track(robot)
             self.check_running(track)
-            sections = cut(motion, rate, np.resize(self.gain, track.joints), self.loop(track), tick0=0)
+            # (in a worker thread: fitting a long motion's TPs takes 0.1-0.5 s of CPU, which would hold
+            # up everything else this controller does, its watch on the data plane too)
+            sections = await asyncio.to_thread(
+                cut, motion, rate, np.resize(self.gain, track.joints), self.loop(track), tick0=0
+            )
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the
         # update's way to the data plane (planning first would eat it on a busy host: a late start)
@@ -544,7 +559,8 @@ class Controller:
         while k * n < len(ids):
             # when the robot enters episode k-1, episode k goes in and episode k-3 comes out
             await self.link.sleep_until(seg.t_ns(max(0, (k - 1) * n - 1)) if k > 1 else seg.start_ns)
-            old = [i for i in track.loaded if i not in ids[(k - 2) * n :]] if k >= 2 else []
+            keep = set(ids[(k - 2) * n :]) | self._prepared_ids(track, seg) if k >= 2 else set()
+            old = [i for i in track.loaded if i not in keep] if k >= 2 else []
             await self._apply(track, self._batch(track, seg, k * n, min((k + 1) * n, len(ids))), old)
             k += 1
         # all but the final hold go once the robot is on it (our view of the data-plane clock may be
@@ -561,6 +577,13 @@ class Controller:
                     raise
                 await asyncio.sleep(TIDY_NS / 1e9)
         track.q_hold = seg.sections.q[-1].copy()
+
+    def _prepared_ids(self, track: Track, seg: Segment) -> set[int]:
+        """The TPs of alternates prepared for this segment: streaming leaves them loaded."""
+        main, branches = self.alternates.get(track.robot, (None, {}))
+        if main is not seg:
+            return set()
+        return {i for alts in branches.values() for a in alts for i in a.segment.ids[: self.episode]}
 
     async def _apply(
         self,
@@ -902,6 +925,36 @@ class Controller:
         return replace(
             track.limits, a_max=np.resize(arm_model().limits.a_max, n) * 0.95, j_max=np.full(n, STOP_JERK)
         )
+
+    # --- prepared ahead (cell.controller.prepared) ------------------------------------------------
+
+    async def arm(self, goals: dict[int | str, np.ndarray], speed: float = 1.0) -> prepared.Armed:
+        """Load robots' joint motions behind holds, to be started together by fire()."""
+        return await prepared.arm(self, goals, speed)
+
+    async def fire(self, armed: prepared.Armed, wait: bool = True) -> MotionResult:
+        """Start armed motions with one update of switch entries."""
+        return await prepared.fire(self, armed, wait)
+
+    async def run_loop(
+        self, robot: int | str, waypoints: list[np.ndarray], speed: float = 1.0, laps: int = 0
+    ) -> prepared.LoopRun:
+        """A lap through the waypoints loaded once as a loop, run `laps` times (0: until end_loop())."""
+        return await prepared.run_loop(self, robot, waypoints, speed, laps)
+
+    async def end_loop(self, robot: int | str) -> int:
+        """End the robot's loop at the next lap end the update reaches; the laps it runs."""
+        return await prepared.end_loop(self, robot)
+
+    async def prepare_alternates(
+        self, robot: int | str, goals: dict[str, np.ndarray], speed: float = 1.0, every: int = 1
+    ) -> int:
+        """Branches of the running motion to other goals, loaded ahead; the TPs loaded."""
+        return await prepared.prepare_alternates(self, robot, goals, speed, every)
+
+    async def take_alternate(self, robot: int | str, name: str) -> MotionResult:
+        """Onto a prepared branch at the next TP in reach; returns when the branch has ended."""
+        return await prepared.take_alternate(self, robot, name)
 
     # --- re-planning -----------------------------------------------------------------------------
 

@@ -9,6 +9,7 @@ jerk limits per joint, and is the trajectory generator robot makers and MoveIt u
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, replace
 
@@ -139,6 +140,38 @@ class SampledMotion(Motion):
         q = np.stack([np.interp(t, self.t, self.q[:, j]) for j in range(self.dof)], axis=1)
         v = np.stack([np.interp(t, self.t, self.v[:, j]) for j in range(self.dof)], axis=1)
         return q, v
+
+
+class ChainedMotion(Motion):
+    """Motions one after another, each starting at rest where the last ended, then held `pad` s."""
+
+    def __init__(self, parts: list[Motion], pad: float = 0.0) -> None:
+        self.parts = parts
+        self.starts = np.concatenate([[0.0], np.cumsum([p.duration for p in parts])])
+        self.duration, self.dof = float(self.starts[-1] + pad), parts[0].dof
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.clip(np.asarray(t, np.float64), 0.0, self.duration)
+        q, v = np.empty((t.size, self.dof)), np.empty((t.size, self.dof))
+        which = np.clip(np.searchsorted(self.starts, t, side="right") - 1, 0, len(self.parts) - 1)
+        for i, part in enumerate(self.parts):
+            mask = which == i
+            if mask.any():
+                q[mask], v[mask] = part.sample(t[mask] - self.starts[i])
+        return q, v
+
+
+def plan_loop(
+    q0: np.ndarray, waypoints: list[np.ndarray], limits: MotionLimits, lap_quantum_s: float
+) -> Motion:
+    """From q0 through each waypoint (at rest at each) and back to q0, one lap; held at q0 at the end
+    so that a lap lasts a whole number of lap_quantum_s (a command window: every lap then meets the
+    robot's windows as the first did, and the TPs fitted for it fit them all)."""
+    stops = [np.asarray(q0, np.float64), *(np.asarray(w, np.float64) for w in waypoints), q0]
+    parts = [plan_joint(a, b, limits) for a, b in itertools.pairwise(stops)]
+    total = sum(p.duration for p in parts)
+    pad = math.ceil(total / lap_quantum_s - 1e-9) * lap_quantum_s - total
+    return ChainedMotion(parts, pad)
 
 
 def plan_linear(

@@ -112,3 +112,63 @@ class Plan(_message.Message):
     positions: _containers.RepeatedScalarFieldContainer[float]
     velocities: _containers.RepeatedScalarFieldContainer[float]
     def __init__(self, robot_id: _Optional[int] = ..., joints: _Optional[int] = ..., t_ns: _Optional[_Iterable[int]] = ..., positions: _Optional[_Iterable[float]] = ..., velocities: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class Alternate(_message.Message):
+    __slots__ = ("name", "values")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    values: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, name: _Optional[str] = ..., values: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class AlternatesRequest(_message.Message):
+    __slots__ = ("robot", "alternates", "speed", "every")
+    ROBOT_FIELD_NUMBER: _ClassVar[int]
+    ALTERNATES_FIELD_NUMBER: _ClassVar[int]
+    SPEED_FIELD_NUMBER: _ClassVar[int]
+    EVERY_FIELD_NUMBER: _ClassVar[int]
+    robot: str
+    alternates: _containers.RepeatedCompositeFieldContainer[Alternate]
+    speed: float
+    every: int
+    def __init__(self, robot: _Optional[str] = ..., alternates: _Optional[_Iterable[_Union[Alternate, _Mapping]]] = ..., speed: _Optional[float] = ..., every: _Optional[int] = ...) -> None: ...
+
+class AlternatesReply(_message.Message):
+    __slots__ = ("tps_loaded", "branch_points")
+    TPS_LOADED_FIELD_NUMBER: _ClassVar[int]
+    BRANCH_POINTS_FIELD_NUMBER: _ClassVar[int]
+    tps_loaded: int
+    branch_points: int
+    def __init__(self, tps_loaded: _Optional[int] = ..., branch_points: _Optional[int] = ...) -> None: ...
+
+class TakeAlternate(_message.Message):
+    __slots__ = ("robot", "name")
+    ROBOT_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    robot: str
+    name: str
+    def __init__(self, robot: _Optional[str] = ..., name: _Optional[str] = ...) -> None: ...
+
+class LoopRequest(_message.Message):
+    __slots__ = ("robot", "values", "speed", "laps", "start_only")
+    ROBOT_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    SPEED_FIELD_NUMBER: _ClassVar[int]
+    LAPS_FIELD_NUMBER: _ClassVar[int]
+    START_ONLY_FIELD_NUMBER: _ClassVar[int]
+    robot: str
+    values: _containers.RepeatedScalarFieldContainer[float]
+    speed: float
+    laps: int
+    start_only: bool
+    def __init__(self, robot: _Optional[str] = ..., values: _Optional[_Iterable[float]] = ..., speed: _Optional[float] = ..., laps: _Optional[int] = ..., start_only: _Optional[bool] = ...) -> None: ...
+
+class LoopReply(_message.Message):
+    __slots__ = ("t_start_ns", "lap_ns", "laps")
+    T_START_NS_FIELD_NUMBER: _ClassVar[int]
+    LAP_NS_FIELD_NUMBER: _ClassVar[int]
+    LAPS_FIELD_NUMBER: _ClassVar[int]
+    t_start_ns: int
+    lap_ns: int
+    laps: int
+    def __init__(self, t_start_ns: _Optional[int] = ..., lap_ns: _Optional[int] = ..., laps: _Optional[int] = ...) -> None: ...

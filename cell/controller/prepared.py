@@ -1,0 +1,351 @@
+"""Motions prepared in the tables before the event that starts or changes them.
+
+The controller's usual way is to plan when asked; these load the work ahead,
+so that when the moment comes only table entries change (one update, no
+planning), as the paper's design intends:
+
+- armed starts (Sec. 7.2): several robots' motions loaded, each robot held on
+  a TP that steps onto itself once a command window; one update setting a
+  TrajectorySwitcher entry on each hold starts them all at the same hold step;
+- loops (TPStepper): a lap loaded once, its last TP linking back to its first;
+  it runs lap after lap until a switch entry on the last TP leads it out to a
+  hold, after N laps or when asked;
+- alternates (Sec. 6.1, Fig. 7): for a running motion, branches to other goals
+  planned from each of its TPs ahead (the plan's own state there: nothing to
+  predict) and loaded; taking one is one switch entry at the next TP the
+  update can reach in time.
+
+Each returns, or its waiter gets, a MotionResult as the other motions do, and
+the controller's bookkeeping (what is loaded, where the robot will hold) is
+kept as for them, so stops, re-plans and the next motion work as usual.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cell.controller.plan import PlanError, plan_joint, plan_loop
+from cell.controller.tps import cut
+from cell.dataplane.tables import TPBatch
+
+if TYPE_CHECKING:
+    from cell.controller.controller import Controller, MotionResult, Segment, Track
+
+WINDOW_NS = 8_000_000  # a command window, for robots that have not told their grid
+
+
+def _tp(
+    track: Track, tp_id: int, next_id: int, d_s: float, q: np.ndarray, v: np.ndarray | None = None
+) -> TPBatch:
+    return TPBatch(
+        np.array([track.robot], np.int64),
+        np.array([tp_id], np.int64),
+        np.array([next_id], np.int64),
+        np.array([d_s]),
+        np.array([track.joints], np.int64),
+        np.asarray(q, np.float64)[None, :],
+        (np.zeros(track.joints) if v is None else np.asarray(v, np.float64))[None, :],
+    )
+
+
+def _window_ns(ctl: Controller, robot: int) -> int:
+    grid = ctl.grids.get(robot)
+    return WINDOW_NS if grid is None else grid[1] * grid[2]
+
+
+# --- armed starts ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Armed:
+    """Motions loaded and held, started by fire()."""
+
+    planned: list[tuple[Track, Segment, int]]  # (track, its motion, its hold TP)
+    period_ns: int  # the holds step together every period from their registers' time
+    armed_ns: int = field(default_factory=time.monotonic_ns)
+
+
+async def arm(ctl: Controller, goals: dict[int | str, np.ndarray], speed: float = 1.0) -> Armed:
+    """Load each robot's joint motion to its goal behind a hold that steps onto itself once a
+    command window (all holds at the same times, on the first robot's window grid)."""
+    from cell.controller.controller import Segment, _concat
+
+    planned = []
+    for robot, q_goal in goals.items():
+        track = ctl.track(robot)
+        ctl.check_running(track)
+        q0 = await ctl.start_q(track)
+        motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
+        sections = await asyncio.to_thread(
+            cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), ctl.loop(track), tick0=0
+        )
+        planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
+    lead = planned[0][0].robot
+    await ctl.tables_in_hand()
+    await ctl.know_grid(lead)
+    await ctl.link.state()
+    start, at, tick0 = ctl.grid_start(lead, ctl.link.now() + ctl.lead_ns + 2 * ctl.link.rtt_ns)
+    period = _window_ns(ctl, lead)
+    batches, registers, remove, out = [], [], [], []
+    for track, motion, sections, (hold_id, *ids) in planned:
+        q0 = motion.sample(np.array([0.0]))[0][0]
+        seg = Segment(start, motion, sections, ids, tick0 if track.robot == lead else None, track.robot)
+        batches.append(_tp(track, hold_id, hold_id, period / 1e9, q0))
+        batches.append(ctl._batch(track, seg, 0, min(ctl.episode, len(ids))))
+        registers.append((track.robot, hold_id, at))
+        remove += [(track.robot, i) for i in track.loaded]
+        out.append((track, seg, hold_id))
+    async with ctl.loading:
+        await ctl.dp.update(insert=_concat(batches), remove=remove, registers=registers)
+        for track, seg, hold_id in out:
+            track.loads += 1
+            track.loaded = [hold_id, *seg.ids[: ctl.episode]]
+            track.segment, track.q_hold = None, seg.motion.sample(np.array([0.0]))[0][0]  # held there
+    return Armed(out, period)
+
+
+async def fire(ctl: Controller, armed: Armed, wait: bool = True) -> MotionResult:
+    """Start armed motions: one update sets every hold's switch entry; they leave their holds at
+    the same hold step, the first after the update is in."""
+    from cell.controller.controller import MotionResult
+
+    switches = [(track.robot, hold_id, seg.ids[0]) for track, seg, hold_id in armed.planned]
+    async with ctl.loading:
+        await ctl.dp.update(switches=switches)
+    st = await ctl.link.state([r for track, _, _ in armed.planned for r in track.robots])
+    regs = {r.robot_id: r for r in st.robots}
+    starts = []
+    for track, seg, hold_id in armed.planned:
+        r = regs.get(track.robot)
+        if r is None or r.tp_id == hold_id or r.tp_id not in seg.ids[:-1]:
+            # still on the hold (it leaves at its next step), or our read raced the step
+            start = r.next_time_ns if r is not None and r.tp_id == hold_id else st.now_ns
+        else:
+            start = r.next_time_ns - round(seg.sections.t_end[seg.ids.index(r.tp_id)] * 1e9)
+        starts.append(start)
+    start = min(starts)  # (they are equal: the holds step at the same times)
+    for track, seg, _ in armed.planned:
+        seg.start_ns = start
+        track.stop_reason = None
+        track.segment, track.q_hold = seg, None
+        track.task = asyncio.ensure_future(ctl._stream(track, seg, 1))
+        ctl._publish_plan(track, seg)
+    tracks = [t for t, _, _ in armed.planned]
+    end = max(seg.end_ns for _, seg, _ in armed.planned)
+    q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in armed.planned])
+    result = MotionResult(start, end, q_end)
+    ctl.last_fire = {t.robot: s for t, s in zip(tracks, starts, strict=True)}
+    return await ctl.finish(tracks, result) if wait else result
+
+
+# --- loops ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class LoopRun:
+    """A loop under way: its laps, and the exit the controller sets (end_loop())."""
+
+    track: Track
+    q0: np.ndarray  # where each lap starts and ends
+    start_ns: int
+    lap_ns: int
+    last_id: int  # the lap's last TP: its switch entry leads out
+    exit_id: int
+    laps: int  # 0: until ended
+    done: asyncio.Future[int] = field(default_factory=lambda: asyncio.get_running_loop().create_future())
+
+    def lap_end_ns(self, n: int) -> int:
+        return self.start_ns + n * self.lap_ns
+
+
+async def run_loop(
+    ctl: Controller, robot: int | str, waypoints: list[np.ndarray], speed: float = 1.0, laps: int = 0
+) -> LoopRun:
+    """Load a lap (from where the robot stands through the waypoints and back) once, linked into a
+    loop, and start it; it runs `laps` laps (0: until end_loop()).  Await run.done for the laps run."""
+    from cell.controller.controller import Segment, _concat
+
+    if laps < 0:
+        raise PlanError(f"laps must be >= 0 (0: until ended), got {laps}")
+    track = ctl.track(robot)
+    async with track.starting:
+        ctl.check_running(track)
+        q0 = await ctl.start_q(track)
+        await ctl.know_grid(track.robot)
+        window = _window_ns(ctl, track.robot)
+        motion = plan_loop(q0, waypoints, track.limits.scaled(speed), window / 1e9)
+        sections = await asyncio.to_thread(
+            cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), ctl.loop(track), tick0=0
+        )
+        hold_id, *ids = track.take_ids(len(sections) + 2)  # the lap's TPs, then the exit hold
+        await ctl.tables_in_hand()
+        await ctl.link.state()
+        start, at, tick0 = ctl.grid_start(track.robot, ctl.link.now() + ctl.lead_ns + 2 * ctl.link.rtt_ns)
+        seg = Segment(start, motion, sections, ids, tick0, track.robot)
+        lap = ctl._batch(track, seg, 0, len(ids))  # the lap, then the exit hold
+        lap.next_id[-2] = ids[0]  # TPStepper: the lap's last TP leads back to its first
+        batches = [_tp(track, hold_id, ids[0], 1.0, q0), lap]
+        switches = [(track.robot, ids[-2], ids[-1])] if laps == 1 else []
+        async with ctl.loading:
+            reply = await ctl.dp.update(
+                insert=_concat(batches),
+                remove=[(track.robot, i) for i in track.loaded],
+                switches=switches,
+                registers=[(track.robot, hold_id, at)],
+            )
+            track.loads += 1
+            track.loaded = [hold_id, *ids]
+        if reply.now_ns > start:
+            ctl.late_starts += 1
+        track.stop_reason = None
+        track.segment, track.q_hold = None, None
+        run = LoopRun(track, q0, start, round(motion.duration * 1e9), ids[-2], ids[-1], laps)
+        if laps == 1:
+            run.done.set_result(1)
+        track.task = asyncio.ensure_future(_follow_loop(ctl, run))
+        ctl.loops[track.robot] = run
+    return run
+
+
+async def _follow_loop(ctl: Controller, run: LoopRun) -> None:
+    """Set the exit when the laps asked for are nearly run; done once the robot holds at the start."""
+    from cell.controller.controller import MotionStopped
+
+    track = run.track
+    try:
+        if run.laps > 1:
+            # during the last lap: after the lap before it has passed its last TP, well before this one's
+            await ctl.link.sleep_until(run.lap_end_ns(run.laps - 1) + 50_000_000)
+            await end_loop(ctl, track.robot)
+        laps = await asyncio.shield(run.done)
+        await ctl.link.sleep_until(run.lap_end_ns(laps) + 20_000_000)
+        track.q_hold = run.q0
+    finally:
+        ctl.loops.pop(track.robot, None)
+        if not run.done.done():  # stopped (or lost) under way: whoever waits on the laps hears so
+            run.done.set_exception(MotionStopped(track.stop_reason or "the loop was stopped"))
+            run.done.exception()  # (retrieved: no warning if nobody waits)
+
+
+async def end_loop(ctl: Controller, robot: int | str) -> int:
+    """Lead the loop out at the end of the lap the update can still reach; how many laps it runs."""
+    track = ctl.track(robot)
+    run = ctl.loops.get(track.robot)
+    if run is None:
+        raise PlanError(f"robot {robot} runs no loop")
+    if run.done.done():
+        return run.done.result()
+    async with ctl.loading:
+        reply = await ctl.dp.update(switches=[(track.robot, run.last_id, run.exit_id)])
+    # it leads out at the first lap end after the entry was in (the reply's time is after that)
+    laps = max(1, -(-(reply.now_ns - run.start_ns) // run.lap_ns))
+    if reply.now_ns > run.lap_end_ns(laps) - 2 * _window_ns(ctl, track.robot):  # too close to call
+        await ctl.link.sleep_until(run.lap_end_ns(laps) + 20_000_000)
+        st = await ctl.link.state(track.robots)
+        on = {r.robot_id: r.tp_id for r in st.robots}.get(track.robot)
+        if on != run.exit_id:
+            laps += 1
+    run.done.set_result(laps)
+    return laps
+
+
+# --- alternates -----------------------------------------------------------------------------------
+
+
+@dataclass
+class Alternate:
+    """One prepared branch: from TP k of the main motion to another goal."""
+
+    k: int
+    segment: Segment
+
+
+async def prepare_alternates(
+    ctl: Controller, robot: int | str, goals: dict[str, np.ndarray], speed: float = 1.0, every: int = 1
+) -> int:
+    """For the robot's running motion: a branch to each goal from every `every`-th TP ahead (the
+    first episode of each loaded now); how many TPs that loaded.
+
+    Each branch is planned and its TPs fitted like any motion (about 5 ms a TP here): a 4 s motion
+    at 10 TP/s with two alternates from every TP is some 80 branches, seconds of work, which is
+    why they are prepared ahead; `every` trades that, and the TPs loaded, against how soon after
+    the event the switch can come."""
+    from cell.controller.controller import Segment, _concat
+
+    track = ctl.track(robot)
+    seg = track.segment
+    if track.task is None or track.task.done() or seg is None:
+        raise PlanError(f"robot {robot} is not moving: alternates branch off a running motion")
+    ahead = ctl.link.now() + ctl.link.rtt_ns + 20_000_000
+    ks = [k for k in range(0, len(seg.sections) - 1, max(1, every)) if seg.t_ns(k) >= ahead]
+    prepared: dict[str, list[Alternate]] = {}
+    batches = []
+    for name, q_goal in goals.items():
+        branches = []
+        for k in ks:
+            t_k = float(seg.sections.t_end[k])
+            q_k, v_k = seg.motion.sample(np.array([t_k]))
+            motion = plan_joint(q_k[0], np.asarray(q_goal, np.float64), track.limits.scaled(speed), v0=v_k[0])
+            tick0 = ctl.phase_at(seg, seg.t_ns(k))
+            sections = await asyncio.to_thread(
+                cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), ctl.loop(track), v_k[0], tick0
+            )
+            ids = track.take_ids(len(sections) + 1)
+            alt = Segment(
+                seg.t_ns(k), motion, sections, ids, tick0 if seg.tick0 is not None else None, seg.robot
+            )
+            batches.append(ctl._batch(track, alt, 0, min(ctl.episode, len(ids))))
+            branches.append(Alternate(k, alt))
+        prepared[name] = branches
+    if not batches:
+        raise PlanError("the motion ends too soon to branch off it")
+    batch = _concat(batches)
+    await ctl._apply(track, batch, [])
+    ctl.alternates[track.robot] = (seg, prepared)
+    return len(batch)
+
+
+async def take_alternate(ctl: Controller, robot: int | str, name: str) -> MotionResult:
+    """Switch onto the prepared branch `name` at the next TP the update reaches in time; returns
+    when the branch has ended."""
+    from cell.controller.controller import SWITCH_MARGIN_NS, MotionResult, Switch
+
+    track = ctl.track(robot)
+    main, prepared = ctl.alternates.get(track.robot, (None, {}))
+    if name not in prepared:
+        raise PlanError(
+            f"robot {robot} has no alternate {name!r} prepared (has {sorted(prepared) or 'none'})"
+        )
+    if track.segment is not main or track.task is None or track.task.done():
+        raise PlanError(f"the motion alternate {name!r} was prepared for has ended")
+    ahead = ctl.link.now() + ctl.link.rtt_ns + SWITCH_MARGIN_NS
+    # the earliest branch point in reach whose TP of the main motion is loaded (streaming loads the
+    # main motion an episode ahead: later branch points are not in the tables yet)
+    alt = next((a for a in prepared[name] if main.t_ns(a.k) >= ahead and main.ids[a.k] in track.loaded), None)
+    if alt is None:
+        raise PlanError(
+            f"too late to take alternate {name!r}: the motion's prepared branch points have passed"
+        )
+    branch = main.ids[alt.k]
+    reply = await ctl._apply(track, None, [], [(track.robot, branch, alt.segment.ids[0])])
+    t_b = main.t_ns(alt.k)
+    if reply.now_ns >= t_b - SWITCH_MARGIN_NS // 2:  # in place late: the data plane says which way
+        await ctl.link.sleep_until(t_b + SWITCH_MARGIN_NS // 2)
+        st = await ctl.link.state(track.robots)
+        if not any(r.tp_id in alt.segment.ids for r in st.robots if r.robot_id == track.robot):
+            await ctl._apply(track, None, [], [(track.robot, branch, None)])
+            raise PlanError(f"alternate {name!r} could not be switched in time")
+    await ctl._halt(track)
+    q_pred, v_pred = alt.segment.motion.sample(np.array([0.0]))
+    ctl.last_switch = Switch(branch, t_b, (t_b - reply.now_ns) / 1e6, q_pred[0], v_pred[0])
+    ctl.alternates.pop(track.robot, None)
+    track.segment = alt.segment
+    track.task = asyncio.ensure_future(ctl._stream(track, alt.segment, 1))
+    ctl._publish_plan(track, alt.segment)
+    await track.task
+    return MotionResult(t_b, alt.segment.end_ns, alt.segment.sections.q[-1].copy())
