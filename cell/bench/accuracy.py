@@ -55,7 +55,7 @@ async def measure(quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
     stop_err: list[float] = []
     path_joint: list[np.ndarray] = []
     path_linear: list[np.ndarray] = []
-    shifts: dict[str, list[float]] = {"shared": [], "merged": [], "independent": []}
+    shifts: dict[str, list[float]] = {"shared": [], "merged": [], "independent": [], "switch": []}
     jumps: list[float] = []
     paper_pred: list[float] = []  # the same switches, start state as Sec. 6.1 of the paper predicts it
     async with running_cell(overrides) as config, Bus.connect(config.bus, "bench-accuracy") as bus:
@@ -148,8 +148,17 @@ async def measure(quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
                         await ctl.wait_idle(ctl.track(n))
                     t1, t2 = (truth.start_of_motion(n, t_req) for n in ("r1", "r2"))
                     shifts["independent"].append(abs(t1 - t2) / 1e6)
+                # independent robots started by two pre-planned switch entries (Sec. 7.2): armed, then
+                # fired by one update
+                for k in range(3 if quick else 20):
+                    delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
+                    here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
+                    armed = await ctl.arm({n: q + delta for n, q in here.items()}, speed=0.6)
+                    res = await ctl.fire(armed)
+                    t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
+                    shifts["switch"].append(abs(t1 - t2) / 1e6)
                 merged = await ctl.merge(["r1", "r2"])
-                for k in range(trials):
+                for k in range(3 if quick else 20):
                     delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
                     here_q = merged.q_hold
                     assert here_q is not None
@@ -178,6 +187,7 @@ async def measure(quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
         "sync_shift_ms_shared": max(shifts["shared"]),
         "sync_shift_ms_merged": max(shifts["merged"]),
         "sync_shift_ms_independent": max(shifts["independent"]),
+        "sync_shift_ms_switch": max(shifts["switch"]),
         "settle_s": SETTLE_S,
         "quick": quick,
         # the raw figures, for plots (cell bench paper); not part of the JSON line
