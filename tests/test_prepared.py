@@ -4,6 +4,8 @@ cell: armed starts fired by switch entries, TPStepper loops, alternates taken at
 from __future__ import annotations
 
 import asyncio
+import contextlib
+from collections.abc import AsyncIterator
 
 import numpy as np
 import pytest
@@ -13,8 +15,11 @@ from cell.controller.controller import Controller
 from tests.test_controller import Q0, Truth, crossing_time, fast_truth, max_accel, ready
 
 
-async def test_armed_robots_wait_and_leave_their_holds_together_when_fired(start_cell) -> None:
-    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic", 2))
+@contextlib.asynccontextmanager
+async def driving(start_cell, n: int) -> AsyncIterator[tuple[Controller, Truth]]:
+    """A cell of n kinematic arms (truth at 500 Hz), a controller on it and their ground truth."""
+    names = [f"r{i}" for i in range(1, n + 1)]
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic", n))
     async with (
         Bus.connect(cell.config.bus, "controller") as bus,
         asyncio.TaskGroup() as tg,
@@ -22,7 +27,13 @@ async def test_armed_robots_wait_and_leave_their_holds_together_when_fired(start
     ):
         truth = Truth()
         watcher = tg.create_task(truth.run(bus))
-        await ready(ctl, ["r1", "r2"])
+        await ready(ctl, names)
+        yield ctl, truth
+        watcher.cancel()
+
+
+async def test_armed_robots_wait_and_leave_their_holds_together_when_fired(start_cell) -> None:
+    async with driving(start_cell, 2) as (ctl, truth):
         delta = np.array([0.4, -0.3, 0.2, 0.0, 0.1, 0.3])
         armed = await ctl.arm({"r1": Q0 + delta, "r2": Q0 - delta})
         t_armed = ctl.link.now()
@@ -37,19 +48,10 @@ async def test_armed_robots_wait_and_leave_their_holds_together_when_fired(start
         for name, goal in (("r1", Q0 + delta), ("r2", Q0 - delta)):  # and both settle where they were sent
             q, _ = await ctl.arrive(name, tolerance=1e-4, timeout=3.0)
             assert np.allclose(q, goal, atol=1e-4)
-        watcher.cancel()
 
 
 async def test_a_loop_runs_its_laps_from_one_load_then_holds_where_it_began(start_cell) -> None:
-    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic"))
-    async with (
-        Bus.connect(cell.config.bus, "controller") as bus,
-        asyncio.TaskGroup() as tg,
-        Controller(bus, cell.config) as ctl,
-    ):
-        truth = Truth()
-        watcher = tg.create_task(truth.run(bus))
-        await ready(ctl, ["r1"])
+    async with driving(start_cell, 1) as (ctl, truth):
         far = Q0 + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
         dp = ctl.dp
         loads_before = (await dp.state()).counters.get("tps_loaded", 0)
@@ -72,19 +74,10 @@ async def test_a_loop_runs_its_laps_from_one_load_then_holds_where_it_began(star
         assert await ctl.end_loop("r1") == 2
         await ctl.wait_idle("r1")
         assert np.allclose(truth.last("r1"), Q0, atol=1e-3)
-        watcher.cancel()
 
 
 async def test_a_prepared_alternate_is_taken_at_the_next_tp_without_planning(start_cell) -> None:
-    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic"))
-    async with (
-        Bus.connect(cell.config.bus, "controller") as bus,
-        asyncio.TaskGroup() as tg,
-        Controller(bus, cell.config) as ctl,
-    ):
-        truth = Truth()
-        watcher = tg.create_task(truth.run(bus))
-        await ready(ctl, ["r1"])
+    async with driving(start_cell, 1) as (ctl, truth):
         main = await ctl.move_joints("r1", Q0 + np.array([1.2, -0.4, 0.3, 0, 0, 0]), speed=0.3, wait=False)
         retreat, detour = Q0 + np.array([-0.2, 0.1, 0, 0, 0, 0]), Q0 + np.array([0.5, 0.3, -0.3, 0, 0, 0])
         loaded = await ctl.prepare_alternates("r1", {"retreat": retreat, "detour": detour}, every=4)
@@ -107,7 +100,6 @@ async def test_a_prepared_alternate_is_taken_at_the_next_tp_without_planning(sta
         assert np.allclose(result.q_end, detour)
         q, _ = await ctl.arrive("r1", tolerance=1e-4, timeout=3.0)
         assert np.allclose(q, detour, atol=1e-4)
-        watcher.cancel()
 
 
 async def test_task_scripts_loop_and_arm_alternates_through_the_controller_service(start_cell) -> None:
