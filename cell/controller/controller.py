@@ -742,13 +742,16 @@ class Controller:
             seg.v[lo:hi],
         )
 
-    def _hold_batch(self, track: Track, hold_id: int, next_id: int, q: np.ndarray) -> TPBatch:
-        """A TP holding q until the registers' start time, then on to next_id."""
+    def _hold_batch(
+        self, track: Track, hold_id: int, next_id: int, q: np.ndarray, duration_s: float = HOLD_S
+    ) -> TPBatch:
+        """A TP holding q until the registers' start time, then on to next_id (an armed start's hold
+        steps onto itself once a window: duration_s)."""
         return TPBatch(
             np.array([track.robot], np.int64),
             np.array([hold_id], np.int64),
             np.array([next_id], np.int64),
-            np.array([HOLD_S]),
+            np.array([duration_s]),
             np.array([track.joints], np.int64),
             q[None, :],
             np.zeros((1, track.joints)),

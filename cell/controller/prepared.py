@@ -31,26 +31,11 @@ import numpy as np
 
 from cell.controller.plan import PlanError, plan_joint, plan_loop
 from cell.controller.tps import cut
-from cell.dataplane.tables import TPBatch
 
 if TYPE_CHECKING:
     from cell.controller.controller import Controller, MotionResult, Segment, Track
 
 WINDOW_NS = 8_000_000  # a command window, for robots that have not told their grid
-
-
-def _tp(
-    track: Track, tp_id: int, next_id: int, d_s: float, q: np.ndarray, v: np.ndarray | None = None
-) -> TPBatch:
-    return TPBatch(
-        np.array([track.robot], np.int64),
-        np.array([tp_id], np.int64),
-        np.array([next_id], np.int64),
-        np.array([d_s]),
-        np.array([track.joints], np.int64),
-        np.asarray(q, np.float64)[None, :],
-        (np.zeros(track.joints) if v is None else np.asarray(v, np.float64))[None, :],
-    )
 
 
 def _window_ns(ctl: Controller, robot: int) -> int:
@@ -95,7 +80,7 @@ async def arm(ctl: Controller, goals: dict[int | str, np.ndarray], speed: float 
     for track, motion, sections, (hold_id, *ids) in planned:
         q0 = motion.sample(np.array([0.0]))[0][0]
         seg = Segment(start, motion, sections, ids, tick0 if track.robot == lead else None, track.robot)
-        batches.append(_tp(track, hold_id, hold_id, period / 1e9, q0))
+        batches.append(ctl._hold_batch(track, hold_id, hold_id, q0, period / 1e9))
         batches.append(ctl._batch(track, seg, 0, min(ctl.episode, len(ids))))
         registers.append((track.robot, hold_id, at))
         remove += [(track.robot, i) for i in track.loaded]
@@ -189,7 +174,7 @@ async def run_loop(
         seg = Segment(start, motion, sections, ids, tick0, track.robot)
         lap = ctl._batch(track, seg, 0, len(ids))  # the lap, then the exit hold
         lap.next_id[-2] = ids[0]  # TPStepper: the lap's last TP leads back to its first
-        batches = [_tp(track, hold_id, ids[0], 1.0, q0), lap]
+        batches = [ctl._hold_batch(track, hold_id, ids[0], q0), lap]
         switches = [(track.robot, ids[-2], ids[-1])] if laps == 1 else []
         async with ctl.loading:
             reply = await ctl.dp.update(
