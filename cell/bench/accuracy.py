@@ -168,6 +168,7 @@ async def measure(quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
                 log(
                     "start shift between two robots (ms): shared start "
                     f"{max(shifts['shared']):.2f}, merged {max(shifts['merged']):.2f}, "
+                    f"two switch entries {max(shifts['switch']):.2f}, "
                     f"one after the other {max(shifts['independent']):.2f}"
                 )
         finally:
