@@ -46,12 +46,18 @@ class Truth:
         return self.samples[name][-1][1]
 
 
-def path_error(samples: list[tuple[int, np.ndarray, np.ndarray]], seg) -> float:
-    """The largest joint deviation from the plan while the motion runs (rad)."""
+def path_error(samples: list[tuple[int, np.ndarray, np.ndarray]], seg, settle_s: float = 0.15) -> float:
+    """The largest joint deviation from the plan while the motion runs (rad), away from the emulator's
+    stalls: a gap of over three periods in its truth (its process held up, 50-60 ms on a loaded
+    machine) leaves it that far behind the plan for a while, which no controller can help; samples
+    within settle_s after one are not judged."""
     t = np.array([(t_ns - seg.start_ns) / 1e9 for t_ns, _, _ in samples])
     q = np.array([q for _, q, _ in samples])
     inside = (t >= 0) & (t <= seg.motion.duration)
-    assert inside.sum() > 10
+    dt = np.diff(t)
+    for i in np.flatnonzero(dt > 3 * np.median(dt)):
+        inside &= ~((t > t[i]) & (t <= t[i + 1] + settle_s))
+    assert inside.sum() > 10, "the emulator stalled through most of the motion"
     plan, _ = seg.motion.sample(t[inside])
     return float(np.abs(q[inside] - plan).max())
 

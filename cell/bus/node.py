@@ -110,7 +110,9 @@ def tune(sock: zmq.Socket, config: BusConfig) -> zmq.Socket:
 
 
 _waiting: set[int] = set()
-RECHECK_S = 0.5  # a waiter looks at EVENTS this often even if the FD never says so (see readable())
+RECHECK_S = 0.1  # a waiter looks at EVENTS this often even if the FD never says so (see readable()):
+# well inside the controller's 0.5 s verdict on a silent data plane (DEAD_S), which one lost edge at
+# 0.5 s once reached (an RPC reply left waiting in the queue reads as a data plane gone)
 # how often that happened, and how often a stale registration of the FD's number had to be cleared
 wakeups = {"missed": 0, "stale": 0}
 

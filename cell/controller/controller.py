@@ -61,6 +61,7 @@ STALE_STATUS_NS = 50_000_000  # a robot's status older than this: no command rea
 WATCH_S = 0.1  # how often supervise() reads the data plane's registers
 RETRY_READ_S = 0.5  # a read of the data plane's state unanswered this long is asked again
 DEAD_S = 0.5  # a data plane silent this long has lost the motions it carried (for us)
+STATE_TIMEOUT_S = 0.25  # one read of its state: two unanswered in a row (with the pause) make DEAD_S
 
 log = logging.getLogger("cell.controller")
 
@@ -767,14 +768,14 @@ class Controller:
         for whatever reason, ends the motions they carried and flushes what is left of them."""
         self.tables_ready = ready = asyncio.Event()
         boot: int | None = None
-        silent_since: float | None = None
+        # silence counts from the last answer (or our start): one slow answer is no verdict
+        silent_since = time.monotonic()
         gone = False  # the motions were declared lost for silence; flush once it answers again
         while True:
             try:
-                st = await self.link.state(timeout=DEAD_S)
+                st = await self.link.state(timeout=STATE_TIMEOUT_S)
             except BusError:
                 now = time.monotonic()
-                silent_since = silent_since if silent_since is not None else now - DEAD_S
                 if not gone and now - silent_since >= DEAD_S:
                     gone = True
                     ready.clear()
@@ -785,7 +786,7 @@ class Controller:
                     )
                 await asyncio.sleep(WATCH_S)
                 continue
-            silent_since = None
+            silent_since = time.monotonic()
             if boot is None or st.boot_id != boot or gone:
                 if boot is not None and st.boot_id != boot:
                     ready.clear()
@@ -845,6 +846,8 @@ class Controller:
             await self._halt(t)
         if plan_stops:
             await self.stop(sorted(robots), flush=True)
+            for t in self.tracks.values():  # what it stopped was an earlier controller's motion, not one
+                t.stop_reason = None  # of ours: a first `break` finds the robot standing, not "stopped"
         else:
             async with self.loading:
                 await self.dp.update(flush=sorted(robots))
