@@ -223,6 +223,17 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     return _report(args, result, accuracy.format_result(result))
 
 
+def _cmd_bench_background(args: argparse.Namespace) -> int:
+    from cell.bench import background
+
+    result = background.run(
+        args.quick, args.rate_mbps, args.buffer_ms, log=lambda line: print(line, flush=True)
+    )
+    return _report(
+        args, background.summary(result) | {"rows": result["rows"]}, background.format_result(result)
+    )
+
+
 def _cmd_bench_paper(args: argparse.Namespace) -> int:
     import time
 
@@ -600,6 +611,18 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--quick", action="store_true", help="fewer reference motions (under 4 minutes)")
     q = _bench(
         bsub,
+        "background",
+        _cmd_bench_background,
+        "robot traffic beside ordinary traffic at a congested egress port of the data plane, one shared "
+        "FIFO against strict priority, in network namespaces (NSDI'22 Appendix C, Fig. 14; needs root)",
+    )
+    q.add_argument("--quick", action="store_true", help="three load levels, 1 s each (about 50 s)")
+    q.add_argument("--rate-mbps", type=float, default=100.0, help="the egress port's rate (default 100)")
+    q.add_argument(
+        "--buffer-ms", type=float, default=3.0, help="its buffer per queue, in ms of it (default 3)"
+    )
+    q = _bench(
+        bsub,
         "paper",
         _cmd_bench_paper,
         "the NSDI'22 paper's evaluation in one run: every experiment, our figures next to the paper's, "
@@ -607,7 +630,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     q.add_argument("--quick", action="store_true", help="every experiment smaller (under 5 minutes)")
     q.add_argument("--out", help="where to write index.html and the plots (default runs/paper-<time>)")
-    q.add_argument("--only", help="comma-separated experiments: accuracy,pid,latency,resubmission,scaling")
+    q.add_argument(
+        "--only", help="comma-separated experiments: accuracy,pid,latency,background,resubmission,scaling"
+    )
     q = _bench(
         bsub,
         "skills",

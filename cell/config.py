@@ -227,6 +227,25 @@ class ServicesConfig:
 
 
 @dataclass(frozen=True)
+class EgressConfig:
+    """The data plane's egress port (NSDI'22 Appendix C): a line rate, a buffer per queue and how
+    robot commands share it with forwarded traffic.  rate_mbps = 0: no limit (the kernel's)."""
+
+    rate_mbps: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
+    buffer_kb: float = _check(_positive)
+    scheduling: Literal["fifo", "priority"]
+
+
+@dataclass(frozen=True)
+class ForwardRule:
+    """Ordinary (non-robot) UDP traffic the data plane forwards: what arrives on `listen` goes to
+    `to`, through the egress port (the paper's switch port-forwarded its background traffic)."""
+
+    listen: str = _check(_host_port)
+    to: str = _check(_host_port)
+
+
+@dataclass(frozen=True)
 class DataplaneConfig:
     listen: str = _check(_host_port)
     capacity: int = _check(_positive)
@@ -236,8 +255,13 @@ class DataplaneConfig:
     c2: list[float] = field(metadata={"check": _joint_vector})
     v_max: list[float] = field(metadata={"check": _joint_vector})
     batch: int = _check(_positive)
+    egress: EgressConfig
+    forward: list[ForwardRule]
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        for i, f in enumerate(self.forward):
+            if f.listen == self.listen or any(o.listen == f.listen for o in self.forward[:i]):
+                raise err(f"forward[{i}].listen", f"{f.listen} is taken by the data plane or another rule")
         for i, v in enumerate(self.v_max):
             if not 0 < v <= 10:
                 raise err(f"v_max[{i}]", f"must be in (0, 10] rad/s (got {v})")

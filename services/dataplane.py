@@ -27,6 +27,8 @@ import numpy as np
 
 from cell.bus import RpcFault
 from cell.config import CellConfig, parse_host_port
+from cell.dataplane.egress import ROBOT, EgressPort
+from cell.dataplane.forward import Forwarder
 from cell.dataplane.pipeline import (
     DROP_QUIET,
     DROP_STOP,
@@ -79,6 +81,17 @@ class DataPlane:
         self.batch = dp.batch
         self.sock = udp.open_socket(*parse_host_port(dp.listen), timestamps=True)
         self.sender = udp.Sender(self.sock, datagram.SIZE)
+        eg = dp.egress
+        # the port commands leave by, shared with forwarded traffic (Appendix C); None: no limit of ours
+        self.egress: EgressPort | None = None
+        if eg.rate_mbps > 0:
+            self.egress = EgressPort(eg.rate_mbps * 1e6, int(eg.buffer_kb * 1024), eg.scheduling)
+        self.forwarders: list[Forwarder] = []
+        try:
+            self.forwarders += [Forwarder(rule) for rule in dp.forward]
+        except BaseException:
+            self.close()
+            raise
         self.rejected = {"length": 0, "kind": 0, "joint": 0, "spoofed": 0}
         self.packets_in = self.commands_out = self.unsent = self.batches = 0
         self.batch_ns: list[int] = []
@@ -94,6 +107,26 @@ class DataPlane:
 
     def close(self) -> None:
         self.sock.close()
+        for f in self.forwarders:
+            f.close()
+
+    def _emit(self, buf: memoryview, addr: tuple) -> None:
+        """Commands to one robot: out at once, or into the egress port's robot queue."""
+        n = len(buf) // datagram.SIZE
+        if self.egress is None:
+            sent = self.sender.send(buf, addr)
+            self.commands_out += sent
+            self.unsent += n - sent
+        else:
+            now = time.monotonic_ns()
+            self.unsent += n - self.egress.enqueue(ROBOT, bytes(buf), datagram.SIZE, addr, self._wire, now)
+
+    def _wire(self, buf: memoryview, _seg: int, addr: tuple) -> int:
+        """The egress port's way out for commands."""
+        sent = self.sender.send(buf, addr)
+        self.commands_out += sent
+        self.unsent += len(buf) // datagram.SIZE - sent
+        return sent
 
     # --- the packet path ---------------------------------------------------------------------
 
@@ -158,9 +191,7 @@ class DataPlane:
         start = 0
         for k in np.flatnonzero(answered).tolist():
             n = int(answered[k])
-            sent = self.sender.send(raw[start * size : (start + n) * size], senders[k])
-            self.commands_out += sent
-            self.unsent += n - sent
+            self._emit(raw[start * size : (start + n) * size], senders[k])
             start += n
         self.batches += 1
         self.batch_ns.append(time.perf_counter_ns() - t0)
@@ -208,14 +239,32 @@ class DataPlane:
         ready = asyncio.Event()
         fd = self.sock.fileno()
         loop.add_reader(fd, ready.set)
+        for f in self.forwarders:
+            loop.add_reader(f.sock.fileno(), ready.set)
         try:
             while True:
                 await ready.wait()
                 ready.clear()
-                while self.handle() >= self.batch:  # more may be waiting: keep going  # noqa: ASYNC110
-                    await asyncio.sleep(0)  # after yielding to the rest of the service
+                while True:  # robot statuses first, then a budget of each forwarder's bursts
+                    more = self.handle() >= self.batch
+                    for f in self.forwarders:
+                        more |= f.handle(self.egress) >= f.budget
+                    if not more:
+                        break
+                    await asyncio.sleep(0)  # more may be waiting: after yielding to the rest of the service
         finally:
             loop.remove_reader(fd)
+            for f in self.forwarders:
+                loop.remove_reader(f.sock.fileno())
+
+    async def pump(self) -> None:
+        """Send what the egress port has queued as its wire frees up, until cancelled."""
+        if self.egress is None:
+            return
+        while True:
+            wait = self.egress.transmit(time.monotonic_ns())
+            # nothing queued: look again soon (an enqueue sends at once whatever the wire allows)
+            await asyncio.sleep(0.001 if wait is None else wait / 1e9)
 
     # --- stops (from the Responsive Link) -----------------------------------------------------
 
@@ -243,9 +292,9 @@ class DataPlane:
             recs["robot_id"], recs["joint_id"], recs["kind"] = r, np.arange(n), Kind.COMMAND
             recs["position"] = t.status_pos[r, :n]
             recs["velocity"] = self.pipeline.ramp(t.status_vel[r, :n].copy(), np.arange(n))
-            got = self.sender.send(memoryview(recs.view(np.uint8)), addr)
-            self.commands_out += got
-            sent += got
+            before = self.commands_out
+            self._emit(memoryview(recs.view(np.uint8)), addr)
+            sent += self.commands_out - before
         return sent
 
     def resume_robots(self, robots: list[int]) -> None:
@@ -361,6 +410,10 @@ class DataPlane:
             "tps_loaded": self.tables.loaded,
         }
         out.update({f"rejected.{k}": v for k, v in self.rejected.items()})
+        if self.egress is not None:
+            out.update({f"egress.{k}": v for k, v in self.egress.summary().items()})
+        for f in self.forwarders:
+            out.update({f"forward.{f.name}.{k}": getattr(f, k) for k in ("received", "sent", "dropped")})
         if self.batch_ns:
             ns = sorted(self.batch_ns)
             out["batch_p50_us"] = ns[len(ns) // 2] / 1e3
@@ -472,6 +525,7 @@ async def run(ctx: ServiceContext) -> None:
         async with asyncio.TaskGroup() as tg:
             tg.create_task(plane.run(), name="packets")
             tg.create_task(plane.sweep(), name="sweep")
+            tg.create_task(plane.pump(), name="egress")
             tg.create_task(events.run(), name="events")
             tg.create_task(control(), name="control")
             tg.create_task(telemetry(), name="telemetry")

@@ -171,8 +171,16 @@ def load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float]
         return _load(addr, robots, seconds)
 
 
-def _load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float]:
-    sock = udp.open_socket("127.0.0.1")
+def _load(
+    addr: tuple[str, int],
+    robots: int,
+    seconds: float,
+    bind: str = "127.0.0.1",
+    sink: socket.socket | None = None,
+) -> dict[str, float]:
+    """As load(); bind: the robots' address; sink: a socket whose datagrams are counted meanwhile
+    (ordinary traffic forwarded to the robots' host, cell.bench.background)."""
+    sock = udp.open_socket(bind)
     sender = udp.Sender(sock, datagram.SIZE)
     n = robots * 6
     recs = datagram.empty(n)
@@ -186,6 +194,19 @@ def _load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float
     arrivals: list[tuple[int, bytes]] = []  # decoded after the run: the receive loop must stay cheap
     poller = select.epoll()
     poller.register(sock.fileno(), select.EPOLLIN)
+    sunk = [0, 0]  # datagrams, bytes
+    if sink is not None:
+        poller.register(sink.fileno(), select.EPOLLIN)
+
+    def drain() -> None:
+        _drain(sock, arrivals)
+        if sink is not None:
+            while (got := udp.recv_batch(sink)) is not None:
+                sunk[0] += -(-len(got[0]) // max(got[1], 1))
+                sunk[1] += len(got[0])
+
+    drain()  # what the sink got before the span does not count
+    sunk[:] = [0, 0]
     start = time.monotonic_ns() + 50_000_000
     sent = late_ticks = 0
     try:
@@ -193,17 +214,18 @@ def _load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float
             due = start + k * PERIOD_NS
             while (now := time.monotonic_ns()) < due:  # take answers until the next tick is due
                 if poller.poll(max(0.0, (due - now) / 1e9 - 0.0002)):
-                    _drain(sock, arrivals)
+                    drain()
             if now - due > PERIOD_NS:
                 late_ticks += 1
             recs["seq"] = k
             sent_at[k] = time.monotonic_ns()
             for i in range(0, len(raw), chunk):
                 sent += sender.send(raw[i : i + chunk], addr)
+        span_ns, sunk_in_span = time.monotonic_ns() - start + 50_000_000, list(sunk)  # the sink's, over it
         end = time.monotonic_ns() + 500_000_000
         while time.monotonic_ns() < end and _received(arrivals) < sent:  # the last answers, if they come
             if poller.poll(0.001):
-                _drain(sock, arrivals)
+                drain()
     finally:
         poller.close()
         sock.close()
@@ -225,10 +247,14 @@ def _load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float
         "on_time": on_time,
         "on_time_fraction": on_time / max(sent, 1),
         "generator_late_ticks": late_ticks,
+        "sink_datagrams": sunk_in_span[0],
+        "sink_bytes": sunk_in_span[1],
+        "span_s": span_ns / 1e9,
     }
     if times.size:
         out["p50_us"] = float(np.percentile(times, 50)) / 1e3
         out["p99_us"] = float(np.percentile(times, 99)) / 1e3
+        out["max_us"] = float(times.max()) / 1e3
     return out
 
 

@@ -17,6 +17,8 @@ What each experiment runs:
 - latency: status-to-command time of the data plane service at 10-300 robots
   at 500 Hz x 6 joints (Sec. 7.1; the paper's is a Tofino's, in ns);
 - churn: the same under the paper's table churn (+1.6K / -10K TPs a second);
+- background: robots and ordinary traffic through one congested egress port of the data plane,
+  one shared FIFO against strict priority, in network namespaces (Appendix C, Fig. 14; root);
 - resubmission: Algorithm 1's one TP step per pass, and what each further
   pass (resubmission) costs, for TP rates up to 4x the status rate;
 - scaling: the table capacity against robots x episode x TP rate
@@ -252,7 +254,7 @@ def latency(quick: bool, out: Path, log: Log) -> list[Section]:
         ],
         _save(fig, out, "latency.png"),
         "A load generator on one core plays the robots (real UDP on loopback); the data plane runs on "
-        "the other.  Background traffic and priority queueing (Appendix C) are not reproduced yet.",
+        "the other.  With background traffic at a congested port: see Appendix C below.",
         {f"p99_us_{t['robots']}": t["p99_us"] for t in trials}
         | {f"p50_us_{t['robots']}": t["p50_us"] for t in trials},
     )
@@ -424,10 +426,94 @@ def scaling(quick: bool, out: Path, log: Log) -> list[Section]:
     ]
 
 
+def background(quick: bool, out: Path, log: Log) -> list[Section]:
+    from cell.bench import background as bg
+
+    why = bg.available()
+    if why:
+        log(f"  background: skipped, {why}")
+        return [
+            Section(
+                "background",
+                "Background traffic and priority queueing",
+                "Appendix C, Fig. 14",
+                notes=f"Not run: this experiment {why}.",
+            )
+        ]
+    r = bg.run(quick, log=log)
+    rows, top, low = r["rows"], max(bg.QUICK_LOADS), min(bg.QUICK_LOADS)
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+    for sched, color in (("fifo", "tab:red"), ("priority", "tab:green")):
+        for frame, style in ((64, "-o"), (1280, "--s")):
+            pts = [x for x in rows if x["scheduling"] == sched and x["frame"] == frame]
+            loads = [x["load"] for x in pts]
+            label = f"{sched}, {frame} B"
+            axes[0].plot(loads, [x["p50_us"] / 1e3 for x in pts], style, color=color, label=label)
+            axes[0].fill_between(
+                loads,
+                [x["p50_us"] / 1e3 for x in pts],
+                [x["p99_us"] / 1e3 for x in pts],
+                color=color,
+                alpha=0.12,
+            )
+            axes[1].plot(loads, [100 * x["lost_fraction"] for x in pts], style, color=color, label=label)
+    axes[0].set_xlabel(f"load offered to the port (x its {r['rate_mbps']:g} Mbit/s)")
+    axes[0].set_ylabel("robot response time (ms), p50-p99")
+    axes[1].set_xlabel(axes[0].get_xlabel())
+    axes[1].set_ylabel("robot packets lost (%)")
+    axes[0].legend(fontsize=7)
+
+    def at(sched: str, load: float, key: str, agg: Callable[..., float] = max) -> float:
+        return agg(x[key] for x in rows if x["scheduling"] == sched and x["load"] == load)
+
+    return [
+        Section(
+            "background",
+            "Background traffic and priority queueing",
+            "Sec. 7.1, Appendix C, Fig. 14",
+            [
+                (
+                    "port rate; buffer",
+                    "5 Gbit/s; (3 ms seen)",
+                    f"{r['rate_mbps']:g} Mbit/s; {r['buffer_ms']:g} ms",
+                ),
+                (
+                    "response time at 0.2x load (1 Gbps of 5), p50",
+                    "~1 us",
+                    f"{at('fifo', low, 'p50_us', min) / 1e3:.2f}-{at('fifo', low, 'p50_us') / 1e3:.2f} ms",
+                ),
+                (
+                    f"one FIFO, {top:g}x load (9 Gbps of 5): p50 / lost",
+                    "~3 ms; some (5 Gbps) to almost all (9) lost",
+                    f"{at('fifo', top, 'p50_us') / 1e3:.2f} ms / "
+                    f"{100 * at('fifo', top, 'lost_fraction', min):.0f}-"
+                    f"{100 * at('fifo', top, 'lost_fraction'):.0f} % (over the two frame sizes)",
+                ),
+                (
+                    f"strict priority, {top:g}x load: p99 / lost",
+                    "sub-millisecond; 0",
+                    f"{at('priority', top, 'p99_us') / 1e3:.2f} ms / "
+                    f"{100 * at('priority', top, 'lost_fraction'):.2f} %",
+                ),
+            ],
+            _save(fig, out, "background.png"),
+            "Robots, a traffic generator and the data plane in three network namespaces made for the run; "
+            "the data plane answers the robots and port-forwards the ordinary traffic through one egress "
+            "port (cell.dataplane.egress), 10% of the load robot commands, frames of 64 or 1,280 bytes "
+            "(cell.bench.background).  The port is scaled to what a software switch forwards on one core "
+            "here; the floor of our response time is this machine's (veth, Python, wake-ups), not a "
+            "Tofino's.",
+            bg.summary(r),
+        )
+    ]
+
+
 EXPERIMENTS: dict[str, Callable[[bool, Path, Log], list[Section]]] = {
     "accuracy": accuracy,
     "pid": pid,
     "latency": latency,
+    "background": background,
     "resubmission": resubmission,
     "scaling": scaling,
 }

@@ -80,6 +80,34 @@ class Sender:
         return sent
 
 
+GSO_MAX_SEGMENTS = 64  # datagrams one UDP_SEGMENT send may carry (UDP_MAX_SEGMENTS on older kernels)
+
+
+def send_segments(sock: socket.socket, buf: memoryview, seg: int, addr: tuple) -> int:
+    """Send buf as datagrams of seg bytes (the last may be shorter) to addr, GSO per call where
+    the kernel has it; return how many went out (a full buffer stops it: the rest is lost)."""
+    sent, step = 0, seg * GSO_MAX_SEGMENTS
+    for i in range(0, len(buf), step):
+        chunk = buf[i : i + step]
+        try:
+            if len(chunk) > seg:
+                sock.sendmsg([chunk], [(socket.SOL_UDP, UDP_SEGMENT, struct.pack("=H", seg))], 0, addr)
+            else:
+                sock.sendto(chunk, addr)
+        except BlockingIOError:
+            break
+        except OSError:  # no GSO here: one datagram a call
+            for j in range(0, len(chunk), seg):
+                try:
+                    sock.sendto(chunk[j : j + seg], addr)
+                except BlockingIOError:
+                    return sent
+                sent += 1
+            continue
+        sent += -(-len(chunk) // seg)
+    return sent
+
+
 def recv_batch(sock: socket.socket, bufsize: int = 65536) -> tuple[bytes, int, tuple, int] | None:
     """One recvmsg: (data, segment size, sender, receive time) or None if nothing waits.
 
