@@ -112,17 +112,14 @@ class DataPlane:
 
     def _emit(self, buf: memoryview, addr: tuple) -> None:
         """Commands to one robot: out at once, or into the egress port's robot queue."""
-        n = len(buf) // datagram.SIZE
         if self.egress is None:
-            sent = self.sender.send(buf, addr)
-            self.commands_out += sent
-            self.unsent += n - sent
+            self._wire(buf, datagram.SIZE, addr)
         else:
-            now = time.monotonic_ns()
+            n, now = len(buf) // datagram.SIZE, time.monotonic_ns()
             self.unsent += n - self.egress.enqueue(ROBOT, bytes(buf), datagram.SIZE, addr, self._wire, now)
 
     def _wire(self, buf: memoryview, _seg: int, addr: tuple) -> int:
-        """The egress port's way out for commands."""
+        """Commands onto the wire (the egress port's way out for them, or at once without one)."""
         sent = self.sender.send(buf, addr)
         self.commands_out += sent
         self.unsent += len(buf) // datagram.SIZE - sent

@@ -47,8 +47,8 @@ class Forwarder:
             now, whole = time.monotonic_ns(), len(data) - len(data) % seg
             for run, size in ((data[:whole], seg), (data[whole:], len(data) - whole)):  # a short last: alone
                 if run:
-                    taken = egress.enqueue(BULK, run, size, self.to, self._send, now)
-                    self.dropped += len(run) // size - taken
+                    fit = egress.enqueue(BULK, run, size, self.to, self._send, now)
+                    self.dropped += len(run) // size - fit
         return self.budget
 
     def close(self) -> None:
