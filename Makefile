@@ -7,7 +7,11 @@ STAMP_RUN  := $(VENV)/.installed-run
 STAMP_TEST := $(VENV)/.installed-test
 PROTOS := $(wildcard proto/cell/v1/*.proto)
 
-.PHONY: demo test lint proto bench clean
+.PHONY: demo test lint proto bench clean bpf bpf-if-possible
+# the XDP data plane ([dataplane] backend = "xdp"): its BPF object, built with clang from the C source
+BPF_SRC := cell/dataplane/xdp/dataplane.bpf.c
+BPF_OBJ := cell/dataplane/xdp/dataplane.bpf.o
+BPF_CFLAGS := -O2 -g -Wall -target bpf -I/usr/include/$(shell uname -m)-linux-gnu
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -22,14 +26,31 @@ $(STAMP_TEST): pyproject.toml | $(BIN)/python
 	touch $@ $(STAMP_RUN)
 
 demo: $(STAMP_RUN)
+	@$(MAKE) -s bpf-if-possible
 	$(BIN)/cell demo
 
 test: $(STAMP_TEST)
 	@# the two-host test needs `ip` (iproute2) and root; installed here where apt and root allow
 	@command -v ip >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
 		apt-get install -y -q iproute2 >/dev/null 2>&1; } || true
+	@$(MAKE) -s bpf-if-possible
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/python -m pytest
+
+bpf: $(BPF_OBJ)
+
+# clang and libbpf's headers, installed where apt and root allow (the package lists updated once if
+# they are empty), then the object
+$(BPF_OBJ): $(BPF_SRC)
+	@{ command -v clang >/dev/null && [ -e /usr/include/bpf/bpf_helpers.h ]; } || \
+		{ [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+		{ apt-get install -y -q clang llvm libbpf-dev >/dev/null 2>&1 || \
+		{ apt-get update -q >/dev/null 2>&1 && apt-get install -y -q clang llvm libbpf-dev >/dev/null 2>&1; }; }; } || true
+	clang $(BPF_CFLAGS) -c $< -o $@
+
+# the object when this machine can build it; without it the XDP backend refuses to start, saying so
+bpf-if-possible:
+	@$(MAKE) -s bpf 2>/dev/null || echo "note: $(BPF_OBJ) not built (needs clang and libbpf-dev); the XDP backend and its tests are off"
 
 lint: $(STAMP_TEST)
 	$(BIN)/ruff check cell services tests examples
@@ -43,4 +64,4 @@ bench: $(STAMP_RUN)
 	$(BIN)/cell bench bus
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) build *.egg-info .pytest_cache $(BPF_OBJ)

@@ -440,6 +440,7 @@ class Tables:
         staged: dict[int, int] = {}  # also entered in the index at once, taken out if refused
         staged_rows = np.empty(fresh.size, np.int64)  # the row of each fresh TP
         waits: list[tuple[int, int]] = []
+        flipping = False
         targets = tpkey(karr >> 32, batch.next_id)  # the keys they link to
         try:
             for i in range(0, fresh.size, slice_size):
@@ -467,6 +468,8 @@ class Tables:
             pointing = [self._links_into(arr, is_gone) for arr in (self.next_row, self.switch_row)]
             yield
             # --- 3. the flip: everything visible in one step ------------------------------------
+            self.flip_begin()
+            flipping = True
             if gone.size:
                 current = self.reg_tp[: self.entities].astype(np.int64)
                 upcoming = self.effective_next(current)
@@ -482,39 +485,45 @@ class Tables:
                         "in_use", f"a TP entity {e} is following is to be deleted; switch or stop it first"
                     )
         except BaseException:
+            if flipping:
+                self.flip_end()
             for key in staged:  # never visible: forget them and give the rows back
                 del self._row[key]
             self._free.extend(staged.values())
             raise
-        for target, row in waits:
-            self._waiting[target].add((row, "next"))
-        for key in staged.keys() & self._waiting.keys():  # the few links that waited for these TPs
-            for waiter, kind in self._waiting.pop(key):
-                (self.next_row if kind == "next" else self.switch_row)[waiter] = staged[key]
-        self.valid[staged_rows] = True
-        touched = [self._row[keys[i]] for i in replaced.tolist()]  # rows whose links change in the flip
-        if touched:  # in place: rare, and small
-            self._replace(touched, batch.take(replaced))
-        for robot, tp_id, nxt in switches:
-            if nxt is None:
-                self.unset_switch(robot, tp_id)
-            else:
-                self.set_switch(robot, tp_id, nxt)
-            touched.append(self.row_of(robot, tp_id))
-        for robot, tp_id, next_time in registers:
-            if tp_id is None:
-                self.clear_registers(robot)
-            else:
-                self.set_registers(robot, tp_id, next_time)
+        try:
+            for target, row in waits:
+                self._waiting[target].add((row, "next"))
+            for key in staged.keys() & self._waiting.keys():  # the few links that waited for these TPs
+                for waiter, kind in self._waiting.pop(key):
+                    (self.next_row if kind == "next" else self.switch_row)[waiter] = staged[key]
+            self.valid[staged_rows] = True
+            touched = [self._row[keys[i]] for i in replaced.tolist()]  # rows whose links change in the flip
+            if touched:  # in place: rare, and small
+                self._replace(touched, batch.take(replaced))
+            for robot, tp_id, nxt in switches:
+                if nxt is None:
+                    self.unset_switch(robot, tp_id)
+                else:
+                    self.set_switch(robot, tp_id, nxt)
+                touched.append(self.row_of(robot, tp_id))
+            for robot, tp_id, next_time in registers:
+                if tp_id is None:
+                    self.clear_registers(robot)
+                else:
+                    self.set_registers(robot, tp_id, next_time)
+            if gone.size:
+                self.valid[gone] = False
+                links = zip((self.next_row, self.switch_row), ("next", "switch"), pointing, strict=True)
+                for arr, kind, rows in links:
+                    for w in self._links_into(arr, is_gone, np.union1d(rows, touched)).tolist():
+                        target = int(self._key[arr[w]])
+                        arr[w] = NO_ROW
+                        self._waiting[target].add((w, kind))
+        finally:
+            self.flip_end()
         if not gone.size:
             return 0
-        self.valid[gone] = False
-        links = zip((self.next_row, self.switch_row), ("next", "switch"), pointing, strict=True)
-        for arr, kind, rows in links:
-            for w in self._links_into(arr, is_gone, np.union1d(rows, touched)).tolist():
-                target = int(self._key[arr[w]])
-                arr[w] = NO_ROW
-                self._waiting[target].add((w, kind))
         yield
         # --- 4. the deleted rows' bookkeeping, in slices ---------------------------------------
         waiting = set(gone[self.next_row[gone] == NO_ROW].tolist())  # few: rows sitting in a wait list,
@@ -532,6 +541,13 @@ class Tables:
         self.switch_row[gone] = NO_ROW
         self._free.extend(gone.tolist())
         return int(gone.size)
+
+    def flip_begin(self) -> None:
+        """A flip starts: a packet path running beside us (the XDP backend) must not read the tables
+        until flip_end().  Here, the packet path runs between our steps: nothing to do."""
+
+    def flip_end(self) -> None:
+        """The flip is done (or abandoned): the packet path may read the tables again."""
 
     def _links_into(self, arr: np.ndarray, is_gone: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """The valid rows (of `rows`; default all) whose link in `arr` points at a row marked in is_gone."""

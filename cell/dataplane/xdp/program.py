@@ -1,0 +1,229 @@
+"""The XDP data plane's BPF object: loaded, its maps mapped into this process as numpy arrays.
+
+The maps are BPF_F_MMAPABLE arrays, so the control plane reads and writes the very memory the
+program matches against, with numpy (the same Tables and Pipeline code as the numpy backend
+works on them).  The dtypes below mirror the C structs of dataplane.bpf.c field by field; the
+loader checks their sizes against the object's BTF-sized maps.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import mmap
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cell.dataplane.approx import entries_per_sign
+from cell.dataplane.xdp import libbpf
+from cell.dataplane.xdp.libbpf import BpfError
+
+OBJECT = Path(__file__).with_name("dataplane.bpf.o")
+SOURCE = Path(__file__).with_name("dataplane.bpf.c")
+MAX_JOINTS = 12  # the C program's TP width
+MAX_ENTITIES = 1024
+MAX_RECS = 64
+XDP_DROP, XDP_PASS, XDP_TX = 1, 2, 3
+GATE_WAIT_S = 0.05  # a packet in flight takes microseconds; this long means something is wrong
+
+ROBOT = np.dtype(
+    {
+        "names": [
+            "entity",
+            "joint0",
+            "joints",
+            "stale_periods",
+            "quiet_ns",
+            "status_ns",
+            "status_seq",
+            "pin_addr",
+            "pin_port",
+            "pinned",
+            "stop",
+        ],
+        "formats": ["<i4", "<i4", "<i8", "<i8", "<i8", "<i8", "<i8", "<u4", "<u2", "u1", "?"],
+        "offsets": [0, 4, 8, 16, 24, 32, 40, 48, 52, 54, 55],
+        "itemsize": 56,
+    }
+)
+STATUS = np.dtype([("pos", "<i8", MAX_JOINTS), ("vel", "<i8", MAX_JOINTS), ("cmd", "<i8", MAX_JOINTS)])
+ENTITY = np.dtype(
+    {
+        "names": ["tp", "stalled", "dropped_why", "next_time", "stall_ns", "dropped_ns"],
+        "formats": ["<i4", "?", "i1", "<i8", "<i8", "<i8"],
+        "offsets": [0, 4, 5, 8, 16, 24],
+        "itemsize": 32,
+    }
+)
+ROW = np.dtype(
+    [
+        ("next_row", "<i4"),
+        ("switch_row", "<i4"),
+        ("duration", "<i8"),
+        ("trg_pos", "<i8", MAX_JOINTS),
+        ("trg_vel", "<i8", MAX_JOINTS),
+    ]
+)
+LIMIT = np.dtype(
+    [("limit", "<i8"), ("neg", "<i8")] + [(f, "<i8", 64) for f in ("hi_v", "hi_m", "lo_v", "lo_m")]
+)
+GLOBALS = np.dtype(
+    [
+        ("listen_addr", "<u4"),
+        ("listen_port", "<u2"),
+        ("pad0", "<u2"),
+        ("clock_ns", "<i8"),
+        ("n_bits", "<u4"),
+        ("joints", "<u4"),
+        ("max_joints", "<u4"),
+        ("stopping", "<u4"),
+        ("entries_per_sign", "<u8"),
+        ("bank_size", "<u8"),
+        ("closed", "<u4"),
+        ("inflight", "<u4"),
+        ("stop_ramp", "<i8", MAX_JOINTS),
+    ]
+)
+COUNTERS = (
+    "packets",
+    "holds",
+    "steps",
+    "resubmits",
+    "stalls",
+    "limited",
+    "stop_commands",
+    "dropped",
+    "rejected.length",
+    "rejected.kind",
+    "rejected.joint",
+    "rejected.spoofed",
+    "rejected.batch",
+    "held",
+    "commands_out",
+    "datagrams",
+    "passed",
+)
+
+
+class XdpProgram:
+    """The velocity-control program and its maps; close() unloads it (and detaches it if attached)."""
+
+    def __init__(self, capacity: int, n_bits: int, joints: int, obj: Path = OBJECT) -> None:
+        if not obj.exists():
+            raise BpfError(f"{obj} is not built: run `make bpf` (needs clang; `make test` builds it as root)")
+        bpf = libbpf.lib()
+        self._bpf = bpf
+        self.capacity, self.joints = capacity, joints
+        self.eps = entries_per_sign(n_bits)
+        self.n_bits = n_bits
+        self._maps: list[mmap.mmap] = []
+        self.ifindex: int | None = None
+        self.obj = libbpf.pointer(bpf.bpf_object__open_file(str(obj).encode(), None), f"opening {obj}")
+        try:
+            sizes = {"rows": capacity, "transform": 3 * joints * 2 * self.eps}
+            for name, n in sizes.items():
+                libbpf.check(bpf.bpf_map__set_max_entries(self._map(name), n), f"sizing map {name}")
+            libbpf.check(bpf.bpf_object__load(self.obj), f"loading {obj.name} (the verifier's log follows)")
+            self.robots = self._mmap("robots", ROBOT)
+            self.status = self._mmap("status", STATUS)
+            self.entities = self._mmap("entities", ENTITY)
+            self.rows = self._mmap("rows", ROW)
+            self.transform = self._mmap("transform", np.dtype("<i8"))
+            self.limits = self._mmap("limits", LIMIT)
+            self.globals = self._mmap("globals", GLOBALS)[0]
+            self.prog_fd = self._prog("velocity_control")
+            self.gate_fd = self._prog("gate")
+            self.counters_fd = bpf.bpf_map__fd(self._map("counters"))
+            self.cpus = libbpf.check(bpf.libbpf_num_possible_cpus(), "counting CPUs")
+        except BaseException:
+            self.close()
+            raise
+        g = self.globals
+        g["n_bits"], g["joints"], g["max_joints"] = n_bits, joints, MAX_JOINTS
+        g["entries_per_sign"], g["bank_size"] = self.eps, joints * 2 * self.eps
+        self.gates = 0  # how often the control plane closed the gate (each a flip)
+
+    def _map(self, name: str) -> int:
+        return libbpf.pointer(self._bpf.bpf_object__find_map_by_name(self.obj, name.encode()), f"map {name}")
+
+    def _prog(self, name: str) -> int:
+        prog = libbpf.pointer(self._bpf.bpf_object__find_program_by_name(self.obj, name.encode()), name)
+        return libbpf.check(self._bpf.bpf_program__fd(prog), f"program {name}")
+
+    def _mmap(self, name: str, dtype: np.dtype) -> np.ndarray:
+        m = self._map(name)
+        size, n = self._bpf.bpf_map__value_size(m), self._bpf.bpf_map__max_entries(m)
+        if size != dtype.itemsize:
+            raise BpfError(f"map {name}: {size}-byte values, this loader expects {dtype.itemsize}")
+        length = -(-((size + 7) // 8 * 8 * n) // mmap.PAGESIZE) * mmap.PAGESIZE
+        mem = mmap.mmap(self._bpf.bpf_map__fd(m), length, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+        self._maps.append(mem)
+        return np.frombuffer(mem, dtype, count=n)
+
+    # --- the packet path, run on a given packet (tests, differential checks) ------------------
+
+    def run(self, packet: bytes) -> tuple[int, bytes]:
+        """The program's verdict on one Ethernet frame, and the frame as it leaves."""
+        return libbpf.test_run(self.prog_fd, packet, max(len(packet), 64) + 256)
+
+    # --- the gate: the control plane's batches appear at once ----------------------------------
+
+    def close_gate(self) -> None:
+        """From now until open_gate(), statuses are answered with each joint's last command and
+        nothing reads the tables; returns once no packet is still in the program."""
+        self._gate(1)
+        self.gates += 1
+        deadline = time.monotonic() + GATE_WAIT_S
+        while self.globals["inflight"]:
+            if time.monotonic() > deadline:
+                self._gate(0)
+                raise BpfError(f"a packet stayed in the XDP program for {GATE_WAIT_S * 1e3:.0f} ms")
+
+    def open_gate(self) -> None:
+        self._gate(0)
+
+    def _gate(self, op: int) -> None:
+        verdict, _ = libbpf.test_run(self.gate_fd, bytes([op]) + bytes(63), 128)
+        if verdict != XDP_PASS:
+            raise BpfError(f"gate program answered {verdict}")
+
+    # --- counters ------------------------------------------------------------------------------
+
+    def counters(self) -> dict[str, int]:
+        """Every counter of the program, summed over the CPUs."""
+        out: dict[str, int] = {}
+        vals = (ctypes.c_uint64 * self.cpus)()
+        for i, name in enumerate(COUNTERS):
+            key = ctypes.c_uint32(i)
+            libbpf.check(
+                self._bpf.bpf_map_lookup_elem(self.counters_fd, ctypes.byref(key), vals), f"counter {name}"
+            )
+            out[name] = int(sum(vals))
+        return out
+
+    # --- attaching -----------------------------------------------------------------------------
+
+    def attach(self, ifindex: int) -> None:
+        """Attach in generic (skb) mode, the mode veth and lo offer here, to an interface of the
+        calling thread's network namespace."""
+        skb_mode = 1 << 1  # XDP_FLAGS_SKB_MODE
+        libbpf.check(self._bpf.bpf_xdp_attach(ifindex, self.prog_fd, skb_mode, None), "attaching XDP")
+        self.ifindex = ifindex
+
+    def detach(self) -> None:
+        if self.ifindex is not None:
+            self._bpf.bpf_xdp_detach(self.ifindex, 1 << 1, None)
+            self.ifindex = None
+
+    def close(self) -> None:
+        for name in ("robots", "status", "entities", "rows", "transform", "limits", "globals"):
+            self.__dict__.pop(name, None)  # (the views go before the memory they view)
+        for mem in self._maps:
+            with contextlib.suppress(BufferError):  # a view still held elsewhere: it goes with that
+                mem.close()
+        self._maps.clear()
+        if getattr(self, "obj", None):
+            self._bpf.bpf_object__close(self.obj)
+            self.obj = None
