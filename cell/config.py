@@ -236,6 +236,30 @@ class EgressConfig:
     scheduling: Literal["fifo", "priority"]
 
 
+_IFNAME = re.compile(r"[A-Za-z0-9_-]{1,13}")
+
+
+def _ipv4(v: str) -> str | None:
+    try:
+        ipaddress.IPv4Address(v)
+    except ValueError:
+        return f"must be an IPv4 address (got {v!r})"
+    return None
+
+
+@dataclass(frozen=True)
+class XdpConfig:
+    """The XDP backend's switch: a network namespace the launcher creates, joined to the host by a
+    veth pair (<veth>0 on the host, <veth>1 in the namespace, where the program is attached)."""
+
+    netns: str = _check(lambda v: None if _IFNAME.fullmatch(v) else f"1-13 of A-Z a-z 0-9 _ - (got {v!r})")
+    veth: str = _check(lambda v: None if _IFNAME.fullmatch(v) else f"1-13 of A-Z a-z 0-9 _ - (got {v!r})")
+    host_addr: str = _check(_ipv4)  # the host's end: robots bind it
+    switch_addr: str = _check(_ipv4)  # the switch's end: [dataplane] listen's host
+    prefix: int = _check(lambda v: None if 8 <= v <= 30 else f"must be 8..30 (got {v})")
+    cpu: int = _check(lambda v: None if v >= -1 else f"must be a CPU number or -1 (got {v})")
+
+
 @dataclass(frozen=True)
 class ForwardRule:
     """Ordinary (non-robot) UDP traffic the data plane forwards: what arrives on `listen` goes to
@@ -257,8 +281,23 @@ class DataplaneConfig:
     batch: int = _check(_positive)
     egress: EgressConfig
     forward: list[ForwardRule]
+    backend: Literal["numpy", "xdp"]
+    xdp: XdpConfig
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        if self.backend == "xdp":
+            x = self.xdp
+            host = parse_host_port(self.listen)[0]
+            if host != x.switch_addr:
+                why = f'with backend = "xdp" it must be on [dataplane.xdp] switch_addr ({x.switch_addr})'
+                raise err("listen", why)
+            net = ipaddress.IPv4Network(f"{x.host_addr}/{x.prefix}", strict=False)
+            if x.host_addr == x.switch_addr or ipaddress.IPv4Address(x.switch_addr) not in net:
+                why = f"must be another address in {net} (the host's end is {x.host_addr})"
+                raise err("xdp.switch_addr", why)
+            if self.forward or self.egress.rate_mbps > 0:
+                why = "the XDP backend has no forwarding rules or egress model yet (the numpy one has)"
+                raise err("backend", why)
         for i, f in enumerate(self.forward):
             if f.listen == self.listen or any(o.listen == f.listen for o in self.forward[:i]):
                 raise err(f"forward[{i}].listen", f"{f.listen} is taken by the data plane or another rule")

@@ -35,6 +35,19 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
     The services go into processes as `[services] layout` says (cell/layout.py); the
     launcher itself keeps the status registry and, in the "single" layout, runs everything.
     """
+    with contextlib.ExitStack() as stack:
+        if config.dataplane.backend == "xdp":
+            from cell.dataplane.xdp.switch import SwitchError, switch_namespace
+
+            try:
+                stack.enter_context(switch_namespace(config.dataplane.xdp))
+            except SwitchError as exc:
+                print(f"cell: {exc}", file=sys.stderr)
+                return 2
+        return await _up(config, duration=duration, log_level=log_level)
+
+
+async def _up(config: CellConfig, *, duration: float | None, log_level: str) -> int:
     layout = config.services.layout
     registry = StatusRegistry.of(config)
     stop = asyncio.Event()

@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import os
+import socket
 import time
 from collections.abc import Callable
 
@@ -59,47 +60,55 @@ class DataPlane:
 
     def __init__(self, config: CellConfig) -> None:
         dp = config.dataplane
-        self.tables = Tables(dp.capacity, max_joints=dp.max_joints)
-        self.robot_joints = np.zeros(1 << 16, np.int64)
+        constants = ControlConstants(tuple(dp.c1), tuple(dp.c2), dp.n_bits, tuple(dp.v_max))
+        self.tables, self.pipeline, self.robot_joints = self._state(config, constants)
         self.merged: dict[int, list[int]] = {}  # entity -> its robots, for entities of several
         for r in config.robots:
             self.add_robot(r.id)
-        constants = ControlConstants(tuple(dp.c1), tuple(dp.c2), dp.n_bits, tuple(dp.v_max))
-        self.pipeline = Pipeline(self.tables, constants)
         window = min((1.0 / r.command_hz for r in config.robots), default=1 / 125)
         self.pipeline.set_stop_ramp(arm_model().limits.a_max * config.rlink.stop_decel, window)
         for r in config.robots:  # one window beyond the robot's watchdog: it has surely stopped
             self.pipeline.stale_periods[r.id] = (r.watchdog_windows + 1) * (r.status_hz // r.command_hz)
             self.pipeline.quiet_ns[r.id] = QUIET_NS
         self.boot_id = int.from_bytes(os.urandom(8), "little")  # tells a controller our tables are new
+        self.poll: Callable[[], None] | None = None  # called between slices (the event socket)
+        self.batch = dp.batch
+        self.rejected = {"length": 0, "kind": 0, "joint": 0, "spoofed": 0}
+        self.packets_in = self.commands_out = self.unsent = self.batches = 0
+        self.batch_ns: list[int] = []
+        self._update_lock = asyncio.Lock()
+        self.egress: EgressPort | None = None
+        self.forwarders: list[Forwarder] = []
+        self._open(config)
+        # what exists now lives as long as the service: keep it out of the garbage collector's
+        # passes, which would otherwise walk it all and stall the packet path for milliseconds
+        gc.collect()
+        gc.freeze()
+
+    def _state(self, config: CellConfig, constants: ControlConstants) -> tuple[Tables, Pipeline, np.ndarray]:
+        """The tables, the pipeline over them and each robot's joint count (0: not configured)."""
+        tables = Tables(config.dataplane.capacity, max_joints=config.dataplane.max_joints)
+        return tables, Pipeline(tables, constants), np.zeros(1 << 16, np.int64)
+
+    def _open(self, config: CellConfig) -> None:
+        """The packet path's sockets, egress port and forwarders."""
+        dp = config.dataplane
         # each robot is pinned to the address its first status came from: another sender's statuses
         # for it are dropped (counted `spoofed`) until it has been quiet for QUIET_NS (a restart)
         self.robot_addr: dict[int, tuple] = {}
         self.pin = np.full(1 << 16, -1, np.int32)  # robot -> its sender's number in _sender_ids
         self._sender_ids: dict[tuple, int] = {}
-        self.poll: Callable[[], None] | None = None  # called between slices (the event socket)
-        self.batch = dp.batch
         self.sock = udp.open_socket(*parse_host_port(dp.listen), timestamps=True)
         self.sender = udp.Sender(self.sock, datagram.SIZE)
         eg = dp.egress
         # the port commands leave by, shared with forwarded traffic (Appendix C); None: no limit of ours
-        self.egress: EgressPort | None = None
         if eg.rate_mbps > 0:
             self.egress = EgressPort(eg.rate_mbps * 1e6, int(eg.buffer_kb * 1024), eg.scheduling)
-        self.forwarders: list[Forwarder] = []
         try:
             self.forwarders += [Forwarder(rule) for rule in dp.forward]
         except BaseException:
             self.close()
             raise
-        self.rejected = {"length": 0, "kind": 0, "joint": 0, "spoofed": 0}
-        self.packets_in = self.commands_out = self.unsent = self.batches = 0
-        self.batch_ns: list[int] = []
-        self._update_lock = asyncio.Lock()
-        # what exists now lives as long as the service: keep it out of the garbage collector's
-        # passes, which would otherwise walk it all and stall the packet path for milliseconds
-        gc.collect()
-        gc.freeze()
 
     def add_robot(self, robot: int, joints: int = 6) -> None:
         self.tables.add_robot(robot, joints)
@@ -453,6 +462,96 @@ class DataPlane:
         return st
 
 
+class XdpDataPlane(DataPlane):
+    """The packet path as an XDP program in the switch's network namespace (cell/dataplane/xdp):
+    the kernel answers every status; this process is the control plane around it, with the same
+    bus API, Responsive Link stops, sweep and state as the numpy backend, over the program's maps."""
+
+    def _state(self, config: CellConfig, constants: ControlConstants) -> tuple[Tables, Pipeline, np.ndarray]:
+        from cell.dataplane.xdp.backend import XdpPipeline, XdpTables
+        from cell.dataplane.xdp.program import XdpProgram
+
+        dp = config.dataplane
+        self.program = XdpProgram(dp.capacity, dp.n_bits, len(dp.c1))
+        try:
+            tables = XdpTables(self.program, dp.max_joints)
+            return tables, XdpPipeline(tables, constants), self.program.robots["joints"]
+        except BaseException:
+            self.program.close()
+            raise
+
+    def _open(self, config: CellConfig) -> None:
+        from cell.dataplane.xdp.switch import in_namespace
+
+        dp, x = config.dataplane, config.dataplane.xdp
+        host, port = parse_host_port(dp.listen)
+        g = self.program.globals
+        g["listen_addr"] = int.from_bytes(socket.inet_aton(host), "little")  # (network order in memory)
+        g["listen_port"] = socket.htons(port)
+        self.robot_addr = _Pins(self.program.robots)
+
+        def attach() -> socket.socket:
+            self.program.attach(socket.if_nametoindex(f"{x.veth}1"))
+            # the user-space end, for the first stop commands the Responsive Link asks for at once
+            return udp.open_socket(host, port)
+
+        try:
+            self.sock = in_namespace(x.netns, attach)
+        except BaseException:
+            self.program.close()
+            raise
+        self.sender = udp.Sender(self.sock, datagram.SIZE)
+
+    def close(self) -> None:
+        self.sock.close()
+        self.program.detach()
+        self.program.close()
+
+    def handle(self) -> int:
+        return 0  # the kernel's
+
+    async def run(self) -> None:
+        await asyncio.Event().wait()  # the kernel answers; nothing to do here until cancelled
+
+    async def load_constants(self, req: dataplane_pb2.Constants) -> dataplane_pb2.ConstantsReply:
+        from cell.dataplane.xdp.backend import XdpPipeline
+        from cell.dataplane.xdp.libbpf import BpfError
+
+        try:
+            XdpPipeline.check_fits(self.program, ControlConstants(tuple(req.c1), (), req.n_bits, ()))
+        except BpfError as exc:
+            raise RpcFault("bad_request", str(exc)) from None
+        return await super().load_constants(req)
+
+    def counters(self) -> dict[str, float]:
+        out = super().counters()
+        k, user = self.program.counters(), self.pipeline.counters
+        for name in ("holds", "steps", "resubmits", "stalls", "limited"):
+            out[name] = k[name]
+        out["dropped"] = k["dropped"] + user.dropped  # (the control plane drops too: sweeps, stops)
+        out["stop_commands"] = k["stop_commands"] + user.stop_commands
+        refused = ("kind", "joint", "spoofed", "batch")
+        out["packets_in"] = k["packets"] + sum(k[f"rejected.{r}"] for r in refused)
+        out["commands_out"] = k["commands_out"] + self.commands_out
+        out.update({n: k[n] for n in k if n.startswith("rejected.")})
+        out["xdp.held"], out["xdp.datagrams"] = k["held"], k["datagrams"]
+        out["xdp.gates"] = self.program.gates
+        return out
+
+
+class _Pins:
+    """The robots' pinned senders as the XDP program keeps them (robot -> (host, port))."""
+
+    def __init__(self, robots: np.ndarray) -> None:
+        self.robots = robots
+
+    def get(self, robot: int) -> tuple[str, int] | None:
+        r = self.robots[robot]
+        if not r["pinned"]:
+            return None
+        return socket.inet_ntoa(int(r["pin_addr"]).to_bytes(4, "little")), socket.ntohs(int(r["pin_port"]))
+
+
 class PlaneNode(LeafNode):
     """The data plane's Responsive Link node: its orders act on the tables at once, between batches."""
 
@@ -483,7 +582,7 @@ class PlaneNode(LeafNode):
 
 
 async def run(ctx: ServiceContext) -> None:
-    plane = DataPlane(ctx.config)
+    plane = (XdpDataPlane if ctx.config.dataplane.backend == "xdp" else DataPlane)(ctx.config)
     try:
         events = PlaneNode(plane, ctx.config)
     except BaseException:

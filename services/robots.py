@@ -47,6 +47,8 @@ def build_groups(config: CellConfig) -> list[RobotGroup]:
         by_key[(r.backend, r.model, r.status_hz, r.command_hz)].append(r)
     here = config.here()
     host = here.address if here is not None else parse_host_port(config.dataplane.listen)[0]
+    if config.dataplane.backend == "xdp" and here is None:  # the switch's namespace is not ours: its veth
+        host = config.dataplane.xdp.host_addr
     groups: list[RobotGroup] = []
     try:
         groups.extend(RobotGroup(robots, config.dataplane.listen, host=host) for robots in by_key.values())

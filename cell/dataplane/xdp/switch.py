@@ -1,0 +1,107 @@
+"""The XDP backend's switch: a network namespace joined to the host by a veth pair.
+
+The launcher creates it before any service starts (robots bind the host's end) and removes it when
+the cell stops; the data plane attaches its program to the namespace's end.  Work inside the
+namespace runs on a thread that entered it (setns changes only the calling thread's namespace).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import os
+import shutil
+import subprocess
+import threading
+from collections.abc import Callable, Iterator
+from typing import TypeVar
+
+from cell.config import XdpConfig
+from cell.dataplane.xdp.program import OBJECT
+
+T = TypeVar("T")
+CLONE_NEWNET = 0x40000000
+
+
+class SwitchError(RuntimeError):
+    """The XDP backend cannot run here; the message says what is missing."""
+
+
+def missing() -> str | None:
+    """What keeps the XDP backend from running on this machine, or None."""
+    if os.geteuid() != 0:
+        return "it needs root (CAP_BPF and CAP_NET_ADMIN for the program and the switch's namespace)"
+    if shutil.which("ip") is None:
+        return "it needs `ip` (Debian's iproute2) for the switch's namespace"
+    if not OBJECT.exists():
+        return f"{OBJECT} is not built: `make bpf` (needs clang and libbpf-dev)"
+    try:
+        ctypes.CDLL("libbpf.so.1")
+    except OSError:
+        return "it needs libbpf.so.1 (Debian's libbpf1)"
+    return None
+
+
+def _ip(*args: str) -> None:
+    done = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=10)
+    if done.returncode:
+        raise SwitchError(f"ip {' '.join(args)}: {done.stderr.strip()}")
+
+
+def remove(cfg: XdpConfig) -> None:
+    """The namespace and the veth pair gone (whatever is left of them)."""
+    subprocess.run(["ip", "netns", "del", cfg.netns], capture_output=True, timeout=10)
+    subprocess.run(["ip", "link", "del", f"{cfg.veth}0"], capture_output=True, timeout=10)
+
+
+@contextlib.contextmanager
+def switch_namespace(cfg: XdpConfig) -> Iterator[None]:
+    """The switch's namespace and veth pair, up for the duration; SwitchError if they cannot be made
+    (a namespace of that name already exists: another cell runs with the XDP backend)."""
+    if problem := missing():
+        raise SwitchError(f'[dataplane] backend = "xdp" cannot run: {problem}')
+    if os.path.exists(f"/var/run/netns/{cfg.netns}"):
+        raise SwitchError(f"network namespace {cfg.netns!r} exists: another cell with the XDP backend? "
+                          f"(`ip netns del {cfg.netns}` if not, or set [dataplane.xdp] netns)")
+    host, sw = f"{cfg.veth}0", f"{cfg.veth}1"
+    try:
+        _ip("netns", "add", cfg.netns)
+        _ip("link", "add", host, "type", "veth", "peer", "name", sw, "netns", cfg.netns)
+        _ip("addr", "add", f"{cfg.host_addr}/{cfg.prefix}", "dev", host)
+        _ip("link", "set", host, "up")
+        _ip("-n", cfg.netns, "addr", "add", f"{cfg.switch_addr}/{cfg.prefix}", "dev", sw)
+        _ip("-n", cfg.netns, "link", "set", sw, "up")
+        _ip("-n", cfg.netns, "link", "set", "lo", "up")
+        if cfg.cpu >= 0:  # the pipeline on one CPU, in packet order, as a switch's (RPS)
+            rps = f"/sys/class/net/{sw}/queues/rx-0/rps_cpus"
+            _ip("netns", "exec", cfg.netns, "sh", "-c", f"echo {1 << cfg.cpu:x} > {rps}")
+        yield
+    finally:
+        remove(cfg)
+
+
+def in_namespace(netns: str, fn: Callable[[], T]) -> T:
+    """fn() on a thread inside the network namespace (sockets and interfaces it opens stay there)."""
+    out: list[T] = []
+    err: list[BaseException] = []
+
+    def body() -> None:
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+            fd = os.open(f"/var/run/netns/{netns}", os.O_RDONLY)
+            try:
+                if libc.setns(fd, CLONE_NEWNET):
+                    raise SwitchError(f"entering namespace {netns}: {os.strerror(ctypes.get_errno())}")
+            finally:
+                os.close(fd)
+            out.append(fn())
+        except BaseException as exc:  # carried to the caller's thread
+            err.append(exc)
+
+    t = threading.Thread(target=body, name=f"netns:{netns}")
+    t.start()
+    t.join()
+    if err:
+        raise err[0]
+    return out[0]
