@@ -211,6 +211,18 @@ def _cmd_bench_dataplane(args: argparse.Namespace) -> int:
     def log(trial: dict) -> None:
         print(dataplane.format_trial(trial), flush=True)
 
+    if args.backend == "xdp":
+        from cell.dataplane.xdp.switch import SwitchError
+
+        try:
+            result = dataplane.run_xdp(args.seconds, log=log)
+        except SwitchError as exc:
+            print(f"cell bench dataplane: {exc}", file=sys.stderr)
+            return 2
+        text = dataplane.format_xdp(result)
+        if args.json:  # the figures first, flat (the trials follow in the full result)
+            result = {**result.pop("summary"), **result}
+        return _report(args, result, text)
     result = dataplane.run(args.seconds, log=log)
     return _report(args, result, dataplane.format_result(result))
 
@@ -218,7 +230,7 @@ def _cmd_bench_dataplane(args: argparse.Namespace) -> int:
 def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     from cell.bench import accuracy
 
-    result = accuracy.run(args.quick, log=lambda line: print(line, flush=True))
+    result = accuracy.run(args.quick, log=lambda line: print(line, flush=True), backend=args.backend)
     result.pop("samples")
     return _report(args, result, accuracy.format_result(result))
 
@@ -602,6 +614,12 @@ def build_parser() -> argparse.ArgumentParser:
         "asyncio controller; latency at 10, 100, 300 robots",
     )
     q.add_argument("--seconds", type=float, default=2.0, help="length of each trial (default 2)")
+    q.add_argument(
+        "--backend",
+        choices=["numpy", "xdp"],
+        default="numpy",
+        help="xdp: the XDP program in a switch namespace, next to a bare XDP reflector and numpy (root)",
+    )
     q = _bench(
         bsub,
         "accuracy",
@@ -609,6 +627,7 @@ def build_parser() -> argparse.ArgumentParser:
         "MuJoCo arms driven through the data plane: stop error, tool path error, start shift",
     )
     q.add_argument("--quick", action="store_true", help="fewer reference motions (under 4 minutes)")
+    q.add_argument("--backend", choices=["numpy", "xdp"], default="numpy", help="the data plane (xdp: root)")
     q = _bench(
         bsub,
         "background",

@@ -513,6 +513,15 @@ class XdpDataPlane(DataPlane):
     async def run(self) -> None:
         await asyncio.Event().wait()  # the kernel answers; nothing to do here until cancelled
 
+    async def update(self, req: dataplane_pb2.TableUpdate) -> dataplane_pb2.UpdateReply:
+        """As the numpy backend's; apply_us is how long the kernel's packet path was held (the gate
+        closed for the flip), since the slices in between do not stop it."""
+        since = self.program.gates
+        reply = await super().update(req)
+        held = self.program.closed_ns[-(self.program.gates - since) :] if self.program.gates > since else [0]
+        reply.apply_us = max(held) / 1e3
+        return reply
+
     async def load_constants(self, req: dataplane_pb2.Constants) -> dataplane_pb2.ConstantsReply:
         from cell.dataplane.xdp.backend import XdpPipeline
         from cell.dataplane.xdp.libbpf import BpfError

@@ -7,16 +7,19 @@ object `make` builds; skipped with the reason otherwise.
 
 from __future__ import annotations
 
+import asyncio
 import os
+import select
 import socket
 import struct
+import subprocess
 
 import numpy as np
 import pytest
 
 from cell.dataplane.pipeline import ControlConstants, Pipeline
-from cell.dataplane.tables import TP, Tables
-from cell.robot import datagram
+from cell.dataplane.tables import TP, Tables, TPBatch
+from cell.robot import datagram, udp
 
 xdp = pytest.importorskip("cell.dataplane.xdp.program")
 
@@ -187,3 +190,83 @@ def test_random_tables_and_statuses_give_bit_identical_commands_and_registers(se
         assert c.dropped > 0 and c.stop_commands > 0 and c.holds > 0
     finally:
         pair.close()
+
+
+# --- the service: the program attached in a switch namespace, robots on the host's end ----------
+
+
+def _recv(sock: socket.socket, timeout: float = 2.0) -> np.ndarray:
+    """The next burst of commands (GRO may join several)."""
+    ready, _, _ = select.select([sock], [], [], timeout)
+    assert ready, "no answer"
+    got = udp.recv_batch(sock)
+    assert got is not None
+    return datagram.view(bytearray(got[0]))
+
+
+def test_the_service_answers_from_the_kernel_and_its_control_plane_writes_the_maps() -> None:
+    from dataclasses import asdict
+
+    from cell.services.dataplane import XdpDataPlane
+
+    from cell.config import XdpConfig, load_config
+    from cell.dataplane.wire import encode_tps
+    from cell.dataplane.xdp.switch import switch_namespace
+    from cell.v1 import dataplane_pb2
+
+    tag = f"cxt{os.getpid()}"[:12]
+    net = XdpConfig(netns=tag, veth=tag, host_addr="10.197.0.1", switch_addr="10.197.0.2", prefix=24, cpu=-1)
+    robots = [{"id": 1, "name": "x1", "skill_port": 23001}]
+    dp = {"listen": f"10.197.0.2:{PORT}", "backend": "xdp", "xdp": asdict(net)}
+    cfg = load_config(overrides={"robots": robots, "dataplane": dp})
+    with switch_namespace(net):
+        plane = XdpDataPlane(cfg)
+        robot = udp.open_socket(net.host_addr)
+        spoofer = udp.open_socket(net.host_addr)
+        try:
+            dst = (net.switch_addr, PORT)
+            recs = datagram.empty(6)
+            datagram.pack(recs, 1, np.arange(6), 0, 1, 0.2, 0.5)
+            robot.sendto(recs.tobytes(), dst)
+            held = _recv(robot)
+            assert held.size == 6 and (held["kind"] == 1).all() and (held["velocity"] == 0).all()
+            # a trajectory, loaded over the control plane's API: the kernel follows it at once
+            req = dataplane_pb2.TableUpdate()
+            encode_tps(TPBatch.of([TP(1, 7, 7, 1.0, [0.6] * 6, [0.0] * 6)]), req.insert)
+            req.registers.add(robot_id=1, tp_id=7, next_time_ns=2**62)
+            reply = asyncio.run(plane.update(req))
+            assert reply.inserted == 1 and reply.loaded == 1
+            assert 0 <= reply.apply_us < 50_000  # the gate was closed for the flip, briefly
+            datagram.pack(recs, 1, np.arange(6), 0, 2, 0.2, 0.5)
+            robot.sendto(recs.tobytes(), dst)
+            moving = _recv(robot)
+            # the same record through the numpy pipeline gives the same command, bit for bit
+            ref_tables = Tables(64, 1024, 12)
+            ref = Pipeline(ref_tables, plane.pipeline.constants)
+            ref_tables.add_robot(1)
+            ref_tables.update(insert=[TP(1, 7, 7, 1.0, [0.6] * 6, [0.0] * 6)], registers=[(1, 7, 2**62)])
+            expect = recs.copy()
+            ref.process(expect, 1)
+            assert np.array_equal(moving["velocity"], expect["velocity"]) and (moving["velocity"] > 0).all()
+            # bad input: counted and dropped, never answered; another sender for robot 1 is refused
+            robot.sendto(b"\x00" * 23, dst)
+            spoofer.sendto(recs[:1].tobytes(), dst)
+            # a Responsive Link stop: the first stop commands leave from user space at once
+            assert plane.stop_robots([1]) == 6
+            stop = _recv(robot)
+            assert (stop["kind"] == 1).all() and (np.abs(stop["velocity"]) < np.abs(moving["velocity"])).all()
+            robot.sendto(recs.tobytes(), dst)  # and the kernel answers the next status from the StopRamp
+            ramp = _recv(robot)
+            assert np.array_equal(ramp["velocity"], stop["velocity"])
+            c = plane.counters()
+            assert c["rejected.length"] == 1 and c["rejected.spoofed"] == 1
+            assert c["holds"] == 12 and c["stop_commands"] == 6 and c["dropped"] == 1  # (held, then stopped)
+            assert c["commands_out"] == 24 and c["xdp.gates"] >= 2
+            state = plane.state()
+            assert state.robots[0].dropped_why == "stop" and state.robots[0].tp_id == -1
+        finally:
+            robot.close()
+            spoofer.close()
+            plane.close()
+    names = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    assert tag not in names

@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -45,12 +47,20 @@ def _tool_errors_mm(kin: Kinematics, truth: Truth, name: str, seg: Segment, join
     )
 
 
-async def measure(quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
+async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy") -> dict[str, Any]:
     robots = [
         {"id": i, "name": f"r{i}", "skill_port": _port(), "backend": "mujoco", "truth_hz": 500}
         for i in (1, 2)
     ]
-    overrides = {"robots": robots, "services": {"run": ["bus", "dataplane", "robots"]}}
+    overrides: dict[str, Any] = {"robots": robots, "services": {"run": ["bus", "dataplane", "robots"]}}
+    if backend == "xdp":  # the data plane in a switch namespace of this run's own (the cell makes it)
+        from dataclasses import asdict
+
+        from cell.bench.dataplane import xdp_switch
+
+        net = replace(xdp_switch(), netns=f"cba{os.getpid()}"[:12], veth=f"cba{os.getpid()}"[:12])
+        dp = {"listen": f"{net.switch_addr}:50000", "backend": "xdp", "xdp": asdict(net)}
+        overrides["dataplane"] = dp
     kin = Kinematics()
     stop_err: list[float] = []
     path_joint: list[np.ndarray] = []
@@ -226,9 +236,10 @@ def paper_start(
     return np.floor(p_predict / g) * g
 
 
-def run(quick: bool, log: Callable[[str], None] = print) -> dict[str, Any]:
+def run(quick: bool, log: Callable[[str], None] = print, backend: str = "numpy") -> dict[str, Any]:
     t0 = time.monotonic()
-    result = asyncio.run(measure(quick, log))
+    result = asyncio.run(measure(quick, log, backend))
+    result["backend"] = backend
     result["seconds"] = round(time.monotonic() - t0, 1)
     return result
 

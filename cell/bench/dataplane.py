@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import asyncio
 import multiprocessing as mp
+import os
 import queue
 import select
+import signal
 import socket
 import struct
 import time
@@ -33,6 +35,7 @@ from cell.bench import pin, pinned
 from cell.robot import datagram, udp
 from cell.robot.datagram import SCALE, Kind
 
+XDP_PORT = 50000
 WINDOW_NS = 8_000_000
 PERIOD_NS = 2_000_000
 ON_TIME = 0.99
@@ -46,19 +49,27 @@ def _updating_target(robots: int, out: Any, stop: Any) -> None:
     _dataplane_target(robots, out, stop, updates=True)
 
 
-def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False) -> None:
+def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False, net: Any = None) -> None:
+    """The data plane service's packet path: numpy here, or (net: the switch's XdpConfig) the XDP
+    program attached in the switch's namespace, this process its control plane."""
     pin(1)
+    from dataclasses import asdict
+
     from cell.config import load_config
     from cell.dataplane.tables import TP, TPBatch
     from cell.dataplane.wire import encode_keys, encode_tps
-    from cell.services.dataplane import DataPlane
+    from cell.services.dataplane import DataPlane, XdpDataPlane
 
     rob = [{"id": r, "name": f"b{r}", "skill_port": 20000 + r} for r in range(1, robots + 1)]
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    cfg = load_config(overrides={"robots": rob, "dataplane": {"listen": f"127.0.0.1:{port}"}})
-    plane = DataPlane(cfg)
+    if net is None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        cfg = load_config(overrides={"robots": rob, "dataplane": {"listen": f"127.0.0.1:{port}"}})
+        plane = DataPlane(cfg)
+    else:
+        dp = {"listen": f"{net.switch_addr}:{XDP_PORT}", "backend": "xdp", "xdp": asdict(net)}
+        plane = XdpDataPlane(load_config(overrides={"robots": rob, "dataplane": dp}))
     # every robot heads for a TP 0.1 rad away, forever (a self-loop): the full egress path for each packet
     plane.tables.insert([TP(r, 1, 1, 1.0, [0.1] * 6, [0.0] * 6) for r in range(1, robots + 1)])
     for r in range(1, robots + 1):
@@ -104,6 +115,31 @@ def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False) -
         {"batches": plane.batches, "packets": plane.packets_in, "update_ms": update_ms, "hold_ms": hold_ms}
     )
     plane.close()
+
+
+def _xdp_target(robots: int, out: Any, stop: Any, net: Any) -> None:
+    _dataplane_target(robots, out, stop, net=net)
+
+
+def _xdp_updating_target(robots: int, out: Any, stop: Any, net: Any) -> None:
+    _dataplane_target(robots, out, stop, updates=True, net=net)
+
+
+def _xdp_reflector_target(robots: int, out: Any, stop: Any, net: Any) -> None:
+    """The bare XDP reflector in the switch's namespace: every datagram straight back (XDP_TX)."""
+    from cell.dataplane.xdp.program import XdpProgram
+    from cell.dataplane.xdp.switch import in_namespace
+
+    program = XdpProgram(1, 2, 1)
+    try:
+        program.globals["listen_port"] = socket.htons(XDP_PORT)
+        in_namespace(net.netns, lambda: program.attach(socket.if_nametoindex(f"{net.veth}1"), reflect=True))
+        out.put((net.switch_addr, XDP_PORT))
+        stop.wait()
+        out.put({"packets": 0})
+    finally:
+        program.detach()
+        program.close()
 
 
 def _reflector_target(robots: int, out: Any, stop: Any) -> None:
@@ -155,6 +191,9 @@ def _naive_target(robots: int, out: Any, stop: Any) -> None:
 
 
 TARGETS = {
+    "xdp": _xdp_target,
+    "xdp+updates": _xdp_updating_target,
+    "xdp-reflector": _xdp_reflector_target,
     "dataplane": _dataplane_target,
     "dataplane+updates": _updating_target,
     "reflector": _reflector_target,
@@ -165,10 +204,10 @@ TARGETS = {
 # --- the load generator (this process) -----------------------------------------------------------
 
 
-def load(addr: tuple[str, int], robots: int, seconds: float) -> dict[str, float]:
+def load(addr: tuple[str, int], robots: int, seconds: float, bind: str = "127.0.0.1") -> dict[str, float]:
     """Play `robots` robots at 500 Hz against addr for `seconds`; status-to-command times of every answer."""
     with pinned(0):
-        return _load(addr, robots, seconds)
+        return _load(addr, robots, seconds, bind)
 
 
 def _load(
@@ -180,8 +219,11 @@ def _load(
 ) -> dict[str, float]:
     """As load(); bind: the robots' address; sink: a socket whose datagrams are counted meanwhile
     (ordinary traffic forwarded to the robots' host, cell.bench.background)."""
-    sock = udp.open_socket(bind)
+    sock = udp.open_socket(bind, timestamps=True)
     sender = udp.Sender(sock, datagram.SIZE)
+    # answers are timed by the kernel's receive stamp (CLOCK_REALTIME, taken to monotonic), and each
+    # status from when its own GSO send left: the generator's wake-ups and send loop do not count
+    offset = time.time_ns() - time.monotonic_ns()
     n = robots * 6
     recs = datagram.empty(n)
     datagram.pack(
@@ -190,7 +232,8 @@ def _load(
     raw = memoryview(recs.view(np.uint8))
     chunk = 64 * datagram.SIZE  # GSO segments per call
     ticks = int(seconds * 1e9 / PERIOD_NS)
-    sent_at = np.zeros(ticks + 1, np.int64)
+    sends = -(-len(raw) // chunk)
+    sent_at = np.zeros((ticks + 1, sends), np.int64)
     arrivals: list[tuple[int, bytes]] = []  # decoded after the run: the receive loop must stay cheap
     poller = select.epoll()
     poller.register(sock.fileno(), select.EPOLLIN)
@@ -199,7 +242,7 @@ def _load(
         poller.register(sink.fileno(), select.EPOLLIN)
 
     def drain() -> None:
-        _drain(sock, arrivals)
+        _drain(sock, arrivals, offset)
         if sink is not None:
             while (got := udp.recv_batch(sink)) is not None:
                 sunk[0] += -(-len(got[0]) // max(got[1], 1))
@@ -218,8 +261,8 @@ def _load(
             if now - due > PERIOD_NS:
                 late_ticks += 1
             recs["seq"] = k
-            sent_at[k] = time.monotonic_ns()
-            for i in range(0, len(raw), chunk):
+            for c, i in enumerate(range(0, len(raw), chunk)):
+                sent_at[k, c] = time.monotonic_ns()
                 sent += sender.send(raw[i : i + chunk], addr)
         span_ns, sunk_in_span = time.monotonic_ns() - start + 50_000_000, list(sunk)  # the sink's, over it
         end = time.monotonic_ns() + 500_000_000
@@ -233,9 +276,11 @@ def _load(
     for at, data in arrivals:
         if len(data) % datagram.SIZE:
             continue
-        seqs = datagram.view(data)["seq"].astype(np.int64)
-        seqs = seqs[(seqs > 0) & (seqs <= ticks)]
-        lat.append(at - sent_at[seqs])
+        recs_in = datagram.view(data)
+        seqs = recs_in["seq"].astype(np.int64)
+        send = ((recs_in["robot_id"].astype(np.int64) - 1) * 6 + recs_in["joint_id"]) * datagram.SIZE // chunk
+        ok = (seqs > 0) & (seqs <= ticks) & (send >= 0) & (send < sends)
+        lat.append(at - sent_at[seqs[ok], send[ok]])
     times = np.concatenate(lat) if lat else np.zeros(0, np.int64)
     answered = times.size
     on_time = int((times <= WINDOW_NS).sum())
@@ -262,27 +307,26 @@ def _received(arrivals: list[tuple[int, bytes]]) -> int:
     return sum(len(data) for _, data in arrivals) // datagram.SIZE
 
 
-def _drain(sock: socket.socket, arrivals: list[tuple[int, bytes]]) -> None:
-    recv = sock.recv
-    while True:
-        try:
-            data = recv(65536)
-        except BlockingIOError:
-            return
-        arrivals.append((time.monotonic_ns(), data))
+def _drain(sock: socket.socket, arrivals: list[tuple[int, bytes]], offset: int) -> None:
+    """Every answer waiting, with its kernel receive time on the monotonic clock (offset: realtime
+    minus monotonic; a burst without a stamp counts as received now)."""
+    while (got := udp.recv_batch(sock)) is not None:
+        arrivals.append((got[3] - offset if got[3] else time.monotonic_ns(), got[0]))
 
 
-def trial(target: str, robots: int, seconds: float = 2.0) -> dict[str, float]:
+def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> dict[str, float]:
+    """One run of `robots` robots against a target; net: the switch (XdpConfig) of the xdp targets."""
     ctx = mp.get_context("spawn")
     out, stop = ctx.Queue(), ctx.Event()
-    proc = ctx.Process(target=TARGETS[target], args=(robots, out, stop), daemon=True)
+    args = (robots, out, stop) if net is None else (robots, out, stop, net)
+    proc = ctx.Process(target=TARGETS[target], args=args, daemon=True)
     proc.start()
     addr = out.get(timeout=60)
     try:
-        result = load(addr, robots, seconds)
+        result = load(addr, robots, seconds, bind="127.0.0.1" if net is None else net.host_addr)
     finally:
         stop.set()
-    if target.startswith("dataplane"):
+    if target.startswith(("dataplane", "xdp+", "xdp")) and target != "xdp-reflector":
         try:
             stats = out.get(timeout=30)
             result["update_ms"], result["hold_ms"] = stats.get("update_ms", []), stats.get("hold_ms", [])
@@ -294,7 +338,7 @@ def trial(target: str, robots: int, seconds: float = 2.0) -> dict[str, float]:
     return result
 
 
-def sustained(target: str, start: int, seconds: float, log: Any = None) -> dict[str, Any]:
+def sustained(target: str, start: int, seconds: float, log: Any = None, net: Any = None) -> dict[str, Any]:
     """The most status datagrams/s answered within the window: R doubles until a trial fails, then two
     bisections narrow it down.  A failed trial is run once more (this VM stalls for milliseconds now
     and then), so a rate counts when one of two trials passes."""
@@ -304,7 +348,7 @@ def sustained(target: str, start: int, seconds: float, log: Any = None) -> dict[
     def passes(r: int) -> bool:
         nonlocal best
         for _ in range(2):
-            t = trial(target, r, seconds)
+            t = trial(target, r, seconds, net)
             trials.append(t)
             if log:
                 log(t)
@@ -385,5 +429,106 @@ def format_result(result: dict[str, Any]) -> str:
         f"p99 {busy.get('p99_us', float('nan')):.0f} us "
         f"with vs {quiet.get('p99_us', float('nan')):.0f} us without "
         f"(ratio {busy.get('p99_us', float('nan')) / quiet.get('p99_us', float('nan')):.2f})"
+    )
+    return "\n".join(lines)
+
+
+# --- the XDP backend (--backend xdp) ------------------------------------------------------------
+
+
+def xdp_switch(cpu: int = -1) -> Any:
+    """The benchmark's own switch namespace (removed afterwards); cpu: where the program runs (-1:
+    on the CPU that sent the packet, the generator's)."""
+    from cell.config import XdpConfig
+
+    tag = f"cbx{os.getpid()}"[:12]
+    host, switch = "10.198.0.1", "10.198.0.2"
+    return XdpConfig(netns=tag, veth=tag, host_addr=host, switch_addr=switch, prefix=24, cpu=cpu)
+
+
+def run_xdp(seconds: float = 2.0, log: Any = None) -> dict[str, Any]:
+    """The XDP data plane next to the bare XDP reflector (same switch) and the numpy data plane (on
+    loopback, as the default cell runs it), under the same generator on core 0.  Throughput, latency
+    and updates with the switch's program on core 1 (RPS), as the numpy target has core 1; latency
+    once more with the program on the sender's core (cpu = -1, no cross-CPU hop).  Needs root, `ip`
+    and the built object (SwitchError says which)."""
+    from cell.dataplane.xdp.switch import switch_namespace
+
+    def trials(targets: tuple[str, ...], robots: int, secs: float, net: Any) -> list[dict[str, Any]]:
+        out = [trial(t, robots, secs, net) for t in targets]
+        for t in out if log else ():
+            log(t)
+        return out
+
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)  # (so the namespace is removed)
+    try:
+        net = xdp_switch(cpu=1)
+        with switch_namespace(net):
+            throughput = {t: sustained(t, 20, seconds, log, net) for t in ("xdp-reflector", "xdp")}
+            latency = [x for r in (10, 100, 300) for x in trials(("xdp",), r, seconds, net)]
+            updates = trials(("xdp", "xdp+updates"), 100, max(seconds, 3.5), net)
+        same_core = xdp_switch(cpu=-1)
+        with switch_namespace(same_core):
+            local = [x for r in (10, 100, 300) for x in trials(("xdp",), r, seconds, same_core)]
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    throughput["dataplane"] = sustained("dataplane", 20, seconds, log)
+    result: dict[str, Any] = {"throughput": throughput, "latency": latency, "updates": updates}
+    result["latency_same_core"] = local
+    result["summary"] = xdp_summary(result)
+    return result
+
+
+def _exit_on_sigterm(*_: Any) -> None:
+    raise SystemExit(143)
+
+
+def xdp_summary(result: dict[str, Any]) -> dict[str, float]:
+    """The figures issue 18 asks for, as flat keys."""
+
+    def best(name: str) -> float:
+        b = result["throughput"][name]["best"]
+        return float(b["rate"]) if b else 0.0
+
+    ref, xdp, numpy = best("xdp-reflector"), best("xdp"), best("dataplane")
+    out: dict[str, float] = {
+        "xdp_status_per_s": xdp,
+        "xdp_reflector_status_per_s": ref,
+        "numpy_status_per_s": numpy,
+        "xdp_of_reflector": xdp / ref if ref else 0.0,
+        "xdp_over_numpy": xdp / numpy if numpy else 0.0,
+    }
+    for key, trials in (("", result["latency"]), ("same_core_", result["latency_same_core"])):
+        for t in trials:
+            out[f"{key}p50_us_{t['robots']}"] = t.get("p50_us", float("nan"))
+            out[f"{key}p99_us_{t['robots']}"] = t.get("p99_us", float("nan"))
+            out[f"{key}on_time_{t['robots']}"] = t["on_time_fraction"]
+    quiet, busy = result["updates"]
+    ms, hold = busy.get("update_ms") or [float("nan")], busy.get("hold_ms") or [float("nan")]
+    out["update_ms_mean"], out["update_ms_max"] = float(np.mean(ms)), float(max(ms))
+    out["hold_ms_max"] = float(max(hold))
+    out["p99_us_updates"] = busy.get("p99_us", float("nan"))
+    out["p99_us_quiet"] = quiet.get("p99_us", float("nan"))
+    return out
+
+
+def format_xdp(result: dict[str, Any]) -> str:
+    s = result["summary"]
+    lines = ["status datagrams/s answered >= 99% within the 8 ms command window (generator on core 0):"]
+    ref, xdp, numpy = s["xdp_reflector_status_per_s"], s["xdp_status_per_s"], s["numpy_status_per_s"]
+    lines += [
+        f"  xdp-reflector: {ref:>10,.0f}   (bare XDP_TX: the switch's limit here)",
+        f"            xdp: {xdp:>10,.0f}   = {100 * s['xdp_of_reflector']:.0f}% of the reflector",
+        f"          numpy: {numpy:>10,.0f}   (xdp = {s['xdp_over_numpy']:.1f}x numpy)",
+        "status-to-command time, robots x 6 joints x 500 Hz, XDP backend, its program on core 1:",
+    ]
+    lines += [f"  {format_trial(t)}" for t in result["latency"]]
+    lines.append("  ... and on the sender's core (cpu = -1: no cross-CPU hop):")
+    lines += [f"  {format_trial(t)}" for t in result["latency_same_core"]]
+    lines.append(
+        f"updates under load (100 robots; 1,600 inserts + 10,000 deletes a second): "
+        f"{s['update_ms_mean']:.1f} ms per update (max {s['update_ms_max']:.1f}), the kernel's packet path "
+        f"held (gate closed) at most {s['hold_ms_max']:.3f} ms; p99 {s['p99_us_updates']:.0f} us with vs "
+        f"{s['p99_us_quiet']:.0f} us without"
     )
     return "\n".join(lines)

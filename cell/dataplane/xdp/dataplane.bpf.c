@@ -726,4 +726,23 @@ int gate(struct xdp_md *ctx)
 	return XDP_PASS;
 }
 
+/* The baseline the benchmark puts next to velocity_control: every datagram to the listen port sent
+ * straight back, untouched but for the addresses (this machine's XDP_TX limit). */
+SEC("xdp")
+int reflect(struct xdp_md *ctx)
+{
+	void *data = (void *)(long)ctx->data, *end = (void *)(long)ctx->data_end;
+	struct globals *g = globals_get();
+	struct ethhdr *eth = data;
+	if (!g || (void *)(eth + 1) > end || eth->h_proto != bpf_htons(ETH_P_IP))
+		return XDP_PASS;
+	struct iphdr *ip = (void *)(eth + 1);
+	if ((void *)(ip + 1) > end || ip->protocol != IPPROTO_UDP || ip->ihl != 5)
+		return XDP_PASS;
+	struct udphdr *udp = (void *)(ip + 1);
+	if ((void *)(udp + 1) > end || udp->dest != g->listen_port)
+		return XDP_PASS;
+	return answer(ctx);
+}
+
 char LICENSE[] SEC("license") = "Dual MIT/GPL";

@@ -135,6 +135,7 @@ class XdpProgram:
             self.globals = self._mmap("globals", GLOBALS)[0]
             self.prog_fd = self._prog("velocity_control")
             self.gate_fd = self._prog("gate")
+            self.reflect_fd = self._prog("reflect")
             self.counters_fd = bpf.bpf_map__fd(self._map("counters"))
             self.cpus = libbpf.check(bpf.libbpf_num_possible_cpus(), "counting CPUs")
         except BaseException:
@@ -144,6 +145,8 @@ class XdpProgram:
         g["n_bits"], g["joints"], g["max_joints"] = n_bits, joints, MAX_JOINTS
         g["entries_per_sign"], g["bank_size"] = self.eps, joints * 2 * self.eps
         self.gates = 0  # how often the control plane closed the gate (each a flip)
+        self.closed_ns: list[int] = []  # how long each closing lasted (recent ones)
+        self._closed_at = 0
 
     def _map(self, name: str) -> int:
         return libbpf.pointer(self._bpf.bpf_object__find_map_by_name(self.obj, name.encode()), f"map {name}")
@@ -175,6 +178,7 @@ class XdpProgram:
         nothing reads the tables; returns once no packet is still in the program."""
         self._gate(1)
         self.gates += 1
+        self._closed_at = time.perf_counter_ns()
         deadline = time.monotonic() + GATE_WAIT_S
         while self.globals["inflight"]:
             if time.monotonic() > deadline:
@@ -183,6 +187,8 @@ class XdpProgram:
 
     def open_gate(self) -> None:
         self._gate(0)
+        self.closed_ns.append(time.perf_counter_ns() - self._closed_at)
+        del self.closed_ns[:-4096]
 
     def _gate(self, op: int) -> None:
         verdict, _ = libbpf.test_run(self.gate_fd, bytes([op]) + bytes(63), 128)
@@ -205,11 +211,12 @@ class XdpProgram:
 
     # --- attaching -----------------------------------------------------------------------------
 
-    def attach(self, ifindex: int) -> None:
+    def attach(self, ifindex: int, reflect: bool = False) -> None:
         """Attach in generic (skb) mode, the mode veth and lo offer here, to an interface of the
-        calling thread's network namespace."""
+        calling thread's network namespace; reflect: the bare reflector instead (a benchmark's baseline)."""
         skb_mode = 1 << 1  # XDP_FLAGS_SKB_MODE
-        libbpf.check(self._bpf.bpf_xdp_attach(ifindex, self.prog_fd, skb_mode, None), "attaching XDP")
+        fd = self.reflect_fd if reflect else self.prog_fd
+        libbpf.check(self._bpf.bpf_xdp_attach(ifindex, fd, skb_mode, None), "attaching XDP")
         self.ifindex = ifindex
 
     def detach(self) -> None:
