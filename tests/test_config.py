@@ -260,3 +260,38 @@ def test_status_names_a_service_by_host_and_a_restart_counts_only_on_its_own() -
         "",
     )
     assert by["bus@a"].health == "missing"
+
+
+@pytest.mark.parametrize(
+    ("dataplane", "key", "problem"),
+    [
+        ({"backend": "xdp"}, "dataplane.listen", "switch_addr (10.199.0.2)"),
+        (
+            {"backend": "xdp", "listen": "10.199.0.2:50000", "xdp": {"switch_addr": "10.200.0.2"}},
+            "dataplane.listen",
+            "switch_addr (10.200.0.2)",
+        ),
+        (
+            {"backend": "xdp", "listen": "10.200.0.2:50000", "xdp": {"switch_addr": "10.200.0.2"}},
+            "dataplane.xdp.switch_addr",
+            "another address in 10.199.0.0/24",
+        ),
+        (
+            {"backend": "xdp", "listen": "10.199.0.2:50000", "egress": {"rate_mbps": 100.0}},
+            "dataplane.backend",
+            "no forwarding rules or egress model",
+        ),
+        ({"xdp": {"netns": "a name with spaces"}}, "dataplane.xdp.netns", "A-Z a-z 0-9"),
+        ({"backend": "ebpf"}, "dataplane.backend", "numpy"),
+    ],
+)
+def test_an_xdp_data_plane_that_cannot_work_is_refused(dataplane: dict, key: str, problem: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(overrides={"dataplane": dataplane})
+    assert key in str(info.value) and problem in str(info.value)
+
+
+def test_the_xdp_example_is_a_valid_cell() -> None:
+    config = load_config(Path(__file__).parent.parent / "examples" / "xdp.toml")
+    dp = config.dataplane
+    assert dp.backend == "xdp" and dp.listen.startswith(dp.xdp.switch_addr)

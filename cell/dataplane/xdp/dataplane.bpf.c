@@ -28,7 +28,7 @@
 
 #define MAX_JOINTS 12    /* values per TP (an entity's joints); [dataplane] max_joints must not exceed it */
 #define MAX_RECS 64      /* records in one datagram (a GSO batch); more: dropped, counted */
-#define MAX_ENTITIES 1024
+#define MAX_ENTITIES 4096
 #define NO_ROW (-1)
 #define REC_SIZE 24
 #define WORD 64
@@ -125,8 +125,6 @@ struct rec {                /* one record, host order */
 struct scratch {            /* per CPU: one datagram's records while they are handled */
 	__u8 wire[MAX_RECS * REC_SIZE];
 	struct rec r[MAX_RECS];
-	__u32 ecount[MAX_ENTITIES];
-	__u64 eserial[MAX_ENTITIES];
 	__u64 serial;
 	__s64 now;
 	__u32 n;
@@ -134,6 +132,12 @@ struct scratch {            /* per CPU: one datagram's records while they are ha
 	__u16 sport;
 	__u16 pad;
 	__u32 bad;
+};
+
+struct mark {               /* per CPU and entity: its records in the datagram being handled */
+	__u64 serial;           /* which datagram (scratch.serial) the count is of */
+	__u32 count;
+	__u32 pad;
 };
 
 struct loop {               /* what each bpf_loop body gets (its context must live on the stack) */
@@ -209,6 +213,13 @@ struct {
 	__type(key, __u32);
 	__type(value, struct scratch);
 } scratches SEC(".maps");
+
+struct {
+	__uint(type, BPF_MAP_TYPE_PERCPU_ARRAY);
+	__uint(max_entries, MAX_ENTITIES);
+	__type(key, __u32);
+	__type(value, struct mark);
+} marks SEC(".maps");
 
 static __always_inline void count(__u32 which, __u64 n)
 {
@@ -304,17 +315,24 @@ static __always_inline void drop(struct entity *e, __s64 now, __s8 why)
 	count(C_DROPPED, 1);
 }
 
+/* a bpf_loop index, its bound check kept on the register used to index (the verifier must see it) */
+static __always_inline __u64 bounded(__u32 i)
+{
+	__u64 k = i;
+	barrier_var(k);
+	return k;
+}
+
 /* --- parsing: host order, validity, senders -------------------------------------------------- */
 
 static long parse_one(__u32 i, void *ctx)
 {
 	struct scratch *s = ((struct loop *)ctx)->s;
-	__u64 k = i;
-	barrier_var(k);
+	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
 		return 1;
 	__u8 *w = &s->wire[k * REC_SIZE];
-	struct rec *r = &s->r[i & (MAX_RECS - 1)];
+	struct rec *r = &s->r[k];
 	r->robot = ((__u32)w[0] << 8) | w[1];
 	r->joint = w[2];
 	r->kind = w[3];
@@ -359,8 +377,7 @@ static long judge_one(__u32 i, void *ctx)
 	 * is stale (i < n: the watchdog rule over every record, then i >= n: the quiet rule) */
 	struct scratch *s = ((struct loop *)ctx)->s;
 	int quiet_pass = i >= s->n;
-	__u64 k = quiet_pass ? i - s->n : i;
-	barrier_var(k);
+	__u64 k = bounded(quiet_pass ? i - s->n : i);
 	if (k >= MAX_RECS)
 		return 1;
 	struct rec *r = &s->r[k];
@@ -427,37 +444,39 @@ static long step_one(__u32 i, void *ctx)
 static long count_one(__u32 i, void *ctx)
 {
 	struct scratch *s = ((struct loop *)ctx)->s;
-	__u64 k = i;
-	barrier_var(k);
+	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
 		return 1;
-	struct rec *r = &s->r[i & (MAX_RECS - 1)];
-	if (r->ent < 0 || r->ent >= MAX_ENTITIES)
+	struct rec *r = &s->r[k];
+	if (r->ent < 0)
 		return 0;
-	__u32 e = r->ent & (MAX_ENTITIES - 1);
-	if (s->eserial[e] != s->serial) {
-		s->eserial[e] = s->serial;
-		s->ecount[e] = 0;
+	__u32 e = r->ent;
+	struct mark *m = bpf_map_lookup_elem(&marks, &e);
+	if (!m)
+		return 0;
+	if (m->serial != s->serial) {
+		m->serial = s->serial;
+		m->count = 0;
 	}
-	s->ecount[e] += 1;
+	m->count += 1;
 	return 0;
 }
 
 static long ingress_one(__u32 i, void *ctx)
 {
 	struct scratch *s = ((struct loop *)ctx)->s;
-	__u64 k = i;
-	barrier_var(k);
+	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
 		return 1;
-	struct rec *r = &s->r[i & (MAX_RECS - 1)];
-	if (r->ent < 0 || r->ent >= MAX_ENTITIES)
+	struct rec *r = &s->r[k];
+	if (r->ent < 0)
 		return 0;
-	__u32 ek = r->ent & (MAX_ENTITIES - 1);
-	__u32 budget = s->ecount[ek];
-	if (!budget)  /* stepped at the entity's first record */
+	__u32 ek = r->ent;
+	struct mark *m = bpf_map_lookup_elem(&marks, &ek);
+	if (!m || m->serial != s->serial || !m->count)  /* stepped at the entity's first record */
 		return 0;
-	s->ecount[ek] = 0;
+	__u32 budget = m->count;
+	m->count = 0;
 	struct entity *e = bpf_map_lookup_elem(&entities, &ek);
 	if (!e)
 		return 0;
@@ -471,12 +490,11 @@ static long ingress_one(__u32 i, void *ctx)
 static long egress_one(__u32 i, void *ctx)
 {
 	struct scratch *s = ((struct loop *)ctx)->s;
-	__u64 k = i;
-	barrier_var(k);
+	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
 		return 1;
 	struct globals *g = globals_get();
-	struct rec *r = &s->r[i & (MAX_RECS - 1)];
+	struct rec *r = &s->r[k];
 	__u32 rk = r->robot;
 	struct robot *rb = bpf_map_lookup_elem(&robots, &rk);
 	struct status *st = bpf_map_lookup_elem(&status, &rk);
@@ -532,12 +550,11 @@ static long stop_one(__u32 i, void *ctx)
 {
 	/* robots under REG_stop: each velocity StopRamp closer to 0, from its joint's last status */
 	struct scratch *s = ((struct loop *)ctx)->s;
-	__u64 k = i;
-	barrier_var(k);
+	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
 		return 1;
 	struct globals *g = globals_get();
-	struct rec *r = &s->r[i & (MAX_RECS - 1)];
+	struct rec *r = &s->r[k];
 	__u32 rk = r->robot;
 	struct robot *rb = bpf_map_lookup_elem(&robots, &rk);
 	struct status *st = bpf_map_lookup_elem(&status, &rk);
@@ -564,11 +581,10 @@ static long write_one(__u32 i, void *ctx)
 {
 	/* the command into the datagram (kind and velocity), and remembered for held answers */
 	struct scratch *s = ((struct loop *)ctx)->s;
-	__u64 k = i;
-	barrier_var(k);
+	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
 		return 1;
-	struct rec *r = &s->r[i & (MAX_RECS - 1)];
+	struct rec *r = &s->r[k];
 	__u8 *w = &s->wire[k * REC_SIZE];
 	__u32 rk = r->robot;
 	struct status *st = bpf_map_lookup_elem(&status, &rk);
@@ -585,8 +601,7 @@ static long held_one(__u32 i, void *ctx)
 {
 	/* the tables are being flipped: answer with the joint's last command, touching nothing */
 	struct scratch *s = ((struct loop *)ctx)->s;
-	__u64 k = i;
-	barrier_var(k);
+	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
 		return 1;
 	__u8 *w = &s->wire[k * REC_SIZE];
