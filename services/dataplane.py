@@ -507,9 +507,6 @@ class XdpDataPlane(DataPlane):
         self.program.detach()
         self.program.close()
 
-    def handle(self) -> int:
-        return 0  # the kernel's
-
     async def run(self) -> None:
         await asyncio.Event().wait()  # the kernel answers; nothing to do here until cancelled
 

@@ -17,10 +17,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -54,13 +52,9 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
     ]
     overrides: dict[str, Any] = {"robots": robots, "services": {"run": ["bus", "dataplane", "robots"]}}
     if backend == "xdp":  # the data plane in a switch namespace of this run's own (the cell makes it)
-        from dataclasses import asdict
+        from cell.bench.dataplane import xdp_dataplane, xdp_switch
 
-        from cell.bench.dataplane import xdp_switch
-
-        net = replace(xdp_switch(), netns=f"cba{os.getpid()}"[:12], veth=f"cba{os.getpid()}"[:12])
-        dp = {"listen": f"{net.switch_addr}:50000", "backend": "xdp", "xdp": asdict(net)}
-        overrides["dataplane"] = dp
+        overrides["dataplane"] = xdp_dataplane(xdp_switch(tag="cba"))
     kin = Kinematics()
     stop_err: list[float] = []
     path_joint: list[np.ndarray] = []

@@ -53,8 +53,6 @@ def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False, n
     """The data plane service's packet path: numpy here, or (net: the switch's XdpConfig) the XDP
     program attached in the switch's namespace, this process its control plane."""
     pin(1)
-    from dataclasses import asdict
-
     from cell.config import load_config
     from cell.dataplane.tables import TP, TPBatch
     from cell.dataplane.wire import encode_keys, encode_tps
@@ -68,8 +66,7 @@ def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False, n
         cfg = load_config(overrides={"robots": rob, "dataplane": {"listen": f"127.0.0.1:{port}"}})
         plane = DataPlane(cfg)
     else:
-        dp = {"listen": f"{net.switch_addr}:{XDP_PORT}", "backend": "xdp", "xdp": asdict(net)}
-        plane = XdpDataPlane(load_config(overrides={"robots": rob, "dataplane": dp}))
+        plane = XdpDataPlane(load_config(overrides={"robots": rob, "dataplane": xdp_dataplane(net)}))
     # every robot heads for a TP 0.1 rad away, forever (a self-loop): the full egress path for each packet
     plane.tables.insert([TP(r, 1, 1, 1.0, [0.1] * 6, [0.0] * 6) for r in range(1, robots + 1)])
     for r in range(1, robots + 1):
@@ -136,7 +133,6 @@ def _xdp_reflector_target(robots: int, out: Any, stop: Any, net: Any) -> None:
         in_namespace(net.netns, lambda: program.attach(socket.if_nametoindex(f"{net.veth}1"), reflect=True))
         out.put((net.switch_addr, XDP_PORT))
         stop.wait()
-        out.put({"packets": 0})
     finally:
         program.detach()
         program.close()
@@ -326,7 +322,7 @@ def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> di
         result = load(addr, robots, seconds, bind="127.0.0.1" if net is None else net.host_addr)
     finally:
         stop.set()
-    if target.startswith(("dataplane", "xdp+", "xdp")) and target != "xdp-reflector":
+    if target.startswith(("dataplane", "xdp")) and target != "xdp-reflector":
         try:
             stats = out.get(timeout=30)
             result["update_ms"], result["hold_ms"] = stats.get("update_ms", []), stats.get("hold_ms", [])
@@ -436,14 +432,21 @@ def format_result(result: dict[str, Any]) -> str:
 # --- the XDP backend (--backend xdp) ------------------------------------------------------------
 
 
-def xdp_switch(cpu: int = -1) -> Any:
-    """The benchmark's own switch namespace (removed afterwards); cpu: where the program runs (-1:
-    on the CPU that sent the packet, the generator's)."""
+def xdp_switch(cpu: int = -1, tag: str = "cbx") -> Any:
+    """A benchmark's own switch namespace, named tag + pid (removed afterwards); cpu: where the
+    program runs (-1: on the CPU that sent the packet, the generator's)."""
     from cell.config import XdpConfig
 
-    tag = f"cbx{os.getpid()}"[:12]
+    name = f"{tag}{os.getpid()}"[:12]
     host, switch = "10.198.0.1", "10.198.0.2"
-    return XdpConfig(netns=tag, veth=tag, host_addr=host, switch_addr=switch, prefix=24, cpu=cpu)
+    return XdpConfig(netns=name, veth=name, host_addr=host, switch_addr=switch, prefix=24, cpu=cpu)
+
+
+def xdp_dataplane(net: Any) -> dict[str, Any]:
+    """[dataplane] overrides for the XDP backend on this switch (listen on its end, XDP_PORT)."""
+    from dataclasses import asdict
+
+    return {"listen": f"{net.switch_addr}:{XDP_PORT}", "backend": "xdp", "xdp": asdict(net)}
 
 
 def run_xdp(seconds: float = 2.0, log: Any = None) -> dict[str, Any]:

@@ -91,8 +91,8 @@ class XdpPipeline(Pipeline):
         self.program = tables.program
         super().__init__(tables, constants)
         rb = self.program.robots
-        _rebind(self, {"reg_stop": rb["stop"], "stale_periods": rb["stale_periods"]})
-        _rebind(self, {"quiet_ns": rb["quiet_ns"]})
+        views = {"reg_stop": rb["stop"], "stale_periods": rb["stale_periods"], "quiet_ns": rb["quiet_ns"]}
+        _rebind(self, views)
 
     @staticmethod
     def check_fits(program: XdpProgram, constants: ControlConstants) -> None:

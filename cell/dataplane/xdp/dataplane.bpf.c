@@ -45,7 +45,7 @@
 enum {
 	C_PACKETS, C_HOLDS, C_STEPS, C_RESUBMITS, C_STALLS, C_LIMITED, C_STOP_COMMANDS, C_DROPPED,
 	C_REJ_LENGTH, C_REJ_KIND, C_REJ_JOINT, C_REJ_SPOOFED, C_REJ_BATCH, C_HELD, C_COMMANDS_OUT,
-	C_DATAGRAMS, C_PASSED, C_COUNT
+	C_DATAGRAMS, C_COUNT
 };
 
 struct robot {              /* per robot id */
@@ -485,21 +485,45 @@ static long ingress_one(__u32 i, void *ctx)
 	return 0;
 }
 
-/* --- Algorithm 2: every record a command -------------------------------------------------------- */
+/* record i of the datagram being handled, with its robot's registers (the shared start of the
+ * Algorithm 2 bodies); 0: none (past the records, or a lookup failed) */
+struct at {
+	struct scratch *s;
+	struct globals *g;
+	struct rec *r;
+	struct robot *rb;
+	struct status *st;
+};
 
-static long egress_one(__u32 i, void *ctx)
+static __always_inline int record_at(void *ctx, __u32 i, struct at *a)
 {
 	struct scratch *s = ((struct loop *)ctx)->s;
 	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
-		return 1;
-	struct globals *g = globals_get();
+		return 0;
 	struct rec *r = &s->r[k];
 	__u32 rk = r->robot;
+	struct globals *g = globals_get();
 	struct robot *rb = bpf_map_lookup_elem(&robots, &rk);
 	struct status *st = bpf_map_lookup_elem(&status, &rk);
 	if (!g || !rb || !st)
+		return 0;
+	*a = (struct at){.s = s, .g = g, .r = r, .rb = rb, .st = st};
+	return 1;
+}
+
+/* --- Algorithm 2: every record a command -------------------------------------------------------- */
+
+static long egress_one(__u32 i, void *ctx)
+{
+	struct at a;
+	if (!record_at(ctx, i, &a))
 		return 1;
+	struct scratch *s = a.s;
+	struct globals *g = a.g;
+	struct rec *r = a.r;
+	struct robot *rb = a.rb;
+	struct status *st = a.st;
 	__s32 row = NO_ROW;
 	int stalled = 0;
 	if (r->ent != NO_ROW) {
@@ -549,17 +573,12 @@ static long egress_one(__u32 i, void *ctx)
 static long stop_one(__u32 i, void *ctx)
 {
 	/* robots under REG_stop: each velocity StopRamp closer to 0, from its joint's last status */
-	struct scratch *s = ((struct loop *)ctx)->s;
-	__u64 k = bounded(i);
-	if (k >= MAX_RECS)
-		return 1;
-	struct globals *g = globals_get();
-	struct rec *r = &s->r[k];
-	__u32 rk = r->robot;
-	struct robot *rb = bpf_map_lookup_elem(&robots, &rk);
-	struct status *st = bpf_map_lookup_elem(&status, &rk);
-	if (!g || !rb || !st || !rb->stop)
+	struct at a;
+	if (!record_at(ctx, i, &a) || !a.rb->stop)
 		return 0;
+	struct globals *g = a.g;
+	struct rec *r = a.r;
+	struct status *st = a.st;
 	/* (indexes are u64 and pass barrier_var: the verifier must see the bound on the register used) */
 	__u64 j = (__u32)r->joint < g->max_joints ? (__u32)r->joint : g->max_joints - 1;
 	__u64 local = (__u32)r->joint < g->joints ? (__u32)r->joint : g->joints - 1;

@@ -21,10 +21,8 @@ from cell.dataplane.xdp import libbpf
 from cell.dataplane.xdp.libbpf import BpfError
 
 OBJECT = Path(__file__).with_name("dataplane.bpf.o")
-SOURCE = Path(__file__).with_name("dataplane.bpf.c")
 MAX_JOINTS = 12  # the C program's TP width
 MAX_ENTITIES = 4096
-MAX_RECS = 64
 XDP_DROP, XDP_PASS, XDP_TX = 1, 2, 3
 GATE_WAIT_S = 0.05  # a packet in flight takes microseconds; this long means something is wrong
 
@@ -103,7 +101,6 @@ COUNTERS = (
     "held",
     "commands_out",
     "datagrams",
-    "passed",
 )
 
 

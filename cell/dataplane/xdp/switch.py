@@ -62,8 +62,10 @@ def switch_namespace(cfg: XdpConfig) -> Iterator[None]:
     if problem := missing():
         raise SwitchError(f'[dataplane] backend = "xdp" cannot run: {problem}')
     if os.path.exists(f"/var/run/netns/{cfg.netns}"):
-        raise SwitchError(f"network namespace {cfg.netns!r} exists: another cell with the XDP backend? "
-                          f"(`ip netns del {cfg.netns}` if not, or set [dataplane.xdp] netns)")
+        raise SwitchError(
+            f"network namespace {cfg.netns!r} exists: another cell with the XDP backend? "
+            f"(`ip netns del {cfg.netns}` if not, or set [dataplane.xdp] netns)"
+        )
     host, sw = f"{cfg.veth}0", f"{cfg.veth}1"
     try:
         _ip("netns", "add", cfg.netns)
