@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import asyncio
 
-from cell.service import ServiceContext
+from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import bus_pb2
 
 
-async def echo(ctx: ServiceContext) -> None:
-    """Answers echo.echo with its request, and republishes test/in/X on test/out/X."""
+async def _echo(ctx: ServiceContext) -> None:
+    """Answers echo.echo with its request, and republishes test/in/X on test/out/X; ready (health
+    ok) only once both are live, so a test that waits for ok never races the subscriptions."""
 
     def handle(req: bus_pb2.BenchPayload) -> bus_pb2.BenchPayload:
         ctx.counters["echo.requests"] = ctx.counters.get("echo.requests", 0) + 1
@@ -17,12 +18,16 @@ async def echo(ctx: ServiceContext) -> None:
 
     await ctx.bus.serve("echo", {"echo": (bus_pb2.BenchPayload, handle)})
     sub = await ctx.bus.subscribe("test/in/")
+    ctx.ready()
     while True:
         for env in await sub.recv_batch():
             ctx.bus.publish(
                 "test/out/" + env.topic.removeprefix("test/in/"), env.decode(bus_pb2.BenchPayload)
             )
             ctx.counters["echo.republished"] = ctx.counters.get("echo.republished", 0) + 1
+
+
+echo = ServiceSpec("echo", _echo, "echo requests and test/in/ messages", ready_on_start=False)
 
 
 async def crasher(ctx: ServiceContext) -> None:
