@@ -88,6 +88,30 @@ def test_commands_execute_at_the_window_end_latest_first(plant) -> None:
     assert [d.velocity for d in last] == pytest.approx([0.3] * 6, abs=1e-6)
 
 
+def test_an_answer_to_the_status_that_ends_a_window_counts_in_the_next_window(plant) -> None:
+    """A data plane in the kernel answers within microseconds, before the tick that sent the status
+    takes its commands: such an answer must miss the window ending then, as on a real arm."""
+    dp, make = plant
+    g = make()
+    ticks(g, 4)  # ticks 0-3; tick 4 ends the first window
+    command_all(dp, g, 0, [0.1] * 6)  # in time for it
+
+    def answering_clock() -> float:  # called as the status goes out: answer it at once
+        if not answered:
+            answered.append(True)
+            command_all(dp, g, 0, [0.5] * 6)
+        return 0.0
+
+    answered: list[bool] = []
+    g.tick(deadline=float("inf"), clock=answering_clock)  # tick 4
+    assert answered and g.counters.commands == 12  # both batches were taken in this tick
+    assert g.drives.target[0].tolist() == pytest.approx([0.1] * 6, abs=1e-7)
+    ticks(g, 3)  # ticks 5-7: the answer waits for its window
+    assert g.drives.target[0].tolist() == pytest.approx([0.1] * 6, abs=1e-7)
+    ticks(g, 1)  # tick 8
+    assert g.drives.target[0].tolist() == pytest.approx([0.5] * 6, abs=1e-7)
+
+
 def test_malformed_and_foreign_datagrams_are_counted_and_dropped(plant) -> None:
     dp, make = plant
     g = make()

@@ -4,7 +4,10 @@ One tick per status period, on absolute deadlines (no accumulating sleep
 error).  Each tick sends every joint's status (the state at that deadline)
 from its robot's own socket, drains the commands that arrived, ends a command
 window when one is due (the kept commands execute) and steps the backend to
-the next deadline.  Nothing here knows about the bus: the robots service publishes what
+the next deadline.  A command the kernel stamped after this tick's status went
+out belongs to the next window whenever it came (it may answer that very
+status, as a data plane in the kernel does within microseconds; on a real arm
+such an answer always misses the window that ends as the status leaves).  Nothing here knows about the bus: the robots service publishes what
 the group reports, and `cell bench robots` drives groups bare.
 """
 
@@ -122,7 +125,7 @@ class RobotGroup:
         self.socks = []
         try:
             for _ in robots:
-                self.socks.append(udp.open_socket(host))
+                self.socks.append(udp.open_socket(host, timestamps=True))
         except BaseException:
             self.close()
             raise
@@ -146,6 +149,8 @@ class RobotGroup:
         # fault injection (`cell chaos`): a robot silent until this monotonic time sends no status and
         # takes no command, as with its cable pulled; its watchdog goes on running
         self.silent_until = np.zeros(self.n)
+        # commands that came after this tick's status left (see receive()): (rows, joints, velocities)
+        self.later: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def silence(self, robot_id: int, seconds: float) -> bool:
         """Make one robot stop answering for `seconds`; False if it is not in this group."""
@@ -166,17 +171,20 @@ class RobotGroup:
 
     # --- one tick --------------------------------------------------------------------------
 
-    def receive(self) -> int:
+    def receive(self, cutoff_ns: int = 0) -> int:
         """Take the commands waiting; count and drop what is malformed or foreign.
 
         Each readable socket is drained (commands sent one by one must all land
         in this window; a flood is capped at MAX_READS a socket a tick, the rest
         waits for the next tick), then one vectorised pass checks everything.
+        Commands stamped after cutoff_ns (CLOCK_REALTIME; 0: none) are kept in
+        `self.later` for tick() to give the drives once the window has ended.
         """
         size = datagram.SIZE
         chunks: list[bytes] = []
         owners: list[int] = []
         counts: list[int] = []
+        stamps: list[int] = []
         rejected = self.counters.rejected
         socks, row_of_fd = self.socks, self.row_of_fd
         for fd, _ in self.poller.poll(0):
@@ -192,10 +200,12 @@ class RobotGroup:
                     chunks.append(good)
                     owners.append(row)
                     counts.append(len(good) // size)
+                    stamps.append(got[3])
         if not chunks:
             return 0
         recs = datagram.view(b"".join(chunks))
         rows = np.repeat(np.array(owners), counts)
+        late = np.repeat(np.array(stamps) > cutoff_ns, counts) if cutoff_ns else None
         bad_kind = recs["kind"] != _COMMAND
         bad_robot = ~bad_kind & (recs["robot_id"] != self.ids[rows])
         bad_joint = ~bad_kind & ~bad_robot & (recs["joint_id"] >= self.dof)
@@ -206,11 +216,18 @@ class RobotGroup:
             rejected["robot"] += int(bad_robot.sum())
             rejected["joint"] += int(bad_joint.sum())
             recs, rows = recs[ok], rows[ok]
+            late = None if late is None else late[ok]
         if n_ok and self.silent_until.any():  # (a silent robot hears nothing)
             heard = self.silent_until[rows] <= time.monotonic()
             recs, rows, n_ok = recs[heard], rows[heard], int(heard.sum())
+            late = None if late is None else late[heard]
         if n_ok:
-            self.drives.command(rows, recs["joint_id"].astype(np.int64), datagram.velocities(recs))
+            joints, velocities = recs["joint_id"].astype(np.int64), datagram.velocities(recs)
+            if late is not None and late.any():
+                self.later = (rows[late], joints[late], velocities[late])
+                now = ~late
+                rows, joints, velocities = rows[now], joints[now], velocities[now]
+            self.drives.command(rows, joints, velocities)
             self.counters.commands += n_ok
         return n_ok
 
@@ -224,8 +241,9 @@ class RobotGroup:
         in are taken, a window ends if one is due, and the robots move on to the next
         deadline, `periods` periods later if ticks were missed (they move for all of it).
         """
+        cutoff_ns = time.time_ns()  # (the kernel stamps datagrams in CLOCK_REALTIME)
         self._send(deadline, clock)
-        self.receive()
+        self.receive(cutoff_ns)
         stopping = resuming = np.empty(0, np.int64)
         last, self.tick_no = self.tick_no, self.tick_no + periods
         # windows end at periods W, 2W, ... (W status periods a window); one may have ended since last
@@ -247,6 +265,9 @@ class RobotGroup:
             left -= chunk
             more, _ = self.drives.end_window()
             stopping = np.union1d(stopping, more)
+        if self.later is not None:  # the answers to this tick's status: the next window's
+            self.drives.command(*self.later)
+            self.later = None
         self.counters.protective_stops += stopping.size
         self.counters.resumes += resuming.size
         self.backend.step(self.period * left)
