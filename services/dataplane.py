@@ -542,6 +542,7 @@ class XdpDataPlane(DataPlane):
         out.update({n: k[n] for n in k if n.startswith("rejected.")})
         out["xdp.held"], out["xdp.datagrams"] = k["held"], k["datagrams"]
         out["xdp.gates"] = self.program.gates
+        out["xdp.gate_us_max"] = max(self.program.closed_ns, default=0) / 1e3  # (the recent 4,096)
         return out
 
 

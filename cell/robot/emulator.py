@@ -7,8 +7,9 @@ window when one is due (the kept commands execute) and steps the backend to
 the next deadline.  A command the kernel stamped after this tick's status went
 out belongs to the next window whenever it came (it may answer that very
 status, as a data plane in the kernel does within microseconds; on a real arm
-such an answer always misses the window that ends as the status leaves).  Nothing here knows about the bus: the robots service publishes what
-the group reports, and `cell bench robots` drives groups bare.
+such an answer always misses the window that ends as the status leaves).
+Nothing here knows about the bus: the robots service publishes what the group
+reports, and `cell bench robots` drives groups bare.
 """
 
 from __future__ import annotations
