@@ -13,6 +13,7 @@ import select
 import socket
 import struct
 import subprocess
+import threading
 
 import numpy as np
 import pytest
@@ -188,6 +189,42 @@ def test_random_tables_and_statuses_give_bit_identical_commands_and_registers(se
         # the stream exercised what it is meant to: steps, resubmissions, limits, stalls, drops, stops
         assert stepped > 100 and c.resubmits > 0 and limited > 0 and c.stalls > 0
         assert c.dropped > 0 and c.stop_commands > 0 and c.holds > 0
+    finally:
+        pair.close()
+
+
+def test_a_real_time_control_plane_holds_the_gate_at_a_priority_ceiling() -> None:
+    """While the gate is closed the packet path waits on its holder: the holder (a SCHED_FIFO
+    thread, as the dataplane process runs) is raised above anything else on its core, and gets its
+    own priority back when it opens; statuses meanwhile are answered without the tables."""
+    rng = np.random.default_rng(4)
+    pair = Pair(random_constants(rng))
+    seen: dict[str, object] = {}
+
+    def control_plane() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+            pair.program.close_gate()
+            seen["inside"] = os.sched_getparam(0).sched_priority
+            verdict, _ = pair.program.run(frame(statuses(rng, 1, [0, 1], 2)))
+            seen["verdict"] = verdict
+            pair.program.open_gate()
+            seen["after"] = os.sched_getparam(0).sched_priority
+        except BaseException as exc:
+            seen["error"] = exc
+
+    try:
+        load_random_trajectories(pair, rng, 1_000_000_000)
+        gates, held = pair.program.gates, pair.program.counters()["held"]
+        thread = threading.Thread(target=control_plane)
+        thread.start()
+        thread.join(10)
+        assert "error" not in seen, seen.get("error")
+        assert seen["inside"] == os.sched_get_priority_max(os.SCHED_FIFO) - 1
+        assert seen["after"] == 10
+        assert seen["verdict"] == xdp.XDP_TX
+        assert pair.program.counters()["held"] == held + 2  # both records answered at the gate
+        assert pair.program.gates == gates + 1
     finally:
         pair.close()
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import mmap
+import os
 import time
 from pathlib import Path
 
@@ -144,6 +145,7 @@ class XdpProgram:
         self.gates = 0  # how often the control plane closed the gate (each a flip)
         self.closed_ns: list[int] = []  # how long each closing lasted (recent ones)
         self._closed_at = 0
+        self._priority: int | None = None  # the thread's own while it holds the gate at the ceiling
 
     def _map(self, name: str) -> int:
         return libbpf.pointer(self._bpf.bpf_object__find_map_by_name(self.obj, name.encode()), f"map {name}")
@@ -172,20 +174,49 @@ class XdpProgram:
 
     def close_gate(self) -> None:
         """From now until open_gate(), statuses are answered with each joint's last command and
-        nothing reads the tables; returns once no packet is still in the program."""
-        self._gate(1)
+        nothing reads the tables; returns once no packet is still in the program.
+
+        A real-time control plane holds the gate at a priority ceiling (just under the kernel's
+        own top), so that a higher-priority process on its core (the robots) cannot stretch a
+        flip of tens of microseconds into milliseconds of held statuses (a priority inversion:
+        the packet path waits on the gate's holder)."""
+        self._raise_priority()
+        try:
+            self._gate(1)
+        except BaseException:
+            self._restore_priority()
+            raise
         self.gates += 1
         self._closed_at = time.perf_counter_ns()
         deadline = time.monotonic() + GATE_WAIT_S
         while self.globals["inflight"]:
             if time.monotonic() > deadline:
                 self._gate(0)
+                self._restore_priority()
                 raise BpfError(f"a packet stayed in the XDP program for {GATE_WAIT_S * 1e3:.0f} ms")
 
     def open_gate(self) -> None:
-        self._gate(0)
-        self.closed_ns.append(time.perf_counter_ns() - self._closed_at)
-        del self.closed_ns[:-4096]
+        try:
+            self._gate(0)
+            self.closed_ns.append(time.perf_counter_ns() - self._closed_at)
+            del self.closed_ns[:-4096]
+        finally:
+            self._restore_priority()
+
+    def _raise_priority(self) -> None:
+        self._priority = None
+        with contextlib.suppress(OSError, AttributeError):
+            policy = os.sched_getscheduler(0)
+            if policy in (os.SCHED_FIFO, os.SCHED_RR):
+                was = os.sched_getparam(0).sched_priority
+                os.sched_setparam(0, os.sched_param(max(was, os.sched_get_priority_max(policy) - 1)))
+                self._priority = was
+
+    def _restore_priority(self) -> None:
+        if self._priority is not None:
+            with contextlib.suppress(OSError):
+                os.sched_setparam(0, os.sched_param(self._priority))
+            self._priority = None
 
     def _gate(self, op: int) -> None:
         verdict, _ = libbpf.test_run(self.gate_fd, bytes([op]) + bytes(63), 128)
