@@ -9,6 +9,7 @@ periods have elapsed, so a late tick knows exactly how much it missed.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ctypes
 import ctypes.util
 import os
@@ -119,3 +120,30 @@ class PeriodicTimer:
                 self._loop.remove_reader(self._fd)
             os.close(self._fd)
             self._fd = -1
+
+
+class Alarm:
+    """A one-shot timerfd on CLOCK_MONOTONIC for blocking epoll loops (Python's epoll waits in
+    whole milliseconds): set(ns) arms it for an absolute time, its fd turns readable then."""
+
+    def __init__(self) -> None:
+        if _LIBC is None:
+            raise OSError("timerfd is not available here")
+        self.fd = _LIBC.timerfd_create(CLOCK_MONOTONIC, TFD_NONBLOCK | TFD_CLOEXEC)
+        if self.fd < 0:
+            raise OSError(ctypes.get_errno(), "timerfd_create")
+
+    def set(self, at_ns: int) -> None:
+        spec = _Itimerspec(_ts(0), _ts(max(1, at_ns)))
+        if _LIBC.timerfd_settime(self.fd, TFD_TIMER_ABSTIME, ctypes.byref(spec), None) != 0:
+            raise OSError(ctypes.get_errno(), "timerfd_settime")
+
+    def clear(self) -> None:
+        """Take the expiry (the fd is readable until then)."""
+        with contextlib.suppress(BlockingIOError):
+            os.read(self.fd, 8)
+
+    def close(self) -> None:
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1

@@ -271,13 +271,19 @@ async def test_the_snp_service_answers_about_a_moving_robot(start_cell) -> None:
         assert answered > 250, (answered, denied)
 
 
-def test_the_modular_robot_cycle_runs_and_accounts_for_every_query() -> None:
-    from cell.bench.snp import trial
+def test_the_modular_robot_bench_trial_accounts_for_every_query() -> None:
+    import random
 
-    r = trial(slaves=2, seconds=0.5, budget_ns=1_000_000)
-    assert r["cycles"] == 2 * 500  # every cycle of every slave ran (a miss uses a guess, never stops it)
-    m = r["master"]
-    assert m["queries"] == 2 * r["cycles"]  # two queries a cycle, none retried
-    denied = sum(v for k, v in m.items() if k.startswith("denied."))
-    assert m["replies"] + denied == m["queries"]  # each answered or denied
-    assert 0 <= r["miss_rate"] <= 1 and r["sync_offset_us_max"] < 1000  # one host: the true offset is 0
+    from cell.bench.snp import _chain, cycle_figures, trial
+
+    r = trial(_chain(2, "snp", random.Random(3)), seconds=1.5)
+    f = cycle_figures(r)
+    assert {m["module_id"] for m in r["modules"]} == {101, 102}
+    assert sorted(m["joint"] for m in r["modules"]) == [0, 1]  # configured by the chain
+    assert f["cycles"] > 500 and 0 <= f["missed_pct"] <= 100
+    h = r["master"]["handler"]
+    denied = sum(v for k, v in h.items() if k.startswith("denied."))
+    ran = sum(len(m["cycles"]) for m in r["modules"])
+    assert h["replies"] + denied == h["queries"]  # each answered or denied, none left
+    assert h["queries"] >= 2 * ran - 4  # two queries a cycle (a miss is not retried)
+    assert f["tsp_offset_us_max"] < 2000  # the modules started up to 2 ms off

@@ -1,93 +1,259 @@
-"""`cell bench snp`: the modular-robot control cycle over SnP-MrT (cell.snp.cycle).
+"""`cell bench snp`: the SpW-SnP-MR modular robot (cell.snp.modular) on UDP, in one run:
 
-A master process and N slave processes (one per joint) run the A/B/C/D
-exchange at 1 kHz for a few seconds; printed: the cycle time (both queries
-of a slave, from T1 to the second answer) p50/p99, the deadline-miss rate,
-the clock offset each slave reached with SnP-TSP, next to the proposal's
-budget of 0.3 ms per cycle for a six-joint robot.  Baseline in the same run:
-one slave alone.
+- cycle: a master and N joint modules ([A, B] and [C, D] every 1 ms, time-bounded queries),
+  the modules' clocks off the master's by up to 2 ms and 50 ppm and servoed by SnP-TSP;
+- rmap: the same exchange as acknowledged RMAP writes with a fixed timeout and one retry
+  (the slides' baseline: 8 T_M a cycle against 4 T_M);
+- loss: both again with a share of the datagrams lost on the way;
+- plug: N-1 modules running, the Nth plugged in while the cycle runs (found, configured,
+  included), then one pulled out (reported silent, excluded, the cycle going on with guesses
+  for it) and plugged back.
+
+The master is one process (core 0), the modules another (core 1, one socket, address and
+clock each), SCHED_FIFO where allowed.
 """
 
 from __future__ import annotations
 
-import asyncio
 import multiprocessing as mp
+import random
+import socket
+import time
 from typing import Any
 
 import numpy as np
 
-from cell import aio
+WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settles meanwhile
+MODULE0 = 101
 
 
-def _master(joints: int, port_out: Any, stop: Any, out: Any) -> None:
-    from cell.bench import pin
-    from cell.snp.cycle import run_master
-
-    pin(0)
-    out.put(aio.run(run_master(joints, port_out, stop)))
-
-
-def _slave(joint: int, port: int, seconds: float, budget_ns: int, out: Any) -> None:
-    from cell.snp.cycle import run_slave
-
-    out.put((joint, aio.run(run_slave(joint, port, seconds, budget_ns))))
+def _free_ports(n: int) -> list[int]:
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
-def trial(slaves: int, seconds: float, budget_ns: int) -> dict[str, Any]:
-    ctx = mp.get_context("spawn")
-    port_q, out, stop = ctx.Queue(), ctx.Queue(), ctx.Event()
-    master = ctx.Process(target=_master, args=(slaves, port_q, stop, out), daemon=True)
-    master.start()
-    port = port_q.get(timeout=30)
-    procs = [
-        ctx.Process(target=_slave, args=(j, port, seconds, budget_ns, out), daemon=True)
-        for j in range(slaves)
-    ]
-    for p in procs:
-        p.start()
-    results = [out.get(timeout=seconds + 60) for _ in procs]
-    stop.set()
-    counters = out.get(timeout=30)
-    for p in [*procs, master]:
-        p.join(10)
-    cycles = np.concatenate([np.array(r["cycles"]) for _, r in results]) / 1e3  # us
-    n = sum(len(r["cycles"]) for _, r in results)
-    missed = sum(r["misses"]["ab"] + r["misses"]["cd"] for _, r in results)
-    return {
-        "slaves": slaves,
-        "cycles": n,
-        "cycle_p50_us": float(np.median(cycles)),
-        "cycle_p99_us": float(np.percentile(cycles, 99)),
-        "miss_rate": missed / max(1, 2 * n),
-        "sync_offset_us_max": max(abs(r["offset_ns"]) for _, r in results) / 1e3,
-        "sync_delay_us_max": max(r["delay_ns"] for _, r in results) / 1e3,
-        "budget_us": budget_ns / 1e3,
-        "master": {k: float(v) for k, v in counters.items()},
-    }
+def _place(core: int) -> None:
+    from cell.sched import place
+
+    place([core], 80, -10)
 
 
-def run(slaves: int = 6, seconds: float = 3.0, budget_ns: int = 1_000_000) -> dict[str, Any]:
-    return {"baseline": trial(1, seconds, budget_ns), "robot": trial(slaves, seconds, budget_ns)}
+def _master(ports: list[int], seconds: float, loss: float, port_q: Any, out: Any) -> None:
+    from cell.snp.modular import CycleConfig, Master
+    from cell.snp.runner import open_udp, serve_master
 
-
-def format_result(r: dict[str, Any]) -> str:
-    def line(t: dict[str, Any]) -> str:
-        return (
-            f"  {t['slaves']} slave(s), {t['cycles']} cycles at 1 kHz: cycle p50 {t['cycle_p50_us']:.0f} us, "
-            f"p99 {t['cycle_p99_us']:.0f} us; {100 * t['miss_rate']:.2f}% of queries missed their "
-            f"{t['budget_us']:.0f} us deadline (a guess was used); SnP-TSP offset error <= "
-            f"{t['sync_offset_us_max']:.1f} us (round trip {t['sync_delay_us_max']:.0f} us)"
-        )
-
-    return "\n".join(
-        [
-            "modular-robot cycle over SnP-MrT (two time-bounded queries per joint per cycle); "
-            "the proposal's budget: 300 us per cycle for six joints",
-            line(r["baseline"]),
-            line(r["robot"]),
-        ]
+    _place(0)
+    sock = open_udp()
+    master = Master([("127.0.0.1", p) for p in ports], CycleConfig(), time.monotonic_ns)
+    port_q.put(sock.getsockname()[1])
+    until = time.monotonic() + seconds
+    link = serve_master(master, sock, lambda: time.monotonic() > until, loss)
+    sock.close()
+    out.put(
+        {
+            "counters": dict(master.counters),
+            "handler": {k: int(v) for k, v in master.handler.counters.items()},
+            "rmap": {
+                **master.rmap_init.counters,
+                **{f"target.{k}": v for k, v in master.rmap_target.counters.items()},
+            },
+            "events": list(master.events),
+            "lost_on_link": link.lost,
+        }
     )
 
 
-if __name__ == "__main__":  # pragma: no cover
-    print(format_result(asyncio.run(asyncio.to_thread(run))))
+def _modules(slots: list[dict], seconds: float, loss: float, out: Any) -> None:
+    from cell.snp.runner import Slot, run_modules
+
+    _place(1)
+    done = run_modules([Slot(**s) for s in slots], seconds, loss)
+    res = []
+    for s in done:
+        m = s.module
+        if m is None:
+            continue
+        cycles = np.array(m.cycles, np.int64).reshape(-1, 3)
+        res.append(
+            {
+                "module_id": s.module_id,
+                "joint": m.joint,
+                "plugged_at": s.plugged_at,
+                "unplug_s": s.unplug_s,
+                "cycles": cycles,
+                "missed": dict(m.missed),
+                "overruns": m.overruns,
+                "clock_errors": np.array(s.clock_errors, np.int64),
+                "lost_on_link": s.link.lost if s.link else 0,
+                "rmap": dict(m.rmap_init.counters) if m.rmap_init else {},
+            }
+        )
+    out.put(res)
+
+
+def _chain(n: int, transport: str, rng: random.Random, **extra: Any) -> list[dict]:
+    """n modules in a chain on the base plate, each with its own clock error."""
+    return [
+        {
+            "module_id": MODULE0 + i,
+            "plugged_to": 0 if i == 0 else MODULE0 + i - 1,
+            "port": 0,
+            "offset_ns": rng.randint(-2_000_000, 2_000_000),
+            "drift_ppm": rng.uniform(-50, 50),
+            "transport": transport,
+            **extra,
+        }
+        for i in range(n)
+    ]
+
+
+def trial(slots: list[dict], seconds: float, loss: float = 0.0) -> dict[str, Any]:
+    """One run of a master and the slots' modules; every module's record and the master's."""
+    ports = _free_ports(len({s["module_id"] for s in slots}))
+    port_of: dict[int, int] = {}
+    for s in slots:  # (a module plugged back comes back on its port)
+        if s["module_id"] not in port_of:
+            port_of[s["module_id"]] = ports[len(port_of)]
+        s["port"] = port_of[s["module_id"]]
+    ctx = mp.get_context("spawn")
+    port_q, out_m, out_s = ctx.Queue(), ctx.Queue(), ctx.Queue()
+    master = ctx.Process(target=_master, args=(ports, seconds + 0.5, loss, port_q, out_m), daemon=True)
+    master.start()
+    port_q.get(timeout=30)
+    mods = ctx.Process(target=_modules, args=(slots, seconds, loss, out_s), daemon=True)
+    mods.start()
+    modules = out_s.get(timeout=seconds + 60)
+    m = out_m.get(timeout=30)
+    for p in (mods, master):
+        p.join(10)
+    return {"modules": modules, "master": m}
+
+
+def cycle_figures(r: dict[str, Any]) -> dict[str, Any]:
+    """Cycle time (T1 to the last answer), misses and clock errors after each module's warm-up."""
+    times, late, errs = [], [], []
+    n = missed = 0
+    for mod in r["modules"]:
+        c = mod["cycles"]
+        if not len(c):
+            continue
+        keep = c[:, 0] >= c[0, 0] + WARMUP_S * 1e9
+        c = c[keep]
+        times.append((c[:, 2] - c[:, 1]) / 1e6)
+        late.append((c[:, 1] - c[:, 0]) / 1e3)
+        n += len(c)
+        missed += sum(mod["missed"].values())  # (over the whole run: an upper bound)
+        e = mod["clock_errors"]
+        errs.append(np.abs(e[len(e) // 4 :]) / 1e3)  # after the servo's first quarter
+    t = np.concatenate(times) if times else np.zeros(1)
+    lt = np.concatenate(late) if late else np.zeros(1)
+    e = np.concatenate(errs) if errs else np.zeros(1)
+    return {
+        "cycles": n,
+        "cycle_ms_p50": float(np.median(t)),
+        "cycle_ms_p99": float(np.percentile(t, 99)),
+        "cycle_ms_max": float(t.max()),
+        "start_late_us_p99": float(np.percentile(lt, 99)),
+        "missed_pct": 100.0 * missed / max(1, 2 * n),
+        "tsp_offset_us_p50": float(np.median(e)),
+        "tsp_offset_us_max": float(e.max()),
+        "overruns": int(sum(m["overruns"] for m in r["modules"])),
+        "guessed_by_master": int(r["master"]["counters"]["guessed"]),
+    }
+
+
+def plug_figures(r: dict[str, Any], late_id: int, pulled_id: int, plug_s: float, unplug_s: float) -> dict:
+    """How long until a module plugged in runs in the cycle; how long a pulled one takes to be
+    reported and excluded; the other modules' misses meanwhile."""
+    mods = [m for m in r["modules"] if m["module_id"] == late_id]
+    late = mods[0] if mods else None
+    events = r["master"]["events"]
+    t_start = min(m["plugged_at"] for m in r["modules"])
+    out: dict[str, Any] = {}
+    if late is not None and len(late["cycles"]):
+        out["include_ms"] = (late["cycles"][0, 2] - late["plugged_at"]) / 1e6
+        out["included_joint"] = late["joint"]
+    t_pull = t_start + unplug_s * 1e9
+
+    def after(what: str, mid: int) -> float | None:
+        ts = [t for t, w, m, _ in events if w == what and m == mid and t >= t_pull]
+        return (ts[0] - t_pull) / 1e6 if ts else None
+
+    out["silent_ms"] = after("silent", pulled_id)
+    out["lost_ms"] = after("lost", pulled_id)
+    back = [m for m in r["modules"] if m["module_id"] == pulled_id and m["plugged_at"] > t_pull]
+    if back and len(back[0]["cycles"]):
+        out["back_ms"] = (back[0]["cycles"][0, 2] - back[0]["plugged_at"]) / 1e6
+    others = [m for m in r["modules"] if m["module_id"] not in (late_id, pulled_id)]
+    n = sum(len(m["cycles"]) for m in others)
+    out["others_missed_pct"] = 100.0 * sum(sum(m["missed"].values()) for m in others) / max(1, 2 * n)
+    out["guessed_by_master"] = int(r["master"]["counters"]["guessed"])
+    out["events"] = [(round((t - t_start) / 1e6, 1), w, m, j) for t, w, m, j in events]
+    return out
+
+
+def run(slaves: int = 6, seconds: float = 3.0, loss: float = 0.02, seed: int = 1) -> dict[str, Any]:
+    rng = random.Random(seed)
+    snp = cycle_figures(trial(_chain(slaves, "snp", rng), seconds))
+    rm = cycle_figures(trial(_chain(slaves, "rmap", rng), seconds))
+    short = max(1.0, seconds / 2)
+    snp_loss = cycle_figures(trial(_chain(slaves, "snp", rng), short, loss))
+    rmap_loss = cycle_figures(trial(_chain(slaves, "rmap", rng), short, loss))
+    # plug and operate: the last module plugged in at 1 s; the middle one pulled at 2 s, back at 2.5 s
+    chain = _chain(slaves, "snp", rng)
+    late, pulled = chain[-1], chain[slaves // 2]
+    late["plug_s"] = 1.0
+    pulled["unplug_s"] = 2.0
+    back = {**pulled, "plug_s": 2.5, "unplug_s": None}
+    plug = plug_figures(trial([*chain, back], 3.5), late["module_id"], pulled["module_id"], 1.0, 2.0)
+    return {
+        "slaves": slaves,
+        "seconds": seconds,
+        "cycle_ms_p50": snp["cycle_ms_p50"],
+        "cycle_ms_p99": snp["cycle_ms_p99"],
+        "missed_pct": snp["missed_pct"],
+        "rmap_cycle_ms_p50": rm["cycle_ms_p50"],
+        "rmap_cycle_ms_p99": rm["cycle_ms_p99"],
+        "rmap_missed_pct": rm["missed_pct"],
+        "tsp_offset_us_max": snp["tsp_offset_us_max"],
+        "loss": loss,
+        "snp": snp,
+        "rmap": rm,
+        "snp_loss": snp_loss,
+        "rmap_loss": rmap_loss,
+        "plug": plug,
+    }
+
+
+def format_result(r: dict[str, Any]) -> str:
+    def line(name: str, f: dict[str, Any]) -> str:
+        return (
+            f"  {name:<22} {f['cycles']:>6} cycles: p50 {f['cycle_ms_p50']:.3f} ms, "
+            f"p99 {f['cycle_ms_p99']:.3f} ms, {f['missed_pct']:.2f}% of exchanges missed their deadline "
+            f"(guessed); start late p99 {f['start_late_us_p99']:.0f} us; clock error "
+            f"p50 {f['tsp_offset_us_p50']:.1f} us, max {f['tsp_offset_us_max']:.1f} us"
+        )
+
+    p, nan = r["plug"], float("nan")
+    return "\n".join(
+        [
+            f"SpW-SnP-MR modular robot: master + {r['slaves']} joint modules, [A,B] and [C,D] every 1 ms "
+            "(the slides' budget: 0.3 ms for six joints)",
+            line("time-bounded queries", r["snp"]),
+            line("RMAP writes + acks", r["rmap"]),
+            line(f"queries, {r['loss']:.0%} loss", r["snp_loss"]),
+            line(f"RMAP, {r['loss']:.0%} loss", r["rmap_loss"]),
+            "  plug and operate: a module plugged in while the cycle runs ran its first cycle after "
+            f"{p.get('include_ms', nan):.0f} ms (as joint {p.get('included_joint')}); one pulled out "
+            f"was reported silent after {p.get('silent_ms') or nan:.1f} ms and excluded after "
+            f"{p.get('lost_ms') or nan:.0f} ms, plugged back it ran again after "
+            f"{p.get('back_ms', nan):.0f} ms; the others missed {p['others_missed_pct']:.2f}% "
+            f"meanwhile, the master guessed {p['guessed_by_master']} module-cycles",
+        ]
+    )

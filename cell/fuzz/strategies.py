@@ -73,7 +73,20 @@ snp_bodies = st.one_of(
     st.builds(snp.TimeRequest, t1=u64),
     st.builds(snp.TimeResponse, t1=u64, t2=u64, t3=u64),
     st.builds(snp.PidQuery, pid=u8),
-)
+    st.builds(snp.NodeInfoQuery),
+    st.builds(
+        snp.NodeInfo, module_id=u32, kind=u8, plugged_to=u32, port=u8,
+        items=st.lists(u32, max_size=6).map(tuple), joint=u8,
+    ),
+    st.builds(
+        snp.Configure, joint=u8, period_ns=u32, phase_ns=u32, budget_ns=u32,
+        params=st.lists(st.floats(width=32), max_size=4).map(tuple),
+    ),
+    st.builds(snp.Configured, joint=u8, status=u8),
+    st.builds(snp.TimeSubscribe, period_ns=u32, precision_ns=u32),
+    st.builds(snp.TimeSubscribed, period_ns=u32, precision_ns=u32),
+    st.builds(snp.TimeBeacon, seq=u32, t_master=u64),
+)  # fmt: skip
 snp_packets = st.builds(
     lambda h, b, t: snp.encode(h, b, t), snp_headers, snp_bodies, st.none() | st.integers(0, 0x30)
 )

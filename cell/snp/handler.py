@@ -70,6 +70,7 @@ class Handler:
 
     def __init__(self, source: StateSource, clock: Callable[[], int], service_ns: int = 200_000) -> None:
         self.source, self.clock = source, clock
+        self._pids = frozenset(int(p) for p in self.PIDS)
         self.service_ns = service_ns  # running estimate of the time to serve one query (ns)
         self._pending: list[_Pending] = []
         self._by_id: dict[tuple[Address, int], _Pending] = {}
@@ -84,7 +85,7 @@ class Handler:
         t_in = self.clock()
         self.counters["packets_in"] += 1
         try:
-            pkt = decode(datagram, frozenset(int(p) for p in self.PIDS))
+            pkt = decode(datagram, self._pids)
         except PacketError as exc:
             self.counters[exc.counter] += 1
             if exc.reply is None:
@@ -93,9 +94,10 @@ class Handler:
         except Exception:  # a bug in decode must not stop the service
             self.counters["malformed"] += 1
             return []
-        return self._dispatch(pkt, addr, t_in)
+        return self.dispatch(pkt, addr, t_in)
 
-    def _dispatch(self, pkt: Packet, addr: Address, t_in: int) -> list[tuple[bytes, Address]]:
+    def dispatch(self, pkt: Packet, addr: Address, t_in: int) -> list[tuple[bytes, Address]]:
+        """A packet decoded already (by a node that takes more types than the handler)."""
         back = pkt.header.reversed()
         body = pkt.body
         pid = pkt.header.pid

@@ -13,26 +13,16 @@ import struct
 from dataclasses import dataclass, field
 from enum import IntEnum
 
+import anycrc
+
 # --- the RMAP CRC-8 (ECSS-E-ST-50-52C): x^8 + x^2 + x + 1, init 0, bytes LSB first, no final XOR --------
 
-
-def _crc_table() -> bytes:
-    table = bytearray(256)
-    for i in range(256):
-        crc = i
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xE0 if crc & 1 else crc >> 1
-        table[i] = crc
-    return bytes(table)
+_RMAP_CRC = anycrc.CRC(width=8, poly=0x07, init=0, refin=True, refout=True, xorout=0)
 
 
-CRC_TABLE = _crc_table()
-
-
-def crc8(data: bytes | bytearray | memoryview, crc: int = 0) -> int:
-    for b in bytes(data):
-        crc = CRC_TABLE[crc ^ b]
-    return crc
+def crc8(data: bytes | bytearray | memoryview) -> int:
+    """The RMAP CRC of data (anycrc, in C: 0.4 us for 80 bytes against 6 us table by table)."""
+    return _RMAP_CRC.calc(data)
 
 
 # --- identifiers ----------------------------------------------------------------------------------
@@ -49,9 +39,17 @@ class PacketType(IntEnum):
     TIME_BOUNDED_QUERY_REPLY = 0x0002
     TIME_BOUNDED_QUERY_DENIAL = 0x0003
     TIME_BOUNDED_QUERY_CANCELLATION = 0x0004
+    # SnP-MrT initialisation: topology exploration and automatic configuration
+    NODE_INFO_QUERY = 0x0030
+    NODE_INFO_REPLY = 0x0031
+    CONFIGURE = 0x0032
+    CONFIGURE_REPLY = 0x0033
     # SnP-TSP (protocol 0xF1): a two-way time exchange
     TIME_REQUEST = 0x0010
     TIME_RESPONSE = 0x0011
+    TIME_SUBSCRIBE = 0x0012  # "beacons every P ns, to a precision of E ns"
+    TIME_SUBSCRIBE_REPLY = 0x0013
+    TIME_BEACON = 0x0014
     # PID management (protocol 0xF2)
     PID_SUPPORTED_QUERY = 0x0020
     PID_SUPPORTED_REPLY = 0x0021
@@ -68,6 +66,18 @@ class Denial(IntEnum):
     UNKNOWN_OUTPUT_ITEM = 2
     UNKNOWN_INPUT_ITEM = 3
     CANCELLED = 4
+
+
+class Level(IntEnum):
+    """How much of a protocol a node implements (PID management: "to what level?")."""
+
+    PARTIAL = 1
+    FULL = 2
+
+
+class ModuleKind(IntEnum):
+    MASTER = 1
+    JOINT = 2
 
 
 class Quantity(IntEnum):
@@ -162,6 +172,65 @@ class PidQuery:
 @dataclass(frozen=True)
 class PidReply:
     pids: tuple[int, ...] = ()  # supported: the one asked about if supported, else (); list: all
+    levels: tuple[int, ...] | None = None  # per pid (Level); None: all FULL
+
+    def __post_init__(self) -> None:
+        if self.levels is None:
+            object.__setattr__(self, "levels", (Level.FULL,) * len(self.pids))
+        elif len(self.levels) != len(self.pids):
+            raise ValueError("one level per pid")
+
+
+@dataclass(frozen=True)
+class NodeInfoQuery:
+    """Topology exploration: "who are you, what are you plugged to, what do you offer?"."""
+
+
+@dataclass(frozen=True)
+class NodeInfo:
+    module_id: int  # u32: the module's own serial number
+    kind: int  # u8: ModuleKind
+    plugged_to: int  # u32: the module id of the module this one is plugged to (0: the base plate)
+    port: int  # u8: which port of it
+    items: tuple[int, ...] = ()  # item ids it offers as inputs (u16 count, u32 each)
+    joint: int = 0xFF  # u8: the joint index it is configured as (0xFF: not configured)
+
+
+@dataclass(frozen=True)
+class Configure:
+    """Automatic configuration: the module's place in the cycle and its control parameters."""
+
+    joint: int  # u8: its joint index (its depth in the chain from the base plate)
+    period_ns: int  # u32: the cycle period
+    phase_ns: int  # u32: where in the period its cycle starts
+    budget_ns: int  # u32: each query's deadline after the cycle start
+    params: tuple[float, ...] = ()  # f32 each (u8 count): control parameters
+
+
+@dataclass(frozen=True)
+class Configured:
+    joint: int  # u8
+    status: int = 0  # u8: 0 configured, else why not
+
+
+@dataclass(frozen=True)
+class TimeSubscribe:
+    """SnP-TSP: time beacons every period_ns, the asker wanting its clock within precision_ns."""
+
+    period_ns: int  # u32
+    precision_ns: int  # u32
+
+
+@dataclass(frozen=True)
+class TimeSubscribed:
+    period_ns: int  # u32: the period granted (0: refused)
+    precision_ns: int  # u32: the precision the master can offer (its beacons' jitter), ns
+
+
+@dataclass(frozen=True)
+class TimeBeacon:
+    seq: int  # u32
+    t_master: int  # u64: the master's clock as the beacon left, ns
 
 
 @dataclass(frozen=True)
@@ -171,7 +240,24 @@ class ErrorReply:
     value: int  # the unknown pid or packet type; for a bad data CRC, the CRC received
 
 
-Body = Query | Reply | Denied | Cancel | TimeRequest | TimeResponse | PidQuery | PidReply | ErrorReply
+Body = (
+    Query
+    | Reply
+    | Denied
+    | Cancel
+    | TimeRequest
+    | TimeResponse
+    | PidQuery
+    | PidReply
+    | ErrorReply
+    | NodeInfoQuery
+    | NodeInfo
+    | Configure
+    | Configured
+    | TimeSubscribe
+    | TimeSubscribed
+    | TimeBeacon
+)
 
 
 @dataclass(frozen=True)
@@ -196,6 +282,9 @@ _ITEM = struct.Struct("!IfQ")
 _WANTED = struct.Struct("!IQ")
 _U32 = struct.Struct("!I")
 _QHEAD = struct.Struct("!IQ")
+_NODE = struct.Struct("!IBIBB")  # module id, kind, plugged to, port, joint
+_CONF = struct.Struct("!BIII")  # joint, period, phase, budget
+_BEACON = struct.Struct("!IQ")
 
 
 def _items(items: tuple[Item, ...]) -> bytes:
@@ -224,7 +313,26 @@ def encode_body(body: Body) -> tuple[int, bytes]:
             kind = PacketType.PID_SUPPORTED_QUERY if body.pid else PacketType.PID_LIST_QUERY
             return kind, (struct.pack("!B", body.pid) if body.pid else b"")
         case PidReply():
-            return PacketType.PID_LIST_REPLY, struct.pack("!B", len(body.pids)) + bytes(body.pids)
+            pairs = bytes(b for pl in zip(body.pids, body.levels or (), strict=True) for b in pl)
+            return PacketType.PID_LIST_REPLY, struct.pack("!B", len(body.pids)) + pairs
+        case NodeInfoQuery():
+            return PacketType.NODE_INFO_QUERY, b""
+        case NodeInfo():
+            head = _NODE.pack(body.module_id, body.kind, body.plugged_to, body.port, body.joint)
+            items = struct.pack(f"!H{len(body.items)}I", len(body.items), *body.items)
+            return PacketType.NODE_INFO_REPLY, head + items
+        case Configure():
+            head = _CONF.pack(body.joint, body.period_ns, body.phase_ns, body.budget_ns)
+            params = struct.pack(f"!B{len(body.params)}f", len(body.params), *body.params)
+            return PacketType.CONFIGURE, head + params
+        case Configured():
+            return PacketType.CONFIGURE_REPLY, struct.pack("!BB", body.joint, body.status)
+        case TimeSubscribe():
+            return PacketType.TIME_SUBSCRIBE, struct.pack("!II", body.period_ns, body.precision_ns)
+        case TimeSubscribed():
+            return PacketType.TIME_SUBSCRIBE_REPLY, struct.pack("!II", body.period_ns, body.precision_ns)
+        case TimeBeacon():
+            return PacketType.TIME_BEACON, _BEACON.pack(body.seq, body.t_master)
         case ErrorReply():
             raise ValueError("error replies need their type: use encode(..., type=)")
     raise TypeError(f"not a packet body: {body!r}")
@@ -256,6 +364,9 @@ def _take(buf: memoryview, n: int, what: str) -> tuple[memoryview, memoryview]:
     return buf[:n], buf[n:]
 
 
+_ALL_PIDS = frozenset(int(p) for p in Pid)
+
+
 def decode(datagram: bytes | bytearray | memoryview, known_pids: frozenset[int] | None = None) -> Packet:
     """A datagram -> Packet; PacketError (with the reply to send, if any) otherwise."""
     buf = memoryview(bytes(datagram))
@@ -272,7 +383,7 @@ def decode(datagram: bytes | bytearray | memoryview, known_pids: frozenset[int] 
     src, dst = struct.unpack_from("!II", head, 3 + nrab)
     header = Header(buf[0], buf[1], bytes(buf[3 : 3 + nrab]), src, dst)
     answer = header.reversed()
-    pids = known_pids if known_pids is not None else frozenset(int(p) for p in Pid)
+    pids = known_pids if known_pids is not None else _ALL_PIDS
     if header.pid not in pids:
         raise PacketError(
             f"unknown protocol id 0x{header.pid:02X}",
@@ -356,9 +467,39 @@ def _decode_cargo(kind: int, cargo: memoryview) -> Body:
         return PidQuery(0)
     if kind in (PacketType.PID_SUPPORTED_REPLY, PacketType.PID_LIST_REPLY):
         raw, rest = _take(cargo, 1, "pid count")
-        pids, rest = _take(rest, raw[0], "pids")
+        pairs, rest = _take(rest, 2 * raw[0], "pids and levels")
         _done(rest, "pid reply")
-        return PidReply(tuple(pids))
+        return PidReply(tuple(pairs[0::2]), tuple(pairs[1::2]))
+    if kind == PacketType.NODE_INFO_QUERY:
+        _done(cargo, "node info query")
+        return NodeInfoQuery()
+    if kind == PacketType.NODE_INFO_REPLY:
+        head, rest = _take(cargo, _NODE.size, "node info")
+        module_id, mkind, plugged_to, port, joint = _NODE.unpack(head)
+        n_raw, rest = _take(rest, 2, "item count")
+        n = struct.unpack("!H", n_raw)[0]
+        raw, rest = _take(rest, 4 * n, f"{n} items")
+        _done(rest, "node info")
+        return NodeInfo(module_id, mkind, plugged_to, port, struct.unpack(f"!{n}I", raw), joint)
+    if kind == PacketType.CONFIGURE:
+        head, rest = _take(cargo, _CONF.size, "configuration")
+        n_raw, rest = _take(rest, 1, "parameter count")
+        raw, rest = _take(rest, 4 * n_raw[0], f"{n_raw[0]} parameters")
+        _done(rest, "configuration")
+        return Configure(*_CONF.unpack(head), struct.unpack(f"!{n_raw[0]}f", raw))
+    if kind == PacketType.CONFIGURE_REPLY:
+        raw, rest = _take(cargo, 2, "configured")
+        _done(rest, "configured")
+        return Configured(raw[0], raw[1])
+    if kind in (PacketType.TIME_SUBSCRIBE, PacketType.TIME_SUBSCRIBE_REPLY):
+        raw, rest = _take(cargo, 8, "subscription")
+        _done(rest, "subscription")
+        cls = TimeSubscribe if kind == PacketType.TIME_SUBSCRIBE else TimeSubscribed
+        return cls(*struct.unpack("!II", raw))
+    if kind == PacketType.TIME_BEACON:
+        raw, rest = _take(cargo, _BEACON.size, "beacon")
+        _done(rest, "beacon")
+        return TimeBeacon(*_BEACON.unpack(raw))
     if kind in (PacketType.UNKNOWN_PID_REPLY, PacketType.INVALID_DATA_CRC_REPLY):
         raw, rest = _take(cargo, 1, "value")
         _done(rest, "error reply")

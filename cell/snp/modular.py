@@ -1,0 +1,638 @@
+"""The SpW-SnP-MR modular robot, sans IO: a master node and its joint modules.
+
+Both ends are state machines fed datagrams and times, returning datagrams to send
+(`cell/snp/runner.py` puts them on UDP sockets).
+
+The master
+- explores its ports (SpaceWire router ports; here UDP addresses) with NODE_INFO_QUERY,
+  learns each module's id, what it is plugged to and the items it offers, works out the
+  chain from the base plate (a module's joint index is its depth), and configures it
+  (CONFIGURE: its joint, the cycle period and phase, the query budget, its control
+  parameters); a module that answers while the cycle runs is included without a restart
+  (plug and operate);
+- sends each subscriber SnP-TSP beacons at the period it asked for;
+- answers the modules' time-bounded queries (SnP-MrT, through `Handler`: earliest deadline
+  first, denied when the deadline cannot be met), or, in the baseline, takes their RMAP
+  writes and writes the answers back;
+- watches every included module (FDIR by data obsolescence): a module whose A did not come in
+  a cycle is guessed (its last state, extrapolated), one silent for `suspect_cycles` is
+  reported, one silent for `lost_ns` is excluded and its port explored again.
+
+A joint module waits to be configured, subscribes to beacons and servos its clock, then
+runs its cycle on the master's time grid: [A, B] (its state at T1; the desired velocity at
+T3) and [C, D] (its desired force; the torque), each answered before its deadline or
+replaced by a guess (no retry).  With transport "rmap" it writes A and C to the master's
+memory as acknowledged RMAP writes (fixed timeout, one retry) and is written B and D.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from cell.snp import rmap
+from cell.snp.handler import Handler
+from cell.snp.packet import (
+    Configure,
+    Configured,
+    Denied,
+    Header,
+    Item,
+    ModuleKind,
+    NodeInfo,
+    NodeInfoQuery,
+    PacketError,
+    Pid,
+    Quantity,
+    Query,
+    Reply,
+    TimeBeacon,
+    TimeRequest,
+    TimeResponse,
+    TimeSubscribe,
+    TimeSubscribed,
+    Wanted,
+    decode,
+    encode,
+    split_item_id,
+)
+from cell.snp.tsp import BeaconSchedule, ClockServo
+
+ROBOT = 0  # item ids of the modular robot: robot 0
+TORQUE, FORCE = 5, 6  # quantities it adds to the cell's
+MASTER_LA = 0xFE  # logical addresses (RMAP)
+MODULE_LA0 = 0x20
+A_BASE, C_BASE = 0x1000, 0x2000  # master memory: A and C of joint j at BASE + 16 j
+B_ADDR, D_ADDR = 0x0000, 0x0010  # module memory
+_MSG = struct.Struct("!ffQ")  # value, value, timestamp
+
+
+def item(quantity: int, joint: int) -> int:
+    return (ROBOT << 16) | (quantity << 8) | joint
+
+
+@dataclass(frozen=True)
+class CycleConfig:
+    period_ns: int = 1_000_000
+    phase_ns: int = 0
+    budget_ns: int = 1_000_000  # [C, D] due this long after the cycle's start, [A, B] half as long
+    beacon_ns: int = 10_000_000  # the beacon period modules ask for
+    precision_ns: int = 20_000  # the clock precision they ask for
+    gain: float = 20.0  # the master's P law for B
+    transport: str = "snp"  # or "rmap": the slides' baseline
+    rmap_timeout_ns: int = 200_000
+    rmap_retries: int = 1
+
+
+# --- the master ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Node:
+    """A module the master knows of."""
+
+    addr: Any
+    info: NodeInfo
+    joint: int = -1
+    state: str = "found"  # found -> configuring -> included -> (suspect) -> lost
+    heard_ns: int = 0
+    configured_at: int = 0
+    silent_cycles: int = 0
+
+
+class ArmModel:
+    """The master's side of the virtual decomposition: a reference per joint and a chain model.
+
+    B: the desired velocity at T3, v_ref(T3) + K (p_ref(T3) - p(T3)), p extrapolated from the
+    module's A.  D: the torque for the module's desired force plus gravity on the links above it,
+    which needs every joint's position: a silent module's is guessed."""
+
+    def __init__(self, joints: int = 16, gain: float = 20.0, t0: int = 0) -> None:
+        self.joints, self.gain, self.t0 = joints, gain, t0
+        self.pos, self.vel = np.zeros(joints), np.zeros(joints)
+        self.at = np.zeros(joints, np.int64)  # when pos, vel were measured (master ns)
+        self.force = np.zeros(joints)
+        self.active = np.zeros(joints, bool)
+
+    def reference(self, joint: int, t_ns: int) -> tuple[float, float]:
+        t = (t_ns - self.t0) / 1e9
+        w, a = 2 * math.pi * 0.5, 0.2 * (1 + joint / 10)
+        return a * math.sin(w * t), a * w * math.cos(w * t)
+
+    def guess(self, joint: int, t_ns: int) -> float:
+        """Data obsolescence: the last position, carried on at the last velocity."""
+        return float(self.pos[joint] + self.vel[joint] * (t_ns - self.at[joint]) / 1e9)
+
+    def known(self, item_id: int) -> bool:
+        robot, quantity, joint = split_item_id(item_id)
+        ok = quantity in (Quantity.POSITION, Quantity.VELOCITY, Quantity.COMMANDED_VELOCITY, TORQUE, FORCE)
+        return robot == ROBOT and joint < self.joints and bool(self.active[joint]) and ok
+
+    def refine(self, it: Item) -> None:
+        _, quantity, joint = split_item_id(it.id)
+        if quantity == Quantity.POSITION:
+            self.pos[joint], self.at[joint] = it.value, it.timestamp
+        elif quantity == Quantity.VELOCITY:
+            self.vel[joint] = it.value
+        elif quantity == FORCE:
+            self.force[joint] = it.value
+
+    def value(self, item_id: int, t_ns: int) -> float:
+        _, quantity, joint = split_item_id(item_id)
+        if quantity == Quantity.COMMANDED_VELOCITY:
+            p_ref, v_ref = self.reference(joint, t_ns)
+            return v_ref + self.gain * (p_ref - self.guess(joint, t_ns))
+        if quantity == TORQUE:
+            angles = np.cumsum([self.guess(j, t_ns) for j in range(self.joints) if self.active[j]])
+            below = int(self.active[:joint].sum())
+            return 0.8 * self.force[joint] + 2.0 * float(np.cos(angles[below:]).sum())
+        return float(self.pos[joint] if quantity == Quantity.POSITION else self.vel[joint])
+
+
+class Master:
+    """The master node (see the module docstring); `receive` and `poll` return (datagram, addr)."""
+
+    def __init__(
+        self,
+        ports: list[Any],
+        config: CycleConfig,
+        clock: Any,
+        *,
+        explore_ns: int = 20_000_000,
+        suspect_cycles: int = 3,
+        lost_ns: int = 50_000_000,
+        max_joints: int = 16,
+    ) -> None:
+        self.ports, self.config, self.clock = list(ports), config, clock
+        self.explore_ns, self.suspect_cycles, self.lost_ns = explore_ns, suspect_cycles, lost_ns
+        self.model = ArmModel(max_joints, config.gain, clock())
+        self.handler = Handler(self.model, clock, service_ns=30_000)
+        self.beacons = BeaconSchedule()
+        self.nodes: dict[Any, Node] = {}  # by address
+        self.events: deque[tuple[int, str, int, int]] = deque(maxlen=1000)  # (t, what, module, joint)
+        self.counters: dict[str, int] = {"guessed": 0, "probes": 0, "beacons": 0, "included": 0, "lost": 0}
+        self._next_explore = 0
+        self._cycle = -1  # the last cycle checked for missing A
+        self._a_cycle: dict[int, int] = {}  # joint -> the last cycle its A came in
+        self.rmap_target = rmap.Target(MASTER_LA, self._rmap_written)
+        self.rmap_init = rmap.Initiator(MASTER_LA, config.rmap_timeout_ns, config.rmap_retries)
+        self._rmap_from: Any = None
+        self._out: list[tuple[bytes, Any]] = []
+
+    # --- input ---------------------------------------------------------------------------------
+
+    def receive(self, data: bytes, addr: Any) -> list[tuple[bytes, Any]]:
+        now = self.clock()
+        node = self.nodes.get(addr)
+        if node is not None:
+            node.heard_ns, node.silent_cycles = now, 0
+            if node.state == "suspect":
+                node.state = "included"
+                self.events.append((now, "back", node.info.module_id, node.joint))
+        if rmap.is_rmap(data):
+            return self._rmap(data, addr)
+        try:
+            pkt = decode(data, self.handler._pids)
+        except PacketError:
+            return self.handler.receive(data, addr)  # counts it and answers as the handler does
+        body = pkt.body
+        if isinstance(body, NodeInfo):
+            return self._found(body, addr, now)
+        if isinstance(body, Configured):
+            return self._configured(body, addr, now)
+        if isinstance(body, TimeSubscribe):
+            granted = self.beacons.subscribe(addr, body.period_ns, now)
+            reply = TimeSubscribed(granted, self.beacons.precision_ns)
+            return [(encode(pkt.header.reversed(), reply), addr)]
+        if isinstance(body, Query) and node is not None and node.joint >= 0:
+            # (a quarter period of slack: the module's servoed clock may run a little ahead)
+            self._a_cycle[node.joint] = self._cycle_of(now + self.config.period_ns // 4)
+        return self.handler.dispatch(pkt, addr, now)
+
+    def serve(self) -> list[tuple[bytes, Any]]:
+        """The pending queries, earliest deadline first."""
+        out = []
+        while (got := self.handler.serve()) is not None:
+            out.append(got)
+        return out
+
+    # --- exploration and configuration -------------------------------------------------------
+
+    def _found(self, info: NodeInfo, addr: Any, now: int) -> list[tuple[bytes, Any]]:
+        node = self.nodes.get(addr)
+        if node is None or node.info.module_id != info.module_id or node.state == "lost":
+            node = self.nodes[addr] = Node(addr, info, heard_ns=now)
+            self.events.append((now, "found", info.module_id, -1))
+        node.info = info
+        return self._configure_ready(now)
+
+    def _depths(self) -> dict[int, int]:
+        """module id -> joint index: its depth in the chain from the base plate (0)."""
+        parent = {n.info.module_id: n.info.plugged_to for n in self.nodes.values() if n.state != "lost"}
+        out: dict[int, int] = {}
+        for mid in parent:
+            depth, at, seen = 0, mid, set()
+            while at in parent and parent[at] != 0 and at not in seen:
+                seen.add(at)
+                at, depth = parent[at], depth + 1
+            if at in parent and parent[at] == 0:
+                out[mid] = depth
+        return out
+
+    def _configure_ready(self, now: int) -> list[tuple[bytes, Any]]:
+        out = []
+        depths = self._depths()
+        c = self.config
+        for n in self.nodes.values():
+            if n.state not in ("found", "configuring") or n.info.module_id not in depths:
+                continue  # (a module whose chain to the base plate is not known yet waits)
+            if n.state == "configuring" and now - n.configured_at < self.explore_ns:
+                continue
+            n.joint, n.state, n.configured_at = depths[n.info.module_id], "configuring", now
+            conf = Configure(n.joint, c.period_ns, c.phase_ns, c.budget_ns, (c.gain,))
+            out.append((encode(Header(pid=Pid.MRT), conf), n.addr))
+        return out
+
+    def _configured(self, body: Configured, addr: Any, now: int) -> list[tuple[bytes, Any]]:
+        node = self.nodes.get(addr)
+        if node is None or node.state != "configuring" or body.joint != node.joint or body.status:
+            return []
+        node.state = "included"
+        self.model.active[node.joint] = True
+        self.model.at[node.joint] = now
+        self._a_cycle.pop(node.joint, None)  # guessed only once it has run (it syncs its clock first)
+        self.counters["included"] += 1
+        self.events.append((now, "included", node.info.module_id, node.joint))
+        return []
+
+    # --- timers ---------------------------------------------------------------------------------
+
+    def _cycle_of(self, t: int) -> int:
+        return (t - self.config.phase_ns) // self.config.period_ns
+
+    def poll(self) -> list[tuple[bytes, Any]]:
+        """Beacons due, exploration probes, RMAP resends, FDIR: call at least once a period."""
+        now = self.clock()
+        out = self._fdir(now)
+        for addr, seq in self.beacons.due(now):
+            out.append((encode(Header(pid=Pid.TSP), TimeBeacon(seq, self.clock())), addr))
+            self.counters["beacons"] += 1
+        if now >= self._next_explore:
+            self._next_explore = now + self.explore_ns
+            live = {a for a, n in self.nodes.items() if n.state in ("included", "suspect", "configuring")}
+            for port in self.ports:
+                if port not in live:
+                    out.append((encode(Header(pid=Pid.MRT), NodeInfoQuery()), port))
+                    self.counters["probes"] += 1
+            out += self._configure_ready(now)
+        resend, _failed = self.rmap_init.expire(now)
+        out += [(d, self._rmap_addr(d)) for d in resend]
+        return out
+
+    def next_due(self) -> int:
+        """When poll() has something to do next, at the latest."""
+        nxt = self._next_explore
+        b = self.beacons.next_due()
+        if b is not None:
+            nxt = min(nxt, b)
+        r = self.rmap_init.next_timeout()
+        if r is not None:
+            nxt = min(nxt, r)
+        cycle = (self._cycle_of(self.clock()) + 1) * self.config.period_ns + self.config.phase_ns
+        return min(nxt, cycle + self.config.budget_ns)
+
+    def _fdir(self, now: int) -> list[tuple[bytes, Any]]:
+        """Once per cycle, after its queries' deadline: whose A did not come (guessed), who is
+        silent (reported), who is gone (excluded, its port explored again)."""
+        c = self.config
+        cycle = self._cycle_of(now - c.budget_ns)  # the last cycle whose deadline has passed
+        if cycle <= self._cycle:
+            return []
+        self._cycle = cycle
+        for n in self.nodes.values():
+            if n.state not in ("included", "suspect"):
+                continue
+            last = self._a_cycle.get(n.joint)
+            if last is not None and last < cycle:
+                self.counters["guessed"] += 1
+                n.silent_cycles += 1
+                if n.silent_cycles == self.suspect_cycles:
+                    n.state = "suspect"
+                    self.events.append((now, "silent", n.info.module_id, n.joint))
+            if now - n.heard_ns > self.lost_ns:
+                n.state = "lost"
+                self.model.active[n.joint] = False
+                self.beacons.drop(n.addr)
+                self.counters["lost"] += 1
+                self.events.append((now, "lost", n.info.module_id, n.joint))
+        return []
+
+    # --- the RMAP baseline --------------------------------------------------------------------
+
+    def _rmap_addr(self, datagram: bytes) -> Any:
+        la = datagram[0]
+        return next((n.addr for n in self.nodes.values() if n.joint == la - MODULE_LA0), None)
+
+    def _rmap(self, data: bytes, addr: Any) -> list[tuple[bytes, Any]]:
+        if data[2] & 0xC0 == 0:  # a reply to one of our writes
+            self.rmap_init.receive(data)
+            return []
+        self._rmap_from = addr
+        self._out = []
+        reply = self.rmap_target.receive(data)
+        out = [(reply, addr)] if reply is not None else []
+        return out + self._out
+
+    def _rmap_written(self, address: int, data: bytes) -> None:
+        """A or C landed in our memory: write B or D back to the module."""
+        now = self.clock()
+        node = self.nodes.get(self._rmap_from)
+        if node is None or node.joint < 0 or len(data) != _MSG.size:
+            return
+        j = node.joint
+        x, y, t = _MSG.unpack(data)
+        if address == A_BASE + 16 * j:
+            self._a_cycle[j] = self._cycle_of(now + self.config.period_ns // 4)
+            self.model.pos[j], self.model.vel[j], self.model.at[j] = x, y, t
+            t3 = t + self.config.period_ns
+            b = self.model.value(item(Quantity.COMMANDED_VELOCITY, j), t3)
+            _, raw = self.rmap_init.write(MODULE_LA0 + j, B_ADDR, _MSG.pack(b, 0.0, t3), now)
+        elif address == C_BASE + 16 * j:
+            self.model.force[j] = x
+            t6 = t + self.config.period_ns
+            d = self.model.value(item(TORQUE, j), t6)
+            _, raw = self.rmap_init.write(MODULE_LA0 + j, D_ADDR, _MSG.pack(d, 0.0, t6), now)
+        else:
+            return
+        self._out.append((raw, node.addr))
+
+
+# --- a joint module ----------------------------------------------------------------------------
+
+
+@dataclass
+class Cycle:
+    """One cycle of a module, as it went."""
+
+    scheduled: int  # master ns: its slot on the grid
+    start: int  # master ns, T1
+    stage: str = "ab"  # ab -> cd -> done ("a", "b", "c", "d" with RMAP)
+    deadline: int = 0
+    qid: int = 0
+    missed: list[str] = field(default_factory=list)
+    end: int = 0
+
+
+class JointModule:
+    """A joint module (slave); `receive(data, raw)` and `poll(raw)` return datagrams for the master.
+
+    raw is the module's own clock (`cell.snp.tsp.Oscillator`); everything it schedules is on the
+    master's time through its servo."""
+
+    def __init__(
+        self,
+        module_id: int,
+        plugged_to: int,
+        port: int = 0,
+        *,
+        beacon_ns: int = 10_000_000,
+        precision_ns: int = 20_000,
+        source_process: int = 0,
+    ) -> None:
+        self.info = NodeInfo(module_id, ModuleKind.JOINT, plugged_to, port)
+        self.beacon_ns, self.precision_ns = beacon_ns, precision_ns  # what it asks SnP-TSP for
+        self.granted: TimeSubscribed | None = None
+        self.source_process = source_process or module_id
+        self.servo = ClockServo()
+        self.config: Configure | None = None
+        self.joint = -1
+        self.state = "unconfigured"  # -> syncing -> running
+        self.transport = "snp"
+        self.cycle: Cycle | None = None
+        self.next_start = 0  # master ns
+        self.cycles: list[tuple[int, int, int]] = []  # (scheduled start, T1, end) master ns, done cycles
+        self.missed = {"ab": 0, "cd": 0}
+        self.overruns = 0  # cycles skipped because the last one was still running
+        self.pos = self.vel = 0.0
+        self.v_des = self.torque = 0.0
+        self._qid = 0
+        self._exchanges = 0
+        self._raw = 0  # the module's clock at the datagram or poll being handled
+        self.rmap_target = rmap.Target(0, self._rmap_written)
+        self.rmap_init: rmap.Initiator | None = None
+        self._rmap_out: list[bytes] = []
+
+    def _header(self, pid: int) -> Header:
+        return Header(0, pid, b"", self.source_process, 0)
+
+    # --- input ---------------------------------------------------------------------------------
+
+    def receive(self, data: bytes, raw: int) -> list[bytes]:
+        self._raw = raw
+        if rmap.is_rmap(data):
+            return self._rmap(data, raw)
+        try:
+            pkt = decode(data)
+        except PacketError:
+            return []
+        body = pkt.body
+        if isinstance(body, NodeInfoQuery):
+            info = NodeInfo(
+                self.info.module_id, self.info.kind, self.info.plugged_to, self.info.port,
+                tuple(item(q, max(self.joint, 0)) for q in (Quantity.POSITION, Quantity.VELOCITY, FORCE)),
+                self.joint if self.joint >= 0 else 0xFF,
+            )  # fmt: skip
+            return [encode(pkt.header.reversed(), info)]
+        if isinstance(body, Configure):
+            return self._configure(body, pkt.header, raw)
+        if isinstance(body, TimeBeacon):
+            if self.state != "unconfigured":
+                self.servo.beacon(raw, body.t_master)
+                if self.state == "syncing" and self.servo.samples >= 3:
+                    self.state = "running"
+                    self._schedule(self.servo.now(raw) + self.config.period_ns)  # type: ignore[union-attr]
+            return []
+        if isinstance(body, TimeSubscribed):
+            self.granted = body
+            return []
+        if isinstance(body, TimeResponse):
+            self.servo.exchange(body.t1, body.t2, body.t3, raw)
+            if self._exchanges < 8:  # a few more: the least queued one gives the delay
+                self._exchanges += 1
+                return [encode(self._header(Pid.TSP), TimeRequest(raw))]
+            return []
+        if isinstance(body, Reply | Denied) and self.cycle is not None and body.query_id == self.cycle.qid:
+            return self._answered(body, raw)
+        return []
+
+    def _configure(self, c: Configure, header: Header, raw: int) -> list[bytes]:
+        first = self.config is None
+        self.config, self.joint = c, c.joint
+        self.rmap_target.logical_address = MODULE_LA0 + c.joint
+        if self.rmap_init is not None:
+            self.rmap_init.logical_address = MODULE_LA0 + c.joint
+        out = [encode(header.reversed(), Configured(c.joint, 0))]
+        if first:
+            self.state = "syncing"
+            self._exchanges = 1
+            out.append(encode(self._header(Pid.TSP), TimeSubscribe(self.beacon_ns, self.precision_ns)))
+            out.append(encode(self._header(Pid.TSP), TimeRequest(raw)))
+        return out
+
+    def use_transport(self, transport: str, timeout_ns: int = 200_000, retries: int = 1) -> None:
+        """ "snp" (time-bounded queries) or "rmap" (the acknowledged-write baseline)."""
+        self.transport = transport
+        self.rmap_init = rmap.Initiator(MODULE_LA0, timeout_ns, retries) if transport == "rmap" else None
+
+    # --- the cycle ------------------------------------------------------------------------------
+
+    def _schedule(self, after: int) -> None:
+        c = self.config
+        assert c is not None
+        k = -(-(after - c.phase_ns) // c.period_ns)
+        self.next_start = k * c.period_ns + c.phase_ns
+
+    def next_wake(self) -> int | None:
+        """The raw time poll() has something to do at (a cycle start or a deadline), if any."""
+        if self.state != "running":
+            return None
+        at = self.next_start
+        if self.cycle is not None and self.cycle.stage != "done":
+            at = min(at, self.cycle.deadline)
+        if self.rmap_init is not None and (t := self.rmap_init.next_timeout()) is not None:
+            return min(self.servo.to_raw(at), t)
+        return self.servo.to_raw(at)
+
+    def poll(self, raw: int) -> list[bytes]:
+        self._raw = raw
+        if self.state != "running":
+            return []
+        now = self.servo.now(raw)
+        out: list[bytes] = []
+        cy = self.cycle
+        if cy is not None and cy.stage != "done" and now >= cy.deadline:
+            out += self._expired(cy, raw)
+        if self.rmap_init is not None:
+            resend, failed = self.rmap_init.expire(raw)
+            out += resend
+            if failed and cy is not None and cy.stage != "done":
+                out += self._expired(cy, raw)
+        if now >= self.next_start:
+            if self.cycle is not None and self.cycle.stage != "done":
+                self.overruns += 1
+                self._finish(self.cycle, now)
+            out += self._start(self.next_start, raw)
+            self._schedule(now + 1)
+        return out
+
+    def _start(self, scheduled: int, raw: int) -> list[bytes]:
+        c = self.config
+        assert c is not None
+        t1 = self.servo.now(raw)
+        stage = "ab" if self.transport == "snp" else "a"
+        self.cycle = Cycle(scheduled, t1, stage, scheduled + c.budget_ns // 2)
+        j = self.joint
+        if self.transport == "rmap":
+            assert self.rmap_init is not None
+            _, dg = self.rmap_init.write(MASTER_LA, A_BASE + 16 * j, _MSG.pack(self.pos, self.vel, t1), raw)
+            return [dg]
+        a = (Item(item(Quantity.POSITION, j), self.pos, t1), Item(item(Quantity.VELOCITY, j), self.vel, t1))
+        return [self._query(a, Wanted(item(Quantity.COMMANDED_VELOCITY, j), t1 + c.period_ns))]
+
+    def _query(self, inputs: tuple[Item, ...], wanted: Wanted) -> bytes:
+        assert self.cycle is not None
+        self._qid = (self._qid + 1) & 0xFFFFFFFF
+        self.cycle.qid = self._qid
+        return encode(self._header(Pid.MRT), Query(self._qid, self.cycle.deadline, inputs, (wanted,)))
+
+    def _answered(self, body: Reply | Denied, raw: int) -> list[bytes]:
+        cy = self.cycle
+        assert cy is not None
+        now = self.servo.now(raw)
+        value = body.items[0].value if isinstance(body, Reply) and body.items else None
+        if cy.stage == "ab":
+            if value is None:
+                self.missed["ab"] += 1
+                cy.missed.append("ab")
+            else:
+                self.v_des = value
+            return self._second(cy)
+        if cy.stage == "cd":
+            if value is None:
+                self.missed["cd"] += 1
+                cy.missed.append("cd")
+            else:
+                self.torque = value
+            self._finish(cy, now)
+        return []
+
+    def _second(self, cy: Cycle) -> list[bytes]:
+        """[C, D] (or the C write): the desired force from the velocity error."""
+        c = self.config
+        assert c is not None
+        force = 5.0 * (self.v_des - self.vel)
+        j = self.joint
+        cy.deadline = cy.scheduled + c.budget_ns
+        if self.transport == "rmap":
+            assert self.rmap_init is not None
+            cy.stage = "c"
+            data = _MSG.pack(force, 0.0, cy.start)
+            _, dg = self.rmap_init.write(MASTER_LA, C_BASE + 16 * j, data, self._raw)
+            return [dg]
+        cy.stage = "cd"
+        wanted = Wanted(item(TORQUE, j), cy.start + c.period_ns)
+        return [self._query((Item(item(FORCE, j), force, cy.start),), wanted)]
+
+    def _expired(self, cy: Cycle, raw: int) -> list[bytes]:
+        """Its deadline passed with no answer: guess (the last value) and go on."""
+        now = self.servo.now(raw)
+        if cy.stage in ("ab", "a", "b"):
+            self.missed["ab"] += 1
+            cy.missed.append("ab")
+            if self.rmap_init is not None:
+                self.rmap_init.in_flight.clear()
+            return self._second(cy)
+        self.missed["cd"] += 1
+        cy.missed.append("cd")
+        if self.rmap_init is not None:
+            self.rmap_init.in_flight.clear()
+        self._finish(cy, now)
+        return []
+
+    def _finish(self, cy: Cycle, now: int) -> None:
+        cy.stage, cy.end = "done", now
+        self.cycles.append((cy.scheduled, cy.start, now))
+        assert self.config is not None
+        self.vel += (self.v_des - self.vel) * 0.5  # the joint: a fast drive after the desired velocity
+        self.pos += self.vel * self.config.period_ns / 1e9
+
+    # --- the RMAP baseline --------------------------------------------------------------------
+
+    def _rmap(self, data: bytes, raw: int) -> list[bytes]:
+        cy = self.cycle
+        if data[2] & 0xC0 == 0:  # the master acknowledged our A or C
+            if self.rmap_init is None or (got := self.rmap_init.receive(data)) is None:
+                return []
+            if cy is not None and got[1] == rmap.Status.SUCCESS:
+                cy.stage = {"a": "b", "c": "d"}.get(cy.stage, cy.stage)
+            return []
+        self._rmap_out = []
+        reply = self.rmap_target.receive(data)
+        return ([reply] if reply is not None else []) + self._rmap_out
+
+    def _rmap_written(self, address: int, data: bytes) -> None:
+        cy = self.cycle
+        if cy is None or cy.stage == "done" or len(data) != _MSG.size:
+            return
+        value = _MSG.unpack(data)[0]
+        if address == B_ADDR and cy.stage in ("a", "b"):
+            self.v_des = value
+            self._rmap_out += self._second(cy)
+        elif address == D_ADDR and cy.stage in ("c", "d"):
+            self.torque = value
+            self._finish(cy, self.servo.now(self._raw))

@@ -1,0 +1,252 @@
+"""RMAP write commands with acknowledgement (ECSS-E-ST-50-52C), sans IO: the slides' baseline.
+
+The SpW-SnP-MR slides weigh their time-bounded queries against carrying the modular robot's
+A, B, C and D messages as acknowledged RMAP writes with a fixed timeout and a retry: two
+packets per message (8 T_M a cycle against the queries' 4 T_M), 16 T_M with one retry.
+This is that baseline, on the same UDP transport: the write command and its reply, a target
+(memory written at addresses, a reply per write) and an initiator (its writes in flight,
+resent after a fixed timeout, given up after the last retry).
+
+Layouts (one packet per datagram, no SpaceWire path address):
+- write command: target logical address, protocol id 0x01, instruction, key, reply address
+  (0/4/8/12 bytes), initiator logical address, transaction id u16, extended address u8,
+  address u32, data length u24, header CRC, data, data CRC;
+- write reply: initiator logical address, protocol id, instruction, status, target logical
+  address, transaction id u16, header CRC.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import IntEnum
+
+from cell.snp.packet import crc8
+
+PROTOCOL_ID = 0x01
+# instruction bits: [7:6] packet type (01 command, 00 reply), 5 write, 4 verify, 3 reply, 2 increment
+_COMMAND, _WRITE, _VERIFY, _REPLY, _INCREMENT = 0x40, 0x20, 0x10, 0x08, 0x04
+_CMD_TAIL = struct.Struct("!BHBI")  # initiator, transaction id, extended address, address
+_REPLY_BODY = struct.Struct("!BBBBBH")  # initiator, pid, instruction, status, target, transaction id
+
+
+class Status(IntEnum):
+    SUCCESS = 0
+    GENERAL_ERROR = 1
+    UNUSED_TYPE = 2
+    INVALID_KEY = 3
+    INVALID_DATA_CRC = 4
+    EARLY_EOP = 5
+    TOO_MUCH_DATA = 6
+    NOT_AUTHORISED = 10
+    INVALID_TARGET = 12
+
+
+class RmapError(Exception):
+    """Not an RMAP packet this end can take (dropped and counted: an RMAP target with a bad
+    header CRC cannot trust the reply address); `status` is what a reply would say, if any."""
+
+    def __init__(self, why: str, status: Status | None = None) -> None:
+        super().__init__(why)
+        self.status = status
+
+
+@dataclass(frozen=True)
+class Write:
+    target: int  # target logical address
+    initiator: int  # initiator logical address
+    transaction: int  # u16
+    address: int  # u32
+    data: bytes
+    key: int = 0
+    extended: int = 0
+    verify: bool = True
+    acknowledged: bool = True
+    reply_address: bytes = b""
+
+
+@dataclass(frozen=True)
+class WriteReply:
+    initiator: int
+    target: int
+    transaction: int
+    status: int = Status.SUCCESS
+    instruction: int = _WRITE | _VERIFY | _REPLY | _INCREMENT
+
+
+def encode_write(w: Write) -> bytes:
+    if len(w.reply_address) % 4 or len(w.reply_address) > 12:
+        raise ValueError("the reply address is 0, 4, 8 or 12 bytes")
+    instr = _COMMAND | _WRITE | _INCREMENT | (len(w.reply_address) // 4)
+    instr |= (_VERIFY if w.verify else 0) | (_REPLY if w.acknowledged else 0)
+    head = bytes([w.target, PROTOCOL_ID, instr, w.key]) + w.reply_address
+    head += _CMD_TAIL.pack(w.initiator, w.transaction, w.extended, w.address)
+    head += len(w.data).to_bytes(3, "big")
+    return head + bytes([crc8(head)]) + w.data + bytes([crc8(w.data)])
+
+
+def encode_reply(r: WriteReply) -> bytes:
+    head = _REPLY_BODY.pack(r.initiator, PROTOCOL_ID, r.instruction & 0x3F, r.status, r.target, r.transaction)
+    return head + bytes([crc8(head)])
+
+
+def is_rmap(datagram: bytes) -> bool:
+    return len(datagram) > 1 and datagram[1] == PROTOCOL_ID
+
+
+def decode(datagram: bytes) -> Write | WriteReply:
+    """A write command or a write reply; RmapError for anything else."""
+    buf = bytes(datagram)
+    if len(buf) < 8 or buf[1] != PROTOCOL_ID:
+        raise RmapError("not an RMAP packet")
+    instr = buf[2]
+    if instr & 0xC0 == 0:  # a reply
+        if len(buf) != _REPLY_BODY.size + 1:
+            raise RmapError(f"a write reply is {_REPLY_BODY.size + 1} bytes, not {len(buf)}")
+        if crc8(buf[:-1]) != buf[-1]:
+            raise RmapError("reply header CRC mismatch")
+        initiator, _, instruction, status, target, tid = _REPLY_BODY.unpack_from(buf)
+        if not instruction & _WRITE:
+            raise RmapError("only write replies are taken here")
+        return WriteReply(initiator, target, tid, status, instruction)
+    if instr & 0xC0 != _COMMAND:
+        raise RmapError(f"packet type {instr >> 6} is reserved")
+    n_reply = 4 * (instr & 0x03)
+    head_len = 4 + n_reply + _CMD_TAIL.size + 3
+    if len(buf) < head_len + 1:
+        raise RmapError("header cut short")
+    if crc8(buf[:head_len]) != buf[head_len]:
+        raise RmapError("header CRC mismatch")
+    if not instr & _WRITE:
+        raise RmapError("only writes are implemented here", Status.NOT_AUTHORISED)
+    initiator, tid, extended, address = _CMD_TAIL.unpack_from(buf, 4 + n_reply)
+    length = int.from_bytes(buf[head_len - 3 : head_len], "big")
+    data = buf[head_len + 1 : -1]
+    if len(data) < length:
+        raise RmapError(f"{len(data)} data bytes of {length}", Status.EARLY_EOP)
+    if len(data) > length:
+        raise RmapError(f"{len(data)} data bytes, {length} announced", Status.TOO_MUCH_DATA)
+    w = Write(
+        buf[0], initiator, tid, address, data, buf[3], extended,
+        bool(instr & _VERIFY), bool(instr & _REPLY), buf[4 : 4 + n_reply],
+    )  # fmt: skip
+    if crc8(data) != buf[-1]:
+        raise _DataCrc(w)
+    return w
+
+
+class _DataCrc(RmapError):
+    def __init__(self, w: Write) -> None:
+        super().__init__("data CRC mismatch", Status.INVALID_DATA_CRC)
+        self.write = w
+
+
+class Target:
+    """An RMAP target: writes land in `memory` (address -> bytes) and call on_write; each
+    acknowledged write gets its reply.  Nothing a peer sends raises out of here."""
+
+    def __init__(self, logical_address: int, on_write: Callable[[int, bytes], None], key: int = 0) -> None:
+        self.logical_address, self.on_write, self.key = logical_address, on_write, key
+        self.memory: dict[int, bytes] = {}
+        self.counters = {"writes": 0, "replies": 0, "errors": 0, "dropped": 0}
+
+    def receive(self, datagram: bytes) -> bytes | None:
+        """The reply to send back, if any."""
+        try:
+            w = decode(datagram)
+        except _DataCrc as exc:  # the header is good: the initiator hears why (verified writes)
+            self.counters["errors"] += 1
+            w = exc.write
+            return encode_reply(self._reply(w, Status.INVALID_DATA_CRC)) if w.acknowledged else None
+        except RmapError:
+            self.counters["dropped"] += 1
+            return None
+        if not isinstance(w, Write):
+            self.counters["dropped"] += 1  # a reply sent to a target
+            return None
+        status = Status.SUCCESS
+        if w.target != self.logical_address:
+            status = Status.INVALID_TARGET
+        elif w.key != self.key:
+            status = Status.INVALID_KEY
+        if status == Status.SUCCESS:
+            self.memory[w.address] = w.data
+            self.counters["writes"] += 1
+            self.on_write(w.address, w.data)
+        else:
+            self.counters["errors"] += 1
+        if not w.acknowledged:
+            return None
+        self.counters["replies"] += 1
+        return encode_reply(self._reply(w, status))
+
+    @staticmethod
+    def _reply(w: Write, status: Status) -> WriteReply:
+        instr = _WRITE | (_VERIFY if w.verify else 0) | _REPLY | _INCREMENT | (len(w.reply_address) // 4)
+        return WriteReply(w.initiator, w.target, w.transaction, status, instr)
+
+
+@dataclass
+class _InFlight:
+    write: Write
+    datagram: bytes
+    sent_at: int
+    tries: int
+
+
+class Initiator:
+    """An RMAP initiator: acknowledged writes, each resent after `timeout_ns` up to `retries`
+    times, then given up (the slides' fixed timeout: it does not know the deadline)."""
+
+    def __init__(self, logical_address: int, timeout_ns: int, retries: int = 1) -> None:
+        self.logical_address, self.timeout_ns, self.retries = logical_address, timeout_ns, retries
+        self._tid = 0
+        self.in_flight: dict[int, _InFlight] = {}
+        self.counters = {"writes": 0, "acked": 0, "retries": 0, "failed": 0, "errors": 0, "stray": 0}
+
+    def write(self, target: int, address: int, data: bytes, now: int) -> tuple[int, bytes]:
+        """(transaction id, datagram to send)."""
+        self._tid = (self._tid + 1) & 0xFFFF
+        w = Write(target, self.logical_address, self._tid, address, data)
+        raw = encode_write(w)
+        self.in_flight[self._tid] = _InFlight(w, raw, now, 1)
+        self.counters["writes"] += 1
+        return self._tid, raw
+
+    def receive(self, datagram: bytes) -> tuple[int, int] | None:
+        """A reply: (transaction id, status) if it closes a write in flight, else None."""
+        try:
+            r = decode(datagram)
+        except RmapError:
+            self.counters["errors"] += 1
+            return None
+        if not isinstance(r, WriteReply) or r.transaction not in self.in_flight:
+            self.counters["stray"] += 1  # late (already retried and acked) or not ours
+            return None
+        del self.in_flight[r.transaction]
+        if r.status == Status.SUCCESS:
+            self.counters["acked"] += 1
+        else:
+            self.counters["errors"] += 1
+        return r.transaction, r.status
+
+    def expire(self, now: int) -> tuple[list[bytes], list[int]]:
+        """(datagrams to resend, transaction ids given up) for the writes whose timeout passed."""
+        resend, failed = [], []
+        for tid, f in list(self.in_flight.items()):
+            if now - f.sent_at < self.timeout_ns:
+                continue
+            if f.tries > self.retries:
+                del self.in_flight[tid]
+                failed.append(tid)
+                self.counters["failed"] += 1
+            else:
+                f.tries += 1
+                f.sent_at = now
+                resend.append(f.datagram)
+                self.counters["retries"] += 1
+        return resend, failed
+
+    def next_timeout(self) -> int | None:
+        return min((f.sent_at + self.timeout_ns for f in self.in_flight.values()), default=None)

@@ -1,0 +1,302 @@
+"""SpW-SnP-MR beyond the queries: initialisation packets, RMAP, SnP-TSP, the modular robot.
+
+The state machines run here on simulated time (a network that delivers every datagram after
+a fixed latency), so that exploration, configuration, FDIR and the clock servo are checked
+exactly; tests/test_snp_runner-like checks on real UDP sockets are at the end."""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import threading
+import time
+
+import pytest
+
+from cell.snp import rmap
+from cell.snp.modular import CycleConfig, JointModule, Master
+from cell.snp.packet import (
+    Configure,
+    Configured,
+    Header,
+    NodeInfo,
+    NodeInfoQuery,
+    Pid,
+    PidReply,
+    TimeBeacon,
+    TimeSubscribe,
+    TimeSubscribed,
+    crc8,
+    decode,
+    encode,
+)
+from cell.snp.tsp import MIN_PERIOD_NS, BeaconSchedule, ClockServo, Oscillator
+
+# --- the new packets, byte by byte ---------------------------------------------------------------
+
+
+def test_initialisation_and_tsp_packets_round_trip_and_have_the_documented_layout() -> None:
+    h = Header(0x20, Pid.MRT, b"", 7, 9)
+    for body in (
+        NodeInfoQuery(),
+        NodeInfo(101, 2, 0, 1, (0x000100, 0x000200), 0xFF),
+        Configure(3, 1_000_000, 0, 1_000_000, (20.0, 0.5)),
+        Configured(3, 0),
+        TimeSubscribe(10_000_000, 20_000),
+        TimeSubscribed(10_000_000, 50_000),
+        TimeBeacon(5, 1_234_567_890_123),
+    ):
+        assert decode(encode(h, body)).body == body
+    raw = encode(Header(0, Pid.TSP, b"", 0, 0), TimeBeacon(1, 0x0102030405060708))
+    head = bytes([0, 0xF1, 0]) + bytes(8)
+    assert raw[: len(head)] == head and raw[len(head)] == crc8(head)
+    data = raw[len(head) + 1 :]
+    assert data[:3] == bytes([0, 0x00, 0x14])  # reserved, TIME_BEACON
+    assert data[3:-1] == bytes([0, 0, 0, 1, 1, 2, 3, 4, 5, 6, 7, 8])
+    assert data[-1] == crc8(data[:-1])
+    info = encode(h, NodeInfo(0x01020304, 2, 0x0A0B0C0D, 1, (0xAABBCCDD,), 3))
+    cargo = info[3 + 8 + 1 + 3 : -1]
+    assert cargo == bytes([1, 2, 3, 4, 2, 0xA, 0xB, 0xC, 0xD, 1, 3, 0, 1, 0xAA, 0xBB, 0xCC, 0xDD])
+
+
+def test_pid_replies_say_to_what_level() -> None:
+    raw = encode(Header(pid=Pid.PID_MANAGEMENT), PidReply((0xF0, 0xF1), (2, 1)))
+    assert raw[-6:-1] == bytes([2, 0xF0, 2, 0xF1, 1])  # count, then (pid, level) pairs
+    assert decode(raw).body == PidReply((0xF0, 0xF1), (2, 1))
+    assert PidReply((0xF0,)).levels == (2,)  # FULL unless said
+    with pytest.raises(ValueError):
+        PidReply((0xF0,), (1, 2))
+
+
+def test_malformed_initialisation_packets_are_refused_not_raised() -> None:
+    raw = bytearray(encode(Header(), Configure(1, 1000, 0, 1000, (1.0,))))
+    raw[-2] ^= 0xFF  # inside the cargo: data CRC now wrong
+    with pytest.raises(Exception) as exc:
+        decode(bytes(raw))
+    assert getattr(exc.value, "counter", "") == "bad_data_crc"
+    short = encode(Header(), NodeInfo(1, 2, 0, 1, (5, 6)))
+    cut = short[:-6] + bytes([crc8(short[12:-6])])  # one item id short, CRC made good
+    with pytest.raises(Exception) as exc:
+        decode(cut)
+    assert getattr(exc.value, "counter", "") == "malformed"
+
+
+# --- RMAP ----------------------------------------------------------------------------------------
+
+
+def test_rmap_write_command_layout_and_reply() -> None:
+    w = rmap.Write(0xFE, 0x20, 0x1234, 0x00001000, b"\x01\x02\x03\x04")
+    raw = rmap.encode_write(w)
+    # target, pid, instruction (command, write, verify, reply, increment, 0 reply bytes), key,
+    # initiator, transaction id, extended address, address, data length
+    head = bytes([0xFE, 0x01, 0x7C, 0x00, 0x20, 0x12, 0x34, 0x00, 0, 0, 0x10, 0, 0, 0, 4])
+    assert raw[:15] == head and raw[15] == crc8(head)
+    assert raw[16:20] == b"\x01\x02\x03\x04" and raw[20] == crc8(b"\x01\x02\x03\x04")
+    assert rmap.decode(raw) == w
+    written = []
+    target = rmap.Target(0xFE, lambda a, d: written.append((a, d)))
+    reply = target.receive(raw)
+    assert written == [(0x1000, b"\x01\x02\x03\x04")] and target.memory[0x1000] == b"\x01\x02\x03\x04"
+    r = rmap.decode(reply)
+    assert isinstance(r, rmap.WriteReply) and (r.initiator, r.target, r.transaction) == (0x20, 0xFE, 0x1234)
+    assert r.status == rmap.Status.SUCCESS and reply[:4] == bytes([0x20, 0x01, 0x3C, 0x00])
+
+
+def test_rmap_target_answers_bad_writes_with_a_status_and_drops_bad_headers() -> None:
+    target = rmap.Target(0xFE, lambda a, d: None)
+    raw = bytearray(rmap.encode_write(rmap.Write(0xFE, 0x20, 1, 0x10, b"abcd")))
+    raw[-1] ^= 1  # data CRC
+    assert rmap.decode(target.receive(bytes(raw))).status == rmap.Status.INVALID_DATA_CRC
+    raw[3] ^= 1  # the key: header CRC now wrong
+    assert target.receive(bytes(raw)) is None
+    other = rmap.encode_write(rmap.Write(0x33, 0x20, 2, 0x10, b"abcd"))
+    assert rmap.decode(target.receive(other)).status == rmap.Status.INVALID_TARGET
+    assert target.receive(b"\x00\x01") is None and target.counters["dropped"] == 2
+    assert target.memory == {}
+
+
+def test_rmap_initiator_retries_after_its_fixed_timeout_then_gives_up() -> None:
+    ini = rmap.Initiator(0x20, timeout_ns=200_000, retries=1)
+    tid, raw = ini.write(0xFE, 0x1000, b"abcd", now=0)
+    assert ini.expire(199_999) == ([], [])
+    assert ini.expire(200_000) == ([raw], [])  # resent as it was
+    assert ini.expire(400_000) == ([], [tid])
+    assert ini.counters == {"writes": 1, "acked": 0, "retries": 1, "failed": 1, "errors": 0, "stray": 0}
+    tid2, raw2 = ini.write(0xFE, 0x1000, b"abcd", now=0)
+    ack = rmap.Target(0xFE, lambda a, d: None).receive(raw2)
+    assert ini.receive(ack) == (tid2, 0) and not ini.in_flight
+    assert ini.receive(ack) is None and ini.counters["stray"] == 1  # a late duplicate ack
+
+
+# --- SnP-TSP ---------------------------------------------------------------------------------------
+
+
+def test_the_clock_servo_locks_to_beacons_despite_offset_drift_and_jitter() -> None:
+    osc = Oscillator(offset_ns=1_700_000, drift_ppm=-45.0, true_origin=0)
+    servo = ClockServo()
+    delay, jitter = iter(itertools.cycle([30_000, 31_000, 45_000, 30_500])), 0
+    t = 5_000_000
+    servo.exchange(osc.raw(t), t + 30_000, t + 31_000, osc.raw(t + 61_000))  # a 61 us round trip
+    errors = []
+    for _k in range(300):  # 3 s of beacons every 10 ms
+        t += 10_000_000
+        d = next(delay)
+        servo.beacon(osc.raw(t + d), t)  # left the master at t, came in after d
+        errors.append(servo.now(osc.raw(t + d + 5_000_000)) - (t + d + 5_000_000))  # mid-period
+        jitter = max(jitter, abs(d - 30_500))
+    assert abs(errors[0]) > 200  # 45 ppm over 5 ms: the first step does not know the drift yet
+    settled = [abs(e) for e in errors[100:]]
+    assert max(settled) < jitter + 2_000, max(settled)  # within the path's jitter
+    assert abs(servo.rate - 45e-6 / (1 - 45e-6)) < 2e-6  # it learnt the drift
+    assert abs(servo.to_raw(servo.now(osc.raw(t))) - osc.raw(t)) <= 1
+
+
+def test_the_master_grants_beacon_periods_and_sends_what_is_due() -> None:
+    b = BeaconSchedule()
+    assert b.subscribe("a", 100_000, now=0) == MIN_PERIOD_NS  # faster than it offers: its fastest
+    assert b.subscribe("b", 10_000_000, now=0) == 10_000_000
+    assert sorted(b.due(0)) == [("a", 1), ("b", 1)]
+    assert b.due(500_000) == []
+    assert b.due(1_000_000) == [("a", 2)]
+    assert b.due(10_500_000) == [("a", 3), ("b", 2)]  # a late call: one beacon, not a burst
+    b.subscribe("a", 0, now=0)
+    assert len(b) == 1
+
+
+# --- the modular robot on simulated time -----------------------------------------------------------
+
+
+class SimNet:
+    """A master and modules exchanging datagrams through a queue, each delivered after `latency`."""
+
+    def __init__(self, ports: int, latency: int = 40_000) -> None:
+        self.now = 0
+        self.latency = latency
+        self.master = Master([("port", i) for i in range(ports)], CycleConfig(), lambda: self.now)
+        self.modules: dict[int, tuple[JointModule, Oscillator]] = {}
+        self.queue: list[tuple[int, int, str, object, bytes]] = []
+        self.seq = itertools.count()
+
+    def plug(self, port: int, module_id: int, parent: int, transport: str = "snp") -> JointModule:
+        m = JointModule(module_id, parent, 1)
+        m.use_transport(transport)
+        self.modules[port] = (m, Oscillator(300_000 * (port + 1), 20.0 * (port - 1), 0))
+        return m
+
+    def unplug(self, port: int) -> None:
+        del self.modules[port]
+
+    def _send(self, to: str, addr: object, data: bytes) -> None:
+        heapq.heappush(self.queue, (self.now + self.latency, next(self.seq), to, addr, data))
+
+    def run_until(self, t_end: int, step: int = 50_000) -> None:
+        while self.now < t_end:
+            self.now += step
+            while self.queue and self.queue[0][0] <= self.now:
+                _, _, to, addr, data = heapq.heappop(self.queue)
+                if to == "master":
+                    for d, a in self.master.receive(data, addr):
+                        self._send("module", a, d)
+                elif addr[1] in self.modules:  # (a datagram to an empty port is lost)
+                    m, osc = self.modules[addr[1]]
+                    for d in m.receive(data, osc.raw(self.now)):
+                        self._send("master", addr, d)
+            for d, a in self.master.serve() + self.master.poll():
+                self._send("module", a, d)
+            for port, (m, osc) in list(self.modules.items()):
+                for d in m.poll(osc.raw(self.now)):
+                    self._send("master", ("port", port), d)
+
+
+def test_the_master_explores_configures_by_topology_and_runs_the_cycle() -> None:
+    net = SimNet(ports=4)
+    # plugged in any order of ports: the chain is base plate <- 11 <- 12 <- 13
+    m13, m11, m12 = net.plug(0, 13, 12), net.plug(2, 11, 0), net.plug(3, 12, 11)
+    net.run_until(300_000_000)
+    assert (m11.joint, m12.joint, m13.joint) == (0, 1, 2)
+    assert [n.state for n in net.master.nodes.values()] == ["included"] * 3
+    assert all(m.state == "running" and m.granted is not None for m in (m11, m12, m13))
+    for m in (m11, m12, m13):
+        assert len(m.cycles) > 150 and m.missed == {"ab": 0, "cd": 0}
+        start, _t1, end = m.cycles[-1]
+        assert 0 <= end - start < 500_000  # two round trips of 40 us, and the servo's error
+    assert net.master.counters["guessed"] == 0
+    assert abs(m13.servo.now(net.modules[0][1].raw(net.now)) - net.now) < 5_000  # clock locked
+
+
+def test_a_module_plugged_in_while_running_is_included_one_pulled_out_is_guessed_then_dropped() -> None:
+    net = SimNet(ports=3)
+    net.plug(0, 11, 0)
+    net.plug(1, 12, 11)
+    net.run_until(200_000_000)
+    late = net.plug(2, 13, 12)
+    t_plug = net.now
+    net.run_until(t_plug + 150_000_000)
+    assert late.state == "running" and late.joint == 2 and late.cycles
+    included = [t for t, what, mid, _ in net.master.events if what == "included" and mid == 13]
+    assert included and included[0] - t_plug < 60_000_000  # the next exploration round, then configured
+    net.unplug(1)
+    t_pull = net.now
+    net.run_until(t_pull + 100_000_000)
+    events = {what: t - t_pull for t, what, mid, _ in net.master.events if mid == 12 and t >= t_pull}
+    assert 2_000_000 <= events["silent"] <= 5_000_000  # 3 cycles without its A
+    assert 50_000_000 <= events["lost"] <= 52_000_000
+    assert net.master.counters["guessed"] >= 3
+    others = [net.modules[0][0], late]
+    assert all(m.missed == {"ab": 0, "cd": 0} for m in others)  # the cycle went on, 12 guessed
+    assert not net.master.model.active[1]
+    back = net.plug(1, 12, 11)  # plugged back: found and configured again, as joint 1
+    net.run_until(net.now + 150_000_000)
+    assert back.state == "running" and back.joint == 1 and back.cycles
+    assert [w for _, w, mid, _ in net.master.events if mid == 12][-2:] == ["found", "included"]
+
+
+def test_the_rmap_baseline_runs_the_same_cycle_with_acknowledged_writes() -> None:
+    net = SimNet(ports=2)
+    m1, m2 = net.plug(0, 11, 0, "rmap"), net.plug(1, 12, 11, "rmap")
+    net.run_until(300_000_000)
+    for m in (m1, m2):
+        assert m.state == "running" and len(m.cycles) > 150 and m.missed == {"ab": 0, "cd": 0}
+        _start, t1, end = m.cycles[-1]
+        assert end - t1 >= 4 * net.latency  # A, then B (with A's ack), C, then D (with C's ack)
+        assert m.rmap_init is not None and m.rmap_init.counters["acked"] >= 2 * len(m.cycles) - 2
+        assert m.rmap_target.counters["replies"] >= 2 * len(m.cycles) - 2  # it acked B and D
+    # eight packets a cycle (a write and its ack per message) against the queries' four
+    assert net.master.rmap_init.counters["acked"] >= 2 * (len(m1.cycles) + len(m2.cycles)) - 4
+    assert net.master.rmap_target.counters["replies"] >= 2 * (len(m1.cycles) + len(m2.cycles)) - 4
+
+
+# --- on real UDP sockets ---------------------------------------------------------------------------
+
+
+def test_master_and_modules_on_loopback_sockets() -> None:
+    from cell.snp.runner import Slot, open_udp, run_modules, serve_master
+
+    ports = []
+    for _ in range(2):
+        s = open_udp()
+        ports.append(s.getsockname()[1])
+        s.close()
+    sock = open_udp()
+    master = Master([("127.0.0.1", p) for p in ports], CycleConfig(), time.monotonic_ns)
+    done = threading.Event()
+    server = threading.Thread(target=serve_master, args=(master, sock, done.is_set), daemon=True)
+    server.start()
+    try:
+        slots = [
+            Slot(21, 0, ports[0], offset_ns=1_000_000, drift_ppm=30.0),
+            Slot(22, 21, ports[1], offset_ns=-800_000, drift_ppm=-30.0),
+        ]
+        run_modules(slots, seconds=1.5)
+    finally:
+        done.set()
+        server.join(5)
+        sock.close()
+    assert not server.is_alive()
+    for s in slots:
+        m = s.module
+        assert m is not None and m.state == "running" and m.joint == s.module_id - 21
+        assert len(m.cycles) > 500  # on this 2-core machine, in one process with the master
+        assert s.clock_errors and abs(s.clock_errors[-1]) < 1_000_000  # servoed (it started 1 ms off)
+    assert master.counters["included"] == 2
+    assert master.handler.counters["replies"] > 1000
