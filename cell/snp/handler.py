@@ -68,10 +68,21 @@ class _Pending:
 class Handler:
     PIDS = (Pid.MRT, Pid.TSP, Pid.PID_MANAGEMENT)
 
-    def __init__(self, source: StateSource, clock: Callable[[], int], service_ns: int = 200_000) -> None:
+    def __init__(
+        self,
+        source: StateSource,
+        clock: Callable[[], int],
+        service_ns: int = 200_000,
+        *,
+        margin: float = 2.0,
+        floor_ns: int = 20_000,
+    ) -> None:
         self.source, self.clock = source, clock
         self._pids = frozenset(int(p) for p in self.PIDS)
         self.service_ns = service_ns  # running estimate of the time to serve one query (ns)
+        # the estimate is `margin` x the time a reply takes to make, at least floor_ns: 2x on an
+        # event loop (the send and the wake-up cost as much again), less in a blocking loop
+        self.margin, self.floor_ns = margin, floor_ns
         self._pending: list[_Pending] = []
         self._by_id: dict[tuple[Address, int], _Pending] = {}
         self._seq = itertools.count()
@@ -172,7 +183,7 @@ class Handler:
             )
             out = encode(back, Reply(p.query.query_id, items))
             took = self.clock() - t0
-            self.service_ns = max(20_000, int(0.9 * self.service_ns + 0.1 * took * 2))  # 2x: send, wake-up
+            self.service_ns = max(self.floor_ns, int(0.9 * self.service_ns + 0.1 * took * self.margin))
             if self.clock() > p.deadline:
                 self.counters["late"] += 1  # should not happen: the estimate was too low
             self.counters["replies"] += 1

@@ -171,7 +171,7 @@ class Master:
         self.ports, self.config, self.clock = list(ports), config, clock
         self.explore_ns, self.suspect_cycles, self.lost_ns = explore_ns, suspect_cycles, lost_ns
         self.model = ArmModel(max_joints, config.gain, clock())
-        self.handler = Handler(self.model, clock, service_ns=30_000)
+        self.handler = Handler(self.model, clock, service_ns=30_000, margin=1.25, floor_ns=10_000)
         self.beacons = BeaconSchedule()
         self.nodes: dict[Any, Node] = {}  # by address
         self.events: deque[tuple[int, str, int, int]] = deque(maxlen=1000)  # (t, what, module, joint)
@@ -629,7 +629,9 @@ class JointModule:
         cy = self.cycle
         if cy is None or cy.stage == "done" or len(data) != _MSG.size:
             return
-        value = _MSG.unpack(data)[0]
+        value, _, t = _MSG.unpack(data)
+        if t != cy.start + self.config.period_ns:  # type: ignore[union-attr]
+            return  # an answer to an earlier cycle, retried late: that cycle has been guessed
         if address == B_ADDR and cy.stage in ("a", "b"):
             self.v_des = value
             self._rmap_out += self._second(cy)

@@ -26,9 +26,16 @@ from cell.timer import Alarm
 COARSE_S = 0.05  # epoll's own timeout: the alarm is what wakes a loop on time
 
 
-def open_udp(host: str = "127.0.0.1", port: int = 0) -> socket.socket:
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_CMSG = socket.CMSG_SPACE(16)
+
+
+def open_udp(host: str = "127.0.0.1", port: int = 0, *, timestamps: bool = False) -> socket.socket:
+    """timestamps: the kernel stamps each datagram as it comes in (drain_stamped gives it)."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+    if timestamps:
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
     sock.bind((host, port))
     sock.setblocking(False)
     return sock
@@ -66,6 +73,26 @@ def drain(sock: socket.socket, limit: int = 256) -> list[tuple[bytes, Any]]:
     return out
 
 
+def drain_stamped(sock: socket.socket, mono_of_real: int, limit: int = 256) -> list[tuple[bytes, Any, int]]:
+    """(data, sender, arrival on CLOCK_MONOTONIC) for each datagram waiting: the kernel's stamp
+    (CLOCK_REALTIME) less mono_of_real, so that a busy loop does not date what it reads late."""
+    out = []
+    for _ in range(limit):
+        try:
+            data, anc, _flags, addr = sock.recvmsg(2048, _CMSG)
+        except BlockingIOError:
+            break
+        except OSError:
+            continue
+        at = time.monotonic_ns()
+        for level, kind, raw in anc:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= 16:
+                sec, nsec = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
+                at = sec * 1_000_000_000 + nsec - mono_of_real
+        out.append((data, addr, at))
+    return out
+
+
 def serve_master(master: Master, sock: socket.socket, stop: Callable[[], bool], loss: float = 0.0) -> Link:
     """Run the master until stop() is true; returns its link (counters)."""
     link = Link(sock, loss, seed=1)
@@ -83,8 +110,9 @@ def serve_master(master: Master, sock: socket.socket, stop: Callable[[], bool], 
             for data, addr in drain(sock):
                 out += master.receive(data, addr)
             out += master.serve()
-            out += master.poll()
             for data, addr in out:
+                link.send(data, addr)
+            for data, addr in master.poll():  # after the replies: a beacon leaves as it is dated
                 link.send(data, addr)
     finally:
         ep.close()
@@ -129,13 +157,14 @@ def run_modules(
     ep.register(alarm.fd, select.EPOLLIN)
     by_fd: dict[int, Slot] = {}
     t0 = time.monotonic_ns()
+    mono_of_real = time.time_ns() - t0  # (CLOCK_REALTIME - CLOCK_MONOTONIC, for kernel stamps)
     end = t0 + int(seconds * 1e9)
 
     def plug(s: Slot, now: int) -> None:
         s.osc = Oscillator(s.offset_ns, s.drift_ppm, t0)
         s.module = JointModule(s.module_id, s.plugged_to, port=1)  # (its parent's downstream port)
         s.module.use_transport(s.transport, rmap_timeout_ns, rmap_retries)
-        s.sock = open_udp("127.0.0.1", s.port)
+        s.sock = open_udp("127.0.0.1", s.port, timestamps=True)
         s.link = Link(s.sock, loss, seed=s.module_id)
         s.plugged_at = now
         by_fd[s.sock.fileno()] = s
@@ -165,10 +194,10 @@ def run_modules(
                 s = by_fd.get(fd)
                 if s is None or s.sock is None:
                     continue
-                for data, addr in drain(s.sock):
+                for data, addr, at in drain_stamped(s.sock, mono_of_real):
                     s.master = addr
                     assert s.module is not None and s.osc is not None and s.link is not None
-                    for out in s.module.receive(data, s.osc.raw(time.monotonic_ns())):
+                    for out in s.module.receive(data, s.osc.raw(at)):
                         s.link.send(out, addr)
             wake = end
             now = time.monotonic_ns()

@@ -72,16 +72,26 @@ class ClockServo:
         pts = np.array(self._points, np.float64)
         x = pts[:, 0] - raw_rx
         y = pts[:, 1] - pts[:, 0]  # master - raw: its slope is the rate, its value the offset
-        b, a = np.polyfit(x, y, 1)
+        a, b = _line(x, y)
         if len(x) >= 8:  # leave out the held-up beacons (below the line) and fit again
             r = y - (a + b * x)
-            mad = float(np.median(np.abs(r - np.median(r))))
-            keep = r >= np.median(r) - 2.0 * mad - 200.0
+            r.sort()
+            lo = r[len(r) // 2] - 2.0 * (r[len(r) // 2] - r[len(r) // 4]) - 200.0  # (median - 2 IQR/2)
+            keep = y - (a + b * x) >= lo
             if keep.sum() >= 4:
-                b, a = np.polyfit(x[keep], y[keep], 1)
+                a, b = _line(x[keep], y[keep])
         self.rate = float(b)
         self.anchor_raw, self.base = raw_rx, raw_rx + round(a)
         return err
+
+
+def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Least squares y = a + b x (closed form: np.polyfit costs ten times as much here)."""
+    mx, my = x.mean(), y.mean()
+    dx = x - mx
+    sxx = float(dx @ dx)
+    b = float(dx @ (y - my)) / sxx if sxx else 0.0
+    return float(my - b * mx), b
 
 
 class Oscillator:
