@@ -92,7 +92,8 @@ def encode_reply(r: WriteReply) -> bytes:
 
 
 def is_rmap(datagram: bytes) -> bool:
-    return len(datagram) > 1 and datagram[1] == PROTOCOL_ID
+    """An RMAP packet by its protocol id, at least as long as the shortest (a write reply)."""
+    return len(datagram) >= _REPLY_BODY.size + 1 and datagram[1] == PROTOCOL_ID
 
 
 def decode(datagram: bytes) -> Write | WriteReply:
