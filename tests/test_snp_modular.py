@@ -218,8 +218,9 @@ def test_the_master_explores_configures_by_topology_and_runs_the_cycle() -> None
     assert all(m.state == "running" and m.granted is not None for m in (m11, m12, m13))
     for m in (m11, m12, m13):
         assert len(m.cycles) > 150 and m.missed == {"ab": 0, "cd": 0}
-        start, _t1, end = m.cycles[-1]
+        start, _t1, end, missed = m.cycles[-1]
         assert 0 <= end - start < 500_000  # two round trips of 40 us, and the servo's error
+        assert missed == 0
     assert net.master.counters["guessed"] == 0
     assert abs(m13.servo.now(net.modules[0][1].raw(net.now)) - net.now) < 5_000  # clock locked
 
@@ -278,8 +279,9 @@ def test_the_rmap_baseline_runs_the_same_cycle_with_acknowledged_writes() -> Non
     net.run_until(300_000_000)
     for m in (m1, m2):
         assert m.state == "running" and len(m.cycles) > 150 and m.missed == {"ab": 0, "cd": 0}
-        _start, t1, end = m.cycles[-1]
+        _start, t1, end, missed = m.cycles[-1]
         assert end - t1 >= 4 * net.latency  # A, then B (with A's ack), C, then D (with C's ack)
+        assert missed == 0
         assert m.rmap_init is not None and m.rmap_init.counters["acked"] >= 2 * len(m.cycles) - 2
         assert m.rmap_target.counters["replies"] >= 2 * len(m.cycles) - 2  # it acked B and D
     # eight packets a cycle (a write and its ack per message) against the queries' four
@@ -318,6 +320,8 @@ def test_master_and_modules_on_loopback_sockets() -> None:
         m = s.module
         assert m is not None and m.state == "running" and m.joint == s.module_id - 21
         assert len(m.cycles) > 500  # on this 2-core machine, in one process with the master
+        in_cycles = sum(c[3] for c in m.cycles)  # each cycle's guesses, as counted per module
+        assert sum(m.missed.values()) - 1 <= in_cycles <= sum(m.missed.values())  # (one may be running)
         assert s.clock_errors and abs(s.clock_errors[-1]) < 1_000_000  # servoed (it started 1 ms off)
     assert master.counters["included"] == 2
     h = master.handler.counters  # (how many make their deadline depends on the machine's load)

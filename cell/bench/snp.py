@@ -79,7 +79,7 @@ def _modules(slots: list[dict], seconds: float, loss: float, out: Any) -> None:
         m = s.module
         if m is None:
             continue
-        cycles = np.array(m.cycles, np.int64).reshape(-1, 3)
+        cycles = np.array(m.cycles, np.int64).reshape(-1, 4)
         res.append(
             {
                 "module_id": s.module_id,
@@ -148,7 +148,7 @@ def cycle_figures(r: dict[str, Any]) -> dict[str, Any]:
         times.append((c[:, 2] - c[:, 1]) / 1e6)
         late.append((c[:, 1] - c[:, 0]) / 1e3)
         n += len(c)
-        missed += sum(mod["missed"].values())  # (over the whole run: an upper bound)
+        missed += int(c[:, 3].sum())
         e = mod["clock_errors"]
         errs.append(np.abs(e[len(e) // 4 :]) / 1e3)  # after the servo's first quarter
     t = np.concatenate(times) if times else np.zeros(1)

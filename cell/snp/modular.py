@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import struct
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -278,7 +278,8 @@ class Master:
     def poll(self) -> list[tuple[bytes, Any]]:
         """Beacons due, exploration probes, RMAP resends, FDIR: call at least once a period."""
         now = self.clock()
-        out = self._fdir(now)
+        self._fdir(now)
+        out: list[tuple[bytes, Any]] = []
         for addr, seq in self.beacons.due(now):
             out.append((encode(Header(pid=Pid.TSP), TimeBeacon(seq, self.clock())), addr))
             self.counters["beacons"] += 1
@@ -306,13 +307,13 @@ class Master:
         cycle = (self._cycle_of(self.clock()) + 1) * self.config.period_ns + self.config.phase_ns
         return min(nxt, cycle + self.config.budget_ns)
 
-    def _fdir(self, now: int) -> list[tuple[bytes, Any]]:
+    def _fdir(self, now: int) -> None:
         """Once per cycle, after its queries' deadline: whose A did not come (guessed), who is
         silent (reported), who is gone (excluded, its port explored again)."""
         c = self.config
         cycle = self._cycle_of(now - c.budget_ns)  # the last cycle whose deadline has passed
         if cycle <= self._cycle:
-            return []
+            return
         self._cycle = cycle
         for n in self.nodes.values():
             if n.state not in ("included", "suspect"):
@@ -330,7 +331,6 @@ class Master:
                 self.beacons.drop(n.addr)
                 self.counters["lost"] += 1
                 self.events.append((now, "lost", n.info.module_id, n.joint))
-        return []
 
     # --- the RMAP baseline --------------------------------------------------------------------
 
@@ -384,8 +384,7 @@ class Cycle:
     stage: str = "ab"  # ab -> cd -> done ("a", "b", "c", "d" with RMAP)
     deadline: int = 0
     qid: int = 0
-    missed: list[str] = field(default_factory=list)
-    end: int = 0
+    missed: int = 0  # of its two exchanges, how many were guessed
 
 
 class JointModule:
@@ -415,7 +414,8 @@ class JointModule:
         self.transport = "snp"
         self.cycle: Cycle | None = None
         self.next_start = 0  # master ns
-        self.cycles: list[tuple[int, int, int]] = []  # (scheduled start, T1, end) master ns, done cycles
+        # done cycles: (scheduled start, T1, end) master ns, and how many of its exchanges were guessed
+        self.cycles: list[tuple[int, int, int, int]] = []
         self.missed = {"ab": 0, "cd": 0}
         self.overruns = 0  # cycles skipped because the last one was still running
         self.pos = self.vel = 0.0
@@ -557,15 +557,13 @@ class JointModule:
         value = body.items[0].value if isinstance(body, Reply) and body.items else None
         if cy.stage == "ab":
             if value is None:
-                self.missed["ab"] += 1
-                cy.missed.append("ab")
+                self._miss(cy, "ab")
             else:
                 self.v_des = value
             return self._second(cy)
         if cy.stage == "cd":
             if value is None:
-                self.missed["cd"] += 1
-                cy.missed.append("cd")
+                self._miss(cy, "cd")
             else:
                 self.torque = value
             self._finish(cy, now)
@@ -591,22 +589,22 @@ class JointModule:
     def _expired(self, cy: Cycle, raw: int) -> list[bytes]:
         """Its deadline passed with no answer: guess (the last value) and go on."""
         now = self.servo.now(raw)
-        if cy.stage in ("ab", "a", "b"):
-            self.missed["ab"] += 1
-            cy.missed.append("ab")
-            if self.rmap_init is not None:
-                self.rmap_init.in_flight.clear()
-            return self._second(cy)
-        self.missed["cd"] += 1
-        cy.missed.append("cd")
         if self.rmap_init is not None:
             self.rmap_init.in_flight.clear()
+        if cy.stage in ("ab", "a", "b"):
+            self._miss(cy, "ab")
+            return self._second(cy)
+        self._miss(cy, "cd")
         self._finish(cy, now)
         return []
 
+    def _miss(self, cy: Cycle, which: str) -> None:
+        self.missed[which] += 1
+        cy.missed += 1
+
     def _finish(self, cy: Cycle, now: int) -> None:
-        cy.stage, cy.end = "done", now
-        self.cycles.append((cy.scheduled, cy.start, now))
+        cy.stage = "done"
+        self.cycles.append((cy.scheduled, cy.start, now, cy.missed))
         assert self.config is not None
         self.vel += (self.v_des - self.vel) * 0.5  # the joint: a fast drive after the desired velocity
         self.pos += self.vel * self.config.period_ns / 1e9

@@ -31,7 +31,7 @@ _CMSG = socket.CMSG_SPACE(16)
 
 
 def open_udp(host: str = "127.0.0.1", port: int = 0, *, timestamps: bool = False) -> socket.socket:
-    """timestamps: the kernel stamps each datagram as it comes in (drain_stamped gives it)."""
+    """timestamps: the kernel stamps each datagram as it comes in (drain gives it)."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
     if timestamps:
@@ -61,21 +61,10 @@ class Link:
             self.errors += 1
 
 
-def drain(sock: socket.socket, limit: int = 256) -> list[tuple[bytes, Any]]:
-    out = []
-    for _ in range(limit):
-        try:
-            out.append(sock.recvfrom(2048))
-        except BlockingIOError:
-            break
-        except OSError:  # ICMP errors reported on the socket: nothing to take
-            continue
-    return out
-
-
-def drain_stamped(sock: socket.socket, mono_of_real: int, limit: int = 256) -> list[tuple[bytes, Any, int]]:
-    """(data, sender, arrival on CLOCK_MONOTONIC) for each datagram waiting: the kernel's stamp
-    (CLOCK_REALTIME) less mono_of_real, so that a busy loop does not date what it reads late."""
+def drain(sock: socket.socket, mono_of_real: int = 0, limit: int = 256) -> list[tuple[bytes, Any, int]]:
+    """(data, sender, arrival on CLOCK_MONOTONIC) for each datagram waiting: on a socket opened
+    with timestamps, the kernel's stamp (CLOCK_REALTIME) less mono_of_real, so that a busy loop
+    does not date what it reads late; else when it was read."""
     out = []
     for _ in range(limit):
         try:
@@ -107,7 +96,7 @@ def serve_master(master: Master, sock: socket.socket, stop: Callable[[], bool], 
                 if fd == alarm.fd:
                     alarm.clear()
             out: list[tuple[bytes, Any]] = []
-            for data, addr in drain(sock):
+            for data, addr, _ in drain(sock):
                 out += master.receive(data, addr)
             out += master.serve()
             for data, addr in out:
@@ -194,7 +183,7 @@ def run_modules(
                 s = by_fd.get(fd)
                 if s is None or s.sock is None:
                     continue
-                for data, addr, at in drain_stamped(s.sock, mono_of_real):
+                for data, addr, at in drain(s.sock, mono_of_real):
                     s.master = addr
                     assert s.module is not None and s.osc is not None and s.link is not None
                     for out in s.module.receive(data, s.osc.raw(at)):
