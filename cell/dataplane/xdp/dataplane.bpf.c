@@ -441,19 +441,30 @@ static long step_one(__u32 i, void *ctx)
 	return 0;
 }
 
-static long count_one(__u32 i, void *ctx)
+/* record i's entity and its mark (the shared start of count_one and ingress_one): 1 found,
+ * 0 none (no entity, or the lookup failed), -1 past the records (the loop ends) */
+static __always_inline int mark_at(void *ctx, __u32 i, __u32 *ent, struct mark **m)
 {
 	struct scratch *s = ((struct loop *)ctx)->s;
 	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
-		return 1;
+		return -1;
 	struct rec *r = &s->r[k];
 	if (r->ent < 0)
 		return 0;
-	__u32 e = r->ent;
-	struct mark *m = bpf_map_lookup_elem(&marks, &e);
-	if (!m)
-		return 0;
+	*ent = r->ent;
+	*m = bpf_map_lookup_elem(&marks, ent);
+	return *m ? 1 : 0;
+}
+
+static long count_one(__u32 i, void *ctx)
+{
+	struct scratch *s = ((struct loop *)ctx)->s;
+	__u32 e;
+	struct mark *m;
+	int got = mark_at(ctx, i, &e, &m);
+	if (got <= 0)
+		return got < 0;
 	if (m->serial != s->serial) {
 		m->serial = s->serial;
 		m->count = 0;
@@ -465,15 +476,12 @@ static long count_one(__u32 i, void *ctx)
 static long ingress_one(__u32 i, void *ctx)
 {
 	struct scratch *s = ((struct loop *)ctx)->s;
-	__u64 k = bounded(i);
-	if (k >= MAX_RECS)
-		return 1;
-	struct rec *r = &s->r[k];
-	if (r->ent < 0)
-		return 0;
-	__u32 ek = r->ent;
-	struct mark *m = bpf_map_lookup_elem(&marks, &ek);
-	if (!m || m->serial != s->serial || !m->count)  /* stepped at the entity's first record */
+	__u32 ek;
+	struct mark *m;
+	int got = mark_at(ctx, i, &ek, &m);
+	if (got <= 0)
+		return got < 0;
+	if (m->serial != s->serial || !m->count)  /* stepped at the entity's first record */
 		return 0;
 	__u32 budget = m->count;
 	m->count = 0;
