@@ -271,7 +271,7 @@ def _cmd_bench_skills(args: argparse.Namespace) -> int:
 def _cmd_bench_snp(args: argparse.Namespace) -> int:
     from cell.bench import snp
 
-    result = snp.run(args.slaves, args.seconds, args.loss)
+    result = snp.run(args.slaves, args.seconds, args.loss, slot_ns=int(args.slot_us * 1000))
     return _report(args, result, snp.format_result(result))
 
 
@@ -678,6 +678,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--slaves", type=int, default=6, help="joint modules (default 6)")
     q.add_argument("--seconds", type=float, default=3.0, help="length of the main trials (default 3)")
     q.add_argument("--loss", type=float, default=0.02, help="share of datagrams lost in the loss trials")
+    q.add_argument(
+        "--slot-us",
+        type=float,
+        default=0.0,
+        help="joint j's cycle starts j slots into the period (time slots; default 0: all at once)",
+    )
     q = _bench(
         bsub,
         "rlink",

@@ -287,3 +287,17 @@ def test_the_modular_robot_bench_trial_accounts_for_every_query() -> None:
     assert h["replies"] + denied == h["queries"]  # each answered or denied, none left
     assert h["queries"] >= 2 * ran - 4  # two queries a cycle (a miss is not retried)
     assert f["tsp_offset_us_max"] < 2000  # the modules started up to 2 ms off
+
+
+def test_the_robots_cycle_spans_every_modules_exchanges_in_a_period() -> None:
+    import numpy as np
+
+    from cell.bench.snp import _robot_cycles, meets_aim
+
+    # (scheduled, T1, end, missed) per cycle of two modules; period 2 lacks module b: not counted
+    a = np.array([[1_000_000, 1_000_010, 1_300_000, 0], [2_000_000, 2_000_000, 2_200_000, 0]])
+    b = np.array([[1_000_000, 1_000_050, 1_500_000, 0], [3_000_000, 3_000_000, 3_100_000, 0]])
+    assert _robot_cycles([a, b], 2).tolist() == [(1_500_000 - 1_000_010) / 1e6]
+    assert meets_aim({"cycle_ms_p99": 0.9, "missed_pct": 0.5})
+    assert not meets_aim({"cycle_ms_p99": 1.1, "missed_pct": 0.5})
+    assert not meets_aim({"cycle_ms_p99": 0.9, "missed_pct": 1.0})

@@ -169,10 +169,10 @@ def test_the_master_grants_beacon_periods_and_sends_what_is_due() -> None:
 class SimNet:
     """A master and modules exchanging datagrams through a queue, each delivered after `latency`."""
 
-    def __init__(self, ports: int, latency: int = 40_000) -> None:
+    def __init__(self, ports: int, latency: int = 40_000, config: CycleConfig | None = None) -> None:
         self.now = 0
         self.latency = latency
-        self.master = Master([("port", i) for i in range(ports)], CycleConfig(), lambda: self.now)
+        self.master = Master([("port", i) for i in range(ports)], config or CycleConfig(), lambda: self.now)
         self.modules: dict[int, tuple[JointModule, Oscillator]] = {}
         self.queue: list[tuple[int, int, str, object, bytes]] = []
         self.seq = itertools.count()
@@ -223,6 +223,23 @@ def test_the_master_explores_configures_by_topology_and_runs_the_cycle() -> None
         assert missed == 0
     assert net.master.counters["guessed"] == 0
     assert abs(m13.servo.now(net.modules[0][1].raw(net.now)) - net.now) < 5_000  # clock locked
+
+
+def test_a_time_slotted_schedule_starts_each_joint_in_its_slot_and_fdir_follows_it() -> None:
+    net = SimNet(ports=3, latency=20_000, config=CycleConfig(slot_ns=150_000))
+    mods = [net.plug(0, 11, 0), net.plug(1, 12, 11), net.plug(2, 13, 12)]
+    net.run_until(300_000_000)
+    for m in mods:
+        assert m.config is not None and m.config.phase_ns == 150_000 * m.joint
+        assert len(m.cycles) > 150 and m.missed == {"ab": 0, "cd": 0}
+        scheduled = [c[0] for c in m.cycles[-50:]]
+        assert {t % 1_000_000 for t in scheduled} == {150_000 * m.joint}  # on its slot of the grid
+    assert net.master.counters["guessed"] == 0  # each joint's A checked against its own slot
+    net.unplug(2)
+    t_pull = net.now
+    net.run_until(t_pull + 10_000_000)
+    silent = [t - t_pull for t, what, mid, _ in net.master.events if what == "silent" and mid == 13]
+    assert silent and 2_000_000 <= silent[0] <= 5_000_000
 
 
 def test_a_module_plugged_in_while_running_is_included_one_pulled_out_is_guessed_then_dropped() -> None:
@@ -287,6 +304,58 @@ def test_the_rmap_baseline_runs_the_same_cycle_with_acknowledged_writes() -> Non
     # eight packets a cycle (a write and its ack per message) against the queries' four
     assert net.master.rmap_init.counters["acked"] >= 2 * (len(m1.cycles) + len(m2.cycles)) - 4
     assert net.master.rmap_target.counters["replies"] >= 2 * (len(m1.cycles) + len(m2.cycles)) - 4
+
+
+def test_the_masters_fast_path_answers_as_its_full_handler_does() -> None:
+    """The cycle's A and C, parsed by their shapes, get the answers (and denials) the full decoder
+    and handler give the same queries (sent with a return address byte: not a fast shape)."""
+    from cell.snp.modular import FORCE, TORQUE, item
+    from cell.snp.packet import Denied, Item, Quantity, Query, Reply, Wanted
+
+    net = SimNet(ports=2)
+    net.plug(0, 11, 0)
+    net.plug(1, 12, 11)
+    net.run_until(100_000_000)
+    master, t = net.master, net.now
+    state = (Item(item(Quantity.POSITION, 1), 0.25, t), Item(item(Quantity.VELOCITY, 1), 0.5, t))
+    a = Query(7, t + 500_000, state, (Wanted(item(Quantity.COMMANDED_VELOCITY, 1), t + 1_000_000),))
+    c = Query(8, t + 900_000, (Item(item(FORCE, 1), 1.5, t),), (Wanted(item(TORQUE, 1), t + 1_000_000),))
+    late = Query(9, t - 1, a.inputs, a.outputs)  # its deadline passed: denied
+    answers = {}
+    for rab in (b"", b"\x07"):  # the fast path, then the full one
+        h = Header(0, Pid.MRT, rab, 99, 0)
+        got = []
+        for q in (a, c, late):
+            out = master.receive(encode(h, q), ("port", 1)) + master.serve()
+            assert len(out) == 1 and out[0][1] == ("port", 1)
+            got.append(decode(out[0][0]))
+        answers[rab] = got
+    fast, full = answers[b""], answers[b"\x07"]
+    for f, g in zip(fast, full, strict=True):
+        assert f.body == g.body and f.header.destination_process == 99
+    assert isinstance(fast[0].body, Reply) and fast[0].body.items[0].id == item(
+        Quantity.COMMANDED_VELOCITY, 1
+    )
+    assert isinstance(fast[1].body, Reply) and fast[1].body.items[0].id == item(TORQUE, 1)
+    assert isinstance(fast[2].body, Denied)
+    assert master.model.pos[1] == 0.25 and master.model.force[1] == 1.5  # the inputs taken either way
+
+
+def test_a_query_queued_by_the_fast_path_can_be_cancelled() -> None:
+    from cell.snp.modular import item
+    from cell.snp.packet import Cancel, Denial, Denied, Item, Quantity, Query, Wanted
+
+    net = SimNet(ports=1)
+    net.plug(0, 11, 0)
+    net.run_until(100_000_000)
+    master, t = net.master, net.now
+    h = Header(0, Pid.MRT, b"", 5, 0)
+    state = (Item(item(Quantity.POSITION, 0), 0.1, t), Item(item(Quantity.VELOCITY, 0), 0.0, t))
+    q = Query(3, t + 500_000, state, (Wanted(item(Quantity.COMMANDED_VELOCITY, 0), t + 1_000_000),))
+    assert master.receive(encode(h, q), ("port", 0)) == [] and master.handler.pending == 1
+    (out,) = master.receive(encode(h, Cancel(3)), ("port", 0))
+    assert decode(out[0]).body == Denied(3, Denial.CANCELLED)
+    assert master.serve() == [] and master.handler.pending == 0
 
 
 # --- on real UDP sockets ---------------------------------------------------------------------------

@@ -19,7 +19,6 @@ import heapq
 import itertools
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from cell.snp.packet import (
@@ -56,13 +55,11 @@ class StateSource(Protocol):
     def refine(self, item: Item) -> None: ...
 
 
-@dataclass(order=True)
-class _Pending:
-    deadline: int
-    seq: int
-    query: Query = field(compare=False)
-    header: Header = field(compare=False)
-    addr: Address = field(compare=False)
+# A pending query, in the heap: [deadline, seq, make, arg, addr, query id, answer header].
+# make(arg) returns the reply datagram; seq is set to -1 when the query is cancelled.
+# (Lists, not objects: a node that answers a thousand queries a second queues them cheaply.)
+_DEADLINE, _SEQ, _MAKE, _ARG, _ADDR, _QID, _BACK = range(7)
+Pending = list[Any]
 
 
 class Handler:
@@ -83,8 +80,8 @@ class Handler:
         # the estimate is `margin` x the time a reply takes to make, at least floor_ns: 2x on an
         # event loop (the send and the wake-up cost as much again), less in a blocking loop
         self.margin, self.floor_ns = margin, floor_ns
-        self._pending: list[_Pending] = []
-        self._by_id: dict[tuple[Address, int], _Pending] = {}
+        self._pending: list[Pending] = []
+        self._by_id: dict[tuple[Address, int], Pending] = {}
         self._seq = itertools.count()
         self.counters: Counter[str] = Counter()
         self.denials: deque[tuple[int, int, Address]] = deque(maxlen=1000)  # (query id, why, asker)
@@ -119,7 +116,7 @@ class Handler:
             self.counters["cancellations"] += 1
             if pending is None:
                 return []  # already served or unknown: nothing to take back
-            pending.seq = -1  # marks it cancelled in the heap
+            pending[_SEQ] = -1  # marks it cancelled in the heap
             self.counters["cancelled"] += 1
             self.denials.append((body.query_id, int(Denial.CANCELLED), addr))
             return [(encode(back, Denied(body.query_id, Denial.CANCELLED)), addr)]
@@ -142,23 +139,44 @@ class Handler:
         back = header.reversed()
         for item in q.inputs:
             if not self.source.known(item.id):
-                return [self._deny(back, q, Denial.UNKNOWN_INPUT_ITEM, addr)]
+                return [self._deny(back, q.query_id, Denial.UNKNOWN_INPUT_ITEM, addr)]
         for wanted in q.outputs:
             if not self.source.known(wanted.id):
-                return [self._deny(back, q, Denial.UNKNOWN_OUTPUT_ITEM, addr)]
-        if t_in + self.service_ns * (1 + len(self._pending)) > q.deadline:
-            return [self._deny(back, q, Denial.DEADLINE_CANNOT_BE_MET, addr)]
+                return [self._deny(back, q.query_id, Denial.UNKNOWN_OUTPUT_ITEM, addr)]
+        if not self.admit(t_in, q.deadline):
+            return [self._deny(back, q.query_id, Denial.DEADLINE_CANNOT_BE_MET, addr)]
         for item in q.inputs:
             self.source.refine(item)
-        pending = _Pending(q.deadline, next(self._seq), q, header, addr)
-        heapq.heappush(self._pending, pending)
-        self._by_id[(addr, q.query_id)] = pending
+        self.enqueue(q.deadline, self._reply, (back, q), addr, q.query_id, back)
         return []
 
-    def _deny(self, back: Header, q: Query, why: Denial, addr: Address) -> tuple[bytes, Address]:
+    def admit(self, t_in: int, deadline: int) -> bool:
+        """Can a query that came in at t_in be answered by its deadline, after those pending?"""
+        return t_in + self.service_ns * (1 + len(self._pending)) <= deadline
+
+    def enqueue(
+        self, deadline: int, make: Callable[[Any], bytes], arg: Any, addr: Address, qid: int, back: Header
+    ) -> None:
+        """Queue an admitted query (its inputs taken already): make(arg) will be its reply.  A
+        node with a fast path for its own queries' shapes queues them here too, so that every
+        query is served earliest deadline first and denied alike."""
+        pending = [deadline, next(self._seq), make, arg, addr, qid, back]
+        heapq.heappush(self._pending, pending)
+        self._by_id[(addr, qid)] = pending
+
+    def deny(self, back: Header, query_id: int, addr: Address) -> tuple[bytes, Address]:
+        """The denial of a query that admit() refused."""
+        return self._deny(back, query_id, Denial.DEADLINE_CANNOT_BE_MET, addr)
+
+    def _deny(self, back: Header, query_id: int, why: Denial, addr: Address) -> tuple[bytes, Address]:
         self.counters[f"denied.{why.name.lower()}"] += 1
-        self.denials.append((q.query_id, int(why), addr))
-        return encode(back, Denied(q.query_id, why)), addr
+        self.denials.append((query_id, int(why), addr))
+        return encode(back, Denied(query_id, why)), addr
+
+    def _reply(self, arg: tuple[Header, Query]) -> bytes:
+        back, q = arg
+        items = tuple(Item(w.id, self.source.value(w.id, w.timestamp), w.timestamp) for w in q.outputs)
+        return encode(back, Reply(q.query_id, items))
 
     # --- serving ---------------------------------------------------------------------------------
 
@@ -171,23 +189,20 @@ class Handler:
         met); None when nothing is pending."""
         while self._pending:
             p = heapq.heappop(self._pending)
-            if p.seq < 0:
+            if p[_SEQ] < 0:
                 continue  # cancelled
-            self._by_id.pop((p.addr, p.query.query_id), None)
+            addr, qid, deadline = p[_ADDR], p[_QID], p[_DEADLINE]
+            self._by_id.pop((addr, qid), None)
             t0 = self.clock()
-            back = p.header.reversed()
-            if t0 + self.service_ns > p.deadline:
-                return self._deny(back, p.query, Denial.DEADLINE_CANNOT_BE_MET, p.addr)
-            items = tuple(
-                Item(w.id, self.source.value(w.id, w.timestamp), w.timestamp) for w in p.query.outputs
-            )
-            out = encode(back, Reply(p.query.query_id, items))
-            took = self.clock() - t0
-            self.service_ns = max(self.floor_ns, int(0.9 * self.service_ns + 0.1 * took * self.margin))
-            if self.clock() > p.deadline:
+            if t0 + self.service_ns > deadline:
+                return self._deny(p[_BACK], qid, Denial.DEADLINE_CANNOT_BE_MET, addr)
+            out = p[_MAKE](p[_ARG])
+            t1 = self.clock()
+            self.service_ns = max(self.floor_ns, int(0.9 * self.service_ns + 0.1 * (t1 - t0) * self.margin))
+            if t1 > deadline:
                 self.counters["late"] += 1  # should not happen: the estimate was too low
             self.counters["replies"] += 1
-            return out, p.addr
+            return out, addr
         return None
 
     def _encode(self, pkt: Packet) -> bytes:

@@ -33,8 +33,6 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from cell.snp import rmap
 from cell.snp.handler import Handler
 from cell.snp.packet import (
@@ -50,15 +48,17 @@ from cell.snp.packet import (
     Pid,
     Quantity,
     Query,
+    QueryShape,
     Reply,
     TimeBeacon,
     TimeRequest,
     TimeResponse,
     TimeSubscribe,
     TimeSubscribed,
-    Wanted,
     decode,
     encode,
+    query_shape,
+    reply_shape,
     split_item_id,
 )
 from cell.snp.tsp import BeaconSchedule, ClockServo
@@ -76,11 +76,22 @@ def item(quantity: int, joint: int) -> int:
     return (ROBOT << 16) | (quantity << 8) | joint
 
 
+# The cycle's packets, each one shape (cell.snp.packet.QueryShape): A (position and velocity in,
+# the desired velocity wanted), C (the desired force in, the torque wanted), and their answers.
+_A, _C, _ANSWER = query_shape(2, 1), query_shape(1, 1), reply_shape(1)
+# per joint: its position, velocity, desired velocity, force and torque item ids
+_CYCLE_QUANTITIES = (Quantity.POSITION, Quantity.VELOCITY, Quantity.COMMANDED_VELOCITY, FORCE, TORQUE)
+_IDS = [tuple(item(q, j) for q in _CYCLE_QUANTITIES) for j in range(256)]
+
+
 @dataclass(frozen=True)
 class CycleConfig:
     period_ns: int = 1_000_000
     phase_ns: int = 0
-    budget_ns: int = 1_000_000  # [C, D] due this long after the cycle's start, [A, B] half as long
+    # joint j's cycle starts j slots after the period's: a time-slotted schedule (the slides
+    # give each joint's [A, B, C, D] 0.05 ms of a six-joint robot's 0.3 ms); 0: all at once
+    slot_ns: int = 0
+    budget_ns: int = 1_000_000  # [C, D] due this long after the joint's start, [A, B] half as long
     beacon_ns: int = 10_000_000  # the beacon period modules ask for
     precision_ns: int = 20_000  # the clock precision they ask for
     gain: float = 20.0  # the master's P law for B
@@ -103,6 +114,8 @@ class Node:
     heard_ns: int = 0
     configured_at: int = 0
     silent_cycles: int = 0
+    phase_ns: int = 0  # its cycle's offset in the period (its slot)
+    checked: int = -1  # the last of its cycles FDIR looked at
 
 
 class ArmModel:
@@ -110,14 +123,14 @@ class ArmModel:
 
     B: the desired velocity at T3, v_ref(T3) + K (p_ref(T3) - p(T3)), p extrapolated from the
     module's A.  D: the torque for the module's desired force plus gravity on the links above it,
-    which needs every joint's position: a silent module's is guessed."""
+    which needs every joint's position: a silent module's is guessed.  (Python lists and math:
+    for sixteen joints numpy's per-call cost is most of the work.)"""
 
     def __init__(self, joints: int = 16, gain: float = 20.0, t0: int = 0) -> None:
         self.joints, self.gain, self.t0 = joints, gain, t0
-        self.pos, self.vel = np.zeros(joints), np.zeros(joints)
-        self.at = np.zeros(joints, np.int64)  # when pos, vel were measured (master ns)
-        self.force = np.zeros(joints)
-        self.active = np.zeros(joints, bool)
+        self.pos, self.vel, self.force = [0.0] * joints, [0.0] * joints, [0.0] * joints
+        self.at = [0] * joints  # when pos, vel were measured (master ns)
+        self.active = [False] * joints
 
     def reference(self, joint: int, t_ns: int) -> tuple[float, float]:
         t = (t_ns - self.t0) / 1e9
@@ -126,12 +139,28 @@ class ArmModel:
 
     def guess(self, joint: int, t_ns: int) -> float:
         """Data obsolescence: the last position, carried on at the last velocity."""
-        return float(self.pos[joint] + self.vel[joint] * (t_ns - self.at[joint]) / 1e9)
+        return self.pos[joint] + self.vel[joint] * (t_ns - self.at[joint]) / 1e9
+
+    def command(self, joint: int, t_ns: int) -> float:
+        """B: the desired velocity at t_ns."""
+        p_ref, v_ref = self.reference(joint, t_ns)
+        return v_ref + self.gain * (p_ref - self.guess(joint, t_ns))
+
+    def torque(self, joint: int, t_ns: int) -> float:
+        """D: the joint's desired force, plus gravity on the links from it up (their absolute
+        angles: the sums of the joint positions below them)."""
+        angle = load = 0.0
+        for j in range(self.joints):
+            if self.active[j]:
+                angle += self.guess(j, t_ns)
+                if j >= joint:
+                    load += math.cos(angle)
+        return 0.8 * self.force[joint] + 2.0 * load
 
     def known(self, item_id: int) -> bool:
         robot, quantity, joint = split_item_id(item_id)
         ok = quantity in (Quantity.POSITION, Quantity.VELOCITY, Quantity.COMMANDED_VELOCITY, TORQUE, FORCE)
-        return robot == ROBOT and joint < self.joints and bool(self.active[joint]) and ok
+        return robot == ROBOT and joint < self.joints and self.active[joint] and ok
 
     def refine(self, it: Item) -> None:
         _, quantity, joint = split_item_id(it.id)
@@ -145,12 +174,9 @@ class ArmModel:
     def value(self, item_id: int, t_ns: int) -> float:
         _, quantity, joint = split_item_id(item_id)
         if quantity == Quantity.COMMANDED_VELOCITY:
-            p_ref, v_ref = self.reference(joint, t_ns)
-            return v_ref + self.gain * (p_ref - self.guess(joint, t_ns))
+            return self.command(joint, t_ns)
         if quantity == TORQUE:
-            angles = np.cumsum([self.guess(j, t_ns) for j in range(self.joints) if self.active[j]])
-            below = int(self.active[:joint].sum())
-            return 0.8 * self.force[joint] + 2.0 * float(np.cos(angles[below:]).sum())
+            return self.torque(joint, t_ns)
         return float(self.pos[joint] if quantity == Quantity.POSITION else self.vel[joint])
 
 
@@ -177,7 +203,6 @@ class Master:
         self.events: deque[tuple[int, str, int, int]] = deque(maxlen=1000)  # (t, what, module, joint)
         self.counters: dict[str, int] = {"guessed": 0, "probes": 0, "beacons": 0, "included": 0, "lost": 0}
         self._next_explore = 0
-        self._cycle = -1  # the last cycle checked for missing A
         self._a_cycle: dict[int, int] = {}  # joint -> the last cycle its A came in
         self.rmap_target = rmap.Target(MASTER_LA, self._rmap_written)
         self.rmap_init = rmap.Initiator(MASTER_LA, config.rmap_timeout_ns, config.rmap_retries)
@@ -186,14 +211,20 @@ class Master:
 
     # --- input ---------------------------------------------------------------------------------
 
-    def receive(self, data: bytes, addr: Any) -> list[tuple[bytes, Any]]:
-        now = self.clock()
+    def receive(self, data: bytes, addr: Any, t_in: int | None = None) -> list[tuple[bytes, Any]]:
+        """t_in: when the datagram came in (the kernel's stamp), if not now: the time exchange
+        and the admission of queries then do not count how long it waited to be read."""
+        now = self.clock() if t_in is None else t_in
         node = self.nodes.get(addr)
         if node is not None:
             node.heard_ns, node.silent_cycles = now, 0
             if node.state == "suspect":
                 node.state = "included"
                 self.events.append((now, "back", node.info.module_id, node.joint))
+            if (len(data) == _A.size or len(data) == _C.size) and node.joint >= 0:
+                out = self._cycle_query(data, addr, node, now)
+                if out is not None:
+                    return out
         if rmap.is_rmap(data):
             return self._rmap(data, addr)
         try:
@@ -211,8 +242,51 @@ class Master:
             return [(encode(pkt.header.reversed(), reply), addr)]
         if isinstance(body, Query) and node is not None and node.joint >= 0:
             # (a quarter period of slack: the module's servoed clock may run a little ahead)
-            self._a_cycle[node.joint] = self._cycle_of(now + self.config.period_ns // 4)
+            self._a_cycle[node.joint] = self._cycle_at(node, now)
         return self.handler.dispatch(pkt, addr, now)
+
+    def _cycle_query(self, data: bytes, addr: Any, node: Node, now: int) -> list[tuple[bytes, Any]] | None:
+        """The fast path for a module's A or C: parsed by its shape, its inputs taken, queued with
+        the handler (admitted or denied as any query); None if it is anything else (the full
+        decoder and handler then deal with it)."""
+        model, h, j = self.model, self.handler, node.joint
+        if not model.active[j]:
+            return None
+        ids = _IDS[j]
+        if len(data) == _A.size:
+            f = _A.parse(data)  # ..., qid 8, deadline 9, 2, pos 11-13, vel 14-16, 1, wanted 18-19
+            if f is None or f[1] != Pid.MRT or f[11] != ids[0] or f[14] != ids[1] or f[18] != ids[2]:
+                return None
+            self._a_cycle[j] = self._cycle_at(node, now)
+            make, t_out = self._answer_b, f[19]
+        else:
+            f = _C.parse(data)  # ..., qid 8, deadline 9, 1, force 11-13, 1, wanted 15-16
+            if f is None or f[1] != Pid.MRT or f[11] != ids[3] or f[15] != ids[4]:
+                return None
+            make, t_out = self._answer_d, f[16]
+        qid, deadline = f[8], f[9]
+        back = Header(f[0], f[1], b"", f[4], f[3])
+        h.counters["queries"] += 1
+        if not h.admit(now, deadline):
+            return [h.deny(back, qid, addr)]
+        if make == self._answer_b:
+            model.pos[j], model.at[j], model.vel[j] = f[12], f[13], f[15]
+        else:
+            model.force[j] = f[12]
+        h.enqueue(deadline, make, (back, qid, j, t_out), addr, qid, back)
+        return []
+
+    def _answer_b(self, arg: tuple[Header, int, int, int]) -> bytes:
+        back, qid, j, t3 = arg
+        value = self.model.command(j, t3)
+        return _ANSWER.pack(back.destination, back.pid, back.source_process, back.destination_process, qid,
+                            (_IDS[j][2], value, t3))  # fmt: skip
+
+    def _answer_d(self, arg: tuple[Header, int, int, int]) -> bytes:
+        back, qid, j, t6 = arg
+        value = self.model.torque(j, t6)
+        return _ANSWER.pack(back.destination, back.pid, back.source_process, back.destination_process, qid,
+                            (_IDS[j][4], value, t6))  # fmt: skip
 
     def serve(self) -> list[tuple[bytes, Any]]:
         """The pending queries, earliest deadline first."""
@@ -254,7 +328,8 @@ class Master:
             if n.state == "configuring" and now - n.configured_at < self.explore_ns:
                 continue
             n.joint, n.state, n.configured_at = depths[n.info.module_id], "configuring", now
-            conf = Configure(n.joint, c.period_ns, c.phase_ns, c.budget_ns, (c.gain,))
+            n.phase_ns = (c.phase_ns + n.joint * c.slot_ns) % c.period_ns
+            conf = Configure(n.joint, c.period_ns, n.phase_ns, c.budget_ns, (c.gain,))
             out.append((encode(Header(pid=Pid.MRT), conf), n.addr))
         return out
 
@@ -266,6 +341,7 @@ class Master:
         self.model.active[node.joint] = True
         self.model.at[node.joint] = now
         self._a_cycle.pop(node.joint, None)  # guessed only once it has run (it syncs its clock first)
+        node.checked = (now - self.config.budget_ns - node.phase_ns) // self.config.period_ns
         self.counters["included"] += 1
         self.events.append((now, "included", node.info.module_id, node.joint))
         return []
@@ -274,6 +350,11 @@ class Master:
 
     def _cycle_of(self, t: int) -> int:
         return (t - self.config.phase_ns) // self.config.period_ns
+
+    def _cycle_at(self, node: Node, t: int) -> int:
+        """Which of its cycles a module's A coming in at t belongs to (with a quarter period of
+        slack: its servoed clock may run a little ahead)."""
+        return (t - node.phase_ns + self.config.period_ns // 4) // self.config.period_ns
 
     def poll(self) -> list[tuple[bytes, Any]]:
         """Beacons due, exploration probes, RMAP resends, FDIR: call at least once a period."""
@@ -295,6 +376,10 @@ class Master:
         out += [(d, self._rmap_addr(d)) for d in resend]
         return out
 
+    def next_cycle_start(self, now: int) -> int:
+        """The start of the first cycle after now (the modules' A come just after it)."""
+        return (self._cycle_of(now) + 1) * self.config.period_ns + self.config.phase_ns
+
     def next_due(self) -> int:
         """When poll() has something to do next, at the latest."""
         nxt = self._next_explore
@@ -304,27 +389,28 @@ class Master:
         r = self.rmap_init.next_timeout()
         if r is not None:
             nxt = min(nxt, r)
-        cycle = (self._cycle_of(self.clock()) + 1) * self.config.period_ns + self.config.phase_ns
-        return min(nxt, cycle + self.config.budget_ns)
+        c = self.config
+        for n in self.nodes.values():  # FDIR: each module's next cycle's deadline
+            if n.state in ("included", "suspect"):
+                nxt = min(nxt, (n.checked + 2) * c.period_ns + n.phase_ns + c.budget_ns)
+        return nxt
 
     def _fdir(self, now: int) -> None:
         """Once per cycle, after its queries' deadline: whose A did not come (guessed), who is
         silent (reported), who is gone (excluded, its port explored again)."""
         c = self.config
-        cycle = self._cycle_of(now - c.budget_ns)  # the last cycle whose deadline has passed
-        if cycle <= self._cycle:
-            return
-        self._cycle = cycle
         for n in self.nodes.values():
             if n.state not in ("included", "suspect"):
                 continue
+            cycle = (now - c.budget_ns - n.phase_ns) // c.period_ns  # its last cycle past its deadline
             last = self._a_cycle.get(n.joint)
-            if last is not None and last < cycle:
+            if cycle > n.checked and last is not None and last < cycle:
                 self.counters["guessed"] += 1
                 n.silent_cycles += 1
                 if n.silent_cycles == self.suspect_cycles:
                     n.state = "suspect"
                     self.events.append((now, "silent", n.info.module_id, n.joint))
+            n.checked = max(n.checked, cycle)
             if now - n.heard_ns > self.lost_ns:
                 n.state = "lost"
                 self.model.active[n.joint] = False
@@ -357,7 +443,7 @@ class Master:
         j = node.joint
         x, y, t = _MSG.unpack(data)
         if address == A_BASE + 16 * j:
-            self._a_cycle[j] = self._cycle_of(now + self.config.period_ns // 4)
+            self._a_cycle[j] = self._cycle_at(node, now)
             self.model.pos[j], self.model.vel[j], self.model.at[j] = x, y, t
             t3 = t + self.config.period_ns
             b = self.model.value(item(Quantity.COMMANDED_VELOCITY, j), t3)
@@ -434,6 +520,10 @@ class JointModule:
 
     def receive(self, data: bytes, raw: int) -> list[bytes]:
         self._raw = raw
+        cy = self.cycle
+        f = _ANSWER.parse(data) if cy is not None and len(data) == _ANSWER.size else None
+        if f is not None and f[1] == Pid.MRT and f[8] == cy.qid:  # type: ignore[union-attr]
+            return self._answered(f[11], raw)  # (the fast path: B or D, by its shape)
         if rmap.is_rmap(data):
             return self._rmap(data, raw)
         try:
@@ -467,7 +557,9 @@ class JointModule:
                 return [encode(self._header(Pid.TSP), TimeRequest(raw))]
             return []
         if isinstance(body, Reply | Denied) and self.cycle is not None and body.query_id == self.cycle.qid:
-            return self._answered(body, raw)
+            return self._answered(
+                body.items[0].value if isinstance(body, Reply) and body.items else None, raw
+            )
         return []
 
     def _configure(self, c: Configure, header: Header, raw: int) -> list[bytes]:
@@ -541,20 +633,23 @@ class JointModule:
             assert self.rmap_init is not None
             _, dg = self.rmap_init.write(MASTER_LA, A_BASE + 16 * j, _MSG.pack(self.pos, self.vel, t1), raw)
             return [dg]
-        a = (Item(item(Quantity.POSITION, j), self.pos, t1), Item(item(Quantity.VELOCITY, j), self.vel, t1))
-        return [self._query(a, Wanted(item(Quantity.COMMANDED_VELOCITY, j), t1 + c.period_ns))]
+        ids = _IDS[j]
+        a = (ids[0], self.pos, t1, ids[1], self.vel, t1)
+        return [self._query(_A, a, (ids[2], t1 + c.period_ns))]
 
-    def _query(self, inputs: tuple[Item, ...], wanted: Wanted) -> bytes:
-        assert self.cycle is not None
-        self._qid = (self._qid + 1) & 0xFFFFFFFF
-        self.cycle.qid = self._qid
-        return encode(self._header(Pid.MRT), Query(self._qid, self.cycle.deadline, inputs, (wanted,)))
+    def _query(self, shape: QueryShape, inputs: tuple, wanted: tuple) -> bytes:
+        """A or C: inputs (id, value, timestamp) and the wanted (id, timestamp), flat."""
+        cy = self.cycle
+        assert cy is not None
+        self._qid = qid = (self._qid + 1) & 0xFFFFFFFF
+        cy.qid = qid
+        return shape.pack(0, Pid.MRT, self.source_process, 0, qid, cy.deadline, inputs, wanted)
 
-    def _answered(self, body: Reply | Denied, raw: int) -> list[bytes]:
+    def _answered(self, value: float | None, raw: int) -> list[bytes]:
+        """The answer to the cycle's query in flight came: its value, or None (denied)."""
         cy = self.cycle
         assert cy is not None
         now = self.servo.now(raw)
-        value = body.items[0].value if isinstance(body, Reply) and body.items else None
         if cy.stage == "ab":
             if value is None:
                 self._miss(cy, "ab")
@@ -583,8 +678,8 @@ class JointModule:
             _, dg = self.rmap_init.write(MASTER_LA, C_BASE + 16 * j, data, self._raw)
             return [dg]
         cy.stage = "cd"
-        wanted = Wanted(item(TORQUE, j), cy.start + c.period_ns)
-        return [self._query((Item(item(FORCE, j), force, cy.start),), wanted)]
+        ids = _IDS[j]
+        return [self._query(_C, (ids[3], force, cy.start), (ids[4], cy.start + c.period_ns))]
 
     def _expired(self, cy: Cycle, raw: int) -> list[bytes]:
         """Its deadline passed with no answer: guess (the last value) and go on."""

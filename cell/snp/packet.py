@@ -12,6 +12,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import NamedTuple
 
 import anycrc
 
@@ -99,8 +100,11 @@ def split_item_id(item: int) -> tuple[int, int, int]:
 # --- packets -------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Header:
+# The packets of the 1 kHz cycle (headers, items, queries, replies) are named tuples: immutable
+# values like the dataclasses below, made four times as fast (a decoded query is five of them).
+
+
+class Header(NamedTuple):
     destination: int = 0  # logical address, u8
     pid: int = Pid.MRT
     return_address: bytes = b""  # Nrab bytes
@@ -114,29 +118,25 @@ class Header:
         )
 
 
-@dataclass(frozen=True)
-class Item:
+class Item(NamedTuple):
     id: int  # u32, see item_id()
     value: float  # f32
     timestamp: int  # u64 ns, cell clock
 
 
-@dataclass(frozen=True)
-class Wanted:
+class Wanted(NamedTuple):
     id: int
     timestamp: int  # when the value is wanted, ns
 
 
-@dataclass(frozen=True)
-class Query:
+class Query(NamedTuple):
     query_id: int
     deadline: int  # ns, cell clock: reply before this or be denied
     inputs: tuple[Item, ...] = ()
     outputs: tuple[Wanted, ...] = ()
 
 
-@dataclass(frozen=True)
-class Reply:
+class Reply(NamedTuple):
     query_id: int
     items: tuple[Item, ...] = ()
 
@@ -340,6 +340,11 @@ def encode_body(body: Body) -> tuple[int, bytes]:
 
 def encode(header: Header, body: Body, type: int | None = None) -> bytes:
     """The datagram for a packet; type is needed for ErrorReply and to answer PID_SUPPORTED_QUERY."""
+    if type is None and not header.return_address:
+        if body.__class__ is Query:  # the cycle's packets: one pack each (3 us against 9)
+            return _encode_query(header, body)  # type: ignore[arg-type]
+        if body.__class__ is Reply:
+            return _encode_reply(header, body)  # type: ignore[arg-type]
     if isinstance(body, ErrorReply):
         if type is None:
             raise ValueError("an ErrorReply needs its packet type")
@@ -358,6 +363,160 @@ def encode(header: Header, body: Body, type: int | None = None) -> bytes:
     return head + bytes([crc8(head)]) + data + bytes([crc8(data)])
 
 
+# --- the fast path: the cycle's queries and replies, each shape one struct ---------------------------
+#
+# A query or reply with no return address and a given number of items has a fixed layout, so
+# that the whole datagram (header, its CRC, data, its CRC) is one precompiled struct, as a P4
+# parser's fixed header stack.  The modular robot's 1 kHz cycle packs and parses its packets with
+# these directly (flat tuples, no objects); encode() and decode() take the same path for every
+# query and reply that fits one.
+
+_FAST_MAX = 8  # item counts up to this get a shape of their own
+
+
+class QueryShape:
+    """A TIME_BOUNDED_QUERY with n_in inputs, n_out outputs and no return address.
+
+    parse() returns the struct's fields: destination, pid, 0, source process, destination
+    process, header CRC, 0, type, query id, deadline, n_in, (id, value, timestamp) per input,
+    n_out, (id, timestamp) per output, data CRC; or None if the datagram is not this shape with
+    both CRCs right."""
+
+    TYPE = 0x0001
+
+    def __init__(self, n_in: int, n_out: int) -> None:
+        self.n_in, self.n_out = n_in, n_out
+        self.struct = struct.Struct(f"!BBBIIBBHIQI{'IfQ' * n_in}I{'IQ' * n_out}B")
+        self.size = self.struct.size
+        self._at_out = 31 + 16 * n_in  # where the output count is
+
+    def pack(self, destination: int, pid: int, source: int, dest_process: int, query_id: int,
+             deadline: int, inputs: tuple, outputs: tuple) -> bytes:  # fmt: skip
+        """inputs: id, value, timestamp for each, flat; outputs: id, timestamp for each."""
+        buf = bytearray(self.size)
+        self.struct.pack_into(
+            buf, 0, destination, pid, 0, source, dest_process, 0, 0, self.TYPE, query_id, deadline,
+            self.n_in, *inputs, self.n_out, *outputs, 0,
+        )  # fmt: skip
+        return _sealed(buf)
+
+    def parse(self, data: bytes) -> tuple | None:
+        if len(data) != self.size or data[2] or data[14] != self.TYPE or data[13]:
+            return None
+        mv = memoryview(data)
+        if crc8(mv[:11]) != data[11] or crc8(mv[12:-1]) != data[-1]:
+            return None
+        f = self.struct.unpack(data)
+        if f[10] != self.n_in or mv[self._at_out : self._at_out + 4] != self.n_out.to_bytes(4, "big"):
+            return None
+        return f
+
+
+class ReplyShape:
+    """A TIME_BOUNDED_QUERY_REPLY with n items and no return address; parse() returns destination,
+    pid, 0, source process, destination process, header CRC, 0, type, query id, n, (id, value,
+    timestamp) per item, data CRC."""
+
+    TYPE = 0x0002
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.struct = struct.Struct(f"!BBBIIBBHII{'IfQ' * n}B")
+        self.size = self.struct.size
+
+    def pack(self, destination: int, pid: int, source: int, dest_process: int, query_id: int,
+             items: tuple) -> bytes:  # fmt: skip
+        buf = bytearray(self.size)
+        self.struct.pack_into(
+            buf, 0, destination, pid, 0, source, dest_process, 0, 0, self.TYPE, query_id, self.n, *items, 0
+        )
+        return _sealed(buf)
+
+    def parse(self, data: bytes) -> tuple | None:
+        if len(data) != self.size or data[2] or data[14] != self.TYPE or data[13]:
+            return None
+        mv = memoryview(data)
+        if crc8(mv[:11]) != data[11] or crc8(mv[12:-1]) != data[-1]:
+            return None
+        f = self.struct.unpack(data)
+        return f if f[9] == self.n else None
+
+
+def _sealed(buf: bytearray) -> bytes:
+    """Fill in the two CRCs of a datagram packed with no return address."""
+    mv = memoryview(buf)
+    buf[11] = crc8(mv[:11])
+    buf[-1] = crc8(mv[12:-1])
+    return bytes(buf)
+
+
+_query_shapes: dict[tuple[int, int], QueryShape] = {}
+_reply_shapes: dict[int, ReplyShape] = {}
+
+
+def query_shape(n_in: int, n_out: int) -> QueryShape:
+    s = _query_shapes.get((n_in, n_out))
+    if s is None:
+        s = _query_shapes[n_in, n_out] = QueryShape(n_in, n_out)
+    return s
+
+
+def reply_shape(n: int) -> ReplyShape:
+    s = _reply_shapes.get(n)
+    if s is None:
+        s = _reply_shapes[n] = ReplyShape(n)
+    return s
+
+
+def _encode_query(h: Header, q: Query) -> bytes:
+    n_in, n_out = len(q.inputs), len(q.outputs)
+    if n_in > _FAST_MAX or n_out > _FAST_MAX:
+        return encode(h, q, PacketType.TIME_BOUNDED_QUERY)
+    ins = tuple(x for i in q.inputs for x in i)
+    outs = tuple(x for w in q.outputs for x in w)
+    shape = query_shape(n_in, n_out)
+    return shape.pack(
+        h.destination, h.pid, h.source_process, h.destination_process, q.query_id, q.deadline, ins, outs
+    )
+
+
+def _encode_reply(h: Header, r: Reply) -> bytes:
+    if len(r.items) > _FAST_MAX:
+        return encode(h, r, PacketType.TIME_BOUNDED_QUERY_REPLY)
+    items = tuple(x for i in r.items for x in i)
+    return reply_shape(len(r.items)).pack(
+        h.destination, h.pid, h.source_process, h.destination_process, r.query_id, items
+    )
+
+
+def _decode_fast(buf: bytes, pids: frozenset[int]) -> Packet | None:
+    """A query or reply that fits a shape, with a known pid; else None (the full decoder then
+    says what is wrong with it, if anything)."""
+    if len(buf) < 24 or buf[2] or buf[13] or buf[1] not in pids:
+        return None
+    kind = buf[14]
+    if kind == QueryShape.TYPE:
+        n_in = int.from_bytes(buf[27:31], "big")
+        if n_in > _FAST_MAX or len(buf) < 36 + 16 * n_in:
+            return None
+        n_out = (len(buf) - 36 - 16 * n_in) // 12
+        if n_out > _FAST_MAX or (f := query_shape(n_in, n_out).parse(buf)) is None:
+            return None
+        o = 12 + 3 * n_in
+        inputs = tuple(Item(f[k], f[k + 1], f[k + 2]) for k in range(11, o - 1, 3))
+        body: Body = Query(
+            f[8], f[9], inputs, tuple(Wanted(f[k], f[k + 1]) for k in range(o, o + 2 * n_out, 2))
+        )
+    elif kind == ReplyShape.TYPE:
+        n = (len(buf) - 24) // 16
+        if n > _FAST_MAX or (f := reply_shape(n).parse(buf)) is None:
+            return None
+        body = Reply(f[8], tuple(Item(f[k], f[k + 1], f[k + 2]) for k in range(10, 10 + 3 * n, 3)))
+    else:
+        return None
+    return Packet(Header(f[0], f[1], b"", f[3], f[4]), kind, body, buf[15:-1])
+
+
 def _take(buf: memoryview, n: int, what: str) -> tuple[memoryview, memoryview]:
     if len(buf) < n:
         raise ValueError(f"{what}: {n} bytes needed, {len(buf)} left")
@@ -369,7 +528,12 @@ _ALL_PIDS = frozenset(int(p) for p in Pid)
 
 def decode(datagram: bytes | bytearray | memoryview, known_pids: frozenset[int] | None = None) -> Packet:
     """A datagram -> Packet; PacketError (with the reply to send, if any) otherwise."""
-    buf = memoryview(bytes(datagram))
+    raw = bytes(datagram)
+    pids = known_pids if known_pids is not None else _ALL_PIDS
+    fast = _decode_fast(raw, pids)
+    if fast is not None:
+        return fast
+    buf = memoryview(raw)
     # --- header: a bad header CRC means the return path cannot be trusted: drop -----------------
     if len(buf) < 3:
         raise PacketError("shorter than a header", counter="bad_header")
@@ -383,7 +547,6 @@ def decode(datagram: bytes | bytearray | memoryview, known_pids: frozenset[int] 
     src, dst = struct.unpack_from("!II", head, 3 + nrab)
     header = Header(buf[0], buf[1], bytes(buf[3 : 3 + nrab]), src, dst)
     answer = header.reversed()
-    pids = known_pids if known_pids is not None else _ALL_PIDS
     if header.pid not in pids:
         raise PacketError(
             f"unknown protocol id 0x{header.pid:02X}",
