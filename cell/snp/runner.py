@@ -207,8 +207,10 @@ def run_modules(
         deadline, a clock sample, or its unplugging."""
         assert s.module is not None and s.osc is not None
         w = s.module.next_wake()
-        due = min(end, s.next_sample, t0 + int(s.unplug_s * 1e9) if s.unplug_s is not None else end)
-        return due if w is None else min(due, s.osc.true(w))
+        due = t0 + int(s.unplug_s * 1e9) if s.unplug_s is not None else end
+        if w is None:  # not running yet: it waits for datagrams
+            return due
+        return min(due, s.next_sample, s.osc.true(w))
 
     def events() -> int:
         """Plug and pull the slots whose time has come; when the next such time is."""
@@ -255,7 +257,7 @@ def run_modules(
                     continue
                 m, osc, link = s.module, s.osc, s.link
                 assert m is not None and osc is not None and link is not None and s.sock is not None
-                for data, addr, at in drain(s.sock, mono_of_real, limit=1):  # (epoll says if more)
+                for data, addr, at in drain(s.sock, mono_of_real):
                     s.master = addr
                     for out in m.receive(data, osc.raw(at)):
                         link.send(out, addr)
