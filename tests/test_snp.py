@@ -301,3 +301,28 @@ def test_the_robots_cycle_spans_every_modules_exchanges_in_a_period() -> None:
     assert meets_aim({"cycle_ms_p99": 0.9, "missed_pct": 0.5})
     assert not meets_aim({"cycle_ms_p99": 1.1, "missed_pct": 0.5})
     assert not meets_aim({"cycle_ms_p99": 0.9, "missed_pct": 1.0})
+
+
+def test_the_cycles_packet_shapes_are_the_full_codecs_bytes_and_refuse_anything_else() -> None:
+    from cell.snp.packet import query_shape, reply_shape
+
+    h = Header(0, Pid.MRT, b"", 101, 7)
+    q = Query(5, 10**12, (Item(0x100, 0.5, 1000), Item(0x200, -1.25, 1000)), (Wanted(0x300, 2000),))
+    r = Reply(5, (Item(0x300, 0.75, 2000),))
+    full_q = encode(h, q, PacketType.TIME_BOUNDED_QUERY)  # (a type given: the general encoder)
+    full_r = encode(h, r, PacketType.TIME_BOUNDED_QUERY_REPLY)
+    qs, rs = query_shape(2, 1), reply_shape(1)
+    assert (
+        qs.pack(0, Pid.MRT, 101, 7, 5, 10**12, (0x100, 0.5, 1000, 0x200, -1.25, 1000), (0x300, 2000))
+        == full_q
+    )
+    assert rs.pack(0, Pid.MRT, 101, 7, 5, (0x300, 0.75, 2000)) == full_r == encode(h, r)
+    f = qs.parse(full_q)
+    assert f is not None and (f[3], f[8], f[9], f[12], f[15], f[18]) == (101, 5, 10**12, 0.5, -1.25, 0x300)
+    assert rs.parse(full_r) is not None and rs.parse(full_r)[11] == 0.75
+    bad = bytearray(full_q)
+    bad[-2] ^= 1  # data CRC now wrong
+    assert qs.parse(bytes(bad)) is None and query_shape(1, 1).parse(full_q) is None
+    assert rs.parse(full_q) is None and qs.parse(full_r) is None  # another type, another size
+    with_rab = encode(Header(0, Pid.MRT, b"\x05", 101, 7), q)
+    assert qs.parse(with_rab) is None and decode(with_rab).body == decode(full_q).body  # the full path

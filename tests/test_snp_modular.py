@@ -372,14 +372,17 @@ def test_master_and_modules_on_loopback_sockets() -> None:
     sock = open_udp()
     master = Master([("127.0.0.1", p) for p in ports], CycleConfig(), time.monotonic_ns)
     done = threading.Event()
-    server = threading.Thread(target=serve_master, args=(master, sock, done.is_set), daemon=True)
+    # (threads of one process: neither loop may spin, each would starve the other of the GIL)
+    server = threading.Thread(
+        target=serve_master, args=(master, sock, done.is_set), kwargs={"spin_ns": 0}, daemon=True
+    )
     server.start()
     try:
         slots = [
             Slot(21, 0, ports[0], offset_ns=1_000_000, drift_ppm=30.0),
             Slot(22, 21, ports[1], offset_ns=-800_000, drift_ppm=-30.0),
         ]
-        run_modules(slots, seconds=1.5)
+        run_modules(slots, seconds=1.5, spin=False)
     finally:
         done.set()
         server.join(5)

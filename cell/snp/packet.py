@@ -401,15 +401,11 @@ class QueryShape:
         return _sealed(buf)
 
     def parse(self, data: bytes) -> tuple | None:
-        if len(data) != self.size or data[2] or data[14] != self.TYPE or data[13]:
-            return None
-        mv = memoryview(data)
-        if crc8(mv[:11]) != data[11] or crc8(mv[12:-1]) != data[-1]:
+        if not _fits(data, self.size, self.TYPE):
             return None
         f = self.struct.unpack(data)
-        if f[10] != self.n_in or mv[self._at_out : self._at_out + 4] != self.n_out.to_bytes(4, "big"):
-            return None
-        return f
+        at = self._at_out
+        return f if f[10] == self.n_in and data[at : at + 4] == self.n_out.to_bytes(4, "big") else None
 
 
 class ReplyShape:
@@ -433,13 +429,18 @@ class ReplyShape:
         return _sealed(buf)
 
     def parse(self, data: bytes) -> tuple | None:
-        if len(data) != self.size or data[2] or data[14] != self.TYPE or data[13]:
-            return None
-        mv = memoryview(data)
-        if crc8(mv[:11]) != data[11] or crc8(mv[12:-1]) != data[-1]:
+        if not _fits(data, self.size, self.TYPE):
             return None
         f = self.struct.unpack(data)
         return f if f[9] == self.n else None
+
+
+def _fits(data: bytes, size: int, kind: int) -> bool:
+    """A datagram of a shape's size and packet type, no return address, both CRCs right."""
+    if len(data) != size or data[2] or data[14] != kind or data[13]:
+        return False
+    mv = memoryview(data)
+    return crc8(mv[:11]) == data[11] and crc8(mv[12:-1]) == data[-1]
 
 
 def _sealed(buf: bytearray) -> bytes:

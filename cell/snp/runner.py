@@ -110,19 +110,20 @@ def serve_master(
     clock = time.monotonic_ns
     mono_of_real = time.time_ns() - clock()  # (for the kernel's stamps, if the socket gives them)
     spin_until = 0
+    lead = LEAD_NS if spin_ns else 0  # (spin_ns 0: never poll without sleeping)
     due = master.next_due()
     try:
         while not stop():
             now = clock()
             timeout = 0.0  # poll without sleeping
-            if now >= spin_until and (wake := min(due, master.next_cycle_start(now) - LEAD_NS)) > now:
+            if now >= spin_until and (wake := min(due, master.next_cycle_start(now) - lead)) > now:
                 alarm.set(wake)
                 timeout = COARSE_S
             readable = False
             for fd, _ in ep.poll(timeout):
                 if fd == alarm.fd:
                     alarm.clear()
-                    spin_until = max(spin_until, clock() + spin_ns + LEAD_NS)
+                    spin_until = max(spin_until, clock() + spin_ns + lead)
                 else:
                     readable = True
             out: list[tuple[bytes, Any]] = []
@@ -175,8 +176,11 @@ def run_modules(
     rmap_timeout_ns: int = 200_000,
     rmap_retries: int = 1,
     sample_ns: int = 10_000_000,
+    spin: bool = True,
 ) -> list[Slot]:
-    """Run the slots' modules in this thread for `seconds`, plugging and pulling them on time."""
+    """Run the slots' modules in this thread for `seconds`, plugging and pulling them on time.
+    spin: poll without sleeping while a cycle is in flight (only for a loop with a core of its own:
+    a thread that spins starves the others of the GIL)."""
     alarm = Alarm()
     ep = select.epoll()
     ep.register(alarm.fd, select.EPOLLIN)
@@ -245,8 +249,9 @@ def run_modules(
                 wake = min(wake, s.wake)
                 cy = s.module.cycle  # type: ignore[union-attr]
                 busy = busy or (cy is not None and cy.stage != "done")
-            if not busy and wake - now > LEAD_NS:  # nothing in flight: sleep until just before it
-                alarm.set(wake - LEAD_NS)
+            lead = LEAD_NS if spin else 0
+            if not (busy and spin) and wake - now > lead:  # nothing in flight: sleep until (just before) it
+                alarm.set(wake - lead)
                 ready = ep.poll(COARSE_S)
             else:
                 ready = ep.poll(0)
