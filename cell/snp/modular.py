@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 import struct
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -253,40 +254,36 @@ class Master:
         if not model.active[j]:
             return None
         ids = _IDS[j]
-        if len(data) == _A.size:
+        is_a = len(data) == _A.size
+        if is_a:
             f = _A.parse(data)  # ..., qid 8, deadline 9, 2, pos 11-13, vel 14-16, 1, wanted 18-19
             if f is None or f[1] != Pid.MRT or f[11] != ids[0] or f[14] != ids[1] or f[18] != ids[2]:
                 return None
             self._a_cycle[j] = self._cycle_at(node, now)
-            make, t_out = self._answer_b, f[19]
+            wanted, t_out, value = ids[2], f[19], model.command
         else:
             f = _C.parse(data)  # ..., qid 8, deadline 9, 1, force 11-13, 1, wanted 15-16
             if f is None or f[1] != Pid.MRT or f[11] != ids[3] or f[15] != ids[4]:
                 return None
-            make, t_out = self._answer_d, f[16]
+            wanted, t_out, value = ids[4], f[16], model.torque
         qid, deadline = f[8], f[9]
         back = Header(f[0], f[1], b"", f[4], f[3])
         h.counters["queries"] += 1
         if not h.admit(now, deadline):
             return [h.deny(back, qid, addr)]
-        if make == self._answer_b:
+        if is_a:
             model.pos[j], model.at[j], model.vel[j] = f[12], f[13], f[15]
         else:
             model.force[j] = f[12]
-        h.enqueue(deadline, make, (back, qid, j, t_out), addr, qid, back)
+        h.enqueue(deadline, self._answer, (back, qid, wanted, value, j, t_out), addr, qid, back)
         return []
 
-    def _answer_b(self, arg: tuple[Header, int, int, int]) -> bytes:
-        back, qid, j, t3 = arg
-        value = self.model.command(j, t3)
+    @staticmethod
+    def _answer(arg: tuple[Header, int, int, Callable[[int, int], float], int, int]) -> bytes:
+        """B or D: the wanted item's value (model.command or model.torque) at the wanted time."""
+        back, qid, wanted, value, j, t = arg
         return _ANSWER.pack(back.destination, back.pid, back.source_process, back.destination_process, qid,
-                            (_IDS[j][2], value, t3))  # fmt: skip
-
-    def _answer_d(self, arg: tuple[Header, int, int, int]) -> bytes:
-        back, qid, j, t6 = arg
-        value = self.model.torque(j, t6)
-        return _ANSWER.pack(back.destination, back.pid, back.source_process, back.destination_process, qid,
-                            (_IDS[j][4], value, t6))  # fmt: skip
+                            (wanted, value(j, t), t))  # fmt: skip
 
     def serve(self) -> list[tuple[bytes, Any]]:
         """The pending queries, earliest deadline first."""

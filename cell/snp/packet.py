@@ -388,7 +388,7 @@ class QueryShape:
         self.n_in, self.n_out = n_in, n_out
         self.struct = struct.Struct(f"!BBBIIBBHIQI{'IfQ' * n_in}I{'IQ' * n_out}B")
         self.size = self.struct.size
-        self._at_out = 31 + 16 * n_in  # where the output count is
+        self._i_out = 11 + 3 * n_in  # the output count's field
 
     def pack(self, destination: int, pid: int, source: int, dest_process: int, query_id: int,
              deadline: int, inputs: tuple, outputs: tuple) -> bytes:  # fmt: skip
@@ -404,8 +404,7 @@ class QueryShape:
         if not _fits(data, self.size, self.TYPE):
             return None
         f = self.struct.unpack(data)
-        at = self._at_out
-        return f if f[10] == self.n_in and data[at : at + 4] == self.n_out.to_bytes(4, "big") else None
+        return f if f[10] == self.n_in and f[self._i_out] == self.n_out else None
 
 
 class ReplyShape:

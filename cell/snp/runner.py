@@ -134,10 +134,11 @@ def serve_master(
             out += master.serve()
             for data, addr in out:
                 link.send(data, addr)
-            if out or readable or clock() >= due:
-                if clock() >= due:
-                    for data, addr in master.poll():  # after the replies: a beacon leaves as it is dated
-                        link.send(data, addr)
+            polled = clock() >= due
+            if polled:
+                for data, addr in master.poll():  # after the replies: a beacon leaves as it is dated
+                    link.send(data, addr)
+            if polled or out or readable:  # (what it was sent or did may have moved its timers)
                 due = master.next_due()
     finally:
         ep.close()
@@ -237,6 +238,7 @@ def run_modules(
         return nxt
 
     clock = time.monotonic_ns
+    lead = LEAD_NS if spin else 0
     live: list[Slot] = []  # the slots plugged in
     now = clock()
     next_event = events()
@@ -249,7 +251,6 @@ def run_modules(
                 wake = min(wake, s.wake)
                 cy = s.module.cycle  # type: ignore[union-attr]
                 busy = busy or (cy is not None and cy.stage != "done")
-            lead = LEAD_NS if spin else 0
             if not (busy and spin) and wake - now > lead:  # nothing in flight: sleep until (just before) it
                 alarm.set(wake - lead)
                 ready = ep.poll(COARSE_S)
