@@ -97,6 +97,30 @@ class RunningCell:
         return self.proc.returncode, time.monotonic() - t0, out, err
 
 
+def wait_until_quiet(busy_cores: float = 0.4, window: float = 0.5, timeout: float = 30.0) -> float:
+    """Wait until the machine's work keeps at most `busy_cores` busy over `window` s (from /proc/stat),
+    so a test of a real-time schedule measures the schedule, not the previous test's teardown; returns
+    the idle cores last seen (the caller reports it if it still fails)."""
+
+    def idle_and_total() -> tuple[int, int]:
+        with open("/proc/stat") as f:
+            fields = [int(x) for x in f.readline().split()[1:]]
+        return fields[3] + fields[4], sum(fields)  # idle + iowait, all
+
+    hz = os.sysconf("SC_CLK_TCK")
+    idle_cores = (os.cpu_count() or 1) - busy_cores
+    deadline, idle = time.monotonic() + timeout, 0.0
+    while time.monotonic() < deadline:
+        i0, _ = idle_and_total()
+        t0 = time.monotonic()
+        time.sleep(window)  # the measuring window itself
+        i1, _ = idle_and_total()
+        idle = (i1 - i0) / hz / (time.monotonic() - t0)
+        if idle >= idle_cores:
+            break
+    return idle
+
+
 async def wait_status(config: CellConfig, want: set[str], timeout: float = 20.0):
     """Poll a cell's status until the named services are all ok; the last status or AssertionError."""
     from cell.launcher import fetch_status
@@ -147,6 +171,11 @@ async def start_cell(tmp_path: Path) -> AsyncIterator:
 
     yield start
     for cell in cells:
+        # SIGTERM and wait, so no service of this test is still running (and loading the machine) in the
+        # next; SIGKILL only if the cell hangs (its children then notice their stdin close on their own)
         if cell.proc.poll() is None:
-            cell.proc.kill()
-            cell.proc.communicate()
+            try:
+                cell.stop(timeout=10)
+            except subprocess.TimeoutExpired:
+                cell.proc.kill()
+                cell.proc.communicate()

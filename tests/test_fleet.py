@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from cell.bench.robots import trial
+from tests.conftest import wait_until_quiet
 
 
 @pytest.mark.slow
@@ -18,7 +19,8 @@ def test_200_robot_kinematic_fleet_runs_at_500_hz() -> None:
     # in a row at another time; all three of a run failed once, 2.4% the best): the best of five counts
     trials = []
     for _ in range(5):
-        trials.append(trial("kinematic", 200, seconds=2.0, answer=False))
+        idle = wait_until_quiet()  # e.g. the previous test's cell still stopping
+        trials.append({**trial("kinematic", 200, seconds=2.0, answer=False), "idle_cores_before": idle})
         if keeps_up(trials[-1]):
             break
     r = min(trials, key=lambda t: (t["missed_ticks"] / t["ticks"], t["late_fraction"]))  # the best
