@@ -33,6 +33,9 @@ test: $(STAMP_TEST)
 	@# the two-host test needs `ip` (iproute2) and root; installed here where apt and root allow
 	@command -v ip >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
 		apt-get install -y -q iproute2 >/dev/null 2>&1; } || true
+	@# the modular robot's cycle in C (cell/snp/cycle.c) is built with cc on first use
+	@command -v cc >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+		apt-get install -y -q gcc libc6-dev >/dev/null 2>&1; } || true
 	@$(MAKE) -s bpf-if-possible
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/python -m pytest

@@ -271,7 +271,8 @@ def _cmd_bench_skills(args: argparse.Namespace) -> int:
 def _cmd_bench_snp(args: argparse.Namespace) -> int:
     from cell.bench import snp
 
-    result = snp.run(args.slaves, args.seconds, args.loss, slot_ns=int(args.slot_us * 1000))
+    native = {"auto": None, "c": True, "python": False}[args.modules]
+    result = snp.run(args.slaves, args.seconds, args.loss, slot_ns=int(args.slot_us * 1000), native=native)
     return _report(args, result, snp.format_result(result))
 
 
@@ -681,8 +682,14 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument(
         "--slot-us",
         type=float,
-        default=0.0,
-        help="joint j's cycle starts j slots into the period (time slots; default 0: all at once)",
+        default=30.0,
+        help="joint j's cycle starts j slots into the period (time slots; default 30; 0: all at once)",
+    )
+    q.add_argument(
+        "--modules",
+        choices=("auto", "c", "python"),
+        default="auto",
+        help="where the modules' cycle is: c (built with cc on first use), python, or auto (c if it builds)",
     )
     q = _bench(
         bsub,

@@ -271,12 +271,16 @@ async def test_the_snp_service_answers_about_a_moving_robot(start_cell) -> None:
         assert answered > 250, (answered, denied)
 
 
-def test_the_modular_robot_bench_trial_accounts_for_every_query() -> None:
+@pytest.mark.parametrize("native", [False, True], ids=["python-modules", "c-modules"])
+def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) -> None:
     import random
 
     from cell.bench.snp import _chain, cycle_figures, trial
+    from cell.snp.native import available
 
-    r = trial(_chain(2, "snp", random.Random(3)), seconds=1.5)
+    if native and available() is not None:
+        pytest.skip(f"the C cycle does not build here: {available()}")
+    r = trial(_chain(2, "snp", random.Random(3)), seconds=1.5, native=native)
     f = cycle_figures(r)
     assert {m["module_id"] for m in r["modules"]} == {101, 102}
     assert sorted(m["joint"] for m in r["modules"]) == [0, 1]  # configured by the chain

@@ -10,7 +10,8 @@
   for it) and plugged back.
 
 The master is one process (core 0), the modules another (core 1, one socket, address and
-clock each), SCHED_FIFO where allowed.
+clock each), SCHED_FIFO where allowed.  The modules' cycle runs in C (cell.snp.native) where a
+C compiler builds it, and in Python as the baseline of the same run.
 """
 
 from __future__ import annotations
@@ -25,7 +26,10 @@ import numpy as np
 
 WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settles meanwhile
 MODULE0 = 101
-SLOT_NS = 0
+# joint j's cycle starts j slots into the period: with the modules in C the master is the busy
+# end, and six A's at once queue behind each other (0.7-1.6% missed in three runs at 0 us against
+# 0.06-0.18% at 30 us, which the slides' 0.05 ms a joint allows)
+SLOT_NS = 30_000
 
 
 def _free_ports(n: int) -> list[int]:
@@ -70,11 +74,11 @@ def _master(ports: list[int], seconds: float, loss: float, slot_ns: int, port_q:
     )
 
 
-def _modules(slots: list[dict], seconds: float, loss: float, out: Any) -> None:
+def _modules(slots: list[dict], seconds: float, loss: float, native: bool, out: Any) -> None:
     from cell.snp.runner import Slot, run_modules
 
     _place(1)
-    done = run_modules([Slot(**s) for s in slots], seconds, loss)
+    done = run_modules([Slot(**s) for s in slots], seconds, loss, native=native)
     res = []
     for s in done:
         m = s.module
@@ -114,8 +118,11 @@ def _chain(n: int, transport: str, rng: random.Random, **extra: Any) -> list[dic
     ]
 
 
-def trial(slots: list[dict], seconds: float, loss: float = 0.0, slot_ns: int = SLOT_NS) -> dict[str, Any]:
-    """One run of a master and the slots' modules; every module's record and the master's."""
+def trial(
+    slots: list[dict], seconds: float, loss: float = 0.0, slot_ns: int = SLOT_NS, native: bool = False
+) -> dict[str, Any]:
+    """One run of a master and the slots' modules (native: their cycles in C); every module's
+    record and the master's."""
     ports = _free_ports(len({s["module_id"] for s in slots}))
     port_of: dict[int, int] = {}
     for s in slots:  # (a module plugged back comes back on its port)
@@ -129,7 +136,7 @@ def trial(slots: list[dict], seconds: float, loss: float = 0.0, slot_ns: int = S
     )
     master.start()
     port_q.get(timeout=30)
-    mods = ctx.Process(target=_modules, args=(slots, seconds, loss, out_s), daemon=True)
+    mods = ctx.Process(target=_modules, args=(slots, seconds, loss, native, out_s), daemon=True)
     mods.start()
     modules = out_s.get(timeout=seconds + 60)
     m = out_m.get(timeout=30)
@@ -227,13 +234,31 @@ def plug_figures(r: dict[str, Any], late_id: int, pulled_id: int, plug_s: float,
 
 
 def run(
-    slaves: int = 6, seconds: float = 3.0, loss: float = 0.02, seed: int = 1, slot_ns: int = SLOT_NS
+    slaves: int = 6,
+    seconds: float = 3.0,
+    loss: float = 0.02,
+    seed: int = 1,
+    slot_ns: int = SLOT_NS,
+    native: bool | None = None,
 ) -> dict[str, Any]:
+    """native: the modules' cycles in C (cell.snp.native; None: if it builds here).  The Python
+    modules run too, as the baseline in the same run; the RMAP comparison runs both transports
+    with Python modules (the C cycle speaks the queries only), so like is weighed against like."""
+    from cell.snp.native import available
+
+    why_not = available()
+    if native is None:
+        native = why_not is None
+    elif native and why_not is not None:
+        raise RuntimeError(f"the C cycle cannot run here: {why_not}")
     rng = random.Random(seed)
-    snp = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, slot_ns=slot_ns))
+    snp = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, slot_ns=slot_ns, native=native))
+    python = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, slot_ns=slot_ns)) if native else snp
     # how many modules this machine keeps within the aim: fewer, shorter runs
     scale = {
-        n: cycle_figures(trial(_chain(n, "snp", rng), 2.0, slot_ns=slot_ns)) for n in (2, 4) if n < slaves
+        n: cycle_figures(trial(_chain(n, "snp", rng), 2.0, slot_ns=slot_ns, native=native))
+        for n in (2, 4)
+        if n < slaves
     }
     scale[slaves] = snp
     within = [n for n, f in scale.items() if meets_aim(f)]
@@ -247,13 +272,19 @@ def run(
     late["plug_s"] = 1.0
     pulled["unplug_s"] = 2.0
     back = {**pulled, "plug_s": 2.5, "unplug_s": None}
-    plug = plug_figures(trial([*chain, back], 3.5), late["module_id"], pulled["module_id"], 1.0, 2.0)
+    plugged = trial([*chain, back], 3.5, native=native)
+    plug = plug_figures(plugged, late["module_id"], pulled["module_id"], 1.0, 2.0)
     return {
         "slaves": slaves,
         "seconds": seconds,
+        "modules": "c" if native else "python",
+        "c_unavailable": why_not,
         "cycle_ms_p50": snp["cycle_ms_p50"],
         "cycle_ms_p99": snp["cycle_ms_p99"],
         "missed_pct": snp["missed_pct"],
+        "python_cycle_ms_p50": python["cycle_ms_p50"],
+        "python_cycle_ms_p99": python["cycle_ms_p99"],
+        "python_missed_pct": python["missed_pct"],
         "rmap_cycle_ms_p50": rm["cycle_ms_p50"],
         "rmap_cycle_ms_p99": rm["cycle_ms_p99"],
         "rmap_missed_pct": rm["missed_pct"],
@@ -268,6 +299,7 @@ def run(
             for n, f in scale.items()
         },
         "snp": snp,
+        "python": python,
         "rmap": rm,
         "snp_loss": snp_loss,
         "rmap_loss": rmap_loss,
@@ -294,7 +326,11 @@ def format_result(r: dict[str, Any]) -> str:
         [
             f"SpW-SnP-MR modular robot: master + {r['slaves']} joint modules, [A,B] and [C,D] every 1 ms "
             "(the slides' budget: 0.3 ms for six joints)",
+            f"  the modules' cycle in {'C' if r['modules'] == 'c' else 'Python'}"
+            + (f" (C not available: {r['c_unavailable']})" if r["c_unavailable"] else ""),
             line("time-bounded queries", r["snp"]),
+            "  the queries against RMAP, both with the modules in Python (like against like):",
+            line("queries, Python modules", r["python"]),
             line("RMAP writes + acks", r["rmap"]),
             line(f"queries, {r['loss']:.0%} loss", r["snp_loss"]),
             line(f"RMAP, {r['loss']:.0%} loss", r["rmap_loss"]),

@@ -178,10 +178,14 @@ def run_modules(
     rmap_retries: int = 1,
     sample_ns: int = 10_000_000,
     spin: bool = True,
+    native: bool = False,
 ) -> list[Slot]:
     """Run the slots' modules in this thread for `seconds`, plugging and pulling them on time.
     spin: poll without sleeping while a cycle is in flight (only for a loop with a core of its own:
-    a thread that spins starves the others of the GIL)."""
+    a thread that spins starves the others of the GIL).  native: the cycles of the modules with
+    transport "snp" run in C (cell.snp.native; the others as before), which needs a C compiler."""
+    if native:
+        return _run_native(slots, seconds, loss, sample_ns=sample_ns, spin=spin)
     alarm = Alarm()
     ep = select.epoll()
     ep.register(alarm.fd, select.EPOLLIN)
@@ -289,4 +293,90 @@ def run_modules(
                 s.sock = None
         ep.close()
         alarm.close()
+    return slots
+
+
+def _run_native(slots: list[Slot], seconds: float, loss: float, *, sample_ns: int, spin: bool) -> list[Slot]:
+    """run_modules with the cycle in C: one C loop waits on every module's socket and runs the
+    running modules' [A, B] and [C, D]; what it hands back (configuration, SnP-TSP) goes to the
+    Python JointModule, as do plugging, pulling and the clock samples, between its runs."""
+    from cell.snp.native import RUN_HANDED, NativeCycles
+
+    if any(s.transport != "snp" for s in slots):
+        raise ValueError("the C cycle runs transport snp only (the RMAP baseline runs in Python)")
+    t0 = time.monotonic_ns()
+    cycles = NativeCycles(
+        spin_ns=SPIN_NS if spin else 0, lead_ns=LEAD_NS if spin else 0, mono_of_real=time.time_ns() - t0
+    )
+    end = t0 + int(seconds * 1e9)
+    clock = time.monotonic_ns
+    live: list[Slot] = []
+    by_fd: dict[int, Slot] = {}
+
+    def events(now: int) -> int:
+        """Plug and pull the slots whose time has come; when the next such time is."""
+        nxt = end
+        for s in slots:
+            if s.sock is None and s.module is None:
+                at = t0 + int(s.plug_s * 1e9)
+                if now < at:
+                    nxt = min(nxt, at)
+                    continue
+                s.osc = Oscillator(s.offset_ns, s.drift_ppm, t0)
+                s.module = JointModule(s.module_id, s.plugged_to, port=1)
+                s.sock = open_udp("127.0.0.1", s.port, timestamps=True)
+                s.link = Link(s.sock, loss, seed=s.module_id)
+                s.plugged_at = now
+                cycles.attach(s.sock.fileno(), s.osc, loss)
+                by_fd[s.sock.fileno()] = s
+                live.append(s)
+            elif s.sock is not None and s.unplug_s is not None:
+                at = t0 + int(s.unplug_s * 1e9)
+                if now < at:
+                    nxt = min(nxt, at)
+                    continue
+                fd = s.sock.fileno()
+                cycles.pull(cycles.state(fd), s.module, s.link)  # type: ignore[arg-type]
+                cycles.detach(fd)
+                del by_fd[fd]
+                live.remove(s)
+                s.sock.close()
+                s.sock = None
+        return nxt
+
+    now = clock()
+    next_event = events(now)
+    try:
+        while now < end:
+            if now >= next_event:
+                next_event = events(now)
+            until = next_event
+            for s in live:
+                m = s.module
+                assert m is not None and s.sock is not None
+                cycles.push(cycles.state(s.sock.fileno()), m, s.master)
+                if m.state == "running":
+                    until = min(until, s.next_sample)
+            got = cycles.run([s.sock.fileno() for s in live], until)  # type: ignore[union-attr]
+            if got is not None and got[0] == RUN_HANDED:
+                _, fd, data, at, addr = got
+                s = by_fd[fd]
+                m, osc, link = s.module, s.osc, s.link
+                assert m is not None and osc is not None and link is not None
+                s.master = addr
+                for out in m.receive(data, osc.raw(at)):
+                    link.send(out, addr)
+            now = clock()
+            for s in live:
+                m, osc = s.module, s.osc
+                assert m is not None and osc is not None and s.sock is not None
+                cycles.pull(cycles.state(s.sock.fileno()), m, s.link)
+                if m.state == "running" and now >= s.next_sample:
+                    s.next_sample = now + sample_ns
+                    s.clock_errors.append(m.servo.now(osc.raw(now)) - now)
+    finally:
+        for s in slots:
+            if s.sock is not None:
+                s.sock.close()
+                s.sock = None
     return slots

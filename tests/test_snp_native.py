@@ -1,0 +1,217 @@
+"""The joint modules' cycle in C (cell/snp/cycle.c via cell.snp.native), on real UDP sockets.
+
+The C loop must put on the wire exactly what the Python JointModule would: its A and C are
+compared byte by byte with the Python module's for the same state and answers.  A test socket
+plays the master."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+
+from cell.snp.modular import _A, _ANSWER, _C, _IDS, CycleConfig, JointModule, Master
+from cell.snp.native import RUN_HANDED, RUN_UNTIL, NativeCycles, available
+from cell.snp.packet import Configure, Denied, Header, Pid, encode
+from cell.snp.runner import Link, Slot, open_udp, run_modules, serve_master
+from cell.snp.tsp import Oscillator
+
+pytestmark = pytest.mark.skipif(available() is not None, reason=f"the C cycle does not build: {available()}")
+
+PERIOD, BUDGET = 50_000_000, 40_000_000  # long, so that the test's socket answers in time
+RUN_FOR = PERIOD * 9 // 10  # one cycle, past its [C, D] deadline, short of the next one
+JOINT, MODULE = 2, 101
+
+
+def running(joint: int = JOINT) -> JointModule:
+    """A Python module running its cycle, with a servo that reads the host's clock as it is."""
+    m = JointModule(MODULE, 0, 1)
+    m.config = Configure(joint, PERIOD, 0, BUDGET, (20.0,))
+    m.joint, m.state = joint, "running"
+    m.pos, m.vel = 0.25, -0.5
+    m.next_start = (time.monotonic_ns() // PERIOD + 1) * PERIOD
+    return m
+
+
+class Rig:
+    """One module's socket in the C loop (run in a thread, as a module process would), and a test
+    socket that plays the master."""
+
+    def __init__(self) -> None:
+        self.master = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.master.bind(("127.0.0.1", 0))
+        self.master.settimeout(2.0)
+        self.sock = open_udp(timestamps=True)
+        self.addr = self.sock.getsockname()
+        self.cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=time.time_ns() - time.monotonic_ns())
+        self.state = self.cycles.attach(self.sock.fileno(), Oscillator(0, 0.0, 0))
+        self.handed: list[bytes] = []
+        self.thread: threading.Thread | None = None
+
+    def start(self, m: JointModule, until: int) -> None:
+        NativeCycles.push(self.state, m, self.master.getsockname())
+        assert self.state.active
+
+        def loop() -> None:
+            while (got := self.cycles.run([self.sock.fileno()], until)) is not None:
+                if got[0] == RUN_HANDED:
+                    self.handed.append(got[2])
+
+        self.thread = threading.Thread(target=loop, daemon=True)
+        self.thread.start()
+
+    def recv(self) -> bytes:
+        return self.master.recvfrom(2048)[0]
+
+    def send(self, data: bytes) -> None:
+        self.master.sendto(data, self.addr)
+
+    def close(self) -> None:
+        if self.thread is not None:
+            self.thread.join(5)
+        self.sock.close()
+        self.master.close()
+
+
+@pytest.fixture
+def rig():
+    r = Rig()
+    yield r
+    r.close()
+
+
+def answer(qid: int, item: int, value: float, t: int) -> bytes:
+    """B or D as the master's fast path packs it."""
+    return _ANSWER.pack(0, Pid.MRT, 0, MODULE, qid, (item, value, t))
+
+
+def test_the_c_cycle_sends_the_python_modules_bytes_and_ends_in_its_state(rig: Rig) -> None:
+    twin = running()  # the Python module, fed the same times and answers
+    ids = _IDS[JOINT]
+    rig.start(running(), until=twin.next_start + RUN_FOR)
+    a = rig.recv()
+    f = _A.parse(a)
+    assert f is not None and f[1] == Pid.MRT and f[3] == MODULE and f[8] == 1  # qid 1
+    t1 = f[13]
+    assert f[9] == twin.next_start + BUDGET // 2  # the [A, B] deadline
+    assert 0 <= t1 - twin.next_start < 20_000_000
+    assert twin._start(twin.next_start, t1) == [a]  # byte for byte (the servo reads raw as is)
+
+    b = answer(1, ids[2], 1.5, t1 + PERIOD)
+    rig.send(b)
+    c = rig.recv()
+    assert twin.receive(b, t1 + 1000) == [c]
+    fc = _C.parse(c)
+    assert fc is not None and fc[8] == 2 and fc[11] == ids[3] and fc[12] == 5.0 * (1.5 - -0.5)
+
+    d = answer(2, ids[4], -3.25, t1 + PERIOD)
+    rig.send(d)
+    assert twin.receive(d, t1 + 2000) == []
+    rig.thread.join(5)  # type: ignore[union-attr]
+    seen = JointModule(MODULE, 0, 1)  # what the C loop hands back
+    link = Link(rig.sock)
+    NativeCycles.pull(rig.state, seen, link)
+    assert (seen.pos, seen.vel, seen.v_des, seen.torque) == (twin.pos, twin.vel, twin.v_des, twin.torque)
+    assert seen.torque == -3.25 and seen.missed == {"ab": 0, "cd": 0} == twin.missed
+    (rec,) = seen.cycles
+    assert rec[:2] == twin.cycles[0][:2] == (twin.next_start, t1)
+    assert rec[3] == 0 and rec[2] >= t1
+    assert link.sent == 2 and rig.state.n_records == 0  # (taken, so zeroed in C)
+    assert rig.handed == []
+
+
+def test_a_denial_moves_on_at_once_and_an_unanswered_query_is_guessed_at_its_deadline(rig: Rig) -> None:
+    m = running()
+    rig.start(m, until=m.next_start + RUN_FOR)
+    f = _A.parse(rig.recv())
+    assert f is not None
+    sent = time.monotonic_ns()
+    rig.send(encode(Header(0, Pid.MRT, b"", 0, MODULE), Denied(f[8], 1)))
+    fc = _C.parse(rig.recv())  # [C, D] right after the denial, long before [A, B]'s deadline
+    assert fc is not None and time.monotonic_ns() - sent < BUDGET // 2
+    assert fc[12] == 5.0 * (m.v_des - m.vel)  # no new desired velocity: the last one stands
+    rig.send(answer(f[8], _IDS[JOINT][2], 9.0, 0))  # a late B (A's query id): counted, not taken
+    # C is never answered: guessed at its deadline, the cycle recorded with both exchanges missed
+    rig.thread.join(5)  # type: ignore[union-attr]
+    assert rig.state.late == 1
+    seen = JointModule(MODULE, 0, 1)
+    NativeCycles.pull(rig.state, seen, Link(rig.sock))
+    (rec,) = seen.cycles
+    assert rec[3] == 2 and seen.missed == {"ab": 1, "cd": 1}
+    assert rec[2] - rec[0] >= BUDGET  # ended at the [C, D] deadline
+    assert seen.v_des == 0.0 and seen.torque == 0.0
+
+
+def test_junk_and_broken_answers_are_handed_back_untouched_and_do_not_end_the_exchange(rig: Rig) -> None:
+    m = running()
+    rig.start(m, until=m.next_start + RUN_FOR)
+    f = _A.parse(rig.recv())
+    assert f is not None
+    good = answer(f[8], _IDS[JOINT][2], 1.0, 0)
+    bad_crc = good[:-1] + bytes([good[-1] ^ 0xFF])
+    junk = [b"", b"\x00", bad_crc, good[:-1], b"\xf0" * 40, bytes(range(200))]
+    for j in junk:
+        rig.send(j)
+    rig.send(good)
+    assert _C.parse(rig.recv()) is not None  # the good B, after all the junk, answered [A, B]
+    rig.thread.join(5)  # type: ignore[union-attr]
+    assert rig.handed == junk  # each handed to Python as it came (empty datagrams included)
+    assert rig.state.missed_ab == 0
+
+
+def test_the_run_returns_on_time_with_nothing_running() -> None:
+    sock = open_udp(timestamps=True)
+    try:
+        cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=0)
+        cycles.attach(sock.fileno(), Oscillator(0, 0.0, 0))
+        t0 = time.monotonic_ns()
+        assert cycles.run([sock.fileno()], t0 + 30_000_000) is None
+        assert 30_000_000 <= time.monotonic_ns() - t0 < 1_000_000_000
+    finally:
+        sock.close()
+    assert RUN_UNTIL == 0
+
+
+def test_master_and_c_modules_on_loopback_with_one_plugged_in_and_one_pulled_out() -> None:
+    ports = []
+    for _ in range(3):
+        s = open_udp()
+        ports.append(s.getsockname()[1])
+        s.close()
+    sock = open_udp()
+    master = Master([("127.0.0.1", p) for p in ports], CycleConfig(), time.monotonic_ns)
+    done = threading.Event()
+    # (threads of one process: neither loop may spin; the C loop releases the GIL while it waits)
+    server = threading.Thread(
+        target=serve_master, args=(master, sock, done.is_set), kwargs={"spin_ns": 0}, daemon=True
+    )
+    server.start()
+    try:
+        slots = [
+            Slot(21, 0, ports[0], offset_ns=1_000_000, drift_ppm=30.0),
+            Slot(22, 21, ports[1], offset_ns=-800_000, drift_ppm=-30.0, unplug_s=1.4),
+            Slot(23, 22, ports[2], offset_ns=500_000, plug_s=0.6),
+        ]
+        run_modules(slots, seconds=2.0, spin=False, native=True)
+    finally:
+        done.set()
+        server.join(5)
+        sock.close()
+    assert not server.is_alive()
+    first, pulled, late = (s.module for s in slots)
+    assert first is not None and pulled is not None and late is not None
+    assert (first.joint, pulled.joint, late.joint) == (0, 1, 2)
+    assert len(first.cycles) > 1000 and 400 < len(pulled.cycles) < 1400 and len(late.cycles) > 300
+    assert late.cycles[0][0] > pulled.cycles[0][0] + 400_000_000  # included while the cycle ran
+    for s in slots:
+        m = s.module
+        assert m is not None
+        in_cycles = sum(c[3] for c in m.cycles)
+        assert in_cycles <= sum(m.missed.values()) <= in_cycles + 2  # (one may have been cut off)
+        assert s.clock_errors and abs(s.clock_errors[-1]) < 1_000_000  # servoed (up to 1 ms off)
+        assert s.link is not None and s.link.sent >= 2 * len(m.cycles)  # the C loop's sends counted
+    assert [e[1] for e in master.events if e[2] == 22][-2:] == ["silent", "lost"]
+    h = master.handler.counters
+    assert h["queries"] > 3000 and h["replies"] > 0.5 * h["queries"]
