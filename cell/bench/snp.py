@@ -58,7 +58,9 @@ def _master(ports: list[int], seconds: float, loss: float, slot_ns: int, port_q:
     master = Master([("127.0.0.1", p) for p in ports], CycleConfig(slot_ns=slot_ns), time.monotonic_ns)
     port_q.put(sock.getsockname()[1])
     until = time.monotonic() + seconds
+    cpu0, wall0 = time.process_time(), time.monotonic()
     link = serve_master(master, sock, lambda: time.monotonic() > until, loss)
+    cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
     sock.close()
     out.put(
         {
@@ -70,6 +72,7 @@ def _master(ports: list[int], seconds: float, loss: float, slot_ns: int, port_q:
             },
             "events": list(master.events),
             "lost_on_link": link.lost,
+            "cpu": cpu,
         }
     )
 
@@ -78,7 +81,9 @@ def _modules(slots: list[dict], seconds: float, loss: float, native: bool, out: 
     from cell.snp.runner import Slot, run_modules
 
     _place(1)
+    cpu0, wall0 = time.process_time(), time.monotonic()
     done = run_modules([Slot(**s) for s in slots], seconds, loss, native=native)
+    cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
     res = []
     for s in done:
         m = s.module
@@ -99,7 +104,7 @@ def _modules(slots: list[dict], seconds: float, loss: float, native: bool, out: 
                 "rmap": dict(m.rmap_init.counters) if m.rmap_init else {},
             }
         )
-    out.put(res)
+    out.put((res, cpu))
 
 
 def _chain(n: int, transport: str, rng: random.Random, **extra: Any) -> list[dict]:
@@ -138,11 +143,11 @@ def trial(
     port_q.get(timeout=30)
     mods = ctx.Process(target=_modules, args=(slots, seconds, loss, native, out_s), daemon=True)
     mods.start()
-    modules = out_s.get(timeout=seconds + 60)
+    modules, cpu = out_s.get(timeout=seconds + 60)
     m = out_m.get(timeout=30)
     for p in (mods, master):
         p.join(10)
-    return {"modules": modules, "master": m}
+    return {"modules": modules, "master": m, "modules_cpu": cpu}
 
 
 def cycle_figures(r: dict[str, Any]) -> dict[str, Any]:
@@ -179,6 +184,9 @@ def cycle_figures(r: dict[str, Any]) -> dict[str, Any]:
         "tsp_offset_us_max": float(e.max()),
         "overruns": int(sum(m["overruns"] for m in r["modules"])),
         "guessed_by_master": int(r["master"]["counters"]["guessed"]),
+        # the share of a core each process used (polling without sleeping counts)
+        "master_cpu": r["master"]["cpu"],
+        "modules_cpu": r["modules_cpu"],
     }
 
 
@@ -318,7 +326,8 @@ def format_result(r: dict[str, Any]) -> str:
             f"p99 {f['cycle_ms_p99']:.3f} ms (the robot's: p50 {_ms(f['robot_cycle_ms_p50'])}, p99 "
             f"{_ms(f['robot_cycle_ms_p99'])}), {f['missed_pct']:.2f}% of exchanges missed their deadline "
             f"(guessed); start late p99 {f['start_late_us_p99']:.0f} us; clock error "
-            f"p50 {f['tsp_offset_us_p50']:.1f} us, max {f['tsp_offset_us_max']:.1f} us"
+            f"p50 {f['tsp_offset_us_p50']:.1f} us, max {f['tsp_offset_us_max']:.1f} us; cores used: "
+            f"master {f['master_cpu']:.2f}, modules {f['modules_cpu']:.2f}"
         )
 
     p, nan = r["plug"], float("nan")
