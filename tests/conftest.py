@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 from collections.abc import AsyncIterator, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -119,6 +120,37 @@ def wait_until_quiet(busy_cores: float = 0.4, window: float = 0.5, timeout: floa
         if idle >= idle_cores:
             break
     return idle
+
+
+@contextmanager
+def snp_master_on_loopback(n_ports: int) -> Iterator[tuple[object, list[int]]]:
+    """An SnP modular-robot master serving in a thread on a loopback socket, exploring n_ports
+    free ports; yields (master, ports) and stops and joins it afterwards.  (It does not poll
+    without sleeping: a thread that spins starves the other threads of the GIL.)"""
+    import threading
+
+    from cell.snp.modular import CycleConfig, Master
+    from cell.snp.runner import open_udp, serve_master
+
+    ports = []
+    for _ in range(n_ports):
+        s = open_udp()
+        ports.append(s.getsockname()[1])
+        s.close()
+    sock = open_udp()
+    master = Master([("127.0.0.1", p) for p in ports], CycleConfig(), time.monotonic_ns)
+    done = threading.Event()
+    server = threading.Thread(
+        target=serve_master, args=(master, sock, done.is_set), kwargs={"spin_ns": 0}, daemon=True
+    )
+    server.start()
+    try:
+        yield master, ports
+    finally:
+        done.set()
+        server.join(5)
+        sock.close()
+    assert not server.is_alive()
 
 
 async def wait_status(config: CellConfig, want: set[str], timeout: float = 20.0):

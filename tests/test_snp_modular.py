@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import heapq
 import itertools
-import threading
-import time
 
 import pytest
 
@@ -31,6 +29,7 @@ from cell.snp.packet import (
     encode,
 )
 from cell.snp.tsp import MIN_PERIOD_NS, BeaconSchedule, ClockServo, Oscillator
+from tests.conftest import snp_master_on_loopback
 
 # --- the new packets, byte by byte ---------------------------------------------------------------
 
@@ -362,32 +361,14 @@ def test_a_query_queued_by_the_fast_path_can_be_cancelled() -> None:
 
 
 def test_master_and_modules_on_loopback_sockets() -> None:
-    from cell.snp.runner import Slot, open_udp, run_modules, serve_master
+    from cell.snp.runner import Slot, run_modules
 
-    ports = []
-    for _ in range(2):
-        s = open_udp()
-        ports.append(s.getsockname()[1])
-        s.close()
-    sock = open_udp()
-    master = Master([("127.0.0.1", p) for p in ports], CycleConfig(), time.monotonic_ns)
-    done = threading.Event()
-    # (threads of one process: neither loop may spin, each would starve the other of the GIL)
-    server = threading.Thread(
-        target=serve_master, args=(master, sock, done.is_set), kwargs={"spin_ns": 0}, daemon=True
-    )
-    server.start()
-    try:
+    with snp_master_on_loopback(2) as (master, ports):
         slots = [
             Slot(21, 0, ports[0], offset_ns=1_000_000, drift_ppm=30.0),
             Slot(22, 21, ports[1], offset_ns=-800_000, drift_ppm=-30.0),
         ]
         run_modules(slots, seconds=1.5, spin=False)
-    finally:
-        done.set()
-        server.join(5)
-        sock.close()
-    assert not server.is_alive()
     for s in slots:
         m = s.module
         assert m is not None and m.state == "running" and m.joint == s.module_id - 21

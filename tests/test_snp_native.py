@@ -12,11 +12,12 @@ import time
 
 import pytest
 
-from cell.snp.modular import _A, _ANSWER, _C, _IDS, CycleConfig, JointModule, Master
+from cell.snp.modular import _A, _ANSWER, _C, _IDS, JointModule
 from cell.snp.native import RUN_HANDED, RUN_UNTIL, NativeCycles, available
 from cell.snp.packet import Configure, Denied, Header, Pid, encode
-from cell.snp.runner import Link, Slot, open_udp, run_modules, serve_master
+from cell.snp.runner import Link, Slot, open_udp, run_modules
 from cell.snp.tsp import Oscillator
+from tests.conftest import snp_master_on_loopback
 
 pytestmark = pytest.mark.skipif(available() is not None, reason=f"the C cycle does not build: {available()}")
 
@@ -175,31 +176,14 @@ def test_the_run_returns_on_time_with_nothing_running() -> None:
 
 
 def test_master_and_c_modules_on_loopback_with_one_plugged_in_and_one_pulled_out() -> None:
-    ports = []
-    for _ in range(3):
-        s = open_udp()
-        ports.append(s.getsockname()[1])
-        s.close()
-    sock = open_udp()
-    master = Master([("127.0.0.1", p) for p in ports], CycleConfig(), time.monotonic_ns)
-    done = threading.Event()
-    # (threads of one process: neither loop may spin; the C loop releases the GIL while it waits)
-    server = threading.Thread(
-        target=serve_master, args=(master, sock, done.is_set), kwargs={"spin_ns": 0}, daemon=True
-    )
-    server.start()
-    try:
+    # (the C loop releases the GIL while it waits, so the master's thread runs meanwhile)
+    with snp_master_on_loopback(3) as (master, ports):
         slots = [
             Slot(21, 0, ports[0], offset_ns=1_000_000, drift_ppm=30.0),
             Slot(22, 21, ports[1], offset_ns=-800_000, drift_ppm=-30.0, unplug_s=1.4),
             Slot(23, 22, ports[2], offset_ns=500_000, plug_s=0.6),
         ]
         run_modules(slots, seconds=2.0, spin=False, native=True)
-    finally:
-        done.set()
-        server.join(5)
-        sock.close()
-    assert not server.is_alive()
     first, pulled, late = (s.module for s in slots)
     assert first is not None and pulled is not None and late is not None
     assert (first.joint, pulled.joint, late.joint) == (0, 1, 2)
