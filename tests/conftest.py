@@ -103,19 +103,19 @@ def wait_until_quiet(busy_cores: float = 0.4, window: float = 0.5, timeout: floa
     so a test of a real-time schedule measures the schedule, not the previous test's teardown; returns
     the idle cores last seen (the caller reports it if it still fails)."""
 
-    def idle_and_total() -> tuple[int, int]:
+    def idle_ticks() -> int:
         with open("/proc/stat") as f:
             fields = [int(x) for x in f.readline().split()[1:]]
-        return fields[3] + fields[4], sum(fields)  # idle + iowait, all
+        return fields[3] + fields[4]  # idle + iowait, all CPUs
 
     hz = os.sysconf("SC_CLK_TCK")
     idle_cores = (os.cpu_count() or 1) - busy_cores
     deadline, idle = time.monotonic() + timeout, 0.0
     while time.monotonic() < deadline:
-        i0, _ = idle_and_total()
+        i0 = idle_ticks()
         t0 = time.monotonic()
         time.sleep(window)  # the measuring window itself
-        i1, _ = idle_and_total()
+        i1 = idle_ticks()
         idle = (i1 - i0) / hz / (time.monotonic() - t0)
         if idle >= idle_cores:
             break

@@ -168,6 +168,51 @@ class Slot:
     next_sample: int = 0
     wake: int = 0  # when (host monotonic ns) its module has something due next
 
+    def plug(self, t0: int, now: int, loss: float, rmap_timeout_ns: int, rmap_retries: int) -> None:
+        """A new module, its oscillator (off the host's clock from t0), socket and link."""
+        self.osc = Oscillator(self.offset_ns, self.drift_ppm, t0)
+        self.module = JointModule(self.module_id, self.plugged_to, port=1)  # (its parent's downstream port)
+        self.module.use_transport(self.transport, rmap_timeout_ns, rmap_retries)
+        self.sock = open_udp("127.0.0.1", self.port, timestamps=True)
+        self.link = Link(self.sock, loss, seed=self.module_id)
+        self.plugged_at = self.wake = now
+
+    def deliver(self, data: bytes, addr: Any, at: int) -> None:
+        """A datagram that came in at `at` (host ns) to the module; what it answers, sent back."""
+        m, osc, link = self.module, self.osc, self.link
+        assert m is not None and osc is not None and link is not None
+        self.master = addr
+        for out in m.receive(data, osc.raw(at)):
+            link.send(out, addr)
+
+    def sample(self, now: int, sample_ns: int) -> None:
+        """Its servoed clock's error against the host's, every sample_ns once it runs."""
+        m, osc = self.module, self.osc
+        assert m is not None and osc is not None
+        if m.state == "running" and now >= self.next_sample:
+            self.next_sample = now + sample_ns
+            self.clock_errors.append(m.servo.now(osc.raw(now)) - now)
+
+
+def _plug_and_pull(
+    slots: list[Slot], t0: int, end: int, now: int, plug: Callable[[Slot], None], pull: Callable[[Slot], None]
+) -> int:
+    """Plug in (plug(s)) and pull out (pull(s)) the slots whose time has come; when the next such
+    time is."""
+    nxt = end
+    for s in slots:
+        if s.sock is None and s.module is None:
+            at, act = t0 + int(s.plug_s * 1e9), plug
+        elif s.sock is not None and s.unplug_s is not None:
+            at, act = t0 + int(s.unplug_s * 1e9), pull
+        else:
+            continue
+        if now >= at:
+            act(s)
+        else:
+            nxt = min(nxt, at)
+    return nxt
+
 
 def run_modules(
     slots: list[Slot],
@@ -194,20 +239,18 @@ def run_modules(
     mono_of_real = time.time_ns() - t0  # (CLOCK_REALTIME - CLOCK_MONOTONIC, for kernel stamps)
     end = t0 + int(seconds * 1e9)
 
-    def plug(s: Slot, now: int) -> None:
-        s.osc = Oscillator(s.offset_ns, s.drift_ppm, t0)
-        s.module = JointModule(s.module_id, s.plugged_to, port=1)  # (its parent's downstream port)
-        s.module.use_transport(s.transport, rmap_timeout_ns, rmap_retries)
-        s.sock = open_udp("127.0.0.1", s.port, timestamps=True)
-        s.link = Link(s.sock, loss, seed=s.module_id)
-        s.plugged_at = s.wake = now
+    def plug(s: Slot) -> None:
+        s.plug(t0, now, loss, rmap_timeout_ns, rmap_retries)
+        assert s.sock is not None
         by_fd[s.sock.fileno()] = s
         ep.register(s.sock.fileno(), select.EPOLLIN)
+        live.append(s)
 
-    def unplug(s: Slot) -> None:
+    def pull(s: Slot) -> None:
         assert s.sock is not None
         ep.unregister(s.sock.fileno())
         del by_fd[s.sock.fileno()]
+        live.remove(s)
         s.sock.close()
         s.sock = None
 
@@ -222,24 +265,7 @@ def run_modules(
         return min(due, s.next_sample, s.osc.true(w))
 
     def events() -> int:
-        """Plug and pull the slots whose time has come; when the next such time is."""
-        nxt = end
-        for s in slots:
-            if s.sock is None and s.module is None:
-                at = t0 + int(s.plug_s * 1e9)
-                if now >= at:
-                    plug(s, now)
-                    live.append(s)
-                else:
-                    nxt = min(nxt, at)
-            elif s.sock is not None and s.unplug_s is not None:
-                at = t0 + int(s.unplug_s * 1e9)
-                if now >= at:
-                    unplug(s)
-                    live.remove(s)
-                else:
-                    nxt = min(nxt, at)
-        return nxt
+        return _plug_and_pull(slots, t0, end, now, plug, pull)
 
     clock = time.monotonic_ns
     lead = LEAD_NS if spin else 0
@@ -265,12 +291,9 @@ def run_modules(
                 if s is None:  # the alarm
                     alarm.clear()
                     continue
-                m, osc, link = s.module, s.osc, s.link
-                assert m is not None and osc is not None and link is not None and s.sock is not None
+                assert s.sock is not None
                 for data, addr, at in drain(s.sock, mono_of_real):
-                    s.master = addr
-                    for out in m.receive(data, osc.raw(at)):
-                        link.send(out, addr)
+                    s.deliver(data, addr, at)
                 s.wake = wake_of(s)
             now = clock()
             for s in live:
@@ -279,9 +302,7 @@ def run_modules(
                     assert m is not None and osc is not None and link is not None
                     for out in m.poll(osc.raw(now)):
                         link.send(out, s.master)
-                    if m.state == "running" and now >= s.next_sample:
-                        s.next_sample = now + sample_ns
-                        s.clock_errors.append(m.servo.now(osc.raw(now)) - now)
+                    s.sample(now, sample_ns)
                     s.wake = wake_of(s)
             now = clock()
     finally:
@@ -313,43 +334,32 @@ def _run_native(slots: list[Slot], seconds: float, loss: float, *, sample_ns: in
     live: list[Slot] = []
     by_fd: dict[int, Slot] = {}
 
-    def events(now: int) -> int:
-        """Plug and pull the slots whose time has come; when the next such time is."""
-        nxt = end
-        for s in slots:
-            if s.sock is None and s.module is None:
-                at = t0 + int(s.plug_s * 1e9)
-                if now < at:
-                    nxt = min(nxt, at)
-                    continue
-                s.osc = Oscillator(s.offset_ns, s.drift_ppm, t0)
-                s.module = JointModule(s.module_id, s.plugged_to, port=1)
-                s.sock = open_udp("127.0.0.1", s.port, timestamps=True)
-                s.link = Link(s.sock, loss, seed=s.module_id)
-                s.plugged_at = now
-                cycles.attach(s.sock.fileno(), s.osc, loss)
-                by_fd[s.sock.fileno()] = s
-                live.append(s)
-            elif s.sock is not None and s.unplug_s is not None:
-                at = t0 + int(s.unplug_s * 1e9)
-                if now < at:
-                    nxt = min(nxt, at)
-                    continue
-                fd = s.sock.fileno()
-                cycles.pull(cycles.state(fd), s.module, s.link)  # type: ignore[arg-type]
-                cycles.detach(fd)
-                del by_fd[fd]
-                live.remove(s)
-                s.sock.close()
-                s.sock = None
-        return nxt
+    def plug(s: Slot) -> None:
+        s.plug(t0, now, loss, 0, 0)
+        assert s.sock is not None and s.osc is not None
+        cycles.attach(s.sock.fileno(), s.osc, loss)
+        by_fd[s.sock.fileno()] = s
+        live.append(s)
+
+    def pull(s: Slot) -> None:
+        assert s.sock is not None and s.module is not None
+        fd = s.sock.fileno()
+        cycles.pull(cycles.state(fd), s.module, s.link)
+        cycles.detach(fd)
+        del by_fd[fd]
+        live.remove(s)
+        s.sock.close()
+        s.sock = None
+
+    def events() -> int:
+        return _plug_and_pull(slots, t0, end, now, plug, pull)
 
     now = clock()
-    next_event = events(now)
+    next_event = events()
     try:
         while now < end:
             if now >= next_event:
-                next_event = events(now)
+                next_event = events()
             until = next_event
             for s in live:
                 m = s.module
@@ -360,20 +370,12 @@ def _run_native(slots: list[Slot], seconds: float, loss: float, *, sample_ns: in
             got = cycles.run([s.sock.fileno() for s in live], until)  # type: ignore[union-attr]
             if got is not None and got[0] == RUN_HANDED:
                 _, fd, data, at, addr = got
-                s = by_fd[fd]
-                m, osc, link = s.module, s.osc, s.link
-                assert m is not None and osc is not None and link is not None
-                s.master = addr
-                for out in m.receive(data, osc.raw(at)):
-                    link.send(out, addr)
+                by_fd[fd].deliver(data, addr, at)
             now = clock()
             for s in live:
-                m, osc = s.module, s.osc
-                assert m is not None and osc is not None and s.sock is not None
-                cycles.pull(cycles.state(s.sock.fileno()), m, s.link)
-                if m.state == "running" and now >= s.next_sample:
-                    s.next_sample = now + sample_ns
-                    s.clock_errors.append(m.servo.now(osc.raw(now)) - now)
+                assert s.module is not None and s.sock is not None
+                cycles.pull(cycles.state(s.sock.fileno()), s.module, s.link)
+                s.sample(now, sample_ns)
     finally:
         for s in slots:
             if s.sock is not None:
