@@ -123,10 +123,11 @@ def wait_until_quiet(busy_cores: float = 0.4, window: float = 0.5, timeout: floa
 
 
 @contextmanager
-def snp_master_on_loopback(n_ports: int) -> Iterator[tuple[object, list[int]]]:
+def snp_master_on_loopback(n_ports: int, native: bool = False) -> Iterator[tuple[object, list[int]]]:
     """An SnP modular-robot master serving in a thread on a loopback socket, exploring n_ports
-    free ports; yields (master, ports) and stops and joins it afterwards.  (It does not poll
-    without sleeping: a thread that spins starves the other threads of the GIL.)"""
+    free ports (native: its cycle path in C); yields (master, ports) and stops and joins it
+    afterwards.  (It does not poll without sleeping: a thread that spins starves the other
+    threads of the GIL.)"""
     import threading
 
     from cell.snp.modular import CycleConfig, Master
@@ -137,11 +138,14 @@ def snp_master_on_loopback(n_ports: int) -> Iterator[tuple[object, list[int]]]:
         s = open_udp()
         ports.append(s.getsockname()[1])
         s.close()
-    sock = open_udp()
+    sock = open_udp(timestamps=True)
     master = Master([("127.0.0.1", p) for p in ports], CycleConfig(), time.monotonic_ns)
     done = threading.Event()
     server = threading.Thread(
-        target=serve_master, args=(master, sock, done.is_set), kwargs={"spin_ns": 0}, daemon=True
+        target=serve_master,
+        args=(master, sock, done.is_set),
+        kwargs={"spin_ns": 0, "native": native},
+        daemon=True,
     )
     server.start()
     try:

@@ -200,7 +200,7 @@ class SimNet:
                     m, osc = self.modules[addr[1]]
                     for d in m.receive(data, osc.raw(self.now)):
                         self._send("master", addr, d)
-            for d, a in self.master.serve() + self.master.poll():
+            for d, a in (*self.master.serve(), *self.master.poll(), *self.master.beacons()):
                 self._send("module", a, d)
             for port, (m, osc) in list(self.modules.items()):
                 for d in m.poll(osc.raw(self.now)):

@@ -49,7 +49,9 @@ def _place(core: int) -> None:
     place([core], 80, -10)
 
 
-def _master(ports: list[int], seconds: float, loss: float, slot_ns: int, port_q: Any, out: Any) -> None:
+def _master(
+    ports: list[int], seconds: float, loss: float, slot_ns: int, native: bool, port_q: Any, out: Any
+) -> None:
     from cell.snp.modular import CycleConfig, Master
     from cell.snp.runner import open_udp, serve_master
 
@@ -59,7 +61,7 @@ def _master(ports: list[int], seconds: float, loss: float, slot_ns: int, port_q:
     port_q.put(sock.getsockname()[1])
     until = time.monotonic() + seconds
     cpu0, wall0 = time.process_time(), time.monotonic()
-    link = serve_master(master, sock, lambda: time.monotonic() > until, loss)
+    link = serve_master(master, sock, lambda: time.monotonic() > until, loss, native=native)
     cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
     sock.close()
     out.put(
@@ -124,10 +126,16 @@ def _chain(n: int, transport: str, rng: random.Random, **extra: Any) -> list[dic
 
 
 def trial(
-    slots: list[dict], seconds: float, loss: float = 0.0, slot_ns: int = SLOT_NS, native: bool = False
+    slots: list[dict],
+    seconds: float,
+    loss: float = 0.0,
+    slot_ns: int = SLOT_NS,
+    native: bool = False,
+    native_master: bool | None = None,
 ) -> dict[str, Any]:
-    """One run of a master and the slots' modules (native: their cycles in C); every module's
-    record and the master's."""
+    """One run of a master and the slots' modules (native: their cycles in C, and the master's
+    unless native_master says otherwise); every module's record and the master's."""
+    native_master = native if native_master is None else native_master
     ports = _free_ports(len({s["module_id"] for s in slots}))
     port_of: dict[int, int] = {}
     for s in slots:  # (a module plugged back comes back on its port)
@@ -137,7 +145,7 @@ def trial(
     ctx = mp.get_context("spawn")
     port_q, out_m, out_s = ctx.Queue(), ctx.Queue(), ctx.Queue()
     master = ctx.Process(
-        target=_master, args=(ports, seconds + 0.5, loss, slot_ns, port_q, out_m), daemon=True
+        target=_master, args=(ports, seconds + 0.5, loss, slot_ns, native_master, port_q, out_m), daemon=True
     )
     master.start()
     port_q.get(timeout=30)

@@ -13,23 +13,12 @@
  * The arithmetic mirrors JointModule's, line for line (tests/test_snp_native.py checks the
  * bytes against the Python module's). */
 
-#define _GNU_SOURCE
-#include <errno.h>
-#include <math.h>
-#include <netinet/in.h>
-#include <poll.h>
-#include <stdint.h>
-#include <string.h>
-#include <sys/socket.h>
-#include <time.h>
+#include "wire.h"
 
 #define RECORDS 256 /* cycle records a module holds until Python takes them */
 #define MAX_MODULES 64
 
 enum { STAGE_DONE = 0, STAGE_AB = 1, STAGE_CD = 2 };
-enum { A_SIZE = 80, C_SIZE = 64, ANSWER_SIZE = 40, DENIAL_SIZE = 22 };
-enum { PID_MRT = 0xF0, QUERY = 1, REPLY = 2, DENIAL = 3 };
-enum { RUN_UNTIL = 0, RUN_HANDED = 1, RUN_RECORDS_FULL = 2 };
 
 /* One module; cell/snp/native.py's ModuleState mirrors it field for field (all 64-bit). */
 typedef struct {
@@ -50,58 +39,7 @@ typedef struct {
     int64_t records[RECORDS][4]; /* scheduled, T1, end (master ns), exchanges guessed */
 } module_t;
 
-/* A datagram handed back to Python. */
-typedef struct {
-    int64_t index, len, at, ip, port;
-} handed_t;
-
-/* --- the RMAP CRC-8 (x^8 + x^2 + x + 1, reflected, init 0): cell.snp.packet.crc8 ------------ */
-
-static uint8_t crc_table[256];
-
-static void crc_init(void) {
-    for (int i = 0; i < 256; i++) {
-        uint8_t c = (uint8_t)i;
-        for (int k = 0; k < 8; k++) c = (c & 1) ? (uint8_t)((c >> 1) ^ 0xE0) : (uint8_t)(c >> 1);
-        crc_table[i] = c;
-    }
-}
-
-static uint8_t crc8(const uint8_t *p, size_t n) {
-    uint8_t c = 0;
-    while (n--) c = crc_table[c ^ *p++];
-    return c;
-}
-
-/* --- big-endian fields ----------------------------------------------------------------------- */
-
-static void put32(uint8_t *p, uint32_t v) {
-    p[0] = (uint8_t)(v >> 24), p[1] = (uint8_t)(v >> 16), p[2] = (uint8_t)(v >> 8), p[3] = (uint8_t)v;
-}
-static void put64(uint8_t *p, uint64_t v) { put32(p, (uint32_t)(v >> 32)), put32(p + 4, (uint32_t)v); }
-static void putf(uint8_t *p, double v) {
-    float f = (float)v;
-    uint32_t u;
-    memcpy(&u, &f, 4);
-    put32(p, u);
-}
-static uint32_t get32(const uint8_t *p) {
-    return (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | p[3];
-}
-static float getf(const uint8_t *p) {
-    uint32_t u = get32(p);
-    float f;
-    memcpy(&f, &u, 4);
-    return f;
-}
-
 /* --- clocks: host CLOCK_MONOTONIC -> the module's raw oscillator -> the master's time --------- */
-
-static int64_t host_now(void) {
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
-}
 
 static int64_t master_of(const module_t *m, int64_t host) {
     int64_t raw = m->osc_origin + m->osc_offset + llround((double)(host - m->osc_origin) * (1.0 + m->osc_drift));
@@ -113,27 +51,10 @@ static int64_t host_of(const module_t *m, int64_t master) {
     return m->osc_origin + llround((double)(raw - m->osc_origin - m->osc_offset) / (1.0 + m->osc_drift));
 }
 
-/* --- the link: sends to the master, dropping `loss` of them (seeded) ------------------------- */
-
-static uint64_t rng_state = 0x9E3779B97F4A7C15ull;
-
-static double uniform(void) { /* xorshift64* */
-    rng_state ^= rng_state >> 12, rng_state ^= rng_state << 25, rng_state ^= rng_state >> 27;
-    return (double)((rng_state * 0x2545F4914F6CDD1Dull) >> 11) / 9007199254740992.0;
-}
+static uint64_t rng_state = 0x9E3779B97F4A7C15ull; /* the links' losses */
 
 static void send_master(module_t *m, const uint8_t *p, size_t n) {
-    if (m->loss > 0 && uniform() < m->loss) {
-        m->lost++;
-        return;
-    }
-    struct sockaddr_in to = {.sin_family = AF_INET};
-    to.sin_addr.s_addr = htonl((uint32_t)m->master_ip);
-    to.sin_port = htons((uint16_t)m->master_port);
-    if (sendto((int)m->fd, p, n, 0, (struct sockaddr *)&to, sizeof to) == (ssize_t)n)
-        m->sent++;
-    else
-        m->errors++; /* a full buffer, or the master's port gone: the link loses it */
+    send_lossy((int)m->fd, p, n, m->master_ip, m->master_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
 }
 
 /* --- the cycle (JointModule._start, _second, _answered, _expired, _finish) -------------------- */
@@ -144,16 +65,13 @@ static void query(module_t *m, int n_in, const int64_t *ids_in, const double *va
     uint8_t p[A_SIZE];
     size_t size = n_in == 2 ? A_SIZE : C_SIZE;
     m->qid = (m->qid + 1) & 0xFFFFFFFF;
-    p[0] = 0, p[1] = PID_MRT, p[2] = 0;
-    put32(p + 3, (uint32_t)m->source_process), put32(p + 7, 0);
-    p[11] = crc8(p, 11);
-    p[12] = 0, p[13] = 0, p[14] = QUERY;
+    head(p, 0, PID_MRT, m->source_process, 0, QUERY);
     put32(p + 15, (uint32_t)m->qid), put64(p + 19, (uint64_t)m->deadline), put32(p + 27, (uint32_t)n_in);
     uint8_t *q = p + 31;
     for (int i = 0; i < n_in; i++, q += 16)
         put32(q, (uint32_t)ids_in[i]), putf(q + 4, values[i]), put64(q + 8, (uint64_t)stamp);
     put32(q, 1), put32(q + 4, (uint32_t)wanted), put64(q + 8, (uint64_t)wanted_at);
-    p[size - 1] = crc8(p + 12, size - 13);
+    seal(p, size);
     send_master(m, p, size);
 }
 
@@ -231,7 +149,7 @@ static void timers(module_t *m, int64_t host) { /* JointModule.poll */
 static int fast_path(module_t *m, const uint8_t *p, ssize_t n, int64_t host) {
     if (n != ANSWER_SIZE && n != DENIAL_SIZE) return 0;
     if (p[1] != PID_MRT || p[2] != 0 || p[12] != 0 || p[13] != 0) return 0;
-    if (crc8(p, 11) != p[11] || crc8(p + 12, (size_t)n - 13) != p[n - 1]) return 0;
+    if (!crcs_ok(p, (size_t)n)) return 0;
     int answer = n == ANSWER_SIZE && p[14] == REPLY && get32(p + 19) == 1;
     if (!answer && !(n == DENIAL_SIZE && p[14] == DENIAL)) return 0;
     if (m->stage == STAGE_DONE || get32(p + 15) != (uint32_t)m->qid) {
@@ -262,7 +180,6 @@ int snp_cycle_run(module_t **mods, int n, int64_t until, int64_t mono_of_real, i
     for (int i = 0; i < n; i++) fds[i].fd = (int)mods[i]->fd, fds[i].events = POLLIN;
     int64_t spin_until = 0;
     uint8_t p[2048];
-    char control[CMSG_SPACE(sizeof(struct timespec))];
     for (;;) {
         int64_t now = host_now(), wake = until;
         int busy = 0, full = 0;
@@ -286,29 +203,12 @@ int snp_cycle_run(module_t **mods, int n, int64_t until, int64_t mono_of_real, i
         for (int i = 0; i < n; i++) {
             if (!(fds[i].revents & (POLLIN | POLLERR))) continue;
             module_t *m = mods[i];
-            for (;;) {
-                struct sockaddr_in from;
-                struct iovec iov = {p, sizeof p};
-                struct msghdr msg = {.msg_name = &from, .msg_namelen = sizeof from, .msg_iov = &iov,
-                                     .msg_iovlen = 1, .msg_control = control, .msg_controllen = sizeof control};
-                ssize_t got = recvmsg((int)m->fd, &msg, MSG_DONTWAIT);
-                if (got < 0) {
-                    if (errno == EAGAIN || errno == EWOULDBLOCK) break;
-                    continue; /* (an ICMP error queued on the socket: read it away) */
-                }
-                int64_t at = host_now();
-                for (struct cmsghdr *c = CMSG_FIRSTHDR(&msg); c; c = CMSG_NXTHDR(&msg, c))
-                    if (c->cmsg_level == SOL_SOCKET && c->cmsg_type == SO_TIMESTAMPNS) {
-                        struct timespec k;
-                        memcpy(&k, CMSG_DATA(c), sizeof k);
-                        at = (int64_t)k.tv_sec * 1000000000 + k.tv_nsec - mono_of_real;
-                    }
+            int64_t ip, port, at;
+            ssize_t got;
+            while ((got = receive((int)m->fd, p, sizeof p, mono_of_real, &ip, &port, &at)) >= 0) {
                 spin_until = host_now() + spin_ns;
                 if (m->active && fast_path(m, p, got, at)) continue;
-                h->index = i, h->len = got, h->at = at;
-                h->ip = ntohl(from.sin_addr.s_addr), h->port = ntohs(from.sin_port);
-                memcpy(buf, p, (size_t)(got < cap ? got : cap));
-                return RUN_HANDED;
+                return hand(h, i, p, got, at, ip, port, buf, cap);
             }
         }
     }

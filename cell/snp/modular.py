@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import struct
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -199,7 +199,7 @@ class Master:
         self.explore_ns, self.suspect_cycles, self.lost_ns = explore_ns, suspect_cycles, lost_ns
         self.model = ArmModel(max_joints, config.gain, clock())
         self.handler = Handler(self.model, clock, service_ns=30_000, margin=1.25, floor_ns=10_000)
-        self.beacons = BeaconSchedule()
+        self.beacon_schedule = BeaconSchedule()
         self.nodes: dict[Any, Node] = {}  # by address
         self.events: deque[tuple[int, str, int, int]] = deque(maxlen=1000)  # (t, what, module, joint)
         self.counters: dict[str, int] = {"guessed": 0, "probes": 0, "beacons": 0, "included": 0, "lost": 0}
@@ -209,6 +209,9 @@ class Master:
         self.rmap_init = rmap.Initiator(MASTER_LA, config.rmap_timeout_ns, config.rmap_retries)
         self._rmap_from: Any = None
         self._out: list[tuple[bytes, Any]] = []
+        # False while a fast path elsewhere (cell.snp.native.NativeMaster) keeps FDIR's per-cycle
+        # watch: poll() and next_due() then leave it out
+        self.fdir_here = True
 
     # --- input ---------------------------------------------------------------------------------
 
@@ -238,8 +241,8 @@ class Master:
         if isinstance(body, Configured):
             return self._configured(body, addr, now)
         if isinstance(body, TimeSubscribe):
-            granted = self.beacons.subscribe(addr, body.period_ns, now)
-            reply = TimeSubscribed(granted, self.beacons.precision_ns)
+            granted = self.beacon_schedule.subscribe(addr, body.period_ns, now)
+            reply = TimeSubscribed(granted, self.beacon_schedule.precision_ns)
             return [(encode(pkt.header.reversed(), reply), addr)]
         if isinstance(body, Query) and node is not None and node.joint >= 0:
             # (a quarter period of slack: the module's servoed clock may run a little ahead)
@@ -354,13 +357,12 @@ class Master:
         return (t - node.phase_ns + self.config.period_ns // 4) // self.config.period_ns
 
     def poll(self) -> list[tuple[bytes, Any]]:
-        """Beacons due, exploration probes, RMAP resends, FDIR: call at least once a period."""
+        """Exploration probes, RMAP resends, FDIR: call at least once a period (and send the
+        beacons due, `beacons()`)."""
         now = self.clock()
-        self._fdir(now)
+        if self.fdir_here:
+            self._fdir(now)
         out: list[tuple[bytes, Any]] = []
-        for addr, seq in self.beacons.due(now):
-            out.append((encode(Header(pid=Pid.TSP), TimeBeacon(seq, self.clock())), addr))
-            self.counters["beacons"] += 1
         if now >= self._next_explore:
             self._next_explore = now + self.explore_ns
             live = {a for a, n in self.nodes.items() if n.state in ("included", "suspect", "configuring")}
@@ -373,6 +375,14 @@ class Master:
         out += [(d, self._rmap_addr(d)) for d in resend]
         return out
 
+    def beacons(self) -> Iterator[tuple[bytes, Any]]:
+        """The SnP-TSP beacons due, each dated as it is made: send each before taking the next, so
+        that it leaves as it is dated (several are often due at once, and a beacon made while
+        others wait to be sent carries their encoding and sending in its error)."""
+        for addr, seq in self.beacon_schedule.due(self.clock()):
+            self.counters["beacons"] += 1
+            yield encode(Header(pid=Pid.TSP), TimeBeacon(seq, self.clock())), addr
+
     def next_cycle_start(self, now: int) -> int:
         """The start of the first cycle after now (the modules' A come just after it)."""
         return (self._cycle_of(now) + 1) * self.config.period_ns + self.config.phase_ns
@@ -380,14 +390,14 @@ class Master:
     def next_due(self) -> int:
         """When poll() has something to do next, at the latest."""
         nxt = self._next_explore
-        b = self.beacons.next_due()
+        b = self.beacon_schedule.next_due()
         if b is not None:
             nxt = min(nxt, b)
         r = self.rmap_init.next_timeout()
         if r is not None:
             nxt = min(nxt, r)
         c = self.config
-        for n in self.nodes.values():  # FDIR: each module's next cycle's deadline
+        for n in self.nodes.values() if self.fdir_here else ():  # FDIR: each module's next cycle's deadline
             if n.state in ("included", "suspect"):
                 nxt = min(nxt, (n.checked + 2) * c.period_ns + n.phase_ns + c.budget_ns)
         return nxt
@@ -409,11 +419,15 @@ class Master:
                     self.events.append((now, "silent", n.info.module_id, n.joint))
             n.checked = max(n.checked, cycle)
             if now - n.heard_ns > self.lost_ns:
-                n.state = "lost"
-                self.model.active[n.joint] = False
-                self.beacons.drop(n.addr)
-                self.counters["lost"] += 1
-                self.events.append((now, "lost", n.info.module_id, n.joint))
+                self.lose(n, now)
+
+    def lose(self, n: Node, now: int) -> None:
+        """Exclude a module gone silent (its port is explored again)."""
+        n.state = "lost"
+        self.model.active[n.joint] = False
+        self.beacon_schedule.drop(n.addr)
+        self.counters["lost"] += 1
+        self.events.append((now, "lost", n.info.module_id, n.joint))
 
     # --- the RMAP baseline --------------------------------------------------------------------
 

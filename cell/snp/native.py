@@ -15,17 +15,20 @@ import functools
 import hashlib
 import os
 import shutil
+import socket
 import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any
 
-from cell.snp.modular import _IDS, JointModule
+from cell.snp.modular import _IDS, JointModule, Master, Node
 
-SOURCE = Path(__file__).with_name("cycle.c")
+HERE = Path(__file__).parent
+SOURCES = (HERE / "cycle.c", HERE / "master.c")  # one library; both include wire.h
+HEADERS = (HERE / "wire.h",)
 CFLAGS = ["-O2", "-shared", "-fPIC", "-Wall", "-Werror"]
 RECORDS = 256
-RUN_UNTIL, RUN_HANDED, RUN_RECORDS_FULL = 0, 1, 2
+RUN_UNTIL, RUN_HANDED, RUN_RECORDS_FULL, RUN_EVENT = 0, 1, 2, 3
 _I, _D = ctypes.c_int64, ctypes.c_double
 
 
@@ -49,6 +52,41 @@ class ModuleState(ctypes.Structure):
     ]
 
 
+class JointEntry(ctypes.Structure):
+    """joint_t of master.c: a joint's module and its part of the arm model."""
+
+    _fields_ = [
+        *((name, _I) for name in ("state", "ip", "port", "phase_ns")),
+        ("ids", _I * 5),
+        *((name, _D) for name in ("pos", "vel", "force")),
+        *((name, _I) for name in ("at", "a_cycle", "heard_ns", "silent_cycles", "checked")),
+    ]
+
+
+MAX_JOINTS, QUEUE, EVENTS = 16, 64, 32
+NODE_OFF, NODE_INCLUDED, NODE_SUSPECT, NODE_LOST = 0, 1, 2, 3
+_NODE_STATE = {"included": NODE_INCLUDED, "suspect": NODE_SUSPECT}
+_EVENT = {1: "silent", 2: "back", 3: "lost"}
+
+
+class MasterState(ctypes.Structure):
+    """master_t of master.c, field for field."""
+
+    _fields_ = [
+        *((name, _I) for name in ("fd", "period_ns", "phase_ns", "budget_ns", "t0", "suspect_cycles")),
+        *((name, _I) for name in ("lost_ns", "floor_ns")),
+        *((name, _D) for name in ("gain", "margin", "loss")),
+        ("service_ns", _I),
+        ("joints", JointEntry * MAX_JOINTS),
+        *((name, _I) for name in ("queries", "replies", "denied", "late", "guessed", "sent", "lost")),
+        *((name, _I) for name in ("errors", "n_events")),
+        ("events", (_I * 3) * EVENTS),
+        ("n_pending", _I),
+        ("seq", _I),
+        ("pending", (_I * 12) * QUEUE),
+    ]
+
+
 class Handed(ctypes.Structure):
     _fields_ = [(name, _I) for name in ("index", "len", "at", "ip", "port")]
 
@@ -65,7 +103,7 @@ def _cache_dir() -> Path:
 @functools.cache
 def library() -> ctypes.CDLL:
     """The built library (built now if its cached copy is missing); NativeUnavailable if it cannot be."""
-    source = SOURCE.read_bytes()
+    source = b"".join(f.read_bytes() for f in (*SOURCES, *HEADERS))
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
     if cc is None:
         raise NativeUnavailable("no C compiler (cc, gcc or clang) on PATH")
@@ -75,10 +113,11 @@ def library() -> ctypes.CDLL:
         out.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
             so = Path(tmp) / out.name
-            cmd = [cc, *CFLAGS, "-o", str(so), str(SOURCE), "-lm"]
+            cmd = [cc, *CFLAGS, "-o", str(so), *(str(f) for f in SOURCES), "-lm"]
             done = subprocess.run(cmd, capture_output=True, text=True)
             if done.returncode != 0:
-                raise NativeUnavailable(f"{cc} failed on {SOURCE.name}: {done.stderr.strip()[:2000]}")
+                names = ", ".join(f.name for f in SOURCES)
+                raise NativeUnavailable(f"{cc} failed on {names}: {done.stderr.strip()[:2000]}")
             os.replace(so, out)  # (atomic: another process building it at once is harmless)
         for old in out.parent.glob("snp-cycle-*.so"):  # builds of earlier sources
             if old != out:
@@ -90,9 +129,15 @@ def library() -> ctypes.CDLL:
         ctypes.POINTER(ctypes.POINTER(ModuleState)), ctypes.c_int, _I, _I, _I, _I,
         ctypes.c_char_p, _I, ctypes.POINTER(Handed),
     ]  # fmt: skip
-    size = lib.snp_cycle_init(0)
-    if size != ctypes.sizeof(ModuleState):
-        raise NativeUnavailable(f"module_t is {size} bytes in C, {ctypes.sizeof(ModuleState)} in ModuleState")
+    lib.snp_master_init.argtypes, lib.snp_master_init.restype = [ctypes.c_uint64], ctypes.c_int
+    lib.snp_master_run.restype = ctypes.c_int
+    lib.snp_master_run.argtypes = [
+        ctypes.POINTER(MasterState), _I, _I, _I, _I, ctypes.c_char_p, _I, ctypes.POINTER(Handed),
+    ]  # fmt: skip
+    for init, mirror in ((lib.snp_cycle_init, ModuleState), (lib.snp_master_init, MasterState)):
+        size = init(0)
+        if size != ctypes.sizeof(mirror):
+            raise NativeUnavailable(f"{mirror.__name__} is {ctypes.sizeof(mirror)} bytes, {size} in C")
     return lib
 
 
@@ -182,3 +227,104 @@ class NativeCycles:
             return code, -1, b"", 0, ("", 0)
         ip = ".".join(str((h.ip >> s) & 0xFF) for s in (24, 16, 8, 0))
         return code, fds[h.index], self.buf.raw[: h.len], h.at, (ip, h.port)
+
+
+def _ip(host: str) -> int:
+    return int.from_bytes(socket.inet_aton(host), "big")
+
+
+class NativeMaster:
+    """The C path of a Python `Master` on its socket: `run` serves the included modules' A and C
+    (admitted, answered earliest deadline first, or denied) and keeps FDIR's per-cycle watch
+    until a time, an FDIR event or a datagram it hands back.  While a joint's cycle runs in C, C
+    holds its part of the arm model and its FDIR state; `push` and `pull` carry them over to the
+    Python master before and after each run, so between runs the Python master is whole (its
+    generic queries, RMAP, beacons and exploration see the same model)."""
+
+    def __init__(self, master: Master, fd: int, *, spin_ns: int, lead_ns: int, mono_of_real: int) -> None:
+        self.lib = library()
+        self.lib.snp_master_init(1)
+        if master.model.joints > MAX_JOINTS:
+            raise ValueError(f"the C master takes at most {MAX_JOINTS} joints")
+        c, h = master.config, master.handler
+        self.master, self.spin_ns, self.lead_ns, self.mono_of_real = master, spin_ns, lead_ns, mono_of_real
+        self.st = MasterState(
+            fd=fd, period_ns=c.period_ns, phase_ns=c.phase_ns, budget_ns=c.budget_ns, t0=master.model.t0,
+            suspect_cycles=master.suspect_cycles, lost_ns=master.lost_ns, floor_ns=h.floor_ns,
+            gain=c.gain, margin=h.margin, service_ns=h.floor_ns,
+        )  # fmt: skip
+        self.buf = ctypes.create_string_buffer(2048)
+        self.handed = Handed()
+        self._node: list[Node | None] = [None] * MAX_JOINTS  # the node each joint entry holds
+
+    def push(self) -> None:
+        """The Python master's view into C: which modules are included (a newly included one with
+        its address, items, slot and model entries), and what Python heard from them."""
+        ms, model, st = self.master, self.master.model, self.st
+        held: list[Node | None] = [None] * MAX_JOINTS
+        for n in ms.nodes.values():
+            if n.state in _NODE_STATE and 0 <= n.joint < MAX_JOINTS:
+                held[n.joint] = n
+        for j, n in enumerate(held):
+            e = st.joints[j]
+            if n is None:
+                e.state = NODE_OFF
+                continue
+            if self._node[j] is not n or e.state not in (NODE_INCLUDED, NODE_SUSPECT):  # new to C
+                host, port = n.addr
+                e.ip, e.port, e.phase_ns, e.ids[:] = _ip(host), port, n.phase_ns, _IDS[j]
+                e.pos, e.vel, e.force, e.at = model.pos[j], model.vel[j], model.force[j], model.at[j]
+            e.state, e.heard_ns, e.silent_cycles = _NODE_STATE[n.state], n.heard_ns, n.silent_cycles
+            e.checked, e.a_cycle = n.checked, ms._a_cycle.get(j, -1)
+        self._node = held
+
+    def pull(self, link: Any) -> None:
+        """What C did into the Python master: its model entries and FDIR state, its counters
+        (the master's, its handler's and the link's), its events (a lost module excluded)."""
+        ms, model, st = self.master, self.master.model, self.st
+        for j, n in enumerate(self._node):
+            if n is None:
+                continue
+            e = st.joints[j]
+            model.pos[j], model.vel[j], model.force[j], model.at[j] = e.pos, e.vel, e.force, e.at
+            n.heard_ns, n.silent_cycles, n.checked = e.heard_ns, e.silent_cycles, e.checked
+            if e.a_cycle >= 0:
+                ms._a_cycle[j] = e.a_cycle
+            if e.state in (NODE_INCLUDED, NODE_SUSPECT):
+                n.state = "included" if e.state == NODE_INCLUDED else "suspect"
+        for i in range(st.n_events):  # (in the order they happened)
+            t, what, j = st.events[i]
+            n = self._node[j]
+            if n is None or n.state == "lost":
+                continue
+            if _EVENT[what] == "lost":
+                ms.lose(n, t)
+            else:
+                ms.events.append((t, _EVENT[what], n.info.module_id, j))
+        for j, n in enumerate(self._node):  # (a loss whose event did not fit in the ring)
+            if n is not None and st.joints[j].state == NODE_LOST and n.state != "lost":
+                ms.lose(n, n.heard_ns + ms.lost_ns)
+        h = ms.handler.counters
+        h["queries"] += st.queries
+        h["replies"] += st.replies
+        h["denied.deadline_cannot_be_met"] += st.denied
+        h["late"] += st.late
+        ms.counters["guessed"] += st.guessed
+        link.sent, link.lost, link.errors = link.sent + st.sent, link.lost + st.lost, link.errors + st.errors
+        for name in ("queries", "replies", "denied", "late", "guessed", "sent", "lost", "errors", "n_events"):
+            setattr(st, name, 0)
+
+    def run(self, until: int) -> tuple[int, bytes, int, tuple[str, int]] | None:
+        """Serve until host time `until`: None then, (RUN_EVENT, ...) on an FDIR event, or
+        (RUN_HANDED, the datagram, its arrival (CLOCK_MONOTONIC ns), its sender)."""
+        h = self.handed
+        code = self.lib.snp_master_run(
+            ctypes.byref(self.st), until, self.mono_of_real, self.spin_ns, self.lead_ns, self.buf, 2048, h
+        )
+        if code < 0:
+            raise OSError(-code, os.strerror(-code))
+        if code == RUN_UNTIL:
+            return None
+        if code == RUN_EVENT:
+            return code, b"", 0, ("", 0)
+        return code, self.buf.raw[: h.len], h.at, (socket.inet_ntoa(h.ip.to_bytes(4, "big")), h.port)

@@ -96,12 +96,16 @@ def serve_master(
     loss: float = 0.0,
     *,
     spin_ns: int = SPIN_NS,
+    native: bool = False,
 ) -> Link:
     """Run the master until stop() is true; returns its link (counters).
 
     It sleeps (epoll, woken by a datagram or its alarm) until LEAD_NS before the next cycle
     starts or its next timer, then polls without sleeping for as long as the cycle's datagrams
-    keep coming (spin_ns after the last one)."""
+    keep coming (spin_ns after the last one).  native: the cycle's queries and FDIR's watch run
+    in C (cell.snp.native.NativeMaster, on the same schedule), the rest here, between its runs."""
+    if native:
+        return _serve_master_native(master, sock, stop, loss, spin_ns)
     link = Link(sock, loss, seed=1)
     alarm = Alarm()
     ep = select.epoll()
@@ -136,13 +140,50 @@ def serve_master(
                 link.send(data, addr)
             polled = clock() >= due
             if polled:
-                for data, addr in master.poll():  # after the replies: a beacon leaves as it is dated
+                for data, addr in master.poll():  # (after the replies)
+                    link.send(data, addr)
+                for data, addr in master.beacons():  # (each sent as it is made: as it is dated)
                     link.send(data, addr)
             if polled or out or readable:  # (what it was sent or did may have moved its timers)
                 due = master.next_due()
     finally:
         ep.close()
         alarm.close()
+    return link
+
+
+def _serve_master_native(
+    master: Master, sock: socket.socket, stop: Callable[[], bool], loss: float, spin_ns: int
+) -> Link:
+    from cell.snp.native import RUN_HANDED, NativeMaster
+
+    link = Link(sock, loss, seed=1)
+    clock = time.monotonic_ns
+    lead, mono_of_real = LEAD_NS if spin_ns else 0, time.time_ns() - clock()
+    fast = NativeMaster(master, sock.fileno(), spin_ns=spin_ns, lead_ns=lead, mono_of_real=mono_of_real)
+    fast.st.loss = loss
+    master.fdir_here = False
+    coarse = int(COARSE_S * 1e9)  # (how often stop() is asked, at the latest)
+    try:
+        while not stop():
+            due = master.next_due()
+            fast.push()
+            got = fast.run(min(due, clock() + coarse))
+            fast.pull(link)
+            out: list[tuple[bytes, Any]] = []
+            if got is not None and got[0] == RUN_HANDED:
+                _, data, at, addr = got
+                out += master.receive(data, addr, at)
+            out += master.serve()  # (queries of other shapes, through the handler)
+            for data, addr in out:
+                link.send(data, addr)
+            if clock() >= master.next_due():
+                for data, addr in master.poll():
+                    link.send(data, addr)
+                for data, addr in master.beacons():  # (each sent as it is made: as it is dated)
+                    link.send(data, addr)
+    finally:
+        master.fdir_here = True
     return link
 
 

@@ -1,0 +1,248 @@
+/* The master's side of the 1 kHz cycle in C: the hot path of cell.snp.modular.Master.
+ *
+ * cell/snp/native.py builds this (with cycle.c, into one library) and runs it on the master's
+ * UDP socket between the Python master's timers.  It takes the A and C queries of the included
+ * modules (Master._cycle_query: parsed by their shape, admitted or denied as Handler.admit
+ * decides, their inputs taken into the arm model), answers them earliest deadline first with B
+ * (ArmModel.command) or D (ArmModel.torque), and keeps FDIR's per-cycle watch (Master._fdir: a
+ * missing A guessed, a module silent for suspect_cycles reported, one silent for lost_ns
+ * excluded).  Every other datagram (node info, configuration, SnP-TSP, RMAP, queries of other
+ * shapes, junk) goes back to Python untouched; so does the call at `until` (beacons,
+ * exploration) and at every FDIR event.
+ *
+ * Why C: through the Python master a query costs about 20 us on this machine kind, so twelve a
+ * period take a quarter of the cycle's budget and any late start of the modules turns into
+ * denials; here a query costs its two syscalls.  The arithmetic mirrors the Python master's
+ * line for line (tests/test_snp_native.py checks the answers' bytes against it). */
+
+#include "wire.h"
+
+#define MAX_JOINTS 16 /* ArmModel's default size */
+#define QUEUE 64      /* admitted queries waiting for their turn */
+#define EVENTS 32
+
+enum { NODE_OFF = 0, NODE_INCLUDED = 1, NODE_SUSPECT = 2, NODE_LOST = 3 };
+enum { EVENT_SILENT = 1, EVENT_BACK = 2, EVENT_LOST = 3 };
+
+/* A joint's module and its part of the arm model; cell/snp/native.py's JointEntry mirrors it. */
+typedef struct {
+    int64_t state, ip, port, phase_ns; /* state: NODE_*; ip, port in host order */
+    int64_t ids[5];                    /* item ids: position, velocity, commanded velocity, force, torque */
+    double pos, vel, force;            /* ArmModel.pos, vel, force */
+    int64_t at, a_cycle, heard_ns, silent_cycles, checked; /* a_cycle -1: no A yet */
+} joint_t;
+
+typedef struct {
+    int64_t deadline, seq, joint, is_a, qid, dest, pid, src, dst, t, ip, port;
+} pending_t;
+
+/* The master; cell/snp/native.py's MasterState mirrors it field for field (all 64-bit). */
+typedef struct {
+    /* set by Python */
+    int64_t fd, period_ns, phase_ns, budget_ns, t0, suspect_cycles, lost_ns, floor_ns;
+    double gain, margin, loss;
+    int64_t service_ns; /* the running estimate of a query's service time (make and send) */
+    joint_t joints[MAX_JOINTS];
+    /* counted since Python last took them */
+    int64_t queries, replies, denied, late, guessed, sent, lost, errors, n_events;
+    int64_t events[EVENTS][3]; /* t, EVENT_*, joint */
+    int64_t n_pending, seq;
+    pending_t pending[QUEUE]; /* by deadline, then arrival */
+} master_t;
+
+static uint64_t rng_state = 0xD1B54A32D192ED03ull; /* the link's losses */
+
+static int64_t floor_div(int64_t a, int64_t b) { return a / b - (a % b != 0 && (a < 0) != (b < 0)); }
+
+static int live(const joint_t *j) { return j->state == NODE_INCLUDED || j->state == NODE_SUSPECT; }
+
+static void event(master_t *m, int64_t t, int64_t what, int64_t joint) {
+    int64_t *e = m->events[m->n_events < EVENTS ? m->n_events++ : EVENTS - 1];
+    e[0] = t, e[1] = what, e[2] = joint;
+}
+
+/* --- the arm model (ArmModel.reference, guess, command, torque) ------------------------------- */
+
+static double guess(const joint_t *j, int64_t t) { return j->pos + j->vel * (double)(t - j->at) / 1e9; }
+
+static double command(const master_t *m, int joint, int64_t t_ns) {
+    double t = (double)(t_ns - m->t0) / 1e9;
+    double w = 2 * M_PI * 0.5, a = 0.2 * (1 + (double)joint / 10);
+    double p_ref = a * sin(w * t), v_ref = a * w * cos(w * t);
+    return v_ref + m->gain * (p_ref - guess(&m->joints[joint], t_ns));
+}
+
+static double torque(const master_t *m, int joint, int64_t t_ns) {
+    double angle = 0.0, load = 0.0;
+    for (int j = 0; j < MAX_JOINTS; j++) {
+        if (!live(&m->joints[j])) continue;
+        angle += guess(&m->joints[j], t_ns);
+        if (j >= joint) load += cos(angle);
+    }
+    return 0.8 * m->joints[joint].force + 2.0 * load;
+}
+
+/* --- admitting, queueing and serving (Handler.admit, enqueue, serve) -------------------------- */
+
+static void send_to(master_t *m, const uint8_t *p, size_t n, int64_t ip, int64_t port) {
+    send_lossy((int)m->fd, p, n, ip, port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+}
+
+static void deny(master_t *m, const pending_t *q) {
+    uint8_t p[DENIAL_SIZE];
+    head(p, q->dest, q->pid, q->src, q->dst, DENIAL);
+    put32(p + 15, (uint32_t)q->qid), put16(p + 19, DEADLINE_CANNOT_BE_MET);
+    seal(p, sizeof p);
+    m->denied++;
+    send_to(m, p, sizeof p, q->ip, q->port);
+}
+
+static void enqueue(master_t *m, const pending_t *q) {
+    int64_t i = m->n_pending++;
+    while (i > 0 && m->pending[i - 1].deadline > q->deadline) m->pending[i] = m->pending[i - 1], i--;
+    m->pending[i] = *q;
+}
+
+/* Answer every pending query, earliest deadline first: B or D, or a denial if its deadline can no
+ * longer be met. */
+static void serve(master_t *m) {
+    for (int64_t k = 0; k < m->n_pending; k++) {
+        const pending_t *q = &m->pending[k];
+        int64_t t0 = host_now();
+        if (t0 + m->service_ns > q->deadline) {
+            deny(m, q);
+            continue;
+        }
+        double value = q->is_a ? command(m, (int)q->joint, q->t) : torque(m, (int)q->joint, q->t);
+        uint8_t p[ANSWER_SIZE];
+        head(p, q->dest, q->pid, q->src, q->dst, REPLY);
+        put32(p + 15, (uint32_t)q->qid), put32(p + 19, 1);
+        put32(p + 23, (uint32_t)m->joints[q->joint].ids[q->is_a ? 2 : 4]), putf(p + 27, value);
+        put64(p + 31, (uint64_t)q->t);
+        seal(p, sizeof p);
+        send_to(m, p, sizeof p, q->ip, q->port);
+        int64_t t1 = host_now();
+        int64_t est = (int64_t)(0.9 * (double)m->service_ns + 0.1 * (double)(t1 - t0) * m->margin);
+        m->service_ns = est > m->floor_ns ? est : m->floor_ns;
+        if (t1 > q->deadline) m->late++; /* the estimate was too low */
+        m->replies++;
+    }
+    m->n_pending = 0;
+}
+
+/* An included module's A or C (Master._cycle_query): 1 if it was one (taken), else 0. */
+static int fast_path(master_t *m, const uint8_t *p, ssize_t n, int64_t ip, int64_t port, int64_t at) {
+    if (n != A_SIZE && n != C_SIZE) return 0;
+    int j = 0;
+    while (j < MAX_JOINTS && !(live(&m->joints[j]) && m->joints[j].ip == ip && m->joints[j].port == port)) j++;
+    if (j == MAX_JOINTS) return 0;
+    joint_t *jt = &m->joints[j];
+    int is_a = n == A_SIZE;
+    /* QueryShape.parse: no return address, the query type, both CRCs, the counts; then its items */
+    if (p[2] || p[13] || p[14] != QUERY || !crcs_ok(p, (size_t)n) || p[1] != PID_MRT) return 0;
+    if (is_a && (get32(p + 27) != 2 || get32(p + 63) != 1 || get32(p + 31) != (uint32_t)jt->ids[0] ||
+                 get32(p + 47) != (uint32_t)jt->ids[1] || get32(p + 67) != (uint32_t)jt->ids[2]))
+        return 0;
+    if (!is_a && (get32(p + 27) != 1 || get32(p + 47) != 1 || get32(p + 31) != (uint32_t)jt->ids[3] ||
+                  get32(p + 51) != (uint32_t)jt->ids[4]))
+        return 0;
+    jt->heard_ns = at, jt->silent_cycles = 0; /* (Master.receive: heard from) */
+    if (jt->state == NODE_SUSPECT) {
+        jt->state = NODE_INCLUDED;
+        event(m, at, EVENT_BACK, j);
+    }
+    pending_t q = {.deadline = (int64_t)get64(p + 19), .seq = m->seq++, .joint = j, .is_a = is_a,
+                   .qid = get32(p + 15), .dest = p[0], .pid = p[1], .src = get32(p + 7), .dst = get32(p + 3),
+                   .t = (int64_t)get64(p + (is_a ? 71 : 55)), .ip = ip, .port = port};
+    if (is_a) jt->a_cycle = floor_div(at - jt->phase_ns + m->period_ns / 4, m->period_ns);
+    m->queries++;
+    if (at + m->service_ns * (1 + m->n_pending) > q.deadline || m->n_pending == QUEUE) {
+        deny(m, &q);
+        return 1;
+    }
+    if (is_a)
+        jt->pos = getf(p + 35), jt->at = (int64_t)get64(p + 39), jt->vel = getf(p + 51);
+    else
+        jt->force = getf(p + 35);
+    enqueue(m, &q);
+    return 1;
+}
+
+/* --- FDIR (Master._fdir) ----------------------------------------------------------------------- */
+
+/* Each live module's last cycle past its deadline: guessed if its A did not come, reported when
+ * silent for suspect_cycles, excluded when silent for lost_ns.  The earliest time it has
+ * something to do again. */
+static int64_t fdir(master_t *m, int64_t now) {
+    int64_t next = INT64_MAX;
+    for (int j = 0; j < MAX_JOINTS; j++) {
+        joint_t *jt = &m->joints[j];
+        if (!live(jt)) continue;
+        int64_t cycle = floor_div(now - m->budget_ns - jt->phase_ns, m->period_ns);
+        if (cycle > jt->checked && jt->a_cycle >= 0 && jt->a_cycle < cycle) {
+            m->guessed++;
+            if (++jt->silent_cycles == m->suspect_cycles) {
+                jt->state = NODE_SUSPECT;
+                event(m, now, EVENT_SILENT, j);
+            }
+        }
+        if (cycle > jt->checked) jt->checked = cycle;
+        if (now - jt->heard_ns > m->lost_ns) {
+            jt->state = NODE_LOST;
+            event(m, now, EVENT_LOST, j);
+            continue;
+        }
+        int64_t due = (jt->checked + 2) * m->period_ns + jt->phase_ns + m->budget_ns;
+        int64_t silent = jt->heard_ns + m->lost_ns + 1;
+        due = due < silent ? due : silent;
+        next = due < next ? due : next;
+    }
+    return next;
+}
+
+/* --- the loop ------------------------------------------------------------------------------------ */
+
+int snp_master_init(uint64_t seed) {
+    crc_init();
+    rng_state = seed ? seed : rng_state;
+    return (int)sizeof(master_t);
+}
+
+/* Serve the cycle until host time `until` (CLOCK_MONOTONIC ns, the master's clock) or an FDIR
+ * event (RUN_EVENT); a datagram this path does not take is copied to buf and described in *h
+ * (RUN_HANDED), after the queries read before it are answered.  Sleeps until lead_ns before the
+ * next period starts (or until what is due), then polls without sleeping spin_ns + lead_ns, and
+ * spin_ns after each datagram: serve_master's schedule. */
+int snp_master_run(master_t *m, int64_t until, int64_t mono_of_real, int64_t spin_ns, int64_t lead_ns,
+                   uint8_t *buf, int64_t cap, handed_t *h) {
+    struct pollfd pfd = {.fd = (int)m->fd, .events = POLLIN};
+    int64_t spin_until = 0;
+    uint8_t p[2048];
+    for (;;) {
+        int64_t now = host_now();
+        int64_t wake = fdir(m, now);
+        if (m->n_events) return RUN_EVENT;
+        if (now >= until) return RUN_UNTIL;
+        int64_t start = (floor_div(now - m->phase_ns, m->period_ns) + 1) * m->period_ns + m->phase_ns;
+        wake = wake < until ? wake : until;
+        wake = wake < start - lead_ns ? wake : start - lead_ns;
+        int64_t wait = 0; /* ns; 0: poll without sleeping */
+        if (now >= spin_until && wake > now) wait = wake - now;
+        struct timespec ts = {wait / 1000000000, wait % 1000000000};
+        int ready = ppoll(&pfd, 1, &ts, NULL);
+        if (ready < 0 && errno != EINTR) return -errno;
+        if (ready <= 0) {
+            if (wait) spin_until = host_now() + spin_ns + lead_ns; /* woken on time: spin through */
+            continue;
+        }
+        int64_t ip, port, at;
+        ssize_t got;
+        while ((got = receive((int)m->fd, p, sizeof p, mono_of_real, &ip, &port, &at)) >= 0) {
+            spin_until = host_now() + spin_ns;
+            if (fast_path(m, p, got, ip, port, at)) continue;
+            serve(m);
+            return hand(h, 0, p, got, at, ip, port, buf, cap);
+        }
+        serve(m);
+    }
+}

@@ -1,0 +1,151 @@
+/* What the C fast paths of the modular robot share (cycle.c: the joint modules; master.c: the
+ * master): the SnP packets' fields and CRC as cell.snp.packet writes them, the host clock, a
+ * seeded lossy link, and reading a datagram with the kernel's receive stamp.  Static inline: each
+ * file is its own translation unit in the one library cell/snp/native.py builds. */
+#ifndef CELL_SNP_WIRE_H
+#define CELL_SNP_WIRE_H
+
+#define _GNU_SOURCE
+#include <errno.h>
+#include <math.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <stdint.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <time.h>
+
+/* The cycle's packets (cell.snp.packet.QueryShape / ReplyShape with no return address): A asks
+ * for one item from two inputs, C from one; the answer carries one item; a denial its reason. */
+enum { A_SIZE = 80, C_SIZE = 64, ANSWER_SIZE = 40, DENIAL_SIZE = 22 };
+enum { PID_MRT = 0xF0, QUERY = 1, REPLY = 2, DENIAL = 3 };
+enum { DEADLINE_CANNOT_BE_MET = 1 };
+enum { RUN_UNTIL = 0, RUN_HANDED = 1, RUN_RECORDS_FULL = 2, RUN_EVENT = 3 };
+
+/* A datagram handed back to Python (cell.snp.native.Handed). */
+typedef struct {
+    int64_t index, len, at, ip, port;
+} handed_t;
+
+/* --- the RMAP CRC-8 (x^8 + x^2 + x + 1, reflected, init 0): cell.snp.packet.crc8 ------------ */
+
+static uint8_t crc_table[256];
+
+static inline void crc_init(void) {
+    for (int i = 0; i < 256; i++) {
+        uint8_t c = (uint8_t)i;
+        for (int k = 0; k < 8; k++) c = (c & 1) ? (uint8_t)((c >> 1) ^ 0xE0) : (uint8_t)(c >> 1);
+        crc_table[i] = c;
+    }
+}
+
+static inline uint8_t crc8(const uint8_t *p, size_t n) {
+    uint8_t c = 0;
+    while (n--) c = crc_table[c ^ *p++];
+    return c;
+}
+
+/* Both CRCs of a packet with no return address right: the header's (bytes 0-10) and the data's. */
+static inline int crcs_ok(const uint8_t *p, size_t n) {
+    return n > 13 && crc8(p, 11) == p[11] && crc8(p + 12, n - 13) == p[n - 1];
+}
+
+static inline void seal(uint8_t *p, size_t n) { p[11] = crc8(p, 11), p[n - 1] = crc8(p + 12, n - 13); }
+
+/* --- big-endian fields ----------------------------------------------------------------------- */
+
+static inline void put16(uint8_t *p, uint16_t v) { p[0] = (uint8_t)(v >> 8), p[1] = (uint8_t)v; }
+static inline void put32(uint8_t *p, uint32_t v) {
+    p[0] = (uint8_t)(v >> 24), p[1] = (uint8_t)(v >> 16), p[2] = (uint8_t)(v >> 8), p[3] = (uint8_t)v;
+}
+static inline void put64(uint8_t *p, uint64_t v) { put32(p, (uint32_t)(v >> 32)), put32(p + 4, (uint32_t)v); }
+static inline void putf(uint8_t *p, double v) {
+    float f = (float)v;
+    uint32_t u;
+    memcpy(&u, &f, 4);
+    put32(p, u);
+}
+static inline uint32_t get32(const uint8_t *p) {
+    return (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | p[3];
+}
+static inline uint64_t get64(const uint8_t *p) { return (uint64_t)get32(p) << 32 | get32(p + 4); }
+static inline float getf(const uint8_t *p) {
+    uint32_t u = get32(p);
+    float f;
+    memcpy(&f, &u, 4);
+    return f;
+}
+
+/* The 15 bytes before the cargo: destination, protocol id, no return address, source and
+ * destination process, header CRC (sealed later), a zero byte, the packet type. */
+static inline void head(uint8_t *p, int64_t dest, int64_t pid, int64_t src, int64_t dst, int type) {
+    p[0] = (uint8_t)dest, p[1] = (uint8_t)pid, p[2] = 0;
+    put32(p + 3, (uint32_t)src), put32(p + 7, (uint32_t)dst);
+    p[11] = 0, p[12] = 0, put16(p + 13, (uint16_t)type);
+}
+
+/* --- the host clock and a seeded lossy link ----------------------------------------------------- */
+
+static inline int64_t host_now(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+static inline double uniform(uint64_t *s) { /* xorshift64* */
+    *s ^= *s >> 12, *s ^= *s << 25, *s ^= *s >> 27;
+    return (double)((*s * 0x2545F4914F6CDD1Dull) >> 11) / 9007199254740992.0;
+}
+
+/* Send a datagram, or drop it with probability `loss` (a lossy SpaceWire link); counts each. */
+static inline void send_lossy(int fd, const uint8_t *p, size_t n, int64_t ip, int64_t port, double loss,
+                              uint64_t *rng, int64_t *sent, int64_t *lost, int64_t *errors) {
+    if (loss > 0 && uniform(rng) < loss) {
+        (*lost)++;
+        return;
+    }
+    struct sockaddr_in to = {.sin_family = AF_INET};
+    to.sin_addr.s_addr = htonl((uint32_t)ip);
+    to.sin_port = htons((uint16_t)port);
+    if (sendto(fd, p, n, 0, (struct sockaddr *)&to, sizeof to) == (ssize_t)n)
+        (*sent)++;
+    else
+        (*errors)++; /* a full buffer, or the peer's port gone: the link loses it */
+}
+
+/* One waiting datagram into p: its length (-1: none waiting), its sender and its arrival on
+ * CLOCK_MONOTONIC (the kernel's SO_TIMESTAMPNS stamp less mono_of_real, else when read). */
+static inline ssize_t receive(int fd, uint8_t *p, size_t cap, int64_t mono_of_real, int64_t *ip, int64_t *port,
+                              int64_t *at) {
+    char control[CMSG_SPACE(sizeof(struct timespec))];
+    for (;;) {
+        struct sockaddr_in from;
+        struct iovec iov = {p, cap};
+        struct msghdr msg = {.msg_name = &from, .msg_namelen = sizeof from, .msg_iov = &iov,
+                             .msg_iovlen = 1, .msg_control = control, .msg_controllen = sizeof control};
+        ssize_t got = recvmsg(fd, &msg, MSG_DONTWAIT);
+        if (got < 0) {
+            if (errno == EAGAIN || errno == EWOULDBLOCK) return -1;
+            continue; /* (an ICMP error queued on the socket: read it away) */
+        }
+        *at = host_now();
+        for (struct cmsghdr *c = CMSG_FIRSTHDR(&msg); c; c = CMSG_NXTHDR(&msg, c))
+            if (c->cmsg_level == SOL_SOCKET && c->cmsg_type == SO_TIMESTAMPNS) {
+                struct timespec k;
+                memcpy(&k, CMSG_DATA(c), sizeof k);
+                *at = (int64_t)k.tv_sec * 1000000000 + k.tv_nsec - mono_of_real;
+            }
+        *ip = ntohl(from.sin_addr.s_addr), *port = ntohs(from.sin_port);
+        return got;
+    }
+}
+
+/* Hand a datagram back to Python. */
+static inline int hand(handed_t *h, int64_t index, const uint8_t *p, ssize_t got, int64_t at, int64_t ip,
+                       int64_t port, uint8_t *buf, int64_t cap) {
+    h->index = index, h->len = got, h->at = at, h->ip = ip, h->port = port;
+    memcpy(buf, p, (size_t)(got < cap ? got : cap));
+    return RUN_HANDED;
+}
+
+#endif
