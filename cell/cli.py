@@ -271,7 +271,7 @@ def _cmd_bench_skills(args: argparse.Namespace) -> int:
 def _cmd_bench_snp(args: argparse.Namespace) -> int:
     from cell.bench import snp
 
-    native = {"auto": None, "c": True, "python": False}[args.modules]
+    native = {"auto": None, "c": True, "python": False}[args.cycle]
     result = snp.run(args.slaves, args.seconds, args.loss, slot_ns=int(args.slot_us * 1000), native=native)
     return _report(args, result, snp.format_result(result))
 
@@ -686,10 +686,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="joint j's cycle starts j slots into the period (time slots; default 30; 0: all at once)",
     )
     q.add_argument(
+        "--cycle",
         "--modules",
+        dest="cycle",
         choices=("auto", "c", "python"),
         default="auto",
-        help="where the modules' cycle is: c (built with cc on first use), python, or auto (c if it builds)",
+        help="where the cycle's hot paths (the modules' and the master's) run: c (built with cc on first "
+        "use), python, or auto (c if it builds)",
     )
     q = _bench(
         bsub,

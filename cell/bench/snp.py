@@ -10,8 +10,9 @@
   for it) and plugged back.
 
 The master is one process (core 0), the modules another (core 1, one socket, address and
-clock each), SCHED_FIFO where allowed.  The modules' cycle runs in C (cell.snp.native) where a
-C compiler builds it, and in Python as the baseline of the same run.
+clock each), SCHED_FIFO where allowed.  The cycle's hot paths, the modules' and the master's,
+run in C (cell.snp.native) where a C compiler builds them, and in Python as the baselines of
+the same run.
 """
 
 from __future__ import annotations
@@ -257,9 +258,10 @@ def run(
     slot_ns: int = SLOT_NS,
     native: bool | None = None,
 ) -> dict[str, Any]:
-    """native: the modules' cycles in C (cell.snp.native; None: if it builds here).  The Python
-    modules run too, as the baseline in the same run; the RMAP comparison runs both transports
-    with Python modules (the C cycle speaks the queries only), so like is weighed against like."""
+    """native: the cycle in C at both ends, the modules' and the master's (cell.snp.native; None:
+    if it builds here).  Baselines in the same run: all in Python, and the modules in C with the
+    master in Python.  The RMAP comparison runs both transports in Python (the C paths speak the
+    queries only), so like is weighed against like."""
     from cell.snp.native import available
 
     why_not = available()
@@ -270,6 +272,10 @@ def run(
     rng = random.Random(seed)
     snp = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, slot_ns=slot_ns, native=native))
     python = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, slot_ns=slot_ns)) if native else snp
+    py_master = snp
+    if native:  # the modules in C, the master in Python
+        mixed = trial(_chain(slaves, "snp", rng), seconds, slot_ns=slot_ns, native=True, native_master=False)
+        py_master = cycle_figures(mixed)
     # how many modules this machine keeps within the aim: fewer, shorter runs
     scale = {
         n: cycle_figures(trial(_chain(n, "snp", rng), 2.0, slot_ns=slot_ns, native=native))
@@ -294,6 +300,7 @@ def run(
         "slaves": slaves,
         "seconds": seconds,
         "modules": "c" if native else "python",
+        "master": "c" if native else "python",
         "c_unavailable": why_not,
         "cycle_ms_p50": snp["cycle_ms_p50"],
         "cycle_ms_p99": snp["cycle_ms_p99"],
@@ -301,6 +308,9 @@ def run(
         "python_cycle_ms_p50": python["cycle_ms_p50"],
         "python_cycle_ms_p99": python["cycle_ms_p99"],
         "python_missed_pct": python["missed_pct"],
+        "python_master_cycle_ms_p50": py_master["cycle_ms_p50"],
+        "python_master_cycle_ms_p99": py_master["cycle_ms_p99"],
+        "python_master_missed_pct": py_master["missed_pct"],
         "rmap_cycle_ms_p50": rm["cycle_ms_p50"],
         "rmap_cycle_ms_p99": rm["cycle_ms_p99"],
         "rmap_missed_pct": rm["missed_pct"],
@@ -316,6 +326,7 @@ def run(
         },
         "snp": snp,
         "python": python,
+        "python_master": py_master,
         "rmap": rm,
         "snp_loss": snp_loss,
         "rmap_loss": rmap_loss,
@@ -343,11 +354,12 @@ def format_result(r: dict[str, Any]) -> str:
         [
             f"SpW-SnP-MR modular robot: master + {r['slaves']} joint modules, [A,B] and [C,D] every 1 ms "
             "(the slides' budget: 0.3 ms for six joints)",
-            f"  the modules' cycle in {'C' if r['modules'] == 'c' else 'Python'}"
+            f"  the cycle (modules and master) in {'C' if r['modules'] == 'c' else 'Python'}"
             + (f" (C not available: {r['c_unavailable']})" if r["c_unavailable"] else ""),
             line("time-bounded queries", r["snp"]),
-            "  the queries against RMAP, both with the modules in Python (like against like):",
-            line("queries, Python modules", r["python"]),
+            line("C modules, Py master", r["python_master"]),
+            "  the queries against RMAP, both all in Python (like against like):",
+            line("queries, all Python", r["python"]),
             line("RMAP writes + acks", r["rmap"]),
             line(f"queries, {r['loss']:.0%} loss", r["snp_loss"]),
             line(f"RMAP, {r['loss']:.0%} loss", r["rmap_loss"]),
