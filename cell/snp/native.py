@@ -91,6 +91,16 @@ class Handed(ctypes.Structure):
     _fields_ = [(name, _I) for name in ("index", "len", "at", "ip", "port")]
 
 
+def _ip(host: str) -> int:
+    """An IPv4 address as the C side holds it (host order)."""
+    return int.from_bytes(socket.inet_aton(host), "big")
+
+
+def _sender(h: Handed) -> tuple[str, int]:
+    """The (host, port) of a datagram the C side handed back."""
+    return socket.inet_ntoa(h.ip.to_bytes(4, "big")), h.port
+
+
 class NativeUnavailable(RuntimeError):
     """No C compiler, or the build failed: the message says which."""
 
@@ -186,7 +196,7 @@ class NativeCycles:
             return
         c = m.config
         assert c is not None
-        ip = int.from_bytes(bytes(int(x) for x in master[0].split(".")), "big")
+        ip = _ip(master[0])
         st.master_ip, st.master_port, st.source_process = ip, master[1], m.source_process
         st.ids[:] = _IDS[m.joint]
         st.period_ns, st.phase_ns, st.budget_ns = c.period_ns, c.phase_ns, c.budget_ns
@@ -225,12 +235,7 @@ class NativeCycles:
             return None
         if code == RUN_RECORDS_FULL:
             return code, -1, b"", 0, ("", 0)
-        ip = ".".join(str((h.ip >> s) & 0xFF) for s in (24, 16, 8, 0))
-        return code, fds[h.index], self.buf.raw[: h.len], h.at, (ip, h.port)
-
-
-def _ip(host: str) -> int:
-    return int.from_bytes(socket.inet_aton(host), "big")
+        return code, fds[h.index], self.buf.raw[: h.len], h.at, _sender(h)
 
 
 class NativeMaster:
@@ -327,4 +332,4 @@ class NativeMaster:
             return None
         if code == RUN_EVENT:
             return code, b"", 0, ("", 0)
-        return code, self.buf.raw[: h.len], h.at, (socket.inet_ntoa(h.ip.to_bytes(4, "big")), h.port)
+        return code, self.buf.raw[: h.len], h.at, _sender(h)

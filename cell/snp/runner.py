@@ -89,6 +89,15 @@ def drain(sock: socket.socket, mono_of_real: int = 0, limit: int = 256) -> list[
     return out
 
 
+def _send_timers(master: Master, link: Link) -> None:
+    """What the master's timers have due (probes, resends, FDIR), then its beacons, each sent as
+    it is made, so that it leaves as it is dated."""
+    for data, addr in master.poll():
+        link.send(data, addr)
+    for data, addr in master.beacons():
+        link.send(data, addr)
+
+
 def serve_master(
     master: Master,
     sock: socket.socket,
@@ -140,10 +149,7 @@ def serve_master(
                 link.send(data, addr)
             polled = clock() >= due
             if polled:
-                for data, addr in master.poll():  # (after the replies)
-                    link.send(data, addr)
-                for data, addr in master.beacons():  # (each sent as it is made: as it is dated)
-                    link.send(data, addr)
+                _send_timers(master, link)  # (after the replies)
             if polled or out or readable:  # (what it was sent or did may have moved its timers)
                 due = master.next_due()
     finally:
@@ -178,10 +184,7 @@ def _serve_master_native(
             for data, addr in out:
                 link.send(data, addr)
             if clock() >= master.next_due():
-                for data, addr in master.poll():
-                    link.send(data, addr)
-                for data, addr in master.beacons():  # (each sent as it is made: as it is dated)
-                    link.send(data, addr)
+                _send_timers(master, link)
     finally:
         master.fdir_here = True
     return link
