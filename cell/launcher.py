@@ -137,6 +137,7 @@ async def service(
         log.warning("process %r: %s", process.name, problem)
     config = process.config_for(config)
     specs = load_all(config, process.services)
+    sched.settle_heap()  # (the services' modules loaded: they live as long as the process)
     stop = asyncio.Event()
     with stop_on_signals(stop):
         watch = await stop_on_stdin_eof(stop) if watch_stdin else None

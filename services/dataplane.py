@@ -18,7 +18,6 @@ controller's register updates for them are refused (`stopped`).
 from __future__ import annotations
 
 import asyncio
-import gc
 import os
 import socket
 import time
@@ -26,6 +25,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from cell import sched
 from cell.bus import RpcFault
 from cell.config import CellConfig, parse_host_port
 from cell.dataplane.egress import ROBOT, EgressPort
@@ -80,10 +80,7 @@ class DataPlane:
         self.egress: EgressPort | None = None
         self.forwarders: list[Forwarder] = []
         self._open(config)
-        # what exists now lives as long as the service: keep it out of the garbage collector's
-        # passes, which would otherwise walk it all and stall the packet path for milliseconds
-        gc.collect()
-        gc.freeze()
+        sched.settle_heap()  # what exists now lives as long as the service
 
     def _state(self, config: CellConfig, constants: ControlConstants) -> tuple[Tables, Pipeline, np.ndarray]:
         """The tables, the pipeline over them and each robot's joint count (0: not configured)."""

@@ -101,6 +101,30 @@ def test_a_benchmark_run_in_process_gives_the_process_its_cpus_back() -> None:
     assert os.sched_getaffinity(0) == before
 
 
+SETTLE = """
+import gc, json, time
+import numpy
+from cell import sched
+import cell.snp.modular, cell.dataplane.pipeline
+def full_pass_walks():
+    gc.collect()  # (anything young is now old)
+    return len(gc.get_objects(generation=2))
+before = full_pass_walks()
+sched.settle_heap()
+made = [[i] for i in range(100)]  # what a loop makes after start-up is still collected
+print(json.dumps({"before": before, "after": full_pass_walks(), "frozen": gc.get_freeze_count()}))
+"""
+
+
+def test_a_settled_heap_leaves_only_new_objects_to_the_garbage_collectors_full_pass() -> None:
+    out = subprocess.run([sys.executable, "-c", SETTLE], capture_output=True, text=True, env=cell_env(), timeout=60)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout)
+    assert got["before"] > 10_000  # numpy and the cell's modules: what a full pass walked
+    assert got["frozen"] >= got["before"] - 100
+    assert 100 <= got["after"] < 1_000  # the loop's own lists, not start-up's
+
+
 async def test_the_meter_charges_each_service_its_own_loop_time() -> None:
     meter.install(asyncio.get_running_loop())
 

@@ -45,9 +45,10 @@ def _free_ports(n: int) -> list[int]:
 
 
 def _place(core: int) -> None:
-    from cell.sched import place
+    from cell.sched import place, settle_heap
 
     place([core], 80, -10)
+    settle_heap()
 
 
 def _master(

@@ -92,6 +92,7 @@ def _table(role: Role) -> RoutingTable:
 
 def side_process(role: Role, setup: Setup, ports: dict, out: Any, quit: Any) -> None:
     problems = sched.place([setup.cpus[role]], RT_PRIORITY, -10)
+    sched.settle_heap()
     try:
         result = aio.run(_side(role, setup, ports, out, quit))
         result["placement"] = sched.describe()
