@@ -117,7 +117,9 @@ print(json.dumps({"before": before, "after": full_pass_walks(), "frozen": gc.get
 
 
 def test_a_settled_heap_leaves_only_new_objects_to_the_garbage_collectors_full_pass() -> None:
-    out = subprocess.run([sys.executable, "-c", SETTLE], capture_output=True, text=True, env=cell_env(), timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-c", SETTLE], capture_output=True, text=True, env=cell_env(), timeout=60
+    )
     assert out.returncode == 0, out.stderr
     got = json.loads(out.stdout)
     assert got["before"] > 10_000  # numpy and the cell's modules: what a full pass walked
