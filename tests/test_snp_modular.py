@@ -22,11 +22,14 @@ from cell.snp.packet import (
     Pid,
     PidReply,
     TimeBeacon,
+    TimeRequest,
+    TimeResponse,
     TimeSubscribe,
     TimeSubscribed,
     crc8,
     decode,
     encode,
+    stamp_departure,
 )
 from cell.snp.tsp import MIN_PERIOD_NS, BeaconSchedule, ClockServo, Oscillator
 from tests.conftest import snp_master_on_loopback
@@ -128,6 +131,25 @@ def test_rmap_initiator_retries_after_its_fixed_timeout_then_gives_up() -> None:
 
 
 # --- SnP-TSP ---------------------------------------------------------------------------------------
+
+
+def test_one_step_stamping_writes_the_departure_time_and_nothing_else() -> None:
+    t = 0x1122334455667788
+    for h in (Header(0, Pid.TSP, b"", 3, 4), Header(0xFE, Pid.TSP, b"\x05\x06", 3, 4)):  # (a return address)
+        for made, sent in (
+            (TimeRequest(1), TimeRequest(t)),
+            (TimeResponse(1, 2, 3), TimeResponse(1, 2, t)),  # t3: when the response left
+            (TimeBeacon(9, 3), TimeBeacon(9, t)),
+        ):
+            assert stamp_departure(encode(h, made), t) == encode(h, sent)  # CRC made anew too
+    others = (
+        encode(Header(0, Pid.TSP), TimeSubscribe(10_000_000, 20_000)),
+        encode(Header(0, Pid.MRT), NodeInfoQuery()),
+        encode(Header(0, Pid.TSP), TimeBeacon(1, 2))[:-3],  # cut short: left alone, not raised
+        b"",
+    )
+    for other in others:
+        assert stamp_departure(other, t) == other
 
 
 def test_the_clock_servo_locks_to_beacons_despite_offset_drift_and_jitter() -> None:

@@ -363,6 +363,32 @@ def encode(header: Header, body: Body, type: int | None = None) -> bytes:
     return head + bytes([crc8(head)]) + data + bytes([crc8(data)])
 
 
+# where each SnP-TSP packet's departure time (t1, t3, t_master) sits in its data field
+_DEPARTURE = {PacketType.TIME_REQUEST: 3, PacketType.TIME_RESPONSE: 19, PacketType.TIME_BEACON: 7}
+_U64 = struct.Struct("!Q")
+
+
+def stamp_departure(datagram: bytes, t: int) -> bytes:
+    """One-step time stamping: a TIME_REQUEST, TIME_RESPONSE or TIME_BEACON with its departure time
+    (t1, t3, t_master) set to t and its data CRC made anew; any other datagram as it is.
+
+    The link calls it as it sends, as a one-step PTP port writes the time into a Sync as it leaves.
+    Dated when made instead, a packet carries its encoding and whatever the sender did before
+    sending it (7-15 us in Python here, and not the same on every path): the servo takes half the
+    shortest round trip for a beacon's path delay, so any difference between the paths' stamp-to-
+    wire times is a steady clock error."""
+    if len(datagram) < 15 or datagram[1] != Pid.TSP:
+        return datagram
+    data = 12 + datagram[2]  # header: destination, pid, return address (its length first), 2 u32, CRC
+    at = _DEPARTURE.get(int.from_bytes(datagram[data + 1 : data + 3], "big"))
+    if at is None or len(datagram) < data + at + 9:
+        return datagram
+    buf = bytearray(datagram)
+    _U64.pack_into(buf, data + at, t)
+    buf[-1] = crc8(memoryview(buf)[data:-1])
+    return bytes(buf)
+
+
 # --- the fast path: the cycle's queries and replies, each shape one struct ---------------------------
 #
 # A query or reply with no return address and a given number of items has a fixed layout, so

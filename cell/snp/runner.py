@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from cell.snp.modular import JointModule, Master
+from cell.snp.packet import Pid, stamp_departure
 from cell.snp.tsp import Oscillator
 from cell.timer import Alarm
 
@@ -49,10 +50,14 @@ def open_udp(host: str = "127.0.0.1", port: int = 0, *, timestamps: bool = False
 
 
 class Link:
-    """Sends on a socket, dropping `loss` of the datagrams (seeded): a lossy SpaceWire link."""
+    """Sends on a socket, dropping `loss` of the datagrams (seeded): a lossy SpaceWire link.
+    stamp: the sender's clock, read as an SnP-TSP time packet leaves and written into it
+    (packet.stamp_departure: one-step time stamping); None: sent as dated when made."""
 
-    def __init__(self, sock: socket.socket, loss: float = 0.0, seed: int = 0) -> None:
-        self.sock, self.loss, self.rng = sock, loss, random.Random(seed)
+    def __init__(
+        self, sock: socket.socket, loss: float = 0.0, seed: int = 0, stamp: Callable[[], int] | None = None
+    ) -> None:
+        self.sock, self.loss, self.rng, self.stamp = sock, loss, random.Random(seed), stamp
         self.sent = self.lost = self.errors = 0
 
     def send(self, data: bytes, addr: Any) -> None:
@@ -61,6 +66,8 @@ class Link:
         if self.loss and self.rng.random() < self.loss:
             self.lost += 1
             return
+        if self.stamp is not None and len(data) > 1 and data[1] == Pid.TSP:
+            data = stamp_departure(data, self.stamp())
         try:
             self.sock.sendto(data, addr)
             self.sent += 1
@@ -115,7 +122,7 @@ def serve_master(
     in C (cell.snp.native.NativeMaster, on the same schedule), the rest here, between its runs."""
     if native:
         return _serve_master_native(master, sock, stop, loss, spin_ns)
-    link = Link(sock, loss, seed=1)
+    link = Link(sock, loss, seed=1, stamp=master.clock)
     alarm = Alarm()
     ep = select.epoll()
     ep.register(sock.fileno(), select.EPOLLIN)
@@ -163,7 +170,7 @@ def _serve_master_native(
 ) -> Link:
     from cell.snp.native import RUN_HANDED, NativeMaster
 
-    link = Link(sock, loss, seed=1)
+    link = Link(sock, loss, seed=1, stamp=master.clock)
     clock = time.monotonic_ns
     lead, mono_of_real = LEAD_NS if spin_ns else 0, time.time_ns() - clock()
     fast = NativeMaster(master, sock.fileno(), spin_ns=spin_ns, lead_ns=lead, mono_of_real=mono_of_real)
@@ -218,7 +225,8 @@ class Slot:
         self.module = JointModule(self.module_id, self.plugged_to, port=1)  # (its parent's downstream port)
         self.module.use_transport(self.transport, rmap_timeout_ns, rmap_retries)
         self.sock = open_udp("127.0.0.1", self.port, timestamps=True)
-        self.link = Link(self.sock, loss, seed=self.module_id)
+        osc = self.osc
+        self.link = Link(self.sock, loss, seed=self.module_id, stamp=lambda: osc.raw(time.monotonic_ns()))
         self.plugged_at = self.wake = now
 
     def deliver(self, data: bytes, addr: Any, at: int) -> None:
