@@ -152,6 +152,24 @@ def test_one_step_stamping_writes_the_departure_time_and_nothing_else() -> None:
         assert stamp_departure(other, t) == other
 
 
+def test_the_link_dates_time_packets_as_it_sends_them_and_leaves_the_rest() -> None:
+    from cell.snp.runner import Link, open_udp
+
+    a, b = open_udp(), open_udp()
+    b.settimeout(5.0)
+    try:
+        link = Link(a, stamp=lambda: 42)
+        info = encode(Header(0, Pid.MRT), NodeInfoQuery())
+        link.send(encode(Header(0, Pid.TSP), TimeBeacon(1, 7)), b.getsockname())
+        link.send(info, b.getsockname())
+        assert decode(b.recv(2048)).body == TimeBeacon(1, 42)
+        assert b.recv(2048) == info
+        assert link.sent == 2
+    finally:
+        a.close()
+        b.close()
+
+
 def test_the_clock_servo_locks_to_beacons_despite_offset_drift_and_jitter() -> None:
     osc = Oscillator(offset_ns=1_700_000, drift_ppm=-45.0, true_origin=0)
     servo = ClockServo()
