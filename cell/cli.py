@@ -272,7 +272,11 @@ def _cmd_bench_snp(args: argparse.Namespace) -> int:
     from cell.bench import snp
 
     native = {"auto": None, "c": True, "python": False}[args.cycle]
-    result = snp.run(args.slaves, args.seconds, args.loss, slot_ns=int(args.slot_us * 1000), native=native)
+    management_ns = None if args.management_us is None else int(args.management_us * 1000)
+    slot_ns = int(args.slot_us * 1000)
+    result = snp.run(
+        args.slaves, args.seconds, args.loss, slot_ns=slot_ns, native=native, management_ns=management_ns
+    )
     return _report(args, result, snp.format_result(result))
 
 
@@ -684,6 +688,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=30.0,
         help="joint j's cycle starts j slots into the period (time slots; default 30; 0: all at once)",
+    )
+    q.add_argument(
+        "--management-us",
+        type=float,
+        help="where in the period the master sends beacons and probes and the bench samples the "
+        "clocks: its management slot, after the joints' exchanges (default: CycleConfig's)",
     )
     q.add_argument(
         "--cycle",

@@ -170,6 +170,22 @@ def test_the_link_dates_time_packets_as_it_sends_them_and_leaves_the_rest() -> N
         b.close()
 
 
+def test_the_runner_samples_a_running_modules_clock_on_the_grid_it_is_given() -> None:
+    from cell.snp.runner import Slot
+
+    s = Slot(101, 0, 0, module=JointModule(101, 0), osc=Oscillator(0, 0.0, 0))
+    assert s.module is not None
+    s.sample(1_000_000, 10_000_000, (1_000_000, 400_000))
+    assert s.clock_errors == []  # not running yet: nothing to sample
+    s.module.state = "running"
+    s.sample(1_234_567, 10_000_000, (1_000_000, 400_000))
+    assert len(s.clock_errors) == 1 and s.next_sample == 11_400_000  # the slot after 10 ms
+    s.sample(11_399_999, 10_000_000, (1_000_000, 400_000))
+    assert len(s.clock_errors) == 1
+    s.sample(11_400_000, 10_000_000)  # no grid: every 10 ms from the sample
+    assert len(s.clock_errors) == 2 and s.next_sample == 21_400_000
+
+
 def test_the_clock_servo_locks_to_beacons_despite_offset_drift_and_jitter() -> None:
     osc = Oscillator(offset_ns=1_700_000, drift_ppm=-45.0, true_origin=0)
     servo = ClockServo()
@@ -202,6 +218,24 @@ def test_the_master_grants_beacon_periods_and_sends_what_is_due() -> None:
     assert len(b) == 1
 
 
+def test_beacons_on_a_grid_leave_in_its_slot_in_whole_periods_spread_over_them() -> None:
+    b = BeaconSchedule(grid=(1_000_000, 400_000))  # the management slot: 0.4 ms into each 1 ms
+    assert b.subscribe("c", 2_500_000, now=0) == 3_000_000  # whole grid periods
+    for i in range(10):  # ten modules asking for 10 ms beacons at about the same time
+        assert b.subscribe(f"m{i}", 10_000_000, now=123_456 + 7_000 * i) == 10_000_000
+    sent: dict[int, list[object]] = {}  # grid period -> beacons sent in it
+    for now in range(0, 100_000_000, 10_000):
+        for addr, _seq in b.due(now):
+            assert now % 1_000_000 == 400_000  # in the slot, never elsewhere
+            sent.setdefault(now // 1_000_000, []).append(addr)
+    per_module = {a: sum(v.count(a) for v in sent.values()) for a in (f"m{i}" for i in range(10))}
+    assert set(per_module.values()) == {10}  # each its 10 ms period
+    # one module's beacon a period: the ten take the ten periods of their 10 ms
+    assert max(sum(a != "c" for a in v) for v in sent.values()) == 1
+    b.subscribe("m0", 10_000_000, now=50_000_000)  # asked again: moved, not doubled
+    assert len(b) == 11
+
+
 # --- the modular robot on simulated time -----------------------------------------------------------
 
 
@@ -215,6 +249,7 @@ class SimNet:
         self.modules: dict[int, tuple[JointModule, Oscillator]] = {}
         self.queue: list[tuple[int, int, str, object, bytes]] = []
         self.seq = itertools.count()
+        self.sent: list[tuple[int, str, bytes]] = []  # (when, "master" or "module", datagram)
 
     def plug(self, port: int, module_id: int, parent: int, transport: str = "snp") -> JointModule:
         m = JointModule(module_id, parent, 1)
@@ -226,6 +261,7 @@ class SimNet:
         del self.modules[port]
 
     def _send(self, to: str, addr: object, data: bytes) -> None:
+        self.sent.append((self.now, to, data))
         heapq.heappush(self.queue, (self.now + self.latency, next(self.seq), to, addr, data))
 
     def run_until(self, t_end: int, step: int = 50_000) -> None:
@@ -306,6 +342,26 @@ def test_a_module_plugged_in_while_running_is_included_one_pulled_out_is_guessed
     net.run_until(net.now + 150_000_000)
     assert back.state == "running" and back.joint == 1 and back.cycles
     assert [w for _, w, mid, _ in net.master.events if mid == 12][-2:] == ["found", "included"]
+
+
+def test_the_master_sends_beacons_and_probes_only_in_its_management_slot() -> None:
+    config = CycleConfig(slot_ns=100_000, management_ns=450_000)
+    net = SimNet(ports=4, latency=20_000, config=config)
+    mods = [net.plug(0, 11, 0), net.plug(1, 12, 11), net.plug(2, 13, 12)]
+    net.run_until(300_000_000)
+    assert all(m.state == "running" for m in mods)
+    kinds: dict[type, list[int]] = {}
+    for t, to, data in net.sent:
+        body = decode(data).body if to == "module" else None
+        if t > 50_000_000 and isinstance(body, TimeBeacon | NodeInfoQuery):  # (after start-up)
+            kinds.setdefault(type(body), []).append(t)
+    assert len(kinds[TimeBeacon]) > 3 * 20 and len(kinds[NodeInfoQuery]) > 10  # (the free port's)
+    for times in kinds.values():  # within the step after the slot opens
+        assert {(t - 450_000) % 1_000_000 < 50_000 for t in times} == {True}
+    periods = [t // 1_000_000 for t in kinds[TimeBeacon]]
+    assert len(set(periods)) == len(periods)  # no two modules' beacons in one period
+    for m in mods:  # and the cycle itself is untouched
+        assert m.missed == {"ab": 0, "cd": 0} and net.master.counters["guessed"] == 0
 
 
 def test_junk_reaches_master_and_module_without_harm() -> None:

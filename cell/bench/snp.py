@@ -17,6 +17,7 @@ the same run.
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing as mp
 import random
 import socket
@@ -24,6 +25,8 @@ import time
 from typing import Any
 
 import numpy as np
+
+from cell.snp.modular import CycleConfig
 
 WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settles meanwhile
 MODULE0 = 101
@@ -52,14 +55,14 @@ def _place(core: int) -> None:
 
 
 def _master(
-    ports: list[int], seconds: float, loss: float, slot_ns: int, native: bool, port_q: Any, out: Any
+    ports: list[int], seconds: float, loss: float, config: Any, native: bool, port_q: Any, out: Any
 ) -> None:
-    from cell.snp.modular import CycleConfig, Master
+    from cell.snp.modular import Master
     from cell.snp.runner import open_udp, serve_master
 
     _place(0)
     sock = open_udp(timestamps=True)
-    master = Master([("127.0.0.1", p) for p in ports], CycleConfig(slot_ns=slot_ns), time.monotonic_ns)
+    master = Master([("127.0.0.1", p) for p in ports], config, time.monotonic_ns)
     port_q.put(sock.getsockname()[1])
     until = time.monotonic() + seconds
     cpu0, wall0 = time.process_time(), time.monotonic()
@@ -81,12 +84,15 @@ def _master(
     )
 
 
-def _modules(slots: list[dict], seconds: float, loss: float, native: bool, out: Any) -> None:
+def _modules(
+    slots: list[dict], seconds: float, loss: float, grid: tuple[int, int], native: bool, out: Any
+) -> None:
     from cell.snp.runner import Slot, run_modules
 
     _place(1)
     cpu0, wall0 = time.process_time(), time.monotonic()
-    done = run_modules([Slot(**s) for s in slots], seconds, loss, native=native)
+    # (the host's clock is the master's: the clock samples go in its management slot)
+    done = run_modules([Slot(**s) for s in slots], seconds, loss, sample_grid=grid, native=native)
     cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
     res = []
     for s in done:
@@ -131,13 +137,15 @@ def trial(
     slots: list[dict],
     seconds: float,
     loss: float = 0.0,
-    slot_ns: int = SLOT_NS,
+    config: CycleConfig | None = None,
     native: bool = False,
     native_master: bool | None = None,
 ) -> dict[str, Any]:
-    """One run of a master and the slots' modules (native: their cycles in C, and the master's
-    unless native_master says otherwise); every module's record and the master's."""
+    """One run of a master and the slots' modules on the config's schedule (default: SLOT_NS
+    slots); native: their cycles in C, and the master's unless native_master says otherwise.
+    Every module's record and the master's."""
     native_master = native if native_master is None else native_master
+    config = config or CycleConfig(slot_ns=SLOT_NS)
     ports = _free_ports(len({s["module_id"] for s in slots}))
     port_of: dict[int, int] = {}
     for s in slots:  # (a module plugged back comes back on its port)
@@ -147,11 +155,12 @@ def trial(
     ctx = mp.get_context("spawn")
     port_q, out_m, out_s = ctx.Queue(), ctx.Queue(), ctx.Queue()
     master = ctx.Process(
-        target=_master, args=(ports, seconds + 0.5, loss, slot_ns, native_master, port_q, out_m), daemon=True
+        target=_master, args=(ports, seconds + 0.5, loss, config, native_master, port_q, out_m), daemon=True
     )
     master.start()
     port_q.get(timeout=30)
-    mods = ctx.Process(target=_modules, args=(slots, seconds, loss, native, out_s), daemon=True)
+    grid = config.management_grid
+    mods = ctx.Process(target=_modules, args=(slots, seconds, loss, grid, native, out_s), daemon=True)
     mods.start()
     modules, cpu = out_s.get(timeout=seconds + 60)
     m = out_m.get(timeout=30)
@@ -258,6 +267,7 @@ def run(
     seed: int = 1,
     slot_ns: int = SLOT_NS,
     native: bool | None = None,
+    management_ns: int | None = None,
 ) -> dict[str, Any]:
     """native: the cycle in C at both ends, the modules' and the master's (cell.snp.native; None:
     if it builds here).  Baselines in the same run: all in Python, and the modules in C with the
@@ -271,31 +281,34 @@ def run(
     elif native and why_not is not None:
         raise RuntimeError(f"the C cycle cannot run here: {why_not}")
     rng = random.Random(seed)
-    snp = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, slot_ns=slot_ns, native=native))
-    python = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, slot_ns=slot_ns)) if native else snp
+    config = CycleConfig(slot_ns=slot_ns)
+    if management_ns is not None:
+        config = dataclasses.replace(config, management_ns=management_ns)
+    snp = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, config=config, native=native))
+    python = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, config=config)) if native else snp
     py_master = snp
     if native:  # the modules in C, the master in Python
-        mixed = trial(_chain(slaves, "snp", rng), seconds, slot_ns=slot_ns, native=True, native_master=False)
+        mixed = trial(_chain(slaves, "snp", rng), seconds, config=config, native=True, native_master=False)
         py_master = cycle_figures(mixed)
     # how many modules this machine keeps within the aim: fewer, shorter runs
     scale = {
-        n: cycle_figures(trial(_chain(n, "snp", rng), 2.0, slot_ns=slot_ns, native=native))
+        n: cycle_figures(trial(_chain(n, "snp", rng), 2.0, config=config, native=native))
         for n in (2, 4)
         if n < slaves
     }
     scale[slaves] = snp
     within = [n for n, f in scale.items() if meets_aim(f)]
-    rm = cycle_figures(trial(_chain(slaves, "rmap", rng), seconds))
+    rm = cycle_figures(trial(_chain(slaves, "rmap", rng), seconds, config=config))
     short = max(1.0, seconds / 2)
-    snp_loss = cycle_figures(trial(_chain(slaves, "snp", rng), short, loss))
-    rmap_loss = cycle_figures(trial(_chain(slaves, "rmap", rng), short, loss))
+    snp_loss = cycle_figures(trial(_chain(slaves, "snp", rng), short, loss, config=config))
+    rmap_loss = cycle_figures(trial(_chain(slaves, "rmap", rng), short, loss, config=config))
     # plug and operate: the last module plugged in at 1 s; the middle one pulled at 2 s, back at 2.5 s
     chain = _chain(slaves, "snp", rng)
     late, pulled = chain[-1], chain[slaves // 2]
     late["plug_s"] = 1.0
     pulled["unplug_s"] = 2.0
     back = {**pulled, "plug_s": 2.5, "unplug_s": None}
-    plugged = trial([*chain, back], 3.5, native=native)
+    plugged = trial([*chain, back], 3.5, config=config, native=native)
     plug = plug_figures(plugged, late["module_id"], pulled["module_id"], 1.0, 2.0)
     return {
         "slaves": slaves,
@@ -320,6 +333,7 @@ def run(
         "robot_cycle_ms_p99": snp["robot_cycle_ms_p99"],
         "slaves_within_aim": max(within, default=0),
         "slot_us": slot_ns / 1e3,
+        "management_us": config.management_ns / 1e3,
         "loss": loss,
         "scale": {
             str(n): {k: f[k] for k in ("cycle_ms_p50", "cycle_ms_p99", "missed_pct")}

@@ -22,7 +22,7 @@ from typing import Any
 
 from cell.snp.modular import JointModule, Master
 from cell.snp.packet import Pid, stamp_departure
-from cell.snp.tsp import Oscillator
+from cell.snp.tsp import Oscillator, on_grid
 from cell.timer import Alarm
 
 COARSE_S = 0.05  # epoll's own timeout: the alarm is what wakes a loop on time
@@ -181,7 +181,7 @@ def _serve_master_native(
         while not stop():
             due = master.next_due()
             fast.push()
-            got = fast.run(min(due, clock() + coarse))
+            got = fast.run(min(due, master.in_management_slot(clock() + coarse)))
             fast.pull(link)
             out: list[tuple[bytes, Any]] = []
             if got is not None and got[0] == RUN_HANDED:
@@ -237,12 +237,13 @@ class Slot:
         for out in m.receive(data, osc.raw(at)):
             link.send(out, addr)
 
-    def sample(self, now: int, sample_ns: int) -> None:
-        """Its servoed clock's error against the host's, every sample_ns once it runs."""
+    def sample(self, now: int, sample_ns: int, grid: tuple[int, int] | None = None) -> None:
+        """Its servoed clock's error against the host's, every sample_ns once it runs (on grid's
+        points of host time, if given)."""
         m, osc = self.module, self.osc
         assert m is not None and osc is not None
         if m.state == "running" and now >= self.next_sample:
-            self.next_sample = now + sample_ns
+            self.next_sample = now + sample_ns if grid is None else on_grid(now + sample_ns, grid)
             self.clock_errors.append(m.servo.now(osc.raw(now)) - now)
 
 
@@ -274,15 +275,19 @@ def run_modules(
     rmap_timeout_ns: int = 200_000,
     rmap_retries: int = 1,
     sample_ns: int = 10_000_000,
+    sample_grid: tuple[int, int] | None = None,
     spin: bool = True,
     native: bool = False,
 ) -> list[Slot]:
     """Run the slots' modules in this thread for `seconds`, plugging and pulling them on time.
     spin: poll without sleeping while a cycle is in flight (only for a loop with a core of its own:
     a thread that spins starves the others of the GIL).  native: the cycles of the modules with
-    transport "snp" run in C (cell.snp.native; the others as before), which needs a C compiler."""
+    transport "snp" run in C (cell.snp.native; the others as before), which needs a C compiler.
+    sample_grid: (period, offset) of host time the clock samples are taken on; where the host's
+    clock is the master's, its management slot (CycleConfig.management_grid): a sample's trip
+    through Python then delays no cycle."""
     if native:
-        return _run_native(slots, seconds, loss, sample_ns=sample_ns, spin=spin)
+        return _run_native(slots, seconds, loss, sample_ns=sample_ns, sample_grid=sample_grid, spin=spin)
     alarm = Alarm()
     ep = select.epoll()
     ep.register(alarm.fd, select.EPOLLIN)
@@ -354,7 +359,7 @@ def run_modules(
                     assert m is not None and osc is not None and link is not None
                     for out in m.poll(osc.raw(now)):
                         link.send(out, s.master)
-                    s.sample(now, sample_ns)
+                    s.sample(now, sample_ns, sample_grid)
                     s.wake = wake_of(s)
             now = clock()
     finally:
@@ -369,7 +374,15 @@ def run_modules(
     return slots
 
 
-def _run_native(slots: list[Slot], seconds: float, loss: float, *, sample_ns: int, spin: bool) -> list[Slot]:
+def _run_native(
+    slots: list[Slot],
+    seconds: float,
+    loss: float,
+    *,
+    sample_ns: int,
+    sample_grid: tuple[int, int] | None,
+    spin: bool,
+) -> list[Slot]:
     """run_modules with the cycle in C: one C loop waits on every module's socket and runs the
     running modules' [A, B] and [C, D]; what it hands back (configuration, SnP-TSP) goes to the
     Python JointModule, as do plugging, pulling and the clock samples, between its runs."""
@@ -427,7 +440,7 @@ def _run_native(slots: list[Slot], seconds: float, loss: float, *, sample_ns: in
             for s in live:
                 assert s.module is not None and s.sock is not None
                 cycles.pull(cycles.state(s.sock.fileno()), s.module, s.link)
-                s.sample(now, sample_ns)
+                s.sample(now, sample_ns, sample_grid)
     finally:
         for s in slots:
             if s.sock is not None:

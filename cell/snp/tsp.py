@@ -12,7 +12,7 @@ runs at its own rate and from its own origin; the servo maps raw to the master's
 
 from __future__ import annotations
 
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 MIN_PERIOD_NS = 1_000_000  # the fastest beacons the master grants (1 kHz)
@@ -112,6 +112,12 @@ class Oscillator:
         return self.origin + round((raw_ns - self.origin - self.offset_ns) / (1.0 + self.drift))
 
 
+def on_grid(t: int, grid: tuple[int, int]) -> int:
+    """The first point of grid (period, offset) at or after t."""
+    period, offset = grid
+    return t + (offset - t) % period
+
+
 @dataclass(order=True)
 class _Subscriber:
     due: int
@@ -121,19 +127,35 @@ class _Subscriber:
 
 
 class BeaconSchedule:
-    """The master's side: who asked for beacons at what period, and whose are due."""
+    """The master's side: who asked for beacons at what period, and whose are due.
 
-    def __init__(self, precision_ns: int = 50_000) -> None:
+    grid: (period, offset) of the master's time at which beacons may leave (its cycle's
+    management slot, clear of the joints' exchanges; None: whenever due).  Periods are then
+    granted in whole grid periods, and each new subscriber gets the grid point within its period
+    that the fewest subscribers of that period share, so that one cycle period carries one
+    subscriber's beacon rather than all of them."""
+
+    def __init__(self, precision_ns: int = 50_000, grid: tuple[int, int] | None = None) -> None:
         self.precision_ns = precision_ns  # what the master's beacons give (its send jitter)
+        self.grid = grid
         self._subs: dict[object, _Subscriber] = {}
 
     def subscribe(self, addr: object, period_ns: int, now: int) -> int:
-        """The period granted (at least MIN_PERIOD_NS); 0 removes the subscription."""
+        """The period granted (at least MIN_PERIOD_NS, whole grid periods); 0 removes the
+        subscription."""
         if period_ns == 0:
             self._subs.pop(addr, None)
             return 0
         granted = max(MIN_PERIOD_NS, period_ns)
-        self._subs[addr] = _Subscriber(now, addr, granted)
+        self._subs.pop(addr, None)
+        due = now
+        if self.grid is not None:
+            g = self.grid[0]
+            granted = -(-granted // g) * g
+            first, n = on_grid(now, self.grid), granted // g
+            taken = Counter((s.due - first) // g % n for s in self._subs.values() if s.period_ns == granted)
+            due = first + g * min(range(n), key=lambda k: (taken[k], k))
+        self._subs[addr] = _Subscriber(due, addr, granted)
         return granted
 
     def drop(self, addr: object) -> None:
