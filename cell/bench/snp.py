@@ -55,8 +55,9 @@ def _place(core: int) -> None:
 
 
 def _master(
-    ports: list[int], seconds: float, loss: float, config: Any, native: bool, port_q: Any, out: Any
+    ports: list[int], seconds: float, loss: float, config: Any, native: bool, done: Any, port_q: Any, out: Any
 ) -> None:
+    """Runs until the modules are done (done.value), or for `seconds` at most."""
     from cell.snp.modular import Master
     from cell.snp.runner import open_udp, serve_master
 
@@ -66,7 +67,7 @@ def _master(
     port_q.put(sock.getsockname()[1])
     until = time.monotonic() + seconds
     cpu0, wall0 = time.process_time(), time.monotonic()
-    link = serve_master(master, sock, lambda: time.monotonic() > until, loss, native=native)
+    link = serve_master(master, sock, lambda: done.value or time.monotonic() > until, loss, native=native)
     cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
     sock.close()
     out.put(
@@ -85,17 +86,18 @@ def _master(
 
 
 def _modules(
-    slots: list[dict], seconds: float, loss: float, grid: tuple[int, int], native: bool, out: Any
+    slots: list[dict], seconds: float, loss: float, grid: tuple[int, int], native: bool, done: Any, out: Any
 ) -> None:
     from cell.snp.runner import Slot, run_modules
 
     _place(1)
     cpu0, wall0 = time.process_time(), time.monotonic()
     # (the host's clock is the master's: the clock samples go in its management slot)
-    done = run_modules([Slot(**s) for s in slots], seconds, loss, sample_grid=grid, native=native)
+    ran = run_modules([Slot(**s) for s in slots], seconds, loss, sample_grid=grid, native=native)
+    done.value = 1  # (the master stops too: its FDIR would count the cycles after as guessed)
     cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
     res = []
-    for s in done:
+    for s in ran:
         m = s.module
         if m is None:
             continue
@@ -154,13 +156,16 @@ def trial(
         s["port"] = port_of[s["module_id"]]
     ctx = mp.get_context("spawn")
     port_q, out_m, out_s = ctx.Queue(), ctx.Queue(), ctx.Queue()
+    done = ctx.RawValue("b", 0)  # the modules' run is over (read by the master's loop: no lock)
     master = ctx.Process(
-        target=_master, args=(ports, seconds + 0.5, loss, config, native_master, port_q, out_m), daemon=True
+        target=_master,
+        args=(ports, seconds + 30, loss, config, native_master, done, port_q, out_m),
+        daemon=True,
     )
     master.start()
     port_q.get(timeout=30)
     grid = config.management_grid
-    mods = ctx.Process(target=_modules, args=(slots, seconds, loss, grid, native, out_s), daemon=True)
+    mods = ctx.Process(target=_modules, args=(slots, seconds, loss, grid, native, done, out_s), daemon=True)
     mods.start()
     modules, cpu = out_s.get(timeout=seconds + 60)
     m = out_m.get(timeout=30)
