@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import ctypes
 import ctypes.util
+import functools
 import os
 import time
 
@@ -147,3 +148,23 @@ class Alarm:
         if self.fd >= 0:
             os.close(self.fd)
             self.fd = -1
+
+
+@functools.cache
+def realtime_offset() -> int:
+    """CLOCK_REALTIME - CLOCK_MONOTONIC (ns), for taking the kernel's datagram stamps (realtime) to
+    the monotonic clock; read once per process, as the narrowest of 50 bracketed reads.
+
+    One read (time_ns() - monotonic_ns()) is off by whatever passed between its two calls: 2 us
+    for a first call here, more if preempted.  Every stamp it converts carries that error, and two
+    offsets read apart (a process's receive and send stamps, or two processes') differ by it: a
+    steady error in any clock servoed across them.  Cached, so that all of a process's conversions
+    agree; a step of the system clock (settimeofday) after the first call is not seen."""
+    best_gap, offset = None, 0
+    for _ in range(50):
+        before = time.monotonic_ns()
+        real = time.time_ns()
+        after = time.monotonic_ns()
+        if best_gap is None or after - before < best_gap:
+            best_gap, offset = after - before, real - (before + after) // 2
+    return offset

@@ -291,6 +291,9 @@ def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) ->
     assert h["replies"] + denied == h["queries"]  # each answered or denied, none left
     assert h["queries"] >= 2 * ran - 4  # two queries a cycle (a miss is not retried)
     assert f["tsp_offset_us_max"] < 2000  # the modules started up to 2 ms off
+    if all(m["two_step_link"] for m in r["modules"]):  # (the kernel gives transmit stamps)
+        assert f["tsp_two_step"] and r["master"]["counters"]["follow_ups"] > 0
+        assert f["tsp_offset_us_max"] < 10  # servoed to the kernel's stamps (one-step: 20-50 us)
     # the master stopped with the modules (it had run on 0.5 s, guessing and then excluding them)
     assert r["master"]["counters"]["lost"] == 0
 

@@ -19,9 +19,12 @@ from cell.snp.packet import (
     Header,
     NodeInfo,
     NodeInfoQuery,
+    PacketError,
+    PacketType,
     Pid,
     PidReply,
     TimeBeacon,
+    TimeFollowUp,
     TimeRequest,
     TimeResponse,
     TimeSubscribe,
@@ -29,6 +32,7 @@ from cell.snp.packet import (
     crc8,
     decode,
     encode,
+    follow_up,
     stamp_departure,
 )
 from cell.snp.tsp import MIN_PERIOD_NS, BeaconSchedule, ClockServo, Oscillator
@@ -47,6 +51,7 @@ def test_initialisation_and_tsp_packets_round_trip_and_have_the_documented_layou
         TimeSubscribe(10_000_000, 20_000),
         TimeSubscribed(10_000_000, 50_000),
         TimeBeacon(5, 1_234_567_890_123),
+        TimeFollowUp(PacketType.TIME_BEACON, 5, 1_234_567_890_999),
     ):
         assert decode(encode(h, body)).body == body
     raw = encode(Header(0, Pid.TSP, b"", 0, 0), TimeBeacon(1, 0x0102030405060708))
@@ -152,13 +157,81 @@ def test_one_step_stamping_writes_the_departure_time_and_nothing_else() -> None:
         assert stamp_departure(other, t) == other
 
 
+def test_a_follow_up_names_the_beacon_or_response_and_carries_its_departure_byte_by_byte() -> None:
+    t = 0x0102030405060708
+    for h in (Header(0, Pid.TSP, b"", 3, 4), Header(0xFE, Pid.TSP, b"\x05\x06", 3, 4)):
+        fu = follow_up(encode(h, TimeBeacon(0xAABBCCDD, 1)), t)
+        assert fu == encode(h, TimeFollowUp(PacketType.TIME_BEACON, 0xAABBCCDD, t))  # to the same receiver
+        data = fu[12 + len(h.return_address) :]
+        assert data[:3] == bytes([0, 0x00, 0x15])  # reserved, TIME_FOLLOW_UP
+        assert data[3:-1] == bytes([0, 0x14, 0, 0, 0, 0, 0xAA, 0xBB, 0xCC, 0xDD, 1, 2, 3, 4, 5, 6, 7, 8])
+        assert data[-1] == crc8(data[:-1])
+        got = decode(follow_up(encode(h, TimeResponse(77, 2, 3)), t) or b"").body
+        assert got == TimeFollowUp(PacketType.TIME_RESPONSE, 77, t)  # a response: named by its t1
+    for other in (
+        encode(Header(0, Pid.TSP), TimeRequest(5)),  # (a request's departure is its sender's own)
+        encode(Header(0, Pid.TSP), TimeSubscribe(10_000_000, 20_000)),
+        encode(Header(0, Pid.MRT), NodeInfoQuery()),
+        encode(Header(0, Pid.TSP), TimeBeacon(1, 2))[:-3],
+        b"",
+    ):
+        assert follow_up(other, t) is None
+    with pytest.raises(PacketError):  # cut short: refused, not raised as anything else
+        decode(encode(Header(0, Pid.TSP), TimeFollowUp(PacketType.TIME_BEACON, 1, 2))[:-2])
+
+
+def test_a_two_step_link_follows_time_packets_up_with_the_kernels_departure() -> None:
+    import platform
+    import socket
+    import time
+
+    from cell.snp.runner import Link, drain, open_udp
+    from cell.timer import realtime_offset
+
+    a, b = open_udp(), open_udp(timestamps=True)
+    told: list[tuple[bytes, int]] = []
+
+    def departed(data: bytes, t: int) -> list[bytes]:
+        told.append((data, t))
+        fu = follow_up(data, t)
+        return [fu] if fu else []
+
+    try:
+        link = Link(a, clock=lambda host_ns: host_ns, departed=departed)
+        if not link.two_step:  # (SOF_TIMESTAMPING_OPT_RX_FILTER came with Linux 6.12)
+            kernel = tuple(int(x) for x in platform.release().split("-")[0].split(".")[:2])
+            assert kernel < (6, 12), f"Linux {platform.release()} should give transmit stamps"
+            pytest.skip("this kernel gives no transmit stamps with a receive filter")
+        info = encode(Header(0, Pid.MRT), NodeInfoQuery())
+        before = time.monotonic_ns()
+        link.send(encode(Header(0, Pid.TSP), TimeBeacon(3, 0)), b.getsockname())
+        after = time.monotonic_ns()
+        link.send(info, b.getsockname())
+        with pytest.raises(BlockingIOError):  # nothing left queued to wake a polling loop
+            a.recvmsg(0, 256, socket.MSG_ERRQUEUE)
+        got = []
+        deadline = time.monotonic() + 5
+        while len(got) < 3 and time.monotonic() < deadline:
+            got += drain(b, realtime_offset())
+        (beacon, _, rx), (fu, _, _), (plain, _, _) = got
+        one_step = decode(beacon).body.t_master
+        precise = decode(fu).body
+        assert precise == TimeFollowUp(PacketType.TIME_BEACON, 3, told[0][1]) and len(told) == 1
+        assert before <= one_step <= precise.t <= after  # read before the send call; stamped in it
+        assert 0 <= rx - precise.t < 1_000_000  # the receiver's kernel stamp comes right after it
+        assert plain == info and link.sent == 3 and link.unstamped == 0
+    finally:
+        a.close()
+        b.close()
+
+
 def test_the_link_dates_time_packets_as_it_sends_them_and_leaves_the_rest() -> None:
     from cell.snp.runner import Link, open_udp
 
     a, b = open_udp(), open_udp()
     b.settimeout(5.0)
     try:
-        link = Link(a, stamp=lambda: 42)
+        link = Link(a, clock=lambda host_ns: 42)  # (no departed: one-step only)
         info = encode(Header(0, Pid.MRT), NodeInfoQuery())
         link.send(encode(Header(0, Pid.TSP), TimeBeacon(1, 7)), b.getsockname())
         link.send(info, b.getsockname())
@@ -204,6 +277,44 @@ def test_the_clock_servo_locks_to_beacons_despite_offset_drift_and_jitter() -> N
     assert max(settled) < jitter + 2_000, max(settled)  # within the path's jitter
     assert abs(servo.rate - 45e-6 / (1 - 45e-6)) < 2e-6  # it learnt the drift
     assert abs(servo.to_raw(servo.now(osc.raw(t))) - osc.raw(t)) <= 1
+
+
+def test_a_module_takes_the_follow_ups_time_and_goes_back_to_one_step_when_they_stop() -> None:
+    """The master's one-step stamps are read 20 us before its packets really leave (as a send call
+    in Python takes here); its follow-ups carry when they did."""
+    osc, early, path = Oscillator(offset_ns=900_000, drift_ppm=30.0, true_origin=0), 20_000, 500
+    m = JointModule(11, 0)
+    h = Header(0, Pid.TSP)
+    m.receive(encode(Header(0, Pid.MRT), Configure(0, 1_000_000, 0, 1_000_000, (20.0,))), 0)
+    t = 1_000_000
+    for _ in range(8):  # the two-way exchanges: the request leaves at t (its kernel: t + 3 us)
+        m.departed(encode(h, TimeRequest(osc.raw(t))), osc.raw(t + 3_000))
+        t2, t3 = t + 3_000 + path, t + 50_000  # the master's: arrived, and really left
+        response = encode(h, TimeResponse(osc.raw(t), t2, t3 - early))
+        m.receive(response, osc.raw(t3 + path))
+        m.receive(follow_up(response, t3) or b"", osc.raw(t3 + path + 1_000))
+        t += 200_000
+    assert m.two_step and abs(m.servo.delay_ns - path) < 5  # the path, not the early stamps' 10 us more
+
+    def beacons(n: int, followed: bool) -> int:
+        nonlocal t
+        for seq in range(n):
+            t += 10_000_000
+            beacon = encode(h, TimeBeacon(seq, t - early))
+            m.receive(beacon, osc.raw(t + path))
+            if followed:
+                m.receive(follow_up(beacon, t) or b"", osc.raw(t + path + 2_000))
+        return m.servo.now(osc.raw(t + 5_000_000)) - (t + 5_000_000)  # the clock's error, mid-period
+
+    assert abs(beacons(40, followed=True)) < 100  # ns: the follow-ups' times
+    # (the first response went one-step: its follow-up is how the module learns there are any)
+    assert m.state == "running" and m.follow_ups == 7 + 40 and m.unfollowed == 0
+    samples = m.servo.samples
+    beacons(3, followed=False)  # waiting for their follow-ups (the last one's may still come)
+    assert m.two_step and m.servo.samples == samples and m.unfollowed == 2
+    # the next beacon makes three missed in a row: the master stopped them; one-step from it on
+    assert abs(beacons(40, followed=False) + early) < 1_000  # 20 us behind, as the stamps say
+    assert not m.two_step and m.unfollowed == 3 and m.servo.samples == samples + 40
 
 
 def test_the_master_grants_beacon_periods_and_sends_what_is_due() -> None:

@@ -17,6 +17,7 @@ from cell.snp.native import RUN_HANDED, RUN_UNTIL, NativeCycles, available
 from cell.snp.packet import Configure, Denied, Header, Pid, encode
 from cell.snp.runner import Link, open_udp
 from cell.snp.tsp import Oscillator
+from cell.timer import realtime_offset
 
 pytestmark = pytest.mark.skipif(available() is not None, reason=f"the C cycle does not build: {available()}")
 
@@ -45,7 +46,7 @@ class Rig:
         self.master.settimeout(2.0)
         self.sock = open_udp(timestamps=True)
         self.addr = self.sock.getsockname()
-        self.cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=time.time_ns() - time.monotonic_ns())
+        self.cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=realtime_offset())
         self.state = self.cycles.attach(self.sock.fileno(), Oscillator(0, 0.0, 0))
         self.handed: list[bytes] = []
         self.thread: threading.Thread | None = None

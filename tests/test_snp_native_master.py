@@ -15,6 +15,7 @@ from cell.snp.modular import _A, _C, _IDS, CycleConfig, Master
 from cell.snp.native import RUN_EVENT, RUN_HANDED, NativeMaster, available
 from cell.snp.packet import Configured, ModuleKind, NodeInfo, Pid
 from cell.snp.runner import Link, Slot, open_udp, run_modules
+from cell.timer import realtime_offset
 from tests.conftest import snp_master_on_loopback
 
 pytestmark = pytest.mark.skipif(available() is not None, reason=f"the C cycle does not build: {available()}")
@@ -43,8 +44,9 @@ class Rig:
             for j, addr in enumerate(self.addrs):
                 m._configured(Configured(j), addr, now)
         assert all(n.state == "included" for n in self.c.nodes.values())
-        mono_of_real = time.time_ns() - time.monotonic_ns()
-        self.fast = NativeMaster(self.c, self.sock.fileno(), spin_ns=0, lead_ns=0, mono_of_real=mono_of_real)
+        self.fast = NativeMaster(
+            self.c, self.sock.fileno(), spin_ns=0, lead_ns=0, mono_of_real=realtime_offset()
+        )
         self.c.fdir_here = False
         self.link = Link(self.sock)
 

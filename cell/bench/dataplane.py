@@ -34,6 +34,7 @@ from cell import aio
 from cell.bench import pin, pinned
 from cell.robot import datagram, udp
 from cell.robot.datagram import SCALE, Kind
+from cell.timer import realtime_offset
 
 XDP_PORT = 50000
 WINDOW_NS = 8_000_000
@@ -219,7 +220,7 @@ def _load(
     sender = udp.Sender(sock, datagram.SIZE)
     # answers are timed by the kernel's receive stamp (CLOCK_REALTIME, taken to monotonic), and each
     # status from when its own GSO send left: the generator's wake-ups and send loop do not count
-    offset = time.time_ns() - time.monotonic_ns()
+    offset = realtime_offset()
     n = robots * 6
     recs = datagram.empty(n)
     datagram.pack(

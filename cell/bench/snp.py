@@ -112,6 +112,8 @@ def _modules(
                 "missed": dict(m.missed),
                 "overruns": m.overruns,
                 "clock_errors": np.array(s.clock_errors, np.int64),
+                "follow_ups": m.follow_ups,  # beacons and responses taken two-step
+                "two_step_link": bool(s.link and s.link.two_step),
                 "lost_on_link": s.link.lost if s.link else 0,
                 "rmap": dict(m.rmap_init.counters) if m.rmap_init else {},
             }
@@ -206,6 +208,8 @@ def cycle_figures(r: dict[str, Any]) -> dict[str, Any]:
         "missed_pct": 100.0 * missed / max(1, 2 * n),
         "tsp_offset_us_p50": float(np.median(e)),
         "tsp_offset_us_max": float(e.max()),
+        # the clocks servoed to the kernel's transmit stamps (follow-ups), not one-step stamps
+        "tsp_two_step": bool(r["modules"]) and all(m["follow_ups"] > 0 for m in r["modules"]),
         "overruns": int(sum(m["overruns"] for m in r["modules"])),
         "guessed_by_master": int(r["master"]["counters"]["guessed"]),
         # the share of a core each process used (polling without sleeping counts)
@@ -365,7 +369,8 @@ def format_result(r: dict[str, Any]) -> str:
             f"p99 {f['cycle_ms_p99']:.3f} ms (the robot's: p50 {_ms(f['robot_cycle_ms_p50'])}, p99 "
             f"{_ms(f['robot_cycle_ms_p99'])}), {f['missed_pct']:.2f}% of exchanges missed their deadline "
             f"(guessed); start late p99 {f['start_late_us_p99']:.0f} us; clock error "
-            f"p50 {f['tsp_offset_us_p50']:.1f} us, max {f['tsp_offset_us_max']:.1f} us; cores used: "
+            f"p50 {f['tsp_offset_us_p50']:.1f} us, max {f['tsp_offset_us_max']:.1f} us "
+            f"({'two' if f['tsp_two_step'] else 'one'}-step); cores used: "
             f"master {f['master_cpu']:.2f}, modules {f['modules_cpu']:.2f}"
         )
 

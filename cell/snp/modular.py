@@ -46,18 +46,21 @@ from cell.snp.packet import (
     NodeInfo,
     NodeInfoQuery,
     PacketError,
+    PacketType,
     Pid,
     Quantity,
     Query,
     QueryShape,
     Reply,
     TimeBeacon,
+    TimeFollowUp,
     TimeRequest,
     TimeResponse,
     TimeSubscribe,
     TimeSubscribed,
     decode,
     encode,
+    follow_up,
     query_shape,
     reply_shape,
     split_item_id,
@@ -71,6 +74,7 @@ MODULE_LA0 = 0x20
 A_BASE, C_BASE = 0x1000, 0x2000  # master memory: A and C of joint j at BASE + 16 j
 B_ADDR, D_ADDR = 0x0000, 0x0010  # module memory
 _MSG = struct.Struct("!ffQ")  # value, value, timestamp
+_BEACON_FOLLOW_UPS_MISSED = 3  # beacons in a row without their follow-up: the master stopped them
 
 
 def item(quantity: int, joint: int) -> int:
@@ -215,7 +219,9 @@ class Master:
         self.beacon_schedule = BeaconSchedule(grid=config.management_grid)
         self.nodes: dict[Any, Node] = {}  # by address
         self.events: deque[tuple[int, str, int, int]] = deque(maxlen=1000)  # (t, what, module, joint)
-        self.counters: dict[str, int] = {"guessed": 0, "probes": 0, "beacons": 0, "included": 0, "lost": 0}
+        self.counters: dict[str, int] = {
+            "guessed": 0, "probes": 0, "beacons": 0, "included": 0, "lost": 0, "follow_ups": 0,
+        }  # fmt: skip
         self._next_explore = 0
         self._a_cycle: dict[int, int] = {}  # joint -> the last cycle its A came in
         self.rmap_target = rmap.Target(MASTER_LA, self._rmap_written)
@@ -400,6 +406,15 @@ class Master:
             self.counters["beacons"] += 1
             yield encode(Header(pid=Pid.TSP), TimeBeacon(seq, self.clock())), addr
 
+    def departed(self, datagram: bytes, t: int) -> list[bytes]:
+        """The link's word that a time packet of ours left at t by its kernel's stamp (two-step
+        stamping): the TIME_FOLLOW_UP its receiver then wants, for a beacon or a response."""
+        fu = follow_up(datagram, t)
+        if fu is None:
+            return []
+        self.counters["follow_ups"] += 1
+        return [fu]
+
     def next_cycle_start(self, now: int) -> int:
         """The start of the first cycle after now (the modules' A come just after it)."""
         return (self._cycle_of(now) + 1) * self.config.period_ns + self.config.phase_ns
@@ -522,6 +537,15 @@ class JointModule:
         self.granted: TimeSubscribed | None = None
         self.source_process = source_process or module_id
         self.servo = ClockServo()
+        # two-step SnP-TSP: once the master has followed a time packet up, a beacon or response
+        # waits for its follow-up (the time it really left); _BEACON_FOLLOW_UPS_MISSED in a row
+        # and the module goes back to the packets' own one-step times
+        self.two_step = False
+        self.follow_ups = self.unfollowed = 0  # beacons and responses taken with / left without one
+        self._beacon: tuple[int, int] | None = None  # (seq, raw at arrival) awaiting its follow-up
+        self._response: tuple[TimeResponse, int] | None = None  # (it, raw at arrival) likewise
+        self._sent_t1: dict[int, int] = {}  # a request's t1 as stamped -> as it left (its kernel)
+        self._missed_follow_ups = 0  # in a row
         self.config: Configure | None = None
         self.joint = -1
         self.state = "unconfigured"  # -> syncing -> running
@@ -569,25 +593,84 @@ class JointModule:
         if isinstance(body, Configure):
             return self._configure(body, pkt.header, raw)
         if isinstance(body, TimeBeacon):
-            if self.state != "unconfigured":
-                self.servo.beacon(raw, body.t_master)
-                if self.state == "syncing" and self.servo.samples >= 3:
-                    self.state = "running"
-                    self._schedule(self.servo.now(raw) + self.config.period_ns)  # type: ignore[union-attr]
+            if self.state == "unconfigured":
+                return []
+            if self.two_step:
+                if self._beacon is not None:  # the last one's follow-up never came
+                    self._unfollowed()
+                if self.two_step:
+                    self._beacon = (body.seq, raw)
+                    return []
+            self._beacon_at(raw, body.t_master)
             return []
+        if isinstance(body, TimeFollowUp):
+            return self._followed_up(body)
         if isinstance(body, TimeSubscribed):
             self.granted = body
             return []
         if isinstance(body, TimeResponse):
-            self.servo.exchange(body.t1, body.t2, body.t3, raw)
-            if self._exchanges < 8:  # a few more: the least queued one gives the delay
-                self._exchanges += 1
-                return [encode(self._header(Pid.TSP), TimeRequest(raw))]
-            return []
+            if self.two_step:
+                self._response = (body, raw)
+                return []
+            return self._exchanged(body.t1, body.t2, body.t3, raw)
         if isinstance(body, Reply | Denied) and self.cycle is not None and body.query_id == self.cycle.qid:
             return self._answered(
                 body.items[0].value if isinstance(body, Reply) and body.items else None, raw
             )
+        return []
+
+    # --- SnP-TSP -------------------------------------------------------------------------------
+
+    def departed(self, datagram: bytes, t: int) -> list[bytes]:
+        """The link's word that a time packet of ours left at t (its kernel's stamp, our clock):
+        a request's real departure, kept for its response's follow-up; nothing to send."""
+        try:
+            body = decode(datagram).body
+        except PacketError:
+            return []
+        if isinstance(body, TimeRequest):
+            self._sent_t1[body.t1] = t
+            while len(self._sent_t1) > 8:  # (the oldest, its response lost)
+                del self._sent_t1[next(iter(self._sent_t1))]
+        return []
+
+    def _followed_up(self, f: TimeFollowUp) -> list[bytes]:
+        """A beacon or response waiting for this follow-up is taken with the time it really left."""
+        self.two_step, self._missed_follow_ups = True, 0
+        if f.of == PacketType.TIME_BEACON and self._beacon is not None and self._beacon[0] == f.ref:
+            _, raw = self._beacon
+            self._beacon = None
+            self.follow_ups += 1
+            self._beacon_at(raw, f.t)
+        elif f.of == PacketType.TIME_RESPONSE and self._response and self._response[0].t1 == f.ref:
+            r, raw = self._response
+            self._response = None
+            self.follow_ups += 1
+            return self._exchanged(self._sent_t1.pop(r.t1, r.t1), r.t2, f.t, raw)
+        return []
+
+    def _unfollowed(self) -> None:
+        """A beacon whose follow-up did not come (lost): left out; after a few, one-step again."""
+        self._beacon = None
+        self.unfollowed += 1
+        self._missed_follow_ups += 1
+        if self._missed_follow_ups >= _BEACON_FOLLOW_UPS_MISSED:
+            self.two_step = False
+            self._missed_follow_ups = 0
+
+    def _beacon_at(self, raw: int, t_master: int) -> None:
+        """A beacon that left the master at t_master came in at raw: the servo; running after three."""
+        self.servo.beacon(raw, t_master)
+        if self.state == "syncing" and self.servo.samples >= 3:
+            self.state = "running"
+            self._schedule(self.servo.now(raw) + self.config.period_ns)  # type: ignore[union-attr]
+
+    def _exchanged(self, t1: int, t2: int, t3: int, t4: int) -> list[bytes]:
+        """A two-way exchange done (t1, t4 ours; t2, t3 the master's): the path delay; a few more."""
+        self.servo.exchange(t1, t2, t3, t4)
+        if self._exchanges < 8:  # a few more: the least queued one gives the delay
+            self._exchanges += 1
+            return [encode(self._header(Pid.TSP), TimeRequest(self._raw))]
         return []
 
     def _configure(self, c: Configure, header: Header, raw: int) -> list[bytes]:

@@ -21,6 +21,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from cell.snp.modular import _IDS, JointModule, Master, Node
 
 HERE = Path(__file__).parent
@@ -173,11 +175,14 @@ class NativeCycles:
         self.buf = ctypes.create_string_buffer(2048)
         self.handed = Handed()
         self._states: dict[int, ModuleState] = {}  # by fd
+        self._run_key: tuple[int, ...] = ()
+        self._run_arr: Any = None
 
     def attach(self, fd: int, osc: Any, loss: float = 0.0) -> ModuleState:
         st = ModuleState(fd=fd, osc_origin=osc.origin, osc_offset=osc.offset_ns, osc_drift=osc.drift)
         st.loss = loss
         self._states[fd] = st
+        self._run_key = ()
         return st
 
     def state(self, fd: int) -> ModuleState:
@@ -185,6 +190,7 @@ class NativeCycles:
 
     def detach(self, fd: int) -> None:
         self._states.pop(fd, None)
+        self._run_key = ()  # (a new socket may get its number)
 
     @staticmethod
     def push(st: ModuleState, m: JointModule, master: Any) -> None:
@@ -210,7 +216,9 @@ class NativeCycles:
         if not st.active:
             return
         n = st.n_records
-        m.cycles.extend(tuple(st.records[i]) for i in range(n))
+        if n:  # (one copy of the block: element by element, 256 records of six modules took 4 ms)
+            recs = np.frombuffer(st.records, np.int64, 4 * n).reshape(n, 4)
+            m.cycles.extend(map(tuple, recs.tolist()))
         m.missed["ab"] += st.missed_ab
         m.missed["cd"] += st.missed_cd
         m.overruns += st.overruns
@@ -223,11 +231,14 @@ class NativeCycles:
         """Run the cycles of the modules on these sockets until host time `until`; None then, or
         (code RUN_RECORDS_FULL, ...) when records must be taken, or (RUN_HANDED, the socket's fd,
         the datagram, its arrival (CLOCK_MONOTONIC ns), its sender)."""
-        states = [self._states[fd] for fd in fds]
-        arr = (ctypes.POINTER(ModuleState) * len(states))(*(ctypes.pointer(s) for s in states))
+        key = tuple(fds)
+        if key != self._run_key:  # (the arguments built once for a set of modules: 15 us for six)
+            states = [self._states[fd] for fd in fds]
+            self._run_key = key
+            self._run_arr = (ctypes.POINTER(ModuleState) * len(states))(*(ctypes.pointer(s) for s in states))
         h = self.handed
         code = self.lib.snp_cycle_run(
-            arr, len(states), until, self.mono_of_real, self.spin_ns, self.lead_ns, self.buf, 2048, h
+            self._run_arr, len(key), until, self.mono_of_real, self.spin_ns, self.lead_ns, self.buf, 2048, h
         )
         if code < 0:
             raise OSError(-code, os.strerror(-code))

@@ -51,6 +51,7 @@ class PacketType(IntEnum):
     TIME_SUBSCRIBE = 0x0012  # "beacons every P ns, to a precision of E ns"
     TIME_SUBSCRIBE_REPLY = 0x0013
     TIME_BEACON = 0x0014
+    TIME_FOLLOW_UP = 0x0015  # two-step stamping: when a beacon or response really left
     # PID management (protocol 0xF2)
     PID_SUPPORTED_QUERY = 0x0020
     PID_SUPPORTED_REPLY = 0x0021
@@ -234,6 +235,17 @@ class TimeBeacon:
 
 
 @dataclass(frozen=True)
+class TimeFollowUp:
+    """Two-step time stamping (PTP's Follow_Up): when a TIME_BEACON or TIME_RESPONSE the receiver
+    just had left its sender, by the sender's kernel; the time in that packet is the sender's
+    earlier one-step estimate."""
+
+    of: int  # u16: the packet type it follows up (TIME_BEACON or TIME_RESPONSE)
+    ref: int  # u64: which one: the beacon's seq, or the response's t1
+    t: int  # u64: its departure, the sender's clock, ns
+
+
+@dataclass(frozen=True)
 class ErrorReply:
     """UNKNOWN_PID_REPLY, UNKNOWN_PACKET_TYPE_REPLY or INVALID_DATA_CRC_REPLY: the offending value."""
 
@@ -257,6 +269,7 @@ Body = (
     | TimeSubscribe
     | TimeSubscribed
     | TimeBeacon
+    | TimeFollowUp
 )
 
 
@@ -285,6 +298,7 @@ _QHEAD = struct.Struct("!IQ")
 _NODE = struct.Struct("!IBIBB")  # module id, kind, plugged to, port, joint
 _CONF = struct.Struct("!BIII")  # joint, period, phase, budget
 _BEACON = struct.Struct("!IQ")
+_FOLLOW_UP = struct.Struct("!HQQ")
 
 
 def _items(items: tuple[Item, ...]) -> bytes:
@@ -333,6 +347,8 @@ def encode_body(body: Body) -> tuple[int, bytes]:
             return PacketType.TIME_SUBSCRIBE_REPLY, struct.pack("!II", body.period_ns, body.precision_ns)
         case TimeBeacon():
             return PacketType.TIME_BEACON, _BEACON.pack(body.seq, body.t_master)
+        case TimeFollowUp():
+            return PacketType.TIME_FOLLOW_UP, _FOLLOW_UP.pack(body.of, body.ref, body.t)
         case ErrorReply():
             raise ValueError("error replies need their type: use encode(..., type=)")
     raise TypeError(f"not a packet body: {body!r}")
@@ -377,16 +393,44 @@ def stamp_departure(datagram: bytes, t: int) -> bytes:
     sending it (7-15 us in Python here, and not the same on every path): the servo takes half the
     shortest round trip for a beacon's path delay, so any difference between the paths' stamp-to-
     wire times is a steady clock error."""
-    if len(datagram) < 15 or datagram[1] != Pid.TSP:
+    got = time_packet(datagram)
+    if got is None:
         return datagram
-    data = 12 + datagram[2]  # header: destination, pid, return address (its length first), 2 u32, CRC
-    at = _DEPARTURE.get(int.from_bytes(datagram[data + 1 : data + 3], "big"))
-    if at is None or len(datagram) < data + at + 9:
-        return datagram
+    kind, data = got
     buf = bytearray(datagram)
-    _U64.pack_into(buf, data + at, t)
+    _U64.pack_into(buf, data + _DEPARTURE[kind], t)
     buf[-1] = crc8(memoryview(buf)[data:-1])
     return bytes(buf)
+
+
+def time_packet(datagram: bytes) -> tuple[int, int] | None:
+    """(packet type, data offset) of an SnP-TSP TIME_REQUEST, TIME_RESPONSE or TIME_BEACON (the
+    packets that carry their own departure); None for any other datagram."""
+    if len(datagram) < 15 or datagram[1] != Pid.TSP:
+        return None
+    data = 12 + datagram[2]
+    kind = int.from_bytes(datagram[data + 1 : data + 3], "big")
+    at = _DEPARTURE.get(kind)
+    return None if at is None or len(datagram) < data + at + 9 else (kind, data)
+
+
+def follow_up(datagram: bytes, t: int) -> bytes | None:
+    """Two-step time stamping: the TIME_FOLLOW_UP saying that this TIME_BEACON or TIME_RESPONSE
+    (as sent, one-step stamped or not) left at t, for the same receiver; None for any other
+    datagram.  A one-step stamp is read in the sender's code before its send call, which then
+    takes 7-20 us here to reach the wire; the kernel's stamp (SO_TIMESTAMPING) is read after it
+    and is within a microsecond of the receiver's."""
+    got = time_packet(datagram)
+    if got is None or got[0] == PacketType.TIME_REQUEST:  # (a request's departure is the asker's own)
+        return None
+    kind, data = got
+    if kind == PacketType.TIME_BEACON:
+        ref = _U32.unpack_from(datagram, data + 3)[0]  # its seq
+    else:
+        ref = _U64.unpack_from(datagram, data + 3)[0]  # the response's t1
+    src, dst = struct.unpack_from("!II", datagram, 3 + datagram[2])
+    back = Header(datagram[0], Pid.TSP, bytes(datagram[3 : 3 + datagram[2]]), src, dst)
+    return encode(back, TimeFollowUp(kind, ref, t))
 
 
 # --- the fast path: the cycle's queries and replies, each shape one struct ---------------------------
@@ -689,6 +733,10 @@ def _decode_cargo(kind: int, cargo: memoryview) -> Body:
         raw, rest = _take(cargo, _BEACON.size, "beacon")
         _done(rest, "beacon")
         return TimeBeacon(*_BEACON.unpack(raw))
+    if kind == PacketType.TIME_FOLLOW_UP:
+        raw, rest = _take(cargo, _FOLLOW_UP.size, "follow-up")
+        _done(rest, "follow-up")
+        return TimeFollowUp(*_FOLLOW_UP.unpack(raw))
     if kind in (PacketType.UNKNOWN_PID_REPLY, PacketType.INVALID_DATA_CRC_REPLY):
         raw, rest = _take(cargo, 1, "value")
         _done(rest, "error reply")

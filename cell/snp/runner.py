@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from cell.snp.modular import JointModule, Master
-from cell.snp.packet import Pid, stamp_departure
+from cell.snp.packet import stamp_departure, time_packet
 from cell.snp.tsp import Oscillator, on_grid
-from cell.timer import Alarm
+from cell.timer import Alarm, realtime_offset
 
 COARSE_S = 0.05  # epoll's own timeout: the alarm is what wakes a loop on time
 # Waking from epoll costs 20-55 us of CPU and as much of latency on this machine kind (a VM), as
@@ -34,7 +34,17 @@ LEAD_NS = 60_000  # wake this long before a cycle start or deadline
 
 
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+SO_TIMESTAMPING = getattr(socket, "SO_TIMESTAMPING", 37)
+# SO_TIMESTAMPING flags (linux/net_tstamp.h): software stamps reported, the packet not looped back
+# with its stamp, each stamp numbered, and no receive stamps added to what the socket reads (the
+# loops read SO_TIMESTAMPNS's only); each send asks for its transmit stamp on its own (_TX_STAMP),
+# so that only the SnP-TSP time packets leave one in the error queue
+_TS_TX_SOFTWARE, _TS_SOFTWARE, _TS_OPT_ID, _TS_OPT_TSONLY, _TS_OPT_RX_FILTER = 2, 16, 128, 2048, 1 << 17
+_TX_STAMP = [(socket.SOL_SOCKET, SO_TIMESTAMPING, struct.pack("=I", _TS_TX_SOFTWARE))]
 _CMSG = socket.CMSG_SPACE(16)
+# the precision a master with two-step stamping offers its subscribers (one-step: BeaconSchedule's
+# 50 us); measured here: the modules' clocks within 0.7-0.9 us of the master's over 20 s
+TWO_STEP_PRECISION_NS = 2_000
 _TIMESPEC = struct.Struct("=qq")
 
 
@@ -49,16 +59,41 @@ def open_udp(host: str = "127.0.0.1", port: int = 0, *, timestamps: bool = False
     return sock
 
 
+def _kernel_tx_stamps(sock: socket.socket) -> bool:
+    """Make sock report the kernel's transmit stamps of the sends that ask (False: it cannot)."""
+    flags = _TS_SOFTWARE | _TS_OPT_ID | _TS_OPT_TSONLY | _TS_OPT_RX_FILTER
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPING, flags)
+    except OSError:  # (no RX filter before Linux 6.12: what it receives would carry a second stamp)
+        return False
+    return True
+
+
 class Link:
-    """Sends on a socket, dropping `loss` of the datagrams (seeded): a lossy SpaceWire link.
-    stamp: the sender's clock, read as an SnP-TSP time packet leaves and written into it
-    (packet.stamp_departure: one-step time stamping); None: sent as dated when made."""
+    """Sends on a socket, dropping `loss` of the datagrams (seeded): a lossy SpaceWire link, and the
+    time-stamping port of its node.
+
+    clock: the sender's clock, from the host's (CLOCK_MONOTONIC ns -> the sender's ns).  An SnP-TSP
+    time packet gets the time it leaves written in (packet.stamp_departure: one-step stamping),
+    read just before the send call.  Where the kernel stamps what the socket sends, the link also
+    asks for that stamp and tells `departed(datagram, t)` when the packet really left, and sends
+    what it returns (packet.follow_up's: two-step stamping, as PTP's two-step clocks).  clock None:
+    sent as dated when made."""
 
     def __init__(
-        self, sock: socket.socket, loss: float = 0.0, seed: int = 0, stamp: Callable[[], int] | None = None
+        self,
+        sock: socket.socket,
+        loss: float = 0.0,
+        seed: int = 0,
+        clock: Callable[[int], int] | None = None,
+        departed: Callable[[bytes, int], list[bytes]] | None = None,
     ) -> None:
-        self.sock, self.loss, self.rng, self.stamp = sock, loss, random.Random(seed), stamp
+        self.sock, self.loss, self.rng = sock, loss, random.Random(seed)
+        self.clock, self.departed = clock, departed
         self.sent = self.lost = self.errors = 0
+        self.two_step = clock is not None and departed is not None and _kernel_tx_stamps(sock)
+        self.unstamped = 0  # two-step sends whose stamp the kernel did not give at once
+        self.mono_of_real = realtime_offset()
 
     def send(self, data: bytes, addr: Any) -> None:
         if addr is None:
@@ -66,13 +101,43 @@ class Link:
         if self.loss and self.rng.random() < self.loss:
             self.lost += 1
             return
-        if self.stamp is not None and len(data) > 1 and data[1] == Pid.TSP:
-            data = stamp_departure(data, self.stamp())
+        timed = self.clock is not None and time_packet(data) is not None
+        if timed:
+            data = stamp_departure(data, self.clock(time.monotonic_ns()))  # type: ignore[misc]
+        two_step = timed and self.two_step
         try:
-            self.sock.sendto(data, addr)
+            if two_step:
+                self.sock.sendmsg([data], _TX_STAMP, 0, addr)
+            else:
+                self.sock.sendto(data, addr)
             self.sent += 1
         except OSError:  # a full buffer, or the peer's port gone (ICMP): the link loses it
             self.errors += 1
+            return
+        if two_step:
+            t = self._tx_stamp()
+            if t is None:
+                self.unstamped += 1
+                return
+            for more in self.departed(data, self.clock(t)):  # type: ignore[misc]
+                self.send(more, addr)
+
+    def _tx_stamp(self) -> int | None:
+        """The kernel's transmit stamp of the last send (CLOCK_MONOTONIC ns), from the error queue
+        (emptied: a stamp left there would keep a polling loop awake); None if none is there.  On
+        loopback the stamp is queued within the send call; a NIC may give it later (then lost)."""
+        t = None
+        while True:
+            try:
+                _data, anc, _flags, _addr = self.sock.recvmsg(0, 256, socket.MSG_ERRQUEUE)
+            except (BlockingIOError, InterruptedError):
+                return t
+            except OSError:
+                return t
+            for level, kind, raw in anc:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPING and len(raw) >= 16:
+                    sec, nsec = _TIMESPEC.unpack_from(raw)
+                    t = sec * 1_000_000_000 + nsec - self.mono_of_real
 
 
 def drain(sock: socket.socket, mono_of_real: int = 0, limit: int = 256) -> list[tuple[bytes, Any, int]]:
@@ -105,6 +170,15 @@ def _send_timers(master: Master, link: Link) -> None:
         link.send(data, addr)
 
 
+def _master_link(master: Master, sock: socket.socket, loss: float) -> Link:
+    """The master's link: here the master's clock is the host's CLOCK_MONOTONIC (its datagrams'
+    kernel stamps are taken as its times), so its time packets are stamped with the host's."""
+    link = Link(sock, loss, seed=1, clock=lambda host_ns: host_ns, departed=master.departed)
+    if link.two_step:  # its beacons' times are the kernel's: that is the precision it offers
+        master.beacon_schedule.precision_ns = min(master.beacon_schedule.precision_ns, TWO_STEP_PRECISION_NS)
+    return link
+
+
 def serve_master(
     master: Master,
     sock: socket.socket,
@@ -122,13 +196,13 @@ def serve_master(
     in C (cell.snp.native.NativeMaster, on the same schedule), the rest here, between its runs."""
     if native:
         return _serve_master_native(master, sock, stop, loss, spin_ns)
-    link = Link(sock, loss, seed=1, stamp=master.clock)
+    link = _master_link(master, sock, loss)
     alarm = Alarm()
     ep = select.epoll()
     ep.register(sock.fileno(), select.EPOLLIN)
     ep.register(alarm.fd, select.EPOLLIN)
     clock = time.monotonic_ns
-    mono_of_real = time.time_ns() - clock()  # (for the kernel's stamps, if the socket gives them)
+    mono_of_real = realtime_offset()  # (for the kernel's stamps, if the socket gives them)
     spin_until = 0
     lead = LEAD_NS if spin_ns else 0  # (spin_ns 0: never poll without sleeping)
     due = master.next_due()
@@ -170,9 +244,9 @@ def _serve_master_native(
 ) -> Link:
     from cell.snp.native import RUN_HANDED, NativeMaster
 
-    link = Link(sock, loss, seed=1, stamp=master.clock)
+    link = _master_link(master, sock, loss)
     clock = time.monotonic_ns
-    lead, mono_of_real = LEAD_NS if spin_ns else 0, time.time_ns() - clock()
+    lead, mono_of_real = LEAD_NS if spin_ns else 0, realtime_offset()
     fast = NativeMaster(master, sock.fileno(), spin_ns=spin_ns, lead_ns=lead, mono_of_real=mono_of_real)
     fast.st.loss = loss
     master.fdir_here = False
@@ -225,8 +299,8 @@ class Slot:
         self.module = JointModule(self.module_id, self.plugged_to, port=1)  # (its parent's downstream port)
         self.module.use_transport(self.transport, rmap_timeout_ns, rmap_retries)
         self.sock = open_udp("127.0.0.1", self.port, timestamps=True)
-        osc = self.osc
-        self.link = Link(self.sock, loss, seed=self.module_id, stamp=lambda: osc.raw(time.monotonic_ns()))
+        m = self.module
+        self.link = Link(self.sock, loss, seed=self.module_id, clock=self.osc.raw, departed=m.departed)
         self.plugged_at = self.wake = now
 
     def deliver(self, data: bytes, addr: Any, at: int) -> None:
@@ -293,7 +367,7 @@ def run_modules(
     ep.register(alarm.fd, select.EPOLLIN)
     by_fd: dict[int, Slot] = {}
     t0 = time.monotonic_ns()
-    mono_of_real = time.time_ns() - t0  # (CLOCK_REALTIME - CLOCK_MONOTONIC, for kernel stamps)
+    mono_of_real = realtime_offset()  # (for the kernel's stamps)
     end = t0 + int(seconds * 1e9)
 
     def plug(s: Slot) -> None:
@@ -385,19 +459,35 @@ def _run_native(
 ) -> list[Slot]:
     """run_modules with the cycle in C: one C loop waits on every module's socket and runs the
     running modules' [A, B] and [C, D]; what it hands back (configuration, SnP-TSP) goes to the
-    Python JointModule, as do plugging, pulling and the clock samples, between its runs."""
-    from cell.snp.native import RUN_HANDED, NativeCycles
+    Python JointModule, as do plugging, pulling and the clock samples, between its runs.
+
+    Each trip out of C costs what Python does there, and in the management slot a beacon and its
+    follow-up make two: only the module that was handed a datagram is pushed to C again (its
+    servo or state may have changed), and the C side's records and counters come back when the
+    loop returns at `until` (the clock samples: in the management slot), when they fill up, when a
+    module is pulled out, and at the end (46 us a trip for six modules had gone into pushing and
+    pulling them all and into building the run's arguments anew)."""
+    from cell.snp.native import RUN_HANDED, RUN_RECORDS_FULL, NativeCycles
 
     if any(s.transport != "snp" for s in slots):
         raise ValueError("the C cycle runs transport snp only (the RMAP baseline runs in Python)")
     t0 = time.monotonic_ns()
     cycles = NativeCycles(
-        spin_ns=SPIN_NS if spin else 0, lead_ns=LEAD_NS if spin else 0, mono_of_real=time.time_ns() - t0
+        spin_ns=SPIN_NS if spin else 0, lead_ns=LEAD_NS if spin else 0, mono_of_real=realtime_offset()
     )
     end = t0 + int(seconds * 1e9)
     clock = time.monotonic_ns
     live: list[Slot] = []
     by_fd: dict[int, Slot] = {}
+
+    def push(s: Slot) -> None:
+        assert s.sock is not None and s.module is not None
+        cycles.push(cycles.state(s.sock.fileno()), s.module, s.master)
+
+    def take(s: Slot) -> None:
+        """Its C records and counters into its JointModule and link."""
+        assert s.sock is not None and s.module is not None
+        cycles.pull(cycles.state(s.sock.fileno()), s.module, s.link)
 
     def plug(s: Slot) -> None:
         s.plug(t0, now, loss, 0, 0)
@@ -405,11 +495,12 @@ def _run_native(
         cycles.attach(s.sock.fileno(), s.osc, loss)
         by_fd[s.sock.fileno()] = s
         live.append(s)
+        push(s)
 
     def pull(s: Slot) -> None:
-        assert s.sock is not None and s.module is not None
+        assert s.sock is not None
+        take(s)
         fd = s.sock.fileno()
-        cycles.pull(cycles.state(fd), s.module, s.link)
         cycles.detach(fd)
         del by_fd[fd]
         live.remove(s)
@@ -427,21 +518,23 @@ def _run_native(
                 next_event = events()
             until = next_event
             for s in live:
-                m = s.module
-                assert m is not None and s.sock is not None
-                cycles.push(cycles.state(s.sock.fileno()), m, s.master)
-                if m.state == "running":
+                if s.module is not None and s.module.state == "running":
                     until = min(until, s.next_sample)
             got = cycles.run([s.sock.fileno() for s in live], until)  # type: ignore[union-attr]
             if got is not None and got[0] == RUN_HANDED:
                 _, fd, data, at, addr = got
-                by_fd[fd].deliver(data, addr, at)
+                s = by_fd[fd]
+                s.deliver(data, addr, at)
+                push(s)
+            elif got is None or got[0] == RUN_RECORDS_FULL:  # (None: at `until`, in the slot)
+                for s in live:
+                    take(s)
             now = clock()
             for s in live:
-                assert s.module is not None and s.sock is not None
-                cycles.pull(cycles.state(s.sock.fileno()), s.module, s.link)
                 s.sample(now, sample_ns, sample_grid)
     finally:
+        for s in live:
+            take(s)
         for s in slots:
             if s.sock is not None:
                 s.sock.close()
