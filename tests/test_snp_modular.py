@@ -317,6 +317,36 @@ def test_a_module_takes_the_follow_ups_time_and_goes_back_to_one_step_when_they_
     assert not m.two_step and m.unfollowed == 3 and m.servo.samples == samples + 40
 
 
+def test_a_module_asks_again_when_a_time_exchange_is_lost_within_its_eight() -> None:
+    m = JointModule(11, 0)
+    h = Header(0, Pid.TSP)
+    sent = m.receive(encode(Header(0, Pid.MRT), Configure(0, 1_000_000, 0, 1_000_000, (20.0,))), 0)
+    requests = [decode(d).body for d in sent if isinstance(decode(d).body, TimeRequest)]
+    t = 0
+
+    def beacon() -> list[TimeRequest]:
+        nonlocal t
+        t += 10_000_000
+        return [decode(d).body for d in m.receive(encode(h, TimeBeacon(t, t)), t)]
+
+    assert len(requests) == 1 and beacon() == []  # one beacon later: its answer may still come
+    again = beacon()  # two: lost on the way; asked again
+    assert len(again) == 1 and isinstance(again[0], TimeRequest)
+    # answered, and its follow-up: the next one
+    response = encode(h, TimeResponse(again[0].t1, t, t + 1_000))
+    assert [type(decode(d).body) for d in m.receive(response, t + 2_000)] == [TimeRequest]
+    follow = encode(h, TimeFollowUp(PacketType.TIME_RESPONSE, again[0].t1, t + 1_500))
+    assert m.receive(follow, t + 2_100) == [] and m.two_step  # (the module learns of two-step)
+    # a response whose follow-up is lost is dropped after two beacons too (not taken one-step)
+    m.receive(encode(h, TimeResponse(again[0].t1 + 1, t, t + 1_000)), t + 2_000)
+    asked = [r for _ in range(40) for r in beacon()]
+    # (no follow-ups: one-step again after three; the first two beacons came before two-step)
+    assert not m.two_step and m.servo.samples == 2 + 40 - 3
+    assert 1 + 1 + 1 + len(asked) == 8  # eight requests in all, however many are lost
+    late = encode(h, TimeFollowUp(PacketType.TIME_RESPONSE, again[0].t1 + 1, t))
+    assert m.receive(late, t) == []  # the dropped exchange's follow-up, too late: nothing
+
+
 def test_the_master_grants_beacon_periods_and_sends_what_is_due() -> None:
     b = BeaconSchedule()
     assert b.subscribe("a", 100_000, now=0) == MIN_PERIOD_NS  # faster than it offers: its fastest

@@ -75,6 +75,7 @@ A_BASE, C_BASE = 0x1000, 0x2000  # master memory: A and C of joint j at BASE + 1
 B_ADDR, D_ADDR = 0x0000, 0x0010  # module memory
 _MSG = struct.Struct("!ffQ")  # value, value, timestamp
 _BEACON_FOLLOW_UPS_MISSED = 3  # beacons in a row without their follow-up: the master stopped them
+_EXCHANGES = 8  # two-way exchanges a module makes for the path delay (the least queued is kept)
 
 
 def item(quantity: int, joint: int) -> int:
@@ -546,6 +547,7 @@ class JointModule:
         self._response: tuple[TimeResponse, int] | None = None  # (it, raw at arrival) likewise
         self._sent_t1: dict[int, int] = {}  # a request's t1 as stamped -> as it left (its kernel)
         self._missed_follow_ups = 0  # in a row
+        self._asked = 0  # 1 + the beacons seen since our TIME_REQUEST went out (0: none out)
         self.config: Configure | None = None
         self.joint = -1
         self.state = "unconfigured"  # -> syncing -> running
@@ -595,14 +597,13 @@ class JointModule:
         if isinstance(body, TimeBeacon):
             if self.state == "unconfigured":
                 return []
+            if self.two_step and self._beacon is not None:  # the last one's follow-up never came
+                self._unfollowed()  # (after a few: one-step again)
             if self.two_step:
-                if self._beacon is not None:  # the last one's follow-up never came
-                    self._unfollowed()
-                if self.two_step:
-                    self._beacon = (body.seq, raw)
-                    return []
-            self._beacon_at(raw, body.t_master)
-            return []
+                self._beacon = (body.seq, raw)  # taken when its follow-up comes
+            else:
+                self._beacon_at(raw, body.t_master)
+            return self._exchange_lost()
         if isinstance(body, TimeFollowUp):
             return self._followed_up(body)
         if isinstance(body, TimeSubscribed):
@@ -668,10 +669,29 @@ class JointModule:
     def _exchanged(self, t1: int, t2: int, t3: int, t4: int) -> list[bytes]:
         """A two-way exchange done (t1, t4 ours; t2, t3 the master's): the path delay; a few more."""
         self.servo.exchange(t1, t2, t3, t4)
-        if self._exchanges < 8:  # a few more: the least queued one gives the delay
-            self._exchanges += 1
-            return [encode(self._header(Pid.TSP), TimeRequest(self._raw))]
-        return []
+        self._asked = 0
+        return self._request()
+
+    def _request(self) -> list[bytes]:
+        """The next TIME_REQUEST, while there are exchanges left (the least queued of 8 gives the
+        delay)."""
+        if self._exchanges >= _EXCHANGES:
+            return []
+        self._exchanges += 1
+        self._asked = 1
+        return [encode(self._header(Pid.TSP), TimeRequest(self._raw))]
+
+    def _exchange_lost(self) -> list[bytes]:
+        """At each beacon: a request still unanswered (or its response's follow-up still missing)
+        after two beacons was lost on the way; ask again (from the same 8), or the exchanges stop
+        there and the delay is whatever the ones done gave (a one-step start: 5-10 us too long)."""
+        if not self._asked:
+            return []
+        self._asked += 1
+        if self._asked <= 2:
+            return []
+        self._response, self._asked = None, 0
+        return self._request()
 
     def _configure(self, c: Configure, header: Header, raw: int) -> list[bytes]:
         first = self.config is None
@@ -682,9 +702,8 @@ class JointModule:
         out = [encode(header.reversed(), Configured(c.joint, 0))]
         if first:
             self.state = "syncing"
-            self._exchanges = 1
             out.append(encode(self._header(Pid.TSP), TimeSubscribe(self.beacon_ns, self.precision_ns)))
-            out.append(encode(self._header(Pid.TSP), TimeRequest(raw)))
+            out += self._request()
         return out
 
     def use_transport(self, transport: str, timeout_ns: int = 200_000, retries: int = 1) -> None:
