@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+from collections.abc import Callable
 
 import pytest
 
@@ -391,6 +392,7 @@ class SimNet:
         self.queue: list[tuple[int, int, str, object, bytes]] = []
         self.seq = itertools.count()
         self.sent: list[tuple[int, str, bytes]] = []  # (when, "master" or "module", datagram)
+        self.drop: Callable[[str, bytes], bool] = lambda to, data: False  # lost on the way
 
     def plug(self, port: int, module_id: int, parent: int, transport: str = "snp") -> JointModule:
         m = JointModule(module_id, parent, 1)
@@ -403,6 +405,8 @@ class SimNet:
 
     def _send(self, to: str, addr: object, data: bytes) -> None:
         self.sent.append((self.now, to, data))
+        if self.drop(to, data):
+            return
         heapq.heappush(self.queue, (self.now + self.latency, next(self.seq), to, addr, data))
 
     def run_until(self, t_end: int, step: int = 50_000) -> None:
@@ -483,6 +487,27 @@ def test_a_module_plugged_in_while_running_is_included_one_pulled_out_is_guessed
     net.run_until(net.now + 150_000_000)
     assert back.state == "running" and back.joint == 1 and back.cycles
     assert [w for _, w, mid, _ in net.master.events if mid == 12][-2:] == ["found", "included"]
+
+
+def test_a_module_whose_subscription_was_lost_subscribes_again_when_configured_again() -> None:
+    net = SimNet(ports=2)
+    lost: list[bytes] = []
+
+    def first_subscription(to: str, data: bytes) -> bool:
+        if to == "master" and not lost and isinstance(decode(data).body, TimeSubscribe):
+            lost.append(data)
+            return True
+        return False
+
+    net.drop = first_subscription
+    m11, m12 = net.plug(0, 11, 0), net.plug(1, 12, 11)
+    net.run_until(400_000_000)
+    assert lost  # one module's TIME_SUBSCRIBE was lost: no beacons, it could not sync
+    events = [(w, mid) for _, w, mid, _ in net.master.events]
+    unlucky = next(mid for w, mid in events if w == "lost")  # silent 50 ms: excluded
+    assert ("included", unlucky) in events[events.index(("lost", unlucky)) :]  # found, configured
+    assert m11.state == m12.state == "running" and m11.cycles and m12.cycles  # it subscribed again,
+    assert len(net.master.beacon_schedule) == 2  # synced and runs
 
 
 def test_the_master_sends_beacons_and_probes_only_in_its_management_slot() -> None:

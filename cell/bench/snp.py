@@ -113,6 +113,7 @@ def _modules(
                 "overruns": m.overruns,
                 "clock_errors": np.array(s.clock_errors, np.int64),
                 "follow_ups": m.follow_ups,  # beacons and responses taken two-step
+                "unfollowed": m.unfollowed,  # beacons left out, their follow-up lost
                 "two_step_link": bool(s.link and s.link.two_step),
                 "lost_on_link": s.link.lost if s.link else 0,
                 "rmap": dict(m.rmap_init.counters) if m.rmap_init else {},

@@ -700,9 +700,12 @@ class JointModule:
         if self.rmap_init is not None:
             self.rmap_init.logical_address = MODULE_LA0 + c.joint
         out = [encode(header.reversed(), Configured(c.joint, 0))]
+        # subscribed anew each time: configured again means the master had excluded us, and with
+        # us our subscription (or it never had it: a lost TIME_SUBSCRIBE left a module syncing
+        # for good, excluded and configured again every 70 ms)
+        out.append(encode(self._header(Pid.TSP), TimeSubscribe(self.beacon_ns, self.precision_ns)))
         if first:
             self.state = "syncing"
-            out.append(encode(self._header(Pid.TSP), TimeSubscribe(self.beacon_ns, self.precision_ns)))
             out += self._request()
         return out
 
