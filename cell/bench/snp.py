@@ -200,6 +200,7 @@ def cycle_figures(r: dict[str, Any]) -> dict[str, Any]:
     robot = _robot_cycles(kept, len(r["modules"]))
     return {
         "cycles": n,
+        "modules_ran": len(kept),  # (of those plugged in: one that never ran had hidden in the totals)
         "cycle_ms_p50": float(np.median(t)),
         "cycle_ms_p99": float(np.percentile(t, 99)),
         "robot_cycle_ms_p50": float(np.median(robot)) if len(robot) else None,
@@ -366,7 +367,8 @@ def _ms(v: float | None) -> str:
 def format_result(r: dict[str, Any]) -> str:
     def line(name: str, f: dict[str, Any]) -> str:
         return (
-            f"  {name:<22} {f['cycles']:>6} cycles: p50 {f['cycle_ms_p50']:.3f} ms, "
+            f"  {name:<22} {f['cycles']:>6} cycles of {f['modules_ran']} modules: "
+            f"p50 {f['cycle_ms_p50']:.3f} ms, "
             f"p99 {f['cycle_ms_p99']:.3f} ms (the robot's: p50 {_ms(f['robot_cycle_ms_p50'])}, p99 "
             f"{_ms(f['robot_cycle_ms_p99'])}), {f['missed_pct']:.2f}% of exchanges missed their deadline "
             f"(guessed); start late p99 {f['start_late_us_p99']:.0f} us; clock error "
