@@ -543,12 +543,20 @@ def test_junk_reaches_master_and_module_without_harm() -> None:
         bytes(7) + b"\x01",
         b"\xfe\x01" + bytes(30),
         bytes(40),
+        # follow-ups of beacons and responses never sent, and one cut short: the module (whose master
+        # here stamps one-step) waits for follow-ups that do not come, then goes back to one-step
+        encode(Header(0, Pid.TSP), TimeFollowUp(PacketType.TIME_BEACON, 999, 5)),
+        encode(Header(0, Pid.TSP), TimeFollowUp(PacketType.TIME_RESPONSE, 7, 5)),
+        encode(Header(0, Pid.TSP), TimeFollowUp(0x0999, 7, 5)),
+        encode(Header(0, Pid.TSP), TimeFollowUp(PacketType.TIME_BEACON, 1, 2))[:-4],
     ]
     for j in junk:
         assert isinstance(net.master.receive(j, ("port", 0)), list)
         assert isinstance(m.receive(j, 0), list)
-    net.run_until(net.now + 50_000_000)
+    samples = m.servo.samples
+    net.run_until(net.now + 100_000_000)
     assert len(m.cycles) > before and m.state == "running"  # nothing a peer sends stops either end
+    assert not m.two_step and m.servo.samples >= samples + 5  # its clock still servoed
 
 
 def test_the_rmap_baseline_runs_the_same_cycle_with_acknowledged_writes() -> None:
