@@ -55,7 +55,14 @@ def _place(core: int) -> None:
 
 
 def _master(
-    ports: list[int], seconds: float, loss: float, config: Any, native: bool, done: Any, port_q: Any, out: Any
+    ports: list[int],
+    seconds: float,
+    loss: float,
+    config: CycleConfig,
+    native: bool,
+    done: Any,
+    port_q: Any,
+    out: Any,
 ) -> None:
     """Runs until the modules are done (done.value), or for `seconds` at most."""
     from cell.snp.modular import Master

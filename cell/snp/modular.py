@@ -630,9 +630,7 @@ class JointModule:
         except PacketError:
             return []
         if isinstance(body, TimeRequest):
-            self._sent_t1[body.t1] = t
-            while len(self._sent_t1) > 8:  # (the oldest, its response lost)
-                del self._sent_t1[next(iter(self._sent_t1))]
+            self._sent_t1[body.t1] = t  # (at most _EXCHANGES, ever)
         return []
 
     def _followed_up(self, f: TimeFollowUp) -> list[bytes]:
