@@ -9,14 +9,30 @@ import subprocess
 import pytest
 
 from cell.bench import background as bg
+from tests.conftest import wait_until_quiet
 
 pytestmark = pytest.mark.skipif(bg.available() is not None, reason=str(bg.available()))
 
 
 @pytest.mark.slow
 def test_a_congested_port_delays_and_drops_robot_commands_in_a_fifo_and_not_under_priority() -> None:
-    lines: list[str] = []
-    r = bg.run(loads=(1.8,), frames=(1280,), seconds=1.0, log=lines.append)
+    def at_rate(r: dict) -> bool:
+        return all(
+            row["offered_mbps"] > 0.9 * 1.8 * r["rate_mbps"]
+            and 0.8 * r["rate_mbps"] < row["forwarded_mbps"] < 1.02 * r["rate_mbps"]
+            for row in r["rows"]
+        )
+
+    # the software switch (the data plane's Python packet path, on one core) forwards 100 Mbit/s
+    # with little to spare on this VM: in its slow phases a trial forwarded 74-77 (3 of 14 trials
+    # one day, before the SnP changes of that day as after them): the first of three trials, each
+    # once the machine is quiet, whose port ran at its rate is the one checked, as in test_fleet
+    for _ in range(3):
+        wait_until_quiet()
+        lines: list[str] = []
+        r = bg.run(loads=(1.8,), frames=(1280,), seconds=1.0, log=lines.append)
+        if at_rate(r):
+            break
     fifo, prio = (next(x for x in r["rows"] if x["scheduling"] == s) for s in ("fifo", "priority"))
     for row in (fifo, prio):  # the generator offered the load, and the port ran at (about) its rate
         assert row["offered_mbps"] > 0.9 * 1.8 * r["rate_mbps"]
