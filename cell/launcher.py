@@ -21,8 +21,8 @@ from cell.bus import Bus, BusError
 from cell.config import CellConfig
 from cell.layout import Process, process_for, process_named, processes
 from cell.processes import ChildProcess
-from cell.registry import StatusRegistry, format_status, status_names
-from cell.services import load_all
+from cell.service import load_all
+from cell.status import StatusRegistry, format_status, status_names
 from cell.supervisor import ServiceFailed, Supervisor
 from cell.v1 import health_pb2
 

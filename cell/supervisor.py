@@ -23,8 +23,8 @@ from collections.abc import Awaitable
 from cell import meter, sched
 from cell.bus import Bus, BusError
 from cell.config import MAIN_GROUP, CellConfig
-from cell.registry import POLL_TOPIC, host_name
 from cell.service import ServiceContext, ServiceSpec
+from cell.status import POLL_TOPIC, host_name
 from cell.v1 import health_pb2
 
 log = logging.getLogger("cell.supervisor")

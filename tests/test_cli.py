@@ -37,6 +37,26 @@ def test_every_subcommand_is_listed() -> None:
         assert f"    {name} " in text
 
 
+def test_every_registered_command_and_bench_has_its_help(capsys: pytest.CaptureFixture[str]) -> None:
+    """Commands and benches register themselves; each is listed, and its help prints as written (a
+    '%' in a help line had printed argparse's own state into it)."""
+    from cell.bench.registry import discover as benches
+    from cell.commands import discover as commands
+
+    registered = [[name] for name in commands()] + [["bench", name] for name in benches()]
+    assert {"bus", "dataplane", "accuracy", "snp", "rlink", "bilateral", "paper"} <= set(benches())
+    for command in registered:
+        with pytest.raises(SystemExit) as info:
+            main([*command, "--help"])
+        assert info.value.code == 0
+        out = capsys.readouterr().out
+        assert out.startswith(f"usage: cell {' '.join(command)}"), command
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    out = capsys.readouterr().out
+    assert "option_strings" not in out and "< 0.1% late sends" in " ".join(out.split())
+
+
 def test_unknown_service_alone(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["service", "nope"]) == 2
     assert "unknown service 'nope'" in capsys.readouterr().err

@@ -239,7 +239,7 @@ def test_robots_name_no_host_in_a_cell_of_one() -> None:
 
 
 def test_status_names_a_service_by_host_and_a_restart_counts_only_on_its_own() -> None:
-    from cell.registry import StatusRegistry
+    from cell.status import StatusRegistry
     from cell.v1 import health_pb2
 
     a = load_config(PLANT, overrides={"cell": {"host": "a"}})

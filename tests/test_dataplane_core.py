@@ -320,13 +320,12 @@ def test_deleting_a_tp_in_use_is_refused() -> None:
 
 def test_a_batch_from_many_senders_is_answered_in_network_order() -> None:
     """Regression: np.concatenate turns big-endian structured fields native; batches must not."""
-    import importlib
 
     from cell.config import load_config
+    from cell.dataplane import plane as dataplane
     from cell.robot import udp
     from tests.conftest import cell_overrides
 
-    dataplane = importlib.import_module("cell.services.dataplane")
     cfg = load_config(
         overrides=cell_overrides(robots=[{"id": r, "name": f"r{r}", "skill_port": 100 + r} for r in (1, 2)])
     )

@@ -134,7 +134,7 @@ async def test_refusals_and_bad_datagrams(start_cell) -> None:
 def test_a_robot_is_pinned_to_its_first_sender_until_it_goes_quiet() -> None:
     from cell.config import load_config
     from cell.dataplane.pipeline import QUIET_NS
-    from services.dataplane import DataPlane
+    from cell.dataplane.plane import DataPlane
 
     rob = [{"id": 1, "name": "r1", "skill_port": free_port()}]
     dp = {"listen": f"127.0.0.1:{free_port()}"}

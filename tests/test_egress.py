@@ -7,10 +7,10 @@ import asyncio
 
 import numpy as np
 import pytest
-from cell.services.dataplane import DataPlane
 
 from cell.config import load_config, parse_host_port
 from cell.dataplane.egress import BULK, OVERHEAD, ROBOT, EgressPort
+from cell.dataplane.plane import DataPlane
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
 from tests.conftest import free_port

@@ -127,8 +127,7 @@ def test_halted_drives_brake_at_full_deceleration_and_ignore_commands_until_rele
 
 @pytest.fixture
 def plane():
-    from cell.services.dataplane import DataPlane
-
+    from cell.dataplane.plane import DataPlane
     from cell.dataplane.tables import TP
 
     rob = [{"id": r, "name": f"b{r}", "skill_port": 20000 + r} for r in (1, 2, 3)]
@@ -204,7 +203,7 @@ async def test_register_updates_of_a_stopped_robot_are_refused(plane) -> None:
 
 def test_a_stop_that_comes_in_mid_batch_holds_for_the_whole_batch(plane) -> None:
     """Slices processed before the stop are turned into stop commands too, before anything is sent."""
-    from cell.services import dataplane as svc
+    from cell.dataplane import plane as svc
 
     sender_sock = udp.open_socket("127.0.0.1")
     n = svc.SLICE * 2 // 6 + 1  # statuses of robot 1 over three slices
@@ -241,8 +240,7 @@ def test_a_stop_that_comes_in_mid_batch_holds_for_the_whole_batch(plane) -> None
 
 
 async def test_clients_of_the_host_interface_reach_the_nodes_and_hear_their_reports() -> None:
-    from cell.services.rlink import Hub
-
+    from cell.rlink.hub import Hub
     from cell.rlink.link import NodeLink
     from cell.rlink.node import Node
 

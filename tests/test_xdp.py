@@ -244,9 +244,8 @@ def _recv(sock: socket.socket, timeout: float = 2.0) -> np.ndarray:
 def test_the_service_answers_from_the_kernel_and_its_control_plane_writes_the_maps() -> None:
     from dataclasses import asdict
 
-    from cell.services.dataplane import XdpDataPlane
-
     from cell.config import XdpConfig, load_config
+    from cell.dataplane.plane import XdpDataPlane
     from cell.dataplane.wire import encode_tps
     from cell.dataplane.xdp.switch import switch_namespace
     from cell.v1 import dataplane_pb2

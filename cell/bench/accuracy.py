@@ -15,6 +15,7 @@ motions through the data plane.  Measured from ground truth:
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
 import time
@@ -25,6 +26,7 @@ import numpy as np
 
 from cell.bench.cellproc import free_port as _port
 from cell.bench.cellproc import running_cell
+from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.controller.controller import Controller, MotionStopped, Segment
 from cell.robot.datagram import SCALE
@@ -254,3 +256,24 @@ def format_result(r: dict[str, Any]) -> str:
             f"({r['seconds']} s)",
         ]
     )
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="fewer reference motions (under 4 minutes)")
+    p.add_argument("--backend", choices=["numpy", "xdp"], default="numpy", help="the data plane (xdp: root)")
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    result = run(args.quick, log=log, backend=args.backend)
+    result.pop("samples")
+    return Figures(result, format_result(result))
+
+
+register(
+    Bench(
+        "accuracy",
+        "MuJoCo arms driven through the data plane: stop error, tool path error, start shift",
+        _arguments,
+        _main,
+    )
+)

@@ -8,7 +8,7 @@ veth pairs, with the data plane between them as the paper's switch:
     R robots x 6 joints at 500 Hz     10.77.1.1: statuses -> commands        ordinary UDP traffic of
     + the sink of ordinary traffic    10.77.2.1:7000 -> 10.77.1.2:7001         64- or 1,280-byte frames
 
-The data plane (the real service's packet path, cell.services.dataplane) answers
+The data plane (the real service's packet path, cell.dataplane.plane) answers
 every status through the full pipeline (each robot follows a TP) and
 port-forwards the ordinary traffic to the robots' host, so commands and
 forwarded frames leave by one egress port: `rate_mbps` with a buffer of
@@ -40,6 +40,8 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
+
+from cell.bench.registry import Bench, Figures, log, register
 
 ROBOT_ADDR, SWITCH_R, SWITCH_G, GEN_ADDR = "10.77.1.2", "10.77.1.1", "10.77.2.1", "10.77.2.2"
 STATUS_PORT, FORWARD_PORT, SINK_PORT = 50000, 7000, 7001
@@ -106,8 +108,8 @@ def switch_main(robots: int, rate_mbps: float, buffer_kb: float, scheduling: str
     prints its counters as one JSON line."""
     from cell.bench import pin
     from cell.config import load_config
+    from cell.dataplane.plane import DataPlane
     from cell.dataplane.tables import TP
-    from cell.services.dataplane import DataPlane
 
     pin(1)
     rob = [{"id": r, "name": f"b{r}", "skill_port": 20000 + r} for r in range(1, robots + 1)]
@@ -362,3 +364,27 @@ def main(argv: list[str] | None = None) -> None:
 
 if __name__ == "__main__":
     main()
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="three load levels, 1 s each (about 50 s)")
+    p.add_argument("--rate-mbps", type=float, default=100.0, help="the egress port's rate (default 100)")
+    p.add_argument(
+        "--buffer-ms", type=float, default=3.0, help="its buffer per queue, in ms of it (default 3)"
+    )
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    result = run(args.quick, args.rate_mbps, args.buffer_ms, log=log)
+    return Figures(summary(result) | {"rows": result["rows"]}, format_result(result))
+
+
+register(
+    Bench(
+        "background",
+        "robot traffic beside ordinary traffic at a congested egress port of the data plane, one shared "
+        "FIFO against strict priority, in network namespaces (NSDI'22 Appendix C, Fig. 14; needs root)",
+        _arguments,
+        _main,
+    )
+)

@@ -16,6 +16,7 @@ Raw variants use blocking loops; rounds alternate and the best of each is kept
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import multiprocessing as mp
 import queue
@@ -28,6 +29,7 @@ from typing import Any
 import zmq
 
 from cell import aio
+from cell.bench.registry import Bench, Figures, register
 from cell.bus import Bus, Forwarder
 from cell.config import BusConfig, load_config
 from cell.v1 import bus_pb2
@@ -367,3 +369,24 @@ def format_result(r: dict[str, Any]) -> str:
         + "; ".join(f"{v} " + ", ".join(f"{x:,.0f}" for x in xs) for v, xs in r["rates_by_round"].items())
     )
     return "\n".join(lines)
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--messages", type=int, default=200_000, help="messages per throughput round")
+    p.add_argument("--pings", type=int, default=2_000, help="round trips per latency round")
+    p.add_argument("--rounds", type=int, default=3, help="alternating rounds of each (best is kept)")
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    result = run(messages=args.messages, pings=args.pings, rounds=args.rounds)
+    return Figures(result, format_result(result))
+
+
+register(
+    Bench(
+        "bus",
+        "bus messages/s and round trip p50/p99 (64-byte payloads) next to raw pyzmq PUB/SUB",
+        _arguments,
+        _main,
+    )
+)

@@ -5,7 +5,7 @@ every 2 ms it sends each joint's status with seq = the tick number (UDP GSO,
 one socket) and timestamps every answer as it arrives (UDP GRO), so each
 command's status-to-command time is exact.  On the other core runs one of:
 
-- dataplane: the real service's packet path (cell.services.dataplane.DataPlane),
+- dataplane: the real service's packet path (cell.dataplane.plane.DataPlane),
   every robot following a trajectory, so every packet takes the full pipeline;
 - reflector: the same batched UDP I/O and no pipeline (this machine's limit);
 - naive: the same controller written the obvious way, an asyncio
@@ -17,6 +17,7 @@ command window (8 ms); R grows until one fails.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import multiprocessing as mp
 import os
@@ -25,6 +26,7 @@ import select
 import signal
 import socket
 import struct
+import sys
 import time
 from typing import Any
 
@@ -32,6 +34,7 @@ import numpy as np
 
 from cell import aio
 from cell.bench import pin, pinned
+from cell.bench.registry import Bench, Figures, log, register
 from cell.robot import datagram, udp
 from cell.robot.datagram import SCALE, Kind
 from cell.timer import realtime_offset
@@ -55,9 +58,9 @@ def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False, n
     program attached in the switch's namespace, this process its control plane."""
     pin(1)
     from cell.config import load_config
+    from cell.dataplane.plane import DataPlane, XdpDataPlane
     from cell.dataplane.tables import TP, TPBatch
     from cell.dataplane.wire import encode_keys, encode_tps
-    from cell.services.dataplane import DataPlane, XdpDataPlane
 
     rob = [{"id": r, "name": f"b{r}", "skill_port": 20000 + r} for r in range(1, robots + 1)]
     if net is None:
@@ -536,3 +539,43 @@ def format_xdp(result: dict[str, Any]) -> str:
         f"{s['p99_us_quiet']:.0f} us without"
     )
     return "\n".join(lines)
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seconds", type=float, default=2.0, help="length of each trial (default 2)")
+    p.add_argument(
+        "--backend",
+        choices=["numpy", "xdp"],
+        default="numpy",
+        help="xdp: the XDP program in a switch namespace, next to a bare XDP reflector and numpy (root)",
+    )
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    def trial_log(trial: dict) -> None:
+        log(format_trial(trial))
+
+    if args.backend == "xdp":
+        from cell.dataplane.xdp.switch import SwitchError
+
+        try:
+            result = run_xdp(args.seconds, log=trial_log)
+        except SwitchError as exc:
+            print(f"cell bench dataplane: {exc}", file=sys.stderr)
+            return Figures({"error": str(exc)}, exit_code=2)
+        text = format_xdp(result)
+        # the issue's figures first, flat (the trials follow in the full result)
+        return Figures({**result.pop("summary"), **result}, text)
+    result = run(args.seconds, log=trial_log)
+    return Figures(result, format_result(result))
+
+
+register(
+    Bench(
+        "dataplane",
+        "status/s answered within the command window, next to a bare reflector and a naive "
+        "asyncio controller; latency at 10, 100, 300 robots",
+        _arguments,
+        _main,
+    )
+)

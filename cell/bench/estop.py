@@ -56,8 +56,8 @@ def _config(robots: int, rlink_port: int, dp_port: int) -> Any:
 
 def _plane(robots: int, rlink_port: int, dp_port: int, out: Any, stop: Any) -> None:
     problems = sched.place([1], 60, -5)
+    from cell.dataplane.plane import DataPlane, PlaneNode
     from cell.dataplane.tables import TP
-    from cell.services.dataplane import DataPlane, PlaneNode
 
     cfg = _config(robots, rlink_port, dp_port)
     plane = DataPlane(cfg)
@@ -121,7 +121,7 @@ def _probe_status(robot: int, seq: int) -> bytes:
 
 
 async def _trials(cfg: Any, probe: int, dp_port: int, n: int) -> dict[str, Any]:
-    from cell.services.rlink import Hub
+    from cell.rlink.hub import Hub
 
     hub = Hub(cfg)
     link_task = asyncio.ensure_future(hub.link.run())

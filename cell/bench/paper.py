@@ -27,6 +27,7 @@ What each experiment runs:
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import html
 import json
@@ -40,6 +41,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from cell.bench.registry import Bench, Figures, log, register
 
 Log = Callable[[str], None]
 
@@ -619,3 +622,29 @@ def format_result(r: dict[str, Any]) -> str:
         shown = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in figs.items())
         lines.append(f"  {key}: {shown}")
     return "\n".join(lines)
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="every experiment smaller (under 5 minutes)")
+    p.add_argument("--out", help="where to write index.html and the plots (default runs/paper-<time>)")
+    p.add_argument(
+        "--only", help="comma-separated experiments: accuracy,pid,latency,background,resubmission,scaling"
+    )
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    out = args.out or f"runs/paper-{time.strftime('%Y%m%d-%H%M%S')}"
+    only = [x for x in args.only.split(",") if x] if args.only else None
+    result = run(args.quick, out, only, log=log)
+    return Figures(result, format_result(result))
+
+
+register(
+    Bench(
+        "paper",
+        "the NSDI'22 paper's evaluation in one run: every experiment, our figures next to the paper's, "
+        "written to DIR/index.html with plots",
+        _arguments,
+        _main,
+    )
+)

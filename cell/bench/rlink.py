@@ -12,6 +12,7 @@ not come back within LOST_S count as lost.  The paper's break-even condition
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import multiprocessing as mp
 import queue
@@ -25,6 +26,7 @@ import numpy as np
 from cell import aio, sched
 from cell.bench import estop
 from cell.bench.cellproc import free_port
+from cell.bench.registry import Bench, Figures, register
 from cell.rlink.link import LinkPorts, NodeLink
 from cell.rlink.node import Node
 from cell.rlink.packet import DATA_PAYLOAD, EVENT_PAYLOAD, EventType, Kind, Packet, encode
@@ -300,3 +302,32 @@ def format_result(r: dict[str, Any]) -> str:
     if r.get("histogram_png"):
         lines.append(f"histogram: {r['histogram_png']}")
     return "\n".join(lines)
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--packets", type=int, default=10_000, help="round trips per figure (default 10000)")
+    p.add_argument("--png", metavar="PATH", help="the histogram (default runs/rlink-<time>.png)")
+    p.add_argument("--estop-trials", type=int, default=300, help="e-stops timed (default 300; 0: none)")
+    p.add_argument(
+        "--estop-robots",
+        type=int,
+        default=333,
+        help="robots (x 6 joints x 500 Hz) loading the data plane meanwhile (default 333: 1M status/s)",
+    )
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    png = args.png or f"runs/rlink-{time.strftime('%Y%m%d-%H%M%S')}.png"
+    result = run(args.packets, png=png, estop_trials=args.estop_trials, estop_robots=args.estop_robots)
+    return Figures(result, format_result(result))
+
+
+register(
+    Bench(
+        "rlink",
+        "Responsive Link: event and data round trips between two nodes, unloaded and with the data "
+        "link flooded (Table 1, Fig. 10 of the Responsive Processor paper)",
+        _arguments,
+        _main,
+    )
+)

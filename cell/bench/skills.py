@@ -34,6 +34,7 @@ paper defines it (every message carries its own send time):
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import itertools
 import time
@@ -44,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from cell.bench.cellproc import free_port, running_cell
+from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.skills.client import RobotClient, SetSpeed
 from cell.v1 import controller_pb2
@@ -281,3 +283,32 @@ def _approach_lines(r: dict[str, Any], line: Callable[[str, dict[str, float]], s
     if "png" in r:
         out.append("PNGs: " + ", ".join(r["png"].values()))
     return out
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--messages", type=int, default=2000, help="messages per figure (default 2000)")
+    p.add_argument(
+        "--increments",
+        type=int,
+        default=4,
+        help="ufloop approach increments per (speed, delta_z) of the paper's sweep, with the camera "
+        "(default 4; 0: skip)",
+    )
+    p.add_argument("--out", metavar="DIR", help="where the PNGs go (default runs/skills-<time>)")
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    out = args.out or f"runs/skills-{time.strftime('%Y%m%d-%H%M%S')}"
+    result = run(args.messages, log=log, increments=args.increments, png_dir=out)
+    return Figures(result, format_result(result))
+
+
+register(
+    Bench(
+        "skills",
+        "skill-protocol acknowledgement round trip, send gaps and switching, next to TCP echo; the Adept "
+        "paper's tau_r, switching and send gaps over ufloop's approach with the camera (Figs. 10-13)",
+        _arguments,
+        _main,
+    )
+)

@@ -17,6 +17,7 @@ the same run.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import multiprocessing as mp
 import random
@@ -26,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from cell.bench.registry import Bench, Figures, register
 from cell.snp.modular import CycleConfig
 
 WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settles meanwhile
@@ -412,3 +414,55 @@ def format_result(r: dict[str, Any]) -> str:
             f"meanwhile, the master guessed {p['guessed_by_master']} module-cycles",
         ]
     )
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--slaves", type=int, default=6, help="joint modules (default 6)")
+    p.add_argument("--seconds", type=float, default=3.0, help="length of the main trials (default 3)")
+    p.add_argument("--loss", type=float, default=0.02, help="share of datagrams lost in the loss trials")
+    p.add_argument(
+        "--slot-us",
+        type=float,
+        default=30.0,
+        help="joint j's cycle starts j slots into the period (time slots; default 30; 0: all at once)",
+    )
+    p.add_argument(
+        "--management-us",
+        type=float,
+        help="where in the period the master sends beacons and probes and the bench samples the "
+        "clocks: its management slot, after the joints' exchanges (default: CycleConfig's)",
+    )
+    p.add_argument(
+        "--cycle",
+        "--modules",
+        dest="cycle",
+        choices=("auto", "c", "python"),
+        default="auto",
+        help="where the cycle's hot paths (the modules' and the master's) run: c (built with cc on first "
+        "use), python, or auto (c if it builds)",
+    )
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    native = {"auto": None, "c": True, "python": False}[args.cycle]
+    management_ns = None if args.management_us is None else int(args.management_us * 1000)
+    result = run(
+        args.slaves,
+        args.seconds,
+        args.loss,
+        slot_ns=int(args.slot_us * 1000),
+        native=native,
+        management_ns=management_ns,
+    )
+    return Figures(result, format_result(result))
+
+
+register(
+    Bench(
+        "snp",
+        "the SpW-SnP-MR modular robot: its 1 ms cycle over time-bounded queries and over RMAP, "
+        "SnP-TSP clocks, plug and operate",
+        _arguments,
+        _main,
+    )
+)

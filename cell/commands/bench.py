@@ -1,0 +1,32 @@
+"""`cell bench TARGET`: the benches of cell.bench.registry, each next to a baseline in the same run."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from cell.commands import Command, json_arg, literal, register
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    from cell.bench.registry import discover
+
+    bsub = p.add_subparsers(dest="bench_command", required=True, metavar="TARGET")
+    for bench in discover().values():
+        q = bsub.add_parser(bench.name, help=literal(bench.help), description=literal(bench.description))
+        json_arg(q)
+        bench.arguments(q)
+        q.set_defaults(bench=bench)
+
+
+def run(args: argparse.Namespace) -> int:
+    """A bench's figures as text, then with --json as one JSON line, last."""
+    figures = args.bench.run(args)
+    if figures.text:
+        print(figures.text)
+    if args.json:
+        print(json.dumps(figures.result))
+    return figures.exit_code
+
+
+register(Command("bench", "measure hot paths next to a baseline in the same run", arguments, run, rank=45))

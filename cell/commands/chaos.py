@@ -1,0 +1,43 @@
+"""`cell chaos`: the fault campaign (docs/faults.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from cell.commands import Command, json_arg, register
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rounds", type=int, default=1, help="campaign rounds (default 1)")
+    p.add_argument(
+        "--only", nargs="+", metavar="TEXT", help="only the faults whose name contains one of these"
+    )
+    json_arg(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from cell.chaos.campaign import campaign
+
+    print(f"{'RD':>2} {'FAULT':<28} {'HELD?':<7} {'DETECT':>8} {'RECOVER':>8}  WHAT FAILED")
+    result = asyncio.run(campaign(args.rounds, args.only, log_fn=lambda line: print(line, flush=True)))
+    print(f"{result['held']} of {result['faults']} faults held every promise ({result['rounds']} round(s))")
+    if args.json:
+        print(json.dumps(result))
+    return 0 if result["failed"] == 0 else 1
+
+
+register(
+    Command(
+        "chaos",
+        "fault campaign: the default cell in --processes mode, driven while faults hit it",
+        arguments,
+        run,
+        rank=40,
+        description="Kills and hangs each service, takes the bus away, slows the controller's link, mutes a "
+        "robot, then some at once, each mid-motion; prints per fault whether the cell's promises held, the "
+        "time to detect and to recover (docs/faults.md). Exit code 0 only if every promise held.",
+    )
+)

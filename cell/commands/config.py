@@ -1,0 +1,23 @@
+"""`cell config show`: the effective configuration as TOML."""
+
+from __future__ import annotations
+
+import argparse
+
+from cell.commands import Command, config_arg, load, register
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    csub = p.add_subparsers(dest="config_command", required=True, metavar="ACTION")
+    q = csub.add_parser("show", help="print the effective configuration as TOML")
+    config_arg(q)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load(args)
+    print(f"# effective configuration: {config.source} over the embedded default\n")
+    print(config.to_toml(), end="")
+    return 0
+
+
+register(Command("config", "inspect the configuration", arguments, run, rank=30))

@@ -1,0 +1,55 @@
+"""`cell status`: a running cell's services, health, uptime and counters."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from cell.commands import Command, config_arg, load, register
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    config_arg(p)
+    p.add_argument(
+        "--timeout", type=float, default=2.0, metavar="S", help="give up after S seconds (default 2)"
+    )
+    p.add_argument("--json", action="store_true", help="print the status as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    from google.protobuf import json_format
+
+    from cell import aio, launcher
+    from cell.bus import BusError
+    from cell.status import format_status
+
+    config = load(args)
+    try:
+        st = aio.run(launcher.fetch_status(config, args.timeout))
+    except BusError as exc:
+        print(f"cell status: no cell answered ({exc})", file=sys.stderr)
+        return 1
+    if args.json:
+        print(
+            json.dumps(
+                json_format.MessageToDict(
+                    st, always_print_fields_with_no_presence=True, preserving_proto_field_name=True
+                )
+            )
+        )
+    else:
+        print(format_status(st))
+    return 0 if all(s.health == "ok" for s in st.services) else 3
+
+
+register(
+    Command(
+        "status",
+        "list a running cell's services, health, uptime and counters",
+        arguments,
+        run,
+        rank=3,
+        description="Exit code: 0 every service ok, 1 no cell answered, 3 some service not ok.",
+    )
+)

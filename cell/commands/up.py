@@ -1,0 +1,60 @@
+"""`cell up`: the whole cell, until Ctrl-C / SIGTERM or --duration."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+
+from cell.commands import Command, config_arg, load, register
+from cell.config import CellConfig, ConfigError
+
+
+def with_rerun(config: CellConfig, words: list[str]) -> CellConfig:
+    """`--rerun spawn | serve | save PATH.rrd | off`: the recorder's mode for this run."""
+    mode, *rest = words
+    if mode not in ("spawn", "serve", "save", "off") or len(rest) != (1 if mode == "save" else 0):
+        raise ConfigError("--rerun", "", "expected spawn, serve, save PATH.rrd or off")
+    recorder = replace(config.recorder, mode=mode, path=rest[0] if rest else config.recorder.path)
+    run = config.services.run
+    if mode != "off" and "recorder" not in run:
+        run = [*run, "recorder"]
+    return replace(config, recorder=recorder, services=replace(config.services, run=run))
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    config_arg(p)
+    p.add_argument("--duration", type=float, metavar="S", help="stop cleanly after S seconds")
+    p.add_argument(
+        "--layout",
+        choices=["groups", "single", "each"],
+        help="services in processes: groups (the packet path in processes of its own, pinned, real-time "
+        "priority; the rest in one), single (one process: debugging), each (one per service); "
+        "default: [services] layout",
+    )
+    p.add_argument("--processes", action="store_true", help="the same as --layout each")
+    p.add_argument(
+        "--rerun",
+        nargs="+",
+        metavar="MODE",
+        help="draw the run in Rerun: spawn (local viewer), serve (web viewer on 127.0.0.1), "
+        "save PATH.rrd, or off (default: [recorder] mode)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from cell import aio, launcher
+    from cell.service import check_all
+
+    config = load(args)
+    if args.rerun:
+        config = with_rerun(config, args.rerun)
+    layout = "each" if args.processes else args.layout
+    if layout is not None:
+        config = replace(config, services=replace(config.services, layout=layout))
+    check_all(config)  # unknown services are config errors (exit 2), before anything starts
+    return aio.run(launcher.up(config, duration=args.duration, log_level=args.log_level))
+
+
+register(
+    Command("up", "run the whole cell until Ctrl-C (or --duration)", arguments, run, rank=0, hard_exit=True)
+)

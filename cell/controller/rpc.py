@@ -1,0 +1,213 @@
+"""The controller's requests as the bus carries them (ControllerService): each method checks its
+request, calls the Controller and turns its outcomes into replies or RpcFaults with the codes users
+see (unknown_robot, bad_request, unreachable, plan, stopped, busy, timeout).  services/controller.py
+serves it on the bus.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+
+from cell.bus import BusError, RemoteError, RpcFault
+from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
+from cell.controller.plan import PlanError
+from cell.robot.kinematics import Unreachable
+from cell.robot.pose import from_adept, to_adept
+from cell.v1 import controller_pb2
+
+Kind, Frame = controller_pb2.MoveRequest.Kind, controller_pb2.MoveRequest.Frame
+
+
+class ControllerService:
+    def __init__(self, ctl: Controller) -> None:
+        self.ctl = ctl
+
+    def _robot(self, name: str) -> int:
+        try:
+            return self.ctl.config.robot(name).id
+        except KeyError:
+            raise RpcFault("unknown_robot", f"no robot named {name!r}") from None
+
+    def _reply(self, result: MotionResult) -> controller_pb2.MoveReply:
+        pos, rot = self.ctl.pose_of(result.q_end)
+        return controller_pb2.MoveReply(
+            t_start_ns=result.start_ns,
+            t_end_ns=result.end_ns,
+            joints=result.q_end.tolist(),
+            pose=to_adept(pos, rot),
+        )
+
+    async def _guard(self, coro) -> controller_pb2.MoveReply:
+        try:
+            result = await coro
+        except Unreachable as exc:
+            raise RpcFault("unreachable", exc.reason) from None
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        except MotionStopped as exc:
+            raise RpcFault("stopped", str(exc)) from None
+        except BusError as exc:
+            raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
+        return controller_pb2.MoveReply() if result is None else self._reply(result)
+
+    async def move(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
+        rid = self._robot(req.robot)
+        speed = _speed(req.speed)
+        values = np.array(req.values, np.float64)
+        ctl = self.ctl
+        wait = not req.start_only
+        track = ctl.track(rid)
+        if req.kind == Kind.JOINTS:
+            values = _joints(req, track)
+            if req.frame != Frame.ABSOLUTE:
+                values = values + await self._start(track)
+            return await self._guard(ctl.move_joints(rid, values, speed, req.fine, wait))
+        try:
+            d_pos, d_rot = from_adept(values)
+        except ValueError as exc:
+            raise RpcFault("bad_request", str(exc)) from None
+        pos, rot = d_pos, d_rot
+        if req.frame != Frame.ABSOLUTE:
+            here_pos, here_rot = ctl.pose_of(await self._start(track))
+            if req.frame == Frame.WORLD:
+                pos, rot = here_pos + d_pos, d_rot @ here_rot
+            else:
+                pos, rot = here_pos + here_rot @ d_pos, here_rot @ d_rot
+        if req.kind == Kind.LINEAR:
+            return await self._guard(ctl.move_linear(rid, pos, rot, speed, req.fine, wait))
+        return await self._guard(ctl.move_to(rid, pos, rot, speed, req.fine, wait))
+
+    async def move_together(self, req: controller_pb2.MoveTogetherRequest) -> controller_pb2.MoveReply:
+        if not req.moves:
+            raise RpcFault("bad_request", "no moves")
+        goals: dict[int | str, np.ndarray] = {}
+        for m in req.moves:
+            rid = self._robot(m.robot)
+            track = self.ctl.track(rid)
+            values = _joints(m, track)
+            goals[rid] = values + await self._start(track) if m.frame != Frame.ABSOLUTE else values
+        return await self._guard(self.ctl.move_together(goals, _speed(req.moves[0].speed)))
+
+    async def replan(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
+        """Switch a moving robot onto a new joint motion on the fly (TrajectorySwitcher); replies
+        when the new motion has ended."""
+        rid = self._robot(req.robot)
+        values = _joints(req, self.ctl.track(rid))
+        return await self._guard(self.ctl.replan(rid, values, _speed(req.speed)))
+
+    async def _start(self, track: Track) -> np.ndarray:
+        try:
+            return await self.ctl.start_q(track)
+        except PlanError as exc:
+            raise RpcFault("busy", str(exc)) from None
+
+    async def stop(self, req: controller_pb2.StopRequest) -> controller_pb2.StopReply:
+        names = list(req.robots) or [r.name for r in self.ctl.config.robots]
+        ids = [self._robot(n) for n in names]
+        results = await self.ctl.stop(ids)
+        tracks = [self.ctl.track(i) for i in results]
+        stopped = [r.name for r in self.ctl.config.robots if any(r.id in t.robots for t in tracks)]
+        t_ns = max((r.start_ns for r in results.values()), default=0)
+        return controller_pb2.StopReply(robots=stopped, t_ns=t_ns)
+
+    async def resume(self, req: controller_pb2.RobotRequest) -> controller_pb2.MoveReply:
+        return await self._guard(self.ctl.resume(self._robot(req.robot)))
+
+    async def arrive(self, req: controller_pb2.ArriveRequest) -> controller_pb2.PoseReply:
+        rid = self._robot(req.robot)
+        try:
+            q, t_ns = await self.ctl.arrive(rid, req.tolerance_rad or 2e-4, req.timeout_s or 60.0)
+        except MotionStopped as exc:
+            raise RpcFault("stopped", str(exc)) from None
+        except BusError as exc:  # (a BusTimeout is a TimeoutError too: not the robot's)
+            raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
+        except TimeoutError:
+            raise RpcFault(
+                "timeout", f"robot {req.robot} did not arrive within {req.timeout_s or 60.0} s"
+            ) from None
+        pos, rot = self.ctl.pose_of(q)
+        return controller_pb2.PoseReply(joints=q.tolist(), pose=to_adept(pos, rot), t_ns=t_ns)
+
+    async def pose(self, req: controller_pb2.RobotRequest) -> controller_pb2.PoseReply:
+        track = self.ctl.track(self._robot(req.robot))
+        try:
+            q, _, t_ns = await self.ctl.joints_now(track)
+        except PlanError as exc:
+            raise RpcFault("unknown_robot", str(exc)) from None
+        pos, rot = self.ctl.pose_of(q)
+        return controller_pb2.PoseReply(joints=q.tolist(), pose=to_adept(pos, rot), t_ns=t_ns)
+
+    # --- prepared ahead (cell.controller.prepared) --------------------------------------------
+
+    def _goal(self, values, track: Track) -> np.ndarray:
+        q = np.array(values, np.float64)
+        if q.size != track.joints or not np.isfinite(q).all():
+            raise RpcFault("bad_request", f"a goal takes {track.joints} finite joint values, got {q.size}")
+        return q
+
+    async def prepare_alternates(
+        self, req: controller_pb2.AlternatesRequest
+    ) -> controller_pb2.AlternatesReply:
+        rid = self._robot(req.robot)
+        track = self.ctl.track(rid)
+        if not req.alternates or len({a.name for a in req.alternates}) != len(req.alternates):
+            raise RpcFault("bad_request", "alternates need distinct names, at least one")
+        goals = {a.name: self._goal(a.values, track) for a in req.alternates}
+        try:
+            n = await self.ctl.prepare_alternates(rid, goals, _speed(req.speed), req.every or 1)
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        except RemoteError as exc:  # the data plane refused them (a full table says why)
+            raise RpcFault(exc.code, exc.message) from None
+        _, branches = self.ctl.alternates[rid]
+        return controller_pb2.AlternatesReply(tps_loaded=n, branch_points=len(next(iter(branches.values()))))
+
+    async def take_alternate(self, req: controller_pb2.TakeAlternate) -> controller_pb2.MoveReply:
+        return await self._guard(self.ctl.take_alternate(self._robot(req.robot), req.name))
+
+    async def loop(self, req: controller_pb2.LoopRequest) -> controller_pb2.LoopReply:
+        rid = self._robot(req.robot)
+        track = self.ctl.track(rid)
+        values = np.array(req.values, np.float64)
+        if values.size == 0 or values.size % track.joints or not np.isfinite(values).all():
+            raise RpcFault("bad_request", f"waypoints take {track.joints} finite joint values each")
+        waypoints = list(values.reshape(-1, track.joints))
+        try:
+            run = await self.ctl.run_loop(rid, waypoints, _speed(req.speed), req.laps)
+            laps = 0
+            if not req.start_only:
+                laps = await asyncio.shield(run.done)
+                await self.ctl.wait_idle(rid)  # (back where it began)
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        except MotionStopped as exc:
+            raise RpcFault("stopped", str(exc)) from None
+        return controller_pb2.LoopReply(t_start_ns=run.start_ns, lap_ns=run.lap_ns, laps=laps)
+
+    async def end_loop(self, req: controller_pb2.RobotRequest) -> controller_pb2.LoopReply:
+        rid = self._robot(req.robot)
+        run = self.ctl.loops.get(rid)
+        try:
+            laps = await self.ctl.end_loop(rid)
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        assert run is not None
+        return controller_pb2.LoopReply(t_start_ns=run.start_ns, lap_ns=run.lap_ns, laps=laps)
+
+
+def _speed(percent: float) -> float:
+    """A request's speed (percent, 0 meaning 100) as a factor; bad_request outside (0, 100]."""
+    speed = (percent or 100.0) / 100.0
+    if not 0.0 < speed <= 1.0:
+        raise RpcFault("bad_request", f"speed must be in (0, 100] %, got {percent}")
+    return speed
+
+
+def _joints(m: controller_pb2.MoveRequest, track: Track) -> np.ndarray:
+    """A joint-space request's joint positions; bad_request unless one finite value per joint."""
+    values = np.array(m.values, np.float64)
+    if m.kind != Kind.JOINTS or values.size != track.joints or not np.isfinite(values).all():
+        raise RpcFault("bad_request", f"{m.robot}: {track.joints} finite joint positions (rad) expected")
+    return values

@@ -1,0 +1,182 @@
+"""The robots' side of the cell: their groups built from the config, their announcements, the
+Publisher that tells the bus what they do (truth, events), and their Responsive Link node (stops and
+resumes read between ticks).  Served by services/robots.py.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+
+import numpy as np
+
+from cell.bus import Bus
+from cell.config import CellConfig, RobotConfig, parse_host_port
+from cell.rlink.events import Reason, RobotState, StateReport
+from cell.rlink.leaf import LeafNode
+from cell.rlink.packet import EventType, Kind
+from cell.rlink.station import Order
+from cell.robot.emulator import RobotGroup
+from cell.v1 import robot_pb2
+
+ANNOUNCE_S = 2.0
+STILL_RAD_S = 1e-3  # a stopped robot stands still once every joint is slower than this
+
+
+def build_groups(config: CellConfig) -> list[RobotGroup]:
+    """This host's robots, one group per (backend, model, rates); they bind this host's address (in a
+    cell of one host: the data plane's)."""
+    by_key: dict[tuple, list[RobotConfig]] = defaultdict(list)
+    for r in config.local_robots():
+        by_key[(r.backend, r.model, r.status_hz, r.command_hz)].append(r)
+    here = config.here()
+    host = here.address if here is not None else parse_host_port(config.dataplane.listen)[0]
+    if config.dataplane.backend == "xdp" and here is None:  # the switch's namespace is not ours: its veth
+        host = config.dataplane.xdp.host_addr
+    groups: list[RobotGroup] = []
+    try:
+        groups.extend(RobotGroup(robots, config.dataplane.listen, host=host) for robots in by_key.values())
+    except BaseException:
+        for g in groups:
+            g.close()
+        raise
+    return groups
+
+
+def announcements(group: RobotGroup, dataplane: str) -> list[robot_pb2.RobotAnnounce]:
+    lim = group.arm.limits
+    origin = group.origin_ns + (time.time_ns() - time.monotonic_ns()) if group.origin_ns else 0
+    return [
+        robot_pb2.RobotAnnounce(
+            robot_id=r.id,
+            name=r.name,
+            model=r.model,
+            backend=r.backend,
+            joints=group.dof,
+            q_min=lim.q_min,
+            q_max=lim.q_max,
+            v_max=lim.v_max,
+            a_max=lim.a_max,
+            udp_address=addr,
+            status_hz=r.status_hz,
+            command_hz=r.command_hz,
+            dataplane=dataplane,
+            window_origin_ns=origin,
+        )
+        for r, addr in zip(group.robots, group.addresses(), strict=True)
+    ]
+
+
+class Publisher:
+    """What one group tells the bus after each tick."""
+
+    def __init__(self, bus: Bus, group: RobotGroup, node: RobotsNode | None = None) -> None:
+        self.bus = bus
+        self.node = node
+        hz = group.robots[0].truth_hz
+        self.every = max(1, round(group.robots[0].status_hz / hz)) if hz > 0 else 0
+        self.names = [r.name for r in group.robots]
+
+    def __call__(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
+        if self.node is not None:
+            self.node.after_tick(group)
+        now = time.monotonic_ns()
+        for rows, kind, text in (
+            (stopping, robot_pb2.RobotEvent.KIND_PROTECTIVE_STOP, "no command for the watchdog's windows"),
+            (resuming, robot_pb2.RobotEvent.KIND_RESUMED, "commands resumed"),
+        ):
+            for row in rows:
+                r = group.robots[row]
+                ev = robot_pb2.RobotEvent(robot_id=r.id, name=r.name, kind=kind, text=text, t_ns=now)
+                self.bus.publish(f"events/robot/{r.name}", ev)
+        if self.every and group.tick_no % self.every == 0:
+            b = group.backend
+            at = round(group.state_time * 1e9)  # CLOCK_MONOTONIC ns of the state, not of publishing
+            for row, name in enumerate(self.names):
+                q = b.q[row]
+                self.bus.publish(
+                    f"truth/{name}",
+                    robot_pb2.RobotTruth(
+                        robot_id=int(group.ids[row]),
+                        t_ns=at,
+                        q=q,
+                        qd=b.qd[row],
+                        tool_pose=group.arm.tool_pose(q),
+                        target=group.drives.target[row],
+                        stopped=bool(group.drives.stopped[row]),
+                        tick=group.tick_no,
+                    ),
+                )
+
+
+class RobotsNode(LeafNode):
+    """The robots' Responsive Link node: halts and releases drives, reports when robots stand."""
+
+    role = "robots"
+
+    def __init__(self, groups: list[RobotGroup], config: CellConfig) -> None:
+        self.rows = {int(rid): (g, row) for g in groups for row, rid in enumerate(g.ids)}
+        super().__init__(config, set(self.rows))
+        self.waiting: dict[int, tuple[int, Reason]] = {}  # robot -> (when its stop came, why)
+        self.halt_us: list[float] = []  # event read -> drives halted
+        self.still_ms: list[float] = []  # stop order -> standing still
+
+    def apply(self, order: Order) -> None:
+        brake = order.emergency or order.reason == Reason.WATCHDOG
+        now = time.monotonic_ns()
+        for rid in order.robots:
+            g, row = self.rows[rid]
+            if order.stop:
+                if brake:
+                    g.drives.halt(np.array([row]))
+                self.waiting.setdefault(rid, (now, order.reason))
+                self.report(rid, RobotState.STOPPING, order.reason)
+            else:
+                g.drives.halt(np.array([row]), on=False)
+                self.waiting.pop(rid, None)
+                self.report(rid, RobotState.RESUMED, order.reason)
+        if order.stop and brake:
+            self.halt_us.append((time.perf_counter_ns() - self.link.arrived_ns) / 1e3)
+            del self.halt_us[:-1024]
+
+    def report(self, robot: int, state: RobotState, reason: Reason, detail: int = 0) -> None:
+        payload = StateReport(robot, state, reason, detail).encode()
+        self.link.send(Kind.EVENT, self.hub, EventType.STATE, payload, priority=2)
+
+    def after_tick(self, group: RobotGroup) -> None:
+        """Robots that were stopped and now stand: reported once."""
+        if not self.waiting:
+            return
+        now = time.monotonic_ns()
+        for rid, (since, why) in list(self.waiting.items()):
+            g, row = self.rows[rid]
+            if g is not group:
+                continue
+            if np.abs(g.backend.qd[row]).max() < STILL_RAD_S and not g.drives.velocity[row].any():
+                del self.waiting[rid]
+                self.still_ms.append((now - since) / 1e6)
+                del self.still_ms[:-1024]
+                self.report(rid, RobotState.STILL, why, (now - since) // 1000)
+
+    def counters(self) -> dict[str, float]:
+        out = super().counters()
+        if self.halt_us:
+            out["rlink.halt_us_max"] = max(self.halt_us)
+        if self.still_ms:
+            out["rlink.still_ms_max"] = max(self.still_ms)
+        return out
+
+
+def counters(groups: list[RobotGroup]) -> dict[str, float]:
+    total: dict[str, float] = defaultdict(float)
+    for g in groups:
+        for k, v in g.counters.as_dict().items():
+            total[k] = max(total[k], v) if k.startswith("lateness") else total[k] + v
+    total["robots"] = sum(g.n for g in groups)
+    return dict(total)
+
+
+def has_node(config: CellConfig) -> bool:
+    """The robots' Responsive Link node runs beside the hub (in a cell of several hosts, on its host;
+    robots elsewhere stop on the data plane's stop ramp)."""
+    return not config.hosts or "rlink" in config.services.run
