@@ -83,6 +83,13 @@ def _joint_vector(v: list[float]) -> str | None:
     return None if len(v) == 6 else f"must list 6 joint values in rad (got {len(v)})"
 
 
+def _robot_model(v: str) -> str | None:
+    """A name in the robot-model registry (cell.robot.models: no MuJoCo imported to check it)."""
+    from cell.robot.models import MODELS
+
+    return None if v in MODELS else f"unknown robot model {v!r} (known: {', '.join(sorted(MODELS))})"
+
+
 def _check_run(run: list[str], err: Callable[[str, str], ConfigError]) -> None:
     """A `run` list: service names, each once."""
     for i, name in enumerate(run):
@@ -400,17 +407,21 @@ class RlinkConfig:
 class RobotConfig:
     id: int = _check(lambda v: None if 1 <= v <= 0xFFFF else f"must be 1..65535 (got {v})")
     name: str = _check(_name)
-    model: Literal["ur5e"]
+    model: str = _check(_robot_model)  # a name of cell.robot.models' registry
     backend: Literal["mujoco", "kinematic"]
     skill_port: int = _check(_port)
     status_hz: int = _check(_positive)
     command_hz: int = _check(_positive)
     truth_hz: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
     watchdog_windows: int = _check(_positive)
-    q0: list[float] = field(metadata={"check": _joint_vector})
+    q0: list[float]  # one per joint of the model (RobotConfig.validate)
     host: str = _check(lambda v: None if v == "" else _name(v))  # the host emulating it ("": the only one)
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        from cell.robot.models import get
+
+        if len(self.q0) != (joints := get(self.model).joints):
+            raise err("q0", f"must list {joints} joint values in rad, one per joint of a {self.model}")
         if self.command_hz > self.status_hz:
             raise err("command_hz", f"must be <= status_hz ({self.status_hz})")
         if self.status_hz % self.command_hz:
@@ -423,13 +434,13 @@ class RobotConfig:
 class RobotDefaults:
     """Keys every [[robots]] entry inherits unless it sets them itself."""
 
-    model: Literal["ur5e"]
+    model: str = _check(_robot_model)
     backend: Literal["mujoco", "kinematic"]
     status_hz: int = _check(_positive)
     command_hz: int = _check(_positive)
     truth_hz: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
     watchdog_windows: int = _check(_positive)
-    q0: list[float] = field(metadata={"check": _joint_vector})
+    q0: list[float]  # one per joint of the model (RobotConfig.validate)
     host: str = _check(lambda v: None if v == "" else _name(v))
 
 

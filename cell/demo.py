@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from cell.config import RobotConfig
 from cell.robot.arm import arm_model
 from cell.robot.truth import Truth
 from cell.skills.client import DisableAir, EnableAir, MoveJoints, MoveRelWorld, MoveToolZ, SetSpeed
@@ -33,8 +34,9 @@ M = controller_pb2.MoveRequest
 class Watch:
     """Ground truth (cell.robot.truth) and plans as they come, for the accuracy figures."""
 
-    def __init__(self, names: dict[int, str]) -> None:
-        self.names = names  # robot id -> name
+    def __init__(self, robots: list[RobotConfig]) -> None:
+        self.names = {r.id: r.name for r in robots}
+        self.models = {r.id: r.model for r in robots}  # (each robot's tool is its own model's)
         self.truth = Truth()
         self.plans: list[tuple[int, np.ndarray, np.ndarray]] = []
 
@@ -49,9 +51,9 @@ class Watch:
     def path_errors_mm(self) -> np.ndarray:
         """The tool's distance from the plan at each planned point's time (mm); a plan counts only
         until the robot's next plan (a switch or a stop replaces the rest of it)."""
-        arm = arm_model()
         out = []
         for k, (rid, t, q) in enumerate(self.plans):
+            arm = arm_model(self.models[rid])
             later = [p[1][0] for p in self.plans[k + 1 :] if p[0] == rid]
             until = min(later) if later else np.inf
             ts = self.truth.t.get(self.names[rid], [])
@@ -107,7 +109,7 @@ async def ask(cell: Any, method: str, req: Any, reply_type: Any, timeout: float 
 
 async def main(cell: Any) -> None:
     t0 = time.monotonic()
-    watch = Watch({r.id: r.name for r in cell.config.robots})
+    watch = Watch(cell.config.robots)
     watcher = asyncio.create_task(watch.run(cell))
     await asyncio.sleep(0.2)
     r1, r2 = cell.robot("r1"), cell.robot("r2")

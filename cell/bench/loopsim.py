@@ -58,7 +58,7 @@ class Loop:
     def __init__(self, controller: str, backend: str = "mujoco", pid: Pid = Pid()) -> None:
         cfg = load_config(None)
         dpc, cc = cfg.dataplane, cfg.controller
-        arm = arm_model()
+        arm = arm_model(cfg.robots[0].model)  # (the default cell's first robot)
         lim = arm.limits
         self.limits = MotionLimits(
             v_max=np.minimum(lim.v_max, dpc.v_max),
@@ -74,7 +74,7 @@ class Loop:
         self.tables.add_robot(1, 6)
         constants = ControlConstants(tuple(dpc.c1), tuple(dpc.c2), dpc.n_bits, tuple(dpc.v_max))
         self.pipe = Pipeline(self.tables, constants)
-        self.kin = Kinematics()
+        self.kin = Kinematics(arm)
         self.tick = 0
         self.inbox: np.ndarray | None = None
         self.next_id = 1

@@ -23,42 +23,38 @@ kept as for them, so stops, re-plans and the next motion work as usual.
 from __future__ import annotations
 
 import asyncio
-import time
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cell.controller.engine import Engine
 from cell.controller.plan import PlanError, plan_joint, plan_loop
+from cell.controller.schedule import (
+    SWITCH_MARGIN_NS,
+    Alternate,
+    Armed,
+    LoopRun,
+    MotionResult,
+    MotionStopped,
+    Segment,
+    Switch,
+    concat,
+    hold_batch,
+    tp_batch,
+    window_ns,
+)
 from cell.controller.tps import cut
 
-if TYPE_CHECKING:
-    from cell.controller.controller import Controller, MotionResult, Segment, Track
 
-WINDOW_NS = 8_000_000  # a command window, for robots that have not told their grid
-
-
-def _window_ns(ctl: Controller, robot: int) -> int:
-    grid = ctl.grids.get(robot)
-    return WINDOW_NS if grid is None else grid[1] * grid[2]
+def _window_ns(ctl: Engine, robot: int) -> int:
+    return window_ns(ctl.grids.get(robot))
 
 
 # --- armed starts ---------------------------------------------------------------------------------
 
 
-@dataclass
-class Armed:
-    """Motions loaded and held, started by fire()."""
-
-    planned: list[tuple[Track, Segment, int]]  # (track, its motion, its hold TP)
-    period_ns: int  # the holds step together every period from their registers' time
-    armed_ns: int = field(default_factory=time.monotonic_ns)
-
-
-async def arm(ctl: Controller, goals: dict[int | str, np.ndarray], speed: float = 1.0) -> Armed:
+async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.0) -> Armed:
     """Load each robot's joint motion to its goal behind a hold that steps onto itself once a
     command window (all holds at the same times, on the first robot's window grid)."""
-    from cell.controller.controller import Segment, _concat
 
     planned = []
     for robot, q_goal in goals.items():
@@ -80,13 +76,13 @@ async def arm(ctl: Controller, goals: dict[int | str, np.ndarray], speed: float 
     for track, motion, sections, (hold_id, *ids) in planned:
         q0 = motion.sample(np.array([0.0]))[0][0]
         seg = Segment(start, motion, sections, ids, tick0 if track.robot == lead else None, track.robot)
-        batches.append(ctl._hold_batch(track, hold_id, hold_id, q0, period / 1e9))
-        batches.append(ctl._batch(track, seg, 0, min(ctl.episode, len(ids))))
+        batches.append(hold_batch(track, hold_id, hold_id, q0, period / 1e9))
+        batches.append(tp_batch(track, seg, 0, min(ctl.episode, len(ids))))
         registers.append((track.robot, hold_id, at))
         remove += [(track.robot, i) for i in track.loaded]
         out.append((track, seg, hold_id))
     async with ctl.loading:
-        await ctl.dp.update(insert=_concat(batches), remove=remove, registers=registers)
+        await ctl.dp.update(insert=concat(batches), remove=remove, registers=registers)
         for track, seg, hold_id in out:
             track.loads += 1
             track.loaded = [hold_id, *seg.ids[: ctl.episode]]
@@ -94,10 +90,9 @@ async def arm(ctl: Controller, goals: dict[int | str, np.ndarray], speed: float 
     return Armed(out, period)
 
 
-async def fire(ctl: Controller, armed: Armed, wait: bool = True) -> MotionResult:
+async def fire(ctl: Engine, armed: Armed, wait: bool = True) -> MotionResult:
     """Start armed motions: one update sets every hold's switch entry; they leave their holds at
     the same hold step, the first after the update is in."""
-    from cell.controller.controller import MotionResult
 
     switches = [(track.robot, hold_id, seg.ids[0]) for track, seg, hold_id in armed.planned]
     async with ctl.loading:
@@ -118,8 +113,8 @@ async def fire(ctl: Controller, armed: Armed, wait: bool = True) -> MotionResult
         seg.start_ns = start
         track.stop_reason = None
         track.segment, track.q_hold = seg, None
-        track.task = asyncio.ensure_future(ctl._stream(track, seg, 1))
-        ctl._publish_plan(track, seg)
+        ctl.stream(track, seg)
+        ctl.publish_plan(track, seg)
     tracks = [t for t, _, _ in armed.planned]
     end = max(seg.end_ns for _, seg, _ in armed.planned)
     q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in armed.planned])
@@ -131,29 +126,11 @@ async def fire(ctl: Controller, armed: Armed, wait: bool = True) -> MotionResult
 # --- loops ------------------------------------------------------------------------------------------
 
 
-@dataclass
-class LoopRun:
-    """A loop under way: its laps, and the exit the controller sets (end_loop())."""
-
-    track: Track
-    q0: np.ndarray  # where each lap starts and ends
-    start_ns: int
-    lap_ns: int
-    last_id: int  # the lap's last TP: its switch entry leads out
-    exit_id: int
-    laps: int  # 0: until ended
-    done: asyncio.Future[int] = field(default_factory=lambda: asyncio.get_running_loop().create_future())
-
-    def lap_end_ns(self, n: int) -> int:
-        return self.start_ns + n * self.lap_ns
-
-
 async def run_loop(
-    ctl: Controller, robot: int | str, waypoints: list[np.ndarray], speed: float = 1.0, laps: int = 0
+    ctl: Engine, robot: int | str, waypoints: list[np.ndarray], speed: float = 1.0, laps: int = 0
 ) -> LoopRun:
     """Load a lap (from where the robot stands through the waypoints and back) once, linked into a
     loop, and start it; it runs `laps` laps (0: until end_loop()).  Await run.done for the laps run."""
-    from cell.controller.controller import Segment, _concat
 
     if laps < 0:
         raise PlanError(f"laps must be >= 0 (0: until ended), got {laps}")
@@ -172,13 +149,13 @@ async def run_loop(
         await ctl.link.state()
         start, at, tick0 = ctl.grid_start(track.robot, ctl.link.now() + ctl.lead_ns + 2 * ctl.link.rtt_ns)
         seg = Segment(start, motion, sections, ids, tick0, track.robot)
-        lap = ctl._batch(track, seg, 0, len(ids))  # the lap, then the exit hold
+        lap = tp_batch(track, seg, 0, len(ids))  # the lap, then the exit hold
         lap.next_id[-2] = ids[0]  # TPStepper: the lap's last TP leads back to its first
-        batches = [ctl._hold_batch(track, hold_id, ids[0], q0), lap]
+        batches = [hold_batch(track, hold_id, ids[0], q0), lap]
         switches = [(track.robot, ids[-2], ids[-1])] if laps == 1 else []
         async with ctl.loading:
             reply = await ctl.dp.update(
-                insert=_concat(batches),
+                insert=concat(batches),
                 remove=[(track.robot, i) for i in track.loaded],
                 switches=switches,
                 registers=[(track.robot, hold_id, at)],
@@ -192,14 +169,13 @@ async def run_loop(
         run = LoopRun(track, q0, start, round(motion.duration * 1e9), ids[-2], ids[-1], laps)
         if laps == 1:
             run.done.set_result(1)
-        track.task = asyncio.ensure_future(_follow_loop(ctl, run))
+        ctl.run_motion(track, _follow_loop(ctl, run))
         ctl.loops[track.robot] = run
     return run
 
 
-async def _follow_loop(ctl: Controller, run: LoopRun) -> None:
+async def _follow_loop(ctl: Engine, run: LoopRun) -> None:
     """Set the exit when the laps asked for are nearly run; done once the robot holds at the start."""
-    from cell.controller.controller import MotionStopped
 
     track = run.track
     try:
@@ -217,7 +193,7 @@ async def _follow_loop(ctl: Controller, run: LoopRun) -> None:
             run.done.exception()  # (retrieved: no warning if nobody waits)
 
 
-async def end_loop(ctl: Controller, robot: int | str) -> int:
+async def end_loop(ctl: Engine, robot: int | str) -> int:
     """Lead the loop out at the end of the lap the update can still reach; how many laps it runs."""
     track = ctl.track(robot)
     run = ctl.loops.get(track.robot)
@@ -242,16 +218,8 @@ async def end_loop(ctl: Controller, robot: int | str) -> int:
 # --- alternates -----------------------------------------------------------------------------------
 
 
-@dataclass
-class Alternate:
-    """One prepared branch: from TP k of the main motion to another goal."""
-
-    k: int
-    segment: Segment
-
-
 async def prepare_alternates(
-    ctl: Controller, robot: int | str, goals: dict[str, np.ndarray], speed: float = 1.0, every: int = 1
+    ctl: Engine, robot: int | str, goals: dict[str, np.ndarray], speed: float = 1.0, every: int = 1
 ) -> int:
     """For the robot's running motion: a branch to each goal from every `every`-th TP ahead (the
     first episode of each loaded now); how many TPs that loaded.
@@ -260,7 +228,6 @@ async def prepare_alternates(
     at 10 TP/s with two alternates from every TP is some 80 branches, seconds of work, which is
     why they are prepared ahead; `every` trades that, and the TPs loaded, against how soon after
     the event the switch can come."""
-    from cell.controller.controller import Segment, _concat
 
     track = ctl.track(robot)
     seg = track.segment
@@ -284,21 +251,20 @@ async def prepare_alternates(
             alt = Segment(
                 seg.t_ns(k), motion, sections, ids, tick0 if seg.tick0 is not None else None, seg.robot
             )
-            batches.append(ctl._batch(track, alt, 0, min(ctl.episode, len(ids))))
+            batches.append(tp_batch(track, alt, 0, min(ctl.episode, len(ids))))
             branches.append(Alternate(k, alt))
         prepared[name] = branches
     if not batches:
         raise PlanError("the motion ends too soon to branch off it")
-    batch = _concat(batches)
+    batch = concat(batches)
     await ctl._apply(track, batch, [])
     ctl.alternates[track.robot] = (seg, prepared)
     return len(batch)
 
 
-async def take_alternate(ctl: Controller, robot: int | str, name: str) -> MotionResult:
+async def take_alternate(ctl: Engine, robot: int | str, name: str) -> MotionResult:
     """Switch onto the prepared branch `name` at the next TP the update reaches in time; returns
     when the branch has ended."""
-    from cell.controller.controller import SWITCH_MARGIN_NS, MotionResult, Switch
 
     track = ctl.track(robot)
     main, prepared = ctl.alternates.get(track.robot, (None, {}))
@@ -330,7 +296,6 @@ async def take_alternate(ctl: Controller, robot: int | str, name: str) -> Motion
     ctl.last_switch = Switch(branch, t_b, (t_b - reply.now_ns) / 1e6, q_pred[0], v_pred[0])
     ctl.alternates.pop(track.robot, None)
     track.segment = alt.segment
-    track.task = asyncio.ensure_future(ctl._stream(track, alt.segment, 1))
-    ctl._publish_plan(track, alt.segment)
-    await track.task
-    return MotionResult(t_b, alt.segment.end_ns, alt.segment.sections.q[-1].copy())
+    ctl.stream(track, alt.segment)
+    ctl.publish_plan(track, alt.segment)
+    return await ctl.finish([track], MotionResult(t_b, alt.segment.end_ns, alt.segment.sections.q[-1].copy()))

@@ -30,8 +30,8 @@ class ControllerService:
         except KeyError:
             raise RpcFault("unknown_robot", f"no robot named {name!r}") from None
 
-    def _reply(self, result: MotionResult) -> controller_pb2.MoveReply:
-        pos, rot = self.ctl.pose_of(result.q_end)
+    def _reply(self, robot: int, result: MotionResult) -> controller_pb2.MoveReply:
+        pos, rot = self.ctl.pose_of(robot, result.q_end)
         return controller_pb2.MoveReply(
             t_start_ns=result.start_ns,
             t_end_ns=result.end_ns,
@@ -39,7 +39,8 @@ class ControllerService:
             pose=to_adept(pos, rot),
         )
 
-    async def _guard(self, coro) -> controller_pb2.MoveReply:
+    async def _guard(self, robot: int, coro) -> controller_pb2.MoveReply:
+        """The motion's reply (its end pose is the first robot's of a shared start), or its fault."""
         try:
             result = await coro
         except Unreachable as exc:
@@ -50,7 +51,7 @@ class ControllerService:
             raise RpcFault("stopped", str(exc)) from None
         except BusError as exc:
             raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
-        return controller_pb2.MoveReply() if result is None else self._reply(result)
+        return controller_pb2.MoveReply() if result is None else self._reply(robot, result)
 
     async def move(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
         rid = self._robot(req.robot)
@@ -63,21 +64,21 @@ class ControllerService:
             values = _joints(req, track)
             if req.frame != Frame.ABSOLUTE:
                 values = values + await self._start(track)
-            return await self._guard(ctl.move_joints(rid, values, speed, req.fine, wait))
+            return await self._guard(rid, ctl.move_joints(rid, values, speed, req.fine, wait))
         try:
             d_pos, d_rot = from_adept(values)
         except ValueError as exc:
             raise RpcFault("bad_request", str(exc)) from None
         pos, rot = d_pos, d_rot
         if req.frame != Frame.ABSOLUTE:
-            here_pos, here_rot = ctl.pose_of(await self._start(track))
+            here_pos, here_rot = ctl.pose_of(rid, await self._start(track))
             if req.frame == Frame.WORLD:
                 pos, rot = here_pos + d_pos, d_rot @ here_rot
             else:
                 pos, rot = here_pos + here_rot @ d_pos, here_rot @ d_rot
         if req.kind == Kind.LINEAR:
-            return await self._guard(ctl.move_linear(rid, pos, rot, speed, req.fine, wait))
-        return await self._guard(ctl.move_to(rid, pos, rot, speed, req.fine, wait))
+            return await self._guard(rid, ctl.move_linear(rid, pos, rot, speed, req.fine, wait))
+        return await self._guard(rid, ctl.move_to(rid, pos, rot, speed, req.fine, wait))
 
     async def move_together(self, req: controller_pb2.MoveTogetherRequest) -> controller_pb2.MoveReply:
         if not req.moves:
@@ -88,14 +89,15 @@ class ControllerService:
             track = self.ctl.track(rid)
             values = _joints(m, track)
             goals[rid] = values + await self._start(track) if m.frame != Frame.ABSOLUTE else values
-        return await self._guard(self.ctl.move_together(goals, _speed(req.moves[0].speed)))
+        first = self._robot(req.moves[0].robot)
+        return await self._guard(first, self.ctl.move_together(goals, _speed(req.moves[0].speed)))
 
     async def replan(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
         """Switch a moving robot onto a new joint motion on the fly (TrajectorySwitcher); replies
         when the new motion has ended."""
         rid = self._robot(req.robot)
         values = _joints(req, self.ctl.track(rid))
-        return await self._guard(self.ctl.replan(rid, values, _speed(req.speed)))
+        return await self._guard(rid, self.ctl.replan(rid, values, _speed(req.speed)))
 
     async def _start(self, track: Track) -> np.ndarray:
         try:
@@ -113,7 +115,8 @@ class ControllerService:
         return controller_pb2.StopReply(robots=stopped, t_ns=t_ns)
 
     async def resume(self, req: controller_pb2.RobotRequest) -> controller_pb2.MoveReply:
-        return await self._guard(self.ctl.resume(self._robot(req.robot)))
+        rid = self._robot(req.robot)
+        return await self._guard(rid, self.ctl.resume(rid))
 
     async def arrive(self, req: controller_pb2.ArriveRequest) -> controller_pb2.PoseReply:
         rid = self._robot(req.robot)
@@ -127,16 +130,16 @@ class ControllerService:
             raise RpcFault(
                 "timeout", f"robot {req.robot} did not arrive within {req.timeout_s or 60.0} s"
             ) from None
-        pos, rot = self.ctl.pose_of(q)
+        pos, rot = self.ctl.pose_of(rid, q)
         return controller_pb2.PoseReply(joints=q.tolist(), pose=to_adept(pos, rot), t_ns=t_ns)
 
     async def pose(self, req: controller_pb2.RobotRequest) -> controller_pb2.PoseReply:
-        track = self.ctl.track(self._robot(req.robot))
+        rid = self._robot(req.robot)
         try:
-            q, _, t_ns = await self.ctl.joints_now(track)
+            q, _, t_ns = await self.ctl.joints_now(self.ctl.track(rid))
         except PlanError as exc:
             raise RpcFault("unknown_robot", str(exc)) from None
-        pos, rot = self.ctl.pose_of(q)
+        pos, rot = self.ctl.pose_of(rid, q)
         return controller_pb2.PoseReply(joints=q.tolist(), pose=to_adept(pos, rot), t_ns=t_ns)
 
     # --- prepared ahead (cell.controller.prepared) --------------------------------------------
@@ -165,7 +168,8 @@ class ControllerService:
         return controller_pb2.AlternatesReply(tps_loaded=n, branch_points=len(next(iter(branches.values()))))
 
     async def take_alternate(self, req: controller_pb2.TakeAlternate) -> controller_pb2.MoveReply:
-        return await self._guard(self.ctl.take_alternate(self._robot(req.robot), req.name))
+        rid = self._robot(req.robot)
+        return await self._guard(rid, self.ctl.take_alternate(rid, req.name))
 
     async def loop(self, req: controller_pb2.LoopRequest) -> controller_pb2.LoopReply:
         rid = self._robot(req.robot)

@@ -42,8 +42,7 @@ from cell.dataplane.tables import NO_ROW, Refused, Tables
 from cell.dataplane.wire import decode_keys, decode_tps
 from cell.rlink.leaf import LeafNode
 from cell.rlink.station import Order
-from cell.robot import datagram, udp
-from cell.robot.arm import arm_model
+from cell.robot import datagram, models, udp
 from cell.robot.datagram import SCALE, Kind
 from cell.v1 import dataplane_pb2
 
@@ -51,6 +50,15 @@ _STATUS = int(Kind.STATUS)
 _DROP_WHY = {DROP_WATCHDOG: "watchdog", DROP_UNDERRUN: "underrun", DROP_STOP: "stop", DROP_QUIET: "quiet"}
 SLICE = 1024  # records run through the pipeline between two looks at the event socket (a stop
 # waits behind at most one slice: about 0.3 ms, against 0.6 ms for 2048, at ~8% more CPU per record)
+
+
+def stop_decel(config: CellConfig) -> np.ndarray:
+    """The StopRamp's braking per joint (rad/s^2): [rlink] stop_decel of the slowest deceleration any
+    robot of the cell's models has at that joint (one ramp serves every robot, as one table)."""
+    limits = [models.get(r.model).a_max for r in config.robots] or [models.get("ur5e").a_max]
+    joints = max(len(a) for a in limits)
+    slowest = [min(a[j] for a in limits if j < len(a)) for j in range(joints)]
+    return np.array(slowest) * config.rlink.stop_decel
 
 
 class DataPlane:
@@ -64,7 +72,7 @@ class DataPlane:
         for r in config.robots:
             self.add_robot(r.id)
         window = min((1.0 / r.command_hz for r in config.robots), default=1 / 125)
-        self.pipeline.set_stop_ramp(arm_model().limits.a_max * config.rlink.stop_decel, window)
+        self.pipeline.set_stop_ramp(stop_decel(config), window)
         for r in config.robots:  # one window beyond the robot's watchdog: it has surely stopped
             self.pipeline.stale_periods[r.id] = (r.watchdog_windows + 1) * (r.status_hz // r.command_hz)
             self.pipeline.quiet_ns[r.id] = QUIET_NS

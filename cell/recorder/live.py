@@ -51,11 +51,10 @@ class Recorder:
         cfg = ctx.config
         self.min_dt = int(1e9 / cfg.recorder.hz)
         self.offset = realtime_offset_ns()
-        arm = arm_model()
         n = len(cfg.robots)
         self.names = {r.id: r.name for r in cfg.robots}
         self.drawers = {
-            r.id: ArmDrawer(arm, r.name, (0.0, (i - (n - 1) / 2) * SPACING, 0.0))
+            r.id: ArmDrawer(arm_model(r.model), r.name, (0.0, (i - (n - 1) / 2) * SPACING, 0.0))
             for i, r in enumerate(cfg.robots)
         }
         self.ids = {r.name: r.id for r in cfg.robots}

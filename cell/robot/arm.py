@@ -1,6 +1,7 @@
-"""The arm's MJCF model (cell/robot/models/ur5e.xml): joint limits and forward kinematics.
+"""An arm model loaded into MuJoCo (from the registry, cell.robot.models): joint limits and forward
+kinematics.
 
-The model file is the one source of truth for the arm: the MuJoCo emulator
+The model is the one source of truth for the arm: the MuJoCo emulator
 simulates it and everything else takes its kinematics from it through here.
 """
 
@@ -8,17 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cache
-from importlib import resources
-from pathlib import Path
 
 import mujoco
 import numpy as np
 
-MODELS = {"ur5e": "ur5e.xml"}
-
-
-def model_path(model: str = "ur5e") -> Path:
-    return Path(str(resources.files("cell.robot") / "models" / MODELS[model]))
+from cell.robot.models import RobotModel, get
+from cell.robot.models.mjcf import mjcf
 
 
 @dataclass(frozen=True)
@@ -37,7 +33,8 @@ class ArmModel:
 
     def __init__(self, model: str = "ur5e") -> None:
         self.name = model
-        self.model = mujoco.MjModel.from_xml_path(str(model_path(model)))
+        self.spec: RobotModel = get(model)
+        self.model = mujoco.MjModel.from_xml_string(mjcf(model))
         m = self.model
         self.joints = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, i) for i in range(m.njnt)]
         self.dof = m.njnt

@@ -40,8 +40,10 @@ def camera_spec(v: VisionConfig) -> CameraSpec:
 class Acquisition:
     """The camera thread: renders at the frame rate, on absolute deadlines, into the buffer."""
 
-    def __init__(self, spec: CameraSpec, q0: np.ndarray, fps: float, buffer: FrameBuffer) -> None:
-        self.spec, self.fps, self.buffer = spec, fps, buffer
+    def __init__(
+        self, spec: CameraSpec, q0: np.ndarray, fps: float, buffer: FrameBuffer, model: str = "ur5e"
+    ) -> None:
+        self.spec, self.fps, self.buffer, self.model = spec, fps, buffer, model
         # the joint positions to render and their instant (0: none heard yet, q0), swapped as one
         self.state: tuple[np.ndarray, int] = (np.array(q0, float), 0)
         self.error: BaseException | None = None
@@ -65,7 +67,7 @@ class Acquisition:
 
     def _run(self) -> None:
         try:
-            cam = Camera(self.spec)
+            cam = Camera(self.spec, self.model)
         except BaseException as exc:  # no GL here, a bad model: said once, by start()
             self.error = exc
             self._ready.set()
@@ -109,7 +111,7 @@ class Vision:
     ) -> None:
         self.v, self.robot, self.publish = v, robot, publish
         self.buffer = FrameBuffer(v.buffer)
-        self.acq = Acquisition(camera_spec(v), np.array(robot.q0), v.fps, self.buffer)
+        self.acq = Acquisition(camera_spec(v), np.array(robot.q0), v.fps, self.buffer, robot.model)
         self.new_frame = asyncio.Event()
         self.counters = {"measurements": 0, "not_found": 0, "waited": 0}
 

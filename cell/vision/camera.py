@@ -11,12 +11,14 @@ robot's base frame; the camera looks along `axis` from `position`.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
-from importlib import resources
 
 import cv2
 import numpy as np
 
+from cell.robot.models import get
+from cell.robot.models.mjcf import FLANGE_RGBA, mjcf
 from cell.vision import optics
 from cell.vision.target import HEIGHT_MM, WIDTH_MM, target_image
 
@@ -45,19 +47,19 @@ def _xyaxes(axis: np.ndarray) -> str:
 
 def scene_xml(spec: CameraSpec, model: str = "ur5e") -> str:
     """The robot's model with the card on its flange, the camera and its light."""
-    text = resources.files("cell.robot").joinpath(f"models/{model}.xml").read_text()
+    text = mjcf(model)
     w, h, t = WIDTH_MM / 2000, HEIGHT_MM / 2000, CARD_MM / 2000
+    flange_z = get(model).d[-1]
     card = f"""
-                <body name="card" pos="0 0 {0.0996 + t}">
+                <body name="card" pos="0 0 {flange_z + t}">
                   <geom name="card" type="box" size="{h} {w} {t}" material="card"/>
                 </body>"""
-    anchor = '<site name="tool" pos="0 0 0.0996" size="0.01"/>'
-    if anchor not in text:
+    anchor = re.search(r'<site name="tool" [^>]*/>', text)
+    if anchor is None:
         raise ValueError(f"the {model} model has no tool site to put the card on")
-    text = text.replace(anchor, anchor + card)
+    text = text.replace(anchor.group(0), anchor.group(0) + card)
     # the flange behind the card is dark (anodised), so the card's white stands out against it
-    flange = '<geom type="cylinder" size="0.04 0.04" pos="0 0 0.06" rgba="0.2 0.4 0.8 1"/>'
-    text = text.replace(flange, flange.replace("0.2 0.4 0.8 1", "0.12 0.12 0.13 1"))
+    text = text.replace(f'rgba="{FLANGE_RGBA}"', 'rgba="0.12 0.12 0.13 1"')
     px, py, pz = spec.position_m
     ax = np.array(spec.axis, float)
     fovy = spec.lens.fovy_deg(spec.height_px)

@@ -1,0 +1,460 @@
+"""The controller's engine: drives the motion schedule (cell.controller.schedule) against the data plane.
+
+It never commands a joint: it loads TPs, sets switcher entries and registers, and deletes what has
+been driven.  It may sit far from the data plane (10-100 ms of latency and jitter); what the robots
+see does not depend on that, because each motion is loaded ahead of time (see the schedule).
+
+The engine owns its tasks in one TaskGroup opened with it (`async with`): each motion's streaming,
+each table update (carried through even when its caller is cancelled by a stop: the engine always
+knows what it has loaded) and the robots' announcements.  A streaming task that fails ends the
+motion it carries at once: it is logged, its waiters get the error, and the next motion plans from
+where the robot is measured to stand.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Coroutine
+from typing import Any
+
+import numpy as np
+
+from cell.bus import Bus, BusError, RemoteError
+from cell.config import CellConfig
+from cell.controller.link import Link
+from cell.controller.plan import Motion, MotionLimits, PlanError
+from cell.controller.robots import RobotBook
+from cell.controller.schedule import (
+    TIDY_NS,
+    Alternate,
+    LoopRun,
+    MotionResult,
+    MotionStopped,
+    Segment,
+    Switch,
+    Track,
+    concat,
+    episode_update,
+    episode_wake,
+    hold_batch,
+    status_of,
+    stop_limits,
+    stop_segment,
+    tidy_ns,
+    tp_batch,
+)
+from cell.controller.tps import cut
+from cell.dataplane.client import DataplaneClient
+from cell.dataplane.tables import TPBatch
+from cell.v1 import controller_pb2, dataplane_pb2
+
+log = logging.getLogger("cell.controller")
+
+
+class Engine(RobotBook):
+    def __init__(self, bus: Bus, config: CellConfig, service: str = "dataplane") -> None:
+        self.dp = DataplaneClient(bus, service)
+        super().__init__(bus, config, Link(self.dp))
+        cc = config.controller
+        self.rate_hz, self.fine_hz, self.episode = cc.tp_rate_hz, cc.fine_rate_hz, cc.episode
+        self.lead_ns = int(cc.lead_s * 1e9)
+        self.gain = np.array(config.dataplane.c2) / np.array(config.dataplane.c1)  # see cell.controller.tps
+        self.tracks: dict[int, Track] = {}
+        self.plan_ns = 100_000_000  # how long planning a re-plan takes (measured, pessimistic)
+        self.late_starts = 0  # motions whose first TPs were in place only after their start time
+        self.last_switch: Switch | None = None
+        self.unfinished: dict[int, tuple] = {}  # robot -> the motion a stop interrupted (for resume)
+        self.stopped: set[int] = set()  # robots stopped over the Responsive Link, until released
+        self.lost: list[tuple[float, str]] = []  # (monotonic s, reason) of each loss, for the record
+        # set while supervise() has the tables in hand: motions wait for it (a take-over's flush
+        # must not sweep away a motion loaded meanwhile); None: not supervised (tests, benches)
+        self.tables_ready: asyncio.Event | None = None
+        # robot -> its track's `loads` when its TPs were last lost: supervise() flushes them once it can,
+        # unless a motion was loaded since (a flush decided before a load must never land after it)
+        self.pending_flush: dict[int, int] = {}
+        self.loading = asyncio.Lock()  # held around every update that sets registers, and every flush
+        # motions prepared ahead (cell.controller.prepared): loops under way, alternates loaded for a
+        # robot's running motion, and the start of each robot of the last armed start
+        self.loops: dict[int, LoopRun] = {}
+        self.alternates: dict[int, tuple[Segment, dict[str, list[Alternate]]]] = {}
+        self.last_fire: dict[int, int] = {}
+        self._group: asyncio.TaskGroup | None = None
+        self._exit = contextlib.AsyncExitStack()
+        self._announcements: asyncio.Task | None = None
+
+    # --- lifecycle and tasks ------------------------------------------------------------------------
+
+    async def __aenter__(self) -> Engine:
+        self._group = await self._exit.enter_async_context(asyncio.TaskGroup())
+        sub = await self.bus.subscribe("announce/robot/")
+        self._announcements = self._group.create_task(self._follow_announcements(sub), name="announcements")
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        try:
+            await self.aclose()
+        finally:
+            self._group = None
+            await self._exit.aclose()  # (waits for the updates still in flight)
+
+    async def aclose(self) -> None:
+        """Stop streaming (the robots hold where their loaded TPs take them) and wait for it."""
+        if self._announcements is not None:
+            self._announcements.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._announcements
+            self._announcements = None
+        for t in list(self.tracks.values()):
+            await self._halt(t)
+
+    def _spawn(self, coro: Coroutine[Any, Any, Any], name: str) -> asyncio.Task:
+        if self._group is None:
+            coro.close()
+            raise RuntimeError("the controller runs its motions inside `async with Controller(...)`")
+        return self._group.create_task(coro, name=name)
+
+    def stream(self, track: Track, seg: Segment, next_episode: int = 1) -> None:
+        """Stream the segment into the tables from episode next_episode on, in the task group."""
+        self.run_motion(track, self._stream(track, seg, next_episode))
+
+    def run_motion(self, track: Track, coro: Coroutine[Any, Any, None]) -> None:
+        """A track's motion task: a failure ends the motion at once (said, and kept for its waiters),
+        never the task group."""
+
+        async def guarded() -> None:
+            try:
+                await coro
+            except Exception as exc:
+                track.failure = exc
+                track.stop_reason = track.stop_reason or f"its streaming failed: {exc}"
+                log.error("the motion of robot(s) %s failed: %s", track.robots, exc)
+
+        track.failure = None
+        track.task = self._spawn(guarded(), f"motion-{track.robot}")
+
+    async def wait_motion(self, track: Track) -> None:
+        """Until the track's motion task has ended; its failure, if it failed."""
+        if track.task is not None:
+            await track.task
+        if track.failure is not None:
+            raise track.failure
+
+    # --- robots ------------------------------------------------------------------------------
+
+    def track(self, robot: int | str) -> Track:
+        rid = self.robot_id(robot)
+        for t in self.tracks.values():
+            if rid in t.robots:
+                return t
+        t = Track(rid, [rid], self.limits_of([rid]))
+        self.tracks[rid] = t
+        return t
+
+    async def joints_now(self, track: Track) -> tuple[np.ndarray, np.ndarray, int]:
+        """The last status of the track's robots: positions, velocities, its data-plane time."""
+        st = await self.link.state(track.robots)
+        status = status_of(track, {r.robot_id: r for r in st.robots})
+        if status is None:
+            raise PlanError(f"no status from robot(s) {track.robots} at the data plane yet")
+        return status
+
+    def check_running(self, track: Track) -> None:
+        held = [r for r in track.robots if r in self.stopped]
+        if held:
+            raise MotionStopped(f"robot(s) {held} stopped over the Responsive Link: resume first")
+
+    # --- motions -----------------------------------------------------------------------------
+
+    async def start_q(self, track: Track) -> np.ndarray:
+        """Where the track's next motion starts: after the one under way (it waits for it)."""
+        await self.wait_idle(track)
+        if track.q_hold is not None:
+            return track.q_hold
+        return (await self.joints_now(track))[0]
+
+    async def wait_idle(self, robot: int | str | Track) -> None:
+        """Until the robot's motion under way has ended; MotionStopped if it was stopped."""
+        track = robot if isinstance(robot, Track) else self.track(robot)
+        task = track.task
+        if task is None or task.done():  # (a task cancelled by an earlier stop: start from the stop)
+            return
+        try:
+            await asyncio.shield(task)
+        except asyncio.CancelledError:
+            me = asyncio.current_task()
+            if me is not None and me.cancelling():
+                raise
+            raise MotionStopped(track.stop_reason or "the motion under way was stopped") from None
+        if isinstance(track.failure, BusError):
+            raise _untaken(track.failure) from None
+        if track.failure is not None:
+            raise track.failure
+
+    async def tables_in_hand(self) -> None:
+        """Until supervise() has the data plane's tables in hand (its take-over at our start, or after
+        a loss, clears them: a motion loaded before would be swept away)."""
+        if self.tables_ready is not None and not self.tables_ready.is_set():
+            try:
+                async with asyncio.timeout(self.config.bus.request_timeout_s):
+                    await self.tables_ready.wait()
+            except TimeoutError:
+                raise MotionStopped("the data plane is not answering: no motion can start") from None
+
+    async def launch(
+        self, motions: dict[int, Motion], fine: bool = False
+    ) -> tuple[MotionResult, list[Track]]:
+        """Load the motions' first episodes and start them at one data-plane time, in one atomic
+        update; they stream on in the background."""
+        rate = self.fine_hz if fine else self.rate_hz
+        await self.tables_in_hand()
+        planned = []
+        for robot, motion in motions.items():
+            track = self.track(robot)
+            self.check_running(track)
+            # (in a worker thread: fitting a long motion's TPs takes 0.1-0.5 s of CPU, which would hold
+            # up everything else this controller does, its watch on the data plane too)
+            sections = await asyncio.to_thread(
+                cut, motion, rate, np.resize(self.gain, track.joints), self.loop(track), tick0=0
+            )
+            planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
+        # the start time is set once the planning is done, so that the lead only has to cover the
+        # update's way to the data plane (planning first would eat it on a busy host: a late start)
+        lead = planned[0][0]
+        await self.know_grid(lead.robot)
+        await self.link.state()  # a fresh clock and round trip
+        start, at, tick0 = self.grid_start(lead.robot, self.link.now() + self.lead_ns + 2 * self.link.rtt_ns)
+        first: list[TPBatch] = []
+        registers, remove, segments = [], [], []
+        for track, motion, sections, (hold_id, *ids) in planned:
+            q0 = motion.sample(np.array([0.0]))[0][0]
+            # (the other robots of a shared start have grids of their own: phase unknown to the fit)
+            seg = Segment(start, motion, sections, ids, tick0 if track is lead else None, track.robot)
+            first.append(hold_batch(track, hold_id, ids[0], q0))
+            first.append(tp_batch(track, seg, 0, min(self.episode, len(ids))))
+            registers.append((track.robot, hold_id, at))
+            remove += [(track.robot, i) for i in track.loaded]
+            segments.append((track, seg, hold_id))
+        try:
+            async with self.loading:
+                reply = await self.dp.update(insert=concat(first), remove=remove, registers=registers)
+                for track, _, _ in segments:
+                    track.loads += 1
+        except RemoteError as exc:
+            if exc.code == "stopped":  # stopped on the link before we heard of it
+                raise MotionStopped(exc.message) from None
+            raise
+        except BusError as exc:  # it may yet be applied, late: it must not start unseen
+            tracks = [t for t, _, _ in planned]
+            self.lose(tracks, f"the data plane did not confirm the motion's start: {exc}")
+            self.pending_flush.update({r: t.loads for t in tracks for r in t.robots})
+            raise MotionStopped(tracks[0].stop_reason or str(exc)) from None
+        if reply.now_ns > start:  # in place after the start time: the robots catch up with the plan
+            self.late_starts += 1
+            log.warning(
+                "motion of %s in place %.1f ms after its start time (lead %.0f ms, round trip %.1f ms)",
+                ", ".join(str(t.robot) for t, _, _ in segments),
+                (reply.now_ns - start) / 1e6,
+                self.lead_ns / 1e6,
+                self.link.rtt_ns / 1e6,
+            )
+        for track, seg, hold_id in segments:
+            track.stop_reason = None
+            track.loaded_ns = reply.now_ns
+            track.loaded = [hold_id, *seg.ids[: self.episode]]
+            track.segment = seg
+            track.q_hold = None  # moving: where it ends is the segment's end
+            self.stream(track, seg)
+            self.publish_plan(track, seg)
+        end = max(seg.end_ns for _, seg, _ in segments)
+        q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in segments])
+        return MotionResult(start, end, q_end), [t for t, _, _ in segments]
+
+    async def finish(self, tracks: list[Track], result: MotionResult) -> MotionResult:
+        """Until the tracks' motions have ended; MotionStopped if one was stopped or re-planned."""
+        try:
+            await asyncio.gather(*(t.task for t in tracks if t.task is not None))
+        except asyncio.CancelledError:
+            me = asyncio.current_task()
+            if me is not None and me.cancelling():
+                raise  # we are cancelled ourselves
+            why = next((t.stop_reason for t in tracks if t.stop_reason), None)
+            raise MotionStopped(why or "the motion was stopped or re-planned") from None
+        failure = next((t.failure for t in tracks if t.failure is not None), None)
+        if isinstance(failure, BusError):
+            raise _untaken(failure) from None
+        if failure is not None:
+            raise failure
+        for track in tracks:
+            self.unfinished.pop(track.robot, None)
+        return result
+
+    async def _stream(self, track: Track, seg: Segment, next_episode: int) -> None:
+        """Load episode after episode ahead of the robot; then tidy up behind it."""
+        k = next_episode
+        while (wake := episode_wake(seg, k, self.episode)) is not None:
+            await self.link.sleep_until(wake)
+            lo, hi, old = episode_update(seg, k, self.episode, track.loaded, self._prepared_ids(track, seg))
+            await self._apply(track, tp_batch(track, seg, lo, hi), old)
+            k += 1
+        # all but the final hold go once the robot is on it (a deletion that comes too early is
+        # refused as in_use; retry)
+        await self.link.sleep_until(tidy_ns(seg, self.link.rtt_ns))
+        old = [i for i in track.loaded if i != seg.ids[-1]]
+        for attempt in range(20):
+            try:
+                if old:
+                    await self._apply(track, None, old)
+                break
+            except RemoteError as exc:
+                if exc.code != "in_use" or attempt == 19:
+                    raise
+                await asyncio.sleep(TIDY_NS / 1e9)
+        track.q_hold = seg.sections.q[-1].copy()
+
+    def _prepared_ids(self, track: Track, seg: Segment) -> set[int]:
+        """The TPs of alternates prepared for this segment: streaming leaves them loaded."""
+        main, branches = self.alternates.get(track.robot, (None, {}))
+        if main is not seg:
+            return set()
+        return {i for alts in branches.values() for a in alts for i in a.segment.ids[: self.episode]}
+
+    async def _apply(
+        self,
+        track: Track,
+        insert: TPBatch | None,
+        remove: list[int],
+        switches: list[tuple[int, int, int | None]] | None = None,
+    ) -> dataplane_pb2.UpdateReply:
+        """One update of a track's TPs with its bookkeeping, carried through even if the caller is
+        cancelled (a stop): the controller always knows what it has loaded."""
+        generation = track.generation
+        done: asyncio.Future[dataplane_pb2.UpdateReply] = asyncio.get_running_loop().create_future()
+
+        async def go() -> None:
+            try:
+                reply = await self.dp.update(
+                    insert=() if insert is None else insert,
+                    remove=[(track.robot, i) for i in remove],
+                    switches=switches or [],
+                )
+            except Exception as exc:  # (the caller's to raise, never the task group's)
+                done.set_exception(exc)
+                done.add_done_callback(lambda f: f.exception())  # (retrieved if its caller is gone)
+                return
+            if track.generation == generation:  # (else the tables it went into are gone)
+                gone = set(remove)
+                new = [] if insert is None else insert.id.tolist()
+                track.loaded = [i for i in track.loaded if i not in gone] + new
+            done.set_result(reply)
+
+        self._spawn(go(), f"update-{track.robot}")
+        track.inflight.add(done)
+        done.add_done_callback(track.inflight.discard)
+        return await asyncio.shield(done)
+
+    async def _halt(self, track: Track) -> None:
+        """Stop streaming the track's motion; wait for its updates in flight."""
+        if track.moving:
+            track.task.cancel()  # type: ignore[union-attr]
+            with contextlib.suppress(asyncio.CancelledError):
+                await track.task  # type: ignore[misc]
+        if track.inflight:
+            await asyncio.gather(*track.inflight, return_exceptions=True)
+
+    def publish_plan(self, track: Track, seg: Segment) -> None:
+        """The segment's plan on plan/<robot>, one message per robot of the track."""
+        s = seg.sections
+        t = np.concatenate([[seg.start_ns], seg.start_ns + np.rint(s.t_end * 1e9).astype(np.int64)])
+        q0, v0 = seg.motion.sample(np.array([0.0]))
+        q = np.vstack([q0, s.q])
+        v = np.vstack([v0, s.q_plan_v])
+        col = 0
+        for rid in track.robots:
+            n = self.arm_of(rid).dof
+            cols = slice(col, col + n)
+            col += n
+            robot = self.robots.get(rid)
+            if robot is None:
+                continue
+            msg = controller_pb2.Plan(
+                robot_id=rid,
+                joints=n,
+                t_ns=t.tolist(),
+                positions=q[:, cols].ravel().tolist(),
+                velocities=v[:, cols].ravel().tolist(),
+            )
+            self.bus.publish(f"plan/{robot.name}", msg)
+
+    # --- stops and losses ------------------------------------------------------------------------
+
+    async def stop(
+        self, robots: list[int | str] | None = None, flush: bool = False
+    ) -> dict[int, MotionResult]:
+        """Protective stop: the robots decelerate within their limits from where they are, taking
+        effect at the data plane's next packet after this update (within one command window).  With
+        flush, every TP of these robots goes first, also those this controller did not load."""
+        if robots is None:
+            tracks = list(self.tracks.values())
+        else:
+            tracks = list({id(t): t for t in map(self.track, robots)}.values())
+        for t in tracks:
+            await self._halt(t)
+        st = await self.link.state()
+        by_id = {r.robot_id: r for r in st.robots}
+        apply_ns = self.link.now() + self.link.rtt_ns
+        batches, registers, remove, results = [], [], [], {}
+        for t in tracks:
+            status = status_of(t, by_id)
+            if status is None or any(r in self.stopped for r in t.robots):
+                continue  # never heard of, or stopping on the data plane's ramp already: nothing to do
+            seg = stop_segment(
+                t, status, self.link.now(), apply_ns, self.stop_limits(t), self.gain, self.loop(t)
+            )
+            batches.append(tp_batch(t, seg, 0, len(seg.ids)))
+            registers.append((t.robot, seg.ids[0], seg.t_ns(0)))
+            remove += [(t.robot, i) for i in t.loaded]
+            t.loaded, t.segment, t.q_hold = list(seg.ids), seg, seg.sections.q[-1].copy()
+            t.stop_reason, t.epoch = t.stop_reason or "the robot was stopped", t.epoch + 1
+            self.publish_plan(t, seg)
+            results[t.robot] = MotionResult(apply_ns, seg.end_ns, seg.sections.q[-1].copy())
+        flushed = sorted({r for t in tracks for r in t.robots}) if flush else []
+        if flushed:
+            remove = []
+        if batches or flushed:
+            insert = concat(batches) if batches else ()
+            async with self.loading:
+                reply = await self.dp.update(insert=insert, remove=remove, registers=registers, flush=flushed)
+                for t in tracks:
+                    t.loads += 1
+            for r in results.values():
+                r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
+            for t in tracks:
+                t.loaded_ns = reply.now_ns
+        return results
+
+    def stop_limits(self, track: Track) -> MotionLimits:
+        """A stop brakes with the drives' full deceleration, reached at once (they limit no jerk)."""
+        return stop_limits(track.limits, np.concatenate([self.arm_of(r).limits.a_max for r in track.robots]))
+
+    def lose(self, tracks: list[Track], reason: str) -> None:
+        """The tables no longer hold these tracks' TPs: end their motions (MotionStopped(reason) to
+        whoever waits), forget what was loaded, and plan the next motion from the measured state."""
+        hit = [t for t in tracks if t.moving or t.loaded]
+        for t in hit:
+            t.stop_reason = reason
+            t.generation += 1
+            t.epoch += 1
+            if t.moving:
+                t.task.cancel()  # type: ignore[union-attr]
+            t.loaded, t.segment, t.q_hold = [], None, None
+        if hit:
+            self.lost.append((time.monotonic(), reason))
+            log.warning("%s (robots %s)", reason, sorted(r for t in hit for r in t.robots))
+
+
+def _untaken(exc: BusError) -> MotionStopped:
+    """A motion's streaming failed on the bus: the data plane may have run out of its TPs."""
+    return MotionStopped(f"the data plane did not take the motion's next TPs: {exc}")

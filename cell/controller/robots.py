@@ -1,0 +1,143 @@
+"""What the controller knows of its robots: their models (cell.robot.models: limits, kinematics), the
+closed loop their TPs drive, and their tick grids (from their announcements)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from functools import cache
+
+import numpy as np
+
+from cell.bus import Bus, BusError, Subscription
+from cell.config import CellConfig
+from cell.controller.link import Link
+from cell.controller.loop import LoopModel
+from cell.controller.plan import MotionLimits
+from cell.controller.schedule import Grid, Segment, Track, grid_start, phase_at
+from cell.robot.arm import ArmModel, arm_model
+from cell.robot.kinematics import Kinematics
+from cell.v1 import robot_pb2
+
+log = logging.getLogger("cell.controller")
+
+
+@cache
+def _kinematics(model: str) -> Kinematics:
+    return Kinematics(arm_model(model))
+
+
+class RobotBook:
+    """The robots as the controller drives them (the engine's base)."""
+
+    def __init__(self, bus: Bus, config: CellConfig, link: Link) -> None:
+        self.bus, self.config, self.link = bus, config, link
+        self.robots = {r.id: r for r in config.robots}
+        # robot -> its tick grid, from its announcements (see grid_start())
+        self.grids: dict[int, Grid] = {}
+        self._asked: set[int] = set()  # robots asked for their announcement (see know_grid())
+
+    def robot_id(self, robot: int | str) -> int:
+        if isinstance(robot, int):
+            return robot
+        return self.config.robot(robot).id
+
+    def model_of(self, robot: int) -> str:
+        """The robot's model (config key `model`; robots not in the config: the defaults')."""
+        r = self.robots.get(robot)
+        return r.model if r is not None else self.config.robot_defaults.model
+
+    def arm_of(self, robot: int) -> ArmModel:
+        return arm_model(self.model_of(robot))
+
+    def kinematics(self, robot: int) -> Kinematics:
+        return _kinematics(self.model_of(robot))
+
+    def limits_of(self, robots: list[int]) -> MotionLimits:
+        """The joints' limits of robots moving as one: each robot's model's, capped by the data plane's
+        v_max and the controller's a_max, side by side."""
+        dpc, cc = self.config.dataplane, self.config.controller
+        per = []
+        for rid in robots:
+            lim = self.arm_of(rid).limits
+            n = lim.v_max.size
+            per.append(
+                (
+                    np.minimum(lim.v_max, np.resize(np.array(dpc.v_max), n)),
+                    np.minimum(lim.a_max, np.resize(np.array(cc.a_max), n)),
+                    np.resize(np.array(cc.j_max), n),
+                )
+            )
+        return MotionLimits(
+            v_max=np.concatenate([p[0] for p in per]),
+            a_max=np.concatenate([p[1] for p in per]),
+            j_max=np.concatenate([p[2] for p in per]),
+            tool_v_max=cc.tool_v_max,
+            tool_a_max=cc.tool_a_max,
+            tool_j_max=cc.tool_j_max,
+            tool_w_max=cc.tool_w_max,
+        )
+
+    def loop(self, track: Track) -> LoopModel:
+        """The closed loop the track's TPs drive (cell.controller.loop)."""
+        robot = self.robots.get(track.robots[0])
+        status_hz, command_hz = (500, 125) if robot is None else (robot.status_hz, robot.command_hz)
+        dpc, n = self.config.dataplane, track.joints
+        return LoopModel(
+            c1=np.resize(np.array(dpc.c1), n),
+            c2=np.resize(np.array(dpc.c2), n),
+            v_max=np.resize(np.array(dpc.v_max), n),
+            a_max=np.concatenate([self.arm_of(r).limits.a_max for r in track.robots])[:n],
+            status_s=1.0 / status_hz,
+            window=status_hz // command_hz,
+        )
+
+    async def _follow_announcements(self, sub: Subscription) -> None:
+        """Keep each robot's tick grid (RobotAnnounce.window_origin_ns) as robots (re)announce."""
+        while True:
+            try:
+                batch = await sub.recv_batch()
+            except BusError as exc:  # (the bus node is closing under us: the grids stay as they are)
+                log.info("robot announcements no longer followed: %s", exc)
+                return
+            for env in batch:
+                with contextlib.suppress(Exception):  # (a malformed one is the bus's to count)
+                    self._take_announcement(env.decode(robot_pb2.RobotAnnounce))
+
+    def _take_announcement(self, a: robot_pb2.RobotAnnounce) -> None:
+        if a.window_origin_ns and a.status_hz and a.command_hz:
+            w = max(1, a.status_hz // a.command_hz)
+            self.grids[a.robot_id] = (a.window_origin_ns, round(1e9 / a.status_hz), w)
+
+    async def know_grid(self, robot: int) -> None:
+        """The robot's tick grid, asked of it once if no announcement has come yet (a controller
+        that has just come up would otherwise start its first motions off the grid); a robot that
+        does not answer within a second is driven without one."""
+        if robot in self.grids or robot in self._asked:
+            return
+        self._asked.add(robot)
+        r = self.robots.get(robot)
+        if r is None:
+            return
+        with contextlib.suppress(BusError, ValueError):
+            a = await self.bus.request(
+                f"robot/{r.name}",
+                "announce",
+                robot_pb2.AnnounceRequest(),
+                robot_pb2.RobotAnnounce,
+                timeout=1.0,
+            )
+            self._take_announcement(a)
+
+    def grid_start(self, robot: int, earliest_ns: int) -> tuple[int, int, int | None]:
+        """schedule.grid_start on the robot's grid.  The grid is on the cell clock; the data plane says
+        how its clock stands to that exactly (going through our own clock and the offset estimated
+        over the bus is up to half a round trip off: a start a fraction of a period off the grid)."""
+        rt = self.link.realtime_offset_ns
+        if rt is None:
+            rt = (time.time_ns() - time.monotonic_ns()) - self.link.offset_ns
+        return grid_start(self.grids.get(robot), earliest_ns, rt)
+
+    def phase_at(self, seg: Segment, t_ns: int) -> int:
+        return phase_at(self.grids.get(seg.robot), seg, t_ns)

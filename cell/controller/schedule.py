@@ -1,0 +1,369 @@
+"""The motion schedule, sans I/O: what the controller loads into the data plane's tables, and when.
+
+Everything here is a pure function of the plans, the statuses seen and the data-plane time; the
+engine (cell.controller.engine) sends what these decide and keeps the answers:
+
+- a motion is cut into TP sections and loaded as a Segment in episodes of n TPs; when the robot
+  enters episode k-1, episode k goes in and episode k-3 comes out (`episode_update`), so at most
+  3n TPs per robot are loaded and the controller has a whole episode's time to deliver the next;
+- a motion starts on its robot's tick grid (`grid_start`), so its first TP meets the command window
+  the TPs were fitted for;
+- a re-plan branches off at a TP far enough ahead (`branch_point`) from a start state predicted
+  with the paper's formula (`predict_at`, Sec. 6.1);
+- a stop is a motion planned from the last status (`stop_segment`);
+- a robot whose trajectory the data plane dropped has its motion end with the reason (`dropped`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from cell.controller.loop import LoopModel
+from cell.controller.plan import Motion, MotionLimits, plan_stop
+from cell.controller.tps import Sections, cut
+from cell.dataplane.tables import TPBatch
+from cell.v1 import dataplane_pb2
+
+_ID_SPACE = 2**32
+STOP_JERK = 1000.0  # rad/s^3: a stop reaches full deceleration in a few ms
+SWITCH_MARGIN_NS = 20_000_000  # a switch entry must be in place this long before its TP
+TIDY_NS = 20_000_000  # after a motion's end, when its TPs are deleted
+STOP_RATE_HZ = 20.0  # TPs of a stop: sections still long enough to fit them to the loop
+# a holding TP's section: how often it steps onto itself.  A motion's final hold once took its last
+# section's duration, which can be a fraction of a millisecond: then the resting robot's hold stepped
+# on every status packet, a storm of resubmits costing the data plane CPU for nothing
+HOLD_S = 1.0
+STALE_STATUS_NS = 50_000_000  # a robot's status older than this: no command reached it, it stands
+WINDOW_NS = 8_000_000  # a command window, for robots that have not told their grid
+
+Grid = tuple[
+    int, int, int
+]  # a robot's tick grid: (window origin, cell clock ns; status period ns; periods a window)
+
+
+class MotionStopped(Exception):
+    """The motion was cut short by a stop (or replaced by a re-plan)."""
+
+
+@dataclass
+class MotionResult:
+    start_ns: int  # data-plane clock
+    end_ns: int
+    q_end: np.ndarray  # where the plan ends (rad)
+
+
+@dataclass
+class Switch:
+    """The last re-plan: where it branched, and the start state it predicted there."""
+
+    branch_tp: int
+    t_branch_ns: int  # data-plane clock
+    lead_ms: float  # how long before the branch the switch entry was in place
+    q_pred: np.ndarray
+    v_pred: np.ndarray
+
+
+@dataclass
+class Segment:
+    """A motion as loaded: its TP ids and its start on the data-plane clock."""
+
+    start_ns: int
+    motion: Motion
+    sections: Sections
+    ids: list[int]  # one per section, then the final hold (a self-loop at the end position)
+    tick0: int | None = None  # the robot's status period in its window at start_ns (None: unknown)
+    robot: int = 0  # whose tick grid start_ns is on (with tick0)
+
+    def __post_init__(self) -> None:
+        s = self.sections
+        assert len(self.ids) == len(s) + 1
+        self.q = np.vstack([s.q, s.q[-1:]])  # the TPs' positions, velocities and durations
+        self.v = np.vstack([s.v_ff, np.zeros_like(s.v_ff[-1:])])
+        self.d = np.append(s.duration, HOLD_S)
+
+    def t_ns(self, k: int) -> int:
+        """When section k ends (data-plane clock)."""
+        return self.start_ns + int(self.sections.t_end[k] * 1e9)
+
+    @property
+    def end_ns(self) -> int:
+        return self.t_ns(len(self.sections) - 1)
+
+
+@dataclass
+class Track:
+    """One entity as the controller drives it: a robot, or robots merged to move as one."""
+
+    robot: int  # the id the data plane knows the entity by (the first robot of a merged one)
+    robots: list[int]
+    limits: MotionLimits
+    next_id: int = 1
+    q_hold: np.ndarray | None = None  # where it holds after its last motion (None: not started)
+    loaded: list[int] = field(default_factory=list)  # TP ids of this track in the tables
+    segment: Segment | None = None
+    task: asyncio.Task | None = None  # the motion being streamed (in the engine's task group)
+    failure: BaseException | None = None  # what ended the streaming of its last motion, if it failed
+    inflight: set[asyncio.Future] = field(default_factory=set)  # its updates, which always finish
+    starting: asyncio.Lock = field(default_factory=asyncio.Lock)  # motions start one after another
+    stop_reason: str | None = None  # why its last motion ended early (for MotionStopped)
+    generation: int = 0  # bumped when its TPs are lost: bookkeeping of older updates is void
+    epoch: int = 0  # bumped by every stop or loss: an `arrive` waiting across one answers stopped
+    loaded_ns: int = 0  # when (data-plane clock) its current TPs went in: older drops are old news
+    loads: int = 0  # registers set by this controller so far (a flush decided before one must not follow it)
+
+    @property
+    def joints(self) -> int:
+        return self.limits.v_max.size
+
+    @property
+    def moving(self) -> bool:
+        return self.task is not None and not self.task.done()
+
+    def take_ids(self, n: int) -> list[int]:
+        ids = [(self.next_id + i) % _ID_SPACE for i in range(n)]
+        self.next_id = (self.next_id + n) % _ID_SPACE
+        return ids
+
+
+# --- motions prepared ahead (cell.controller.prepared) ------------------------------------------------
+
+
+@dataclass
+class Armed:
+    """Motions loaded and held, started by fire()."""
+
+    planned: list[tuple[Track, Segment, int]]  # (track, its motion, its hold TP)
+    period_ns: int  # the holds step together every period from their registers' time
+    armed_ns: int = field(default_factory=time.monotonic_ns)
+
+
+@dataclass
+class LoopRun:
+    """A loop under way: its laps, and the exit the controller sets (end_loop())."""
+
+    track: Track
+    q0: np.ndarray  # where each lap starts and ends
+    start_ns: int
+    lap_ns: int
+    last_id: int  # the lap's last TP: its switch entry leads out
+    exit_id: int
+    laps: int  # 0: until ended
+    done: asyncio.Future[int] = field(default_factory=lambda: asyncio.get_running_loop().create_future())
+
+    def lap_end_ns(self, n: int) -> int:
+        return self.start_ns + n * self.lap_ns
+
+
+@dataclass
+class Alternate:
+    """One prepared branch: from TP k of the main motion to another goal."""
+
+    k: int
+    segment: Segment
+
+
+# --- table entries -----------------------------------------------------------------------------------
+
+
+def tp_batch(track: Track, seg: Segment, lo: int, hi: int) -> TPBatch:
+    """TPs lo..hi-1 of a segment, each linking to the next; the final hold links to itself."""
+    ids = seg.ids
+    nxt = [ids[min(i + 1, len(ids) - 1)] for i in range(lo, hi)]
+    n = hi - lo
+    return TPBatch(
+        np.full(n, track.robot, np.int64),
+        np.array(ids[lo:hi], np.int64),
+        np.array(nxt, np.int64),
+        seg.d[lo:hi],
+        np.full(n, track.joints, np.int64),
+        seg.q[lo:hi],
+        seg.v[lo:hi],
+    )
+
+
+def hold_batch(
+    track: Track, hold_id: int, next_id: int, q: np.ndarray, duration_s: float = HOLD_S
+) -> TPBatch:
+    """A TP holding q until the registers' start time, then on to next_id (an armed start's hold
+    steps onto itself once a window: duration_s)."""
+    return TPBatch(
+        np.array([track.robot], np.int64),
+        np.array([hold_id], np.int64),
+        np.array([next_id], np.int64),
+        np.array([duration_s]),
+        np.array([track.joints], np.int64),
+        q[None, :],
+        np.zeros((1, track.joints)),
+    )
+
+
+def concat(batches: Sequence[TPBatch]) -> TPBatch:
+    """Batches of TPs as one (positions padded to the widest entity)."""
+    width = max(b.positions.shape[1] for b in batches)
+
+    def pad(a: np.ndarray) -> np.ndarray:
+        return np.pad(a, ((0, 0), (0, width - a.shape[1])))
+
+    return TPBatch(
+        np.concatenate([b.robot for b in batches]),
+        np.concatenate([b.id for b in batches]),
+        np.concatenate([b.next_id for b in batches]),
+        np.concatenate([b.duration_s for b in batches]),
+        np.concatenate([b.joints for b in batches]),
+        np.concatenate([pad(b.positions) for b in batches]),
+        np.concatenate([pad(b.velocities) for b in batches]),
+    )
+
+
+def episode_wake(seg: Segment, k: int, n: int) -> int | None:
+    """When episode k of a segment loaded in episodes of n TPs goes in (data-plane clock): as the robot
+    enters episode k-1.  None: the segment is all loaded."""
+    if k * n >= len(seg.ids):
+        return None
+    return seg.t_ns(max(0, (k - 1) * n - 1)) if k > 1 else seg.start_ns
+
+
+def episode_update(
+    seg: Segment, k: int, n: int, loaded: Sequence[int], keep: set[int]
+) -> tuple[int, int, list[int]]:
+    """Episode k's TPs (lo, hi: ids lo..hi-1 go in) and what comes out with them: once k >= 2,
+    whatever is loaded but neither in the last two episodes nor in `keep` (episode k-3 and older)."""
+    ids = seg.ids
+    remove = [i for i in loaded if i not in set(ids[(k - 2) * n :]) | keep] if k >= 2 else []
+    return k * n, min((k + 1) * n, len(ids)), remove
+
+
+def tidy_ns(seg: Segment, rtt_ns: int) -> int:
+    """When a segment's TPs but its final hold are deleted: once the robot is surely on that hold (our
+    view of the data-plane clock may be off by half a round trip)."""
+    return seg.end_ns + rtt_ns + TIDY_NS
+
+
+# --- time ---------------------------------------------------------------------------------------------
+
+
+def grid_start(grid: Grid | None, earliest_ns: int, realtime_offset_ns: int) -> tuple[int, int, int | None]:
+    """When to start a motion of a robot with this tick grid at or after earliest_ns (data-plane
+    clock): (plan start, register time, the model's window phase there).
+
+    The data plane steps a trajectory at the first status after the register's time, and the robot
+    keeps the answer to its window's last status: a start between two statuses, or in another window
+    phase than the TPs were fitted for, puts the robot up to a status period behind the plan and its
+    commands up to a window off (about 1 mm at the tool in a brisk move).  So a motion starts on a
+    status period that begins a command window, its register a quarter period earlier (the status
+    comes a little after it is due), and the TPs are fitted for phase 0.  A robot not heard
+    announcing (grid None) starts at earliest_ns.  realtime_offset_ns: the cell clock less the
+    data plane's (the grid is on the cell clock).
+    """
+    if grid is None:
+        return earliest_ns, earliest_ns, None
+    origin_rt, period, w = grid
+    origin = origin_rt - realtime_offset_ns
+    window = period * w
+    k = -(-(earliest_ns + period // 4 - origin) // window)  # the next window's start
+    start = origin + k * window
+    return start, start - period // 4, 0
+
+
+def phase_at(grid: Grid | None, seg: Segment, t_ns: int) -> int:
+    """The model's window phase at a time on a segment started on its robot's grid (else 0)."""
+    if seg.tick0 is None or grid is None:
+        return 0
+    _, period, w = grid
+    return (seg.tick0 + round((t_ns - seg.start_ns) / period)) % w
+
+
+def window_ns(grid: Grid | None) -> int:
+    return WINDOW_NS if grid is None else grid[1] * grid[2]
+
+
+# --- re-planning ------------------------------------------------------------------------------------
+
+
+def branch_point(seg: Segment, ahead_ns: int) -> int | None:
+    """The first TP of the segment that ends at or after ahead_ns and is not its last section (None:
+    too late to branch: the motion is to finish first)."""
+    ends = np.array([seg.t_ns(k) for k in range(len(seg.sections))])
+    later = np.flatnonzero(ends >= ahead_ns)
+    k = int(later[0]) if later.size else -1
+    return None if k < 0 or k >= len(seg.sections) - 1 else k
+
+
+def predict_at(
+    seg: Segment, q_s: np.ndarray, v_s: np.ndarray, status_ns: int, t_b: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's prediction of the robot's state at t_b: the plan there, corrected by how far off
+    the plan the robot was at its last status (Sec. 6.1)."""
+    t_rel = (status_ns - seg.start_ns) / 1e9
+    q_traj, v_traj = seg.motion.sample(np.array([t_rel, (t_b - seg.start_ns) / 1e9]))
+    dt = (t_b - status_ns) / 1e9
+    return q_traj[1] + (q_s - q_traj[0]) + (v_s - v_traj[0]) * dt, v_traj[1]
+
+
+# --- stops and losses ---------------------------------------------------------------------------------
+
+
+def stop_limits(limits: MotionLimits, a_max: np.ndarray) -> MotionLimits:
+    """A stop brakes with the drives' full deceleration (a_max, per joint), reached at once (they
+    limit no jerk)."""
+    n = limits.v_max.size
+    return replace(limits, a_max=np.resize(a_max, n) * 0.95, j_max=np.full(n, STOP_JERK))
+
+
+def stop_segment(
+    track: Track,
+    status: tuple[np.ndarray, np.ndarray, int],
+    now_ns: int,
+    apply_ns: int,
+    limits: MotionLimits,
+    gain: np.ndarray,
+    loop: LoopModel,
+) -> Segment:
+    """A stop of the track from its last status, in effect at apply_ns; a status older than
+    STALE_STATUS_NS means no command reached the robot: it stands (its watchdog)."""
+    q, v, status_ns = status
+    if now_ns - status_ns > STALE_STATUS_NS:
+        v = np.zeros_like(v)
+    q_pred = q + v * max(0.0, (apply_ns - status_ns) / 1e9)
+    motion = plan_stop(q_pred, v, limits)
+    sections = cut(motion, STOP_RATE_HZ, np.resize(gain, track.joints), loop, v)
+    return Segment(apply_ns, motion, sections, track.take_ids(len(sections) + 1))
+
+
+DROPPED = {
+    "stop": "it was stopped over the Responsive Link (an e-stop, a stop, or a node's beacon watchdog)",
+    "watchdog": "it went past its watchdog without commands (protective stop): its trajectory was dropped",
+    "quiet": "no status from it for over 0.5 s (the robot, its host or its link went silent, or the data "
+    "plane hung): its trajectory was dropped",
+    "underrun": "its next TPs did not come in time (the controller fell behind): its trajectory was dropped",
+}
+
+
+def dropped(st: dataplane_pb2.DataplaneState, seen: dict[int, int], track_of) -> list[tuple[Track, str]]:
+    """The tracks whose trajectory the data plane dropped since `seen` (robot -> the dropped_ns last
+    seen, updated here), each with why; a drop before a track's current TPs went in is old news."""
+    out = []
+    for r in st.robots:
+        before = seen.get(r.robot_id, 0)
+        seen[r.robot_id] = r.dropped_ns
+        track = track_of(r.robot_id)
+        if r.dropped_ns > before and r.dropped_ns >= track.loaded_ns:
+            why = DROPPED.get(r.dropped_why, "the data plane dropped its trajectory")
+            out.append((track, f"robot {r.robot_id} stopped: {why}"))
+    return out
+
+
+def status_of(
+    track: Track, by_id: dict[int, dataplane_pb2.RobotPlaneState]
+) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """The track's robots' last status (positions, velocities, the oldest time); None without one."""
+    if any(r not in by_id or by_id[r].status_ns == 0 for r in track.robots):
+        return None
+    q = np.concatenate([np.array(by_id[r].position) for r in track.robots])
+    v = np.concatenate([np.array(by_id[r].velocity) for r in track.robots])
+    return q, v, min(by_id[r].status_ns for r in track.robots)
