@@ -7,7 +7,7 @@ STAMP_RUN  := $(VENV)/.installed-run
 STAMP_TEST := $(VENV)/.installed-test
 PROTOS := $(wildcard proto/cell/v1/*.proto)
 
-.PHONY: demo test lint proto bench clean bpf bpf-if-possible
+.PHONY: demo test perf lint proto bench clean bpf bpf-if-possible
 # the XDP data plane ([dataplane] backend = "xdp"): its BPF object, built with clang from the C source
 BPF_SRC := cell/dataplane/xdp/dataplane.bpf.c
 BPF_OBJ := cell/dataplane/xdp/dataplane.bpf.o
@@ -40,6 +40,13 @@ test: $(STAMP_TEST)
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/python -m pytest
 
+# throughput and timing checks that need a quiet machine (tests/perf), then the benches' quick checks
+perf: $(STAMP_TEST)
+	@$(MAKE) -s bpf-if-possible
+	$(BIN)/python -m pytest -m perf tests/perf
+	$(BIN)/cell bench dataplane --seconds 1 --json | tail -1
+	$(BIN)/cell bench snp --seconds 1 --json | tail -1
+
 bpf: $(BPF_OBJ)
 
 # clang and libbpf's headers, installed where apt and root allow (the package lists updated once if
@@ -59,7 +66,7 @@ lint: $(STAMP_TEST)
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/ruff format --check cell services tests examples
 
-# regenerate the committed protobuf code (tests/test_proto.py fails when it is stale)
+# regenerate the committed protobuf code (tests/bus/test_proto.py fails when it is stale)
 proto: $(STAMP_TEST)
 	$(BIN)/python -m cell.protogen
 

@@ -1,7 +1,7 @@
 """Generate cell/v1/*_pb2.py from proto/ with the pinned protoc (grpcio-tools).
 
 The generated code is committed so that a plain install needs no compiler;
-tests/test_proto.py regenerates it into a temporary folder and fails when the
+tests/bus/test_proto.py regenerates it into a temporary folder and fails when the
 committed copy is stale.  Run `make proto` after editing a .proto file.
 """
 

@@ -10,7 +10,7 @@
  *
  * Why C: in Python a module's cycle costs 25-35 us and each answer 40-45 us on this machine
  * kind, so six modules need most of a core per 1 ms period; here the syscalls are the cost.
- * The arithmetic mirrors JointModule's, line for line (tests/test_snp_native.py checks the
+ * The arithmetic mirrors JointModule's, line for line (tests/snp/test_snp_native.py checks the
  * bytes against the Python module's). */
 
 #include "wire.h"

@@ -13,7 +13,7 @@
  * Why C: through the Python master a query costs about 20 us on this machine kind, so twelve a
  * period take a quarter of the cycle's budget and any late start of the modules turns into
  * denials; here a query costs its two syscalls.  The arithmetic mirrors the Python master's
- * line for line (tests/test_snp_native.py checks the answers' bytes against it). */
+ * line for line (tests/snp/test_snp_native.py checks the answers' bytes against it). */
 
 #include "wire.h"
 

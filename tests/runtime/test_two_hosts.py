@@ -156,7 +156,7 @@ def test_a_plant_over_two_hosts_runs_secured_and_survives_one_host_dying(hosts, 
 
         # both robots move; host b dies under r2's motion
         task = subprocess.Popen(
-            a.cell(plant, "run", str(ROOT / "tests" / "two_hosts_task.py")),
+            a.cell(plant, "run", str(ROOT / "tests" / "runtime" / "two_hosts_task.py")),
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

@@ -7,6 +7,8 @@ import pytest
 from cell.bench.robots import trial
 from tests.conftest import wait_until_quiet
 
+pytestmark = pytest.mark.perf
+
 
 @pytest.mark.slow
 def test_100_robot_kinematic_fleet_runs_at_500_hz() -> None:

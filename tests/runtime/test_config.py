@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from cell.config import DEFAULT_SOURCE, ConfigError, config_from_dict, load_config
-from tests.conftest import run_cell
+from tests.conftest import ROOT, run_cell
 
 
 def test_embedded_default_is_the_two_robotrun_cell() -> None:
@@ -201,7 +201,7 @@ def test_a_group_may_reach_the_bus_through_other_endpoints(tmp_path: Path) -> No
     assert near.bus == config.bus
 
 
-PLANT = Path(__file__).resolve().parent.parent / "deploy" / "plant.toml"
+PLANT = ROOT / "deploy" / "plant.toml"
 
 
 def test_a_plant_file_gives_each_host_its_services_robots_and_certificate() -> None:
@@ -292,6 +292,6 @@ def test_an_xdp_data_plane_that_cannot_work_is_refused(dataplane: dict, key: str
 
 
 def test_the_xdp_example_is_a_valid_cell() -> None:
-    config = load_config(Path(__file__).parent.parent / "examples" / "xdp.toml")
+    config = load_config(ROOT / "examples" / "xdp.toml")
     dp = config.dataplane
     assert dp.backend == "xdp" and dp.listen.startswith(dp.xdp.switch_addr)

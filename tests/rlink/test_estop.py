@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,11 +13,11 @@ from cell.launcher import fetch_status
 from cell.rlink.client import EventClient
 from cell.skills.protocol import Done, Error
 from cell.v1 import robot_pb2
-from tests.conftest import free_port, run_cell
-from tests.test_skills_server import Conn
+from tests.conftest import ROOT, free_port, run_cell
+from tests.skills.test_skills_server import Conn
 
 SERVICES = ["bus", "dataplane", "robots", "rlink", "controller", "skills"]
-EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "estop.py"
+EXAMPLE = ROOT / "examples" / "estop.py"
 Q0_DEG = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]
 
 

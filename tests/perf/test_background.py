@@ -11,7 +11,7 @@ import pytest
 from cell.bench import background as bg
 from tests.conftest import wait_until_quiet
 
-pytestmark = pytest.mark.skipif(bg.available() is not None, reason=str(bg.available()))
+pytestmark = [pytest.mark.perf, pytest.mark.skipif(bg.available() is not None, reason=str(bg.available()))]
 
 
 @pytest.mark.slow

@@ -12,7 +12,7 @@ import pytest
 
 from cell.bus import Bus
 from cell.controller.controller import Controller
-from tests.test_controller import Q0, Truth, crossing_time, fast_truth, max_accel, ready
+from tests.controller.test_controller import Q0, Truth, crossing_time, fast_truth, max_accel, ready
 
 
 @contextlib.asynccontextmanager

@@ -1,4 +1,4 @@
-"""Task script of tests/test_two_hosts.py: both robots (one per host) start a long joint motion,
+"""Task script of tests/runtime/test_two_hosts.py: both robots (one per host) start a long joint motion,
 say so, and wait for their arrival; the test kills host b meanwhile.  Prints, last, one JSON line:
 per robot, how its `break` was answered and when (CLOCK_MONOTONIC s, shared by the namespaces)."""
 
