@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from cell.commands import Command, json_arg, literal, register
 
@@ -15,6 +16,9 @@ def arguments(p: argparse.ArgumentParser) -> None:
     for bench in discover().values():
         q = bsub.add_parser(bench.name, help=literal(bench.help), description=literal(bench.description))
         json_arg(q)
+        q.add_argument(
+            "--results", metavar="FILE", help="also write the figures into FILE's section for this bench"
+        )
         bench.arguments(q)
         q.set_defaults(bench=bench)
 
@@ -24,6 +28,11 @@ def run(args: argparse.Namespace) -> int:
     figures = args.bench.run(args)
     if figures.text:
         print(figures.text)
+    if args.results and figures.exit_code == 0:
+        from cell.bench import results
+
+        argv = [a for a in sys.argv[1:] if a != "--json"]
+        results.write(args.results, args.bench.name, argv or ["bench", args.bench.name], figures.result)
     if args.json:
         print(json.dumps(figures.result))
     return figures.exit_code

@@ -26,7 +26,9 @@ L1, L2 = 0.22, 0.22  # m: upper arm and forearm
 HOME = (0.30, 0.14)  # m: the tip's (x, z) where the experiment starts
 JOINT_DAMPING = 0.01  # N m s / rad: the twin drive's viscous friction, as seen at the joint
 CONTACT_SOLREF = (0.002, 1.0)  # contact time constant 2 ms, critically damped: stiff next to the objects
-CONTACT_STIFFNESS = 78_000.0  # N/m: what that contact gives under this arm's tip (tests/teleop/test_teleop.py)
+CONTACT_STIFFNESS = (
+    78_000.0  # N/m: what that contact gives under this arm's tip (tests/teleop/test_teleop.py)
+)
 
 
 @dataclass(frozen=True)

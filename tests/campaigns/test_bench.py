@@ -86,3 +86,18 @@ def test_the_paper_bench_writes_a_page_with_its_numbers(tmp_path) -> None:
     # tick and the tick's first pass takes one of them: 3 of every 4 steps are resubmissions
     assert resub["resubmits_per_step_10hz"] == 0 and resub["resubmits_per_step_500hz"] == 0
     assert resub["resubmits_per_step_2000hz"] == pytest.approx(0.75, abs=0.01)
+
+
+def test_benches_write_their_own_section_of_the_results_page(tmp_path) -> None:
+    """`--results FILE`: each bench replaces its section, the others stay, newest figures only."""
+    from cell.bench import results
+
+    page = tmp_path / "results.md"
+    results.write(page, "snp", ["bench", "snp"], {"cycle_ms_p99": 0.09, "nested": {"x": 1}, "rows": [1, 2]})
+    results.write(page, "bus", ["bench", "bus"], {"msg_per_s": 250000})
+    results.write(page, "snp", ["bench", "snp", "--seconds", "1"], {"cycle_ms_p99": 0.12})
+    text = page.read_text()
+    assert text.startswith("# Measured figures")
+    assert text.index("## bus") < text.index("## snp") and text.count("## snp") == 1
+    assert "| `cycle_ms_p99` | 0.12 |" in text and "0.09" not in text  # replaced, not appended
+    assert "| `msg_per_s` | 250000 |" in text and "`cell bench snp --seconds 1`" in text

@@ -118,3 +118,23 @@ def test_cell_run_reports_a_broken_script(tmp_path) -> None:
         timeout=60,
     )
     assert proc.returncode == 2 and "async def main(cell)" in proc.stderr
+
+
+def test_the_readmes_first_script_runs(tmp_path) -> None:
+    """The ten-line task script README.md shows a newcomer runs as written."""
+    text = (ROOT / "README.md").read_text()
+    script = text.split("## A first task script", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    assert len(script.strip().splitlines()) <= 12
+    path = tmp_path / "hello.py"
+    path.write_text(script)
+    cfg = write_config(tmp_path / "cell.toml", cell_overrides(kinematic(2), run=SERVICES))
+    proc = subprocess.run(
+        [sys.executable, "-m", "cell", "run", "--up", "--config", str(cfg), str(path)],
+        env=cell_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    pose = proc.stdout.split("r1's tool at", 1)[1].strip().splitlines()[0]
+    assert len(pose.strip("()").split(",")) == 6, proc.stdout
