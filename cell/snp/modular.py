@@ -32,6 +32,7 @@ import struct
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import Any
 
 from cell.snp import rmap
@@ -90,6 +91,37 @@ _CYCLE_QUANTITIES = (Quantity.POSITION, Quantity.VELOCITY, Quantity.COMMANDED_VE
 _IDS = [tuple(item(q, j) for q in _CYCLE_QUANTITIES) for j in range(256)]
 
 
+class NodeState(StrEnum):
+    """A module as the master's FDIR sees it."""
+
+    FOUND = "found"  # explored, not configured yet
+    CONFIGURING = "configuring"
+    INCLUDED = "included"  # in the cycle
+    SUSPECT = "suspect"  # missed answers: guessed for, not yet lost
+    LOST = "lost"  # excluded; its port explored again
+
+
+class ModuleState(StrEnum):
+    """A joint module's own life: configured by the master, then its clock synchronised, then cycling."""
+
+    UNCONFIGURED = "unconfigured"
+    SYNCING = "syncing"
+    RUNNING = "running"
+
+
+class Stage(StrEnum):
+    """Where a module's exchange of one cycle stands: [A, B] then [C, D] (over SnP-MrT: one query each;
+    over RMAP: a write and a read each)."""
+
+    AB = "ab"
+    CD = "cd"
+    A = "a"
+    B = "b"
+    C = "c"
+    D = "d"
+    DONE = "done"
+
+
 @dataclass(frozen=True)
 class CycleConfig:
     period_ns: int = 1_000_000
@@ -129,7 +161,7 @@ class Node:
     addr: Any
     info: NodeInfo
     joint: int = -1
-    state: str = "found"  # found -> configuring -> included -> (suspect) -> lost
+    state: NodeState = NodeState.FOUND  # -> CONFIGURING -> INCLUDED -> (SUSPECT) -> LOST
     heard_ns: int = 0
     configured_at: int = 0
     silent_cycles: int = 0
@@ -242,8 +274,8 @@ class Master:
         node = self.nodes.get(addr)
         if node is not None:
             node.heard_ns, node.silent_cycles = now, 0
-            if node.state == "suspect":
-                node.state = "included"
+            if node.state == NodeState.SUSPECT:
+                node.state = NodeState.INCLUDED
                 self.events.append((now, "back", node.info.module_id, node.joint))
             if (len(data) == _A.size or len(data) == _C.size) and node.joint >= 0:
                 out = self._cycle_query(data, addr, node, now)
@@ -319,7 +351,7 @@ class Master:
 
     def _found(self, info: NodeInfo, addr: Any, now: int) -> list[tuple[bytes, Any]]:
         node = self.nodes.get(addr)
-        if node is None or node.info.module_id != info.module_id or node.state == "lost":
+        if node is None or node.info.module_id != info.module_id or node.state == NodeState.LOST:
             node = self.nodes[addr] = Node(addr, info, heard_ns=now)
             self.events.append((now, "found", info.module_id, -1))
         node.info = info
@@ -327,7 +359,9 @@ class Master:
 
     def _depths(self) -> dict[int, int]:
         """module id -> joint index: its depth in the chain from the base plate (0)."""
-        parent = {n.info.module_id: n.info.plugged_to for n in self.nodes.values() if n.state != "lost"}
+        parent = {
+            n.info.module_id: n.info.plugged_to for n in self.nodes.values() if n.state != NodeState.LOST
+        }
         out: dict[int, int] = {}
         for mid in parent:
             depth, at, seen = 0, mid, set()
@@ -343,11 +377,11 @@ class Master:
         depths = self._depths()
         c = self.config
         for n in self.nodes.values():
-            if n.state not in ("found", "configuring") or n.info.module_id not in depths:
+            if n.state not in (NodeState.FOUND, NodeState.CONFIGURING) or n.info.module_id not in depths:
                 continue  # (a module whose chain to the base plate is not known yet waits)
-            if n.state == "configuring" and now - n.configured_at < self.explore_ns:
+            if n.state == NodeState.CONFIGURING and now - n.configured_at < self.explore_ns:
                 continue
-            n.joint, n.state, n.configured_at = depths[n.info.module_id], "configuring", now
+            n.joint, n.state, n.configured_at = depths[n.info.module_id], NodeState.CONFIGURING, now
             n.phase_ns = (c.phase_ns + n.joint * c.slot_ns) % c.period_ns
             conf = Configure(n.joint, c.period_ns, n.phase_ns, c.budget_ns, (c.gain,))
             out.append((encode(Header(pid=Pid.MRT), conf), n.addr))
@@ -355,9 +389,9 @@ class Master:
 
     def _configured(self, body: Configured, addr: Any, now: int) -> list[tuple[bytes, Any]]:
         node = self.nodes.get(addr)
-        if node is None or node.state != "configuring" or body.joint != node.joint or body.status:
+        if node is None or node.state != NodeState.CONFIGURING or body.joint != node.joint or body.status:
             return []
-        node.state = "included"
+        node.state = NodeState.INCLUDED
         self.model.active[node.joint] = True
         self.model.at[node.joint] = now
         self._a_cycle.pop(node.joint, None)  # guessed only once it has run (it syncs its clock first)
@@ -389,7 +423,11 @@ class Master:
         out: list[tuple[bytes, Any]] = []
         if now >= self._next_explore:
             self._next_explore = self.in_management_slot(now + self.explore_ns)
-            live = {a for a, n in self.nodes.items() if n.state in ("included", "suspect", "configuring")}
+            live = {
+                a
+                for a, n in self.nodes.items()
+                if n.state in (NodeState.INCLUDED, NodeState.SUSPECT, NodeState.CONFIGURING)
+            }
             for port in self.ports:
                 if port not in live:
                     out.append((encode(Header(pid=Pid.MRT), NodeInfoQuery()), port))
@@ -431,7 +469,7 @@ class Master:
             nxt = min(nxt, r)
         c = self.config
         for n in self.nodes.values() if self.fdir_here else ():  # FDIR: each module's next cycle's deadline
-            if n.state in ("included", "suspect"):
+            if n.state in (NodeState.INCLUDED, NodeState.SUSPECT):
                 nxt = min(nxt, (n.checked + 2) * c.period_ns + n.phase_ns + c.budget_ns)
         return nxt
 
@@ -440,7 +478,7 @@ class Master:
         silent (reported), who is gone (excluded, its port explored again)."""
         c = self.config
         for n in self.nodes.values():
-            if n.state not in ("included", "suspect"):
+            if n.state not in (NodeState.INCLUDED, NodeState.SUSPECT):
                 continue
             cycle = (now - c.budget_ns - n.phase_ns) // c.period_ns  # its last cycle past its deadline
             last = self._a_cycle.get(n.joint)
@@ -448,7 +486,7 @@ class Master:
                 self.counters["guessed"] += 1
                 n.silent_cycles += 1
                 if n.silent_cycles == self.suspect_cycles:
-                    n.state = "suspect"
+                    n.state = NodeState.SUSPECT
                     self.events.append((now, "silent", n.info.module_id, n.joint))
             n.checked = max(n.checked, cycle)
             if now - n.heard_ns > self.lost_ns:
@@ -456,7 +494,7 @@ class Master:
 
     def lose(self, n: Node, now: int) -> None:
         """Exclude a module gone silent (its port is explored again)."""
-        n.state = "lost"
+        n.state = NodeState.LOST
         self.model.active[n.joint] = False
         self.beacon_schedule.drop(n.addr)
         self.counters["lost"] += 1
@@ -511,7 +549,7 @@ class Cycle:
 
     scheduled: int  # master ns: its slot on the grid
     start: int  # master ns, T1
-    stage: str = "ab"  # ab -> cd -> done ("a", "b", "c", "d" with RMAP)
+    stage: Stage = Stage.AB  # AB -> CD -> DONE (A, B, C, D with RMAP)
     deadline: int = 0
     qid: int = 0
     missed: int = 0  # of its two exchanges, how many were guessed
@@ -550,13 +588,13 @@ class JointModule:
         self._asked = 0  # 1 + the beacons seen since our TIME_REQUEST went out (0: none out)
         self.config: Configure | None = None
         self.joint = -1
-        self.state = "unconfigured"  # -> syncing -> running
+        self.state = ModuleState.UNCONFIGURED  # -> syncing -> running
         self.transport = "snp"
         self.cycle: Cycle | None = None
         self.next_start = 0  # master ns
         # done cycles: (scheduled start, T1, end) master ns, and how many of its exchanges were guessed
         self.cycles: list[tuple[int, int, int, int]] = []
-        self.missed = {"ab": 0, "cd": 0}
+        self.missed = {Stage.AB: 0, Stage.CD: 0}
         self.overruns = 0  # cycles skipped because the last one was still running
         self.pos = self.vel = 0.0
         self.v_des = self.torque = 0.0
@@ -595,7 +633,7 @@ class JointModule:
         if isinstance(body, Configure):
             return self._configure(body, pkt.header, raw)
         if isinstance(body, TimeBeacon):
-            if self.state == "unconfigured":
+            if self.state == ModuleState.UNCONFIGURED:
                 return []
             if self.two_step and self._beacon is not None:  # the last one's follow-up never came
                 self._unfollowed()  # (after a few: one-step again)
@@ -660,8 +698,8 @@ class JointModule:
     def _beacon_at(self, raw: int, t_master: int) -> None:
         """A beacon that left the master at t_master came in at raw: the servo; running after three."""
         self.servo.beacon(raw, t_master)
-        if self.state == "syncing" and self.servo.samples >= 3:
-            self.state = "running"
+        if self.state == ModuleState.SYNCING and self.servo.samples >= 3:
+            self.state = ModuleState.RUNNING
             self._schedule(self.servo.now(raw) + self.config.period_ns)  # type: ignore[union-attr]
 
     def _exchanged(self, t1: int, t2: int, t3: int, t4: int) -> list[bytes]:
@@ -703,7 +741,7 @@ class JointModule:
         # for good, excluded and configured again every 70 ms)
         out.append(encode(self._header(Pid.TSP), TimeSubscribe(self.beacon_ns, self.precision_ns)))
         if first:
-            self.state = "syncing"
+            self.state = ModuleState.SYNCING
             out += self._request()
         return out
 
@@ -722,10 +760,10 @@ class JointModule:
 
     def next_wake(self) -> int | None:
         """The raw time poll() has something to do at (a cycle start or a deadline), if any."""
-        if self.state != "running":
+        if self.state != ModuleState.RUNNING:
             return None
         at = self.next_start
-        if self.cycle is not None and self.cycle.stage != "done":
+        if self.cycle is not None and self.cycle.stage != Stage.DONE:
             at = min(at, self.cycle.deadline)
         if self.rmap_init is not None and (t := self.rmap_init.next_timeout()) is not None:
             return min(self.servo.to_raw(at), t)
@@ -733,20 +771,20 @@ class JointModule:
 
     def poll(self, raw: int) -> list[bytes]:
         self._raw = raw
-        if self.state != "running":
+        if self.state != ModuleState.RUNNING:
             return []
         now = self.servo.now(raw)
         out: list[bytes] = []
         cy = self.cycle
-        if cy is not None and cy.stage != "done" and now >= cy.deadline:
+        if cy is not None and cy.stage != Stage.DONE and now >= cy.deadline:
             out += self._expired(cy, raw)
         if self.rmap_init is not None:
             resend, failed = self.rmap_init.expire(raw)
             out += resend
-            if failed and cy is not None and cy.stage != "done":
+            if failed and cy is not None and cy.stage != Stage.DONE:
                 out += self._expired(cy, raw)
         if now >= self.next_start:
-            if self.cycle is not None and self.cycle.stage != "done":
+            if self.cycle is not None and self.cycle.stage != Stage.DONE:
                 self.overruns += 1
                 self._finish(self.cycle, now)
             out += self._start(self.next_start, raw)
@@ -757,7 +795,7 @@ class JointModule:
         c = self.config
         assert c is not None
         t1 = self.servo.now(raw)
-        stage = "ab" if self.transport == "snp" else "a"
+        stage = Stage.AB if self.transport == "snp" else Stage.A
         self.cycle = Cycle(scheduled, t1, stage, scheduled + c.budget_ns // 2)
         j = self.joint
         if self.transport == "rmap":
@@ -781,15 +819,15 @@ class JointModule:
         cy = self.cycle
         assert cy is not None
         now = self.servo.now(raw)
-        if cy.stage == "ab":
+        if cy.stage == Stage.AB:
             if value is None:
-                self._miss(cy, "ab")
+                self._miss(cy, Stage.AB)
             else:
                 self.v_des = value
             return self._second(cy)
-        if cy.stage == "cd":
+        if cy.stage == Stage.CD:
             if value is None:
-                self._miss(cy, "cd")
+                self._miss(cy, Stage.CD)
             else:
                 self.torque = value
             self._finish(cy, now)
@@ -804,11 +842,11 @@ class JointModule:
         cy.deadline = cy.scheduled + c.budget_ns
         if self.transport == "rmap":
             assert self.rmap_init is not None
-            cy.stage = "c"
+            cy.stage = Stage.C
             data = _MSG.pack(force, 0.0, cy.start)
             _, dg = self.rmap_init.write(MASTER_LA, C_BASE + 16 * j, data, self._raw)
             return [dg]
-        cy.stage = "cd"
+        cy.stage = Stage.CD
         ids = _IDS[j]
         return [self._query(_C, (ids[3], force, cy.start), (ids[4], cy.start + c.period_ns))]
 
@@ -817,10 +855,10 @@ class JointModule:
         now = self.servo.now(raw)
         if self.rmap_init is not None:
             self.rmap_init.in_flight.clear()
-        if cy.stage in ("ab", "a", "b"):
-            self._miss(cy, "ab")
+        if cy.stage in (Stage.AB, Stage.A, Stage.B):
+            self._miss(cy, Stage.AB)
             return self._second(cy)
-        self._miss(cy, "cd")
+        self._miss(cy, Stage.CD)
         self._finish(cy, now)
         return []
 
@@ -829,7 +867,7 @@ class JointModule:
         cy.missed += 1
 
     def _finish(self, cy: Cycle, now: int) -> None:
-        cy.stage = "done"
+        cy.stage = Stage.DONE
         self.cycles.append((cy.scheduled, cy.start, now, cy.missed))
         assert self.config is not None
         self.vel += (self.v_des - self.vel) * 0.5  # the joint: a fast drive after the desired velocity
@@ -843,7 +881,7 @@ class JointModule:
             if self.rmap_init is None or (got := self.rmap_init.receive(data)) is None:
                 return []
             if cy is not None and got[1] == rmap.Status.SUCCESS:
-                cy.stage = {"a": "b", "c": "d"}.get(cy.stage, cy.stage)
+                cy.stage = {Stage.A: Stage.B, Stage.C: Stage.D}.get(cy.stage, cy.stage)
             return []
         self._rmap_out = []
         reply = self.rmap_target.receive(data)
@@ -851,14 +889,14 @@ class JointModule:
 
     def _rmap_written(self, address: int, data: bytes) -> None:
         cy = self.cycle
-        if cy is None or cy.stage == "done" or len(data) != _MSG.size:
+        if cy is None or cy.stage == Stage.DONE or len(data) != _MSG.size:
             return
         value, _, t = _MSG.unpack(data)
         if t != cy.start + self.config.period_ns:  # type: ignore[union-attr]
             return  # an answer to an earlier cycle, retried late: that cycle has been guessed
-        if address == B_ADDR and cy.stage in ("a", "b"):
+        if address == B_ADDR and cy.stage in (Stage.A, Stage.B):
             self.v_des = value
             self._rmap_out += self._second(cy)
-        elif address == D_ADDR and cy.stage in ("c", "d"):
+        elif address == D_ADDR and cy.stage in (Stage.C, Stage.D):
             self.torque = value
             self._finish(cy, self.servo.now(self._raw))

@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from cell.snp.modular import _IDS, JointModule, Master, Node
+from cell.snp.modular import _IDS, JointModule, Master, Node, NodeState
+from cell.snp.modular import ModuleState as ModuleLife  # (ModuleState here: the C mirror)
 
 HERE = Path(__file__).parent
 SOURCES = (HERE / "cycle.c", HERE / "master.c")  # one library; both include wire.h
@@ -67,7 +68,7 @@ class JointEntry(ctypes.Structure):
 
 MAX_JOINTS, QUEUE, EVENTS = 16, 64, 32
 NODE_OFF, NODE_INCLUDED, NODE_SUSPECT, NODE_LOST = 0, 1, 2, 3
-_NODE_STATE = {"included": NODE_INCLUDED, "suspect": NODE_SUSPECT}
+_NODE_STATE = {NodeState.INCLUDED: NODE_INCLUDED, NodeState.SUSPECT: NODE_SUSPECT}
 _EVENT = {1: "silent", 2: "back", 3: "lost"}
 
 
@@ -198,7 +199,7 @@ class NativeCycles:
         once it runs with transport snp, the cycle handed to C (where it then stays)."""
         s = m.servo
         st.servo_anchor, st.servo_base, st.servo_rate = s.anchor_raw, s.base, s.rate
-        if st.active or m.state != "running" or m.transport != "snp" or master is None:
+        if st.active or m.state != ModuleLife.RUNNING or m.transport != "snp" or master is None:
             return
         c = m.config
         assert c is not None
@@ -307,18 +308,18 @@ class NativeMaster:
             if e.a_cycle >= 0:
                 ms._a_cycle[j] = e.a_cycle
             if e.state in (NODE_INCLUDED, NODE_SUSPECT):
-                n.state = "included" if e.state == NODE_INCLUDED else "suspect"
+                n.state = NodeState.INCLUDED if e.state == NODE_INCLUDED else NodeState.SUSPECT
         for i in range(st.n_events):  # (in the order they happened)
             t, what, j = st.events[i]
             n = self._node[j]
-            if n is None or n.state == "lost":
+            if n is None or n.state == NodeState.LOST:
                 continue
             if _EVENT[what] == "lost":
                 ms.lose(n, t)
             else:
                 ms.events.append((t, _EVENT[what], n.info.module_id, j))
         for j, n in enumerate(self._node):  # (a loss whose event did not fit in the ring)
-            if n is not None and st.joints[j].state == NODE_LOST and n.state != "lost":
+            if n is not None and st.joints[j].state == NODE_LOST and n.state != NodeState.LOST:
                 ms.lose(n, n.heard_ns + ms.lost_ns)
         h = ms.handler.counters
         h["queries"] += st.queries

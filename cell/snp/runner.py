@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from cell.snp.modular import JointModule, Master
+from cell.snp.modular import JointModule, Master, ModuleState, Stage
 from cell.snp.packet import stamp_departure, time_packet
 from cell.snp.tsp import Oscillator, on_grid
 from cell.timer import Alarm, realtime_offset
@@ -315,7 +315,7 @@ class Slot:
         points of host time, if given)."""
         m, osc = self.module, self.osc
         assert m is not None and osc is not None
-        if m.state == "running" and now >= self.next_sample:
+        if m.state == ModuleState.RUNNING and now >= self.next_sample:
             self.next_sample = now + sample_ns if grid is None else on_grid(now + sample_ns, grid)
             self.clock_errors.append(m.servo.now(osc.raw(now)) - now)
 
@@ -410,7 +410,7 @@ def run_modules(
             for s in live:
                 wake = min(wake, s.wake)
                 cy = s.module.cycle  # type: ignore[union-attr]
-                busy = busy or (cy is not None and cy.stage != "done")
+                busy = busy or (cy is not None and cy.stage != Stage.DONE)
             if not (busy and spin) and wake - now > lead:  # nothing in flight: sleep until (just before) it
                 alarm.set(wake - lead)
                 ready = ep.poll(COARSE_S)
@@ -517,7 +517,7 @@ def _run_native(
                 next_event = events()
             until = next_event
             for s in live:
-                if s.module is not None and s.module.state == "running":
+                if s.module is not None and s.module.state == ModuleState.RUNNING:
                     until = min(until, s.next_sample)
             got = cycles.run([s.sock.fileno() for s in live], until)  # type: ignore[union-attr]
             if got is not None and got[0] == RUN_HANDED:

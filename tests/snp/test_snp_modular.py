@@ -13,7 +13,7 @@ from collections.abc import Callable
 import pytest
 
 from cell.snp import rmap
-from cell.snp.modular import CycleConfig, JointModule, Master
+from cell.snp.modular import CycleConfig, JointModule, Master, ModuleState
 from cell.snp.packet import (
     Configure,
     Configured,
@@ -251,7 +251,7 @@ def test_the_runner_samples_a_running_modules_clock_on_the_grid_it_is_given() ->
     assert s.module is not None
     s.sample(1_000_000, 10_000_000, (1_000_000, 400_000))
     assert s.clock_errors == []  # not running yet: nothing to sample
-    s.module.state = "running"
+    s.module.state = ModuleState.RUNNING
     s.sample(1_234_567, 10_000_000, (1_000_000, 400_000))
     assert len(s.clock_errors) == 1 and s.next_sample == 11_400_000  # the slot after 10 ms
     s.sample(11_399_999, 10_000_000, (1_000_000, 400_000))
@@ -309,7 +309,7 @@ def test_a_module_takes_the_follow_ups_time_and_goes_back_to_one_step_when_they_
 
     assert abs(beacons(40, followed=True)) < 100  # ns: the follow-ups' times
     # (the first response went one-step: its follow-up is how the module learns there are any)
-    assert m.state == "running" and m.follow_ups == 7 + 40 and m.unfollowed == 0
+    assert m.state == ModuleState.RUNNING and m.follow_ups == 7 + 40 and m.unfollowed == 0
     samples = m.servo.samples
     beacons(3, followed=False)  # waiting for their follow-ups (the last one's may still come)
     assert m.two_step and m.servo.samples == samples and m.unfollowed == 2
@@ -435,7 +435,7 @@ def test_the_master_explores_configures_by_topology_and_runs_the_cycle() -> None
     net.run_until(300_000_000)
     assert (m11.joint, m12.joint, m13.joint) == (0, 1, 2)
     assert [n.state for n in net.master.nodes.values()] == ["included"] * 3
-    assert all(m.state == "running" and m.granted is not None for m in (m11, m12, m13))
+    assert all(m.state == ModuleState.RUNNING and m.granted is not None for m in (m11, m12, m13))
     for m in (m11, m12, m13):
         assert len(m.cycles) > 150 and m.missed == {"ab": 0, "cd": 0}
         start, _t1, end, missed = m.cycles[-1]
@@ -515,7 +515,7 @@ def test_the_master_sends_beacons_and_probes_only_in_its_management_slot() -> No
     net = SimNet(ports=4, latency=20_000, config=config)
     mods = [net.plug(0, 11, 0), net.plug(1, 12, 11), net.plug(2, 13, 12)]
     net.run_until(300_000_000)
-    assert all(m.state == "running" for m in mods)
+    assert all(m.state == ModuleState.RUNNING for m in mods)
     kinds: dict[type, list[int]] = {}
     for t, to, data in net.sent:
         body = decode(data).body if to == "module" else None
@@ -555,7 +555,7 @@ def test_junk_reaches_master_and_module_without_harm() -> None:
         assert isinstance(m.receive(j, 0), list)
     samples = m.servo.samples
     net.run_until(net.now + 100_000_000)
-    assert len(m.cycles) > before and m.state == "running"  # nothing a peer sends stops either end
+    assert len(m.cycles) > before and m.state == ModuleState.RUNNING  # nothing a peer sends stops either end
     assert not m.two_step and m.servo.samples >= samples + 5  # its clock still servoed
 
 
@@ -564,7 +564,7 @@ def test_the_rmap_baseline_runs_the_same_cycle_with_acknowledged_writes() -> Non
     m1, m2 = net.plug(0, 11, 0, "rmap"), net.plug(1, 12, 11, "rmap")
     net.run_until(300_000_000)
     for m in (m1, m2):
-        assert m.state == "running" and len(m.cycles) > 150 and m.missed == {"ab": 0, "cd": 0}
+        assert m.state == ModuleState.RUNNING and len(m.cycles) > 150 and m.missed == {"ab": 0, "cd": 0}
         _start, t1, end, missed = m.cycles[-1]
         assert end - t1 >= 4 * net.latency  # A, then B (with A's ack), C, then D (with C's ack)
         assert missed == 0
@@ -641,7 +641,7 @@ def test_master_and_modules_on_loopback_sockets() -> None:
         run_modules(slots, seconds=1.5, spin=False)
     for s in slots:
         m = s.module
-        assert m is not None and m.state == "running" and m.joint == s.module_id - 21
+        assert m is not None and m.state == ModuleState.RUNNING and m.joint == s.module_id - 21
         assert len(m.cycles) > 500  # on this 2-core machine, in one process with the master
         in_cycles = sum(c[3] for c in m.cycles)  # each cycle's guesses, as counted per module
         assert sum(m.missed.values()) - 1 <= in_cycles <= sum(m.missed.values())  # (one may be running)

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from cell.snp.modular import _A, _C, _IDS, CycleConfig, Master
+from cell.snp.modular import _A, _C, _IDS, CycleConfig, Master, NodeState
 from cell.snp.native import RUN_EVENT, RUN_HANDED, NativeMaster, available
 from cell.snp.packet import Configured, ModuleKind, NodeInfo, Pid
 from cell.snp.runner import Link, Slot, open_udp, run_modules
@@ -43,7 +43,7 @@ class Rig:
                 m._found(NodeInfo(100 + j, ModuleKind.JOINT, 100 + j - 1 if j else 0, 1), addr, now)
             for j, addr in enumerate(self.addrs):
                 m._configured(Configured(j), addr, now)
-        assert all(n.state == "included" for n in self.c.nodes.values())
+        assert all(n.state == NodeState.INCLUDED for n in self.c.nodes.values())
         self.fast = NativeMaster(
             self.c, self.sock.fileno(), spin_ns=0, lead_ns=0, mono_of_real=realtime_offset()
         )
@@ -157,17 +157,17 @@ def test_fdir_in_c_guesses_reports_silent_takes_back_and_excludes() -> None:
         assert rig.run(2_000_000) is None and rig.recv(0)
         got = rig.run(40_000_000)  # no more A's: two cycles guessed, then reported silent
         assert got is not None and got[0] == RUN_EVENT
-        assert node.state == "suspect" and rig.c.events[-1][1:] == ("silent", 100, 0)
+        assert node.state == NodeState.SUSPECT and rig.c.events[-1][1:] == ("silent", 100, 0)
         assert rig.c.counters["guessed"] == 2
         rig.send(0, a_query(0, 2, 0.0, 0.0, time.monotonic_ns()))  # it comes back
         got = rig.run(5_000_000)
         assert got is not None and got[0] == RUN_EVENT
-        assert node.state == "included" and rig.c.events[-1][1] == "back"
+        assert node.state == NodeState.INCLUDED and rig.c.events[-1][1] == "back"
         assert rig.recv(0)  # (answered too)
         t = time.monotonic_ns()
-        while (got := rig.run(200_000_000)) is not None and node.state != "lost":
+        while (got := rig.run(200_000_000)) is not None and node.state != NodeState.LOST:
             assert got[0] == RUN_EVENT  # silent again, then excluded: lost_ns after it was heard
-        assert node.state == "lost" and rig.c.counters["lost"] == 1
+        assert node.state == NodeState.LOST and rig.c.counters["lost"] == 1
         assert 40_000_000 < time.monotonic_ns() - t < 150_000_000
         assert not rig.c.model.active[0] and rig.c.events[-1][1] == "lost"
         rig.send(0, a_query(0, 3, 0.0, 0.0, time.monotonic_ns()))  # excluded: no longer the fast path's
