@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import zmq
 
-from cell.bus import curve
+import cell.bus.curve as curve
 from cell.bus.node import BusError, readable, tune, zmq_context
 from cell.config import BusConfig
 

@@ -27,7 +27,7 @@ import zmq
 from google.protobuf.message import Message
 from zmq.utils.monitor import parse_monitor_message
 
-from cell.bus import curve
+import cell.bus.curve as curve
 from cell.bus.envelope import (
     Encoder,
     Envelope,

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from functools import cache
 
-from cell.robot.models import RobotModel, get
+from cell.robot.models.registry import RobotModel, get
 
 JOINT_NAMES = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
 FLANGE_RGBA = "0.2 0.4 0.8 1"
