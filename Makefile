@@ -44,7 +44,7 @@ test: $(STAMP_TEST)
 perf: $(STAMP_TEST)
 	@$(MAKE) -s bpf-if-possible
 	$(BIN)/python -m pytest -m perf tests/perf
-	$(BIN)/cell bench dataplane --seconds 1 --json | tail -1
+	$(BIN)/cell bench bus --messages 50000 --rounds 1 --json | tail -1
 	$(BIN)/cell bench snp --seconds 1 --json | tail -1
 
 bpf: $(BPF_OBJ)
