@@ -135,13 +135,6 @@ class Engine(RobotBook):
         track.failure = None
         track.task = self._spawn(guarded(), f"motion-{track.robot}")
 
-    async def wait_motion(self, track: Track) -> None:
-        """Until the track's motion task has ended; its failure, if it failed."""
-        if track.task is not None:
-            await track.task
-        if track.failure is not None:
-            raise track.failure
-
     # --- robots ------------------------------------------------------------------------------
 
     def track(self, robot: int | str) -> Track:
@@ -188,10 +181,7 @@ class Engine(RobotBook):
             if me is not None and me.cancelling():
                 raise
             raise MotionStopped(track.stop_reason or "the motion under way was stopped") from None
-        if isinstance(track.failure, BusError):
-            raise _untaken(track.failure) from None
-        if track.failure is not None:
-            raise track.failure
+        _raise_failure(track.failure)
 
     async def tables_in_hand(self) -> None:
         """Until supervise() has the data plane's tables in hand (its take-over at our start, or after
@@ -282,11 +272,7 @@ class Engine(RobotBook):
                 raise  # we are cancelled ourselves
             why = next((t.stop_reason for t in tracks if t.stop_reason), None)
             raise MotionStopped(why or "the motion was stopped or re-planned") from None
-        failure = next((t.failure for t in tracks if t.failure is not None), None)
-        if isinstance(failure, BusError):
-            raise _untaken(failure) from None
-        if failure is not None:
-            raise failure
+        _raise_failure(next((t.failure for t in tracks if t.failure is not None), None))
         for track in tracks:
             self.unfinished.pop(track.robot, None)
         return result
@@ -455,6 +441,10 @@ class Engine(RobotBook):
             log.warning("%s (robots %s)", reason, sorted(r for t in hit for r in t.robots))
 
 
-def _untaken(exc: BusError) -> MotionStopped:
-    """A motion's streaming failed on the bus: the data plane may have run out of its TPs."""
-    return MotionStopped(f"the data plane did not take the motion's next TPs: {exc}")
+def _raise_failure(failure: BaseException | None) -> None:
+    """What a motion's streaming failed with, for its waiters: a failure on the bus means the data plane
+    may have run out of its TPs (MotionStopped); anything else is raised as it is."""
+    if isinstance(failure, BusError):
+        raise MotionStopped(f"the data plane did not take the motion's next TPs: {failure}") from None
+    if failure is not None:
+        raise failure

@@ -234,8 +234,10 @@ def episode_update(
     """Episode k's TPs (lo, hi: ids lo..hi-1 go in) and what comes out with them: once k >= 2,
     whatever is loaded but neither in the last two episodes nor in `keep` (episode k-3 and older)."""
     ids = seg.ids
-    remove = [i for i in loaded if i not in set(ids[(k - 2) * n :]) | keep] if k >= 2 else []
-    return k * n, min((k + 1) * n, len(ids)), remove
+    if k < 2:
+        return k * n, min((k + 1) * n, len(ids)), []
+    stay = set(ids[(k - 2) * n :]) | keep
+    return k * n, min((k + 1) * n, len(ids)), [i for i in loaded if i not in stay]
 
 
 def tidy_ns(seg: Segment, rtt_ns: int) -> int:
