@@ -34,7 +34,7 @@ import zmq
 import zmq.asyncio
 
 from cell.bench.cellproc import default_robots, running_cell
-from cell.bus import Bus
+from cell.bus import Bus, BusTimeout, RemoteError
 from cell.bus.envelope import Encoder, EnvelopeError
 from cell.bus.envelope import Kind as BusKind
 from cell.bus.envelope import decode as decode_frame
@@ -54,6 +54,7 @@ PROBE_ROBOT = 65000  # a robot id no cell configures: the data plane tells it to
 SEEDS = 600  # hypothesis examples per format
 HANG_S = 5.0  # a probe not answered within this is a hang
 RESEND_S = 0.5  # a UDP probe is sent again after this without its answer
+BUS_RESEND_S = 1.0  # a bus probe likewise (a reply can take longer: it crosses two processes)
 MEMORY_MB = 64  # a service growing more than this over the campaign fails it
 SAFE_RLINK = {rlp.EventType.NOP, rlp.EventType.ECHO, rlp.EventType.ECHO_REPLY}
 # bus topics whose subscribers would believe a well-formed message (its type, as they decode it)
@@ -152,7 +153,24 @@ class Probes:
         )
 
     async def bus(self, bus: Bus) -> None:
-        await bus.request("dataplane", "state", dataplane_pb2.StateRequest(), dataplane_pb2.DataplaneState)
+        """A state request to the data plane, asked again after BUS_RESEND_S without its answer: a
+        request sent while the server's bus connection is being made anew is lost (the bus counts the
+        disconnect), which is not a hang; the caller's HANG_S bounds the whole."""
+        while True:
+            try:
+                await bus.request(
+                    "dataplane",
+                    "state",
+                    dataplane_pb2.StateRequest(),
+                    dataplane_pb2.DataplaneState,
+                    timeout=BUS_RESEND_S,
+                )
+                return
+            except BusTimeout:
+                continue
+            except RemoteError as exc:
+                if exc.code != "bus_lost":
+                    raise
 
     async def timed(self, probe: Callable[[], Awaitable[Any]], n: int = 5) -> list[float]:
         out = []
@@ -367,15 +385,23 @@ class Listeners:
         corr = 0
 
         async def probe() -> int:
+            """Asked again after BUS_RESEND_S (see Probes.bus); any of its askings' answers will do."""
             nonlocal corr
-            corr += 1
-            pub.send(enc.encode(b"rpc/dataplane/state", "cell.v1.StateRequest", b"", BusKind.REQUEST, corr))
-            n = 0
+            first, n = corr + 1, 0
+            loop = asyncio.get_running_loop()
             while True:
-                env = decode_frame(await sub.recv())
-                if env.correlation == corr:
-                    return n
-                n += 1
+                corr += 1
+                pub.send(
+                    enc.encode(b"rpc/dataplane/state", "cell.v1.StateRequest", b"", BusKind.REQUEST, corr)
+                )
+                deadline = loop.time() + BUS_RESEND_S
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout_at(deadline):
+                        while True:
+                            env = decode_frame(await sub.recv())
+                            if first <= env.correlation <= corr:
+                                return n
+                            n += 1
 
         try:
             async with asyncio.timeout(10):  # the subscription reaches the forwarder
