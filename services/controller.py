@@ -47,14 +47,13 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
 
     async def follow_armings() -> None:
         """Alternates armed by an event on the bus (alternate/<robot>): taken as if requested."""
-        ctx.counters["alternates_taken"] = ctx.counters["alternates_refused"] = 0
 
         async def take(ev: controller_pb2.TakeAlternate) -> None:
             try:
                 await svc.take_alternate(ev)
-                ctx.counters["alternates_taken"] += 1
+                svc.counters.alternates_taken += 1
             except Exception as exc:  # (a bad event is the sender's: said, never fatal here)
-                ctx.counters["alternates_refused"] += 1
+                svc.counters.alternates_refused += 1
                 ctx.log.warning("alternate %r of %r not taken: %s", ev.name, ev.robot, exc)
 
         async with asyncio.TaskGroup() as takes:  # (each returns when its branch ends: not inline)
@@ -76,9 +75,7 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
         tg.create_task(ctl.supervise(), name="supervise-dataplane")
         ctx.ready()
         while True:  # requests are served by the bus node's reader; this only reports
-            ctx.counters["late_starts"] = ctl.late_starts
-            ctx.counters["stopped_on_link"] = len(ctl.stopped)
-            ctx.counters["motions_lost"] = len(ctl.lost)
+            ctx.counters.update(svc.report())
             await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
 
 

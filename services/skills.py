@@ -89,8 +89,7 @@ async def run(ctx: ServiceContext) -> None:
         async def report() -> None:
             while True:
                 for s in servers:
-                    for k, v in s.counters.items():
-                        ctx.counters[f"{s.robot.name}.{k}"] = v
+                    ctx.counters.update(s.counters.as_dict(f"{s.robot.name}."))
                 await asyncio.sleep(1.0)
 
         tg.create_task(report())

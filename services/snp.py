@@ -63,7 +63,7 @@ async def run(ctx: ServiceContext) -> None:
                         query_id=qid, explanation=why, peer=str(peer), t_ns=time.monotonic_ns()
                     )
                     bus.publish("events/snp/denial", denial)
-                ctx.counters.update({k: float(v) for k, v in handler.counters.items()})
+                ctx.counters.update(handler.counters.as_dict())
                 ctx.counters["service_estimate_us"] = handler.service_ns / 1e3
                 await asyncio.sleep(1.0)
 

@@ -81,11 +81,11 @@ def _master(
     sock.close()
     out.put(
         {
-            "counters": dict(master.counters),
-            "handler": {k: int(v) for k, v in master.handler.counters.items()},
+            "counters": master.counters.as_dict(),
+            "handler": master.handler.counters.as_dict(),
             "rmap": {
-                **master.rmap_init.counters,
-                **{f"target.{k}": v for k, v in master.rmap_target.counters.items()},
+                **master.rmap_init.counters.as_dict(),
+                **master.rmap_target.counters.as_dict("target."),
             },
             "events": list(master.events),
             "lost_on_link": link.lost,
@@ -125,7 +125,7 @@ def _modules(
                 "unfollowed": m.unfollowed,  # beacons left out, their follow-up lost
                 "two_step_link": bool(s.link and s.link.two_step),
                 "lost_on_link": s.link.lost if s.link else 0,
-                "rmap": dict(m.rmap_init.counters) if m.rmap_init else {},
+                "rmap": m.rmap_init.counters.as_dict() if m.rmap_init else {},
             }
         )
     out.put((res, cpu))

@@ -28,8 +28,11 @@ from cell.controller.schedule import (
     STOP_JERK,
     SWITCH_MARGIN_NS,
     Armed,
+    Goal,
     LoopRun,
+    MotionKind,
     MotionResult,
+    MotionState,
     MotionStopped,
     Segment,
     Switch,
@@ -40,7 +43,10 @@ from cell.controller.schedule import (
 )
 from cell.controller.tps import cut
 
-__all__ = ["STOP_JERK", "Controller", "MotionResult", "MotionStopped", "Segment", "Track"]
+__all__ = [
+    "STOP_JERK", "Controller", "Goal", "MotionKind", "MotionResult", "MotionState", "MotionStopped",
+    "Segment", "Track",
+]  # fmt: skip
 
 
 class Controller(Engine):
@@ -55,7 +61,7 @@ class Controller(Engine):
         ids = [self.robot_id(r) for r in robots]
         old = [self.track(r) for r in ids]
         for t in old:
-            if t.task is not None and not t.task.done():
+            if t.moving:
                 raise PlanError(f"robot {t.robot} is moving; stop it before merging")
         # the robots let go of their own TPs first (they hold where they stand, commanded 0)
         held = [t for t in old if t.loaded]
@@ -122,7 +128,7 @@ class Controller(Engine):
         goal = np.asarray(q_goal, np.float64)
 
         def plan(track: Track, q0: np.ndarray) -> Motion:
-            self.unfinished[track.robot] = ("joints", goal, speed, fine)
+            self.unfinished[track.robot] = Goal(MotionKind.JOINTS, goal, speed, fine)
             return plan_joint(q0, goal, track.limits.scaled(speed))
 
         return await self._move(robot, plan, fine, wait)
@@ -140,7 +146,7 @@ class Controller(Engine):
 
         def plan(track: Track, q0: np.ndarray) -> Motion:
             goal = self.kinematics(track.robot).ik(pos, rot, q0)
-            self.unfinished[track.robot] = ("joints", goal, speed, fine)
+            self.unfinished[track.robot] = Goal(MotionKind.JOINTS, goal, speed, fine)
             return plan_joint(q0, goal, track.limits.scaled(speed))
 
         return await self._move(robot, plan, fine, wait)
@@ -157,7 +163,7 @@ class Controller(Engine):
         """The tool along a straight line to (pos, rot)."""
 
         def plan(track: Track, q0: np.ndarray) -> Motion:
-            self.unfinished[track.robot] = ("linear", (pos, rot), speed, fine)
+            self.unfinished[track.robot] = Goal(MotionKind.LINEAR, (pos, rot), speed, fine)
             return plan_linear(self.kinematics(track.robot), q0, pos, rot, track.limits.scaled(speed))
 
         return await self._move(robot, plan, fine, wait)
@@ -181,11 +187,10 @@ class Controller(Engine):
         left = self.unfinished.get(track.robot)
         if left is None:
             return None
-        kind, target, speed, fine = left
-        if kind == "linear":
-            pos, rot = target
-            return await self.move_linear(robot, pos, rot, speed, fine)
-        return await self.move_joints(robot, target, speed, fine)
+        if left.kind is MotionKind.LINEAR:
+            pos, rot = left.target
+            return await self.move_linear(robot, pos, rot, left.speed, left.fine)
+        return await self.move_joints(robot, left.target, left.speed, left.fine)
 
     async def execute(self, motions: dict[int, Motion], fine: bool = False) -> MotionResult:
         """Start the motions at one shared data-plane time and return when all have ended."""
@@ -198,7 +203,7 @@ class Controller(Engine):
         """Switch a moving robot onto a new motion to q_goal, branching at a TP far enough ahead."""
         track = self.track(robot)
         seg = track.segment
-        if track.task is None or track.task.done() or seg is None:
+        if not track.moving or seg is None:
             return await self.move_joints(robot, q_goal, speed)
         for _attempt in range(4):
             t_plan = time.perf_counter_ns()

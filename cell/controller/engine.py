@@ -30,6 +30,7 @@ from cell.controller.robots import RobotBook
 from cell.controller.schedule import (
     TIDY_NS,
     Alternate,
+    Goal,
     LoopRun,
     MotionResult,
     MotionStopped,
@@ -66,7 +67,7 @@ class Engine(RobotBook):
         self.plan_ns = 100_000_000  # how long planning a re-plan takes (measured, pessimistic)
         self.late_starts = 0  # motions whose first TPs were in place only after their start time
         self.last_switch: Switch | None = None
-        self.unfinished: dict[int, tuple] = {}  # robot -> the motion a stop interrupted (for resume)
+        self.unfinished: dict[int, Goal] = {}  # robot -> the motion a stop interrupted (for resume)
         self.stopped: set[int] = set()  # robots stopped over the Responsive Link, until released
         self.lost: list[tuple[float, str]] = []  # (monotonic s, reason) of each loss, for the record
         # set while supervise() has the tables in hand: motions wait for it (a take-over's flush

@@ -231,7 +231,7 @@ async def prepare_alternates(
 
     track = ctl.track(robot)
     seg = track.segment
-    if track.task is None or track.task.done() or seg is None:
+    if not track.moving or seg is None:
         raise PlanError(f"robot {robot} is not moving: alternates branch off a running motion")
     ahead = ctl.link.now() + ctl.link.rtt_ns + 20_000_000
     ks = [k for k in range(0, len(seg.sections) - 1, max(1, every)) if seg.t_ns(k) >= ahead]
@@ -272,7 +272,7 @@ async def take_alternate(ctl: Engine, robot: int | str, name: str) -> MotionResu
         raise PlanError(
             f"robot {robot} has no alternate {name!r} prepared (has {sorted(prepared) or 'none'})"
         )
-    if track.segment is not main or track.task is None or track.task.done():
+    if track.segment is not main or not track.moving:
         raise PlanError(f"the motion alternate {name!r} was prepared for has ended")
     ahead = ctl.link.now() + ctl.link.rtt_ns + SWITCH_MARGIN_NS
     # the earliest branch point in reach whose TP of the main motion is loaded (streaming loads the

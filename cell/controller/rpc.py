@@ -7,12 +7,14 @@ serves it on the bus.
 from __future__ import annotations
 
 import asyncio
+from dataclasses import dataclass
 
 import numpy as np
 
 from cell.bus import BusError, RemoteError, RpcFault
 from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
 from cell.controller.plan import PlanError
+from cell.counters import Counters
 from cell.robot.kinematics import Unreachable
 from cell.robot.pose import from_adept, to_adept
 from cell.v1 import controller_pb2
@@ -20,9 +22,25 @@ from cell.v1 import controller_pb2
 Kind, Frame = controller_pb2.MoveRequest.Kind, controller_pb2.MoveRequest.Frame
 
 
+@dataclass(slots=True)
+class ControllerCounters(Counters):
+    alternates_taken: int = 0  # armed alternates taken on an event from the bus
+    alternates_refused: int = 0
+    late_starts: int = 0  # motions whose first point was due before it reached the data plane
+    stopped_on_link: int = 0  # robots stopped over the Responsive Link now (a gauge)
+    motions_lost: int = 0  # robots whose motion was lost with the data plane (a gauge)
+
+
 class ControllerService:
     def __init__(self, ctl: Controller) -> None:
         self.ctl = ctl
+        self.counters = ControllerCounters()
+
+    def report(self) -> dict[str, float]:
+        """The counters for the heartbeat, the controller's gauges read now."""
+        c, ctl = self.counters, self.ctl
+        c.late_starts, c.stopped_on_link, c.motions_lost = ctl.late_starts, len(ctl.stopped), len(ctl.lost)
+        return c.as_dict()
 
     def _robot(self, name: str) -> int:
         try:

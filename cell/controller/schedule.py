@@ -20,6 +20,7 @@ import asyncio
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from enum import Enum, StrEnum
 
 import numpy as np
 
@@ -95,6 +96,31 @@ class Segment:
         return self.t_ns(len(self.sections) - 1)
 
 
+class MotionState(Enum):
+    """Where a track's last motion stands (Track.state)."""
+
+    IDLE = "idle"  # never moved by this controller
+    MOVING = "moving"  # its motion is being streamed
+    ARRIVED = "arrived"  # its last motion ran to its end; it holds there
+    STOPPED = "stopped"  # its last motion ended early (a stop, the Responsive Link, the data plane lost)
+    FAILED = "failed"  # its last motion's streaming failed (Track.failure says why)
+
+
+class MotionKind(StrEnum):
+    JOINTS = "joints"  # a joint-space motion (to joints, or to a pose by IK)
+    LINEAR = "linear"  # the tool along a straight line
+
+
+@dataclass(frozen=True, slots=True)
+class Goal:
+    """A motion as it was asked for, kept until it ends: what resume() plans again after a stop."""
+
+    kind: MotionKind
+    target: np.ndarray | tuple[np.ndarray, np.ndarray]  # joints, or (position, rotation) for LINEAR
+    speed: float
+    fine: bool
+
+
 @dataclass
 class Track:
     """One entity as the controller drives it: a robot, or robots merged to move as one."""
@@ -123,6 +149,16 @@ class Track:
     @property
     def moving(self) -> bool:
         return self.task is not None and not self.task.done()
+
+    @property
+    def state(self) -> MotionState:
+        if self.moving:
+            return MotionState.MOVING
+        if self.failure is not None:
+            return MotionState.FAILED
+        if self.stop_reason:
+            return MotionState.STOPPED
+        return MotionState.IDLE if self.task is None and self.q_hold is None else MotionState.ARRIVED
 
     def take_ids(self, n: int) -> list[int]:
         ids = [(self.next_id + i) % _ID_SPACE for i in range(n)]

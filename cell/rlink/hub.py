@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import asyncio
 import time
+from dataclasses import dataclass
 
 from cell.bus import Bus
 from cell.config import CellConfig
+from cell.counters import Counters
 from cell.rlink import events
 from cell.rlink.cellnet import BROADCAST, Topology
 from cell.rlink.events import EventError, Reason, RobotState
@@ -24,6 +26,14 @@ _ORDERS = {EventType.ESTOP: RE.KIND_ESTOP, EventType.STOP: RE.KIND_STOP}
 _STATES = {RobotState.STILL: RE.KIND_STILL, RobotState.RESUMED: RE.KIND_RESUME}
 
 
+@dataclass(slots=True)
+class HubCounters(Counters):
+    orders: int = 0  # stop/resume orders sent to the robots
+    reports: int = 0  # robots' state reports received
+    beacons: int = 0
+    bad_events: int = 0  # events the hub could not take (unknown robot, bad payload)
+
+
 class Hub:
     def __init__(self, config: CellConfig, bus: Bus | None = None) -> None:
         topo = Topology(config.rlink)
@@ -33,7 +43,7 @@ class Hub:
         node = Node(self.address, topo.table("hub"))
         self.link = NodeLink(node, topo.links("hub"), self.on_event, host=topo.host)
         self.stopped: dict[int, str] = {}  # robot -> why, as the robots report it
-        self.counters = {"orders": 0, "reports": 0, "beacons": 0, "bad_events": 0}
+        self.counters = HubCounters()
 
     def close(self) -> None:
         self.link.close()
@@ -44,13 +54,13 @@ class Hub:
             return
         try:
             if p.type in (EventType.ESTOP, EventType.STOP, EventType.RESUME, EventType.START):
-                self.counters["orders"] += 1
+                self.counters.orders += 1
                 named = events.decode_set(p.payload).ids(self.names.keys())
                 if p.type in _ORDERS:
                     for rid in named:
                         self._tell(rid, _ORDERS[EventType(p.type)], f"{EventType(p.type).name} ordered")
             elif p.type == EventType.STATE:
-                self.counters["reports"] += 1
+                self.counters.reports += 1
                 rep = events.decode_state(p.payload)
                 if rep.state in (RobotState.STOPPING, RobotState.STILL):
                     self.stopped[rep.robot] = rep.reason.name.lower()
@@ -64,7 +74,7 @@ class Hub:
                         text += f" {rep.detail / 1e3:.1f} ms after the stop"
                     self._tell(rep.robot, _STATES[rep.state], text)
         except EventError:
-            self.counters["bad_events"] += 1
+            self.counters.bad_events += 1
 
     def _tell(self, robot: int, kind: int, text: str) -> None:
         name = self.names.get(robot)
@@ -82,12 +92,12 @@ class Hub:
         while True:
             now = time.monotonic_ns()
             self.link.send(Kind.EVENT, BROADCAST, EventType.BEACON, events.encode_beacon(now), priority=1)
-            self.counters["beacons"] += 1
+            self.counters.beacons += 1
             next_ns += period_ns
             await asyncio.sleep(max(0.0, (next_ns - time.monotonic_ns()) / 1e9))
 
     def report(self) -> dict[str, float]:
-        out: dict[str, float] = {f"rlink.{k}": v for k, v in self.counters.items()}
+        out = self.counters.as_dict("rlink.")
         out["rlink.stopped"] = len(self.stopped)
         out["rlink.clients"] = len(self.link.clients)
         out.update(link_counters(self.link))

@@ -18,7 +18,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 
 from cell.rlink import fec
-from cell.rlink.packet import PRIORITIES, SIZE, Kind, Packet, PacketError, decode, encode
+from cell.rlink.packet import PRIORITIES, SIZE, Drop, Kind, Packet, PacketError, decode, encode
 from cell.rlink.routing import LINKS, RoutingTable
 
 DEPTH = 64  # packets queued per output link and kind
@@ -49,9 +49,7 @@ class Node:
         self.queues = [[[deque() for _ in range(PRIORITIES)] for _ in Kind] for _ in range(LINKS)]
         self.queued = [[0, 0] for _ in range(LINKS)]
         self.links = [LinkCounters() for _ in range(LINKS)]
-        self.drops: dict[str, int] = {
-            r: 0 for r in ("truncated", "oversized", "crc", "kind", "length", "fec", "no_route", "hops")
-        }
+        self.drops: dict[Drop, int] = dict.fromkeys(Drop, 0)
         self._seq = [0, 0]
 
     # --- in ------------------------------------------------------------------------------------
@@ -70,7 +68,7 @@ class Node:
             self.drops[exc.reason] += 1
             return
         if packet.hops == 0:
-            self.drops["hops"] += 1
+            self.drops[Drop.HOPS] += 1
             return
         self._route(packet, came_on=link)
 
@@ -89,7 +87,7 @@ class Node:
         bitmap, priority = self.table.lookup(p.kind, p.src, p.dst, p.priority)
         bitmap &= ~(1 << came_on) if came_on else ~0  # never back where it came from (the host may loop)
         if not bitmap:
-            self.drops["no_route"] += 1
+            self.drops[Drop.NO_ROUTE] += 1
             return
         out = replace(p, priority=priority) if priority != p.priority else p
         for link in range(LINKS):
@@ -139,9 +137,9 @@ class Node:
 
 def _recover(line: bytes, kind: Kind) -> tuple[bytes, int]:
     if len(line) != 2 * SIZE[kind]:
-        reason = "truncated" if len(line) < 2 * SIZE[kind] else "oversized"
+        reason = Drop.TRUNCATED if len(line) < 2 * SIZE[kind] else Drop.OVERSIZED
         raise PacketError(reason, f"{len(line)} bytes on an FEC line: {2 * SIZE[kind]} expected")
     try:
         return fec.recover(line)
     except fec.Uncorrectable as exc:
-        raise PacketError("fec", str(exc)) from None
+        raise PacketError(Drop.FEC, str(exc)) from None

@@ -10,7 +10,7 @@ PacketError, whose `reason` is the drop counter it goes to.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
+from enum import IntEnum, StrEnum
 
 HEADER = 4
 TRAILER = 4
@@ -47,10 +47,23 @@ class EventType(IntEnum):
     ECHO_REPLY = 9
 
 
+class Drop(StrEnum):
+    """Why a node dropped a packet: the counter it goes to (Node.drops)."""
+
+    TRUNCATED = "truncated"
+    OVERSIZED = "oversized"
+    CRC = "crc"
+    KIND = "kind"
+    LENGTH = "length"
+    FEC = "fec"  # more bit errors than the FEC line corrects
+    NO_ROUTE = "no_route"
+    HOPS = "hops"  # its hop count ran out
+
+
 class PacketError(ValueError):
     """A packet that is dropped; `reason` names the counter it goes to."""
 
-    def __init__(self, reason: str, text: str) -> None:
+    def __init__(self, reason: Drop, text: str) -> None:
         self.reason = reason
         super().__init__(f"{reason}: {text}")
 
@@ -121,17 +134,17 @@ def decode(raw: bytes | bytearray | memoryview, kind: Kind | None = None) -> Pac
         want = [SIZE[kind]] if kind is not None else [EVENT_SIZE, DATA_SIZE]
         short = n < want[0] or (len(want) == 2 and want[0] < n < want[1])
         sizes = " or ".join(map(str, want))
-        raise PacketError("truncated" if short else "oversized", f"{n} bytes: packets here are {sizes}")
+        raise PacketError(Drop.TRUNCATED if short else Drop.OVERSIZED, f"{n} bytes: packets here are {sizes}")
     if crc16(raw[:-2]) != int.from_bytes(raw[-2:], "big"):
-        raise PacketError("crc", "the trailer's CRC does not match")
+        raise PacketError(Drop.CRC, "the trailer's CRC does not match")
     said = Kind(raw[2] >> 5 & 1)
     if SIZE[said] != n:
-        raise PacketError("kind", f"a {n}-byte packet whose header says {said.name.lower()}")
+        raise PacketError(Drop.KIND, f"a {n}-byte packet whose header says {said.name.lower()}")
     if kind is not None and said != kind:
-        raise PacketError("kind", f"a {said.name.lower()} packet on the {kind.name.lower()} link")
+        raise PacketError(Drop.KIND, f"a {said.name.lower()} packet on the {kind.name.lower()} link")
     used = raw[-3]
     if used > PAYLOAD[said]:
-        raise PacketError("length", f"payload length {used} > {PAYLOAD[said]}")
+        raise PacketError(Drop.LENGTH, f"payload length {used} > {PAYLOAD[said]}")
     return Packet(
         kind=said,
         dst=raw[0],

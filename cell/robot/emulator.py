@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cell.config import RobotConfig
+from cell.counters import Counters, tally
 from cell.robot import datagram, udp
 from cell.robot.arm import ArmModel, arm_model
 from cell.robot.backends import BACKENDS
@@ -61,35 +62,25 @@ class Lateness:
         return (min(k, self.BINS - 1) + 1) * self.BIN_US
 
 
-@dataclass
-class GroupCounters:
+@dataclass(slots=True)
+class GroupCounters(Counters):
     ticks: int = 0
     status_sent: int = 0
     status_unsent: int = 0  # socket buffer full
     late_sends: int = 0  # left a full status period or more after their deadline
     missed_ticks: int = 0  # status periods that passed with no tick at all (the process was held up)
     commands: int = 0
-    rejected: dict[str, int] = field(default_factory=lambda: {r.name.lower(): 0 for r in Reject})
+    rejected: dict[str, int] = tally(keys=tuple(r.name.lower() for r in Reject))
     protective_stops: int = 0
     resumes: int = 0
     lateness: Lateness = field(default_factory=Lateness)  # tick starts after their deadlines
 
-    def as_dict(self) -> dict[str, float]:
-        out = {
-            "ticks": self.ticks,
-            "status_sent": self.status_sent,
-            "status_unsent": self.status_unsent,
-            "late_sends": self.late_sends,
-            "missed_ticks": self.missed_ticks,
-            "commands": self.commands,
-            "protective_stops": self.protective_stops,
-            "resumes": self.resumes,
-        }
-        out.update({f"rejected.{k}": v for k, v in self.rejected.items()})
+    def as_dict(self, prefix: str = "") -> dict[str, float]:
+        out = Counters.as_dict(self, prefix)
         if self.lateness.n:
-            out["lateness_p50_us"] = self.lateness.percentile(50)
-            out["lateness_p99_us"] = self.lateness.percentile(99)
-            out["lateness_max_us"] = self.lateness.max_us
+            out[f"{prefix}lateness_p50_us"] = self.lateness.percentile(50)
+            out[f"{prefix}lateness_p99_us"] = self.lateness.percentile(99)
+            out[f"{prefix}lateness_max_us"] = self.lateness.max_us
         return out
 
 

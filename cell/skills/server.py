@@ -22,6 +22,7 @@ from google.protobuf.message import Message
 
 from cell.bus import Bus, BusTimeout, RemoteError
 from cell.config import CellConfig, RobotConfig
+from cell.counters import Counters
 from cell.rlink.client import EventClient
 from cell.robot.pose import to_adept
 from cell.skills.protocol import (
@@ -55,6 +56,18 @@ _CODES = {  # the controller's error codes -> the protocol's
 }
 
 
+@dataclass(slots=True)
+class ServerCounters(Counters):
+    commands: int = 0
+    errors: int = 0
+    connections: int = 0
+    held_pose_acks: int = 0  # acks that reported the broadcast pose (no bus round trip)
+    refused_connections: int = 0  # over max_connections(_per_peer)
+    slow_lines: int = 0  # connections closed for a message not ended within line_timeout_s
+    paused_reads: int = 0  # times a connection had max_pending unanswered and was not read
+    open: int = 0  # connections open now (a gauge)
+
+
 @dataclass
 class Job:
     command: Command
@@ -74,16 +87,7 @@ class RobotSkills:
         self.queue: asyncio.Queue[Job] = asyncio.Queue()
         self.speed: float | None = None  # for the next motion only
         self.air = False
-        self.counters = {
-            "commands": 0,
-            "errors": 0,
-            "connections": 0,
-            "held_pose_acks": 0,
-            "refused_connections": 0,  # over max_connections(_per_peer)
-            "slow_lines": 0,  # connections closed for a message not ended within line_timeout_s
-            "paused_reads": 0,  # times a connection had max_pending unanswered and was not read
-            "open": 0,  # connections open now (a gauge)
-        }
+        self.counters = ServerCounters()
         self.open = 0  # connections open now
         self.per_peer: dict[str, int] = defaultdict(int)
         # the robot's last state broadcast (truth/<robot>): the tool pose a non-motion ack reports
@@ -95,7 +99,7 @@ class RobotSkills:
         one period plus the bus), else the controller's, asked over the bus."""
         m = self.held
         if m is not None and time.monotonic_ns() - m.t_ns <= self.held_max_age_ns:
-            self.counters["held_pose_acks"] += 1
+            self.counters.held_pose_acks += 1
             p = m.tool_pose  # x, y, z (m), qw, qx, qy, qz
             rot = np.zeros(9)
             mujoco.mju_quat2Mat(rot, np.array(p[3:7]))
@@ -124,15 +128,15 @@ class RobotSkills:
         ip = peer[0] if peer else "?"
         client = f"{ip}:{peer[1]}" if peer else "?"
         if (why := self._refusal(ip)) is not None:
-            self.counters["refused_connections"] += 1
+            self.counters.refused_connections += 1
             with contextlib.suppress(ConnectionError, OSError):
                 writer.write(Error(NO_ID, ErrorCode.BUSY, why).encode())
                 writer.close()
             return
         self.open += 1
-        self.counters["open"] = self.open
+        self.counters.open = self.open
         self.per_peer[ip] += 1
-        self.counters["connections"] += 1
+        self.counters.connections += 1
         cfg = self.config.skills
         parser = CommandReader()
         pending: asyncio.Queue[tuple[asyncio.Future[Reply], Job | None]] = asyncio.Queue()
@@ -166,7 +170,7 @@ class RobotSkills:
                             async with asyncio.timeout(left):
                                 data = await reader.read(65536)
                         except TimeoutError:
-                            self.counters["slow_lines"] += 1
+                            self.counters.slow_lines += 1
                             why = f"a command message must end within {cfg.line_timeout_s:g} s"
                             writer.write(Error(NO_ID, ErrorCode.BUSY, why).encode())
                             break
@@ -175,11 +179,11 @@ class RobotSkills:
                         now = time.monotonic_ns()
                         for item in parser.feed(data):
                             if slots.locked():  # max_pending unanswered: read no more until one is
-                                self.counters["paused_reads"] += 1
+                                self.counters.paused_reads += 1
                             await slots.acquire()
                             fut: asyncio.Future[Reply] = asyncio.get_running_loop().create_future()
                             if isinstance(item, Error):
-                                self.counters["errors"] += 1
+                                self.counters.errors += 1
                                 fut.set_result(item)
                                 pending.put_nowait((fut, None))
                                 continue
@@ -200,7 +204,7 @@ class RobotSkills:
                         await writer.wait_closed()
         finally:
             self.open -= 1
-            self.counters["open"] = self.open
+            self.counters.open = self.open
             self.per_peer[ip] -= 1
             if not self.per_peer[ip]:
                 del self.per_peer[ip]  # (peers come and go: the table holds only those connected)
@@ -239,9 +243,9 @@ class RobotSkills:
         except Exception as exc:  # a bug must not take the server down: answer, log, go on
             log.exception("%s: %s failed", self.robot.name, job.command)
             reply = Error(job.command.id, ErrorCode.FAILED, f"{type(exc).__name__}: {exc}")
-        self.counters["commands"] += 1
+        self.counters.commands += 1
         if isinstance(reply, Error):
-            self.counters["errors"] += 1
+            self.counters.errors += 1
         if not job.reply.done():
             job.reply.set_result(reply)
 

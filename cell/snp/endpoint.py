@@ -37,4 +37,4 @@ class HandlerEndpoint(asyncio.DatagramProtocol):
             self.transport.sendto(data, addr)
 
     def error_received(self, exc: Exception) -> None:
-        self.handler.counters["socket_errors"] += 1
+        self.handler.counters.socket_errors += 1

@@ -17,10 +17,12 @@ from __future__ import annotations
 
 import heapq
 import itertools
-from collections import Counter, deque
+from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
+from cell.counters import Counters, tally
 from cell.snp.packet import (
     Cancel,
     Denial,
@@ -35,6 +37,7 @@ from cell.snp.packet import (
     PidQuery,
     PidReply,
     Query,
+    Refusal,
     Reply,
     TimeRequest,
     TimeResponse,
@@ -62,6 +65,32 @@ _DEADLINE, _SEQ, _MAKE, _ARG, _ADDR, _QID, _BACK = range(7)
 Pending = list[Any]
 
 
+@dataclass(slots=True)
+class HandlerCounters(Counters):
+    """What a handler did; a refused datagram under its packet.Refusal's name, a denial under
+    denied.<why>."""
+
+    packets_in: int = 0
+    queries: int = 0
+    replies: int = 0
+    late: int = 0  # replies sent past their deadline (the service-time estimate was too low)
+    cancellations: int = 0
+    cancelled: int = 0  # cancellations that took a pending query back
+    time_requests: int = 0
+    pid_queries: int = 0
+    socket_errors: int = 0
+    bad_header: int = 0
+    bad_header_crc: int = 0
+    unknown_pid: int = 0
+    malformed: int = 0
+    bad_data_crc: int = 0
+    unknown_type: int = 0
+    denied: dict[str, int] = tally(keys=tuple(d.name.lower() for d in Denial))
+
+    def refused(self, why: Refusal) -> None:
+        setattr(self, why.value, getattr(self, why.value) + 1)
+
+
 class Handler:
     PIDS = (Pid.MRT, Pid.TSP, Pid.PID_MANAGEMENT)
 
@@ -83,7 +112,7 @@ class Handler:
         self._pending: list[Pending] = []
         self._by_id: dict[tuple[Address, int], Pending] = {}
         self._seq = itertools.count()
-        self.counters: Counter[str] = Counter()
+        self.counters = HandlerCounters()
         self.denials: deque[tuple[int, int, Address]] = deque(maxlen=1000)  # (query id, why, asker)
 
     # --- input ---------------------------------------------------------------------------------
@@ -91,16 +120,16 @@ class Handler:
     def receive(self, datagram: bytes, addr: Address) -> list[tuple[bytes, Address]]:
         """Take one datagram; the datagrams to send at once (queries wait for serve())."""
         t_in = self.clock()
-        self.counters["packets_in"] += 1
+        self.counters.packets_in += 1
         try:
             pkt = decode(datagram, self._pids)
         except PacketError as exc:
-            self.counters[exc.counter] += 1
+            self.counters.refused(exc.counter)
             if exc.reply is None:
                 return []
             return [(self._encode(exc.reply), addr)]
         except Exception:  # a bug in decode must not stop the service
-            self.counters["malformed"] += 1
+            self.counters.malformed += 1
             return []
         return self.dispatch(pkt, addr, t_in)
 
@@ -113,29 +142,29 @@ class Handler:
             return self._query(body, pkt.header, addr, t_in)
         if pid == Pid.MRT and isinstance(body, Cancel):
             pending = self._by_id.pop((addr, body.query_id), None)
-            self.counters["cancellations"] += 1
+            self.counters.cancellations += 1
             if pending is None:
                 return []  # already served or unknown: nothing to take back
             pending[_SEQ] = -1  # marks it cancelled in the heap
-            self.counters["cancelled"] += 1
+            self.counters.cancelled += 1
             self.denials.append((body.query_id, int(Denial.CANCELLED), addr))
             return [(encode(back, Denied(body.query_id, Denial.CANCELLED)), addr)]
         if pid == Pid.TSP and isinstance(body, TimeRequest):
-            self.counters["time_requests"] += 1
+            self.counters.time_requests += 1
             return [(encode(back, TimeResponse(body.t1, t_in, self.clock())), addr)]
         if pid == Pid.PID_MANAGEMENT and isinstance(body, PidQuery):
-            self.counters["pid_queries"] += 1
+            self.counters.pid_queries += 1
             if pkt.type == PacketType.PID_LIST_QUERY:
                 return [(encode(back, PidReply(tuple(int(p) for p in self.PIDS))), addr)]
             pids = (body.pid,) if body.pid in self.PIDS else ()
             return [(encode(back, PidReply(pids), type=PacketType.PID_SUPPORTED_REPLY), addr)]
         # a valid packet of a type this end does not take (a reply sent to the handler, a time
         # request on the MrT protocol id, ...): answer that it is unknown here
-        self.counters["unknown_type"] += 1
+        self.counters.unknown_type += 1
         return [(encode(back, ErrorReply(pkt.type), type=PacketType.UNKNOWN_PACKET_TYPE_REPLY), addr)]
 
     def _query(self, q: Query, header: Header, addr: Address, t_in: int) -> list[tuple[bytes, Address]]:
-        self.counters["queries"] += 1
+        self.counters.queries += 1
         back = header.reversed()
         for item in q.inputs:
             if not self.source.known(item.id):
@@ -169,7 +198,7 @@ class Handler:
         return self._deny(back, query_id, Denial.DEADLINE_CANNOT_BE_MET, addr)
 
     def _deny(self, back: Header, query_id: int, why: Denial, addr: Address) -> tuple[bytes, Address]:
-        self.counters[f"denied.{why.name.lower()}"] += 1
+        self.counters.count("denied", why.name.lower())
         self.denials.append((query_id, int(why), addr))
         return encode(back, Denied(query_id, why)), addr
 
@@ -200,8 +229,8 @@ class Handler:
             t1 = self.clock()
             self.service_ns = max(self.floor_ns, int(0.9 * self.service_ns + 0.1 * (t1 - t0) * self.margin))
             if t1 > deadline:
-                self.counters["late"] += 1  # should not happen: the estimate was too low
-            self.counters["replies"] += 1
+                self.counters.late += 1  # should not happen: the estimate was too low
+            self.counters.replies += 1
             return out, addr
         return None
 

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
+from cell.counters import Counters
 from cell.snp import rmap
 from cell.snp.handler import Handler
 from cell.snp.packet import (
@@ -231,6 +232,16 @@ class ArmModel:
         return float(self.pos[joint] if quantity == Quantity.POSITION else self.vel[joint])
 
 
+@dataclass(slots=True)
+class MasterCounters(Counters):
+    guessed: int = 0  # queries answered with a joint's value guessed (its A missed its cycle)
+    probes: int = 0
+    beacons: int = 0
+    included: int = 0  # modules taken into the network
+    lost: int = 0  # modules declared lost (FDIR)
+    follow_ups: int = 0
+
+
 class Master:
     """The master node (see the module docstring); `receive` and `poll` return (datagram, addr)."""
 
@@ -252,9 +263,7 @@ class Master:
         self.beacon_schedule = BeaconSchedule(grid=config.management_grid)
         self.nodes: dict[Any, Node] = {}  # by address
         self.events: deque[tuple[int, str, int, int]] = deque(maxlen=1000)  # (t, what, module, joint)
-        self.counters: dict[str, int] = {
-            "guessed": 0, "probes": 0, "beacons": 0, "included": 0, "lost": 0, "follow_ups": 0,
-        }  # fmt: skip
+        self.counters = MasterCounters()
         self._next_explore = 0
         self._a_cycle: dict[int, int] = {}  # joint -> the last cycle its A came in
         self.rmap_target = rmap.Target(MASTER_LA, self._rmap_written)
@@ -323,7 +332,7 @@ class Master:
             wanted, t_out, value = ids[4], f[16], model.torque
         qid, deadline = f[8], f[9]
         back = Header(f[0], f[1], b"", f[4], f[3])
-        h.counters["queries"] += 1
+        h.counters.queries += 1
         if not h.admit(now, deadline):
             return [h.deny(back, qid, addr)]
         if is_a:
@@ -396,7 +405,7 @@ class Master:
         self.model.at[node.joint] = now
         self._a_cycle.pop(node.joint, None)  # guessed only once it has run (it syncs its clock first)
         node.checked = (now - self.config.budget_ns - node.phase_ns) // self.config.period_ns
-        self.counters["included"] += 1
+        self.counters.included += 1
         self.events.append((now, "included", node.info.module_id, node.joint))
         return []
 
@@ -431,7 +440,7 @@ class Master:
             for port in self.ports:
                 if port not in live:
                     out.append((encode(Header(pid=Pid.MRT), NodeInfoQuery()), port))
-                    self.counters["probes"] += 1
+                    self.counters.probes += 1
             out += self._configure_ready(now)
         resend, _failed = self.rmap_init.expire(now)
         out += [(d, self._rmap_addr(d)) for d in resend]
@@ -442,7 +451,7 @@ class Master:
         that it leaves as it is dated (several are often due at once, and a beacon made while
         others wait to be sent carries their encoding and sending in its error)."""
         for addr, seq in self.beacon_schedule.due(self.clock()):
-            self.counters["beacons"] += 1
+            self.counters.beacons += 1
             yield encode(Header(pid=Pid.TSP), TimeBeacon(seq, self.clock())), addr
 
     def departed(self, datagram: bytes, t: int) -> list[bytes]:
@@ -451,7 +460,7 @@ class Master:
         fu = follow_up(datagram, t)
         if fu is None:
             return []
-        self.counters["follow_ups"] += 1
+        self.counters.follow_ups += 1
         return [fu]
 
     def next_cycle_start(self, now: int) -> int:
@@ -483,7 +492,7 @@ class Master:
             cycle = (now - c.budget_ns - n.phase_ns) // c.period_ns  # its last cycle past its deadline
             last = self._a_cycle.get(n.joint)
             if cycle > n.checked and last is not None and last < cycle:
-                self.counters["guessed"] += 1
+                self.counters.guessed += 1
                 n.silent_cycles += 1
                 if n.silent_cycles == self.suspect_cycles:
                     n.state = NodeState.SUSPECT
@@ -497,7 +506,7 @@ class Master:
         n.state = NodeState.LOST
         self.model.active[n.joint] = False
         self.beacon_schedule.drop(n.addr)
-        self.counters["lost"] += 1
+        self.counters.lost += 1
         self.events.append((now, "lost", n.info.module_id, n.joint))
 
     # --- the RMAP baseline --------------------------------------------------------------------

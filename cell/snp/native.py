@@ -322,11 +322,11 @@ class NativeMaster:
             if n is not None and st.joints[j].state == NODE_LOST and n.state != NodeState.LOST:
                 ms.lose(n, n.heard_ns + ms.lost_ns)
         h = ms.handler.counters
-        h["queries"] += st.queries
-        h["replies"] += st.replies
-        h["denied.deadline_cannot_be_met"] += st.denied
-        h["late"] += st.late
-        ms.counters["guessed"] += st.guessed
+        h.queries += st.queries
+        h.replies += st.replies
+        h.count("denied", "deadline_cannot_be_met", st.denied)
+        h.late += st.late
+        ms.counters.guessed += st.guessed
         link.sent, link.lost, link.errors = link.sent + st.sent, link.lost + st.lost, link.errors + st.errors
         for name in ("queries", "replies", "denied", "late", "guessed", "sent", "lost", "errors", "n_events"):
             setattr(st, name, 0)

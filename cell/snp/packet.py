@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, field
-from enum import IntEnum
+from enum import IntEnum, StrEnum
 from typing import NamedTuple
 
 import anycrc
@@ -281,10 +281,21 @@ class Packet:
     raw_cargo: bytes = field(default=b"", compare=False)
 
 
+class Refusal(StrEnum):
+    """Why a datagram was not a packet: the name it is counted under (see handler.HandlerCounters)."""
+
+    BAD_HEADER = "bad_header"
+    BAD_HEADER_CRC = "bad_header_crc"
+    UNKNOWN_PID = "unknown_pid"
+    MALFORMED = "malformed"
+    BAD_DATA_CRC = "bad_data_crc"
+    UNKNOWN_TYPE = "unknown_type"
+
+
 class PacketError(Exception):
     """A datagram that is not a valid packet; `reply` is the packet to answer with (None: drop)."""
 
-    def __init__(self, why: str, reply: Packet | None = None, counter: str = "malformed") -> None:
+    def __init__(self, why: str, reply: Packet | None = None, counter: Refusal = Refusal.MALFORMED) -> None:
         super().__init__(why)
         self.why, self.reply, self.counter = why, reply, counter
 
@@ -606,14 +617,14 @@ def decode(datagram: bytes | bytearray | memoryview, known_pids: frozenset[int] 
     buf = memoryview(raw)
     # --- header: a bad header CRC means the return path cannot be trusted: drop -----------------
     if len(buf) < 3:
-        raise PacketError("shorter than a header", counter="bad_header")
+        raise PacketError("shorter than a header", counter=Refusal.BAD_HEADER)
     nrab = buf[2]
     head_len = 3 + nrab + 8
     if len(buf) < head_len + 1:
-        raise PacketError("header cut short", counter="bad_header")
+        raise PacketError("header cut short", counter=Refusal.BAD_HEADER)
     head = buf[:head_len]
     if crc8(head) != buf[head_len]:
-        raise PacketError("header CRC mismatch", counter="bad_header_crc")
+        raise PacketError("header CRC mismatch", counter=Refusal.BAD_HEADER_CRC)
     src, dst = struct.unpack_from("!II", head, 3 + nrab)
     header = Header(buf[0], buf[1], bytes(buf[3 : 3 + nrab]), src, dst)
     answer = header.reversed()
@@ -621,16 +632,16 @@ def decode(datagram: bytes | bytearray | memoryview, known_pids: frozenset[int] 
         raise PacketError(
             f"unknown protocol id 0x{header.pid:02X}",
             Packet(answer, PacketType.UNKNOWN_PID_REPLY, ErrorReply(header.pid)),
-            "unknown_pid",
+            Refusal.UNKNOWN_PID,
         )
     data = buf[head_len + 1 :]
     if len(data) < 4:
-        raise PacketError("no data part", counter="malformed")
+        raise PacketError("no data part", counter=Refusal.MALFORMED)
     if crc8(data[:-1]) != data[-1]:
         raise PacketError(
             "data CRC mismatch",
             Packet(answer, PacketType.INVALID_DATA_CRC_REPLY, ErrorReply(data[-1])),
-            "bad_data_crc",
+            Refusal.BAD_DATA_CRC,
         )
     kind = struct.unpack_from("!H", data, 1)[0]
     cargo = data[3:-1]
@@ -640,10 +651,10 @@ def decode(datagram: bytes | bytearray | memoryview, known_pids: frozenset[int] 
         raise PacketError(
             f"unknown packet type 0x{kind:04X}",
             Packet(answer, PacketType.UNKNOWN_PACKET_TYPE_REPLY, ErrorReply(kind)),
-            "unknown_type",
+            Refusal.UNKNOWN_TYPE,
         ) from None
     except (ValueError, struct.error) as exc:
-        raise PacketError(f"packet type 0x{kind:04X}: {exc}", counter="malformed") from None
+        raise PacketError(f"packet type 0x{kind:04X}: {exc}", counter=Refusal.MALFORMED) from None
     return Packet(header, kind, body, bytes(cargo))
 
 

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
 
+from cell.counters import Counters
 from cell.snp.packet import crc8
 
 PROTOCOL_ID = 0x01
@@ -143,6 +144,24 @@ class _DataCrc(RmapError):
         self.write = w
 
 
+@dataclass(slots=True)
+class TargetCounters(Counters):
+    writes: int = 0
+    replies: int = 0
+    errors: int = 0
+    dropped: int = 0  # not RMAP, or a reply sent to a target
+
+
+@dataclass(slots=True)
+class InitiatorCounters(Counters):
+    writes: int = 0
+    acked: int = 0
+    retries: int = 0
+    failed: int = 0  # given up after the retries
+    errors: int = 0
+    stray: int = 0  # a reply to no write in flight (late, or not ours)
+
+
 class Target:
     """An RMAP target: writes land in `memory` (address -> bytes) and call on_write; each
     acknowledged write gets its reply.  Nothing a peer sends raises out of here."""
@@ -150,21 +169,21 @@ class Target:
     def __init__(self, logical_address: int, on_write: Callable[[int, bytes], None], key: int = 0) -> None:
         self.logical_address, self.on_write, self.key = logical_address, on_write, key
         self.memory: dict[int, bytes] = {}
-        self.counters = {"writes": 0, "replies": 0, "errors": 0, "dropped": 0}
+        self.counters = TargetCounters()
 
     def receive(self, datagram: bytes) -> bytes | None:
         """The reply to send back, if any."""
         try:
             w = decode(datagram)
         except _DataCrc as exc:  # the header is good: the initiator hears why (verified writes)
-            self.counters["errors"] += 1
+            self.counters.errors += 1
             w = exc.write
             return encode_reply(self._reply(w, Status.INVALID_DATA_CRC)) if w.acknowledged else None
         except RmapError:
-            self.counters["dropped"] += 1
+            self.counters.dropped += 1
             return None
         if not isinstance(w, Write):
-            self.counters["dropped"] += 1  # a reply sent to a target
+            self.counters.dropped += 1  # a reply sent to a target
             return None
         status = Status.SUCCESS
         if w.target != self.logical_address:
@@ -173,13 +192,13 @@ class Target:
             status = Status.INVALID_KEY
         if status == Status.SUCCESS:
             self.memory[w.address] = w.data
-            self.counters["writes"] += 1
+            self.counters.writes += 1
             self.on_write(w.address, w.data)
         else:
-            self.counters["errors"] += 1
+            self.counters.errors += 1
         if not w.acknowledged:
             return None
-        self.counters["replies"] += 1
+        self.counters.replies += 1
         return encode_reply(self._reply(w, status))
 
     @staticmethod
@@ -204,7 +223,7 @@ class Initiator:
         self.logical_address, self.timeout_ns, self.retries = logical_address, timeout_ns, retries
         self._tid = 0
         self.in_flight: dict[int, _InFlight] = {}
-        self.counters = {"writes": 0, "acked": 0, "retries": 0, "failed": 0, "errors": 0, "stray": 0}
+        self.counters = InitiatorCounters()
 
     def write(self, target: int, address: int, data: bytes, now: int) -> tuple[int, bytes]:
         """(transaction id, datagram to send)."""
@@ -212,7 +231,7 @@ class Initiator:
         w = Write(target, self.logical_address, self._tid, address, data)
         raw = encode_write(w)
         self.in_flight[self._tid] = _InFlight(w, raw, now, 1)
-        self.counters["writes"] += 1
+        self.counters.writes += 1
         return self._tid, raw
 
     def receive(self, datagram: bytes) -> tuple[int, int] | None:
@@ -220,16 +239,16 @@ class Initiator:
         try:
             r = decode(datagram)
         except RmapError:
-            self.counters["errors"] += 1
+            self.counters.errors += 1
             return None
         if not isinstance(r, WriteReply) or r.transaction not in self.in_flight:
-            self.counters["stray"] += 1  # late (already retried and acked) or not ours
+            self.counters.stray += 1  # late (already retried and acked) or not ours
             return None
         del self.in_flight[r.transaction]
         if r.status == Status.SUCCESS:
-            self.counters["acked"] += 1
+            self.counters.acked += 1
         else:
-            self.counters["errors"] += 1
+            self.counters.errors += 1
         return r.transaction, r.status
 
     def expire(self, now: int) -> tuple[list[bytes], list[int]]:
@@ -241,12 +260,12 @@ class Initiator:
             if f.tries > self.retries:
                 del self.in_flight[tid]
                 failed.append(tid)
-                self.counters["failed"] += 1
+                self.counters.failed += 1
             else:
                 f.tries += 1
                 f.sent_at = now
                 resend.append(f.datagram)
-                self.counters["retries"] += 1
+                self.counters.retries += 1
         return resend, failed
 
     def next_timeout(self) -> int | None:

@@ -17,11 +17,13 @@ import contextlib
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from cell.bus import RpcFault
 from cell.config import RobotConfig, VisionConfig
+from cell.counters import Counters
 from cell.v1 import vision_pb2
 from cell.vision import sharpness
 from cell.vision.camera import Camera, CameraSpec
@@ -103,6 +105,13 @@ class Acquisition:
             cam.close()
 
 
+@dataclass(slots=True)
+class VisionCounters(Counters):
+    measurements: int = 0
+    not_found: int = 0  # measurements that found no target
+    waited: int = 0  # measurements that waited for a frame newer than their request
+
+
 class Vision:
     """The camera's buffer and the requests on it: measure (sharpness at an instant) and info."""
 
@@ -113,12 +122,12 @@ class Vision:
         self.buffer = FrameBuffer(v.buffer)
         self.acq = Acquisition(camera_spec(v), np.array(robot.q0), v.fps, self.buffer, robot.model)
         self.new_frame = asyncio.Event()
-        self.counters = {"measurements": 0, "not_found": 0, "waited": 0}
+        self.counters = VisionCounters()
 
     async def frame_for(self, t_ns: int) -> Frame:
         newest = self.buffer.newest()
         if newest is None or newest.t_ns < t_ns:
-            self.counters["waited"] += 1
+            self.counters.waited += 1
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(WAIT_PERIODS / self.v.fps):
                     while (newest := self.buffer.newest()) is None or newest.t_ns < t_ns:
@@ -135,8 +144,8 @@ class Vision:
         t = time.perf_counter_ns()
         res = sharpness.sharpness(frame.image)
         took = time.perf_counter_ns() - t
-        self.counters["measurements"] += 1
-        self.counters["not_found"] += not res.found
+        self.counters.measurements += 1
+        self.counters.not_found += not res.found
         reply = vision_pb2.VisionReply(
             id=req.id,
             found=res.found,
@@ -167,7 +176,7 @@ class Vision:
         )
 
     def report(self) -> dict[str, float]:
-        out = {k: float(n) for k, n in self.counters.items()}
+        out = self.counters.as_dict()
         out["frames"] = float(self.buffer.added)
         out["frames_per_s"] = self.acq.frames_per_s
         out["late_frames"] = float(self.acq.late)

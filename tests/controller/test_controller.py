@@ -11,7 +11,7 @@ import pytest
 
 from cell.bus import Bus, RemoteError
 from cell.bus.delay import DelayLink
-from cell.controller.controller import STOP_JERK, Controller, MotionStopped
+from cell.controller.controller import STOP_JERK, Controller, MotionState, MotionStopped
 from cell.dataplane.client import DataplaneClient
 from cell.v1 import controller_pb2, robot_pb2
 from tests.conftest import free_port
@@ -84,8 +84,10 @@ async def test_a_joint_move_ends_on_its_goal_and_holds(start_cell, backend: str)
         truth = Truth()
         watcher = tg.create_task(truth.run(bus))
         await ready(ctl, ["r1"])
+        assert ctl.track("r1").state is MotionState.IDLE
         goal = Q0 + np.array([0.4, -0.3, 0.2, 0.1, -0.2, 0.5])
         result = await ctl.move_joints("r1", goal)
+        assert ctl.track("r1").state is MotionState.ARRIVED
         assert np.allclose(result.q_end, goal)
         assert 0.5 < (result.end_ns - result.start_ns) / 1e9 < 3.0
         seg = ctl.tracks[1].segment
@@ -200,9 +202,11 @@ async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell)
         async with asyncio.timeout(5):  # until it is well under way
             while not truth.samples.get("r1") or abs(truth.samples["r1"][-1][2][0]) < 0.3:
                 await asyncio.sleep(0.01)
+        assert ctl.track("r1").state is MotionState.MOVING
         stopped = (await ctl.stop(["r1"]))[1]
         with pytest.raises(MotionStopped):
             await move
+        assert ctl.track("r1").state is MotionState.STOPPED
         # the drive's executing command (truth "target" would be finer; qd shows it as well)
         async with asyncio.timeout(5):
             while truth.samples["r1"][-1][0] < stopped.end_ns + 500_000_000:

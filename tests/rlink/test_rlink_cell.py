@@ -275,7 +275,7 @@ async def test_clients_of_the_host_interface_reach_the_nodes_and_hear_their_repo
         for t in tasks:
             t.cancel()
     assert [p.type for p in seen] == [EventType.ESTOP, EventType.RESUME]
-    assert hub.link.node.drops["no_route"] == 0 and hub.counters["reports"] == 1
+    assert hub.link.node.drops["no_route"] == 0 and hub.counters.reports == 1
     drops = hub.link.node.drops
     assert drops["truncated"] == 2 and drops["crc"] == 1 and drops["oversized"] == 1, drops
     hub.close()

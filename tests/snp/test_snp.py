@@ -199,7 +199,7 @@ def test_queries_past_and_future_values_denials_and_edf() -> None:
     clock.t += 10 * 10**6
     (data, _) = h.serve()  # type: ignore[misc]
     assert decode(data).body == Denied(13, Denial.DEADLINE_CANNOT_BE_MET)
-    assert h.counters["denied.deadline_cannot_be_met"] == 2 and h.counters["cancelled"] == 1
+    assert h.counters.denied["deadline_cannot_be_met"] == 2 and h.counters.cancelled == 1
 
 
 def test_time_and_pid_requests() -> None:
