@@ -164,6 +164,45 @@ async def fetch_status(config: CellConfig, timeout: float = 2.0) -> health_pb2.C
     return reply
 
 
+ASK_S = 0.25  # a status request unanswered this long is asked again (see wait_healthy)
+
+
+async def wait_healthy(
+    config: CellConfig,
+    want: set[str],
+    timeout: float = 60.0,
+    proc: asyncio.subprocess.Process | subprocess.Popen | None = None,
+) -> health_pb2.CellStatus:
+    """Until every service in `want` is ok; the status that said so.  One bus connection, asked
+    again every ASK_S: a request sent before the launcher serves cell.status (it subscribes after
+    the forwarder is up) is lost, and waiting out a long timeout on it cost each start a second.
+    TimeoutError (naming the services not ok yet) after `timeout`; RuntimeError if proc exits."""
+    last: health_pb2.CellStatus | None = None
+    bus_cfg = replace(config.bus, connect_timeout_s=timeout)
+    try:
+        async with asyncio.timeout(timeout), Bus.connect(bus_cfg, f"status-{os.getpid()}") as bus:
+            while True:
+                with contextlib.suppress(BusError):
+                    reply = await bus.request(
+                        "cell", "status", health_pb2.StatusRequest(), health_pb2.CellStatus, ASK_S
+                    )
+                    assert isinstance(reply, health_pb2.CellStatus)
+                    last = reply
+                    if want <= {s.name for s in last.services if s.health == "ok"}:
+                        return last
+                code = proc.returncode if proc is not None else None
+                if proc is not None and isinstance(proc, subprocess.Popen):
+                    code = proc.poll()
+                if code is not None:
+                    raise RuntimeError(f"the cell exited with code {code}")
+                await asyncio.sleep(0.05)  # (the next heartbeat comes by itself: no busy asking)
+    except (TimeoutError, BusError):
+        ok = set() if last is None else {s.name for s in last.services if s.health == "ok"}
+        raise TimeoutError(
+            f"services {sorted(want - ok)} not ok within {timeout:g} s (last status: {last})"
+        ) from None
+
+
 @contextlib.asynccontextmanager
 async def child_cell(config_path: Path | None, config: CellConfig) -> AsyncIterator[None]:
     """`cell up` in a child process, healthy when the block starts, stopped when it ends (for
@@ -175,16 +214,7 @@ async def child_cell(config_path: Path | None, config: CellConfig) -> AsyncItera
         cmd += ["--host", config.cell.host]
     proc = await asyncio.create_subprocess_exec(*cmd, stdin=subprocess.DEVNULL, env=dict(os.environ))
     try:
-        want = set(status_names(config))
-        async with asyncio.timeout(60):
-            while True:
-                with contextlib.suppress(BusError):
-                    st = await fetch_status(config, timeout=1.0)
-                    if want <= {s.name for s in st.services if s.health == "ok"}:
-                        break
-                if proc.returncode is not None:
-                    raise RuntimeError(f"the cell exited with code {proc.returncode}")
-                await asyncio.sleep(0.1)
+        await wait_healthy(config, set(status_names(config)), 60.0, proc)
         yield
     finally:
         if proc.returncode is None:

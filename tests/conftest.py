@@ -1,6 +1,5 @@
 from __future__ import annotations
 
-import asyncio
 import os
 import signal
 import socket
@@ -16,7 +15,7 @@ import pytest
 import tomli_w
 
 from cell.bench.cellproc import free_udp_block
-from cell.bus import BusError, Forwarder
+from cell.bus import Forwarder
 from cell.config import BusConfig, CellConfig, load_config
 from cell.rlink.cellnet import PORTS
 
@@ -158,21 +157,13 @@ def snp_master_on_loopback(n_ports: int, native: bool = False) -> Iterator[tuple
 
 
 async def wait_status(config: CellConfig, want: set[str], timeout: float = 20.0):
-    """Poll a cell's status until the named services are all ok; the last status or AssertionError."""
-    from cell.launcher import fetch_status
+    """A cell's status once the named services are all ok, or AssertionError naming those not ok."""
+    from cell.launcher import wait_healthy
 
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
-        try:
-            last = await fetch_status(config, timeout=1.0)
-        except BusError:
-            continue
-        healthy = {s.name for s in last.services if s.health == "ok"}
-        if want <= healthy:
-            return last
-        await asyncio.sleep(0.05)  # polling interval, not synchronisation: the loop condition decides
-    raise AssertionError(f"services {sorted(want)} not all ok within {timeout} s; last status: {last}")
+    try:
+        return await wait_healthy(config, want, timeout)
+    except TimeoutError as exc:
+        raise AssertionError(str(exc)) from None
 
 
 @pytest.fixture

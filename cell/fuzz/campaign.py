@@ -41,7 +41,7 @@ from cell.bus.envelope import decode as decode_frame
 from cell.config import CellConfig, ConfigError, config_from_text, load_config, parse_host_port
 from cell.fuzz import strategies
 from cell.fuzz.mutate import Mutator
-from cell.launcher import fetch_status
+from cell.launcher import fetch_status, wait_healthy
 from cell.rlink import packet as rlp
 from cell.rlink.cellnet import Topology
 from cell.robot import datagram, udp
@@ -762,13 +762,8 @@ async def campaign(
 
 
 async def _healthy(config: CellConfig, timeout: float = 60.0) -> dict[str, dict[str, Any]]:
-    async with asyncio.timeout(timeout):
-        while True:
-            with contextlib.suppress(Exception):
-                snap = await _snapshot(config)
-                if set(config.services.run) <= {k for k, v in snap.items() if v["health"] == "ok"}:
-                    return snap
-            await asyncio.sleep(0.2)
+    await wait_healthy(config, set(config.services.run), timeout)
+    return await _snapshot(config)
 
 
 async def _settle() -> None:
