@@ -416,6 +416,13 @@ class RobotConfig:
     watchdog_windows: int = _check(_positive)
     q0: list[float]  # one per joint of the model (RobotConfig.validate)
     host: str = _check(lambda v: None if v == "" else _name(v))  # the host emulating it ("": the only one)
+    # the address its UR controller interfaces (RTDE, dashboard, ...) listen on ("": 127.0.1.<id>)
+    ur_address: str = _check(lambda v: None if v == "" else _host_port(f"{v}:1"))
+
+    @property
+    def ur_host(self) -> str:
+        """Its UR interfaces' address: ur_address, else its own loopback one (r1 127.0.1.1)."""
+        return self.ur_address or f"127.0.{1 + self.id // 256}.{self.id % 256}"
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         from cell.robot.models import get
@@ -442,6 +449,17 @@ class RobotDefaults:
     watchdog_windows: int = _check(_positive)
     q0: list[float]  # one per joint of the model (RobotConfig.validate)
     host: str = _check(lambda v: None if v == "" else _name(v))
+    ur_address: str = _check(lambda v: None if v == "" else _host_port(f"{v}:1"))
+
+
+@dataclass(frozen=True)
+class URConfig:
+    """The UR controller's interfaces each emulated arm offers (cell.ur)."""
+
+    interfaces: bool  # offer them at all
+    rtde_port: int = _check(_port)
+    dashboard_port: int = _check(_port)
+    max_clients: int = _check(_positive)  # connections per arm and interface; more are refused
 
 
 # the key of the address each of these services binds: it must run on the host with that address
@@ -475,6 +493,7 @@ class CellConfig:
     snp: SnpConfig
     rlink: RlinkConfig
     vision: VisionConfig
+    ur: URConfig
     robot_defaults: RobotDefaults
     robots: list[RobotConfig]
     hosts: dict[str, HostConfig]

@@ -48,7 +48,7 @@ async def run(ctx: ServiceContext) -> None:
 
         async def telemetry() -> None:
             while True:
-                await asyncio.sleep(1.0)
+                await asyncio.sleep(ctx.config.services.heartbeat_s / 2)  # (twice a heartbeat)
                 state = plane.state()
                 state.counters.update(events.counters())
                 ctx.counters.update(state.counters)

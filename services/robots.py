@@ -26,6 +26,7 @@ from cell.bus.node import Handler
 from cell.robot.emulator import RobotGroup
 from cell.robot.node import ANNOUNCE_S, Publisher, RobotsNode, announcements, build_groups, counters, has_node
 from cell.service import ServiceContext, ServiceSpec
+from cell.ur.server import URInterfaces
 from cell.v1 import robot_pb2
 
 
@@ -37,6 +38,7 @@ async def run(ctx: ServiceContext) -> None:
         for g in groups:
             g.close()
         raise
+    urs: list[URInterfaces] = []
     try:
 
         async def announce() -> None:
@@ -49,6 +51,8 @@ async def run(ctx: ServiceContext) -> None:
         async def report() -> None:
             while True:
                 ctx.counters.update(counters(groups))
+                for u in urs:
+                    ctx.counters.update(u.report())
                 if node is not None:
                     ctx.counters.update(node.counters())
                 await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
@@ -80,9 +84,16 @@ async def run(ctx: ServiceContext) -> None:
                     }
                     await ctx.bus.serve(f"robot/{r.name}", methods)
 
+        for g in groups:  # (each arm's UR interfaces: RTDE, dashboard)
+            if ctx.config.ur.interfaces:
+                urs.append(URInterfaces(g, ctx.config))
+                await urs[-1].start()
+        ur_of = {id(u.group): u for u in urs}
+
         async with asyncio.TaskGroup() as tg:
             for g in groups:
-                tg.create_task(g.run(Publisher(ctx.bus, g, node)), name=f"robots:{g.robots[0].backend}")
+                tick = Publisher(ctx.bus, g, node, ur_of.get(id(g)))
+                tg.create_task(g.run(tick), name=f"robots:{g.robots[0].backend}")
             tg.create_task(control(), name="control")
             if node is not None:
                 tg.create_task(node.run(), name="rlink")
@@ -90,6 +101,8 @@ async def run(ctx: ServiceContext) -> None:
             tg.create_task(report(), name="report")
             ctx.ready()
     finally:
+        for u in urs:
+            u.close()
         if node is not None:
             node.close()
         for g in groups:

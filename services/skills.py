@@ -90,7 +90,7 @@ async def run(ctx: ServiceContext) -> None:
             while True:
                 for s in servers:
                     ctx.counters.update(s.counters.as_dict(f"{s.robot.name}."))
-                await asyncio.sleep(1.0)
+                await asyncio.sleep(ctx.config.services.heartbeat_s / 2)  # (twice a heartbeat)
 
         tg.create_task(report())
 

@@ -65,7 +65,7 @@ async def run(ctx: ServiceContext) -> None:
                     bus.publish("events/snp/denial", denial)
                 ctx.counters.update(handler.counters.as_dict())
                 ctx.counters["service_estimate_us"] = handler.service_ns / 1e3
-                await asyncio.sleep(1.0)
+                await asyncio.sleep(ctx.config.services.heartbeat_s / 2)  # (twice a heartbeat)
 
         async with asyncio.TaskGroup() as tg:
             for f in (follow_truth, follow_plans, follow_robots, report):

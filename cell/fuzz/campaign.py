@@ -689,7 +689,8 @@ async def campaign(
     inputs: int = 1_000_000, seed: int = 1, only: list[str] | None = None, log_fn=print
 ) -> dict:
     """Run it; the figures as a dict (see summary())."""
-    overrides = {"services": {"layout": "each"}, "robots": default_robots()}
+    # heartbeats every 0.25 s: a service an input killed is seen dead (and restarted) within one
+    overrides = {"services": {"layout": "each", "heartbeat_s": 0.25}, "robots": default_robots()}
     reports: list[Report] = []
     async with running_cell(overrides) as config, Bus.connect(config.bus, "fuzz") as bus:
         probes = Probes(config)
@@ -734,7 +735,7 @@ async def campaign(
                     rep.hangs += 1
                     rep.detail["why"] = f"{type(exc).__name__}: {exc}"
                 rep.seconds = time.monotonic() - t0
-                await _settle()
+                await _settle(config)
                 after = await _snapshot(config)
                 rep.crashed += _broken(before, after)
                 service = name if name in before else ("dataplane" if "UDP" in name else "skills")
@@ -747,7 +748,7 @@ async def campaign(
                             # slow once may be this small machine busy elsewhere; slow again after
                             # a pause is what an attack left behind
                             rep.detail["probe_ms_first"] = round(rep.probe_ms, 2)
-                            await _settle()
+                            await _settle(config)
                             rep.probe_ms = statistics.median(await probes.timed(paths[path], 5))
                         rep.in_time = rep.probe_ms <= 3 * usual[path] + 5
                     except Hang:
@@ -766,9 +767,10 @@ async def _healthy(config: CellConfig, timeout: float = 60.0) -> dict[str, dict[
     return await _snapshot(config)
 
 
-async def _settle() -> None:
-    """Give a service that just died time to be seen as such (a heartbeat period), then go on."""
-    await asyncio.sleep(1.2)
+async def _settle(config: CellConfig) -> None:
+    """Give a service that just died time to be seen as such, and the counters of what the last
+    job sent time to reach a heartbeat (they are sampled twice a heartbeat period), then go on."""
+    await asyncio.sleep(2.5 * config.services.heartbeat_s)
 
 
 def _row(r: Report) -> str:

@@ -70,9 +70,10 @@ def announcements(group: RobotGroup, dataplane: str) -> list[robot_pb2.RobotAnno
 class Publisher:
     """What one group tells the bus after each tick."""
 
-    def __init__(self, bus: Bus, group: RobotGroup, node: RobotsNode | None = None) -> None:
+    def __init__(self, bus: Bus, group: RobotGroup, node: RobotsNode | None = None, ur=None) -> None:
         self.bus = bus
         self.node = node
+        self.ur = ur  # the group's UR interfaces (cell.ur.server.URInterfaces), told of every tick
         hz = group.robots[0].truth_hz
         self.every = max(1, round(group.robots[0].status_hz / hz)) if hz > 0 else 0
         self.names = [r.name for r in group.robots]
@@ -80,6 +81,8 @@ class Publisher:
     def __call__(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
         if self.node is not None:
             self.node.after_tick(group)
+        if self.ur is not None:
+            self.ur.after_tick(group, stopping, resuming)
         now = time.monotonic_ns()
         for rows, kind, text in (
             (stopping, robot_pb2.RobotEvent.KIND_PROTECTIVE_STOP, "no command for the watchdog's windows"),

@@ -207,5 +207,8 @@ def test_master_and_modules_on_loopback_one_plugged_in_and_one_pulled_out(
         assert s.link is not None and s.link.sent >= 2 * len(m.cycles)  # (a C loop's sends counted too)
     assert [e[1] for e in master.events if e[2] == 22][-2:] == ["silent", "lost"]
     h = master.handler.counters
-    assert h.queries > 3000 and h.replies > 0.5 * h.queries
+    # every query answered or denied (how many meet their deadline is `cell bench snp`'s figure)
+    assert (
+        h.queries > 3000 and h.replies > 0 and h.replies + h.denied["deadline_cannot_be_met"] >= h.queries - 1
+    )
     assert master.counters.beacons > 100 and master.counters.guessed > 0

@@ -1,0 +1,109 @@
+"""RTDE and the dashboard, sans IO: byte by byte, as UR's RTDE guide lays the packages out."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from cell.robot.arm import arm_model
+from cell.ur.arm import RobotMode, SafetyMode, URArm
+from cell.ur.dashboard import Dashboard
+from cell.ur.fields import INPUTS, OUTPUTS
+from cell.ur.rtde import Package, Session, encode, split
+
+Q = np.array([0.1, -1.5, 1.4, -1.6, -1.5, 0.2])
+
+
+def session(arm: URArm | None = None) -> tuple[Session, URArm]:
+    arm = arm or URArm("r1", arm_model("ur5e"))
+    return Session(OUTPUTS, INPUTS, arm, (5, 11, 0, 0), 500), arm
+
+
+def one(s: Session, kind: Package, body: bytes = b"") -> tuple[int, bytes]:
+    out = s.receive(encode(kind, body))
+    assert len(out) == 1
+    (got,) = split(bytearray(out[0]))
+    return got
+
+
+def test_version_negotiation_and_the_controller_version() -> None:
+    s, _ = session()
+    assert s.receive(b"\x00\x05V\x00") == []  # half a package: nothing yet
+    assert s.receive(b"\x02") == [b"\x00\x04V\x01"]  # protocol 2 accepted
+    assert s.protocol == 2
+    assert one(s, Package.REQUEST_PROTOCOL_VERSION, b"\x00\x07") == (ord("V"), b"\x00")  # no version 7
+    assert one(s, Package.GET_URCONTROL_VERSION) == (ord("v"), struct.pack(">IIII", 5, 11, 0, 0))
+
+
+def test_an_output_recipe_streams_at_the_clients_frequency_with_the_arms_values() -> None:
+    s, arm = session()
+    one(s, Package.REQUEST_PROTOCOL_VERSION, b"\x00\x02")
+    kind, body = one(
+        s, Package.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 125.0) + b"timestamp,actual_q,"
+    )
+    assert (kind, body) == (ord("O"), b"\x01DOUBLE,VECTOR6D")  # recipe 1 (the trailing comma is ur_rtde's)
+    assert one(s, Package.CONTROL_PACKAGE_START) == (ord("S"), b"\x01")
+    arm.update(Q, np.zeros(6), np.zeros(6), 1.25, 0)
+    sent = [p for tick in range(8) for p in s.due(tick, arm)]
+    assert len(sent) == 2  # 125 Hz on a 500 Hz arm: every fourth tick
+    ((kind, body),) = split(bytearray(sent[0]))
+    assert kind == ord("U") and body[0] == 1
+    assert struct.unpack(">d6d", body[1:]) == (1.25, *Q.tolist())
+
+
+def test_unknown_fields_are_not_found_and_make_no_recipe() -> None:
+    s, _ = session()
+    one(s, Package.REQUEST_PROTOCOL_VERSION, b"\x00\x02")
+    body = one(s, Package.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 500.0) + b"actual_q,warp_drive")[1]
+    assert body == b"\x00VECTOR6D,NOT_FOUND" and s.recipes == []
+    assert one(s, Package.CONTROL_PACKAGE_START) == (ord("S"), b"\x00")  # nothing to start
+
+
+def test_an_input_field_one_client_holds_is_in_use_for_another_and_writes_reach_the_arm() -> None:
+    a, arm = session()
+    b, _ = session(arm)
+    names = b"speed_slider_mask,speed_slider_fraction,input_int_register_24"
+    assert one(a, Package.CONTROL_PACKAGE_SETUP_INPUTS, names)[1] == b"\x01UINT32,DOUBLE,INT32"
+    assert one(b, Package.CONTROL_PACKAGE_SETUP_INPUTS, b"input_int_register_24")[1] == b"\x00IN_USE"
+    one(a, Package.CONTROL_PACKAGE_START)
+    a.receive(encode(Package.DATA_PACKAGE, b"\x01" + struct.pack(">Idi", 1, 0.25, -7)))
+    assert arm.speed_fraction == 0.25 and arm.int_in[24] == -7
+    a.close()  # a client gone lets go of its fields
+    assert one(b, Package.CONTROL_PACKAGE_SETUP_INPUTS, b"input_int_register_24")[1] == b"\x01INT32"
+
+
+def test_bad_packages_are_counted_and_answered_and_the_session_goes_on() -> None:
+    s, _ = session()
+    one(s, Package.REQUEST_PROTOCOL_VERSION, b"\x00\x02")
+    kind, body = one(s, 0x7A)  # an unknown type: a text message, level ERROR
+    assert kind == ord("M") and b"unknown package type" in body
+    one(s, Package.CONTROL_PACKAGE_SETUP_INPUTS, b"input_double_register_3")
+    one(s, Package.CONTROL_PACKAGE_START)
+    assert one(s, Package.DATA_PACKAGE, b"\x01\x00\x00")[0] == ord("M")  # 2 bytes for a DOUBLE
+    assert one(s, Package.DATA_PACKAGE, b"\x09" + bytes(8))[0] == ord("M")  # no recipe 9
+    many = ",".join(f"input_int_register_{i % 48}" for i in range(2000)).encode()
+    assert one(s, Package.CONTROL_PACKAGE_PAUSE)[1] == b"\x01"
+    assert b"2000 fields" in one(s, Package.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 1.0) + many)[1]
+    assert s.counters.bad == {"unknown_type": 1, "bad_length": 1, "unknown_recipe": 1, "too_many_fields": 1}
+    assert one(s, Package.GET_URCONTROL_VERSION)[0] == ord("v")  # still answering
+    out = s.receive(struct.pack(">HB", 2, ord("U")))  # a length no stream can be read past
+    assert s.closed and out and split(bytearray(out[0]))[0][0] == ord("M")
+
+
+def test_the_dashboard_changes_the_arms_modes_and_answers_as_a_ur() -> None:
+    arm = URArm("r1", arm_model("ur5e"))
+    changed = []
+    d = Dashboard(arm, "ur5e", "20205000001", lambda: changed.append(arm.can_move))
+    assert d.handle("robotmode") == "Robotmode: RUNNING" and arm.can_move
+    assert d.handle("power off") == "Powering off" and not arm.can_move
+    assert d.handle("brake release") == "Failed to execute: brake release"  # not powered
+    assert d.handle("power on") == "Powering on" and arm.robot_mode == RobotMode.IDLE
+    assert d.handle("brake release") == "Brake releasing" and arm.can_move
+    arm.safety_mode = SafetyMode.PROTECTIVE_STOP
+    assert not arm.can_move and d.handle("safetystatus") == "Safetystatus: PROTECTIVE_STOP"
+    assert d.handle("unlock protective stop") == "Protective stop releasing" and arm.can_move
+    assert d.handle("get robot model") == "UR5" and d.handle("is in remote control") == "true"
+    assert d.handle("warp 9") == "could not understand: 'warp 9'" and d.unknown == 1
+    assert changed == [False, False, True, True]
+    assert d.handle("quit") == "Disconnected" and d.closed

@@ -1,0 +1,97 @@
+"""The cell's arms driven by UR's users' own client, ur_rtde, unmodified (RTDE and the dashboard)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import dashboard_client
+import numpy as np
+import rtde_io
+import rtde_receive
+
+from cell.bus import Bus
+from cell.controller.controller import Controller
+from cell.v1 import robot_pb2
+from tests.conftest import free_port
+
+Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+
+
+def robots(n: int = 1) -> list[dict]:
+    return [
+        {"id": i, "name": f"r{i}", "skill_port": free_port(), "backend": "kinematic", "truth_hz": 500}
+        for i in range(1, n + 1)
+    ]
+
+
+async def test_rtde_reads_the_arms_truth_at_500_hz_while_it_moves(start_cell) -> None:
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
+    host = cell.config.robots[0].ur_host
+    assert host == "127.0.1.1"  # r1's own loopback address (the default)
+    rtde = await asyncio.to_thread(rtde_receive.RTDEReceiveInterface, host, 500.0, ["timestamp", "actual_q"])
+    truth: dict[int, np.ndarray] = {}
+    seen: dict[int, np.ndarray] = {}
+    async with Bus.connect(cell.config.bus, "test") as bus, Controller(bus, cell.config) as ctl:
+        sub = await bus.subscribe("truth/r1")
+
+        async def follow() -> None:
+            async for env in sub:
+                m = env.decode(robot_pb2.RobotTruth)
+                truth[m.tick + 1] = np.array(m.q)  # (tick k's state is k + 1 periods from the origin)
+
+        async with asyncio.TaskGroup() as tg:
+            watcher = tg.create_task(follow())
+            move = tg.create_task(ctl.move_joints("r1", Q0 + np.array([0.5, -0.3, 0.2, 0.1, 0.0, 0.4])))
+            while not move.done():  # the client's own state, polled as its users poll it
+                t1, q, t2 = rtde.getTimestamp(), rtde.getActualQ(), rtde.getTimestamp()
+                if t1 == t2:  # (its getters are one field each: q of one package, not torn across two)
+                    seen.setdefault(round(t1 / 0.002), np.array(q))
+                await asyncio.sleep(0.0005)
+            watcher.cancel()
+    rtde.disconnect()
+    both = sorted(set(seen) & set(truth))
+    moving = [t for t in both if np.abs(truth[t] - Q0).max() > 1e-3]
+    assert len(moving) > 50, (len(seen), len(truth), len(both))
+    for t in both:  # the same state, tick for tick: RTDE carries the arm's truth
+        assert np.array_equal(seen[t], truth[t]), t
+    # every status period had its package: ticks the poller saw are 2 ms apart at most a few times over
+    gaps = np.diff(sorted(seen))
+    assert gaps.min() >= 1
+
+
+async def test_the_dashboard_powers_the_arm_and_the_io_interface_sets_an_output(start_cell) -> None:
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
+    host = cell.config.robots[0].ur_host
+    dash = dashboard_client.DashboardClient(host)
+    await asyncio.to_thread(dash.connect)
+    rtde = await asyncio.to_thread(rtde_receive.RTDEReceiveInterface, host)
+    try:
+        assert dash.isInRemoteControl() and dash.robotmode() == "Robotmode: RUNNING"
+        assert dash.getRobotModel() == "UR5" and dash.polyscopeVersion().startswith("5.")
+        dash.powerOff()
+        await _until(lambda: rtde.getRobotMode() == 3)  # POWER_OFF, as RTDE reports it
+        assert dash.robotmode() == "Robotmode: POWER_OFF"
+        assert rtde.getSafetyStatusBits() & 1  # NORMAL: powered off is not a safety stop
+        dash.powerOn()
+        assert dash.robotmode() == "Robotmode: IDLE"  # powered, brakes on
+        dash.brakeRelease()
+        await _until(lambda: rtde.getRobotMode() == 7)  # RUNNING
+        io = await asyncio.to_thread(rtde_io.RTDEIOInterface, host)
+        try:
+            assert io.setStandardDigitalOut(3, True)
+            await _until(lambda: rtde.getActualDigitalOutputBits() & (1 << 3))
+            assert io.setStandardDigitalOut(3, False)
+            await _until(lambda: not rtde.getActualDigitalOutputBits() & (1 << 3))
+        finally:
+            io.disconnect()
+    finally:
+        rtde.disconnect()
+        dash.disconnect()
+
+
+async def _until(cond, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, "not within the time"
+        await asyncio.sleep(0.01)
