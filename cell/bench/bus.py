@@ -266,7 +266,7 @@ def raw_round_trip(ping: Route, pong: Route, pings: int) -> dict[str, float]:
     pub.close(0)
     sub.close(0)
     ctx.term()
-    proc.join(10)
+    _end_echo(proc)
     return _percentiles(samples)
 
 
@@ -290,8 +290,15 @@ def bus_round_trip(cfg: BusConfig, pings: int) -> dict[str, dict[str, float]]:
             return {"pubsub": _percentiles(pubsub), "request": _percentiles(rpc)}
 
     result = aio.run(ping())
-    proc.join(10)
+    _end_echo(proc)
     return result
+
+
+def _end_echo(proc: mp.Process) -> None:
+    """An echo has nothing left to give once its pings are answered: ended now, not after IDLE_S
+    of silence (which cost each round trip measurement seconds)."""
+    proc.terminate()
+    proc.join(5)
 
 
 VARIANTS = ("raw_multipart", "raw_1frame", "raw_1frame_via_forwarder", "bus")

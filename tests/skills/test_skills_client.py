@@ -93,18 +93,22 @@ async def test_a_connection_lost_mid_command_raises_and_sends_nothing_again(star
         await robot.close()
 
 
-@pytest.mark.parametrize("script", ["pick_and_place.py", "sync_motion.py", "wait_for_event.py"])
-def test_example_scripts_run_end_to_end(tmp_path, script: str) -> None:
-    cfg = write_config(tmp_path / "cell.toml", cell_overrides(kinematic(2), run=SERVICES))
-    proc = subprocess.run(
-        [sys.executable, "-m", "cell", "run", "--up", "--config", str(cfg), str(ROOT / "examples" / script)],
-        env=cell_env(),
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert proc.stdout.strip(), proc.stderr[-2000:]
+async def test_example_scripts_run_end_to_end_one_after_another_on_one_cell(start_cell) -> None:
+    """Each example as a user runs it (`cell run`), against one cell that stays up between them (as a
+    user's does); the README's script below starts its own (`--up`)."""
+    cell = await start_cell(run=SERVICES, robots=kinematic(2))
+    for script in ("pick_and_place.py", "sync_motion.py", "wait_for_event.py"):
+        cmd = [sys.executable, "-m", "cell", "run", "--config", str(cell.path), str(ROOT / "examples" / script)]
+        proc = await asyncio.create_subprocess_exec(
+            *cmd,
+            env=cell_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        )
+        async with asyncio.timeout(120):
+            out, err = await proc.communicate()
+        assert proc.returncode == 0, (script, err.decode()[-3000:])
+        assert out.strip(), (script, err.decode()[-2000:])
 
 
 def test_cell_run_reports_a_broken_script(tmp_path) -> None:
