@@ -98,7 +98,8 @@ async def test_example_scripts_run_end_to_end_one_after_another_on_one_cell(star
     user's does); the README's script below starts its own (`--up`)."""
     cell = await start_cell(run=SERVICES, robots=kinematic(2))
     for script in ("pick_and_place.py", "sync_motion.py", "wait_for_event.py"):
-        cmd = [sys.executable, "-m", "cell", "run", "--config", str(cell.path), str(ROOT / "examples" / script)]
+        path = ROOT / "examples" / script
+        cmd = [sys.executable, "-m", "cell", "run", "--config", str(cell.path), str(path)]
         proc = await asyncio.create_subprocess_exec(
             *cmd,
             env=cell_env(),
