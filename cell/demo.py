@@ -102,6 +102,9 @@ def real_time_rows(status: health_pb2.CellStatus, rb: dict[str, float]) -> list[
     ]
 
 
+SETTLED_RAD = 1e-5  # a robot this close to its goal on every joint has come to rest there
+
+
 async def ask(cell: Any, method: str, req: Any, reply_type: Any, timeout: float = 60.0) -> Any:
     """A request to the controller service."""
     return await cell.request("controller", method, req, reply_type, timeout)
@@ -165,12 +168,16 @@ async def main(cell: Any) -> None:
     moves += 2
     for acks in await asyncio.gather(*(r.cmdexec(MoveJoints(joints=tuple(HOME))) for r in (r1, r2))):
         count(acks)
-    # how close each robot came to rest on its goal, after the P term's settling
-    await asyncio.sleep(2.0)
-    stop_errors = []
-    for name in ("r1", "r2"):
-        here = await ask(cell, "pose", controller_pb2.RobotRequest(robot=name), controller_pb2.PoseReply)
-        stop_errors.append(float(np.abs(np.array(here.joints) - np.radians(HOME)).max()))
+    # how close each robot came to rest on its goal, once the P term has settled it (or after 2 s)
+    settle_until = time.monotonic() + 2.0
+    while True:
+        stop_errors = []
+        for name in ("r1", "r2"):
+            here = await ask(cell, "pose", controller_pb2.RobotRequest(robot=name), controller_pb2.PoseReply)
+            stop_errors.append(float(np.abs(np.array(here.joints) - np.radians(HOME)).max()))
+        if max(stop_errors) < SETTLED_RAD or time.monotonic() > settle_until:
+            break
+        await asyncio.sleep(0.05)
 
     print("5. SnP time-bounded queries")
     host, port = cell.config.snp.listen.rsplit(":", 1)
