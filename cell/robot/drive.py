@@ -9,7 +9,8 @@ first command: a robot nobody has commanded yet simply stands still.  The
 drive never exceeds the
 joint's velocity or acceleration limit, whatever it is told.  A halted robot
 (an emergency stop on the Responsive Link) brakes at once with its full
-deceleration and ignores every command until it is released.
+deceleration and ignores every command until every holder (the e-stop, the arm's UR
+state) has released it.
 """
 
 from __future__ import annotations
@@ -17,6 +18,10 @@ from __future__ import annotations
 import numpy as np
 
 WATCHDOG_WINDOWS = 3
+
+
+HOLD_ESTOP = 1  # the Responsive Link's e-stop (cell.robot.node)
+HOLD_UR = 2  # the arm's UR state: powered off, braked, safety-stopped (cell.ur)
 
 
 class Drives:
@@ -35,7 +40,10 @@ class Drives:
         self.missed = np.zeros(shape, np.int64)  # windows in a row without a command, per joint
         self.stopped = np.zeros(robots, bool)  # protective stop
         self.armed = np.zeros(robots, bool)  # commanded at least once: the watchdog is on
-        self.halted = np.zeros(robots, bool)  # emergency stop: braking or standing, deaf to commands
+        # who holds each robot halted (braking or standing, deaf to commands), a bit each (HOLD_*):
+        # one holder letting go leaves it halted while another still holds it (an e-stop outlasts a
+        # UR dashboard's brake release)
+        self.holds = np.zeros(robots, np.uint8)
         self.stops = 0  # protective stops so far
         self.windows = 0
 
@@ -49,10 +57,19 @@ class Drives:
         self.pending.flat[flat[last]] = velocity[last]
         self.has_pending.flat[flat[last]] = True
 
-    def halt(self, rows: np.ndarray, on: bool = True) -> None:
-        """Halt (brake now, ignore commands) or release these robots; released, they stand until
-        commanded (their watchdog re-arms with the next command)."""
-        self.halted[rows] = on
+    @property
+    def halted(self) -> np.ndarray:
+        return self.holds != 0
+
+    def halt(self, rows: np.ndarray, on: bool = True, by: int = HOLD_ESTOP) -> None:
+        """Halt (brake now, ignore commands) or release these robots for holder `by`; released, they
+        stand until commanded (their watchdog re-arms with the next command), halted still while
+        another holder holds them."""
+        bit = np.uint8(by)
+        if on:
+            self.holds[rows] |= bit
+        else:
+            self.holds[rows] &= ~bit
         self.target[rows] = 0.0
         self.pending[rows] = 0.0
         self.has_pending[rows] = False

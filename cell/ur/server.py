@@ -15,6 +15,7 @@ import numpy as np
 
 from cell.config import CellConfig, RobotConfig
 from cell.counters import Counters
+from cell.robot.drive import HOLD_UR
 from cell.robot.emulator import RobotGroup
 from cell.ur.arm import CONTROLLER_VERSION, SafetyMode, URArm
 from cell.ur.dashboard import MAX_LINE, WELCOME, Dashboard
@@ -47,17 +48,14 @@ class _Arm:
         self.state = URArm(robot.name, group.arm)
         self.rtde: set[RtdeProtocol] = set()
         self.dashboards: set[DashboardProtocol] = set()
-        self.held = False  # its drives are halted by its UR state (powered off, braked, stopped)
 
     def apply(self) -> None:
-        """The UR state onto the drives: an arm that may not move is halted, and let go once it may."""
-        rows = np.array([self.row])
-        if not self.state.can_move and not self.held:
-            self.group.drives.halt(rows)
-            self.held = True
-        elif self.state.can_move and self.held:
-            self.group.drives.halt(rows, on=False)
-            self.held = False
+        """The UR state onto the drives: an arm that may not move is halted, and let go once it may
+        (by its UR state only: an e-stop's hold on it stays)."""
+        drives, rows = self.group.drives, np.array([self.row])
+        held = bool(drives.holds[self.row] & HOLD_UR)
+        if self.state.can_move == held:
+            drives.halt(rows, on=not self.state.can_move, by=HOLD_UR)
 
 
 class URInterfaces:

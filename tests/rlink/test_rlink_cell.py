@@ -20,7 +20,7 @@ from cell.rlink.packet import EventType, Kind, Packet
 from cell.rlink.station import Station
 from cell.robot import datagram, udp
 from cell.robot.datagram import SCALE
-from cell.robot.drive import Drives
+from cell.robot.drive import HOLD_UR, Drives
 
 # --- payloads ------------------------------------------------------------------------------------
 
@@ -120,6 +120,24 @@ def test_halted_drives_brake_at_full_deceleration_and_ignore_commands_until_rele
     d.end_window()
     d.step(0.002)
     assert d.velocity[0, 0] > 0
+
+
+def test_an_estop_hold_outlasts_another_holders_release() -> None:
+    """A UR dashboard's brake release (cell.ur) does not let go of a robot the e-stop holds."""
+    d = Drives(1, v_max=np.full(6, 3.0), a_max=np.full(6, 5.0))
+    row = np.array([0])
+    d.halt(row)  # the e-stop
+    d.halt(row, by=HOLD_UR)  # powered off on the dashboard
+    d.halt(row, on=False, by=HOLD_UR)  # brake release
+    d.command(np.zeros(6, np.int64), np.arange(6), np.full(6, 1.0))
+    d.end_window()
+    d.step(0.002)
+    assert d.halted[0] and not d.velocity.any()  # still held by the e-stop, deaf to commands
+    d.halt(row, on=False)  # the e-stop's resume
+    d.command(np.zeros(6, np.int64), np.arange(6), np.full(6, 1.0))
+    d.end_window()
+    d.step(0.002)
+    assert not d.halted[0] and d.velocity[0, 0] > 0
 
 
 # --- the data plane ----------------------------------------------------------------------------------
