@@ -190,9 +190,8 @@ async def wait_healthy(
                     last = reply
                     if want <= {s.name for s in last.services if s.health == "ok"}:
                         return last
-                code = proc.returncode if proc is not None else None
-                if proc is not None and isinstance(proc, subprocess.Popen):
-                    code = proc.poll()
+                popen = isinstance(proc, subprocess.Popen)
+                code = proc.poll() if popen else getattr(proc, "returncode", None)
                 if code is not None:
                     raise RuntimeError(f"the cell exited with code {code}")
                 await asyncio.sleep(0.05)  # (the next heartbeat comes by itself: no busy asking)

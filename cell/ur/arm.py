@@ -7,13 +7,14 @@ released the way a UR's is (`unlock protective stop` on the dashboard)."""
 
 from __future__ import annotations
 
-import time
 from enum import IntEnum
 
 import mujoco
 import numpy as np
 
 from cell.robot.arm import ArmModel
+from cell.ur.fields import OUTPUTS
+from cell.ur.rtde import WIDTH, Type
 
 CONTROLLER_VERSION = (5, 11, 0, 0)  # an e-Series controller on PolyScope 5.11
 POLYSCOPE = "5.11.0.108249"
@@ -97,17 +98,13 @@ class URArm:
         self.analog_out = [0.0, 0.0]
         self.payload, self.cog = 0.0, (0.0, 0.0, 0.0)
         self._owners: dict[str, object] = {}  # input field -> the session that holds it
-        self.t0 = time.monotonic()
         dof = model.dof
         self.q = np.zeros(dof)
         self.qd = np.zeros(dof)
         self.qdd = np.zeros(dof)
         self.target_qd = np.zeros(dof)
-        self.tcp = (0.0,) * 6
-        self.tcp_speed = (0.0,) * 6
-        self.timestamp = 0.0
-        self._values: dict[str, tuple] = {}
-        self._stamp = -1  # the tick the values were computed for
+        self.timestamp = -1.0  # (no state yet)
+        self._values: dict[str, tuple] = {}  # the fields asked for since the last update, computed
 
     # --- modes -------------------------------------------------------------------------------
 
@@ -133,29 +130,28 @@ class URArm:
 
     # --- the arm's truth, once a tick -----------------------------------------------------------
 
-    def update(self, q: np.ndarray, qd: np.ndarray, target_qd: np.ndarray, t: float, tick: int) -> None:
-        """The arm's joints at its status time t (s since start) of tick `tick`."""
+    def update(self, q: np.ndarray, qd: np.ndarray, target_qd: np.ndarray, t: float) -> None:
+        """The arm's joints at its status time t (s since the tick grid began).  Only what a client's
+        recipe asks for is computed from them (values()): no kinematics for a recipe of joints."""
         dt = t - self.timestamp
-        if dt > 0 and self._stamp >= 0:
+        if dt > 0 and self.timestamp >= 0:
             self.qdd = (qd - self.qd) / dt
-            tcp = self._pose(q)
-            lin = [(a - b) / dt for a, b in zip(tcp[:3], self.tcp[:3], strict=True)]
-            self.tcp_speed = (*lin, 0.0, 0.0, 0.0)
-            self.tcp = tcp
-        else:
-            self.tcp = self._pose(q)
         self.q, self.qd, self.target_qd, self.timestamp = q.copy(), qd.copy(), target_qd.copy(), t
-        self._stamp = tick
         self._values.clear()
 
-    def _pose(self, q: np.ndarray) -> tuple[float, ...]:
+    def _pose(self) -> tuple[float, ...]:
         """The TCP pose as a UR gives it: x, y, z (m) and a rotation vector (rad), base frame."""
-        pos, rot = self.model.fk(q)
+        pos, rot = self.model.fk(self.q)
         quat = np.empty(4)
         mujoco.mju_mat2Quat(quat, rot.ravel())
         rv = np.empty(3)
         mujoco.mju_quat2Vel(rv, quat, 1.0)
         return (*pos.tolist(), *rv.tolist())
+
+    def _speed(self) -> tuple[float, ...]:
+        """The TCP's velocity, linear (m/s) and angular (rad/s), base frame: the arm's Jacobian."""
+        v, w = self.model.tool_velocity(self.q, self.qd)
+        return (*v.tolist(), *w.tolist())
 
     def values(self, name: str) -> tuple:
         """One RTDE output field's values now, flattened (rtde.Source)."""
@@ -174,9 +170,9 @@ class URArm:
         if name in ("actual_qdd", "target_qdd"):
             return tuple(self.qdd.tolist())
         if name in ("actual_TCP_pose", "target_TCP_pose"):
-            return self.tcp
+            return self._pose()
         if name in ("actual_TCP_speed", "target_TCP_speed"):
-            return self.tcp_speed
+            return self._speed()
         if name == "robot_mode":
             return (int(self.robot_mode),)
         if name == "safety_mode" or name == "safety_status":
@@ -216,18 +212,13 @@ class URArm:
             return (self.payload,)
         if name == "payload_cog":
             return self.cog
-        from cell.ur.fields import OUTPUTS  # (only for the fields the emulator has no model of)
-        from cell.ur.rtde import Type
-
-        n = {Type.VECTOR3D: 3, Type.VECTOR6D: 6, Type.VECTOR6INT32: 6, Type.VECTOR6UINT32: 6}.get(
-            OUTPUTS[name], 1
-        )
-        zero = False if OUTPUTS[name] == Type.BOOL else 0
+        # the fields the emulator has no model of: fixed, plausible values
         if name == "actual_main_voltage" or name == "actual_robot_voltage":
             return (48.0,)
         if name == "joint_temperatures":
             return (30.0,) * 6
-        return (zero,) * n
+        zero = False if OUTPUTS[name] == Type.BOOL else 0
+        return (zero,) * WIDTH.get(OUTPUTS[name], 1)
 
     # --- inputs (rtde.InputOwner) ----------------------------------------------------------------
 

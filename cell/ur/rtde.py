@@ -20,7 +20,7 @@ holds is the arm's too (`InputOwner`), so that two clients cannot write the same
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import IntEnum, StrEnum
 from typing import Protocol
@@ -28,7 +28,6 @@ from typing import Protocol
 from cell.counters import Counters
 
 HEADER = struct.Struct(">HB")
-MAX_PACKAGE = 0xFFFF  # what the uint16 size can say: a package is always read whole, then judged
 MAX_FIELDS = 500  # fields in one recipe (a UR takes a few hundred at most)
 MAX_HZ = 500.0  # the arm's own status rate: a client asking more gets this
 MAX_RECIPES = 255  # output recipes per connection (v2's recipe id is a uint8)
@@ -108,12 +107,13 @@ class Recipe:
     types: list[Type]
     fmt: struct.Struct
     every: int = 1  # one package each `every` status ticks (the client's frequency)
+    head: bytes = b""  # a data package's header and (v2) recipe id: the same for every package
 
-    def pack(self, source: Source, header: bytes) -> bytes:
+    def pack(self, source: Source) -> bytes:
         flat: list = []
         for name in self.names:
             flat.extend(source.values(name))
-        return header + self.fmt.pack(*flat)
+        return self.head + self.fmt.pack(*flat)
 
 
 @dataclass(slots=True)
@@ -121,6 +121,7 @@ class SessionCounters(Counters):
     packages_in: int = 0
     packages_out: int = 0
     data_in: int = 0
+    texts_in: int = 0
     bad: dict[str, int] = field(default_factory=dict)  # refused packages by reason
 
 
@@ -147,7 +148,6 @@ class Session:
         self._buf = bytearray()
         self._next_input_id = 1
         self.closed = ""  # why this end gave up on the connection ("" while it is up)
-        self.texts: list[tuple[int, str, str]] = []  # (level, source, text) the client sent
 
     # --- bytes in ----------------------------------------------------------------------------
 
@@ -157,7 +157,7 @@ class Session:
         out: list[bytes] = []
         while len(self._buf) >= HEADER.size and not self.closed:
             size, kind = HEADER.unpack_from(self._buf)
-            if size < HEADER.size or size > MAX_PACKAGE:
+            if size < HEADER.size:  # (any size a uint16 says is read whole, then judged)
                 # the stream cannot be resynchronised past a bad length: as a UR, drop the client
                 self._count("size")
                 self.closed = f"a package header that says {size} bytes (at least {HEADER.size})"
@@ -198,8 +198,8 @@ class Session:
         if kind == Package.GET_URCONTROL_VERSION:
             return self._pack(Package.GET_URCONTROL_VERSION, struct.pack(">IIII", *self.controller_version))
         if kind == Package.TEXT_MESSAGE:
-            self.texts.append(self._read_text(p))
-            del self.texts[:-100]
+            self._read_text(p)  # (checked and counted; a UR logs them, the cell has no log of them)
+            self.counters.texts_in += 1
             return None
         if kind == Package.CONTROL_PACKAGE_SETUP_OUTPUTS:
             return self._setup_outputs(p)
@@ -253,7 +253,9 @@ class Session:
             ok = [t for t in types if t is not None]
             every = max(1, round(self.tick_hz / hz))
             rid = len(self.recipes) + 1
-            self.recipes.append(Recipe(rid, names, ok, _struct(ok), every))
+            fmt, v2 = _struct(ok), self.protocol >= 2
+            head = HEADER.pack(HEADER.size + v2 + fmt.size, Package.DATA_PACKAGE) + bytes([rid] if v2 else [])
+            self.recipes.append(Recipe(rid, names, ok, fmt, every, head))
         body = (struct.pack(">B", rid) if self.protocol >= 2 else b"") + text.encode()
         return self._pack(Package.CONTROL_PACKAGE_SETUP_OUTPUTS, body)
 
@@ -299,15 +301,7 @@ class Session:
         """The data packages of the recipes due at status tick `tick`."""
         if not self.started:
             return []
-        out = []
-        for r in self.recipes:
-            if tick % r.every == 0:
-                head = HEADER.pack(
-                    HEADER.size + (r.fmt.size + (1 if self.protocol >= 2 else 0)), Package.DATA_PACKAGE
-                )
-                if self.protocol >= 2:
-                    head += bytes((r.id,))
-                out.append(r.pack(source, head))
+        out = [r.pack(source) for r in self.recipes if tick % r.every == 0]
         self.counters.packages_out += len(out)
         return out
 
@@ -368,6 +362,3 @@ def split(buf: bytearray) -> list[tuple[int, bytes]]:
         out.append((kind, bytes(buf[HEADER.size : size])))
         del buf[:size]
     return out
-
-
-Unpacker = Callable[[bytes], tuple]

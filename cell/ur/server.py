@@ -110,7 +110,7 @@ class URInterfaces:
             if not live:
                 continue
             row = arm.row
-            arm.state.update(b.q[row], b.qd[row], group.drives.target[row], t, tick)
+            arm.state.update(b.q[row], b.qd[row], group.drives.target[row], t)
             for p in live:
                 due = p.session.due(tick, arm.state)
                 if not due:

@@ -44,7 +44,7 @@ def test_an_output_recipe_streams_at_the_clients_frequency_with_the_arms_values(
     )
     assert (kind, body) == (ord("O"), b"\x01DOUBLE,VECTOR6D")  # recipe 1 (the trailing comma is ur_rtde's)
     assert one(s, Package.CONTROL_PACKAGE_START) == (ord("S"), b"\x01")
-    arm.update(Q, np.zeros(6), np.zeros(6), 1.25, 0)
+    arm.update(Q, np.zeros(6), np.zeros(6), 1.25)
     sent = [p for tick in range(8) for p in s.due(tick, arm)]
     assert len(sent) == 2  # 125 Hz on a 500 Hz arm: every fourth tick
     ((kind, body),) = split(bytearray(sent[0]))
