@@ -12,6 +12,8 @@ import rtde_receive
 
 from cell.bus import Bus
 from cell.controller.controller import Controller
+from cell.launcher import fetch_status
+from cell.ur import rtde
 from cell.v1 import robot_pb2
 from tests.conftest import free_port
 
@@ -95,3 +97,43 @@ async def _until(cond, timeout: float = 5.0) -> None:
     while not cond():
         assert time.monotonic() < deadline, "not within the time"
         await asyncio.sleep(0.01)
+
+
+async def test_junk_on_the_ur_ports_is_answered_and_counted_and_the_arm_goes_on(start_cell) -> None:
+    """A 1 MB dashboard line, RTDE packages of unknown type and of an unreadable length: each answered
+    or dropped and counted; the real client then reads the arm as before."""
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
+    host, ur = cell.config.robots[0].ur_host, cell.config.ur
+    reader, writer = await asyncio.open_connection(host, ur.dashboard_port)
+    assert (await reader.readline()).startswith(b"Connected: Universal Robots Dashboard Server")
+    writer.write(b"x" * (1 << 20) + b"\nrobotmode\n")
+    async with asyncio.timeout(10):
+        assert (await reader.readline()).startswith(b"could not understand: a line longer than")
+        assert await reader.readline() == b"Robotmode: RUNNING\n"  # the connection goes on
+    writer.close()
+    reader, writer = await asyncio.open_connection(host, ur.rtde_port)
+    writer.write(rtde.encode(0x7A) + rtde.encode(rtde.Package.GET_URCONTROL_VERSION))
+    buf = bytearray()
+    async with asyncio.timeout(10):
+        while len(got := rtde.split(bytearray(buf))) < 2:
+            buf += await reader.read(4096)
+    assert [k for k, _ in got] == [ord("M"), ord("v")]  # refused with a text message, then answered
+    writer.write(b"\x00\x01U")  # a length no stream can be read past: dropped
+    async with asyncio.timeout(10):
+        while await reader.read(4096):
+            pass
+    writer.close()
+    r = await asyncio.to_thread(rtde_receive.RTDEReceiveInterface, host)
+    try:
+        t = r.getTimestamp()
+        await _until(lambda: r.getTimestamp() > t)  # still streaming at the arm's clock
+        assert np.allclose(r.getActualQ(), Q0, atol=1e-6)
+    finally:
+        r.disconnect()
+    async with asyncio.timeout(5):  # (counted at once; reported with the next heartbeat)
+        while True:
+            status = await fetch_status(cell.config)
+            c = next(s for s in status.services if s.name == "robots").last.counters
+            if c["ur.dashboard_long_lines"] >= 1 and c["ur.rtde_bad"] >= 2:
+                break
+            await asyncio.sleep(0.05)
