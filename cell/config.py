@@ -459,6 +459,9 @@ class URConfig:
     interfaces: bool  # offer them at all
     rtde_port: int = _check(_port)
     dashboard_port: int = _check(_port)
+    primary_port: int = _check(_port)  # URScript in, messages out
+    secondary_port: int = _check(_port)
+    realtime_port: int = _check(_port)  # URScript in (ur_rtde sends its control script here)
     max_clients: int = _check(_positive)  # connections per arm and interface; more are refused
 
 

@@ -61,13 +61,18 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
                 takes.create_task(take(ev))
 
     async def follow_link() -> None:
-        """Stops and releases over the Responsive Link, as the hub tells them after the fact."""
+        """Stops and releases over the Responsive Link, as the hub tells them after the fact, and URScript
+        programs holding a robot, as its UR interfaces tell them."""
         RE = robot_pb2.RobotEvent
         async for ev in events.messages(RE):
             if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP):
                 await ctl.stopped_on_link(ev.robot_id)
             elif ev.kind == RE.KIND_RESUME:
                 ctl.released_on_link(ev.robot_id)
+            elif ev.kind == RE.KIND_PROGRAM:
+                await ctl.held_by_program(ev.robot_id, ev.text)
+            elif ev.kind == RE.KIND_PROGRAM_END:
+                ctl.program_ended(ev.robot_id)
 
     async with asyncio.TaskGroup() as tg:
         tg.create_task(follow_link(), name="follow-link")

@@ -86,7 +86,7 @@ async def run(ctx: ServiceContext) -> None:
 
         for g in groups:  # (each arm's UR interfaces: RTDE, dashboard)
             if ctx.config.ur.interfaces:
-                urs.append(URInterfaces(g, ctx.config))
+                urs.append(URInterfaces(g, ctx.config, ctx.bus.publish))
                 await urs[-1].start()
         ur_of = {id(u.group): u for u in urs}
 

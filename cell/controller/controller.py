@@ -253,17 +253,30 @@ class Controller(Engine):
         """A robot was stopped over the Responsive Link (the data plane has cleared its registers and
         ramps it down): stop streaming its motion (MotionStopped to whoever waits) and unload it."""
         self.stopped.add(robot)
+        await self._let_go(robot, f"robot {robot} was stopped over the Responsive Link")
+
+    def released_on_link(self, robot: int) -> None:
+        self.stopped.discard(robot)
+
+    async def held_by_program(self, robot: int, text: str) -> None:
+        """A URScript program sent to the robot's UR interfaces holds it (cell.ur): the data plane's
+        commands are ignored there, so its motion ends (MotionStopped, with why) and no other starts
+        until the program ends."""
+        self.programs[robot] = text
+        await self._let_go(robot, f"robot {robot}: {text}")
+
+    def program_ended(self, robot: int) -> None:
+        self.programs.pop(robot, None)
+
+    async def _let_go(self, robot: int, reason: str) -> None:
         track = self.track(robot)
-        track.stop_reason = f"robot {robot} was stopped over the Responsive Link"
+        track.stop_reason = reason
         track.epoch += 1
         await self._halt(track)
         if track.loaded:
             with contextlib.suppress(RemoteError):
                 await self._apply(track, None, list(track.loaded))
         track.segment, track.q_hold = None, None  # the next motion starts where the robot stands
-
-    def released_on_link(self, robot: int) -> None:
-        self.stopped.discard(robot)
 
     async def supervise(self) -> None:
         """Watch the data plane for as long as the controller runs (cell.controller.supervision)."""

@@ -69,6 +69,7 @@ class Engine(RobotBook):
         self.last_switch: Switch | None = None
         self.unfinished: dict[int, Goal] = {}  # robot -> the motion a stop interrupted (for resume)
         self.stopped: set[int] = set()  # robots stopped over the Responsive Link, until released
+        self.programs: dict[int, str] = {}  # robots a URScript program holds (cell.ur): what holds them
         self.lost: list[tuple[float, str]] = []  # (monotonic s, reason) of each loss, for the record
         # set while supervise() has the tables in hand: motions wait for it (a take-over's flush
         # must not sweep away a motion loaded meanwhile); None: not supervised (tests, benches)
@@ -159,6 +160,9 @@ class Engine(RobotBook):
         held = [r for r in track.robots if r in self.stopped]
         if held:
             raise MotionStopped(f"robot(s) {held} stopped over the Responsive Link: resume first")
+        for r in track.robots:
+            if r in self.programs:
+                raise MotionStopped(f"robot {r}: {self.programs[r]}; the cell drives it again once it ends")
 
     # --- motions -----------------------------------------------------------------------------
 

@@ -55,16 +55,6 @@ class ArmModel:
         mujoco.mj_kinematics(self.model, d)
         return d.site_xpos[self.tool_site].copy(), d.site_xmat[self.tool_site].reshape(3, 3).copy()
 
-    def tool_velocity(self, q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The tool flange's linear (m/s) and angular (rad/s) velocity in the base frame at q, qd."""
-        m, d = self.model, self._data
-        d.qpos[:] = q
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_comPos(m, d)
-        jacp, jacr = np.empty((3, m.nv)), np.empty((3, m.nv))
-        mujoco.mj_jacSite(m, d, jacp, jacr, self.tool_site)
-        return jacp @ qd, jacr @ qd
-
     def tool_pose(self, q: np.ndarray) -> np.ndarray:
         """[x, y, z, qw, qx, qy, qz]: the tool flange pose for q."""
         pos, rot = self.fk(q)

@@ -44,6 +44,10 @@ class Drives:
         # one holder letting go leaves it halted while another still holds it (an e-stop outlasts a
         # UR dashboard's brake release)
         self.holds = np.zeros(robots, np.uint8)
+        # robots a URScript program drives (cell.ur): the datagram commands are not theirs (each one is
+        # counted in `ignored`), no watchdog runs, and the program sets `target` itself every tick
+        self.scripted = np.zeros(robots, bool)
+        self.ignored = 0
         self.stops = 0  # protective stops so far
         self.windows = 0
 
@@ -51,6 +55,12 @@ class Drives:
         """Commands received in this window, in arrival order: the latest per joint wins."""
         if robot.size == 0:
             return
+        if self.scripted.any():
+            mine = ~self.scripted[robot]
+            self.ignored += int(robot.size - mine.sum())
+            robot, joint, velocity = robot[mine], joint[mine], velocity[mine]
+            if robot.size == 0:
+                return
         flat = robot * self.dof + joint
         # np assignment gives no order guarantee for repeated indices: keep each joint's last one
         last = flat.size - 1 - np.unique(flat[::-1], return_index=True)[1]
@@ -76,6 +86,17 @@ class Drives:
         if not on:
             self.armed[rows] = False
             self.missed[rows] = 0
+
+    def script(self, row: int, on: bool) -> None:
+        """A URScript program takes the robot over (on) or gives it back to the datagram program: it
+        stands where it is until commanded, its watchdog re-armed by the next command."""
+        self.scripted[row] = on
+        self.target[row] = 0.0
+        self.pending[row] = 0.0
+        self.has_pending[row] = False
+        self.armed[row] = False
+        self.missed[row] = 0
+        self.stopped[row] = False
 
     def end_window(self) -> tuple[np.ndarray, np.ndarray]:
         """Execute the kept commands; return (robots that just stopped, robots that just resumed)."""

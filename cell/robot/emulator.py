@@ -70,6 +70,7 @@ class GroupCounters(Counters):
     late_sends: int = 0  # left a full status period or more after their deadline
     missed_ticks: int = 0  # status periods that passed with no tick at all (the process was held up)
     commands: int = 0
+    commands_ignored: int = 0  # for robots a URScript program drives (cell.ur): not theirs to take
     rejected: dict[str, int] = tally(keys=tuple(r.name.lower() for r in Reject))
     protective_stops: int = 0
     resumes: int = 0
@@ -266,6 +267,7 @@ class RobotGroup:
         self.state_time = deadline + self.period * periods  # the instant q, qd now describe
         self._pack()
         self.counters.ticks += 1
+        self.counters.commands_ignored = self.drives.ignored
         self.counters.missed_ticks += periods - 1
         return stopping, resuming
 

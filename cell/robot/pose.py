@@ -63,11 +63,20 @@ def rotation_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
 
 def slerp(r0: np.ndarray, r1: np.ndarray, s: float) -> np.ndarray:
     """The rotation a fraction s of the way from r0 to r1 (about one fixed axis)."""
-    w = rotation_error(r1, r0) * s
+    return from_rotvec(rotation_error(r1, r0) * s) @ r0
+
+
+def from_rotvec(rv: np.ndarray | list[float] | tuple[float, ...]) -> np.ndarray:
+    """The rotation matrix of a rotation vector (axis * angle, rad): UR's pose orientation."""
+    w = np.asarray(rv, np.float64)
     angle = float(np.linalg.norm(w))
     if angle < 1e-15:
-        return r0.copy()
+        return np.eye(3)
     k = w / angle
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    step = np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * (kx @ kx)
-    return step @ r0
+    return np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * (kx @ kx)
+
+
+def to_rotvec(rot: np.ndarray) -> np.ndarray:
+    """The rotation vector of a rotation matrix (angle in [0, pi])."""
+    return rotation_error(rot, np.eye(3))

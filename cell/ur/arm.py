@@ -7,13 +7,14 @@ released the way a UR's is (`unlock protective stop` on the dashboard)."""
 
 from __future__ import annotations
 
+import time
 from enum import IntEnum
 
-import mujoco
 import numpy as np
 
 from cell.robot.arm import ArmModel
 from cell.ur.fields import OUTPUTS
+from cell.ur.motion import Tool
 from cell.ur.rtde import WIDTH, Type
 
 CONTROLLER_VERSION = (5, 11, 0, 0)  # an e-Series controller on PolyScope 5.11
@@ -78,6 +79,7 @@ class URArm:
 
     def __init__(self, name: str, model: ArmModel, program: str = "cell.urp") -> None:
         self.name, self.model = name, model
+        self.tool = Tool(model)  # the TCP: the flange and a program's set_tcp offset
         # an arm of the cell starts as a UR in remote control, on, brakes released, running the
         # cell's datagram program (the paper's URCap daemon): the data plane drives it from the start
         self.robot_mode = RobotMode.RUNNING
@@ -98,6 +100,7 @@ class URArm:
         self.analog_out = [0.0, 0.0]
         self.payload, self.cog = 0.0, (0.0, 0.0, 0.0)
         self._owners: dict[str, object] = {}  # input field -> the session that holds it
+        self.written: dict[str, float] = {}  # input field -> when a package last wrote it (monotonic s)
         dof = model.dof
         self.q = np.zeros(dof)
         self.qd = np.zeros(dof)
@@ -141,17 +144,11 @@ class URArm:
 
     def _pose(self) -> tuple[float, ...]:
         """The TCP pose as a UR gives it: x, y, z (m) and a rotation vector (rad), base frame."""
-        pos, rot = self.model.fk(self.q)
-        quat = np.empty(4)
-        mujoco.mju_mat2Quat(quat, rot.ravel())
-        rv = np.empty(3)
-        mujoco.mju_quat2Vel(rv, quat, 1.0)
-        return (*pos.tolist(), *rv.tolist())
+        return tuple(self.tool.fk(self.q).tolist())
 
     def _speed(self) -> tuple[float, ...]:
         """The TCP's velocity, linear (m/s) and angular (rad/s), base frame: the arm's Jacobian."""
-        v, w = self.model.tool_velocity(self.q, self.qd)
-        return (*v.tolist(), *w.tolist())
+        return tuple((self.tool.jacobian(self.q) @ self.qd).tolist())
 
     def values(self, name: str) -> tuple:
         """One RTDE output field's values now, flattened (rtde.Source)."""
@@ -230,6 +227,9 @@ class URArm:
                 self._owners[n] = session
         return taken
 
+    def owner(self, name: str) -> object | None:
+        return self._owners.get(name)
+
     def release(self, session: object) -> None:
         for n in [n for n, s in self._owners.items() if s is session]:
             del self._owners[n]
@@ -237,6 +237,9 @@ class URArm:
     def write(self, names: list[str], values: tuple) -> None:
         """One input data package: masks first (a value field applies under its mask)."""
         given = dict(zip(names, values, strict=True))
+        now = time.monotonic()
+        for name in names:
+            self.written[name] = now
         for name, v in given.items():
             if name.startswith("input_int_register_"):
                 self.int_in[int(name.rsplit("_", 1)[1])] = int(v)

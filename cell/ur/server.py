@@ -1,14 +1,22 @@
 """The UR controller's interfaces of a group's emulated arms, served in the robots process beside their
-tick: RTDE (30004) and the dashboard server (29999) on each arm's own address (RobotConfig.ur_host).
+tick: RTDE (30004), the dashboard server (29999) and the primary, secondary and real-time client
+interfaces (30001-30003: URScript in, messages out) on each arm's own address (RobotConfig.ur_host).
 
 RTDE data packages go out from the tick itself (after_tick), on the arm's own 2 ms clock: a client
 at 500 Hz gets every status period's state, one at 125 Hz every fourth.  A client that does not
-read is not waited for: past WRITE_LIMIT bytes queued its packages are dropped and counted."""
+read is not waited for: past WRITE_LIMIT bytes queued its packages are dropped and counted.
+
+A program sent to the client interfaces takes the arm over from the cell's datagram program
+(cell.ur.program): the drives take the program's velocities, the data plane's commands are counted
+and ignored, and the bus hears it (events/robot/<name>, KIND_PROGRAM / KIND_PROGRAM_END) so the
+controller ends its motions of that robot with the reason."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,10 +25,14 @@ from cell.config import CellConfig, RobotConfig
 from cell.counters import Counters
 from cell.robot.drive import HOLD_UR
 from cell.robot.emulator import RobotGroup
-from cell.ur.arm import CONTROLLER_VERSION, SafetyMode, URArm
+from cell.ur import primary
+from cell.ur.arm import CONTROLLER_VERSION, RuntimeState, SafetyMode, URArm
 from cell.ur.dashboard import MAX_LINE, WELCOME, Dashboard
 from cell.ur.fields import INPUTS, OUTPUTS
+from cell.ur.program import Message, Runner, runner
 from cell.ur.rtde import Session
+from cell.ur.urscript import Framer, ScriptError, parse
+from cell.v1 import robot_pb2
 
 log = logging.getLogger("cell.ur")
 WRITE_LIMIT = 256 * 1024
@@ -38,33 +50,154 @@ class URCounters(Counters):
     dashboard_commands: int = 0
     dashboard_unknown: int = 0
     dashboard_long_lines: int = 0
+    script_clients: int = 0  # on the primary, secondary and real-time interfaces (a gauge)
+    scripts_run: int = 0
+    scripts_refused: int = 0  # not a program this arm runs, too long, or the arm could not move
+    scripts_ended: int = 0
+    scripts_failed: int = 0  # ended by a fault (a stop, an unreachable pose, a lost client)
+
+
+Publish = Callable[[str, object], None]
+DATAGRAM_PROGRAM = "cell.urp"  # the cell's own program: the data plane's datagrams drive the arm
+# after a script ends, no program runs for this long before the datagram program is back (as a URCap
+# daemon re-sends its program): a client waiting to see its script gone (ur_rtde's stopScript) sees it
+RESTART_S = 0.1
 
 
 class _Arm:
-    """One arm's UR side: its state, its clients."""
+    """One arm's UR side: its state, its clients, the program that holds it if not the cell's own."""
 
-    def __init__(self, group: RobotGroup, row: int, robot: RobotConfig) -> None:
-        self.group, self.row, self.robot = group, row, robot
-        self.state = URArm(robot.name, group.arm)
+    def __init__(self, ur: URInterfaces, group: RobotGroup, row: int, robot: RobotConfig) -> None:
+        self.ur, self.group, self.row, self.robot = ur, group, row, robot
+        self.state = URArm(robot.name, group.arm, DATAGRAM_PROGRAM)
         self.rtde: set[RtdeProtocol] = set()
         self.dashboards: set[DashboardProtocol] = set()
+        self.listeners: set[ScriptProtocol] = set()  # primary and secondary clients: they hear messages
+        self.runner: Runner | None = None
+        self.t_last = 0.0  # the state time the program last stepped at
+        self.restart_at = 0.0  # (monotonic s) when the datagram program comes back; 0: not due
+
+    @property
+    def datagram_program_runs(self) -> bool:
+        st = self.state
+        return self.runner is None and st.runtime == RuntimeState.PLAYING and st.program == DATAGRAM_PROGRAM
 
     def apply(self) -> None:
         """The UR state onto the drives: an arm that may not move is halted, and let go once it may
-        (by its UR state only: an e-stop's hold on it stays)."""
+        (by its UR state only: an e-stop's hold on it stays).  A program ends if the arm stops; the
+        data plane's commands reach the drives only while the datagram program runs (a dashboard
+        `stop` stops it, `play` starts it again)."""
         drives, rows = self.group.drives, np.array([self.row])
         held = bool(drives.holds[self.row] & HOLD_UR)
         if self.state.can_move == held:
             drives.halt(rows, on=not self.state.can_move, by=HOLD_UR)
+        st = self.state
+        if self.runner is not None:
+            if not st.can_move:
+                self.end(f"the arm stopped: {st.robot_mode.name}, {st.safety_mode.name}")
+            elif st.runtime != RuntimeState.PLAYING:
+                self.end("stopped from the dashboard")
+        elif drives.scripted[self.row] == self.datagram_program_runs:
+            drives.script(self.row, not self.datagram_program_runs)
+
+    # --- programs ----------------------------------------------------------------------------------
+
+    def say(self, m: Message) -> None:
+        t_us = int(time.time() * 1e6)
+        if m.line >= 0:
+            data = primary.runtime_exception(t_us, m.line, m.column, m.text)
+        else:
+            data = primary.text(t_us, m.text)
+        for p in self.listeners:
+            p.transport.write(data)
+        (log.warning if m.line >= 0 else log.info)("%s: %s", self.robot.name, m.text)
+
+    def run(self, text: str | ScriptError) -> None:
+        """A program from a client interface: refused, or run in place of whatever holds the arm."""
+        c = self.ur.counters
+        try:
+            if isinstance(text, ScriptError):
+                raise text
+            script = parse(text)
+            if script.kind == "cell_daemon":
+                raise ScriptError(1, 0, "the daemon's script runs on a real controller, not on an emulated arm")
+        except ScriptError as exc:
+            c.scripts_refused += 1
+            self.say(Message(f"program refused: {exc.reason}", exc.line, exc.column))
+            return
+        st = self.state
+        if not st.can_move:
+            c.scripts_refused += 1
+            reason = f"the arm cannot run a program: {st.robot_mode.name}, {st.safety_mode.name}"
+            self.say(Message(reason, 0))
+            return
+        if self.runner is not None:
+            self.end(f"replaced by {script.name}")
+        self.restart_at = 0.0
+        self.runner = runner(script, st, st.tool)
+        self.t_last = self.group.state_time
+        st.program, st.runtime = f"{script.name}.script", RuntimeState.PLAYING
+        self.group.drives.script(self.row, True)
+        c.scripts_run += 1
+        self._event(robot_pb2.RobotEvent.KIND_PROGRAM, f"URScript program {script.name} holds the arm")
+
+    def end(self, reason: str) -> None:
+        """The program is over: the cell's datagram program drives the arm again."""
+        r, self.runner = self.runner, None
+        if r is None:
+            return
+        for m in r.messages:
+            self.say(m)
+        c = self.ur.counters
+        c.scripts_ended += 1
+        c.scripts_failed += bool(reason)
+        self.group.drives.target[self.row] = 0.0  # (no program: it stands, the commands still ignored)
+        st = self.state
+        st.program, st.runtime = DATAGRAM_PROGRAM, RuntimeState.STOPPED
+        self.restart_at = time.monotonic() + RESTART_S
+        text = f"URScript program {r.name} ended" + (f": {reason}" if reason else "")
+        self._event(robot_pb2.RobotEvent.KIND_PROGRAM_END, text)
+
+    def restart(self) -> None:
+        """The datagram program back after a script (if the arm may move and nothing else came)."""
+        self.restart_at = 0.0
+        st = self.state
+        if self.runner is None and st.can_move and st.program == DATAGRAM_PROGRAM:
+            st.runtime = RuntimeState.PLAYING
+            self.apply()
+
+    def step(self, q: np.ndarray, qd: np.ndarray) -> None:
+        """One tick of the program: its velocities into the drives."""
+        r = self.runner
+        assert r is not None
+        t = self.group.state_time
+        dt, self.t_last = max(t - self.t_last, 1e-6), t
+        v = r.step(q, qd, dt)
+        for m in r.messages:
+            self.say(m)
+        r.messages.clear()
+        if r.ended is not None:
+            self.end(r.ended)
+        else:
+            self.group.drives.target[self.row] = v
+
+    def _event(self, kind: int, text: str) -> None:
+        log.info("%s: %s", self.robot.name, text)
+        if self.ur.publish is not None:
+            r = self.robot
+            ev = robot_pb2.RobotEvent(robot_id=r.id, name=r.name, kind=kind, text=text, t_ns=time.monotonic_ns())
+            self.ur.publish(f"events/robot/{r.name}", ev)
 
 
 class URInterfaces:
-    def __init__(self, group: RobotGroup, config: CellConfig) -> None:
+    def __init__(self, group: RobotGroup, config: CellConfig, publish: Publish | None = None) -> None:
         self.config = config.ur
         self.group = group
-        self.arms = [_Arm(group, row, r) for row, r in enumerate(group.robots)]
+        self.publish = publish  # onto the bus (events/robot/<name>), if there is one
+        self.arms = [_Arm(self, group, row, r) for row, r in enumerate(group.robots)]
         self.counters = URCounters()
         self.servers: list[asyncio.Server] = []
+        self._script_clients = 0
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -79,6 +212,14 @@ class URInterfaces:
                         lambda a=arm: DashboardProtocol(self, a), host, self.config.dashboard_port
                     )
                 )
+                for port, listens in (
+                    (self.config.primary_port, True),
+                    (self.config.secondary_port, True),
+                    (self.config.realtime_port, False),
+                ):
+                    self.servers.append(
+                        await loop.create_server(lambda a=arm, ls=listens: ScriptProtocol(self, a, ls), host, port)
+                    )
             except OSError as exc:
                 raise OSError(
                     exc.errno, f"robot {arm.robot.name}: cannot listen on {host} for its UR interfaces: {exc}"
@@ -88,7 +229,7 @@ class URInterfaces:
         for s in self.servers:
             s.close()
         for arm in self.arms:
-            for p in [*arm.rtde, *arm.dashboards]:
+            for p in [*arm.rtde, *arm.dashboards, *arm.listeners]:
                 p.transport.abort()
 
     def after_tick(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
@@ -103,7 +244,15 @@ class URInterfaces:
         # the controller's clock: s since the tick grid's origin (tick k's state is at k periods)
         t = group.state_time - group.origin_ns / 1e9
         b, c = group.backend, self.counters
+        now = time.monotonic()
         for arm in self.arms:
+            if arm.runner is not None:
+                if group.drives.halted[arm.row]:  # (an e-stop on the Responsive Link)
+                    arm.end("the arm was halted (emergency stop)")
+                else:
+                    arm.step(b.q[arm.row], b.qd[arm.row])
+            elif arm.restart_at and now >= arm.restart_at:
+                arm.restart()
             if not arm.rtde:
                 continue
             live = [p for p in arm.rtde if p.session.started]
@@ -125,6 +274,7 @@ class URInterfaces:
         c = self.counters
         c.rtde_clients = sum(len(a.rtde) for a in self.arms)
         c.dashboard_clients = sum(len(a.dashboards) for a in self.arms)
+        c.script_clients = self._script_clients
         return c.as_dict("ur.")
 
 
@@ -208,3 +358,35 @@ class DashboardProtocol(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.arm.dashboards.discard(self)
+
+
+class ScriptProtocol(asyncio.Protocol):
+    """A client of the primary (30001), secondary (30002) or real-time (30003) interface: URScript
+    programs in; on the first two the controller's version, then texts and runtime exceptions out."""
+
+    def __init__(self, ur: URInterfaces, arm: _Arm, listens: bool) -> None:
+        self.ur, self.arm, self.listens = ur, arm, listens
+        self.framer = Framer()
+        self.transport: asyncio.Transport
+        self.counted = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+        if self.ur._script_clients >= self.ur.config.max_clients * 3 * len(self.ur.arms):
+            transport.close()
+            return
+        self.ur._script_clients += 1
+        self.counted = True
+        if self.listens:
+            self.arm.listeners.add(self)
+            major, minor, bugfix, build = CONTROLLER_VERSION
+            self.transport.write(primary.version(int(time.time() * 1e6), major, minor, bugfix, build))
+
+    def data_received(self, data: bytes) -> None:
+        for program in self.framer.feed(data):
+            self.arm.run(program)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.arm.listeners.discard(self)
+        if self.counted:
+            self.ur._script_clients -= 1

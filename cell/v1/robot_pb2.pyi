@@ -70,6 +70,8 @@ class RobotEvent(_message.Message):
         KIND_STOP: _ClassVar[RobotEvent.Kind]
         KIND_STILL: _ClassVar[RobotEvent.Kind]
         KIND_RESUME: _ClassVar[RobotEvent.Kind]
+        KIND_PROGRAM: _ClassVar[RobotEvent.Kind]
+        KIND_PROGRAM_END: _ClassVar[RobotEvent.Kind]
     KIND_UNSPECIFIED: RobotEvent.Kind
     KIND_PROTECTIVE_STOP: RobotEvent.Kind
     KIND_RESUMED: RobotEvent.Kind
@@ -77,6 +79,8 @@ class RobotEvent(_message.Message):
     KIND_STOP: RobotEvent.Kind
     KIND_STILL: RobotEvent.Kind
     KIND_RESUME: RobotEvent.Kind
+    KIND_PROGRAM: RobotEvent.Kind
+    KIND_PROGRAM_END: RobotEvent.Kind
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]

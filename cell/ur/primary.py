@@ -1,0 +1,59 @@
+"""The primary and secondary client interfaces' messages (30001, 30002), sans IO.
+
+A UR controller greets each client of these ports with its version message and tells them what
+programs say and where they fail: text messages (textmsg, popup) and runtime exceptions (the line,
+the column, the reason).  Each is a package: int32 length (header included), uint8 type; robot
+messages (type 20) then carry uint64 timestamp (us), int8 source, int8 robot message type.  The
+robot state packages (type 16, 10 Hz) are not sent: use RTDE for state.
+"""
+
+from __future__ import annotations
+
+import struct
+from enum import IntEnum
+
+ROBOT_MESSAGE = 20
+SOURCE_CONTROLLER = -2
+
+
+class RobotMessage(IntEnum):
+    TEXT = 0
+    VERSION = 3
+    RUNTIME_EXCEPTION = 10
+
+
+def _robot_message(kind: RobotMessage, t_us: int, body: bytes) -> bytes:
+    payload = struct.pack(">QbB", t_us, SOURCE_CONTROLLER, kind) + body
+    return struct.pack(">iB", 5 + len(payload), ROBOT_MESSAGE) + payload
+
+
+def version(t_us: int, major: int, minor: int, bugfix: int, build: int, date: str = "") -> bytes:
+    name = b"URControl"
+    body = struct.pack(">b", len(name)) + name + struct.pack(">BBii", major, minor, bugfix, build)
+    return _robot_message(RobotMessage.VERSION, t_us, body + date.encode())
+
+
+def text(t_us: int, message: str) -> bytes:
+    return _robot_message(RobotMessage.TEXT, t_us, message.encode(errors="replace"))
+
+
+def runtime_exception(t_us: int, line: int, column: int, message: str) -> bytes:
+    body = struct.pack(">ii", line, column) + message.encode(errors="replace")
+    return _robot_message(RobotMessage.RUNTIME_EXCEPTION, t_us, body)
+
+
+def split(buf: bytes) -> list[tuple[int, bytes]]:
+    """Whole packages in buf: (type, body after the 5-byte header).  (For clients and tests.)"""
+    out, i = [], 0
+    while i + 5 <= len(buf):
+        size, kind = struct.unpack_from(">iB", buf, i)
+        if size < 5 or i + size > len(buf):
+            break
+        out.append((kind, buf[i + 5 : i + size]))
+        i += size
+    return out
+
+
+def read_robot_message(body: bytes) -> tuple[RobotMessage, bytes]:
+    _t, _source, kind = struct.unpack_from(">QbB", body)
+    return RobotMessage(kind), body[10:]

@@ -1,0 +1,236 @@
+"""URScript as the emulated arms take it on their client interfaces (30001-30003), sans IO.
+
+`Framer` cuts the byte stream into programs the way a UR controller does: a top-level `def`/`sec`
+runs to its top-level `end`; a line outside any definition is a program of its own.  `parse()` then
+says what the program is:
+
+- ur_rtde's control script (`def rtde_control():`): served natively (cell.ur.program.RtdeControl), its
+  register offsets read from the script;
+- the cell's daemon script (`def cell_daemon():`, cell.ur.daemon): served natively;
+- a straight-line program: calls of movej, movel, speedj, servoj, stopj, stopl, sleep, sync,
+  set_standard_digital_out, textmsg and popup, one a line, with literal arguments;
+
+and anything else is refused (ScriptError: the line, the column and why), as a UR's runtime
+exception says it.  The emulator is not a URScript interpreter: no variables, no control flow.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from dataclasses import dataclass, field
+
+MAX_SCRIPT = 1 << 20  # bytes of one program; a longer one is refused and skipped to its end
+_TOP_DEF = re.compile(r"^(def|sec)\s+([A-Za-z_]\w*)\s*\(\s*\)\s*:")
+_POSE = re.compile(r"\bp\s*\[")
+
+
+class ScriptError(ValueError):
+    def __init__(self, line: int, column: int, reason: str) -> None:
+        self.line, self.column, self.reason = line, column, reason
+        super().__init__(f"line {line}: {reason}")
+
+
+@dataclass(frozen=True, slots=True)
+class Pose:
+    """p[x, y, z, rx, ry, rz]: a URScript pose (m, rotation vector rad)."""
+
+    v: tuple[float, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class Call:
+    name: str
+    args: dict[str, object]
+    line: int
+
+
+@dataclass(frozen=True, slots=True)
+class Script:
+    """A program as the arm will run it: `kind` "rtde_control", "cell_daemon" or "lines"."""
+
+    name: str
+    kind: str
+    calls: list[Call] = field(default_factory=list)
+    reg_offset_int: int = 0
+    reg_offset_float: int = 0
+
+
+class Framer:
+    """Bytes in, whole programs out (each as its text and its first line's number in the stream)."""
+
+    def __init__(self) -> None:
+        self.buf = bytearray()
+        self.lines: list[str] = []  # the program being collected
+        self.size = 0  # its bytes
+        self.skip_line = False  # inside a line too long to take
+        self.skipping = False  # inside a program too long to take: dropped to its end
+        self.refused = 0
+
+    def feed(self, data: bytes) -> list[str | ScriptError]:
+        self.buf += data
+        out: list[str | ScriptError] = []
+        at = 0  # (lines are read off by position and cut once: no copy per line)
+        while True:
+            i = self.buf.find(b"\n", at)
+            if i < 0:
+                break
+            line = self.buf[at:i].decode(errors="replace").rstrip("\r")
+            at = i + 1
+            if self.skip_line:  # the end of an endless line
+                self.skip_line = False
+                continue
+            self._line(line, out)
+        del self.buf[:at]
+        if len(self.buf) > MAX_SCRIPT:  # one endless line: dropped to its end (with its program)
+            self.buf.clear()
+            self.skip_line = True
+            if self.lines:
+                self.lines.clear()
+                self.skipping = True
+            self._refuse(out)
+        return out
+
+    def _line(self, line: str, out: list[str | ScriptError]) -> None:
+        top = bool(line) and not line[0].isspace()
+        if not self.lines and not self.skipping:
+            if not line.strip() or line.lstrip().startswith("#"):
+                return
+            if top and not _TOP_DEF.match(line):
+                out.append(line + "\n")  # a one-line program
+                return
+        if not self.skipping:
+            self.lines.append(line)
+            self.size += len(line) + 1
+            if self.size > MAX_SCRIPT:
+                self.lines.clear()
+                self.skipping = True
+                self._refuse(out)
+        if top and line.strip() == "end":
+            if not self.skipping:
+                out.append("\n".join(self.lines) + "\n")
+            self.lines.clear()
+            self.size = 0
+            self.skipping = False
+
+    def _refuse(self, out: list[str | ScriptError]) -> None:
+        self.refused += 1
+        out.append(ScriptError(1, 0, f"a program longer than {MAX_SCRIPT} bytes: not taken"))
+
+
+# --- the straight-line programs ------------------------------------------------------------------
+
+# name -> its parameters in order, and their defaults (None: required)
+SIGNATURES: dict[str, dict[str, object]] = {
+    "movej": {"q": None, "a": 1.4, "v": 1.05, "t": 0.0, "r": 0.0},
+    "movel": {"pose": None, "a": 1.2, "v": 0.25, "t": 0.0, "r": 0.0},
+    "speedj": {"qd": None, "a": None, "t": None},
+    "servoj": {"q": None, "a": 0.0, "v": 0.0, "t": 0.002, "lookahead_time": 0.1, "gain": 300.0},
+    "stopj": {"a": None},
+    "stopl": {"a": None},
+    "sleep": {"t": None},
+    "sync": {},
+    "set_standard_digital_out": {"n": None, "b": None},
+    "textmsg": {"s1": None, "s2": ""},
+    "popup": {"s": None, "title": "Popup", "warning": False, "error": False, "blocking": False},
+}
+
+
+def parse(text: str) -> Script:
+    """What a program is; ScriptError if this arm does not run it."""
+    lines = text.splitlines()
+    m = _TOP_DEF.match(lines[0]) if lines else None
+    name = m.group(2) if m else "program"
+    if name == "rtde_control":
+        return Script(name, "rtde_control", reg_offset_int=_offset(text, "int"), reg_offset_float=_offset(text, "float"))
+    if name == "cell_daemon":
+        return Script(name, "cell_daemon", reg_offset_int=_offset(text, "int"), reg_offset_float=_offset(text, "float"))
+    body = lines[1:-1] if m else lines
+    first = 2 if m else 1
+    calls = []
+    for n, line in enumerate(body, first):
+        code = _strip_comment(line).strip()
+        if code:
+            calls.append(_call(code, n, len(line) - len(line.lstrip())))
+    return Script(name, "lines", calls)
+
+
+def _offset(text: str, kind: str) -> int:
+    m = re.search(rf"global\s+reg_offset_{kind}\s*=\s*(\d+)", text)
+    return int(m.group(1)) if m else 0
+
+
+def _strip_comment(line: str) -> str:
+    quoted = False
+    for i, ch in enumerate(line):
+        if ch == '"':
+            quoted = not quoted
+        elif ch == "#" and not quoted:
+            return line[:i]
+    return line
+
+
+def _call(code: str, line: int, indent: int) -> Call:
+    try:
+        node = ast.parse(_POSE.sub("P+[", code), mode="eval").body
+    except SyntaxError as exc:
+        raise ScriptError(line, indent + (exc.offset or 1) - 1, f"cannot read {code!r}: {exc.msg}") from None
+    if not isinstance(node, ast.Call) or not isinstance(node.func, ast.Name):
+        raise ScriptError(line, indent, f"{code!r} is not a function call: this arm runs straight-line programs")
+    name = node.func.id
+    sig = SIGNATURES.get(name)
+    if sig is None:
+        raise ScriptError(
+            line,
+            indent,
+            f"{name}() is not run by this arm (it runs straight-line programs of {', '.join(SIGNATURES)})",
+        )
+    params = list(sig)
+    if len(node.args) > len(params):
+        raise ScriptError(line, indent, f"{name}() takes at most {len(params)} arguments")
+    args: dict[str, object] = {}
+    try:
+        for p, a in zip(params, node.args, strict=False):
+            args[p] = _value(a)
+        for kw in node.keywords:
+            if kw.arg not in sig:
+                raise ScriptError(line, indent, f"{name}() has no parameter {kw.arg!r}")
+            args[kw.arg] = _value(kw.value)
+    except ValueError as exc:
+        raise ScriptError(line, indent, f"{name}(): {exc}") from None
+    for p, default in sig.items():
+        if p not in args:
+            if default is None:
+                raise ScriptError(line, indent, f"{name}() needs {p}")
+            args[p] = default
+    return Call(name, args, line)
+
+
+def _value(node: ast.expr) -> object:
+    """A literal: a number, a bool, a string, a list of numbers, a pose; with + - * / on numbers."""
+    if isinstance(node, ast.Constant) and isinstance(node.value, (int, float, str, bool)):
+        return node.value
+    if isinstance(node, ast.Name) and node.id in ("True", "False", "pi"):
+        return {"True": True, "False": False, "pi": 3.141592653589793}[node.id]
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+        v = _value(node.operand)
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            return -v if isinstance(node.op, ast.USub) else v
+    if isinstance(node, ast.List):
+        items = [_value(e) for e in node.elts]
+        if all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
+            return [float(x) for x in items]  # type: ignore[arg-type]
+    if isinstance(node, ast.BinOp):
+        if isinstance(node.left, ast.Name) and node.left.id == "P" and isinstance(node.op, ast.Add):
+            v = _value(node.right)
+            if isinstance(v, list) and len(v) == 6:
+                return Pose(tuple(v))
+            raise ValueError("a pose is p[x, y, z, rx, ry, rz]")
+        a, b = _value(node.left), _value(node.right)
+        if all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (a, b)):
+            ops = {ast.Add: a + b, ast.Sub: a - b, ast.Mult: a * b}  # type: ignore[operator]
+            if type(node.op) in ops:
+                return ops[type(node.op)]
+            if isinstance(node.op, ast.Div) and b:
+                return a / b  # type: ignore[operator]
+    raise ValueError(f"{ast.unparse(node)!r} is not a literal value this arm takes")

@@ -1,0 +1,267 @@
+"""URScript on the emulated arms, sans IO: framing, what is run and what is refused, the primary
+interface's messages byte by byte, and ur_rtde's control-script register protocol stepped tick by tick."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+from cell.robot.arm import arm_model
+from cell.ur import primary
+from cell.ur.arm import SafetyMode, URArm
+from cell.ur.motion import AT_GOAL_RAD, MoveJ, MoveL, Speed, Trapezoid
+from cell.ur.program import DONE, READY, Cmd, LineRunner, RtdeControl
+from cell.ur.urscript import MAX_SCRIPT, Framer, Pose, Script, ScriptError, parse
+
+Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+DT = 0.002
+
+
+def test_the_framer_cuts_programs_at_their_top_level_end_and_takes_one_liners() -> None:
+    f = Framer()
+    got = f.feed(b"def a():\n  if x:\n    movej([0,0,0,0,0,0])\n  end\n")
+    assert got == []  # (the inner `end` is indented: the program goes on)
+    got = f.feed(b"end\n\n# a comment\ntextmsg(\"hi\")\r\ndef b():\n")
+    assert got == ["def a():\n  if x:\n    movej([0,0,0,0,0,0])\n  end\nend\n", 'textmsg("hi")\n']
+    assert f.feed(b"  sleep(1)\nend\n") == ["def b():\n  sleep(1)\nend\n"]
+
+
+def test_a_program_too_long_is_refused_and_the_next_one_is_taken() -> None:
+    f = Framer()
+    got = f.feed(b"def big():\n" + b"  sleep(1)\n" * (MAX_SCRIPT // 11 + 2) + b"end\ndef ok():\nend\n")
+    assert isinstance(got[0], ScriptError) and "longer than" in got[0].reason
+    assert got[1:] == ["def ok():\nend\n"] and f.refused == 1
+    f = Framer()
+    got = f.feed(b"x" * (MAX_SCRIPT + 1))  # one endless line: refused, and skipped to its end
+    assert isinstance(got[0], ScriptError)
+    assert f.feed(b"xx\ntextmsg(1)\n") == ["textmsg(1)\n"]
+    got = f.feed(b"def a():\n" + b"y" * (MAX_SCRIPT + 1))  # in a program: skipped to the program's end
+    assert isinstance(got[0], ScriptError)
+    assert f.feed(b"y\n  sleep(1)\nend\ntextmsg(2)\n") == ["textmsg(2)\n"]
+
+
+def test_ur_rtde_scripts_are_recognised_with_their_register_offsets() -> None:
+    s = parse("def rtde_control():\n    global reg_offset_float = 24\n    global reg_offset_int = 24\nend\n")
+    assert (s.kind, s.reg_offset_int, s.reg_offset_float) == ("rtde_control", 24, 24)
+
+
+def test_a_straight_line_program_is_read_with_defaults_poses_and_arithmetic() -> None:
+    s = parse(
+        "def go():\n"
+        "  movej([0, -1.57, 1.57, -pi/2, -1.57, 0], a=1.2)  # a comment\n"
+        "  movel(p[0.1, 0.2, 0.3, 0, 3.14, 0], v=0.1)\n"
+        '  textmsg("at #", 1)\n'
+        "  set_standard_digital_out(2, True)\n"
+        "end\n"
+    )
+    assert s.kind == "lines" and s.name == "go"
+    movej, movel, text, out = s.calls
+    assert movej.args["q"][3] == pytest.approx(-np.pi / 2) and movej.args["a"] == 1.2 and movej.args["v"] == 1.05
+    assert movel.args["pose"] == Pose((0.1, 0.2, 0.3, 0.0, 3.14, 0.0)) and movel.line == 3
+    assert text.args == {"s1": "at #", "s2": 1}
+    assert out.args == {"n": 2, "b": True}
+
+
+@pytest.mark.parametrize(
+    ("text", "line", "words"),
+    [
+        ("def x():\n  movej([0,0,0,0,0,0])\n  while True:\n", 3, "cannot read"),
+        ("def x():\n  sleep(1)\n  force_mode(p[0,0,0,0,0,0], [0,0,1,0,0,0])\n", 3, "force_mode() is not run"),
+        ("def x():\n  1 + 2\n", 2, "not a function call"),
+        ("def x():\n  movej(q)\n", 2, "not a literal"),
+        ("def x():\n  movej([0,0,0,0,0,0], speed=1)\n", 2, "no parameter 'speed'"),
+        ("def x():\n  stopj()\n", 2, "needs a"),
+        ("movel(p[0, 0, 0])\n", 1, "a pose is"),
+    ],
+)
+def test_what_the_arm_does_not_run_is_refused_with_its_line(text: str, line: int, words: str) -> None:
+    with pytest.raises(ScriptError) as err:
+        parse(text + ("end\n" if text.startswith("def") else ""))
+    assert err.value.line == line and words in err.value.reason
+
+
+def test_primary_messages_byte_by_byte() -> None:
+    v = primary.version(7, 5, 11, 0, 108249)
+    assert v[:5] == struct.pack(">iB", len(v), 20)
+    assert v[5:15] == struct.pack(">QbB", 7, -2, 3)
+    assert v[15:] == b"\x09URControl" + struct.pack(">BBii", 5, 11, 0, 108249)
+    e = primary.runtime_exception(9, 3, 2, "no")
+    assert e == struct.pack(">iBQbBii", 25, 20, 9, -2, 10, 3, 2) + b"no"
+    (kind, body), (kind2, body2) = primary.split(e + primary.text(1, "hi"))
+    assert kind == kind2 == 20
+    assert primary.read_robot_message(body) == (primary.RobotMessage.RUNTIME_EXCEPTION, struct.pack(">ii", 3, 2) + b"no")
+    assert primary.read_robot_message(body2) == (primary.RobotMessage.TEXT, b"hi")
+
+
+# --- the motions and the runners, on a simulated arm that follows its commands exactly --------------
+
+
+class Arm:
+    """Joints that take the commanded velocity within the model's acceleration, as the drives do."""
+
+    def __init__(self) -> None:
+        self.model = arm_model("ur5e")
+        self.q, self.qd = Q0.copy(), np.zeros(6)
+
+    def run(self, step, ticks: int) -> list[np.ndarray]:
+        seen = []
+        for _ in range(ticks):
+            v = step(self.q, self.qd, DT)
+            a = self.model.limits.a_max * DT
+            new = self.qd + np.clip(np.clip(v, -self.model.limits.v_max, self.model.limits.v_max) - self.qd, -a, a)
+            self.q = self.q + 0.5 * (self.qd + new) * DT
+            self.qd = new
+            seen.append(self.qd.copy())
+        return seen
+
+
+def test_trapezoids_reach_their_length_at_rest() -> None:
+    for length, v, a in ((1.0, 1.0, 1.4), (0.05, 1.0, 1.4), (0.0, 1.0, 1.0)):
+        p = Trapezoid.make(length, v, a)
+        assert p.at(p.duration) == (pytest.approx(length), 0.0)
+        assert max(p.at(t)[1] for t in np.linspace(0, p.duration, 200)) <= v + 1e-12
+
+
+def test_movej_moves_every_joint_on_one_profile_and_ends_on_the_goal() -> None:
+    arm = Arm()
+    goal = Q0 + np.array([0.4, -0.2, 0.1, 0.0, 0.3, -1.0])
+    m = MoveJ(arm.q, goal, v=1.0, a=1.4, arm=arm.model)
+    arm.run(m.step, round(m.profile.duration / DT) + 200)
+    assert m.done and not m.error
+    assert np.abs(arm.q - goal).max() <= AT_GOAL_RAD
+    # the leading joint (wrist 3, 1 rad) cruises at v; the others in proportion (one profile)
+    assert m.profile.v == pytest.approx(1.0)
+
+
+def test_movel_keeps_the_tool_on_its_line() -> None:
+    arm = Arm()
+    tool = URArm("r1", arm.model).tool
+    p0 = tool.fk(arm.q)
+    goal = p0 + np.array([0.1, 0.05, -0.1, 0, 0, 0])
+    m = MoveL(arm.q, goal, v=0.25, a=1.2, tool=tool)
+    off = []
+    for _ in range(round(m.profile.duration / DT) + 300):
+        arm.run(m.step, 1)
+        x = tool.fk(arm.q)[:3]
+        d = goal[:3] - p0[:3]
+        off.append(np.linalg.norm(np.cross(x - p0[:3], d)) / np.linalg.norm(d))
+    assert m.done and not m.error
+    assert np.abs(tool.fk(arm.q)[:3] - goal[:3]).max() < 1e-4
+    assert max(off) < 5e-4  # within half a millimetre of the straight line all the way
+
+
+def test_a_stop_decelerates_at_the_rate_asked_and_ends_at_rest() -> None:
+    arm = Arm()
+    s = Speed(arm.qd, np.array([0.5, 0, 0, 0, 0, 0]), a=2.0)
+    arm.run(s.step, 400)
+    assert arm.qd[0] == pytest.approx(0.5)
+    stop = Speed(arm.qd, np.zeros(6), a=1.0, stop=True)
+    seen = arm.run(stop.step, 400)
+    assert stop.done
+    dv = -np.diff([v[0] for v in seen]) / DT
+    assert dv.max() <= 1.0 + 1e-9  # never harder than asked
+    assert sum(1 for v in seen if v[0] > 0) * DT == pytest.approx(0.5, abs=0.01)  # 0.5 rad/s at 1 rad/s^2
+
+
+def control(arm: URArm) -> RtdeControl:
+    return RtdeControl(Script("rtde_control", "rtde_control"), arm, arm.tool)
+
+
+def test_the_control_script_answers_ready_then_done_and_takes_the_next_command_after_a_clear() -> None:
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    ctl = control(ur)
+    assert ur.int_out[0] == READY
+    ur.claim("client", ["input_int_register_0"])
+    goal = Q0 + np.array([0.2, 0, 0, 0, 0, 0])
+    ur.int_in[0], ur.int_in[1] = Cmd.MOVEJ, 0
+    ur.double_in[:8] = [*goal, 1.0, 1.4]
+    sim.run(ctl.step, 1)
+    assert ur.int_out[0] == READY  # (a synchronous move: answered at its end)
+    sim.run(ctl.step, 600)
+    assert ur.int_out[0] == DONE and np.abs(sim.q - goal).max() <= AT_GOAL_RAD
+    ur.int_in[0] = Cmd.IS_STEADY  # not taken before the client clears the last command
+    sim.run(ctl.step, 3)
+    assert ur.int_out[0] == DONE and ur.int_out[1] == 0
+    ur.int_in[0] = Cmd.NO_CMD
+    sim.run(ctl.step, 1)
+    assert ur.int_out[0] == READY
+    ur.int_in[0] = Cmd.IS_STEADY
+    sim.run(ctl.step, 1)
+    assert ur.int_out[0] == DONE and ur.int_out[1] == 1
+    ur.int_in[0] = Cmd.NO_CMD
+    sim.run(ctl.step, 1)
+    ur.int_in[0] = Cmd.GET_FORWARD_KINEMATICS_DEFAULT
+    sim.run(ctl.step, 1)
+    assert np.allclose(ur.double_out[:6], ur.tool.fk(sim.q), atol=1e-4)  # (the q it was read at)
+
+
+def test_an_async_move_reports_progress_and_a_stopj_ends_it() -> None:
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    ctl = control(ur)
+    ur.claim("client", ["input_int_register_0"])
+    idle = ur.int_out[2]
+    assert not idle & 0x8000  # no operation running
+    ur.int_in[0], ur.int_in[1] = Cmd.MOVEJ, 1
+    ur.double_in[:8] = [*(Q0 + 1.0), 1.0, 1.4]
+    sim.run(ctl.step, 1)
+    assert ur.int_out[0] == DONE and ur.int_out[2] & 0x8000  # answered at once, and running
+    op = ur.int_out[2] >> 24
+    ur.int_in[0] = Cmd.NO_CMD
+    sim.run(ctl.step, 100)
+    ur.int_in[0], ur.double_in[0] = Cmd.STOPJ, 2.0
+    sim.run(ctl.step, 2)
+    assert not ur.int_out[2] & 0x8000 and ur.int_out[2] >> 24 == op  # that operation has finished
+    sim.run(ctl.step, 400)
+    assert ur.int_out[0] == DONE and np.abs(sim.qd).max() < 1e-3
+
+
+def test_what_the_control_script_cannot_do_ends_it_with_the_reason() -> None:
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    ctl = control(ur)
+    ur.int_in[0] = 6  # force_mode
+    sim.run(ctl.step, 1)
+    assert ctl.ended == "ur_rtde command 6 is not emulated" and ctl.messages
+    ctl = control(ur)
+    ur.int_in[0] = Cmd.NO_CMD
+    sim.run(ctl.step, 1)
+    ur.int_in[0] = Cmd.MOVEJ_IK
+    ur.double_in[:8] = [5.0, 0, 0, 0, 0, 0, 1.0, 1.0]  # 5 m away
+    sim.run(ctl.step, 1)
+    assert "no joint positions reach" in ctl.ended and np.allclose(sim.q, Q0)
+    ctl = control(ur)
+    ur.int_in[0] = Cmd.PROTECTIVE_STOP
+    sim.run(ctl.step, 1)
+    assert ur.safety_mode == SafetyMode.PROTECTIVE_STOP and "protective stop" in ctl.ended
+
+
+def test_the_control_script_stops_when_its_rtde_client_goes() -> None:
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    ctl = control(ur)
+    ur.claim("client", ["input_int_register_0"])
+    ur.int_in[0] = Cmd.SERVOJ
+    ur.double_in[:11] = [*(Q0 + 0.01), 0, 0, 0.002, 0.1, 300]
+    sim.run(ctl.step, 5)
+    assert ctl.ended is None and sim.qd.any()
+    ur.release("client")
+    sim.run(ctl.step, 1)
+    assert ctl.ended == "the RTDE client driving the control script disconnected"
+
+
+def test_a_line_program_runs_its_calls_in_order() -> None:
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    script = parse(
+        "def go():\n  set_standard_digital_out(1, True)\n  movej([0.2, -1.5708, 1.5708, -1.5708, -1.5708, 0])\n"
+        "  textmsg(\"there\")\n  sleep(0.1)\nend\n"
+    )
+    r = LineRunner(script, ur, ur.tool)
+    sim.run(r.step, 1)
+    assert ur.digital_out == 2 and r.ended is None
+    ticks = 1
+    while r.ended is None:
+        sim.run(r.step, 1)
+        ticks += 1
+        assert ticks < 2000
+    assert r.ended == "" and abs(sim.q[0] - 0.2) <= AT_GOAL_RAD
+    assert [m.text for m in r.messages] == ["there"]
