@@ -70,7 +70,7 @@ class Tool:
         d.qpos[:] = q
         mujoco.mj_kinematics(m, d)
         mujoco.mj_comPos(m, d)
-        pos, rot = self.frame(q)
+        pos, _ = self.frame(q)
         mujoco.mj_jac(m, d, self._jp, self._jr, pos, m.site_bodyid[self.arm.tool_site])
         return np.vstack([self._jp, self._jr])
 

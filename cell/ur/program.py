@@ -100,10 +100,16 @@ class LineRunner(Runner):
         a = call.args
         arm, model = self.arm, self.tool.arm
         if call.name == "movej":
-            goal = self.tool.ik_pose(np.array(a["q"].v), q) if isinstance(a["q"], Pose) else _joints(a["q"], call)
+            target = a["q"]
+            goal = (
+                self.tool.ik_pose(np.array(target.v), q)
+                if isinstance(target, Pose)
+                else _joints(target, call)
+            )
             self.motion = MoveJ(q, goal, float(a["v"]), float(a["a"]), model)  # type: ignore[arg-type]
         elif call.name == "movel":
-            goal = np.array(a["pose"].v) if isinstance(a["pose"], Pose) else self.tool.fk(_joints(a["pose"], call))
+            target = a["pose"]
+            goal = np.array(target.v) if isinstance(target, Pose) else self.tool.fk(_joints(target, call))
             self.motion = MoveL(q, goal, float(a["v"]), float(a["a"]), self.tool)  # type: ignore[arg-type]
         elif call.name == "speedj":
             self.motion = Speed(qd, _joints(a["qd"], call), float(a["a"]))  # type: ignore[arg-type]
@@ -238,7 +244,8 @@ class RtdeControl(Runner):
             self.ended = "the RTDE client driving the control script disconnected"
             return np.zeros_like(q)
         if self.watchdog_s and time.monotonic() - arm.written.get(self.cmd_field, 0.0) > self.watchdog_s:
-            self.ended = f"the RTDE watchdog on {self.cmd_field}: no input for {self.watchdog_s * 1000:.0f} ms"
+            ms = self.watchdog_s * 1000
+            self.ended = f"the RTDE watchdog on {self.cmd_field}: no input for {ms:.0f} ms"
             return np.zeros_like(q)
         if self.blocking is not None:
             if self.blocking.done:

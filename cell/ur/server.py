@@ -76,6 +76,7 @@ class _Arm:
         self.runner: Runner | None = None
         self.t_last = 0.0  # the state time the program last stepped at
         self.restart_at = 0.0  # (monotonic s) when the datagram program comes back; 0: not due
+        self.ended = ""  # how the last program ended
 
     @property
     def datagram_program_runs(self) -> bool:
@@ -98,7 +99,15 @@ class _Arm:
             elif st.runtime != RuntimeState.PLAYING:
                 self.end("stopped from the dashboard")
         elif drives.scripted[self.row] == self.datagram_program_runs:
-            drives.script(self.row, not self.datagram_program_runs)
+            runs = self.datagram_program_runs
+            what = "started" if runs else "stopped"
+            self._datagrams(runs, f"the cell's datagram program was {what} (dashboard)")
+
+    def _datagrams(self, on: bool, text: str) -> None:
+        """The data plane's commands reach the drives (on) or are counted and ignored; the bus hears
+        which and why (the controller ends its motions of the arm while they do not)."""
+        self.group.drives.script(self.row, not on)
+        self._event(robot_pb2.RobotEvent.KIND_PROGRAM_END if on else robot_pb2.RobotEvent.KIND_PROGRAM, text)
 
     # --- programs ----------------------------------------------------------------------------------
 
@@ -120,7 +129,7 @@ class _Arm:
                 raise text
             script = parse(text)
             if script.kind == "cell_daemon":
-                raise ScriptError(1, 0, "the daemon's script runs on a real controller, not on an emulated arm")
+                raise ScriptError(1, 0, "the daemon's script is for a real controller, not an emulated arm")
         except ScriptError as exc:
             c.scripts_refused += 1
             self.say(Message(f"program refused: {exc.reason}", exc.line, exc.column))
@@ -137,9 +146,8 @@ class _Arm:
         self.runner = runner(script, st, st.tool)
         self.t_last = self.group.state_time
         st.program, st.runtime = f"{script.name}.script", RuntimeState.PLAYING
-        self.group.drives.script(self.row, True)
         c.scripts_run += 1
-        self._event(robot_pb2.RobotEvent.KIND_PROGRAM, f"URScript program {script.name} holds the arm")
+        self._datagrams(False, f"URScript program {script.name} holds the arm")
 
     def end(self, reason: str) -> None:
         """The program is over: the cell's datagram program drives the arm again."""
@@ -155,8 +163,8 @@ class _Arm:
         st = self.state
         st.program, st.runtime = DATAGRAM_PROGRAM, RuntimeState.STOPPED
         self.restart_at = time.monotonic() + RESTART_S
-        text = f"URScript program {r.name} ended" + (f": {reason}" if reason else "")
-        self._event(robot_pb2.RobotEvent.KIND_PROGRAM_END, text)
+        self.ended = f"URScript program {r.name} ended" + (f" ({reason})" if reason else "")
+        log.info("%s: %s", self.robot.name, self.ended)
 
     def restart(self) -> None:
         """The datagram program back after a script (if the arm may move and nothing else came)."""
@@ -164,7 +172,7 @@ class _Arm:
         st = self.state
         if self.runner is None and st.can_move and st.program == DATAGRAM_PROGRAM:
             st.runtime = RuntimeState.PLAYING
-            self.apply()
+            self._datagrams(True, f"{self.ended}: the cell's datagram program drives the arm again")
 
     def step(self, q: np.ndarray, qd: np.ndarray) -> None:
         """One tick of the program: its velocities into the drives."""
@@ -185,7 +193,8 @@ class _Arm:
         log.info("%s: %s", self.robot.name, text)
         if self.ur.publish is not None:
             r = self.robot
-            ev = robot_pb2.RobotEvent(robot_id=r.id, name=r.name, kind=kind, text=text, t_ns=time.monotonic_ns())
+            now = time.monotonic_ns()
+            ev = robot_pb2.RobotEvent(robot_id=r.id, name=r.name, kind=kind, text=text, t_ns=now)
             self.ur.publish(f"events/robot/{r.name}", ev)
 
 
@@ -217,9 +226,8 @@ class URInterfaces:
                     (self.config.secondary_port, True),
                     (self.config.realtime_port, False),
                 ):
-                    self.servers.append(
-                        await loop.create_server(lambda a=arm, ls=listens: ScriptProtocol(self, a, ls), host, port)
-                    )
+                    make = lambda a=arm, ls=listens: ScriptProtocol(self, a, ls)  # noqa: E731
+                    self.servers.append(await loop.create_server(make, host, port))
             except OSError as exc:
                 raise OSError(
                     exc.errno, f"robot {arm.robot.name}: cannot listen on {host} for its UR interfaces: {exc}"

@@ -141,10 +141,10 @@ def parse(text: str) -> Script:
     lines = text.splitlines()
     m = _TOP_DEF.match(lines[0]) if lines else None
     name = m.group(2) if m else "program"
-    if name == "rtde_control":
-        return Script(name, "rtde_control", reg_offset_int=_offset(text, "int"), reg_offset_float=_offset(text, "float"))
-    if name == "cell_daemon":
-        return Script(name, "cell_daemon", reg_offset_int=_offset(text, "int"), reg_offset_float=_offset(text, "float"))
+    if name in ("rtde_control", "cell_daemon"):
+        return Script(
+            name, name, reg_offset_int=_offset(text, "int"), reg_offset_float=_offset(text, "float")
+        )
     body = lines[1:-1] if m else lines
     first = 2 if m else 1
     calls = []
@@ -176,7 +176,7 @@ def _call(code: str, line: int, indent: int) -> Call:
     except SyntaxError as exc:
         raise ScriptError(line, indent + (exc.offset or 1) - 1, f"cannot read {code!r}: {exc.msg}") from None
     if not isinstance(node, ast.Call) or not isinstance(node.func, ast.Name):
-        raise ScriptError(line, indent, f"{code!r} is not a function call: this arm runs straight-line programs")
+        raise ScriptError(line, indent, f"{code!r} is not a call: this arm runs straight-line programs")
     name = node.func.id
     sig = SIGNATURES.get(name)
     if sig is None:

@@ -23,7 +23,7 @@ def test_the_framer_cuts_programs_at_their_top_level_end_and_takes_one_liners() 
     f = Framer()
     got = f.feed(b"def a():\n  if x:\n    movej([0,0,0,0,0,0])\n  end\n")
     assert got == []  # (the inner `end` is indented: the program goes on)
-    got = f.feed(b"end\n\n# a comment\ntextmsg(\"hi\")\r\ndef b():\n")
+    got = f.feed(b'end\n\n# a comment\ntextmsg("hi")\r\ndef b():\n')
     assert got == ["def a():\n  if x:\n    movej([0,0,0,0,0,0])\n  end\nend\n", 'textmsg("hi")\n']
     assert f.feed(b"  sleep(1)\nend\n") == ["def b():\n  sleep(1)\nend\n"]
 
@@ -58,7 +58,9 @@ def test_a_straight_line_program_is_read_with_defaults_poses_and_arithmetic() ->
     )
     assert s.kind == "lines" and s.name == "go"
     movej, movel, text, out = s.calls
-    assert movej.args["q"][3] == pytest.approx(-np.pi / 2) and movej.args["a"] == 1.2 and movej.args["v"] == 1.05
+    assert (
+        movej.args["q"][3] == pytest.approx(-np.pi / 2) and movej.args["a"] == 1.2 and movej.args["v"] == 1.05
+    )
     assert movel.args["pose"] == Pose((0.1, 0.2, 0.3, 0.0, 3.14, 0.0)) and movel.line == 3
     assert text.args == {"s1": "at #", "s2": 1}
     assert out.args == {"n": 2, "b": True}
@@ -69,7 +71,7 @@ def test_a_straight_line_program_is_read_with_defaults_poses_and_arithmetic() ->
     [
         ("def x():\n  movej([0,0,0,0,0,0])\n  while True:\n", 3, "cannot read"),
         ("def x():\n  sleep(1)\n  force_mode(p[0,0,0,0,0,0], [0,0,1,0,0,0])\n", 3, "force_mode() is not run"),
-        ("def x():\n  1 + 2\n", 2, "not a function call"),
+        ("def x():\n  1 + 2\n", 2, "not a call"),
         ("def x():\n  movej(q)\n", 2, "not a literal"),
         ("def x():\n  movej([0,0,0,0,0,0], speed=1)\n", 2, "no parameter 'speed'"),
         ("def x():\n  stopj()\n", 2, "needs a"),
@@ -91,7 +93,10 @@ def test_primary_messages_byte_by_byte() -> None:
     assert e == struct.pack(">iBQbBii", 25, 20, 9, -2, 10, 3, 2) + b"no"
     (kind, body), (kind2, body2) = primary.split(e + primary.text(1, "hi"))
     assert kind == kind2 == 20
-    assert primary.read_robot_message(body) == (primary.RobotMessage.RUNTIME_EXCEPTION, struct.pack(">ii", 3, 2) + b"no")
+    assert primary.read_robot_message(body) == (
+        primary.RobotMessage.RUNTIME_EXCEPTION,
+        struct.pack(">ii", 3, 2) + b"no",
+    )
     assert primary.read_robot_message(body2) == (primary.RobotMessage.TEXT, b"hi")
 
 
@@ -110,7 +115,9 @@ class Arm:
         for _ in range(ticks):
             v = step(self.q, self.qd, DT)
             a = self.model.limits.a_max * DT
-            new = self.qd + np.clip(np.clip(v, -self.model.limits.v_max, self.model.limits.v_max) - self.qd, -a, a)
+            new = self.qd + np.clip(
+                np.clip(v, -self.model.limits.v_max, self.model.limits.v_max) - self.qd, -a, a
+            )
             self.q = self.q + 0.5 * (self.qd + new) * DT
             self.qd = new
             seen.append(self.qd.copy())
@@ -252,8 +259,9 @@ def test_the_control_script_stops_when_its_rtde_client_goes() -> None:
 def test_a_line_program_runs_its_calls_in_order() -> None:
     ur, sim = URArm("r1", arm_model("ur5e")), Arm()
     script = parse(
-        "def go():\n  set_standard_digital_out(1, True)\n  movej([0.2, -1.5708, 1.5708, -1.5708, -1.5708, 0])\n"
-        "  textmsg(\"there\")\n  sleep(0.1)\nend\n"
+        "def go():\n  set_standard_digital_out(1, True)\n"
+        "  movej([0.2, -1.5708, 1.5708, -1.5708, -1.5708, 0])\n"
+        '  textmsg("there")\n  sleep(0.1)\nend\n'
     )
     r = LineRunner(script, ur, ur.tool)
     sim.run(r.step, 1)
