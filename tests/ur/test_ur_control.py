@@ -95,8 +95,9 @@ async def test_rtde_control_takes_the_arm_from_the_cell_moves_it_and_gives_it_ba
             assert ignored > 0  # the data plane still answers every status; the arm does not take them
             await asyncio.to_thread(ctl.stopScript)  # (returns once the script is gone)
             await events.wait(RE.KIND_PROGRAM_END, "the cell's datagram program drives the arm again")
-            here = await bus.request("controller", "move", M(robot="r1", values=Q0.tolist()), timeout=20)
-            assert here is not None
+            await bus.request("controller", "move", M(robot="r1", values=Q0.tolist()), timeout=20)
+            arrive = controller_pb2.ArriveRequest(robot="r1", tolerance_rad=1e-4, timeout_s=3.0)
+            await bus.request("controller", "arrive", arrive, controller_pb2.PoseReply, 5.0)
             assert np.abs(np.array(recv.getActualQ()) - Q0).max() < 1e-3  # the cell drives it again
         finally:
             ctl.disconnect()

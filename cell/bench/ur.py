@@ -1,0 +1,214 @@
+"""`cell bench ur`: the emulated arms' UR interfaces as UR's clients see them.
+
+- RTDE output at 500 Hz, read by a separate client process (a plain RTDE client on raw sockets, so
+  the arrival times are its own): the period between packages' arrivals, p50/p99, and packages
+  missed (gaps in their `timestamp`) per 10,000, for 1 arm and for 20 arms of one cell.  Beside
+  it, the baseline: how late the arms' own ticks started (the robots' lateness p99), the machine's
+  share of the jitter.
+- servoJ: ur_rtde's RTDEControlInterface in its own process streams a 1 Hz sine at 500 Hz through
+  servoJ (lookahead 0.1 s) while it reads actual_q; the lag that best aligns the arm with the
+  commands, and the largest error at that lag.
+
+The daemon's figures (bridge_*) wait for the daemon (`backend = "ur"`, issue 34 part 2): null here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import multiprocessing as mp
+import struct
+import time
+from typing import Any
+
+import numpy as np
+
+from cell.bench.cellproc import running_cell
+from cell.bench.registry import Bench, Figures, log, register
+from cell.launcher import fetch_status
+from cell.ur import rtde
+from cell.ur.rtde import Package
+
+PERIOD_S = 0.002
+
+
+def _robots(n: int, backend: str) -> list[dict[str, Any]]:
+    from cell.bench.cellproc import free_port
+
+    return [
+        {"id": i, "name": f"r{i}", "skill_port": free_port(), "backend": backend, "truth_hz": 0}
+        for i in range(1, n + 1)
+    ]
+
+
+async def _read_rtde(host: str, port: int, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+    """(arrival ns, timestamp s) of each `timestamp` package at 500 Hz for `seconds`."""
+    reader, writer = await asyncio.open_connection(host, port)
+    writer.write(rtde.encode(Package.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2)))
+    writer.write(rtde.encode(Package.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 500.0) + b"timestamp"))
+    writer.write(rtde.encode(Package.CONTROL_PACKAGE_START))
+    buf = bytearray()
+    arrivals: list[int] = []
+    stamps: list[float] = []
+    loop = asyncio.get_running_loop()
+    end = loop.time() + seconds
+    while loop.time() < end:
+        try:
+            async with asyncio.timeout(1.0):
+                data = await reader.read(65536)
+        except TimeoutError:
+            continue
+        if not data:
+            break
+        now = time.monotonic_ns()
+        buf += data
+        for kind, body in rtde.split(buf):
+            if kind == Package.DATA_PACKAGE and len(body) == 9:
+                arrivals.append(now)
+                stamps.append(struct.unpack_from(">d", body, 1)[0])
+    writer.close()
+    return np.array(arrivals, np.int64), np.array(stamps)
+
+
+def _client(hosts: list[str], port: int, seconds: float, out: Any) -> None:
+    """The separate client process: every arm's stream at once."""
+
+    async def main() -> list[tuple[np.ndarray, np.ndarray]]:
+        return await asyncio.gather(*(_read_rtde(h, port, seconds) for h in hosts))
+
+    out.put(asyncio.run(main()))
+
+
+def _servo_client(host: str, seconds: float, out: Any) -> None:
+    """ur_rtde's own servoJ loop in its own process (its calls hold the GIL)."""
+    import rtde_control
+    import rtde_receive
+
+    ctl = rtde_control.RTDEControlInterface(host)
+    recv = rtde_receive.RTDEReceiveInterface(host)
+    q0 = np.array(recv.getActualQ())
+    cmd, got = [], []
+    for k in range(int(seconds / PERIOD_S)):
+        t0 = ctl.initPeriod()
+        q = q0.copy()
+        q[0] += 0.1 * np.sin(2 * np.pi * k * PERIOD_S)
+        ctl.servoJ(q.tolist(), 0.0, 0.0, PERIOD_S, 0.1, 300)
+        cmd.append(q[0])
+        got.append(recv.getActualQ()[0])
+        ctl.waitPeriod(t0)
+    ctl.servoStop(4.0)
+    ctl.stopScript()
+    ctl.disconnect()
+    recv.disconnect()
+    out.put((np.array(cmd), np.array(got)))
+
+
+def _in_process(target: Any, *args: Any, timeout: float) -> Any:
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    proc = ctx.Process(target=target, args=(*args, out), daemon=True)
+    proc.start()
+    try:
+        return out.get(timeout=timeout)
+    finally:
+        proc.join(5)
+        if proc.is_alive():
+            proc.kill()
+
+
+def _periods(streams: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
+    periods = np.concatenate([np.diff(a) / 1e6 for a, _ in streams if a.size > 1])
+    missed = expected = 0
+    for _, ts in streams:
+        if ts.size > 1:
+            steps = np.rint(np.diff(ts) / PERIOD_S).astype(np.int64)
+            missed += int((steps - 1).clip(min=0).sum())
+            expected += int(steps.sum())
+    return {
+        "period_ms_p50": float(np.percentile(periods, 50)),
+        "period_ms_p99": float(np.percentile(periods, 99)),
+        "missed_per_10k": 1e4 * missed / max(expected, 1),
+        "packages": int(sum(a.size for a, _ in streams)),
+    }
+
+
+async def _rtde_run(n: int, seconds: float, backend: str) -> tuple[dict[str, float], float]:
+    robots = _robots(n, backend)
+    overrides = {"services": {"run": ["bus", "dataplane", "robots"]}, "robots": robots}
+    async with running_cell(overrides) as config:
+        hosts = [r.ur_host for r in config.robots]
+        streams = await asyncio.to_thread(
+            _in_process, _client, hosts, config.ur.rtde_port, seconds, timeout=seconds + 30
+        )
+        status = await fetch_status(config)
+        robots_status = next(s for s in status.services if s.name == "robots").last.counters
+    return _periods(streams), float(robots_status.get("lateness_p99_us", float("nan")))
+
+
+async def _servo_run(seconds: float, backend: str) -> tuple[float, float]:
+    overrides = {"services": {"run": ["bus", "dataplane", "robots"]}, "robots": _robots(1, backend)}
+    async with running_cell(overrides) as config:
+        host = config.robots[0].ur_host
+        cmd, got = await asyncio.to_thread(_in_process, _servo_client, host, seconds, timeout=seconds + 30)
+    tail = slice(len(cmd) // 4, len(cmd))
+    lags = range(0, min(100, tail.start))
+    err = [float(np.abs(cmd[tail.start - k : tail.stop - k] - got[tail]).max()) for k in lags]
+    lag = int(np.argmin(err))
+    return lag * PERIOD_S * 1000, err[lag] * 1000
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seconds", type=float, default=10.0, help="each RTDE stream's length (default 10)")
+    p.add_argument("--arms", type=int, default=20, help="arms of the many-arm run (default 20)")
+    p.add_argument("--servo-seconds", type=float, default=5.0, help="the servoJ run (default 5)")
+    p.add_argument("--backend", default="kinematic", choices=["kinematic", "mujoco"])
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    async def run() -> dict[str, Any]:
+        one, late1 = await _rtde_run(1, args.seconds, args.backend)
+        log(
+            f"RTDE, 1 arm: period p50 {one['period_ms_p50']:.3f} ms, p99 {one['period_ms_p99']:.3f} ms, "
+            f"{one['missed_per_10k']:.2f} missed per 10k ({one['packages']} packages; ticks' lateness "
+            f"p99 {late1:.0f} us)"
+        )
+        many, late_n = await _rtde_run(args.arms, args.seconds, args.backend)
+        log(
+            f"RTDE, {args.arms} arms: period p50 {many['period_ms_p50']:.3f} ms, p99 "
+            f"{many['period_ms_p99']:.3f} ms, {many['missed_per_10k']:.2f} missed per 10k "
+            f"({many['packages']} packages; ticks' lateness p99 {late_n:.0f} us)"
+        )
+        lag, err = await _servo_run(args.servo_seconds, args.backend)
+        log(
+            f"servoJ, 500 Hz, 1 Hz sine, lookahead 0.1 s: lag {lag:.0f} ms, then off by {err:.2f} mrad"
+        )
+        return {
+            "arms": args.arms,
+            "backend": args.backend,
+            "rtde_period_ms_p50": one["period_ms_p50"],
+            "rtde_period_ms_p99": one["period_ms_p99"],
+            "rtde_missed_per_10k": one["missed_per_10k"],
+            "rtde_period_ms_p99_20_arms": many["period_ms_p99"],
+            "rtde_missed_per_10k_20_arms": many["missed_per_10k"],
+            "tick_lateness_p99_us": late1,
+            "tick_lateness_p99_us_20_arms": late_n,
+            "servoj_lag_ms": lag,
+            "servoj_error_mrad": err,
+            "bridge_latency_us_p99": None,
+            "bridge_path_error_mm_max": None,
+            "direct_path_error_mm_max": None,
+        }
+
+    result = asyncio.run(run())
+    return Figures(result)
+
+
+register(
+    Bench(
+        "ur",
+        "the UR interfaces: RTDE at 500 Hz (1 and 20 arms), servoJ's lag, from separate client processes",
+        _arguments,
+        _main,
+        description=__doc__,
+    )
+)
