@@ -179,9 +179,7 @@ def _main(args: argparse.Namespace) -> Figures:
             f"({many['packages']} packages; ticks' lateness p99 {late_n:.0f} us)"
         )
         lag, err = await _servo_run(args.servo_seconds, args.backend)
-        log(
-            f"servoJ, 500 Hz, 1 Hz sine, lookahead 0.1 s: lag {lag:.0f} ms, then off by {err:.2f} mrad"
-        )
+        log(f"servoJ, 500 Hz, 1 Hz sine, lookahead 0.1 s: lag {lag:.0f} ms, then off by {err:.2f} mrad")
         return {
             "arms": args.arms,
             "backend": args.backend,

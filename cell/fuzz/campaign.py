@@ -40,6 +40,7 @@ from cell.bus.envelope import Kind as BusKind
 from cell.bus.envelope import decode as decode_frame
 from cell.config import CellConfig, ConfigError, config_from_text, load_config, parse_host_port
 from cell.fuzz import strategies
+from cell.fuzz import ur as ur_fuzz
 from cell.fuzz.mutate import Mutator
 from cell.launcher import fetch_status, wait_healthy
 from cell.rlink import packet as rlp
@@ -422,6 +423,12 @@ class Listeners:
             pub.close()
             sub.close()
 
+    async def ur(self, rep: Report) -> None:
+        """The probe robot's UR interfaces: dashboard lines, programs, RTDE packages (cell.fuzz.ur)."""
+        rep.inputs, rep.answers, rep.detail = await ur_fuzz.fuzz(
+            self.probes.robot, self.config.ur, self.n, self.mut
+        )
+
     async def config_files(self, rep: Report) -> None:
         """Config files (in this process: a config is read by whoever starts the cell): each loads or
         is refused with a ConfigError naming the key; anything else is a crash."""
@@ -665,7 +672,19 @@ def _rss(pid: int) -> float:
 
 def _counted(before: dict[str, dict[str, Any]], after: dict[str, dict[str, Any]], name: str) -> dict:
     """What the services counted of a target's inputs: the counters that grew (drops, refusals, errors)."""
-    words = ("malformed", "rejected", "drops", "bad", "error", "refused", "slow", "paused", "denied", "crc")
+    words = (
+        "malformed",
+        "rejected",
+        "drops",
+        "bad",
+        "error",
+        "refused",
+        "slow",
+        "paused",
+        "denied",
+        "crc",
+        "unknown",
+    )
     out: dict[str, float] = {}
     for svc in [name] if name in before else list(before):
         b, a = before[svc]["counters"], after.get(svc, {}).get("counters", {})
@@ -702,6 +721,7 @@ async def campaign(
                 "snp": probes.snp,
                 "rlink": probes.rlink,
                 "bus": lambda: probes.bus(bus),
+                "ur": lambda: ur_fuzz.probe(probes.robot, config.ur),
             }
             usual = {k: statistics.median(await probes.timed(p, 9)) for k, p in paths.items()}
             log_fn(
@@ -714,6 +734,7 @@ async def campaign(
                 ("snp", fz.snp),
                 ("rlink", fz.rlink),
                 ("bus", fz.bus),
+                ("ur", fz.ur),
                 ("config", fz.config_files),
                 ("attack: 10,000 idle connections", at.idle_connections),
                 ("attack: 1 byte/s", at.slow_sender),
@@ -738,7 +759,13 @@ async def campaign(
                 await _settle(config)
                 after = await _snapshot(config)
                 rep.crashed += _broken(before, after)
-                service = name if name in before else ("dataplane" if "UDP" in name else "skills")
+                service = (
+                    "robots"
+                    if name == "ur"
+                    else name
+                    if name in before
+                    else ("dataplane" if "UDP" in name else "skills")
+                )
                 rep.detail["counted"] = _counted(before, after, "" if name == "bus" else service)
                 path = name if name in paths else ("dataplane" if "UDP" in name else "skills")
                 if name != "config":

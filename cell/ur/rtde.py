@@ -176,7 +176,7 @@ class Session:
                 if exc.close:
                     self.closed = exc.why
                 continue
-            except (struct.error, UnicodeDecodeError, ValueError) as exc:
+            except (struct.error, UnicodeDecodeError, ValueError, IndexError) as exc:
                 self._count("malformed")
                 out.append(self.text(Level.ERROR, f"malformed {_kind_name(kind)} package: {exc}"))
                 continue
@@ -217,9 +217,14 @@ class Session:
         raise RtdeError("unknown_type", f"unknown package type {kind} ({_kind_name(kind)})")
 
     def _read_text(self, p: bytes) -> tuple[int, str, str]:
+        """(level, source, text); ValueError if the lengths inside say more than it holds."""
+        if not p:
+            raise ValueError("an empty text message")
         if self.protocol == 1:
             return p[0], "", p[1:].decode(errors="replace")
         n = p[0]
+        if len(p) < 2 + n or len(p) != 3 + n + p[1 + n]:
+            raise ValueError(f"a text message of {len(p)} bytes whose lengths say otherwise")
         text = p[1 : 1 + n].decode(errors="replace")
         m = p[1 + n]
         source = p[2 + n : 2 + n + m].decode(errors="replace")

@@ -111,7 +111,9 @@ class _Arm:
 
     # --- programs ----------------------------------------------------------------------------------
 
-    def say(self, m: Message) -> None:
+    def say(self, m: Message, quiet: bool = False) -> None:
+        """To the primary and secondary clients (and the log, unless `quiet`: a refusal is the
+        sender's to read, and a flood of them must not flood the log)."""
         t_us = int(time.time() * 1e6)
         if m.line >= 0:
             data = primary.runtime_exception(t_us, m.line, m.column, m.text)
@@ -119,7 +121,8 @@ class _Arm:
             data = primary.text(t_us, m.text)
         for p in self.listeners:
             p.transport.write(data)
-        (log.warning if m.line >= 0 else log.info)("%s: %s", self.robot.name, m.text)
+        if not quiet:
+            (log.warning if m.line >= 0 else log.info)("%s: %s", self.robot.name, m.text)
 
     def run(self, text: str | ScriptError) -> None:
         """A program from a client interface: refused, or run in place of whatever holds the arm."""
@@ -132,7 +135,7 @@ class _Arm:
                 raise ScriptError(1, 0, "the daemon's script is for a real controller, not an emulated arm")
         except ScriptError as exc:
             c.scripts_refused += 1
-            self.say(Message(f"program refused: {exc.reason}", exc.line, exc.column))
+            self.say(Message(f"program refused: {exc.reason}", exc.line, exc.column), quiet=True)
             return
         st = self.state
         if not st.can_move:

@@ -96,8 +96,8 @@ class Framer:
         if not self.lines and not self.skipping:
             if not line.strip() or line.lstrip().startswith("#"):
                 return
-            if top and not _TOP_DEF.match(line):
-                out.append(line + "\n")  # a one-line program
+            if not (top and _TOP_DEF.match(line)):
+                out.append(line.strip() + "\n")  # a one-line program
                 return
         if not self.skipping:
             self.lines.append(line)

@@ -26,6 +26,7 @@ def test_the_framer_cuts_programs_at_their_top_level_end_and_takes_one_liners() 
     got = f.feed(b'end\n\n# a comment\ntextmsg("hi")\r\ndef b():\n')
     assert got == ["def a():\n  if x:\n    movej([0,0,0,0,0,0])\n  end\nend\n", 'textmsg("hi")\n']
     assert f.feed(b"  sleep(1)\nend\n") == ["def b():\n  sleep(1)\nend\n"]
+    assert f.feed(b"  sleep(2)\n") == ["sleep(2)\n"]  # (indented, outside a definition: one line)
 
 
 def test_a_program_too_long_is_refused_and_the_next_one_is_taken() -> None:
