@@ -33,6 +33,9 @@ MAX_HZ = 500.0  # the arm's own status rate: a client asking more gets this
 MAX_RECIPES = 255  # output recipes per connection (v2's recipe id is a uint8)
 
 
+MIN_HZ = 0.01  # an output recipe's least frequency (found by `cell fuzz`: 1e-310 Hz overflowed)
+
+
 class Package(IntEnum):
     REQUEST_PROTOCOL_VERSION = ord("V")
     GET_URCONTROL_VERSION = ord("v")
@@ -176,7 +179,7 @@ class Session:
                 if exc.close:
                     self.closed = exc.why
                 continue
-            except (struct.error, UnicodeDecodeError, ValueError, IndexError) as exc:
+            except (struct.error, UnicodeDecodeError, ValueError, IndexError, ArithmeticError) as exc:
                 self._count("malformed")
                 out.append(self.text(Level.ERROR, f"malformed {_kind_name(kind)} package: {exc}"))
                 continue
@@ -246,8 +249,8 @@ class Session:
         if self.protocol >= 2:
             (hz,) = struct.unpack_from(">d", p)
             p = p[8:]
-            if not 0 < hz <= 1e6:
-                raise RtdeError("bad_frequency", f"output frequency {hz:g} Hz")
+            if not MIN_HZ <= hz <= 1e6:
+                raise RtdeError("bad_frequency", f"output frequency {hz:g} Hz (at least {MIN_HZ:g})")
             hz = min(hz, self.tick_hz)
         names = self._names(p)
         types = [self.outputs.get(n) for n in names]

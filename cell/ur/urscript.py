@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import ast
 import re
+import warnings
 from dataclasses import dataclass, field
 
 MAX_SCRIPT = 1 << 20  # bytes of one program; a longer one is refused and skipped to its end
+MAX_LINE = 10_000  # characters of one line of a straight-line program
 _TOP_DEF = re.compile(r"^(def|sec)\s+([A-Za-z_]\w*)\s*\(\s*\)\s*:")
 _POSE = re.compile(r"\bp\s*\[")
 
@@ -171,12 +173,20 @@ def _strip_comment(line: str) -> str:
 
 
 def _call(code: str, line: int, indent: int) -> Call:
+    if len(code) > MAX_LINE:
+        raise ScriptError(line, indent, f"a line of {len(code)} characters (at most {MAX_LINE})")
     try:
-        node = ast.parse(_POSE.sub("P+[", code), mode="eval").body
+        with warnings.catch_warnings():  # (Python's own warnings about the text are not the arm's)
+            warnings.simplefilter("ignore")
+            node = ast.parse(_POSE.sub("P+[", code), mode="eval").body
     except SyntaxError as exc:
-        raise ScriptError(line, indent + (exc.offset or 1) - 1, f"cannot read {code!r}: {exc.msg}") from None
+        raise ScriptError(
+            line, indent + (exc.offset or 1) - 1, f"cannot read {code[:80]!r}: {exc.msg}"
+        ) from None
+    except (RecursionError, MemoryError):
+        raise ScriptError(line, indent, "an expression nested too deep to read") from None
     if not isinstance(node, ast.Call) or not isinstance(node.func, ast.Name):
-        raise ScriptError(line, indent, f"{code!r} is not a call: this arm runs straight-line programs")
+        raise ScriptError(line, indent, f"{code[:80]!r} is not a call: this arm runs straight-line programs")
     name = node.func.id
     sig = SIGNATURES.get(name)
     if sig is None:
@@ -198,6 +208,8 @@ def _call(code: str, line: int, indent: int) -> Call:
             args[kw.arg] = _value(kw.value)
     except ValueError as exc:
         raise ScriptError(line, indent, f"{name}(): {exc}") from None
+    except RecursionError:
+        raise ScriptError(line, indent, f"{name}(): an argument nested too deep to read") from None
     for p, default in sig.items():
         if p not in args:
             if default is None:

@@ -85,11 +85,14 @@ def test_bad_packages_are_counted_and_answered_and_the_session_goes_on() -> None
     many = ",".join(f"input_int_register_{i % 48}" for i in range(2000)).encode()
     assert one(s, Package.CONTROL_PACKAGE_PAUSE)[1] == b"\x01"
     assert b"2000 fields" in one(s, Package.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 1.0) + many)[1]
+    kind, body = one(s, Package.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 1e-310) + b"timestamp")
+    assert kind == ord("M") and b"frequency" in body  # (a frequency so small it overflowed a division)
     for text in (b"", b"\x05ab", b"\x01a\x09b"):  # (found by `cell fuzz`: lengths past the end)
         kind, body = one(s, Package.TEXT_MESSAGE, text)
         assert kind == ord("M") and b"malformed" in body
     assert s.counters.bad == {
-        "unknown_type": 1, "bad_length": 1, "unknown_recipe": 1, "too_many_fields": 1, "malformed": 3
+        "unknown_type": 1, "bad_length": 1, "unknown_recipe": 1, "too_many_fields": 1, "malformed": 3,
+        "bad_frequency": 1,
     }  # fmt: skip
     assert one(s, Package.GET_URCONTROL_VERSION)[0] == ord("v")  # still answering
     out = s.receive(struct.pack(">HB", 2, ord("U")))  # a length no stream can be read past

@@ -77,6 +77,9 @@ def test_a_straight_line_program_is_read_with_defaults_poses_and_arithmetic() ->
         ("def x():\n  movej([0,0,0,0,0,0], speed=1)\n", 2, "no parameter 'speed'"),
         ("def x():\n  stopj()\n", 2, "needs a"),
         ("movel(p[0, 0, 0])\n", 1, "a pose is"),
+        ("sleep(" + "1+" * 3000 + "1)\n", 1, "nested too deep"),
+        ("sleep(" + "(" * 300 + "1" + ")" * 300 + ")\n", 1, "cannot read"),
+        ("sleep(" + "1" * 20000 + ")\n", 1, "a line of 20007 characters"),
     ],
 )
 def test_what_the_arm_does_not_run_is_refused_with_its_line(text: str, line: int, words: str) -> None:
