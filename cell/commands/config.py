@@ -14,9 +14,14 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import tomli_w
+
     config = load(args)
+    data = config.to_dict()
+    for robot, table in zip(config.robots, data.get("robots", []), strict=True):
+        table["ur_address"] = robot.ur_host  # (the address it answers on, "" resolved)
     print(f"# effective configuration: {config.source} over the embedded default\n")
-    print(config.to_toml(), end="")
+    print(tomli_w.dumps(data), end="")
     return 0
 
 

@@ -40,6 +40,13 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         print(format_status(st))
+        if config.ur.interfaces and config.robots:
+            ur = config.ur
+            ports = f"RTDE {ur.rtde_port}, dashboard {ur.dashboard_port}, URScript {ur.primary_port}"
+            ports += f"-{ur.realtime_port}"
+            print(f"\nUR interfaces ({ports}):")
+            for r in config.robots:
+                print(f"  {r.name:<10} {r.ur_host:<16} {r.model} ({r.backend})")
     return 0 if all(s.health == "ok" for s in st.services) else 3
 
 

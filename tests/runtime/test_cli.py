@@ -60,3 +60,11 @@ def test_every_registered_command_and_bench_has_its_help(capsys: pytest.CaptureF
 def test_unknown_service_alone(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["service", "nope"]) == 2
     assert "unknown service 'nope'" in capsys.readouterr().err
+
+
+def test_config_show_prints_each_arms_ur_address_resolved(capsys: pytest.CaptureFixture[str]) -> None:
+    import tomllib
+
+    assert main(["config", "show"]) == 0
+    data = tomllib.loads(capsys.readouterr().out)
+    assert [r["ur_address"] for r in data["robots"]] == ["127.0.1.1", "127.0.1.2"]  # r1, r2 (default "")
