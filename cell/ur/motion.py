@@ -194,47 +194,51 @@ class MoveL(Motion):
         return (self.q_ref - now) / dt + KP * (now - q)
 
 
-class Speed(Motion):
-    """speedj: ramp every joint's velocity to qd (the leading change at a) and hold it.  With qd zero and
-    `stop` it is stopj: it ends once the arm stands."""
+class _Ramp(Motion):
+    """A velocity (of the joints or of the tool) ramped to a target, the leading change at a, and held."""
 
-    def __init__(self, qd_now: np.ndarray, qd: np.ndarray, a: float, stop: bool = False) -> None:
-        self.v = qd_now.copy()
-        self.target, self.a, self.stop = np.asarray(qd, np.float64).copy(), max(a, 1e-9), stop
+    def __init__(self, now: np.ndarray, target: np.ndarray, a: float) -> None:
+        self.v = np.asarray(now, np.float64).copy()
+        self.set(target, a)
 
-    def set(self, qd: np.ndarray, a: float) -> None:
-        self.target, self.a = np.asarray(qd, np.float64).copy(), max(a, 1e-9)
+    def set(self, target: np.ndarray, a: float) -> None:
+        self.target, self.a = np.asarray(target, np.float64).copy(), max(a, 1e-9)
 
-    def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
+    def ramp(self, dt: float) -> np.ndarray:
         dv = self.target - self.v
         big = float(np.abs(dv).max())
         if big > self.a * dt:
             dv *= self.a * dt / big
         self.v = self.v + dv
-        if self.stop and not self.v.any() and float(np.abs(qd).max()) < STEADY_RAD_S:
-            self.done = True
         return self.v
 
 
-class SpeedL(Motion):
-    """speedl: ramp the tool's velocity (linear m/s, angular rad/s, base frame) to xd at a and hold it."""
+class Speed(_Ramp):
+    """speedj: ramp every joint's velocity to qd and hold it.  With qd zero and `stop` it is stopj: it
+    ends once the arm stands."""
 
-    def __init__(self, tool: Tool, q: np.ndarray, qd: np.ndarray, xd: np.ndarray, a: float) -> None:
-        self.tool = tool
-        self.x = tool.jacobian(q) @ qd
-        self.target, self.a = np.asarray(xd, np.float64).copy(), max(a, 1e-9)
-
-    def set(self, xd: np.ndarray, a: float) -> None:
-        self.target, self.a = np.asarray(xd, np.float64).copy(), max(a, 1e-9)
+    def __init__(self, qd_now: np.ndarray, qd: np.ndarray, a: float, stop: bool = False) -> None:
+        super().__init__(qd_now, qd, a)
+        self.stop = stop
 
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
-        dx = self.target - self.x
-        big = float(np.abs(dx).max())
-        if big > self.a * dt:
-            dx *= self.a * dt / big
-        self.x = self.x + dx
+        v = self.ramp(dt)
+        if self.stop and not v.any() and float(np.abs(qd).max()) < STEADY_RAD_S:
+            self.done = True
+        return v
+
+
+class SpeedL(_Ramp):
+    """speedl: ramp the tool's velocity (linear m/s, angular rad/s, base frame) to xd and hold it."""
+
+    def __init__(self, tool: Tool, q: np.ndarray, qd: np.ndarray, xd: np.ndarray, a: float) -> None:
+        super().__init__(tool.jacobian(q) @ qd, xd, a)
+        self.tool = tool
+
+    def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
+        x = self.ramp(dt)
         jac = self.tool.jacobian(q)
-        return jac.T @ np.linalg.solve(jac @ jac.T + 1e-6 * np.eye(6), self.x)
+        return jac.T @ np.linalg.solve(jac @ jac.T + 1e-6 * np.eye(6), x)
 
 
 class Servo(Motion):
