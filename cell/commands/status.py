@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         print(format_status(st))
-        if config.ur.interfaces and config.robots:
+        if config.ur.interfaces and any(s.name.split("@")[0] == "robots" for s in st.services):
             ur = config.ur
             ports = f"RTDE {ur.rtde_port}, dashboard {ur.dashboard_port}, URScript {ur.primary_port}"
             ports += f"-{ur.realtime_port}"
