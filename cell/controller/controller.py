@@ -94,6 +94,9 @@ class Controller(Engine):
         """Until the robot has ended its motions and stands within `tolerance` (rad, every joint) of
         where they end; its measured joints and their data-plane time.  (V+'s BREAK.)"""
         track = self.track(robot)
+        # (not while the take-over at our start stops every robot: that stop would end this wait
+        # with "stopped", though no motion of ours was under way; seen as a flake under load)
+        await self.tables_in_hand()
         await self.wait_idle(track)
         if track.stop_reason:  # its last motion ended early (lost or stopped before we were asked):
             why, track.stop_reason = track.stop_reason, None  # it will not arrive where that motion
