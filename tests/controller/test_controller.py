@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import AsyncIterator
 
 import numpy as np
 import pytest
@@ -62,6 +63,22 @@ def path_error(samples: list[tuple[int, np.ndarray, np.ndarray]], seg, settle_s:
     return float(np.abs(q[inside] - plan).max())
 
 
+@contextlib.asynccontextmanager
+async def driving(start_cell, arms: list[dict]) -> AsyncIterator[tuple[Controller, Truth]]:
+    """A cell of these arms, a controller on it and their ground truth, once it has heard them all."""
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=arms)
+    async with (
+        Bus.connect(cell.config.bus, "controller") as bus,
+        asyncio.TaskGroup() as tg,
+        Controller(bus, cell.config) as ctl,
+    ):
+        truth = Truth()
+        watcher = tg.create_task(truth.run(bus))
+        await ready(ctl, [a["name"] for a in arms])
+        yield ctl, truth
+        watcher.cancel()
+
+
 async def ready(ctl: Controller, names: list[str]) -> None:
     """Until the data plane has status from every robot (the robots announce and start streaming)."""
     async with asyncio.timeout(10):
@@ -75,15 +92,7 @@ async def ready(ctl: Controller, names: list[str]) -> None:
 
 @pytest.mark.parametrize("backend", ["kinematic", "mujoco"])
 async def test_a_joint_move_ends_on_its_goal_and_holds(start_cell, backend: str) -> None:
-    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots(backend))
-    async with (
-        Bus.connect(cell.config.bus, "controller") as bus,
-        asyncio.TaskGroup() as tg,
-        Controller(bus, cell.config) as ctl,
-    ):
-        truth = Truth()
-        watcher = tg.create_task(truth.run(bus))
-        await ready(ctl, ["r1"])
+    async with driving(start_cell, robots(backend)) as (ctl, truth):
         assert ctl.track("r1").state is MotionState.IDLE
         goal = Q0 + np.array([0.4, -0.3, 0.2, 0.1, -0.2, 0.5])
         result = await ctl.move_joints("r1", goal)
@@ -104,7 +113,6 @@ async def test_a_joint_move_ends_on_its_goal_and_holds(start_cell, backend: str)
         later = (await ctl.dp.state()).counters
         assert later["steps"] - st.counters["steps"] <= 2
         assert later["resubmits"] == st.counters["resubmits"]
-        watcher.cancel()
 
 
 async def test_a_long_motion_streams_through_a_slow_jittery_link_without_a_stall(start_cell) -> None:
@@ -189,15 +197,7 @@ def crossing_time(samples: list[tuple[int, np.ndarray, np.ndarray]], q0: np.ndar
 
 
 async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell) -> None:
-    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic"))
-    async with (
-        Bus.connect(cell.config.bus, "controller") as bus,
-        asyncio.TaskGroup() as tg,
-        Controller(bus, cell.config) as ctl,
-    ):
-        truth = Truth()
-        watcher = tg.create_task(truth.run(bus))
-        await ready(ctl, ["r1"])
+    async with driving(start_cell, fast_truth("kinematic")) as (ctl, truth):
         move = asyncio.create_task(ctl.move_joints("r1", Q0 + np.array([1.5, 0, 0, 0, 0, 1.5]), speed=0.5))
         async with asyncio.timeout(5):  # until it is well under way
             while not truth.samples.get("r1") or abs(truth.samples["r1"][-1][2][0]) < 0.3:
@@ -227,19 +227,10 @@ async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell)
                 or np.abs(truth.last("r1") - stopped.q_end).max() > 1e-3
             ):
                 await asyncio.sleep(0.05)
-        watcher.cancel()
 
 
 async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
-    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic"))
-    async with (
-        Bus.connect(cell.config.bus, "controller") as bus,
-        asyncio.TaskGroup() as tg,
-        Controller(bus, cell.config) as ctl,
-    ):
-        truth = Truth()
-        watcher = tg.create_task(truth.run(bus))
-        await ready(ctl, ["r1"])
+    async with driving(start_cell, fast_truth("kinematic")) as (ctl, truth):
         first = asyncio.create_task(
             ctl.move_joints("r1", Q0 + np.array([1.2, -0.4, 0.3, 0, 0, 0]), speed=0.4)
         )
@@ -260,20 +251,11 @@ async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
         err = path_error(truth.samples["r1"], ctl.tracks[1].segment)
         assert err < 0.02, f"off the new plan by {err * 1000:.1f} mrad"  # measured 2-5 mrad
         assert np.allclose(result.q_end, goal)
-        watcher.cancel()
 
 
 @pytest.mark.parametrize("merged", [False, True])
 async def test_robots_started_together_start_within_a_status_period(start_cell, merged: bool) -> None:
-    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic", 2))
-    async with (
-        Bus.connect(cell.config.bus, "controller") as bus,
-        asyncio.TaskGroup() as tg,
-        Controller(bus, cell.config) as ctl,
-    ):
-        truth = Truth()
-        watcher = tg.create_task(truth.run(bus))
-        await ready(ctl, ["r1", "r2"])
+    async with driving(start_cell, fast_truth("kinematic", 2)) as (ctl, truth):
         delta = np.array([0.5, -0.3, 0.2, 0.0, 0.0, 0.4])
         if merged:
             await ctl.merge(["r1", "r2"])
@@ -282,7 +264,6 @@ async def test_robots_started_together_start_within_a_status_period(start_cell, 
             await ctl.move_together({"r1": Q0 + delta, "r2": Q0 + delta})
         t1, t2 = (crossing_time(truth.samples[n], Q0, 1e-3) for n in ("r1", "r2"))
         assert abs(t1 - t2) / 1e6 <= 2.0
-        watcher.cancel()
 
 
 async def test_the_controller_service_moves_stops_and_resumes_over_the_bus(start_cell) -> None:

@@ -4,36 +4,16 @@ cell: armed starts fired by switch entries, TPStepper loops, alternates taken at
 from __future__ import annotations
 
 import asyncio
-import contextlib
-from collections.abc import AsyncIterator
 
 import numpy as np
 import pytest
 
 from cell.bus import Bus
-from cell.controller.controller import Controller
-from tests.controller.test_controller import Q0, Truth, crossing_time, fast_truth, max_accel, ready
-
-
-@contextlib.asynccontextmanager
-async def driving(start_cell, n: int) -> AsyncIterator[tuple[Controller, Truth]]:
-    """A cell of n kinematic arms (truth at 500 Hz), a controller on it and their ground truth."""
-    names = [f"r{i}" for i in range(1, n + 1)]
-    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=fast_truth("kinematic", n))
-    async with (
-        Bus.connect(cell.config.bus, "controller") as bus,
-        asyncio.TaskGroup() as tg,
-        Controller(bus, cell.config) as ctl,
-    ):
-        truth = Truth()
-        watcher = tg.create_task(truth.run(bus))
-        await ready(ctl, names)
-        yield ctl, truth
-        watcher.cancel()
+from tests.controller.test_controller import Q0, Truth, crossing_time, driving, fast_truth, max_accel
 
 
 async def test_armed_robots_wait_and_leave_their_holds_together_when_fired(start_cell) -> None:
-    async with driving(start_cell, 2) as (ctl, truth):
+    async with driving(start_cell, fast_truth("kinematic", 2)) as (ctl, truth):
         delta = np.array([0.4, -0.3, 0.2, 0.0, 0.1, 0.3])
         armed = await ctl.arm({"r1": Q0 + delta, "r2": Q0 - delta})
         t_armed = ctl.link.now()
@@ -51,7 +31,7 @@ async def test_armed_robots_wait_and_leave_their_holds_together_when_fired(start
 
 
 async def test_a_loop_runs_its_laps_from_one_load_then_holds_where_it_began(start_cell) -> None:
-    async with driving(start_cell, 1) as (ctl, truth):
+    async with driving(start_cell, fast_truth("kinematic", 1)) as (ctl, truth):
         far = Q0 + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
         dp = ctl.dp
         loads_before = (await dp.state()).counters.get("tps_loaded", 0)
@@ -77,7 +57,7 @@ async def test_a_loop_runs_its_laps_from_one_load_then_holds_where_it_began(star
 
 
 async def test_a_prepared_alternate_is_taken_at_the_next_tp_without_planning(start_cell) -> None:
-    async with driving(start_cell, 1) as (ctl, truth):
+    async with driving(start_cell, fast_truth("kinematic", 1)) as (ctl, truth):
         main = await ctl.move_joints("r1", Q0 + np.array([1.2, -0.4, 0.3, 0, 0, 0]), speed=0.3, wait=False)
         retreat, detour = Q0 + np.array([-0.2, 0.1, 0, 0, 0, 0]), Q0 + np.array([0.5, 0.3, -0.3, 0, 0, 0])
         loaded = await ctl.prepare_alternates("r1", {"retreat": retreat, "detour": detour}, every=4)
