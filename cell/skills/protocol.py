@@ -24,6 +24,8 @@ import math
 import re
 from dataclasses import dataclass
 
+from cell.lines import LineReader, TooLong
+
 MAX_LINE = 1024  # bytes of one command message, \r\n excluded
 NO_ID = "00000000"
 _ID = re.compile(r"[A-Za-z0-9_-]{8}")
@@ -161,52 +163,11 @@ def parse_reply(line: bytes) -> Reply:
     raise ValueError(f"not a reply: {text!r}")
 
 
-@dataclass(frozen=True)
-class TooLong:
-    """A line over the limit (its first bytes, for the id), skipped up to its end."""
-
-    head: bytes
-
-
-class LineReader:
-    """Bytes of a stream in, complete \\r\\n-terminated lines out; an overlong line comes out once as
-    TooLong, as soon as it is known to be too long, and the rest of it is dropped."""
-
-    def __init__(self, max_line: int = MAX_LINE) -> None:
-        self.max_line = max_line
-        self._buf = bytearray()
-        self._skipping = False  # inside an overlong line: drop bytes up to its \r\n
-
-    @property
-    def partial(self) -> bool:
-        """A line has begun (or an overlong one is being skipped) and its \\r\\n has not come."""
-        return self._skipping or bool(self._buf.strip())
-
-    def feed(self, data: bytes) -> list[bytes | TooLong]:
-        self._buf += data
-        out: list[bytes | TooLong] = []
-        while True:
-            end = self._buf.find(b"\r\n")
-            if end < 0:
-                if len(self._buf) > self.max_line + 1:  # keep one byte: it may be a split \r\n
-                    if not self._skipping:
-                        self._skipping = True
-                        out.append(TooLong(bytes(self._buf[:16])))
-                    del self._buf[:-1]
-                return out
-            line = bytes(self._buf[:end])
-            del self._buf[: end + 2]
-            if self._skipping:
-                self._skipping = False  # the end of the overlong line: already refused
-                continue
-            out.append(TooLong(line[:16]) if len(line) > self.max_line else line)
-
-
 class CommandReader:
     """A server connection's input: commands, and the error replies for what is not one."""
 
     def __init__(self) -> None:
-        self._lines = LineReader()
+        self._lines = LineReader(MAX_LINE)
 
     @property
     def partial(self) -> bool:

@@ -21,6 +21,8 @@ import re
 import warnings
 from dataclasses import dataclass, field
 
+from cell.lines import LineReader, TooLong
+
 MAX_SCRIPT = 1 << 20  # bytes of one program; a longer one is refused and skipped to its end
 MAX_LINE = 10_000  # characters of one line of a straight-line program
 _TOP_DEF = re.compile(r"^(def|sec)\s+([A-Za-z_]\w*)\s*\(\s*\)\s*:")
@@ -59,38 +61,26 @@ class Script:
 
 
 class Framer:
-    """Bytes in, whole programs out (each as its text and its first line's number in the stream)."""
+    """Bytes in, whole programs out: each a text, or a ScriptError for one too long to take."""
 
     def __init__(self) -> None:
-        self.buf = bytearray()
+        self.reader = LineReader(MAX_SCRIPT, b"\n")
         self.lines: list[str] = []  # the program being collected
         self.size = 0  # its bytes
-        self.skip_line = False  # inside a line too long to take
         self.skipping = False  # inside a program too long to take: dropped to its end
         self.refused = 0
 
     def feed(self, data: bytes) -> list[str | ScriptError]:
-        self.buf += data
         out: list[str | ScriptError] = []
-        at = 0  # (lines are read off by position and cut once: no copy per line)
-        while True:
-            i = self.buf.find(b"\n", at)
-            if i < 0:
-                break
-            line = self.buf[at:i].decode(errors="replace").rstrip("\r")
-            at = i + 1
-            if self.skip_line:  # the end of an endless line
-                self.skip_line = False
-                continue
-            self._line(line, out)
-        del self.buf[:at]
-        if len(self.buf) > MAX_SCRIPT:  # one endless line: dropped to its end (with its program)
-            self.buf.clear()
-            self.skip_line = True
-            if self.lines:
-                self.lines.clear()
-                self.skipping = True
-            self._refuse(out)
+        for line in self.reader.feed(data):
+            if isinstance(line, TooLong):  # one endless line: refused, with the program it is in
+                if not self.skipping:
+                    self._refuse(out)
+                    self.skipping = bool(self.lines)  # (the rest of that program is dropped)
+                    self.lines.clear()
+                    self.size = 0
+            else:
+                self._line(line.decode(errors="replace").rstrip("\r"), out)
         return out
 
     def _line(self, line: str, out: list[str | ScriptError]) -> None:
