@@ -25,7 +25,7 @@ import numpy as np
 
 from cell.robot.kinematics import Unreachable
 from cell.ur.arm import SafetyMode, URArm
-from cell.ur.motion import STEADY_RAD_S, Motion, MoveJ, MoveL, Servo, Speed, SpeedL, Tool
+from cell.ur.motion import STEADY_RAD_S, Motion, MoveJ, MoveL, Servo, Speed, SpeedL
 from cell.ur.urscript import Call, Pose, Script
 
 
@@ -42,8 +42,8 @@ class Runner:
     """A program under way.  step() returns the drives' velocity command for the next tick; once
     `ended` is not None the program is over ("" if it ran to its end, else why it stopped)."""
 
-    def __init__(self, script: Script, arm: URArm, tool: Tool) -> None:
-        self.script, self.arm, self.tool = script, arm, tool
+    def __init__(self, script: Script, arm: URArm) -> None:
+        self.script, self.arm, self.tool = script, arm, arm.tool
         self.ended: str | None = None
         self.messages: list[Message] = []
         self.motion: Motion | None = None
@@ -51,9 +51,6 @@ class Runner:
     @property
     def name(self) -> str:
         return self.script.name
-
-    def stop(self, reason: str) -> None:
-        self.ended = reason
 
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         raise NotImplementedError
@@ -70,8 +67,8 @@ class Runner:
 class LineRunner(Runner):
     """movej, movel, speedj, servoj, stopj/l, sleep, sync, outputs and messages, one after another."""
 
-    def __init__(self, script: Script, arm: URArm, tool: Tool) -> None:
-        super().__init__(script, arm, tool)
+    def __init__(self, script: Script, arm: URArm) -> None:
+        super().__init__(script, arm)
         self.calls = list(script.calls)
         self.at = 0
         self.wait = 0.0  # time left on the current call (sleep, speedj's t, servoj's t)
@@ -154,7 +151,7 @@ class LineRunner(Runner):
 def _joints(v: object, call: Call) -> np.ndarray:
     if isinstance(v, list) and len(v) == 6:
         return np.array(v, np.float64)
-    raise Unreachable(f"line {call.line}: {call.name}() wants 6 joint values, got {v!r}")
+    raise Unreachable(f"{call.name}() wants 6 joint values, got {v!r}")
 
 
 # --- ur_rtde's control script ----------------------------------------------------------------------
@@ -197,8 +194,8 @@ READY, DONE = 1, 2
 class RtdeControl(Runner):
     """ur_rtde's control script, its register protocol served natively."""
 
-    def __init__(self, script: Script, arm: URArm, tool: Tool) -> None:
-        super().__init__(script, arm, tool)
+    def __init__(self, script: Script, arm: URArm) -> None:
+        super().__init__(script, arm)
         self.oi, self.of = script.reg_offset_int, script.reg_offset_float
         self.cmd_field = f"input_int_register_{self.oi}"
         self.executing = False
@@ -268,12 +265,13 @@ class RtdeControl(Runner):
             return np.zeros_like(q)
         v = self._move(q, qd, dt)
         m = self.motion
-        if m is not None and m.done:
+        if m is not None and m.done:  # (said once: the arm stands until the next command)
             if m is self.async_move:
                 self.async_move = None
                 self._progress(-1)
             if m.error:
                 self.messages.append(Message(f"rtde_control: {m.error}"))
+            self.motion = None
         return v
 
     def _start(self, motion: Motion) -> None:
@@ -364,9 +362,9 @@ class RtdeControl(Runner):
             self.ended = exc.reason
 
 
-def runner(script: Script, arm: URArm, tool: Tool) -> Runner:
+def runner(script: Script, arm: URArm) -> Runner:
     if script.kind == "rtde_control":
-        return RtdeControl(script, arm, tool)
+        return RtdeControl(script, arm)
     if script.kind == "lines":
-        return LineRunner(script, arm, tool)
+        return LineRunner(script, arm)
     raise ValueError(f"no runner for {script.kind} programs")

@@ -23,6 +23,7 @@ import numpy as np
 
 from cell.config import CellConfig, RobotConfig
 from cell.counters import Counters
+from cell.lines import LineReader, TooLong
 from cell.robot.drive import HOLD_UR
 from cell.robot.emulator import RobotGroup
 from cell.ur import primary
@@ -72,7 +73,7 @@ class _Arm:
         self.state = URArm(robot.name, group.arm, DATAGRAM_PROGRAM)
         self.rtde: set[RtdeProtocol] = set()
         self.dashboards: set[DashboardProtocol] = set()
-        self.listeners: set[ScriptProtocol] = set()  # primary and secondary clients: they hear messages
+        self.scripts: set[ScriptProtocol] = set()  # clients of 30001-30003 (those of 30001/2 hear messages)
         self.runner: Runner | None = None
         self.t_last = 0.0  # the state time the program last stepped at
         self.restart_at = 0.0  # (monotonic s) when the datagram program comes back; 0: not due
@@ -119,8 +120,9 @@ class _Arm:
             data = primary.runtime_exception(t_us, m.line, m.column, m.text)
         else:
             data = primary.text(t_us, m.text)
-        for p in self.listeners:
-            p.transport.write(data)
+        for p in self.scripts:
+            if p.listens:
+                p.transport.write(data)
         if not quiet:
             (log.warning if m.line >= 0 else log.info)("%s: %s", self.robot.name, m.text)
 
@@ -146,14 +148,14 @@ class _Arm:
         if self.runner is not None:
             self.end(f"replaced by {script.name}")
         self.restart_at = 0.0
-        self.runner = runner(script, st, st.tool)
+        self.runner = runner(script, st)
         self.t_last = self.group.state_time
         st.program, st.runtime = f"{script.name}.script", RuntimeState.PLAYING
         c.scripts_run += 1
         self._datagrams(False, f"URScript program {script.name} holds the arm")
 
     def end(self, reason: str) -> None:
-        """The program is over: the cell's datagram program drives the arm again."""
+        """The program is over: the arm stands, running nothing, until restart() (RESTART_S on)."""
         r, self.runner = self.runner, None
         if r is None:
             return
@@ -209,7 +211,6 @@ class URInterfaces:
         self.arms = [_Arm(self, group, row, r) for row, r in enumerate(group.robots)]
         self.counters = URCounters()
         self.servers: list[asyncio.Server] = []
-        self._script_clients = 0
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -224,12 +225,8 @@ class URInterfaces:
                         lambda a=arm: DashboardProtocol(self, a), host, self.config.dashboard_port
                     )
                 )
-                for port, listens in (
-                    (self.config.primary_port, True),
-                    (self.config.secondary_port, True),
-                    (self.config.realtime_port, False),
-                ):
-                    make = lambda a=arm, ls=listens: ScriptProtocol(self, a, ls)  # noqa: E731
+                for port in (self.config.primary_port, self.config.secondary_port, self.config.realtime_port):
+                    make = lambda a=arm, p=port: ScriptProtocol(self, a, p)  # noqa: E731
                     self.servers.append(await loop.create_server(make, host, port))
             except OSError as exc:
                 raise OSError(
@@ -240,7 +237,7 @@ class URInterfaces:
         for s in self.servers:
             s.close()
         for arm in self.arms:
-            for p in [*arm.rtde, *arm.dashboards, *arm.listeners]:
+            for p in [*arm.rtde, *arm.dashboards, *arm.scripts]:
                 p.transport.abort()
 
     def after_tick(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
@@ -285,7 +282,7 @@ class URInterfaces:
         c = self.counters
         c.rtde_clients = sum(len(a.rtde) for a in self.arms)
         c.dashboard_clients = sum(len(a.dashboards) for a in self.arms)
-        c.script_clients = self._script_clients
+        c.script_clients = sum(len(a.scripts) for a in self.arms)
         return c.as_dict("ur.")
 
 
@@ -325,8 +322,7 @@ class DashboardProtocol(asyncio.Protocol):
         self.ur, self.arm = ur, arm
         robot = arm.robot
         self.dash = Dashboard(arm.state, robot.model, f"2020500{robot.id:05d}", arm.apply)
-        self.buf = bytearray()
-        self.skipping = False  # inside a line too long to take: its rest is dropped
+        self.lines = LineReader(MAX_LINE, b"\n")
         self.transport: asyncio.Transport
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -339,22 +335,11 @@ class DashboardProtocol(asyncio.Protocol):
 
     def data_received(self, data: bytes) -> None:
         c = self.ur.counters
-        self.buf += data
         replies: list[str] = []
-        while True:
-            i = self.buf.find(b"\n")
-            if i < 0:
-                if len(self.buf) > MAX_LINE:
-                    if not self.skipping:
-                        c.dashboard_long_lines += 1
-                        replies.append(f"could not understand: a line longer than {MAX_LINE} bytes")
-                    self.skipping = True
-                    self.buf.clear()
-                break
-            line = bytes(self.buf[:i])
-            del self.buf[: i + 1]
-            if self.skipping:  # the end of the over-long line
-                self.skipping = False
+        for line in self.lines.feed(data):
+            if isinstance(line, TooLong):
+                c.dashboard_long_lines += 1
+                replies.append(f"could not understand: a line longer than {MAX_LINE} bytes")
                 continue
             c.dashboard_commands += 1
             before = self.dash.unknown
@@ -375,21 +360,19 @@ class ScriptProtocol(asyncio.Protocol):
     """A client of the primary (30001), secondary (30002) or real-time (30003) interface: URScript
     programs in; on the first two the controller's version, then texts and runtime exceptions out."""
 
-    def __init__(self, ur: URInterfaces, arm: _Arm, listens: bool) -> None:
-        self.ur, self.arm, self.listens = ur, arm, listens
+    def __init__(self, ur: URInterfaces, arm: _Arm, port: int) -> None:
+        self.ur, self.arm, self.port = ur, arm, port
+        self.listens = port != ur.config.realtime_port
         self.framer = Framer()
         self.transport: asyncio.Transport
-        self.counted = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
-        if self.ur._script_clients >= self.ur.config.max_clients * 3 * len(self.ur.arms):
+        if sum(p.port == self.port for p in self.arm.scripts) >= self.ur.config.max_clients:
             transport.close()
             return
-        self.ur._script_clients += 1
-        self.counted = True
+        self.arm.scripts.add(self)
         if self.listens:
-            self.arm.listeners.add(self)
             major, minor, bugfix, build = CONTROLLER_VERSION
             self.transport.write(primary.version(int(time.time() * 1e6), major, minor, bugfix, build))
 
@@ -398,6 +381,4 @@ class ScriptProtocol(asyncio.Protocol):
             self.arm.run(program)
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self.arm.listeners.discard(self)
-        if self.counted:
-            self.ur._script_clients -= 1
+        self.arm.scripts.discard(self)

@@ -177,7 +177,7 @@ def test_a_stop_decelerates_at_the_rate_asked_and_ends_at_rest() -> None:
 
 
 def control(arm: URArm) -> RtdeControl:
-    return RtdeControl(Script("rtde_control", "rtde_control"), arm, arm.tool)
+    return RtdeControl(Script("rtde_control", "rtde_control"), arm)
 
 
 def test_the_control_script_answers_ready_then_done_and_takes_the_next_command_after_a_clear() -> None:
@@ -267,7 +267,7 @@ def test_a_line_program_runs_its_calls_in_order() -> None:
         "  movej([0.2, -1.5708, 1.5708, -1.5708, -1.5708, 0])\n"
         '  textmsg("there")\n  sleep(0.1)\nend\n'
     )
-    r = LineRunner(script, ur, ur.tool)
+    r = LineRunner(script, ur)
     sim.run(r.step, 1)
     assert ur.digital_out == 2 and r.ended is None
     ticks = 1
