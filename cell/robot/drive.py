@@ -80,23 +80,23 @@ class Drives:
             self.holds[rows] |= bit
         else:
             self.holds[rows] &= ~bit
-        self.target[rows] = 0.0
-        self.pending[rows] = 0.0
-        self.has_pending[rows] = False
-        if not on:
-            self.armed[rows] = False
-            self.missed[rows] = 0
+        self._clear(rows, rearm=not on)
 
     def script(self, row: int, on: bool) -> None:
         """A URScript program takes the robot over (on) or gives it back to the datagram program: it
         stands where it is until commanded, its watchdog re-armed by the next command."""
         self.scripted[row] = on
-        self.target[row] = 0.0
-        self.pending[row] = 0.0
-        self.has_pending[row] = False
-        self.armed[row] = False
-        self.missed[row] = 0
+        self._clear(row, rearm=True)
         self.stopped[row] = False
+
+    def _clear(self, rows: np.ndarray | int, rearm: bool) -> None:
+        """No command executing or pending; with rearm, the watchdog off until the next command."""
+        self.target[rows] = 0.0
+        self.pending[rows] = 0.0
+        self.has_pending[rows] = False
+        if rearm:
+            self.armed[rows] = False
+            self.missed[rows] = 0
 
     def end_window(self) -> tuple[np.ndarray, np.ndarray]:
         """Execute the kept commands; return (robots that just stopped, robots that just resumed)."""
