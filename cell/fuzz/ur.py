@@ -115,9 +115,7 @@ async def _scripts(host: str, port: int, n: int, mut: Mutator) -> tuple[int, int
                 if not data:
                     break
                 buf += data
-                whole = primary.split(bytes(buf))
-                del buf[: sum(5 + len(body) for _, body in whole)]
-                for kind, body in whole:
+                for kind, body in primary.split(buf):
                     if kind == primary.ROBOT_MESSAGE:
                         refused += (
                             primary.read_robot_message(body)[0] == primary.RobotMessage.RUNTIME_EXCEPTION
@@ -140,11 +138,12 @@ async def _rtde(host: str, port: int, n: int, mut: Mutator) -> tuple[int, int]:
     reader, writer = await asyncio.open_connection(host, port)
     try:
         writer.write(b"".join(out))
-        writer.write(rtde.encode(Package.GET_URCONTROL_VERSION) * 2)
+        writer.write(rtde.encode(Package.GET_URCONTROL_VERSION))
         buf, versions = bytearray(), 0
-        with_wanted = sum(1 for p in out if p[2] == Package.GET_URCONTROL_VERSION and len(p) == 3) + 2
+        # every well-formed version request among the mutants is answered too: ours is the last
+        wanted = sum(1 for p in out if p[2] == Package.GET_URCONTROL_VERSION and len(p) == 3) + 1
         async with asyncio.timeout(30):
-            while versions < with_wanted:
+            while versions < wanted:
                 data = await reader.read(65536)
                 if not data:
                     return len(out), 0

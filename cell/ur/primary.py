@@ -42,15 +42,16 @@ def runtime_exception(t_us: int, line: int, column: int, message: str) -> bytes:
     return _robot_message(RobotMessage.RUNTIME_EXCEPTION, t_us, body)
 
 
-def split(buf: bytes) -> list[tuple[int, bytes]]:
-    """Whole packages in buf: (type, body after the 5-byte header).  (For clients and tests.)"""
-    out, i = [], 0
-    while i + 5 <= len(buf):
-        size, kind = struct.unpack_from(">iB", buf, i)
-        if size < 5 or i + size > len(buf):
+def split(buf: bytearray) -> list[tuple[int, bytes]]:
+    """Whole packages off the front of buf (removed from it), as rtde.split: (type, body after the
+    5-byte header).  (For clients and tests.)"""
+    out = []
+    while len(buf) >= 5:
+        size, kind = struct.unpack_from(">iB", buf)
+        if size < 5 or size > len(buf):
             break
-        out.append((kind, buf[i + 5 : i + size]))
-        i += size
+        out.append((kind, bytes(buf[5:size])))
+        del buf[:size]
     return out
 
 

@@ -224,11 +224,11 @@ async def test_a_client_that_dies_mid_servoj_leaves_the_arm_stopped_and_the_cell
 
 
 async def _read_messages(reader: asyncio.StreamReader, want: int) -> list[tuple[primary.RobotMessage, bytes]]:
-    buf, got = b"", []
+    buf, got = bytearray(), []
     async with asyncio.timeout(10):
         while len(got) < want:
             buf += await reader.read(4096)
-            got = [primary.read_robot_message(body) for kind, body in primary.split(buf) if kind == 20]
+            got += [primary.read_robot_message(body) for kind, body in primary.split(buf) if kind == 20]
     return got
 
 

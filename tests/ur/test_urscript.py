@@ -95,7 +95,7 @@ def test_primary_messages_byte_by_byte() -> None:
     assert v[15:] == b"\x09URControl" + struct.pack(">BBii", 5, 11, 0, 108249)
     e = primary.runtime_exception(9, 3, 2, "no")
     assert e == struct.pack(">iBQbBii", 25, 20, 9, -2, 10, 3, 2) + b"no"
-    (kind, body), (kind2, body2) = primary.split(e + primary.text(1, "hi"))
+    (kind, body), (kind2, body2) = primary.split(bytearray(e + primary.text(1, "hi")))
     assert kind == kind2 == 20
     assert primary.read_robot_message(body) == (
         primary.RobotMessage.RUNTIME_EXCEPTION,
