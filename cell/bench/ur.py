@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.bench.cellproc import running_cell
+from cell.bench.cellproc import free_port, running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.launcher import fetch_status
 from cell.ur import rtde
@@ -33,8 +33,6 @@ PERIOD_S = 0.002
 
 
 def _robots(n: int, backend: str) -> list[dict[str, Any]]:
-    from cell.bench.cellproc import free_port
-
     return [
         {"id": i, "name": f"r{i}", "skill_port": free_port(), "backend": backend, "truth_hz": 0}
         for i in range(1, n + 1)

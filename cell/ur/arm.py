@@ -19,6 +19,7 @@ from cell.ur.rtde import WIDTH, Type
 
 CONTROLLER_VERSION = (5, 11, 0, 0)  # an e-Series controller on PolyScope 5.11
 POLYSCOPE = "5.11.0.108249"
+DATAGRAM_PROGRAM = "cell.urp"  # the cell's own program: the data plane's datagrams drive the arm
 
 
 class RobotMode(IntEnum):
@@ -77,7 +78,7 @@ STOPPED_DUE_TO_SAFETY = 1 << 10
 class URArm:
     """The UR controller state of one arm (both backends), and its RTDE Source and InputOwner."""
 
-    def __init__(self, name: str, model: ArmModel, program: str = "cell.urp") -> None:
+    def __init__(self, name: str, model: ArmModel, program: str = DATAGRAM_PROGRAM) -> None:
         self.name, self.model = name, model
         self.tool = Tool(model)  # the TCP: the flange and a program's set_tcp offset
         # an arm of the cell starts as a UR in remote control, on, brakes released, running the

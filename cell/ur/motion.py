@@ -42,10 +42,6 @@ class Tool:
     def set_tcp(self, pose: np.ndarray) -> None:
         self.tcp_pos, self.tcp_rot = np.asarray(pose[:3], np.float64).copy(), from_rotvec(pose[3:])
 
-    @property
-    def tcp(self) -> np.ndarray:
-        return np.concatenate([self.tcp_pos, to_rotvec(self.tcp_rot)])
-
     def frame(self, q: np.ndarray, tcp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The TCP's position and rotation matrix at q (with another offset if given)."""
         tp, tr = (self.tcp_pos, self.tcp_rot) if tcp is None else (np.asarray(tcp[:3]), from_rotvec(tcp[3:]))
@@ -70,8 +66,9 @@ class Tool:
         d.qpos[:] = q
         mujoco.mj_kinematics(m, d)
         mujoco.mj_comPos(m, d)
-        pos, _ = self.frame(q)
-        mujoco.mj_jac(m, d, self._jp, self._jr, pos, m.site_bodyid[self.arm.tool_site])
+        site = self.arm.tool_site  # (the TCP from this pass's flange: no second forward kinematics)
+        pos = d.site_xpos[site] + d.site_xmat[site].reshape(3, 3) @ self.tcp_pos
+        mujoco.mj_jac(m, d, self._jp, self._jr, pos, m.site_bodyid[site])
         return np.vstack([self._jp, self._jr])
 
 

@@ -27,7 +27,7 @@ from cell.lines import LineReader, TooLong
 from cell.robot.drive import HOLD_UR
 from cell.robot.emulator import RobotGroup
 from cell.ur import primary
-from cell.ur.arm import CONTROLLER_VERSION, RuntimeState, SafetyMode, URArm
+from cell.ur.arm import CONTROLLER_VERSION, DATAGRAM_PROGRAM, RuntimeState, SafetyMode, URArm
 from cell.ur.dashboard import MAX_LINE, WELCOME, Dashboard
 from cell.ur.fields import INPUTS, OUTPUTS
 from cell.ur.program import Message, Runner, runner
@@ -59,7 +59,6 @@ class URCounters(Counters):
 
 
 Publish = Callable[[str, object], None]
-DATAGRAM_PROGRAM = "cell.urp"  # the cell's own program: the data plane's datagrams drive the arm
 # after a script ends, no program runs for this long before the datagram program is back (as a URCap
 # daemon re-sends its program): a client waiting to see its script gone (ur_rtde's stopScript) sees it
 RESTART_S = 0.1
@@ -70,7 +69,7 @@ class _Arm:
 
     def __init__(self, ur: URInterfaces, group: RobotGroup, row: int, robot: RobotConfig) -> None:
         self.ur, self.group, self.row, self.robot = ur, group, row, robot
-        self.state = URArm(robot.name, group.arm, DATAGRAM_PROGRAM)
+        self.state = URArm(robot.name, group.arm)
         self.rtde: set[RtdeProtocol] = set()
         self.dashboards: set[DashboardProtocol] = set()
         self.scripts: set[ScriptProtocol] = set()  # clients of 30001-30003 (those of 30001/2 hear messages)
