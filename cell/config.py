@@ -408,7 +408,8 @@ class RobotConfig:
     id: int = _check(lambda v: None if 1 <= v <= 0xFFFF else f"must be 1..65535 (got {v})")
     name: str = _check(_name)
     model: str = _check(_robot_model)  # a name of cell.robot.models' registry
-    backend: Literal["mujoco", "kinematic"]
+    # "ur": not emulated here: a UR controller at ur_address, brought in by the daemon (cell.ur.remote)
+    backend: Literal["mujoco", "kinematic", "ur"]
     skill_port: int = _check(_port)
     status_hz: int = _check(_positive)
     command_hz: int = _check(_positive)
@@ -416,8 +417,12 @@ class RobotConfig:
     watchdog_windows: int = _check(_positive)
     q0: list[float]  # one per joint of the model (RobotConfig.validate)
     host: str = _check(lambda v: None if v == "" else _name(v))  # the host emulating it ("": the only one)
-    # the address its UR controller interfaces (RTDE, dashboard, ...) listen on ("": 127.0.1.<id>)
+    # the address its UR controller interfaces (RTDE, dashboard, ...) listen on ("": 127.0.1.<id>); with
+    # backend "ur", that of the UR controller the daemon connects to
     ur_address: str = _check(lambda v: None if v == "" else _host_port(f"{v}:1"))
+    # backend "ur" only: emulate that controller here ("mujoco" or "kinematic"), an arm that offers only
+    # its UR interfaces, as URSim or a real UR5e does ("": a real controller at ur_address)
+    ur_emulate: Literal["", "mujoco", "kinematic"]
 
     @property
     def ur_host(self) -> str:
@@ -435,6 +440,13 @@ class RobotConfig:
             raise err("command_hz", f"must divide status_hz ({self.status_hz}): windows end on status ticks")
         if self.truth_hz > self.status_hz:
             raise err("truth_hz", f"must be <= status_hz ({self.status_hz})")
+        if self.backend == "ur":
+            if not (self.ur_address or self.ur_emulate):
+                raise err("ur_address", "with backend = 'ur': the UR controller's address (or ur_emulate)")
+            if 500 % self.status_hz:
+                raise err("status_hz", "with backend = 'ur': must divide the UR controller's 500 Hz")
+        elif self.ur_emulate:
+            raise err("ur_emulate", f'only for backend = "ur" (this robot is backend = "{self.backend}")')
 
 
 @dataclass(frozen=True)
@@ -442,7 +454,7 @@ class RobotDefaults:
     """Keys every [[robots]] entry inherits unless it sets them itself."""
 
     model: str = _check(_robot_model)
-    backend: Literal["mujoco", "kinematic"]
+    backend: Literal["mujoco", "kinematic", "ur"]
     status_hz: int = _check(_positive)
     command_hz: int = _check(_positive)
     truth_hz: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")
@@ -450,6 +462,7 @@ class RobotDefaults:
     q0: list[float]  # one per joint of the model (RobotConfig.validate)
     host: str = _check(lambda v: None if v == "" else _name(v))
     ur_address: str = _check(lambda v: None if v == "" else _host_port(f"{v}:1"))
+    ur_emulate: Literal["", "mujoco", "kinematic"]
 
 
 @dataclass(frozen=True)
@@ -463,6 +476,11 @@ class URConfig:
     secondary_port: int = _check(_port)
     realtime_port: int = _check(_port)  # URScript in (ur_rtde sends its control script here)
     max_clients: int = _check(_positive)  # connections per arm and interface; more are refused
+    # the daemon (robots of backend "ur"): the first of the registers its script uses (input int: the
+    # window's number; input doubles, six: the joint velocities; output ints: the number echoed, a
+    # heartbeat).  24-47 are the range UR leaves to external RTDE clients (0-23 serve the fieldbuses)
+    daemon_registers: int = _check(lambda v: None if 0 <= v <= 42 else f"must be 0..42 (got {v})")
+    daemon_restart_s: float = _check(lambda v: None if 0 < v <= 60 else f"must be in (0, 60] (got {v})")
 
 
 # the key of the address each of these services binds: it must run on the host with that address

@@ -19,25 +19,44 @@ cable pulled.  The robots tick from the start, bus or no bus.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
+from collections.abc import Iterable
 
 from cell.bus import RpcFault
 from cell.bus.node import Handler
 from cell.robot.emulator import RobotGroup
-from cell.robot.node import ANNOUNCE_S, Publisher, RobotsNode, announcements, build_groups, counters, has_node
+from cell.robot.node import (
+    ANNOUNCE_S,
+    Publisher,
+    RobotsNode,
+    announcements,
+    build_emulated_controllers,
+    build_groups,
+    counters,
+    has_node,
+)
 from cell.service import ServiceContext, ServiceSpec
+from cell.ur.remote import Daemon
 from cell.ur.server import URInterfaces
 from cell.v1 import robot_pb2
 
+DAEMONS_UP_S = 5.0  # the service waits this long at most for its daemons' programs to run
+
 
 async def run(ctx: ServiceContext) -> None:
-    groups = build_groups(ctx.config)
+    groups = build_groups(ctx.config, ctx.bus.publish)
+    # the UR controllers emulated for robots of backend "ur" (ur_emulate): not robots of the cell
+    # themselves (their daemons are), so nothing of theirs goes on the bus but the daemons' view
+    hidden: list[RobotGroup] = []
     try:
+        hidden = build_emulated_controllers(ctx.config)
         node = RobotsNode(groups, ctx.config) if has_node(ctx.config) else None
     except BaseException:
-        for g in groups:
+        for g in [*groups, *hidden]:
             g.close()
         raise
+    daemons = [g for g in groups if isinstance(g, Daemon)]
     urs: list[URInterfaces] = []
     try:
 
@@ -53,6 +72,8 @@ async def run(ctx: ServiceContext) -> None:
                 ctx.counters.update(counters(groups))
                 for u in urs:
                     ctx.counters.update(u.report())
+                if daemons:
+                    ctx.counters.update(_sum(d.report() for d in daemons))
                 if node is not None:
                     ctx.counters.update(node.counters())
                 await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
@@ -84,29 +105,51 @@ async def run(ctx: ServiceContext) -> None:
                     }
                     await ctx.bus.serve(f"robot/{r.name}", methods)
 
-        for g in groups:  # (each arm's UR interfaces: RTDE, dashboard)
-            if ctx.config.ur.interfaces:
+        for g in groups:  # (each emulated arm's UR interfaces: RTDE, dashboard, URScript)
+            if ctx.config.ur.interfaces and not isinstance(g, Daemon):
                 urs.append(URInterfaces(g, ctx.config, ctx.bus.publish))
                 await urs[-1].start()
+        for g in hidden:  # (offered whatever [ur] interfaces says: they are all these arms have)
+            urs.append(URInterfaces(g, ctx.config))
+            await urs[-1].start()
         ur_of = {id(u.group): u for u in urs}
 
         async with asyncio.TaskGroup() as tg:
             for g in groups:
                 tick = Publisher(ctx.bus, g, node, ur_of.get(id(g)))
                 tg.create_task(g.run(tick), name=f"robots:{g.robots[0].backend}")
+            for g in hidden:
+                tg.create_task(g.run(ur_of[id(g)].after_tick), name="robots:emulated-ur")
             tg.create_task(control(), name="control")
             if node is not None:
                 tg.create_task(node.run(), name="rlink")
             tg.create_task(announce(), name="announce")
             tg.create_task(report(), name="report")
+            if daemons:  # (ready once the daemons drive their arms, or say why not: never a hang)
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(DAEMONS_UP_S):
+                        await asyncio.gather(*(d.up.wait() for d in daemons))
+                for d in daemons:
+                    if not d.up.is_set():
+                        ctx.log.warning("robot %s is not driven yet: %s", d.robots[0].name, d.why)
             ctx.ready()
     finally:
         for u in urs:
             u.close()
         if node is not None:
             node.close()
-        for g in groups:
+        for g in [*groups, *hidden]:
             g.close()
+
+
+def _sum(reports: Iterable[dict[str, float]]) -> dict[str, float]:
+    """Several daemons' figures as one: counts added, gauges and percentiles the worst of them."""
+    out: dict[str, float] = {}
+    for rep in reports:
+        for k, v in rep.items():
+            worst = k.endswith(("_p50", "_p99"))
+            out[k] = max(out.get(k, v), v) if worst else out.get(k, 0.0) + v
+    return out
 
 
 SERVICE = ServiceSpec(

@@ -1,7 +1,8 @@
-"""How the robots of a group move: a kinematic model (fleets) or MuJoCo physics (one per robot).
+"""How the robots of a group move: a kinematic model (fleets), MuJoCo physics (one per robot), or a
+real UR controller's own servos (RemoteArm: its state read over RTDE).
 
-Both take velocity references from the same Drives (window semantics and
-limits) and expose q and qd, (robots, dof) arrays, after each step.
+Each takes velocity references from the same Drives (window semantics and
+limits) and exposes q and qd, (robots, dof) arrays, after each step.
 """
 
 from __future__ import annotations
@@ -99,4 +100,19 @@ class MujocoArms:
             self.qd[i] = d.qvel
 
 
-BACKENDS = {"kinematic": KinematicArms, "mujoco": MujocoArms}
+class RemoteArm:
+    """A UR controller elsewhere (cell.ur.remote): q and qd are what its RTDE says, and the drives
+    only keep the command windows, the watchdog and the holds; the controller's own servos move it."""
+
+    def __init__(self, arm: ArmModel, q0: np.ndarray, watchdog: int) -> None:
+        lim = arm.limits
+        self.drives = Drives(len(q0), lim.v_max, lim.a_max, watchdog)
+        self.q = np.array(q0, np.float64)
+        self.qd = np.zeros_like(self.q)
+        self.limit_hits = 0
+
+    def step(self, dt: float) -> None:
+        """(The arm moves by itself: its state comes in with its RTDE packages.)"""
+
+
+BACKENDS = {"kinematic": KinematicArms, "mujoco": MujocoArms, "ur": RemoteArm}

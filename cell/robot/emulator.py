@@ -94,7 +94,10 @@ class RobotGroup:
         dataplane: str,
         host: str = "127.0.0.1",
         arm: ArmModel | None = None,
+        datagrams: bool = True,
     ) -> None:
+        """datagrams=False: robots that neither send status nor take commands (no sockets at all):
+        arms that offer only their UR interfaces, as a real UR does (RobotConfig.ur_emulate)."""
         first = robots[0]
         for r in robots:
             if (r.backend, r.model, r.status_hz, r.command_hz) != (
@@ -115,9 +118,10 @@ class RobotGroup:
         self.backend = BACKENDS[first.backend](self.arm, q0, first.watchdog_windows)
         self.drives = self.backend.drives
         self.ids = np.array([r.id for r in robots], np.uint16)
+        self.datagrams = datagrams
         self.socks = []
         try:
-            for _ in robots:
+            for _ in robots if datagrams else ():
                 self.socks.append(udp.open_socket(host, timestamps=True))
         except BaseException:
             self.close()
@@ -144,6 +148,9 @@ class RobotGroup:
         self.silent_until = np.zeros(self.n)
         # commands that came after this tick's status left (see receive()): (rows, joints, velocities)
         self.later: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # called as each status period starts, right after the status went out: what else reports the
+        # state of this deadline sends it then (the arms' RTDE packages, cell.ur.server)
+        self.at_deadline: Callable[[], None] | None = None
 
     def silence(self, robot_id: int, seconds: float) -> bool:
         """Make one robot stop answering for `seconds`; False if it is not in this group."""
@@ -236,7 +243,27 @@ class RobotGroup:
         """
         cutoff_ns = time.time_ns()  # (the kernel stamps datagrams in CLOCK_REALTIME)
         self._send(deadline, clock)
+        if self.at_deadline is not None:
+            self.at_deadline()
+        stopping, resuming, left = self.take(cutoff_ns, periods)
+        self.backend.step(self.period * left)
+        # the instant q, qd now describe: one period past the latest deadline (the backend stepped from
+        # the last state, one period past the last tick's deadline, over every period missed since)
+        self.state_time = deadline + self.period
+        self._pack()
+        self.counters.ticks += 1
+        self.counters.missed_ticks += periods - 1
+        return stopping, resuming
+
+    def take(self, cutoff_ns: int, periods: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """After a status went out: the commands that came in, and the command windows that ended
+        over the `periods` status periods since the last one; (rows that stopped, rows that resumed,
+        the periods the backend has yet to step)."""
         self.receive(cutoff_ns)
+        return self.end_windows(periods)
+
+    def end_windows(self, periods: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """take() once the commands are in."""
         stopping = resuming = np.empty(0, np.int64)
         last, self.tick_no = self.tick_no, self.tick_no + periods
         # windows end at periods W, 2W, ... (W status periods a window); one may have ended since last
@@ -263,13 +290,8 @@ class RobotGroup:
             self.later = None
         self.counters.protective_stops += stopping.size
         self.counters.resumes += resuming.size
-        self.backend.step(self.period * left)
-        self.state_time = deadline + self.period * periods  # the instant q, qd now describe
-        self._pack()
-        self.counters.ticks += 1
         self.counters.commands_ignored = self.drives.ignored
-        self.counters.missed_ticks += periods - 1
-        return stopping, resuming
+        return stopping, resuming, left
 
     def _pack(self) -> None:
         """The next status of every joint, ready to go at the next deadline."""

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
@@ -20,22 +22,48 @@ from cell.robot.emulator import RobotGroup
 from cell.v1 import robot_pb2
 
 ANNOUNCE_S = 2.0
+Publish = Callable[[str, object], None]
 STILL_RAD_S = 1e-3  # a stopped robot stands still once every joint is slower than this
 
 
-def build_groups(config: CellConfig) -> list[RobotGroup]:
-    """This host's robots, one group per (backend, model, rates); they bind this host's address (in a
-    cell of one host: the data plane's)."""
+def build_groups(config: CellConfig, publish: Publish | None = None) -> list[RobotGroup]:
+    """This host's robots, one group per (backend, model, rates), and one per robot of backend "ur"
+    (its daemon, cell.ur.remote, telling the bus through `publish`); they bind this host's address
+    (in a cell of one host: the data plane's)."""
+    from cell.ur.remote import Daemon
+
     by_key: dict[tuple, list[RobotConfig]] = defaultdict(list)
     for r in config.local_robots():
-        by_key[(r.backend, r.model, r.status_hz, r.command_hz)].append(r)
+        by_key[(r.backend, r.model, r.status_hz, r.command_hz, r.id if r.backend == "ur" else 0)].append(r)
     here = config.here()
     host = here.address if here is not None else parse_host_port(config.dataplane.listen)[0]
     if config.dataplane.backend == "xdp" and here is None:  # the switch's namespace is not ours: its veth
         host = config.dataplane.xdp.host_addr
     groups: list[RobotGroup] = []
+    dataplane = config.dataplane.listen
     try:
-        groups.extend(RobotGroup(robots, config.dataplane.listen, host=host) for robots in by_key.values())
+        for robots in by_key.values():
+            if robots[0].backend == "ur":
+                groups.append(Daemon(robots[0], dataplane, host, config.ur, publish))
+            else:
+                groups.append(RobotGroup(robots, dataplane, host=host))
+    except BaseException:
+        for g in groups:
+            g.close()
+        raise
+    return groups
+
+
+def build_emulated_controllers(config: CellConfig) -> list[RobotGroup]:
+    """The UR controllers this host emulates for its robots of backend "ur" with ur_emulate set: arms
+    that offer only their UR interfaces (no datagrams), each driven through its own daemon."""
+    robots = [replace(r, backend=r.ur_emulate, ur_emulate="") for r in config.local_robots() if r.ur_emulate]
+    by_key: dict[tuple, list[RobotConfig]] = defaultdict(list)
+    for r in robots:
+        by_key[(r.backend, r.model, r.status_hz, r.command_hz)].append(r)
+    groups: list[RobotGroup] = []
+    try:
+        groups.extend(RobotGroup(rs, config.dataplane.listen, datagrams=False) for rs in by_key.values())
     except BaseException:
         for g in groups:
             g.close()

@@ -362,9 +362,49 @@ class RtdeControl(Runner):
             self.ended = exc.reason
 
 
+# --- the cell's daemon program ---------------------------------------------------------------------
+
+
+class DaemonProgram(Runner):
+    """The daemon's program (cell.ur.daemon.script), served natively: each tick, the velocities in the
+    input double registers as speedj takes them; the window number and a heartbeat written back; after
+    `watchdog` ticks with the same window number, a stop."""
+
+    def __init__(self, script: Script, arm: URArm) -> None:
+        super().__init__(script, arm)
+        cfg = script.settings
+        self.first = int(cfg.get("registers", 24))  # (parse() checked them)
+        self.watchdog = int(cfg.get("watchdog", 16))
+        self.accel = float(cfg.get("accel", 40.0))
+        self.window = arm.int_in[self.first]
+        self.idle = 0
+        self.beat = 0
+        self.motion = None
+
+    def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
+        arm, r = self.arm, self.first
+        taken = arm.int_in[r]
+        if taken != self.window:
+            self.window, self.idle = taken, 0
+        elif self.idle < self.watchdog:
+            self.idle += 1
+        v = np.array(arm.double_in[r : r + 6]) if self.idle < self.watchdog else np.zeros_like(q)
+        if isinstance(self.motion, Speed):
+            self.motion.set(v, self.accel)
+        else:
+            self.motion = Speed(qd, v, self.accel)
+        self.beat = self.beat + 1 if self.beat < 1_000_000_000 else 1
+        arm.int_out[r], arm.int_out[r + 1] = self.window, self.beat
+        return self.motion.step(q, qd, dt)
+
+
+RUNNERS: dict[str, type[Runner]] = {
+    "rtde_control": RtdeControl,
+    "lines": LineRunner,
+    "cell_daemon": DaemonProgram,
+}
+
+
 def runner(script: Script, arm: URArm) -> Runner:
-    if script.kind == "rtde_control":
-        return RtdeControl(script, arm)
-    if script.kind == "lines":
-        return LineRunner(script, arm)
-    raise ValueError(f"no runner for {script.kind} programs")
+    """The runner of a parsed program."""
+    return RUNNERS[script.kind](script, arm)

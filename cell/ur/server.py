@@ -69,7 +69,13 @@ class _Arm:
 
     def __init__(self, ur: URInterfaces, group: RobotGroup, row: int, robot: RobotConfig) -> None:
         self.ur, self.group, self.row, self.robot = ur, group, row, robot
-        self.state = URArm(robot.name, group.arm)
+        # the program it runs when no script holds it: the cell's datagram program, or (an arm that
+        # offers only its UR interfaces, as a real UR) none: it stands until a program is sent
+        self.home = DATAGRAM_PROGRAM if group.datagrams else ""
+        self.state = URArm(robot.name, group.arm, program=self.home)
+        if not group.datagrams:
+            self.state.runtime = RuntimeState.STOPPED
+            group.drives.script(row, True)
         self.rtde: set[RtdeProtocol] = set()
         self.dashboards: set[DashboardProtocol] = set()
         self.scripts: set[ScriptProtocol] = set()  # clients of 30001-30003 (those of 30001/2 hear messages)
@@ -132,8 +138,6 @@ class _Arm:
             if isinstance(text, ScriptError):
                 raise text
             script = parse(text)
-            if script.kind == "cell_daemon":
-                raise ScriptError(1, 0, "the daemon's script is for a real controller, not an emulated arm")
         except ScriptError as exc:
             c.scripts_refused += 1
             self.say(Message(f"program refused: {exc.reason}", exc.line, exc.column), quiet=True)
@@ -165,7 +169,7 @@ class _Arm:
         c.scripts_failed += bool(reason)
         self.group.drives.target[self.row] = 0.0  # (no program: it stands, the commands still ignored)
         st = self.state
-        st.program, st.runtime = DATAGRAM_PROGRAM, RuntimeState.STOPPED
+        st.program, st.runtime = self.home, RuntimeState.STOPPED
         self.restart_at = time.monotonic() + RESTART_S
         self.ended = f"URScript program {r.name} ended" + (f" ({reason})" if reason else "")
         log.info("%s: %s", self.robot.name, self.ended)
@@ -210,6 +214,11 @@ class URInterfaces:
         self.arms = [_Arm(self, group, row, r) for row, r in enumerate(group.robots)]
         self.counters = URCounters()
         self.servers: list[asyncio.Server] = []
+        # the RTDE packages of the next deadline's state, made after this tick (after_tick) and sent
+        # as the period starts (flush), when the state they carry is the arm's: a UR sends its state
+        # at the end of the cycle it describes, never before
+        self.due: list[tuple[RtdeProtocol, bytes, int]] = []
+        group.at_deadline = self.flush
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -250,7 +259,7 @@ class URInterfaces:
         tick = group.tick_no
         # the controller's clock: s since the tick grid's origin (tick k's state is at k periods)
         t = group.state_time - group.origin_ns / 1e9
-        b, c = group.backend, self.counters
+        b = group.backend
         now = time.monotonic()
         for arm in self.arms:
             if arm.runner is not None:
@@ -268,14 +277,22 @@ class URInterfaces:
             row = arm.row
             arm.state.update(b.q[row], b.qd[row], group.drives.target[row], t)
             for p in live:
-                due = p.session.due(tick, arm.state)
-                if not due:
-                    continue
-                if p.transport.get_write_buffer_size() > WRITE_LIMIT:
-                    c.rtde_dropped += len(due)
-                    continue
-                p.transport.write(b"".join(due))
-                c.rtde_packages_out += len(due)
+                if due := p.session.due(tick + 1, arm.state):  # (the next tick's state)
+                    self.due.append((p, b"".join(due), len(due)))
+
+    def flush(self) -> None:
+        """The packages of the state at this deadline, to their clients (a client that does not read
+        loses them, counted: the arm waits for nobody)."""
+        c = self.counters
+        for p, data, n in self.due:
+            if p.transport.is_closing():
+                continue
+            if p.transport.get_write_buffer_size() > WRITE_LIMIT:
+                c.rtde_dropped += n
+                continue
+            p.transport.write(data)
+            c.rtde_packages_out += n
+        self.due.clear()
 
     def report(self) -> dict[str, float]:
         c = self.counters

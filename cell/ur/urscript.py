@@ -6,7 +6,8 @@ says what the program is:
 
 - ur_rtde's control script (`def rtde_control():`): served natively (cell.ur.program.RtdeControl), its
   register offsets read from the script;
-- the cell's daemon script (`def cell_daemon():`, cell.ur.daemon): served natively;
+- the cell's daemon script (`def cell_daemon():`, cell.ur.daemon): served natively, its settings
+  read from its `global cell_<name> = <number>` lines;
 - a straight-line program: calls of movej, movel, speedj, servoj, stopj, stopl, sleep, sync,
   set_standard_digital_out, textmsg and popup, one a line, with literal arguments;
 
@@ -27,6 +28,7 @@ MAX_SCRIPT = 1 << 20  # bytes of one program; a longer one is refused and skippe
 MAX_LINE = 10_000  # characters of one line of a straight-line program
 _TOP_DEF = re.compile(r"^(def|sec)\s+([A-Za-z_]\w*)\s*\(\s*\)\s*:")
 _POSE = re.compile(r"\bp\s*\[")
+_SETTING = re.compile(r"^\s*global\s+cell_(\w+)\s*=\s*([-+0-9.eE]+)\s*$", re.M)
 
 
 class ScriptError(ValueError):
@@ -58,6 +60,7 @@ class Script:
     calls: list[Call] = field(default_factory=list)
     reg_offset_int: int = 0
     reg_offset_float: int = 0
+    settings: dict[str, float] = field(default_factory=dict)  # its `global cell_<name> = <number>` lines
 
 
 class Framer:
@@ -134,8 +137,21 @@ def parse(text: str) -> Script:
     m = _TOP_DEF.match(lines[0]) if lines else None
     name = m.group(2) if m else "program"
     if name in ("rtde_control", "cell_daemon"):
+        settings = {}
+        for key, value in _SETTING.findall(text):
+            try:
+                settings[key] = float(value)
+            except ValueError:
+                at = text[: text.index(f"cell_{key}")].count("\n") + 1
+                raise ScriptError(at, 0, f"cell_{key}: {value!r} is not a number") from None
+        if name == "cell_daemon":
+            _check_daemon(settings)
         return Script(
-            name, name, reg_offset_int=_offset(text, "int"), reg_offset_float=_offset(text, "float")
+            name,
+            name,
+            reg_offset_int=_offset(text, "int"),
+            reg_offset_float=_offset(text, "float"),
+            settings=settings,
         )
     body = lines[1:-1] if m else lines
     first = 2 if m else 1
@@ -145,6 +161,18 @@ def parse(text: str) -> Script:
         if code:
             calls.append(_call(code, n, len(line) - len(line.lstrip())))
     return Script(name, "lines", calls)
+
+
+def _check_daemon(settings: dict[str, float]) -> None:
+    """The daemon's settings as the emulated arm can run them (a UR would fail on a register out of
+    range, or spin on a zero acceleration)."""
+    r = settings.get("registers", 24)
+    if not (r == int(r) and 0 <= r <= 42):
+        raise ScriptError(1, 0, f"cell_registers = {r:g}: its registers r..r+5 must lie in 0..47")
+    if not 1 <= settings.get("watchdog", 16) <= 1e6:
+        raise ScriptError(1, 0, "cell_watchdog must be 1..1e6 cycles")
+    if not 0 < settings.get("accel", 40.0) <= 1e4:
+        raise ScriptError(1, 0, "cell_accel must be in (0, 1e4] rad/s^2")
 
 
 def _offset(text: str, kind: str) -> int:

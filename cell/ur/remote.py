@@ -1,0 +1,382 @@
+"""The daemon: a UR controller (a real UR5e, URSim, or an emulated arm offering only its UR interfaces)
+as a robot of the cell (RobotConfig backend = "ur").
+
+The paper's URCap daemon (seed 000, Sec. 4) sits between the robot's URScript interface and the
+cell's datagrams.  Here it runs beside the cell, in the robots service, and is a RobotGroup of one
+robot whose backend is the controller itself:
+
+- it keeps an RTDE session with the controller at the robot's status rate (500 Hz on an e-Series)
+  and sends the daemon's program (cell.ur.daemon) to its primary interface;
+- each RTDE package is a status period: its actual_q and actual_qd go out at once as the robot's six
+  status datagrams, their seq numbers counting the controller's own 2 ms cycles (a package the
+  controller did not send is a gap in them, as a missed tick is on an emulated arm);
+- the data plane's command datagrams are taken as an emulated arm takes them (Drives: the command
+  window, the latest command per joint, the watchdog's protective stop, the Responsive Link's halt),
+  and each window's result is one RTDE input package: the window's number and the six velocities,
+  which the program speedj's from its next cycle on.
+
+The program runs only while the controller lets it: when the arm may not move (powered off, a safety
+stop) or another program holds it, the data plane's commands are counted and ignored and the bus
+hears why (events/robot/<name>, KIND_PROGRAM; KIND_PROGRAM_END once the daemon's program runs
+again), exactly as for a URScript program on an emulated arm; once no program runs and the arm may
+move, the daemon sends its program again ([ur] daemon_restart_s after the last time).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from enum import Enum
+
+import numpy as np
+
+from cell.config import RobotConfig, URConfig
+from cell.robot.emulator import Lateness, RobotGroup
+from cell.ur import primary
+from cell.ur.arm import RobotMode, RuntimeState, SafetyMode
+from cell.ur.client import Client, SetupRefused
+from cell.ur.daemon import Registers, script
+from cell.v1 import robot_pb2
+
+log = logging.getLogger("cell.ur.daemon")
+
+CONNECT_S = 2.0  # to connect and finish the RTDE handshake
+SILENT_S = 1.0  # no RTDE package for this long: the controller is lost
+BEAT_PACKAGES = 25  # the heartbeat unchanged over this many packages: the program does not run
+RETRY_S = (0.2, 2.0)  # reconnection back-off, first and longest
+
+
+class DaemonState(Enum):
+    CONNECTING = "connecting"  # no RTDE session with the controller
+    STARTING = "starting"  # the program was sent; its heartbeat not seen yet
+    RUNNING = "running"  # the program runs: the data plane drives the arm
+    HELD = "held"  # another program runs (or is paused) on the controller
+    STOPPED = "stopped"  # no program runs and the arm may move: the program is sent again
+    BLOCKED = "blocked"  # the arm may not move: powered off, braked, a safety stop
+
+
+def judge(robot_mode: int, safety_mode: int, runtime: int, beating: bool, starting: bool) -> DaemonState:
+    """What the controller's state says of the daemon's program (pure: tested on its own)."""
+    if robot_mode != RobotMode.RUNNING or safety_mode not in (SafetyMode.NORMAL, SafetyMode.REDUCED):
+        return DaemonState.BLOCKED
+    if runtime == RuntimeState.PLAYING and beating:
+        return DaemonState.RUNNING
+    if starting:
+        return DaemonState.STARTING
+    if runtime in (RuntimeState.STOPPED, RuntimeState.STOPPING):
+        return DaemonState.STOPPED
+    return DaemonState.HELD
+
+
+def _mode_name(kind: type[Enum], value: int) -> str:
+    try:
+        return kind(value).name  # type: ignore[call-arg]
+    except ValueError:
+        return str(value)
+
+
+Publish = Callable[[str, object], None]
+
+
+class Daemon(RobotGroup):
+    """One robot of backend "ur": its UR controller at RobotConfig.ur_host, through the daemon."""
+
+    def __init__(self, robot: RobotConfig, dataplane: str, host: str, ur: URConfig, publish: Publish | None):
+        super().__init__([robot], dataplane, host=host)
+        self.ur, self.publish = ur, publish
+        self.address = robot.ur_host
+        self.registers = Registers(ur.daemon_registers)
+        watchdog_cycles = (robot.watchdog_windows + 1) * self.window_ticks * (500 // robot.status_hz)
+        self.program = script(self.registers, watchdog_cycles)
+        self.state = DaemonState.CONNECTING
+        self.why = f"connecting to the UR controller at {self.address}"
+        self.running: bool | None = None  # what the bus was last told (None: nothing yet)
+        self.up = asyncio.Event()  # set while the daemon's program runs
+        self.drives.script(0, True)  # (the data plane's commands are ignored until the program runs)
+        self.client: Client | None = None
+        self._rtde: asyncio.Transport | None = None
+        self._primary: asyncio.Transport | None = None
+        self._lost: asyncio.Future[str] | None = None
+        self._started: asyncio.Future[None] | None = None
+        self._pbuf = bytearray()  # the primary interface's bytes not yet framed
+        self._on_tick: Callable[[RobotGroup, np.ndarray, np.ndarray], None] | None = None
+        self.sent_at = 0.0  # (monotonic s) the program last sent; 0: not yet
+        self.beat, self.beat_tick = -1, 0
+        self.written = np.full(self.dof, np.nan)  # the velocities last written
+        self.window_sent: dict[int, int] = {}  # window number -> when its package ended it (perf ns)
+        self.origin_block: list[int] = []
+        self.status_us, self.write_us = Lateness(), Lateness()  # (10 us bins)
+        self.echo_ms: list[float] = []
+        self.stats = {"connections": 0, "lost": 0, "programs_sent": 0, "packages": 0, "windows_written": 0,
+                      "out_of_order": 0, "controller_texts": 0, "runtime_exceptions": 0}  # fmt: skip
+
+    # --- the session -------------------------------------------------------------------------
+
+    async def run(self, on_tick: Callable[[RobotGroup, np.ndarray, np.ndarray], None] | None = None) -> None:
+        """Keep a session with the controller for as long as the cell runs, reconnecting with back-off."""
+        self._on_tick = on_tick
+        loop = asyncio.get_running_loop()
+        loop.add_reader(self.socks[0].fileno(), self.receive)  # (commands as they come: see package())
+        wait = RETRY_S[0]
+        try:
+            while True:
+                try:
+                    why = await self._session()
+                    wait = RETRY_S[0]
+                except (OSError, SetupRefused, TimeoutError) as exc:
+                    why = str(exc) or type(exc).__name__
+                self._close()
+                why = f"the UR controller at {self.address} is unreachable: {why}"
+                self._become(DaemonState.CONNECTING, why)
+                await asyncio.sleep(wait)
+                wait = min(wait * 2, RETRY_S[1])
+        finally:
+            loop.remove_reader(self.socks[0].fileno())
+
+    async def _session(self) -> str:
+        """One session: connect, hand-shake, then serve packages until the controller is lost (why)."""
+        loop = asyncio.get_running_loop()
+        self._lost, self._started = loop.create_future(), loop.create_future()
+        r = self.registers
+        outputs = ["timestamp", "actual_q", "actual_qd", "robot_mode", "safety_mode", "runtime_state",
+                   r.taken, r.heartbeat]  # fmt: skip
+        self.client = Client(outputs, [r.window, *r.velocities], float(self.robots[0].status_hz))
+        self.beat, self.beat_tick, self.tick_no = -1, 0, -1
+        self._pbuf.clear()
+        async with asyncio.timeout(CONNECT_S):
+            self._primary, _ = await loop.create_connection(
+                lambda: _Stream(self._primary_bytes, self._gone), self.address, self.ur.primary_port
+            )
+            self._rtde, _ = await loop.create_connection(
+                lambda: _Stream(self._rtde_bytes, self._gone), self.address, self.ur.rtde_port
+            )
+            self._rtde.write(self.client.hello())
+            await asyncio.wait({self._started, self._lost}, return_when=asyncio.FIRST_COMPLETED)
+            if self._lost.done():
+                raise OSError(self._lost.result())
+        self.stats["connections"] += 1
+        v = self.client.controller or (0, 0, 0, 0)
+        log.info("%s: RTDE session with the UR controller at %s (URControl %d.%d.%d.%d)",
+                 self.robots[0].name, self.address, *v)  # fmt: skip
+        while True:
+            seen = self.stats["packages"]
+            try:
+                return await asyncio.wait_for(asyncio.shield(self._lost), SILENT_S)
+            except TimeoutError:
+                if self.stats["packages"] == seen:
+                    return f"no RTDE package for {SILENT_S:g} s"
+
+    def _gone(self, why: str) -> None:
+        if self._lost is not None and not self._lost.done():
+            self._lost.set_result(why)
+
+    def _close(self) -> None:
+        for t in (self._rtde, self._primary):
+            if t is not None:
+                t.abort()
+        self._rtde = self._primary = None
+        self.stats["lost"] += self.client is not None and self.client.started
+        self.client = None
+
+    def close(self) -> None:
+        self._close()
+        super().close()
+
+    # --- bytes in ----------------------------------------------------------------------------
+
+    def _rtde_bytes(self, data: bytes) -> None:
+        arrived = time.perf_counter_ns()
+        client = self.client
+        if client is None:
+            return
+        try:
+            packages = client.feed(data)
+        except SetupRefused as exc:
+            self._gone(str(exc))
+            return
+        if client.outbox and self._rtde is not None:
+            self._rtde.write(bytes(client.outbox))
+            client.outbox.clear()
+        if client.started and self._started is not None and not self._started.done():
+            self._started.set_result(None)
+        for values in packages:
+            self.package(values, arrived)
+
+    def _primary_bytes(self, data: bytes) -> None:
+        """The controller's messages: its texts and runtime exceptions go to the log (a runtime exception
+        in the daemon's program is the reason it stopped)."""
+        buf = self._pbuf
+        buf += data
+        if len(buf) > 1 << 20:  # (a stream that never frames: start over)
+            buf.clear()
+        for kind, body in primary.split(buf):
+            if kind != primary.ROBOT_MESSAGE or len(body) < 10:
+                continue  # (the 10 Hz robot state packages of a real controller: RTDE says it all)
+            try:
+                what, rest = primary.read_robot_message(body)
+            except ValueError:
+                continue
+            name = self.robots[0].name
+            if what == primary.RobotMessage.RUNTIME_EXCEPTION and len(rest) >= 8:
+                self.stats["runtime_exceptions"] += 1
+                line = int.from_bytes(rest[:4], "big", signed=True)
+                log.warning("%s: the controller: line %d: %s", name, line, rest[8:].decode(errors="replace"))
+            elif what == primary.RobotMessage.TEXT:
+                self.stats["controller_texts"] += 1
+                log.info("%s: the controller says: %s", name, rest.decode(errors="replace"))
+
+    # --- one package: one status period --------------------------------------------------------
+
+    def package(self, values: tuple, arrived_ns: int) -> None:
+        """One RTDE package: the status out, the commands in, a window's register write, the program's
+        state judged.  (Public for tests and benches that feed packages by hand.)"""
+        t, q, qd, robot_mode, safety_mode, runtime, taken, beat = values
+        tick = round(t / self.period)
+        if self.tick_no < 0:
+            self.tick_no = tick - 1
+        periods = tick - self.tick_no
+        if periods <= 0:  # (a controller does not resend: a clock reset, say; counted, not served)
+            self.stats["out_of_order"] += 1
+            self.tick_no = tick if periods < -1000 else self.tick_no
+            return
+        self.stats["packages"] += 1
+        b = self.backend
+        b.q[0], b.qd[0] = q, qd
+        self.seq += periods - 1  # (_pack adds the last one: seq numbers count the controller's cycles)
+        self._pack()
+        self._grid(tick)
+        self.state_time = (self.origin_ns + tick * round(self.period * 1e9)) / 1e9  # (on our clock)
+        self._send(time.monotonic(), time.monotonic)
+        self.status_us.add((time.perf_counter_ns() - arrived_ns) / 1e3)
+        windows = self.drives.windows
+        stopping, resuming, _ = self.end_windows(periods)  # (the commands came in as they arrived)
+        self.counters.ticks += 1
+        self.counters.missed_ticks += periods - 1
+        self._program(robot_mode, safety_mode, runtime, beat, tick)
+        if self.state in (DaemonState.RUNNING, DaemonState.STARTING):
+            target = self.drives.target[0]
+            if self.drives.windows != windows or not np.array_equal(target, self.written):
+                self._write(target, arrived_ns)
+        self._echo(taken, arrived_ns)
+        if self._on_tick is not None:
+            self._on_tick(self, stopping, resuming)
+
+    def _write(self, target: np.ndarray, arrived_ns: int) -> None:
+        if self._rtde is None or self.client is None or not self.client.started:
+            return
+        number = self.drives.windows & 0x7FFFFFFF
+        self._rtde.write(self.client.write((number, *target.tolist())))
+        self.written = target.copy()
+        self.stats["windows_written"] += 1
+        self.write_us.add((time.perf_counter_ns() - arrived_ns) / 1e3)
+        self.window_sent[number] = arrived_ns
+        if len(self.window_sent) > 64:
+            del self.window_sent[next(iter(self.window_sent))]
+
+    def _echo(self, taken: int, arrived_ns: int) -> None:
+        """The program took window `taken`: how long after the package that ended it (ms)."""
+        sent = self.window_sent.pop(taken, None)
+        if sent is not None:
+            self.echo_ms.append((arrived_ns - sent) / 1e6)
+            del self.echo_ms[:-1024]
+
+    def _grid(self, tick: int) -> None:
+        """The controller's cycles on this host's clock: tick 0's monotonic time, from the package of
+        least delay over each second (re-estimated: the controller's clock drifts against ours)."""
+        period_ns = round(self.period * 1e9)
+        self.origin_block.append(time.monotonic_ns() - tick * period_ns)
+        if len(self.origin_block) >= round(1 / self.period) or not self.origin_ns:
+            self.origin_ns = min(self.origin_block)
+            self.origin_block.clear()
+
+    # --- the program ---------------------------------------------------------------------------
+
+    def _program(self, robot_mode: int, safety_mode: int, runtime: int, beat: int, tick: int) -> None:
+        if beat != self.beat:
+            self.beat, self.beat_tick = beat, tick
+        beating = tick - self.beat_tick < BEAT_PACKAGES and self.beat >= 0
+        now = time.monotonic()
+        starting = self.sent_at > 0 and now - self.sent_at < self.ur.daemon_restart_s
+        state = judge(robot_mode, safety_mode, runtime, beating, starting)
+        if state == DaemonState.STOPPED and now - self.sent_at >= self.ur.daemon_restart_s:
+            self._send_program(now)
+            state = DaemonState.STARTING
+        if state != self.state:
+            self._become(state, self._reason(state, robot_mode, safety_mode))
+
+    def _send_program(self, now: float) -> None:
+        if self._primary is None:
+            return
+        self._primary.write(self.program.encode())
+        self.sent_at = now
+        self.stats["programs_sent"] += 1
+        self.written[:] = np.nan  # (the program starts from what the registers hold: write them again)
+
+    def _reason(self, state: DaemonState, robot_mode: int, safety_mode: int) -> str:
+        at = f"the UR controller at {self.address}"
+        if state == DaemonState.BLOCKED:
+            modes = f"{_mode_name(RobotMode, robot_mode)}, {_mode_name(SafetyMode, safety_mode)}"
+            return f"{at} does not let the arm move: {modes}"
+        if state == DaemonState.HELD:
+            return f"another program runs on {at}"
+        if state == DaemonState.STOPPED:
+            return f"no program runs on {at}"
+        if state == DaemonState.STARTING:
+            return f"the daemon's program was sent to {at}"
+        return f"the daemon's program runs on {at}: the cell drives the arm"
+
+    def _become(self, state: DaemonState, why: str) -> None:
+        """A new state; the data plane's commands reach the arm only while the program runs, and the bus
+        hears when that changes (the controller ends its motions of the arm while they do not)."""
+        self.state, self.why = state, why
+        running = state == DaemonState.RUNNING
+        if running == self.running:
+            log.info("%s: %s", self.robots[0].name, why)
+            return
+        self.running = running
+        (self.up.set if running else self.up.clear)()
+        self.drives.script(0, not running)
+        self.written[:] = np.nan
+        (log.info if running else log.warning)("%s: %s", self.robots[0].name, why)
+        if self.publish is not None:
+            r = self.robots[0]
+            RE = robot_pb2.RobotEvent
+            kind = RE.KIND_PROGRAM_END if running else RE.KIND_PROGRAM
+            ev = RE(robot_id=r.id, name=r.name, kind=kind, text=why, t_ns=time.monotonic_ns())
+            self.publish(f"events/robot/{r.name}", ev)
+
+    # --- figures -------------------------------------------------------------------------------
+
+    def report(self) -> dict[str, float]:
+        out: dict[str, float] = {f"daemon.{k}": float(v) for k, v in self.stats.items()}
+        out["daemon.running"] = float(self.state == DaemonState.RUNNING)
+        for name, h in (("status_us", self.status_us), ("write_us", self.write_us)):
+            if h.n:
+                out[f"daemon.{name}_p50"] = h.percentile(50)
+                out[f"daemon.{name}_p99"] = h.percentile(99)
+        if self.echo_ms:
+            out["daemon.echo_ms_p50"] = float(np.percentile(self.echo_ms, 50))
+            out["daemon.echo_ms_p99"] = float(np.percentile(self.echo_ms, 99))
+        return out
+
+
+class _Stream(asyncio.Protocol):
+    """A TCP connection whose bytes go to one callback and whose end to another."""
+
+    def __init__(self, on_bytes: Callable[[bytes], None], on_lost: Callable[[str], None]) -> None:
+        self.on_bytes, self.on_lost = on_bytes, on_lost
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            import socket
+
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def data_received(self, data: bytes) -> None:
+        self.on_bytes(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.on_lost(f"the controller closed the connection{f': {exc}' if exc else ''}")
