@@ -147,7 +147,7 @@ def _sum(reports: Iterable[dict[str, float]]) -> dict[str, float]:
     out: dict[str, float] = {}
     for rep in reports:
         for k, v in rep.items():
-            worst = k.endswith(("_p50", "_p99"))
+            worst = k.endswith(("_p50", "_p99", "_max"))
             out[k] = max(out.get(k, v), v) if worst else out.get(k, 0.0) + v
     return out
 

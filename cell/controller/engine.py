@@ -205,6 +205,9 @@ class Engine(RobotBook):
         update; they stream on in the background."""
         rate = self.fine_hz if fine else self.rate_hz
         await self.tables_in_hand()
+        # a stop, a program taking a robot over, a loss while this motion is planned and loaded bumps
+        # its track's epoch: the motion must not then run (it would stream to a robot that is not ours)
+        epochs = {r: self.track(r).epoch for r in motions}
         planned = []
         for robot, motion in motions.items():
             track = self.track(robot)
@@ -232,6 +235,8 @@ class Engine(RobotBook):
             registers.append((track.robot, hold_id, at))
             remove += [(track.robot, i) for i in track.loaded]
             segments.append((track, seg, hold_id))
+        for track, _, _ in segments:
+            self.check_running(track)
         try:
             async with self.loading:
                 reply = await self.dp.update(insert=concat(first), remove=remove, registers=registers)
@@ -246,6 +251,14 @@ class Engine(RobotBook):
             self.lose(tracks, f"the data plane did not confirm the motion's start: {exc}")
             self.pending_flush.update({r: t.loads for t in tracks for r in t.robots})
             raise MotionStopped(tracks[0].stop_reason or str(exc)) from None
+        if moved_on := [t for t, _, _ in segments if t.epoch != epochs[t.robot]]:
+            n = self.episode
+            loaded = [(t.robot, i) for t, seg, hold_id in segments for i in (hold_id, *seg.ids[:n])]
+            with contextlib.suppress(RemoteError, BusError):
+                async with self.loading:
+                    await self.dp.update(remove=loaded)
+            why = moved_on[0].stop_reason or "the robot was stopped while its motion was loaded"
+            raise MotionStopped(why)
         if reply.now_ns > start:  # in place after the start time: the robots catch up with the plan
             self.late_starts += 1
             log.warning(

@@ -8,8 +8,9 @@ robot whose backend is the controller itself:
 - it keeps an RTDE session with the controller at the robot's status rate (500 Hz on an e-Series)
   and sends the daemon's program (cell.ur.daemon) to its primary interface;
 - each RTDE package is a status period: its actual_q and actual_qd go out at once as the robot's six
-  status datagrams, their seq numbers counting the controller's own 2 ms cycles (a package the
-  controller did not send is a gap in them, as a missed tick is on an emulated arm);
+  status datagrams, numbered one after the other as an emulated arm numbers the statuses it serves
+  (cycles the controller sent no package for are counted, not numbered: a daemon or link stalled
+  past the watchdog shows to the data plane as a robot gone quiet);
 - the data plane's command datagrams are taken as an emulated arm takes them (Drives: the command
   window, the latest command per joint, the watchdog's protective stop, the Responsive Link's halt),
   and each window's result is one RTDE input package: the window's number and the six velocities,
@@ -103,6 +104,8 @@ class Daemon(RobotGroup):
         self._pbuf = bytearray()  # the primary interface's bytes not yet framed
         self._on_tick: Callable[[RobotGroup, np.ndarray, np.ndarray], None] | None = None
         self.sent_at = 0.0  # (monotonic s) the program last sent; 0: not yet
+        self.awaiting = False  # the program was sent and has not run yet
+        self.cut_until = 0.0  # (monotonic s) no session before this (fault injection: silence())
         self.beat, self.beat_tick = -1, 0
         self.written = np.full(self.dof, np.nan)  # the velocities last written
         self.window_sent: dict[int, int] = {}  # window number -> when its package ended it (perf ns)
@@ -110,7 +113,8 @@ class Daemon(RobotGroup):
         self.status_us, self.write_us = Lateness(), Lateness()  # (10 us bins)
         self.echo_ms: list[float] = []
         self.stats = {"connections": 0, "lost": 0, "programs_sent": 0, "packages": 0, "windows_written": 0,
-                      "out_of_order": 0, "controller_texts": 0, "runtime_exceptions": 0}  # fmt: skip
+                      "out_of_order": 0, "cycles_missed": 0, "cycles_missed_max": 0, "controller_texts": 0,
+                      "runtime_exceptions": 0}  # fmt: skip
 
     # --- the session -------------------------------------------------------------------------
 
@@ -130,7 +134,7 @@ class Daemon(RobotGroup):
                 self._close()
                 why = f"the UR controller at {self.address} is unreachable: {why}"
                 self._become(DaemonState.CONNECTING, why)
-                await asyncio.sleep(wait)
+                await asyncio.sleep(max(wait, self.cut_until - time.monotonic()))
                 wait = min(wait * 2, RETRY_S[1])
         finally:
             loop.remove_reader(self.socks[0].fileno())
@@ -167,6 +171,16 @@ class Daemon(RobotGroup):
             except TimeoutError:
                 if self.stats["packages"] == seen:
                     return f"no RTDE package for {SILENT_S:g} s"
+
+    def silence(self, robot_id: int, seconds: float) -> bool:
+        """Fault injection (`cell chaos`): the link to the controller cut for `seconds`, as if the
+        controller went away: no status, no commands, no session until then (the program on the
+        controller stops the arm by its own watchdog, and is taken up again once the link is back)."""
+        if not super().silence(robot_id, seconds):
+            return False
+        self.cut_until = time.monotonic() + seconds
+        self._gone(f"the link to the controller was cut for {seconds:g} s (fault injection)")
+        return True
 
     def _gone(self, why: str) -> None:
         if self._lost is not None and not self._lost.done():
@@ -242,10 +256,12 @@ class Daemon(RobotGroup):
             self.tick_no = tick if periods < -1000 else self.tick_no
             return
         self.stats["packages"] += 1
+        if periods > 1:  # cycles the controller sent no package for
+            self.stats["cycles_missed"] += periods - 1
+            self.stats["cycles_missed_max"] = max(self.stats["cycles_missed_max"], periods - 1)
         b = self.backend
         b.q[0], b.qd[0] = q, qd
-        self.seq += periods - 1  # (_pack adds the last one: seq numbers count the controller's cycles)
-        self._pack()
+        self._pack()  # (seq + 1: numbered as an emulated arm numbers the statuses it served)
         self._grid(tick)
         self.state_time = (self.origin_ns + tick * round(self.period * 1e9)) / 1e9  # (on our clock)
         self._send(time.monotonic(), time.monotonic)
@@ -298,8 +314,11 @@ class Daemon(RobotGroup):
             self.beat, self.beat_tick = beat, tick
         beating = tick - self.beat_tick < BEAT_PACKAGES and self.beat >= 0
         now = time.monotonic()
-        starting = self.sent_at > 0 and now - self.sent_at < self.ur.daemon_restart_s
+        # (sent, its heartbeat not seen yet, and not for long: a program that never beats has failed)
+        starting = self.awaiting and now - self.sent_at < self.ur.daemon_restart_s
         state = judge(robot_mode, safety_mode, runtime, beating, starting)
+        if state == DaemonState.RUNNING:
+            self.awaiting = False
         if state == DaemonState.STOPPED and now - self.sent_at >= self.ur.daemon_restart_s:
             self._send_program(now)
             state = DaemonState.STARTING
@@ -310,7 +329,7 @@ class Daemon(RobotGroup):
         if self._primary is None:
             return
         self._primary.write(self.program.encode())
-        self.sent_at = now
+        self.sent_at, self.awaiting = now, True
         self.stats["programs_sent"] += 1
         self.written[:] = np.nan  # (the program starts from what the registers hold: write them again)
 

@@ -215,10 +215,10 @@ class URInterfaces:
         self.counters = URCounters()
         self.servers: list[asyncio.Server] = []
         # the RTDE packages of the next deadline's state, made after this tick (after_tick) and sent
-        # as the period starts (flush), when the state they carry is the arm's: a UR sends its state
-        # at the end of the cycle it describes, never before
+        # as the period starts (at_deadline), when the state they carry is the arm's: a UR sends its
+        # state at the end of the cycle it describes, never before
         self.due: list[tuple[RtdeProtocol, bytes, int]] = []
-        group.at_deadline = self.flush
+        group.at_deadline = self.at_deadline
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -260,15 +260,7 @@ class URInterfaces:
         # the controller's clock: s since the tick grid's origin (tick k's state is at k periods)
         t = group.state_time - group.origin_ns / 1e9
         b = group.backend
-        now = time.monotonic()
         for arm in self.arms:
-            if arm.runner is not None:
-                if group.drives.halted[arm.row]:  # (an e-stop on the Responsive Link)
-                    arm.end("the arm was halted (emergency stop)")
-                else:
-                    arm.step(b.q[arm.row], b.qd[arm.row])
-            elif arm.restart_at and now >= arm.restart_at:
-                arm.restart()
             if not arm.rtde:
                 continue
             live = [p for p in arm.rtde if p.session.started]
@@ -280,7 +272,24 @@ class URInterfaces:
                 if due := p.session.due(tick + 1, arm.state):  # (the next tick's state)
                     self.due.append((p, b"".join(due), len(due)))
 
-    def flush(self) -> None:
+    def at_deadline(self) -> None:
+        """As a status period starts: the RTDE packages of the state at this deadline go out, then each
+        program runs its cycle (reads its inputs, sets the drives for this period), as a UR runs its
+        program at the start of every control cycle: what a client wrote during the last period acts
+        in this one."""
+        self._flush()
+        group = self.group
+        b, now = group.backend, time.monotonic()
+        for arm in self.arms:
+            if arm.runner is not None:
+                if group.drives.halted[arm.row]:  # (an e-stop on the Responsive Link)
+                    arm.end("the arm was halted (emergency stop)")
+                else:
+                    arm.step(b.q[arm.row], b.qd[arm.row])
+            elif arm.restart_at and now >= arm.restart_at:
+                arm.restart()
+
+    def _flush(self) -> None:
         """The packages of the state at this deadline, to their clients (a client that does not read
         loses them, counted: the arm waits for nobody)."""
         c = self.counters

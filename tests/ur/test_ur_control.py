@@ -31,16 +31,21 @@ class Events:
     """A robot's events, in order: wait() skips to the next of a kind whose text has `text` in it."""
 
     def __init__(self, sub) -> None:
-        self.sub, self.pending = sub, []
+        self.sub, self.pending, self.skipped = sub, [], []
 
     async def wait(self, kind: int, text: str, timeout: float = 10.0) -> str:
-        async with asyncio.timeout(timeout):
-            while True:
-                while self.pending:
-                    ev = self.pending.pop(0)
-                    if ev.kind == kind and text in ev.text:
-                        return ev.text
-                self.pending += await self.sub.recv_messages(RE)
+        try:
+            async with asyncio.timeout(timeout):
+                while True:
+                    while self.pending:
+                        ev = self.pending.pop(0)
+                        if ev.kind == kind and text in ev.text:
+                            self.skipped.clear()
+                            return ev.text
+                        self.skipped.append(f"{RE.Kind.Name(ev.kind)}: {ev.text}")
+                    self.pending += await self.sub.recv_messages(RE)
+        except TimeoutError:
+            raise AssertionError(f"no {RE.Kind.Name(kind)} {text!r}; passed over: {self.skipped}") from None
 
 
 async def _ready(bus: Bus) -> None:
