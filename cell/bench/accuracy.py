@@ -37,7 +37,7 @@ SETTLE_S = 4.0  # held on the final TP this long before the stop error is read (
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 
 
-def _tool_errors_mm(kin: Kinematics, truth: Truth, name: str, seg: Segment, joints: slice) -> np.ndarray:
+def tool_errors_mm(kin: Kinematics, truth: Truth, name: str, seg: Segment, joints: slice) -> np.ndarray:
     """|tool(truth) - tool(plan)| at each TP's time (mm)."""
     t_tp = seg.start_ns + seg.sections.t_end * 1e9
     q_real = truth.at(name, t_tp)
@@ -84,7 +84,7 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
                 for i in range(n_joint):
                     goal = Q0 + rng.uniform(-0.6, 0.6, 6)
                     res = await ctl.move_joints("r1", goal, speed=0.6)
-                    path_joint.append(_tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
+                    path_joint.append(tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
                     await settle_and_read("r1", goal, res.end_ns)
                     log(
                         f"joint move {i + 1}: path error at TPs max {path_joint[-1].max():.2f} mm "
@@ -101,9 +101,7 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
                 for i, leg in enumerate(legs):
                     pos = pos + np.array(leg)
                     res = await ctl.move_linear("r1", pos, rot0, speed=1.0)
-                    path_linear.append(
-                        _tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6))
-                    )
+                    path_linear.append(tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
                     e = path_linear[-1]
                     log(
                         f"linear move {i + 1}: path error at TPs max {e.max():.2f} mm "

@@ -9,7 +9,13 @@
   servoJ (lookahead 0.1 s) while it reads actual_q; the lag that best aligns the arm with the
   commands, and the largest error at that lag.
 
-The daemon's figures (bridge_*) wait for the daemon (`backend = "ur"`, issue 34 part 2): null here.
+- The daemon (`backend = "ur"`): one cell, two MuJoCo arms driven side by side through the same data
+  plane by the same controller with the same motions (the accuracy bench's joint moves and straight
+  lines), one directly over datagrams, one reached only over its UR interfaces through the daemon.
+  The tool path error at every TP against the plan (ground truth for the direct arm, the truth the
+  daemon reads over RTDE for the other), and the daemon's own added latency: an RTDE package in ->
+  its status datagrams out, and the package that ends a command window -> that window's register
+  write out (the window's wait itself is the arm's, on both paths).
 """
 
 from __future__ import annotations
@@ -23,9 +29,14 @@ from typing import Any
 
 import numpy as np
 
+from cell.bench.accuracy import Q0, tool_errors_mm
 from cell.bench.cellproc import free_port, running_cell
 from cell.bench.registry import Bench, Figures, log, register
+from cell.bus import Bus
+from cell.controller.controller import Controller
 from cell.launcher import fetch_status
+from cell.robot.kinematics import Kinematics
+from cell.robot.truth import Truth
 from cell.ur import rtde
 from cell.ur.rtde import Package
 
@@ -155,11 +166,74 @@ async def _servo_run(seconds: float, backend: str) -> tuple[float, float]:
     return lag * PERIOD_S * 1000, err[lag] * 1000
 
 
+async def _demo(ctl: Controller, kin: Kinematics, truth: Truth, name: str, moves: int) -> np.ndarray:
+    """The accuracy bench's motions on one robot: path errors at every TP (mm)."""
+    errors = []
+
+    async def measured() -> None:
+        seg = ctl.track(name).segment
+        assert seg is not None
+        await truth.until(name, seg.end_ns + 10_000_000)  # (every TP's truth in before it is read)
+        errors.append(tool_errors_mm(kin, truth, name, seg, slice(0, 6)))
+
+    rng = np.random.default_rng(7)
+    for _ in range(moves):
+        await ctl.move_joints(name, Q0 + rng.uniform(-0.6, 0.6, 6), speed=0.6)
+        await measured()
+    await ctl.move_joints(name, Q0, speed=0.6)
+    pos, rot = kin.fk(Q0)
+    for leg in [(0.2, 0, 0), (0, 0.2, 0), (-0.2, 0, 0), (0, -0.2, 0)]:
+        pos = pos + np.array(leg)
+        await ctl.move_linear(name, pos, rot, speed=1.0)
+        await measured()
+    log(f"{name}: path error max per motion (mm) " + ", ".join(f"{e.max():.2f}" for e in errors))
+    return np.concatenate(errors)
+
+
+async def _bridge_run(moves: int) -> dict[str, float]:
+    robots = [
+        {"id": 1, "name": "r1", "skill_port": free_port(), "backend": "mujoco", "truth_hz": 500},
+        {"id": 2, "name": "r2", "skill_port": free_port(), "backend": "ur", "ur_emulate": "mujoco",
+         "truth_hz": 500},
+    ]  # fmt: skip
+    overrides = {"services": {"run": ["bus", "dataplane", "robots"]}, "robots": robots}
+    kin = Kinematics()
+    async with running_cell(overrides) as config, Bus.connect(config.bus, "bench-ur") as bus:
+        truth = Truth()
+        watcher = asyncio.ensure_future(truth.run(bus))
+        try:
+            async with Controller(bus, config) as ctl:
+                async with asyncio.timeout(15):
+                    while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} < {1, 2}:  # noqa: ASYNC110
+                        await asyncio.sleep(0.05)
+                # one after the other, so that neither path pays for the other's load
+                direct = await _demo(ctl, kin, truth, "r1", moves)
+                daemon = await _demo(ctl, kin, truth, "r2", moves)
+        finally:
+            watcher.cancel()
+        status = await fetch_status(config)
+        c = next(s for s in status.services if s.name == "robots").last.counters
+    return {
+        "direct_path_error_mm_max": float(direct.max()),
+        "direct_path_error_mm_median": float(np.median(direct)),
+        "bridge_path_error_mm_max": float(daemon.max()),
+        "bridge_path_error_mm_median": float(np.median(daemon)),
+        "bridge_status_us_p50": c["daemon.status_us_p50"],
+        "bridge_status_us_p99": c["daemon.status_us_p99"],
+        "bridge_write_us_p50": c["daemon.write_us_p50"],
+        "bridge_write_us_p99": c["daemon.write_us_p99"],
+        "bridge_latency_us_p99": max(c["daemon.status_us_p99"], c["daemon.write_us_p99"]),
+        "bridge_echo_ms_p50": c.get("daemon.echo_ms_p50", float("nan")),
+        "bridge_cycles_missed": c["daemon.cycles_missed"],
+    }
+
+
 def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=10.0, help="each RTDE stream's length (default 10)")
     p.add_argument("--arms", type=int, default=20, help="arms of the many-arm run (default 20)")
     p.add_argument("--servo-seconds", type=float, default=5.0, help="the servoJ run (default 5)")
     p.add_argument("--backend", default="kinematic", choices=["kinematic", "mujoco"])
+    p.add_argument("--moves", type=int, default=5, help="random joint moves of the daemon run (default 5)")
 
 
 def _main(args: argparse.Namespace) -> Figures:
@@ -178,6 +252,19 @@ def _main(args: argparse.Namespace) -> Figures:
         )
         lag, err = await _servo_run(args.servo_seconds, args.backend)
         log(f"servoJ, 500 Hz, 1 Hz sine, lookahead 0.1 s: lag {lag:.0f} ms, then off by {err:.2f} mrad")
+        b = await _bridge_run(args.moves)
+        log(
+            f"daemon: RTDE package -> status datagrams p50 {b['bridge_status_us_p50']:.0f} us, p99 "
+            f"{b['bridge_status_us_p99']:.0f} us; window end -> register write p50 "
+            f"{b['bridge_write_us_p50']:.0f} us, p99 {b['bridge_write_us_p99']:.0f} us; the program took "
+            f"each window {b['bridge_echo_ms_p50']:.1f} ms after (p50)"
+        )
+        log(
+            f"tool path error at TPs, the same motions side by side: direct max "
+            f"{b['direct_path_error_mm_max']:.2f} mm (median {b['direct_path_error_mm_median']:.3f}), "
+            f"through the daemon max {b['bridge_path_error_mm_max']:.2f} mm "
+            f"(median {b['bridge_path_error_mm_median']:.3f})"
+        )
         return {
             "arms": args.arms,
             "backend": args.backend,
@@ -190,9 +277,7 @@ def _main(args: argparse.Namespace) -> Figures:
             "tick_lateness_p99_us_20_arms": late_n,
             "servoj_lag_ms": lag,
             "servoj_error_mrad": err,
-            "bridge_latency_us_p99": None,
-            "bridge_path_error_mm_max": None,
-            "direct_path_error_mm_max": None,
+            **b,
         }
 
     result = asyncio.run(run())
@@ -202,7 +287,7 @@ def _main(args: argparse.Namespace) -> Figures:
 register(
     Bench(
         "ur",
-        "the UR interfaces: RTDE at 500 Hz (1 and 20 arms), servoJ's lag, from separate client processes",
+        "the UR interfaces: RTDE at 500 Hz (1, 20 arms), servoJ's lag, the daemon's latency and path error",
         _arguments,
         _main,
         description=__doc__,

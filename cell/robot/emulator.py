@@ -229,7 +229,11 @@ class RobotGroup:
                 rows, joints, velocities = rows[now], joints[now], velocities[now]
             self.drives.command(rows, joints, velocities)
             self.counters.commands += n_ok
+            self.commanded(joints)
         return n_ok
+
+    def commanded(self, joints: np.ndarray) -> None:
+        """The joints just commanded (in this window): a hook (cell.ur.remote ends a window on it)."""
 
     def tick(
         self, deadline: float, periods: int = 1, clock: Callable[[], float] = time.monotonic

@@ -366,20 +366,21 @@ class RtdeControl(Runner):
 
 
 class DaemonProgram(Runner):
-    """The daemon's program (cell.ur.daemon.script), served natively: each tick, the velocities in the
-    input double registers as speedj takes them; the window number and a heartbeat written back; after
-    `watchdog` ticks with the same window number, a stop."""
+    """The daemon's program (cell.ur.daemon.script), served natively: each cycle, the velocities in
+    the input double registers approached within each joint's limits; the window number and a
+    heartbeat written back; after `watchdog` cycles with the same window number, a stop."""
 
     def __init__(self, script: Script, arm: URArm) -> None:
         super().__init__(script, arm)
-        cfg = script.settings
-        self.first = int(cfg.get("registers", 24))  # (parse() checked them)
-        self.watchdog = int(cfg.get("watchdog", 16))
-        self.accel = float(cfg.get("accel", 40.0))
+        cfg = script.settings  # (parse() checked them)
+        self.first = int(cfg["registers"])  # type: ignore[arg-type]
+        self.watchdog = int(cfg["watchdog"])  # type: ignore[arg-type]
+        self.v_max = np.array(cfg["v_max"])
+        self.a_max = np.array(cfg["a_max"])
         self.window = arm.int_in[self.first]
         self.idle = 0
         self.beat = 0
-        self.motion = None
+        self.qd: np.ndarray | None = None  # the velocity it commands (the script's qd)
 
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         arm, r = self.arm, self.first
@@ -388,14 +389,14 @@ class DaemonProgram(Runner):
             self.window, self.idle = taken, 0
         elif self.idle < self.watchdog:
             self.idle += 1
-        v = np.array(arm.double_in[r : r + 6]) if self.idle < self.watchdog else np.zeros_like(q)
-        if isinstance(self.motion, Speed):
-            self.motion.set(v, self.accel)
-        else:
-            self.motion = Speed(qd, v, self.accel)
+        goal = np.array(arm.double_in[r : r + 6]) if self.idle < self.watchdog else np.zeros_like(q)
+        goal = np.minimum(np.maximum(goal, -self.v_max), self.v_max)
+        now = qd.copy() if self.qd is None else self.qd
+        step = self.a_max * 0.002  # (get_steptime(): the controller's cycle, whatever the tick's dt)
+        self.qd = now + np.minimum(np.maximum(goal - now, -step), step)
         self.beat = self.beat + 1 if self.beat < 1_000_000_000 else 1
         arm.int_out[r], arm.int_out[r + 1] = self.window, self.beat
-        return self.motion.step(q, qd, dt)
+        return self.qd
 
 
 RUNNERS: dict[str, type[Runner]] = {

@@ -90,7 +90,8 @@ class Daemon(RobotGroup):
         self.address = robot.ur_host
         self.registers = Registers(ur.daemon_registers)
         watchdog_cycles = (robot.watchdog_windows + 1) * self.window_ticks * (500 // robot.status_hz)
-        self.program = script(self.registers, watchdog_cycles)
+        lim = self.arm.limits
+        self.program = script(self.registers, watchdog_cycles, lim.v_max.tolist(), lim.a_max.tolist())
         self.state = DaemonState.CONNECTING
         self.why = f"connecting to the UR controller at {self.address}"
         self.running: bool | None = None  # what the bus was last told (None: nothing yet)
@@ -106,6 +107,11 @@ class Daemon(RobotGroup):
         self.sent_at = 0.0  # (monotonic s) the program last sent; 0: not yet
         self.awaiting = False  # the program was sent and has not run yet
         self.cut_until = 0.0  # (monotonic s) no session before this (fault injection: silence())
+        self.last_sent = False  # the status last sent was its window's last (see commanded())
+        self.fresh = np.zeros(self.dof, bool)  # joints answered since
+        self.early = False  # the window ending at the next package's boundary has ended already
+        self.stops: tuple[list[int], list[int]] = ([], [])  # rows stopped, resumed since the last package
+        self._received_ns = 0
         self.beat, self.beat_tick = -1, 0
         self.written = np.full(self.dof, np.nan)  # the velocities last written
         self.window_sent: dict[int, int] = {}  # window number -> when its package ended it (perf ns)
@@ -267,7 +273,7 @@ class Daemon(RobotGroup):
         self._send(time.monotonic(), time.monotonic)
         self.status_us.add((time.perf_counter_ns() - arrived_ns) / 1e3)
         windows = self.drives.windows
-        stopping, resuming, _ = self.end_windows(periods)  # (the commands came in as they arrived)
+        stopping, resuming = self._windows(tick)
         self.counters.ticks += 1
         self.counters.missed_ticks += periods - 1
         self._program(robot_mode, safety_mode, runtime, beat, tick)
@@ -279,10 +285,62 @@ class Daemon(RobotGroup):
         if self._on_tick is not None:
             self._on_tick(self, stopping, resuming)
 
-    def _write(self, target: np.ndarray, arrived_ns: int) -> None:
+    # --- command windows ------------------------------------------------------------------------
+
+    def _windows(self, tick: int) -> tuple[np.ndarray, np.ndarray]:
+        """The windows that ended with this package (the commands came in as they arrived, see
+        commanded()), and the robot's protective stops and resumes since the last package."""
+        w = self.window_ticks
+        ends = tick // w - self.tick_no // w
+        self.tick_no = tick
+        if ends and self.early:  # (it ended as its last status was answered)
+            ends -= 1
+        self.early = False
+        for _ in range(ends):
+            self._end_window()
+        stopping, resuming = np.array(self.stops[0], np.int64), np.array(self.stops[1], np.int64)
+        self.stops = ([], [])
+        # the status just sent is its window's last: the window ends once every joint has its answer
+        self.last_sent = tick % w == w - 1
+        self.fresh[:] = False
+        return stopping, resuming
+
+    def _end_window(self) -> None:
+        stopping, resuming = self.drives.end_window()
+        self.stops[0].extend(stopping.tolist())
+        self.stops[1].extend(resuming.tolist())
+        c = self.counters
+        c.protective_stops += stopping.size
+        c.resumes += resuming.size
+        c.commands_ignored = self.drives.ignored
+
+    def receive(self, cutoff_ns: int = 0) -> int:
+        self._received_ns = time.perf_counter_ns()
+        return super().receive(cutoff_ns)
+
+    def commanded(self, joints: np.ndarray) -> None:
+        """A window ends the moment every joint has the answer to its last status: what the arm would
+        keep of it is in, and written now the program takes it from its next cycle on, the one the
+        window ends at (waiting for the next package would start it a cycle late, as it did).  An
+        answer that comes after that package lands in the next window, as on an emulated arm."""
+        if not self.last_sent:
+            return
+        self.fresh[joints] = True
+        if self.fresh.all():
+            self.last_sent, self.early = False, True
+            # every joint has a command: the window's result is them, or nothing if the robot is held
+            # (written first, the bookkeeping after: end_window() comes to the same target)
+            d = self.drives
+            if self.state in (DaemonState.RUNNING, DaemonState.STARTING):
+                target = np.zeros(self.dof) if d.halted[0] else d.pending[0].copy()
+                self._write(target, self._received_ns, d.windows + 1)  # (the number end_window gives it)
+            self._end_window()
+
+    def _write(self, target: np.ndarray, arrived_ns: int, number: int | None = None) -> None:
+        """The window's velocities and its number (the drives' count of windows) to the registers."""
         if self._rtde is None or self.client is None or not self.client.started:
             return
-        number = self.drives.windows & 0x7FFFFFFF
+        number = (self.drives.windows if number is None else number) & 0x7FFFFFFF
         self._rtde.write(self.client.write((number, *target.tolist())))
         self.written = target.copy()
         self.stats["windows_written"] += 1

@@ -28,7 +28,7 @@ MAX_SCRIPT = 1 << 20  # bytes of one program; a longer one is refused and skippe
 MAX_LINE = 10_000  # characters of one line of a straight-line program
 _TOP_DEF = re.compile(r"^(def|sec)\s+([A-Za-z_]\w*)\s*\(\s*\)\s*:")
 _POSE = re.compile(r"\bp\s*\[")
-_SETTING = re.compile(r"^\s*global\s+cell_(\w+)\s*=\s*([-+0-9.eE]+)\s*$", re.M)
+_SETTING = re.compile(r"^\s*global\s+cell_(\w+)\s*=\s*(\[[-+0-9.eE, ]*\]|[-+0-9.eE]+)\s*$", re.M)
 
 
 class ScriptError(ValueError):
@@ -60,7 +60,8 @@ class Script:
     calls: list[Call] = field(default_factory=list)
     reg_offset_int: int = 0
     reg_offset_float: int = 0
-    settings: dict[str, float] = field(default_factory=dict)  # its `global cell_<name> = <number>` lines
+    # its `global cell_<name> = <number or list of numbers>` lines
+    settings: dict[str, float | tuple[float, ...]] = field(default_factory=dict)
 
 
 class Framer:
@@ -137,10 +138,13 @@ def parse(text: str) -> Script:
     m = _TOP_DEF.match(lines[0]) if lines else None
     name = m.group(2) if m else "program"
     if name in ("rtde_control", "cell_daemon"):
-        settings = {}
+        settings: dict[str, float | tuple[float, ...]] = {}
         for key, value in _SETTING.findall(text):
             try:
-                settings[key] = float(value)
+                if value.startswith("["):
+                    settings[key] = tuple(float(v) for v in value.strip("[]").split(",") if v.strip())
+                else:
+                    settings[key] = float(value)
             except ValueError:
                 at = text[: text.index(f"cell_{key}")].count("\n") + 1
                 raise ScriptError(at, 0, f"cell_{key}: {value!r} is not a number") from None
@@ -163,16 +167,18 @@ def parse(text: str) -> Script:
     return Script(name, "lines", calls)
 
 
-def _check_daemon(settings: dict[str, float]) -> None:
+def _check_daemon(settings: dict[str, float | tuple[float, ...]]) -> None:
     """The daemon's settings as the emulated arm can run them (a UR would fail on a register out of
-    range, or spin on a zero acceleration)."""
-    r = settings.get("registers", 24)
-    if not (r == int(r) and 0 <= r <= 42):
-        raise ScriptError(1, 0, f"cell_registers = {r:g}: its registers r..r+5 must lie in 0..47")
-    if not 1 <= settings.get("watchdog", 16) <= 1e6:
-        raise ScriptError(1, 0, "cell_watchdog must be 1..1e6 cycles")
-    if not 0 < settings.get("accel", 40.0) <= 1e4:
-        raise ScriptError(1, 0, "cell_accel must be in (0, 1e4] rad/s^2")
+    range, a list of the wrong length, or never move with a zero limit)."""
+    r, watchdog = settings.get("registers"), settings.get("watchdog")
+    if not (isinstance(r, float) and r == int(r) and 0 <= r <= 42):
+        raise ScriptError(1, 0, f"cell_registers = {r}: its registers r..r+5 must lie in 0..47")
+    if not (isinstance(watchdog, float) and 1 <= watchdog <= 1e6):
+        raise ScriptError(1, 0, f"cell_watchdog = {watchdog}: must be 1..1e6 cycles")
+    for key in ("v_max", "a_max"):
+        v = settings.get(key)
+        if not (isinstance(v, tuple) and len(v) == 6 and all(0 < x <= 1e4 for x in v)):
+            raise ScriptError(1, 0, f"cell_{key} = {v}: must list six limits in (0, 1e4]")
 
 
 def _offset(text: str, kind: str) -> int:

@@ -85,12 +85,15 @@ def test_a_data_package_the_client_cannot_read_is_counted_and_dropped() -> None:
     assert client.malformed == 2
 
 
+V_MAX, A_MAX = [3.0, 3.0, 3.0, 3.0, 3.0, 3.0], [5.0, 5.0, 5.0, 10.0, 10.0, 10.0]
+
+
 def test_the_daemon_program_is_urscript_the_arm_frames_and_reads_its_settings_from() -> None:
-    text = script(REGS, watchdog_cycles=16, accel=40.0)
+    text = script(REGS, 16, V_MAX, A_MAX)
     (program,) = Framer().feed(text.encode())
     s = parse(program)
     assert (s.kind, s.name) == ("cell_daemon", "cell_daemon")
-    assert s.settings == {"registers": 24.0, "watchdog": 16.0, "accel": 40.0}
+    assert s.settings == {"registers": 24.0, "watchdog": 16.0, "v_max": tuple(V_MAX), "a_max": tuple(A_MAX)}
     for reg in range(24, 30):  # it reads the six velocity registers, and writes back two ints
         assert f"read_input_float_register({reg})" in text
     assert (
@@ -99,33 +102,36 @@ def test_the_daemon_program_is_urscript_the_arm_frames_and_reads_its_settings_fr
     )
     with pytest.raises(ScriptError, match="cell_registers = 45"):
         parse(text.replace("global cell_registers = 24", "global cell_registers = 45"))
-    with pytest.raises(ScriptError, match="cell_accel"):
-        parse(text.replace("global cell_accel = 40", "global cell_accel = 0"))
+    with pytest.raises(ScriptError, match="cell_a_max"):
+        parse(text.replace("global cell_a_max = [5, 5, 5,", "global cell_a_max = [5, 5,"))
+    with pytest.raises(ScriptError, match="cell_v_max"):
+        parse(text.replace("global cell_v_max = [3,", "global cell_v_max = [0,"))
     with pytest.raises(ScriptError, match="is not a number"):
         parse(text.replace("global cell_watchdog = 16", "global cell_watchdog = 1e"))
 
 
 def test_the_emulated_arm_runs_the_daemon_program_as_a_ur_would() -> None:
     arm = _arm()
-    prog = runner(parse(script(REGS, watchdog_cycles=4, accel=40.0)), arm)
+    prog = runner(parse(script(REGS, 4, V_MAX, A_MAX)), arm)
     assert isinstance(prog, DaemonProgram)
     q, qd, dt = Q0.copy(), np.zeros(6), 0.002
-    arm.int_in[24], arm.double_in[24:30] = 1, [0.2, 0, 0, 0, 0, -0.1]
-    v = prog.step(q, qd, dt)  # speedj at 40 rad/s^2 of the leading joint: 0.08 rad/s in one cycle
-    assert v == pytest.approx([0.08, 0, 0, 0, 0, -0.04])
+    # each joint toward its command within its own limits: 5 or 10 rad/s^2 (0.01, 0.02 a cycle), 3 rad/s
+    arm.int_in[24], arm.double_in[24:30] = 1, [0.015, 0, 0, 0.005, 0, -9.0]
+    v = prog.step(q, qd, dt)
+    assert v == pytest.approx([0.01, 0, 0, 0.005, 0, -0.02])
     assert (arm.int_out[24], arm.int_out[25]) == (1, 1)  # the window taken, the heartbeat
     for _ in range(3):
         v = prog.step(q, v, dt)
-    assert v == pytest.approx([0.2, 0, 0, 0, 0, -0.1]) and arm.int_out[25] == 4
-    # the window's number has not changed for 3 cycles; on the 4th (`watchdog`) the program ramps the
-    # arm down, at its acceleration
+    assert v == pytest.approx([0.015, 0, 0, 0.005, 0, -0.08]) and arm.int_out[25] == 4
+    # the window's number has not changed for 3 cycles; on the 4th (`watchdog`) the program brings the
+    # joints down at their accelerations
     v = prog.step(q, v, dt)
-    assert v == pytest.approx([0.12, 0, 0, 0, 0, -0.06])
-    for _ in range(2):
+    assert v == pytest.approx([0.005, 0, 0, 0, 0, -0.06])
+    for _ in range(3):
         v = prog.step(q, v, dt)
     assert not v.any()
-    arm.int_in[24] = 2  # a new window: it takes the velocities again, ramping up as at first
-    assert prog.step(q, v, dt) == pytest.approx([0.08, 0, 0, 0, 0, -0.04])
+    arm.int_in[24] = 2  # a new window: it takes the velocities again
+    assert prog.step(q, v, dt) == pytest.approx([0.01, 0, 0, 0.005, 0, -0.02])
     assert arm.int_out[24] == 2
 
 
