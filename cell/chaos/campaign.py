@@ -448,7 +448,13 @@ def _cell_overrides(link_pub: str, link_sub: str) -> dict[str, Any]:
     groups.append(
         {"name": "remote-controller", "services": ["controller"], "bus_pub": link_pub, "bus_sub": link_sub}
     )
-    return {"services": {"layout": "each", "groups": groups}, "robots": default_robots()}
+    robots = default_robots()
+    # and a UR arm reached only through the daemon (its controller emulated here): the daemon under the
+    # same faults, and its controller going away
+    ur = {"id": max(r["id"] for r in robots) + 1, "skill_port": free_port(), "backend": "ur",
+          "ur_emulate": "mujoco", "truth_hz": robots[-1]["truth_hz"]}  # fmt: skip
+    robots.append({**ur, "name": f"r{ur['id']}"})
+    return {"services": {"layout": "each", "groups": groups}, "robots": robots}
 
 
 async def campaign(rounds: int = 1, only: list[str] | None = None, log_fn=print) -> dict[str, Any]:
@@ -467,7 +473,8 @@ async def campaign(rounds: int = 1, only: list[str] | None = None, log_fn=print)
                 watch = tg.create_task(obs.run(), name="observer")
                 try:
                     camp = Campaign(config, link, obs)
-                    faults = catalogue(camp.robots)
+                    ur = tuple(r.name for r in config.robots if r.backend == "ur")
+                    faults = catalogue(camp.robots, ur_robots=ur)
                     if only:
                         faults = [f for f in faults if any(o in f.name for o in only)]
                     for k in range(rounds):

@@ -79,15 +79,23 @@ def fault(name: str, *actions: Action) -> Fault:
 
 
 def catalogue(
-    robots: list[str], hang_s: float = 3.5, bus_gone_s: float = 5.0, link_s: float = 4.0
+    robots: list[str],
+    hang_s: float = 3.5,
+    bus_gone_s: float = 5.0,
+    link_s: float = 4.0,
+    ur_robots: tuple[str, ...] = (),
 ) -> list[Fault]:
     """Every fault of a campaign round: each service killed, each hung, the bus gone, the controller's
-    link slow and lossy, a robot mute; then a few of them together."""
+    link slow and lossy, a robot mute, the UR controller of each robot of backend "ur" (`ur_robots`)
+    gone (its daemon's link to it cut: the same request, robot/<name>.silence); then a few of them
+    together."""
     out = [fault(f"kill:{s}", Action("kill", s)) for s in SERVICES]
     out += [fault(f"hang:{s}", Action("stop", s, hang_s)) for s in SERVICES if s != "bus"]
     out.append(fault("bus-gone", Action("stop", "bus", bus_gone_s)))
     out.append(fault("controller-link", Action("link", "controller", link_s)))
-    out.append(fault(f"mute:{robots[-1]}", Action("silence", robots[-1], hang_s)))
+    mute = [r for r in robots if r not in ur_robots][-1]  # (an emulated arm: its cable pulled)
+    out.append(fault(f"mute:{mute}", Action("silence", mute, hang_s)))
+    out += [fault(f"ur-controller-gone:{r}", Action("silence", r, hang_s)) for r in ur_robots]
     out += [
         fault("kill:dataplane+controller", Action("kill", "dataplane"), Action("kill", "controller")),
         fault(
@@ -95,6 +103,6 @@ def catalogue(
             Action("stop", "bus", bus_gone_s),
             Action("link", "controller", link_s),
         ),
-        fault("kill:skills+mute", Action("kill", "skills"), Action("silence", robots[-1], hang_s)),
+        fault("kill:skills+mute", Action("kill", "skills"), Action("silence", mute, hang_s)),
     ]
     return out

@@ -12,10 +12,13 @@ from cell.chaos.faults import PROMISES, catalogue
 
 
 def test_every_fault_has_the_promises_its_targets_call_for() -> None:
-    faults = {f.name: f for f in catalogue(["r1", "r2"])}
+    faults = {f.name: f for f in catalogue(["r1", "r2", "r3"], ur_robots=("r3",))}
     for service in ("bus", "dataplane", "robots", "controller", "skills", "snp", "recorder", "rlink"):
         assert f"kill:{service}" in faults
     assert {"bus-gone", "controller-link", "mute:r2", "kill:dataplane+controller"} <= set(faults)
+    # r3 is reached through the daemon: its UR controller goes away (the cable an emulated arm's is)
+    assert "ur-controller-gone:r3" in faults and "mute:r3" not in faults
+    assert "answered_1s" in faults["ur-controller-gone:r3"].promises
     for f in faults.values():
         assert set(f.promises) <= set(PROMISES)
         assert {"answered", "completed", "no_lunge", "recovered"} <= set(f.promises)
