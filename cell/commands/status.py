@@ -45,8 +45,24 @@ def run(args: argparse.Namespace) -> int:
             ports = f"RTDE {ur.rtde_port}, dashboard {ur.dashboard_port}, URScript {ur.primary_port}"
             ports += f"-{ur.realtime_port}"
             print(f"\nUR interfaces ({ports}):")
+            counters = {
+                k: v
+                for s in st.services
+                if s.name.split("@")[0] == "robots"
+                for k, v in s.last.counters.items()
+            }
             for r in config.robots:
-                print(f"  {r.name:<10} {r.ur_host:<16} {r.model} ({r.backend})")
+                line = f"  {r.name:<10} {r.ur_host:<16} {r.model} ({r.backend})"
+                if r.backend == "ur":  # (its controller's: emulated here, or a real one the daemon reaches)
+                    where = f"emulated, {r.ur_emulate}" if r.ur_emulate else "a UR controller"
+                    running = counters.get(f"daemon.{r.name}.running")
+                    state = (
+                        "?" if running is None else "running" if running else "not running (the log says why)"
+                    )
+                    line = (
+                        f"  {r.name:<10} {r.ur_host:<16} {r.model} ({where}; the daemon's program: {state})"
+                    )
+                print(line)
     return 0 if all(s.health == "ok" for s in st.services) else 3
 
 

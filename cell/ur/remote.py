@@ -428,7 +428,8 @@ class Daemon(RobotGroup):
 
     def report(self) -> dict[str, float]:
         out: dict[str, float] = {f"daemon.{k}": float(v) for k, v in self.stats.items()}
-        out["daemon.running"] = float(self.state == DaemonState.RUNNING)
+        out["daemon.running"] = float(self.state == DaemonState.RUNNING)  # (summed: daemons running)
+        out[f"daemon.{self.robots[0].name}.running"] = out["daemon.running"]
         for name, h in (("status_us", self.status_us), ("write_us", self.write_us)):
             if h.n:
                 out[f"daemon.{name}_p50"] = h.percentile(50)

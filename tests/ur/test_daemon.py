@@ -15,7 +15,7 @@ from cell.controller.controller import Controller
 from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics
 from cell.v1 import controller_pb2, robot_pb2
-from tests.conftest import free_port
+from tests.conftest import free_port, run_cell
 from tests.ur.test_ur_control import CELL, Q0, Events, _counter
 
 M = controller_pb2.MoveRequest
@@ -89,6 +89,10 @@ async def test_the_demo_motions_run_through_the_daemon_on_an_arm_reached_only_ov
                                                      "daemon.programs_sent", "commands_ignored")}  # fmt: skip
     assert c["daemon.windows_written"] > 100 and c["daemon.out_of_order"] == 0
     assert c["daemon.programs_sent"] == 1 and c["commands_ignored"] == 0
+    status = await asyncio.to_thread(run_cell, "status", "--config", str(cell.path))
+    assert (
+        "r1         127.0.1.1        ur5e (emulated, mujoco; the daemon's program: running)" in status.stdout
+    )
 
 
 async def test_the_daemon_gives_way_to_the_controllers_state_and_takes_the_arm_back(start_cell) -> None:
