@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import struct
 import time
 
 import dashboard_client
@@ -137,3 +138,61 @@ async def test_junk_on_the_ur_ports_is_answered_and_counted_and_the_arm_goes_on(
             if c["ur.dashboard_long_lines"] >= 1 and c["ur.rtde_bad"] >= 2:
                 break
             await asyncio.sleep(0.05)
+
+
+async def test_200_clients_at_once_and_idle_ones_never_hold_up_the_arm_or_another_client(start_cell) -> None:
+    """200 RTDE connections to one arm at once, none sending a byte: [ur] max_clients of them are held
+    open, the rest closed and counted; a client streaming at 500 Hz beside them misses nothing."""
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
+    host, ur = cell.config.robots[0].ur_host, cell.config.ur
+    conns = await asyncio.gather(*(asyncio.open_connection(host, ur.rtde_port) for _ in range(200)))
+
+    async def closed(reader: asyncio.StreamReader) -> bool:
+        try:
+            async with asyncio.timeout(1.0):
+                return await reader.read(1) == b""
+        except TimeoutError:
+            return False  # held open, idle
+
+    shut = await asyncio.gather(*(closed(r) for r, _ in conns))
+    # the one streaming client beside them gets a place only if one is free: make one
+    conns[shut.index(False)][1].close()
+    try:
+        assert shut.count(False) == ur.max_clients  # the rest refused (connection closed)
+        for _ in range(50):  # (until the arm has seen that one go: a place is free)
+            reader, writer = await asyncio.open_connection(host, ur.rtde_port)
+            writer.write(rtde.encode(rtde.Package.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2)))
+            try:
+                async with asyncio.timeout(1.0):
+                    if await reader.read(4) == rtde.encode(rtde.Package.REQUEST_PROTOCOL_VERSION, b"\x01"):
+                        break
+            except (TimeoutError, ConnectionError):
+                pass
+            writer.close()
+        else:
+            raise AssertionError("no place for a client after one of the held ones closed")
+        outputs = struct.pack(">d", 500.0) + b"timestamp"
+        writer.write(rtde.encode(rtde.Package.CONTROL_PACKAGE_SETUP_OUTPUTS, outputs))
+        writer.write(rtde.encode(rtde.Package.CONTROL_PACKAGE_START))
+        stamps: list[float] = []
+        buf = bytearray()
+        async with asyncio.timeout(10):
+            while len(stamps) < 500:  # a second of packages
+                buf += await reader.read(65536)
+                for kind, body in rtde.split(buf):
+                    if kind == rtde.Package.DATA_PACKAGE and len(body) == 9:
+                        stamps.append(struct.unpack_from(">d", body, 1)[0])
+        writer.close()
+        steps = np.rint(np.diff(stamps) / 0.002).astype(int)
+        assert (steps >= 1).all() and (steps - 1).sum() <= 2, np.unique(steps, return_counts=True)
+    finally:
+        for _, w in conns:
+            w.close()
+    async with asyncio.timeout(5):  # (reported with the next heartbeat)
+        while (await _robots_counters(cell.config)).get("ur.rtde_refused", 0) < 200 - ur.max_clients:
+            await asyncio.sleep(0.05)
+
+
+async def _robots_counters(config) -> dict[str, float]:
+    status = await fetch_status(config)
+    return dict(next(s for s in status.services if s.name == "robots").last.counters)
