@@ -31,6 +31,7 @@ from cell.recorder import serve
 from cell.recorder.scene import ArmDrawer
 from cell.recorder.series import SeriesBatch
 from cell.robot.arm import arm_model
+from cell.robot.node import output_name
 from cell.service import ServiceContext
 from cell.snp.packet import Denial
 from cell.snp.state import realtime_offset_ns
@@ -73,6 +74,7 @@ class Recorder:
         self.lanes = ["vision", *(r.name for r in cfg.robots)]  # the Gantt chart's rows, top down
         self.bars: deque[tuple[float, float, int, str]] = deque(maxlen=GANTT_BARS)
         self.bars_dirty = False
+        self.outputs_seen: dict[str, int] = {}  # robot -> the digital outputs ever on (drawn since)
 
     def seconds(self, t_mono_ns: int) -> float:
         return (t_mono_ns + self.offset) / 1e9
@@ -128,6 +130,17 @@ class Recorder:
                         f"robots/{name}/active_tp", rr.Points3D([active], radii=0.012, colors=[255, 80, 0])
                     )
         self.logged += 1
+
+    def outputs(self, e: robot_pb2.RobotEvent) -> None:
+        """A robot's digital outputs changed: each output ever set, as a 0/1 series, and the log's line."""
+        self.text(e.t_ns, f"{e.name}: outputs {e.text}", "INFO")
+        seen = self.outputs_seen.get(e.name, 0) | e.digital_out
+        self.outputs_seen[e.name] = seen
+        self.at(e.t_ns)
+        for bit in range(64):
+            if seen >> bit & 1:
+                on = float(e.digital_out >> bit & 1)
+                self.rec.log(f"robots/{e.name}/io/{output_name(bit)}", rr.Scalars(on))
 
     def plan(self, p: controller_pb2.Plan) -> None:
         if p.robot_id not in self.drawers or not p.t_ns:
@@ -358,7 +371,10 @@ async def record(ctx: ServiceContext) -> None:
             r.text(d.t_ns, f"SnP query {d.query_id} from {d.peer} denied: {why}", "WARN")
         elif topic.startswith("events/robot/"):
             e = env.decode(robot_pb2.RobotEvent)
-            r.text(e.t_ns, f"{e.name}: {robot_pb2.RobotEvent.Kind.Name(e.kind)} {e.text}", "WARN")
+            if e.kind == robot_pb2.RobotEvent.KIND_OUTPUTS:
+                r.outputs(e)
+            else:
+                r.text(e.t_ns, f"{e.name}: {robot_pb2.RobotEvent.Kind.Name(e.kind)} {e.text}", "WARN")
         elif topic.startswith("events/service/"):
             r.service_event(env.decode(health_pb2.ServiceEvent), env.sent_ns)
 

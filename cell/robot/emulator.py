@@ -151,6 +151,9 @@ class RobotGroup:
         # called as each status period starts, right after the status went out: what else reports the
         # state of this deadline sends it then (the arms' RTDE packages, cell.ur.server)
         self.at_deadline: Callable[[], None] | None = None
+        # each robot's digital outputs, as its UR controller has them (cell.ur: set by a program or an
+        # RTDE client on an emulated arm, read over RTDE by the daemon); 0 for an arm without
+        self.digital_out = np.zeros(self.n, np.uint64)
 
     def silence(self, robot_id: int, seconds: float) -> bool:
         """Make one robot stop answering for `seconds`; False if it is not in this group."""

@@ -105,6 +105,7 @@ class Publisher:
         hz = group.robots[0].truth_hz
         self.every = max(1, round(group.robots[0].status_hz / hz)) if hz > 0 else 0
         self.names = [r.name for r in group.robots]
+        self.outputs = group.digital_out.copy()  # the digital outputs the bus was last told of
 
     def __call__(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
         if self.node is not None:
@@ -112,6 +113,8 @@ class Publisher:
         if self.ur is not None:
             self.ur.after_tick(group, stopping, resuming)
         now = time.monotonic_ns()
+        if (group.digital_out != self.outputs).any():
+            self._outputs(group, now)
         for rows, kind, text in (
             (stopping, robot_pb2.RobotEvent.KIND_PROTECTIVE_STOP, "no command for the watchdog's windows"),
             (resuming, robot_pb2.RobotEvent.KIND_RESUMED, "commands resumed"),
@@ -136,8 +139,23 @@ class Publisher:
                         target=group.drives.target[row],
                         stopped=bool(group.drives.stopped[row]),
                         tick=group.tick_no,
+                        digital_out=int(group.digital_out[row]),
                     ),
                 )
+
+    def _outputs(self, group: RobotGroup, now: int) -> None:
+        """Digital outputs that changed, as events: none is missed, however short (truth is sampled)."""
+        for row in np.flatnonzero(group.digital_out != self.outputs):
+            was, bits = int(self.outputs[row]), int(group.digital_out[row])
+            changed = [n for n in range(64) if (was ^ bits) >> n & 1]
+            text = ", ".join(f"{output_name(n)} {'on' if bits >> n & 1 else 'off'}" for n in changed)
+            r = group.robots[row]
+            ev = robot_pb2.RobotEvent(
+                robot_id=r.id, name=r.name, kind=robot_pb2.RobotEvent.KIND_OUTPUTS, text=text, t_ns=now,
+                digital_out=bits,
+            )  # fmt: skip
+            self.bus.publish(f"events/robot/{r.name}", ev)
+        self.outputs[:] = group.digital_out
 
 
 class RobotsNode(LeafNode):
@@ -196,6 +214,14 @@ class RobotsNode(LeafNode):
         if self.still_ms:
             out["rlink.still_ms_max"] = max(self.still_ms)
         return out
+
+
+def output_name(bit: int) -> str:
+    """A UR's name for digital output `bit` of actual_digital_output_bits: DO0-7, CO0-7 (configurable),
+    TO0-1 (tool)."""
+    if bit < 8:
+        return f"DO{bit}"
+    return f"CO{bit - 8}" if bit < 16 else f"TO{bit - 16}"
 
 
 def counters(groups: list[RobotGroup]) -> dict[str, float]:

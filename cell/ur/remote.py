@@ -151,7 +151,7 @@ class Daemon(RobotGroup):
         self._lost, self._started = loop.create_future(), loop.create_future()
         r = self.registers
         outputs = ["timestamp", "actual_q", "actual_qd", "robot_mode", "safety_mode", "runtime_state",
-                   r.taken, r.heartbeat]  # fmt: skip
+                   r.taken, r.heartbeat, "actual_digital_output_bits"]  # fmt: skip
         self.client = Client(outputs, [r.window, *r.velocities], float(self.robots[0].status_hz))
         self.beat, self.beat_tick, self.tick_no = -1, 0, -1
         self._pbuf.clear()
@@ -252,7 +252,7 @@ class Daemon(RobotGroup):
     def package(self, values: tuple, arrived_ns: int) -> None:
         """One RTDE package: the status out, the commands in, a window's register write, the program's
         state judged.  (Public for tests and benches that feed packages by hand.)"""
-        t, q, qd, robot_mode, safety_mode, runtime, taken, beat = values
+        t, q, qd, robot_mode, safety_mode, runtime, taken, beat, outputs = values
         tick = round(t / self.period)
         if self.tick_no < 0:
             self.tick_no = tick - 1
@@ -267,6 +267,7 @@ class Daemon(RobotGroup):
             self.stats["cycles_missed_max"] = max(self.stats["cycles_missed_max"], periods - 1)
         b = self.backend
         b.q[0], b.qd[0] = q, qd
+        self.digital_out[0] = outputs
         self._pack()  # (seq + 1: numbered as an emulated arm numbers the statuses it served)
         self._grid(tick)
         self.state_time = (self.origin_ns + tick * round(self.period * 1e9)) / 1e9  # (on our clock)

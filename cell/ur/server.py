@@ -261,6 +261,7 @@ class URInterfaces:
         t = group.state_time - group.origin_ns / 1e9
         b = group.backend
         for arm in self.arms:
+            group.digital_out[arm.row] = arm.state.digital_out
             if not arm.rtde:
                 continue
             live = [p for p in arm.rtde if p.session.started]

@@ -40,7 +40,7 @@ class RobotAnnounce(_message.Message):
     def __init__(self, robot_id: _Optional[int] = ..., name: _Optional[str] = ..., model: _Optional[str] = ..., backend: _Optional[str] = ..., joints: _Optional[int] = ..., q_min: _Optional[_Iterable[float]] = ..., q_max: _Optional[_Iterable[float]] = ..., v_max: _Optional[_Iterable[float]] = ..., a_max: _Optional[_Iterable[float]] = ..., udp_address: _Optional[str] = ..., status_hz: _Optional[int] = ..., command_hz: _Optional[int] = ..., dataplane: _Optional[str] = ..., window_origin_ns: _Optional[int] = ...) -> None: ...
 
 class RobotTruth(_message.Message):
-    __slots__ = ("robot_id", "t_ns", "q", "qd", "tool_pose", "target", "stopped", "tick")
+    __slots__ = ("robot_id", "t_ns", "q", "qd", "tool_pose", "target", "stopped", "tick", "digital_out")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     T_NS_FIELD_NUMBER: _ClassVar[int]
     Q_FIELD_NUMBER: _ClassVar[int]
@@ -49,6 +49,7 @@ class RobotTruth(_message.Message):
     TARGET_FIELD_NUMBER: _ClassVar[int]
     STOPPED_FIELD_NUMBER: _ClassVar[int]
     TICK_FIELD_NUMBER: _ClassVar[int]
+    DIGITAL_OUT_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     t_ns: int
     q: _containers.RepeatedScalarFieldContainer[float]
@@ -57,10 +58,11 @@ class RobotTruth(_message.Message):
     target: _containers.RepeatedScalarFieldContainer[float]
     stopped: bool
     tick: int
-    def __init__(self, robot_id: _Optional[int] = ..., t_ns: _Optional[int] = ..., q: _Optional[_Iterable[float]] = ..., qd: _Optional[_Iterable[float]] = ..., tool_pose: _Optional[_Iterable[float]] = ..., target: _Optional[_Iterable[float]] = ..., stopped: _Optional[bool] = ..., tick: _Optional[int] = ...) -> None: ...
+    digital_out: int
+    def __init__(self, robot_id: _Optional[int] = ..., t_ns: _Optional[int] = ..., q: _Optional[_Iterable[float]] = ..., qd: _Optional[_Iterable[float]] = ..., tool_pose: _Optional[_Iterable[float]] = ..., target: _Optional[_Iterable[float]] = ..., stopped: _Optional[bool] = ..., tick: _Optional[int] = ..., digital_out: _Optional[int] = ...) -> None: ...
 
 class RobotEvent(_message.Message):
-    __slots__ = ("robot_id", "name", "kind", "text", "t_ns")
+    __slots__ = ("robot_id", "name", "kind", "text", "t_ns", "digital_out")
     class Kind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         KIND_UNSPECIFIED: _ClassVar[RobotEvent.Kind]
@@ -72,6 +74,7 @@ class RobotEvent(_message.Message):
         KIND_RESUME: _ClassVar[RobotEvent.Kind]
         KIND_PROGRAM: _ClassVar[RobotEvent.Kind]
         KIND_PROGRAM_END: _ClassVar[RobotEvent.Kind]
+        KIND_OUTPUTS: _ClassVar[RobotEvent.Kind]
     KIND_UNSPECIFIED: RobotEvent.Kind
     KIND_PROTECTIVE_STOP: RobotEvent.Kind
     KIND_RESUMED: RobotEvent.Kind
@@ -81,17 +84,20 @@ class RobotEvent(_message.Message):
     KIND_RESUME: RobotEvent.Kind
     KIND_PROGRAM: RobotEvent.Kind
     KIND_PROGRAM_END: RobotEvent.Kind
+    KIND_OUTPUTS: RobotEvent.Kind
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
     TEXT_FIELD_NUMBER: _ClassVar[int]
     T_NS_FIELD_NUMBER: _ClassVar[int]
+    DIGITAL_OUT_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     name: str
     kind: RobotEvent.Kind
     text: str
     t_ns: int
-    def __init__(self, robot_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[RobotEvent.Kind, str]] = ..., text: _Optional[str] = ..., t_ns: _Optional[int] = ...) -> None: ...
+    digital_out: int
+    def __init__(self, robot_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[RobotEvent.Kind, str]] = ..., text: _Optional[str] = ..., t_ns: _Optional[int] = ..., digital_out: _Optional[int] = ...) -> None: ...
 
 class AnnounceRequest(_message.Message):
     __slots__ = ()

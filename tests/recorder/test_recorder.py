@@ -12,12 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import rtde_io
 from rerun.chunk import RrdReader
 
 from cell.bus import Bus
 from cell.controller.controller import Controller
 from cell.launcher import fetch_status
 from cell.rlink.client import EventClient
+from cell.v1 import robot_pb2
 from tests.conftest import cell_env, cell_overrides, free_port, write_config
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
@@ -74,6 +76,20 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
             async with EventClient(config) as link:  # an e-stop and a release, for the event log
                 await link.estop(["r2"])
                 await link.resume(["r2"])
+            # a digital output set and cleared by UR's own IO client, as a gripper would be, each shown
+            events = await bus.subscribe("events/robot/r1")
+            io = await asyncio.to_thread(rtde_io.RTDEIOInterface, config.robots[0].ur_host)
+            try:
+                for on in (True, False):
+                    assert io.setStandardDigitalOut(3, on)
+                    async with asyncio.timeout(5):
+                        while True:
+                            e = (await events.recv()).decode(robot_pb2.RobotEvent)
+                            if e.kind == robot_pb2.RobotEvent.KIND_OUTPUTS:
+                                break
+                    assert (e.text, e.digital_out) == (("DO3 on", 8) if on else ("DO3 off", 0))
+            finally:
+                io.disconnect()
             busy = next(
                 s for s in (await fetch_status(config)).services if s.name == "recorder"
             ).last.counters
@@ -105,6 +121,7 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
             assert rows[f"/joints/{name}/{series}"] > 5, series
     assert all(rows[f"/services/{s}/restarts"] >= 1 for s in ("dataplane", "robots", "controller"))
     assert rows["/dataplane/batch_p99_us"] >= 1 and rows["/events"] >= 4  # joins, e-stop, still, release
+    assert rows["/robots/r1/io/DO3"] == 2 and "/robots/r2/io/DO3" not in rows  # on, then off
     for node in ("dataplane", "robots", "rlink"):  # every node's links, from the heartbeats (1/s at most)
         assert (
             rows[f"/rlink/{node}/L1/event/packets_in"] >= 1
