@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from cell.bench.cellproc import free_port as _port
-from cell.bench.cellproc import running_cell
+from cell.bench.cellproc import robots_heard, running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.controller.controller import Controller, MotionStopped, Segment
@@ -69,9 +69,7 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
         watcher = asyncio.ensure_future(truth.run(bus))
         try:
             async with Controller(bus, config) as ctl:
-                async with asyncio.timeout(15):
-                    while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} < {1, 2}:  # noqa: ASYNC110
-                        await asyncio.sleep(0.05)
+                await robots_heard(ctl, {1, 2})
 
                 async def settle_and_read(name: str, goal: np.ndarray, end_ns: int) -> None:
                     await truth.until(name, end_ns + int(SETTLE_S * 1e9))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import random
 import socket
@@ -75,3 +76,10 @@ async def running_cell(overrides: dict[str, Any]) -> AsyncIterator[CellConfig]:
         config = load_config(path)
         async with child_cell(path, config):
             yield config
+
+
+async def robots_heard(ctl: Any, ids: set[int], timeout: float = 15.0) -> None:
+    """Until the data plane has had a status from each of these robots (ctl: a Controller)."""
+    async with asyncio.timeout(timeout):
+        while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} < ids:  # noqa: ASYNC110
+            await asyncio.sleep(0.05)

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from cell.bench.accuracy import Q0, tool_errors_mm
-from cell.bench.cellproc import free_port, running_cell
+from cell.bench.cellproc import free_port, robots_heard, running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.controller.controller import Controller
@@ -203,9 +203,7 @@ async def _bridge_run(moves: int) -> dict[str, float]:
         watcher = asyncio.ensure_future(truth.run(bus))
         try:
             async with Controller(bus, config) as ctl:
-                async with asyncio.timeout(15):
-                    while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} < {1, 2}:  # noqa: ASYNC110
-                        await asyncio.sleep(0.05)
+                await robots_heard(ctl, {1, 2})
                 # one after the other, so that neither path pays for the other's load
                 direct = await _demo(ctl, kin, truth, "r1", moves)
                 daemon = await _demo(ctl, kin, truth, "r2", moves)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import struct
 from enum import Enum, auto
 
-from cell.ur.rtde import FORMAT, HEADER, IN_USE, NOT_FOUND, WIDTH, Level, Package, Type, encode
+from cell.ur.rtde import FORMAT, IN_USE, NOT_FOUND, WIDTH, Level, Package, Type, encode, split
 
 VERSION = 2
 
@@ -58,17 +58,13 @@ class Client:
     def feed(self, data: bytes) -> list[tuple]:
         """The controller's bytes in; the data packages' values out (a field of several values is a
         tuple).  Raises SetupRefused if it refuses the handshake."""
-        buf = self._buf
-        buf += data
+        self._buf += data
+        try:
+            packages = split(self._buf)
+        except ValueError as exc:  # (a stream no one can read on past)
+            raise SetupRefused(f"the controller sent {exc}") from None
         out: list[tuple] = []
-        while len(buf) >= HEADER.size:
-            size, kind = HEADER.unpack_from(buf)
-            if size < HEADER.size:
-                raise SetupRefused(f"the controller sent a package header of {size} bytes")
-            if len(buf) < size:
-                break
-            body = bytes(buf[HEADER.size : size])
-            del buf[:size]
+        for kind, body in packages:
             if kind == Package.DATA_PACKAGE:
                 values = self._data(body)
                 if values is not None:
