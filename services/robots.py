@@ -114,12 +114,19 @@ async def run(ctx: ServiceContext) -> None:
             await urs[-1].start()
         ur_of = {id(u.group): u for u in urs}
 
+        # groups that tick on timers, their grids staggered over the period: each group's tick has the
+        # process to itself (on one grid a second group ticked as late as the first took: a UR5e and
+        # a UR10e, two groups, had the robots' lateness p99 at 740 us where one group has 170)
+        ticking = [g for g in [*groups, *hidden] if not isinstance(g, Daemon)]
+        t0 = time.monotonic_ns() + 2_000_000
+        starts = {id(g): t0 + round(k * g.period * 1e9 / len(ticking)) for k, g in enumerate(ticking)}
         async with asyncio.TaskGroup() as tg:
             for g in groups:
                 tick = Publisher(ctx.bus, g, node, ur_of.get(id(g)))
-                tg.create_task(g.run(tick), name=f"robots:{g.robots[0].backend}")
+                tg.create_task(g.run(tick, starts.get(id(g))), name=f"robots:{g.robots[0].backend}")
             for g in hidden:
-                tg.create_task(g.run(ur_of[id(g)].after_tick), name="robots:emulated-ur")
+                tick = ur_of[id(g)].after_tick
+                tg.create_task(g.run(tick, starts[id(g)]), name="robots:emulated-ur")
             tg.create_task(control(), name="control")
             if node is not None:
                 tg.create_task(node.run(), name="rlink")

@@ -324,10 +324,15 @@ class RobotGroup:
 
     # --- the schedule ----------------------------------------------------------------------
 
-    async def run(self, on_tick: Callable[[RobotGroup, np.ndarray, np.ndarray], None] | None = None) -> None:
-        """Tick forever on absolute deadlines; on_tick(group, stopped rows, resumed rows) after each."""
+    async def run(
+        self,
+        on_tick: Callable[[RobotGroup, np.ndarray, np.ndarray], None] | None = None,
+        start_ns: int | None = None,
+    ) -> None:
+        """Tick forever on absolute deadlines from start_ns (CLOCK_MONOTONIC; None: a period from now);
+        on_tick(group, stopped rows, resumed rows) after each."""
         period_ns = round(self.period * 1e9)
-        timer = PeriodicTimer(time.monotonic_ns() + period_ns, period_ns)
+        timer = PeriodicTimer(time.monotonic_ns() + period_ns if start_ns is None else start_ns, period_ns)
         self.origin_ns = timer.start_ns  # period 0's deadline (CLOCK_MONOTONIC): the tick grid
         lateness = self.counters.lateness
         try:

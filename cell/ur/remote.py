@@ -124,8 +124,13 @@ class Daemon(RobotGroup):
 
     # --- the session -------------------------------------------------------------------------
 
-    async def run(self, on_tick: Callable[[RobotGroup, np.ndarray, np.ndarray], None] | None = None) -> None:
-        """Keep a session with the controller for as long as the cell runs, reconnecting with back-off."""
+    async def run(
+        self,
+        on_tick: Callable[[RobotGroup, np.ndarray, np.ndarray], None] | None = None,
+        start_ns: int | None = None,
+    ) -> None:
+        """Keep a session with the controller for as long as the cell runs, reconnecting with back-off
+        (its cycles are the controller's: no start_ns of ours)."""
         self._on_tick = on_tick
         loop = asyncio.get_running_loop()
         loop.add_reader(self.socks[0].fileno(), self.receive)  # (commands as they come: see package())
