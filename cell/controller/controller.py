@@ -23,11 +23,12 @@ import numpy as np
 from cell.bus import RemoteError
 from cell.controller import prepared, supervision
 from cell.controller.engine import Engine
-from cell.controller.plan import Motion, PlanError, plan_joint, plan_linear
+from cell.controller.plan import ChainedMotion, Motion, PlanError, SampledMotion, plan_joint, plan_linear
 from cell.controller.schedule import (
     STOP_JERK,
     SWITCH_MARGIN_NS,
     Armed,
+    FollowResult,
     Goal,
     LoopRun,
     MotionKind,
@@ -42,7 +43,9 @@ from cell.controller.schedule import (
     tp_batch,
 )
 from cell.controller.tps import cut
+from cell.trajectory.model import TimedMotion, Trajectory, TrajectoryError
 
+AT_START_RAD = 1e-3  # a robot this close to a trajectory's first point follows it from where it stands
 __all__ = [
     "STOP_JERK", "Controller", "Goal", "MotionKind", "MotionResult", "MotionState", "MotionStopped",
     "Segment", "Track",
@@ -182,6 +185,57 @@ class Controller(Engine):
             motions[track.robot] = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
         result, tracks = await self.launch(motions, fine)
         return await self.finish(tracks, result)
+
+    async def follow(
+        self, trajectories: dict[int | str, Trajectory], speed: float = 0.5, wait: bool = True
+    ) -> FollowResult:
+        """Trajectories planned elsewhere (cell.trajectory), one per robot, their time 0 at one
+        data-plane time; each checked against its robot's limits before anything is loaded (PlanError
+        naming the first offending point), cut into TPs and streamed like the controller's own motions.
+        A robot not at its trajectory's first point is first brought there (a joint move at `speed`;
+        all robots wait for the slowest), which a trajectory that starts moving cannot allow."""
+        checked: dict[int, tuple[Track, Trajectory]] = {}
+        for robot, traj in trajectories.items():
+            track = self.track(robot)
+            lim, arm = track.limits, self.arm_of(track.robot)
+            try:
+                traj.check(arm.limits.q_min, arm.limits.q_max, lim.v_max, lim.a_max)
+            except TrajectoryError as exc:
+                named = f" {traj.name!r}" if traj.name else ""
+                raise PlanError(f"robot {track.robot}: trajectory{named}: {exc}") from None
+            checked[track.robot] = (track, traj)
+        approaches: dict[int, Motion | None] = {}
+        for rid, (track, traj) in checked.items():
+            self.check_running(track)
+            q0 = await self.start_q(track)
+            motion = TimedMotion(traj)
+            off = float(np.abs(q0 - traj.q[0]).max())
+            if off <= AT_START_RAD:
+                approaches[rid] = None
+            elif np.abs(motion.qd[0]).max() > 1e-9:
+                raise PlanError(
+                    f"robot {rid}: the trajectory starts moving and the robot is {off:.3g} rad from its "
+                    "first point: bring it there first"
+                )
+            else:
+                approaches[rid] = plan_joint(q0, traj.q[0], track.limits.scaled(speed))
+        lead = max((a.duration for a in approaches.values() if a is not None), default=0.0)
+        motions: dict[int, Motion] = {}
+        for rid, (_track, traj) in checked.items():
+            timed = TimedMotion(traj)
+            a = approaches[rid]
+            if lead == 0.0:
+                motions[rid] = timed
+                continue
+            if a is None:  # (it waits at its first point for the others' approaches)
+                a = SampledMotion(np.array([0.0, lead]), np.vstack([traj.q[0], traj.q[0]]))
+            motions[rid] = ChainedMotion([ChainedMotion([a], pad=lead - a.duration), timed])
+            self.unfinished.pop(rid, None)  # (a trajectory is not resumed from a stop: it is run again)
+        result, tracks = await self.launch(motions)
+        out = FollowResult(result.start_ns, result.end_ns, result.q_end, result.start_ns + round(lead * 1e9))
+        if wait:
+            await self.finish(tracks, result)
+        return out
 
     async def resume(self, robot: int | str) -> MotionResult | None:
         """After a stop: the interrupted motion's goal, re-planned from where the robot stands

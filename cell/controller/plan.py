@@ -59,6 +59,7 @@ class Motion:
 
     duration: float
     dof: int
+    knots: np.ndarray | None = None  # times its sections should end at (a trajectory's points), if any
 
     def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
@@ -149,6 +150,9 @@ class ChainedMotion(Motion):
         self.parts = parts
         self.starts = np.concatenate([[0.0], np.cumsum([p.duration for p in parts])])
         self.duration, self.dof = float(self.starts[-1] + pad), parts[0].dof
+        if any(p.knots is not None for p in parts):  # (each part's, and where each begins)
+            own = [p.knots + s for p, s in zip(parts, self.starts, strict=False) if p.knots is not None]
+            self.knots = np.unique(np.concatenate([self.starts[1:-1], *own]))
 
     def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = np.clip(np.asarray(t, np.float64), 0.0, self.duration)

@@ -59,6 +59,11 @@ class MotionResult:
 
 
 @dataclass
+class FollowResult(MotionResult):
+    t0_ns: int = 0  # when the trajectories' time 0 was (after the approach to their first points)
+
+
+@dataclass
 class Switch:
     """The last re-plan: where it branched, and the start state it predicted there."""
 

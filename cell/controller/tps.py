@@ -39,6 +39,41 @@ class Sections:
         return int(self.t_end.size)
 
 
+def _knotted(knots: np.ndarray, duration: float, d: float, grid_s: float) -> np.ndarray:
+    """Section ends on a motion's knots (a trajectory's points, on the robot's status grid), about d
+    apart: of dense knots, the last within d of the previous end; a gap up to 1.25 d is one section,
+    a longer one split evenly.  The robot is on the plan at every section's end, so at the
+    trajectory's own points when they are no denser than the TPs."""
+
+    def snap(t: float) -> float:
+        return min(duration, round(t / grid_s) * grid_s) if grid_s > 0 else t
+
+    ends: list[float] = []
+    last, best = 0.0, None
+    inner = [snap(k) for k in knots[(knots > 0) & (knots < duration)].tolist()]
+    for k in [*inner, duration]:
+        final = k >= duration
+        if k - last <= d + 1e-9 and not final:
+            best = k  # (a later knot may still be within d)
+            continue
+        if best is not None and best - last >= 0.5 * d:
+            ends.append(best)
+            last = best
+            if k - last <= d + 1e-9 and not final:
+                best = k
+                continue
+        best = None
+        gap = k - last
+        if gap <= 1e-9:
+            continue
+        m = max(1, math.ceil(gap / (1.25 * d) - 1e-9))
+        ends += [snap(last + gap * i / m) for i in range(1, m)] + [k]
+        last = k
+    if len(ends) > 1 and ends[-1] - ends[-2] < 0.5 * d:  # (a sliver at the end joins the one before)
+        del ends[-2]
+    return np.array(ends)
+
+
 def cut(
     motion: Motion,
     rate_hz: float,
@@ -51,9 +86,13 @@ def cut(
     With a loop model and sections long enough for it, the target velocities are fitted to it
     (cell.controller.loop); v0: the velocity the robot starts with."""
     d = 1.0 / rate_hz
-    n = max(1, math.ceil(motion.duration / d - 1e-9))
-    # a motion of no length (already there) is one section of holding
-    t_end = np.minimum(np.arange(1, n + 1) * d, motion.duration) if motion.duration > 1e-9 else np.array([d])
+    if motion.knots is not None and motion.duration > 1e-9:
+        t_end = _knotted(motion.knots, motion.duration, d, loop.status_s if loop is not None else 0.0)
+    else:
+        n = max(1, math.ceil(motion.duration / d - 1e-9))
+        # a motion of no length (already there) is one section of holding
+        uniform = np.minimum(np.arange(1, n + 1) * d, motion.duration)
+        t_end = uniform if motion.duration > 1e-9 else np.array([d])
     t_start = np.concatenate([[0.0], t_end[:-1]])
     duration = t_end - t_start
     q_end, v_end = motion.sample(t_end)
@@ -61,7 +100,9 @@ def cut(
     q_mid, _ = motion.sample((t_start + t_end) / 2)
     mean = (q_end - q_start) / duration[:, None]
     v_ff = mean - np.asarray(gain)[None, : q_end.shape[1]] * (q_end - q_mid)
-    if loop is not None and d >= loop.min_section_s():
+    # (the sections' usual length decides: a short last one is fitted too, as it always was)
+    usual = d if motion.knots is None or duration.size == 1 else float(duration[:-1].min())
+    if loop is not None and usual >= loop.min_section_s():
         start = np.zeros(q_end.shape[1]) if v0 is None else np.asarray(v0, np.float64)
         v_ff = loop.fit(q_end, t_end, q_start[0], start, tick0)
     return Sections(t_end, duration, q_end, v_ff, v_end)
