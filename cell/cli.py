@@ -45,6 +45,9 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    # (PyOpenGL, imported under MuJoCo's renderer, says at INFO that an optional accelerator is absent:
+    # noise in every command's output)
+    logging.getLogger("OpenGL").setLevel(logging.WARNING)
     try:
         rc = args.func(args)
         if args.hard_exit:

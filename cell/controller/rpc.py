@@ -17,6 +17,7 @@ from cell.controller.plan import PlanError
 from cell.counters import Counters
 from cell.robot.kinematics import Unreachable
 from cell.robot.pose import from_adept, to_adept
+from cell.trajectory.model import Trajectory, TrajectoryError
 from cell.v1 import controller_pb2
 
 Kind, Frame = controller_pb2.MoveRequest.Kind, controller_pb2.MoveRequest.Frame
@@ -97,6 +98,31 @@ class ControllerService:
         if req.kind == Kind.LINEAR:
             return await self._guard(rid, ctl.move_linear(rid, pos, rot, speed, req.fine, wait))
         return await self._guard(rid, ctl.move_to(rid, pos, rot, speed, req.fine, wait))
+
+    async def follow(self, req: controller_pb2.FollowRequest) -> controller_pb2.MoveReply:
+        """Trajectories planned elsewhere: each checked and refused with its first offending point
+        (bad_request for one that cannot be a trajectory, plan for one beyond the robot's limits)."""
+        if not req.trajectories:
+            raise RpcFault("bad_request", "no trajectories")
+        trajs: dict[int | str, Trajectory] = {}
+        for m in req.trajectories:
+            rid = self._robot(m.robot)
+            if rid in trajs:
+                raise RpcFault("bad_request", f"two trajectories for robot {m.robot!r}")
+            trajs[rid] = trajectory_of(m, self.ctl.arm_of(rid).joints)
+        first = next(iter(trajs))
+        speed = _speed(req.speed or 50.0)
+        try:
+            result = await self.ctl.follow(trajs, speed)
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        except MotionStopped as exc:
+            raise RpcFault("stopped", str(exc)) from None
+        except BusError as exc:
+            raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
+        reply = self._reply(int(first), result)
+        reply.t0_ns = result.t0_ns
+        return reply
 
     async def move_together(self, req: controller_pb2.MoveTogetherRequest) -> controller_pb2.MoveReply:
         if not req.moves:
@@ -217,6 +243,34 @@ class ControllerService:
             raise RpcFault("plan", str(exc)) from None
         assert run is not None
         return controller_pb2.LoopReply(t_start_ns=run.start_ns, lap_ns=run.lap_ns, laps=laps)
+
+
+def trajectory_of(m: controller_pb2.JointTrajectory, robot_joints: list[str]) -> Trajectory:
+    """A JointTrajectory message as a Trajectory in the robot's joint order; bad_request if it cannot
+    be one (the reason names the first offending point)."""
+    n, dof = len(m.t), len(m.joint_names) or len(robot_joints)
+    if not m.positions:
+        raise RpcFault("bad_request", f"trajectory of {m.robot}: no positions")
+
+    def rows(values, what: str) -> np.ndarray | None:
+        if not values:
+            return None
+        if len(values) != n * dof:
+            raise RpcFault("bad_request", f"{what}: {len(values)} values for {n} points of {dof} joints")
+        return np.array(values, np.float64).reshape(n, dof)
+
+    try:
+        return Trajectory.build(
+            np.array(m.t, np.float64),
+            rows(m.positions, "positions"),  # type: ignore[arg-type]
+            rows(m.velocities, "velocities"),
+            rows(m.accelerations, "accelerations"),
+            joint_names=list(m.joint_names) or None,
+            robot_joints=robot_joints,
+            name=m.name,
+        )
+    except TrajectoryError as exc:
+        raise RpcFault("bad_request", f"trajectory of {m.robot}: {exc}") from None
 
 
 def _speed(percent: float) -> float:

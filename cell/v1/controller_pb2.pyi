@@ -58,16 +58,44 @@ class ArriveRequest(_message.Message):
     def __init__(self, robot: _Optional[str] = ..., tolerance_rad: _Optional[float] = ..., timeout_s: _Optional[float] = ...) -> None: ...
 
 class MoveReply(_message.Message):
-    __slots__ = ("t_start_ns", "t_end_ns", "joints", "pose")
+    __slots__ = ("t_start_ns", "t_end_ns", "joints", "pose", "t0_ns")
     T_START_NS_FIELD_NUMBER: _ClassVar[int]
     T_END_NS_FIELD_NUMBER: _ClassVar[int]
     JOINTS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
+    T0_NS_FIELD_NUMBER: _ClassVar[int]
     t_start_ns: int
     t_end_ns: int
     joints: _containers.RepeatedScalarFieldContainer[float]
     pose: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, t_start_ns: _Optional[int] = ..., t_end_ns: _Optional[int] = ..., joints: _Optional[_Iterable[float]] = ..., pose: _Optional[_Iterable[float]] = ...) -> None: ...
+    t0_ns: int
+    def __init__(self, t_start_ns: _Optional[int] = ..., t_end_ns: _Optional[int] = ..., joints: _Optional[_Iterable[float]] = ..., pose: _Optional[_Iterable[float]] = ..., t0_ns: _Optional[int] = ...) -> None: ...
+
+class JointTrajectory(_message.Message):
+    __slots__ = ("robot", "joint_names", "t", "positions", "velocities", "accelerations", "name")
+    ROBOT_FIELD_NUMBER: _ClassVar[int]
+    JOINT_NAMES_FIELD_NUMBER: _ClassVar[int]
+    T_FIELD_NUMBER: _ClassVar[int]
+    POSITIONS_FIELD_NUMBER: _ClassVar[int]
+    VELOCITIES_FIELD_NUMBER: _ClassVar[int]
+    ACCELERATIONS_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    robot: str
+    joint_names: _containers.RepeatedScalarFieldContainer[str]
+    t: _containers.RepeatedScalarFieldContainer[float]
+    positions: _containers.RepeatedScalarFieldContainer[float]
+    velocities: _containers.RepeatedScalarFieldContainer[float]
+    accelerations: _containers.RepeatedScalarFieldContainer[float]
+    name: str
+    def __init__(self, robot: _Optional[str] = ..., joint_names: _Optional[_Iterable[str]] = ..., t: _Optional[_Iterable[float]] = ..., positions: _Optional[_Iterable[float]] = ..., velocities: _Optional[_Iterable[float]] = ..., accelerations: _Optional[_Iterable[float]] = ..., name: _Optional[str] = ...) -> None: ...
+
+class FollowRequest(_message.Message):
+    __slots__ = ("trajectories", "speed")
+    TRAJECTORIES_FIELD_NUMBER: _ClassVar[int]
+    SPEED_FIELD_NUMBER: _ClassVar[int]
+    trajectories: _containers.RepeatedCompositeFieldContainer[JointTrajectory]
+    speed: float
+    def __init__(self, trajectories: _Optional[_Iterable[_Union[JointTrajectory, _Mapping]]] = ..., speed: _Optional[float] = ...) -> None: ...
 
 class StopRequest(_message.Message):
     __slots__ = ("robots",)

@@ -1,0 +1,119 @@
+"""`cell follow SOURCE`: a trajectory planned elsewhere (JSON, CSV, a ROS 2 bag) run on a running cell."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from cell.commands import Command, config_arg, load, register
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("source", help="a .json or .csv file, or a ROS 2 bag (directory, .mcap or .db3)")
+    config_arg(p)
+    p.add_argument("--robot", metavar="R", help="the robot to run it on (when the source does not say)")
+    p.add_argument("--topic", metavar="T", help="the bag's topic (when it has several of trajectories)")
+    p.add_argument("--index", type=int, metavar="N", help="the bag's N-th message on it (default: the last)")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=50.0,
+        metavar="PCT",
+        help="the approach to the first point (default 50 %%)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from cell import aio
+    from cell.trajectory.model import TrajectoryError
+    from cell.trajectory.sources import load as load_source
+
+    config = load(args)
+    try:
+        found = load_source(args.source, args.topic, args.index)
+    except TrajectoryError as exc:
+        print(f"cell follow: {exc}", file=sys.stderr)
+        return 2
+    names = [r.name for r in config.robots]
+    for pts in found:
+        pts.robot = pts.robot or args.robot or (names[0] if len(names) == 1 else "")
+        if not pts.robot:
+            print(f"cell follow: robots {', '.join(names)}: say which with --robot", file=sys.stderr)
+            return 2
+        if pts.robot not in names:
+            print(f"cell follow: no robot {pts.robot!r} in this cell ({', '.join(names)})", file=sys.stderr)
+            return 2
+    return aio.run(_follow(config, found, args.speed))
+
+
+async def _follow(config, found, speed: float) -> int:
+    import asyncio
+    import contextlib
+
+    import numpy as np
+
+    from cell.bus import Bus, BusError, RemoteError
+    from cell.robot.arm import arm_model
+    from cell.robot.truth import Truth
+    from cell.trajectory.model import Trajectory
+    from cell.v1 import controller_pb2
+
+    req = controller_pb2.FollowRequest(speed=speed)
+    for p in found:
+        req.trajectories.add(
+            robot=p.robot,
+            joint_names=p.joint_names,
+            t=p.t.tolist(),
+            positions=p.q.ravel().tolist(),
+            velocities=[] if p.qd is None else p.qd.ravel().tolist(),
+            accelerations=[] if p.qdd is None else p.qdd.ravel().tolist(),
+            name=p.name,
+        )
+    longest = max(float(p.t[-1] - p.t[0]) for p in found)
+    try:
+        async with Bus.connect(config.bus, "cell-follow") as bus:
+            truth = Truth()
+            watcher = asyncio.ensure_future(truth.run(bus))
+            try:
+                reply = await bus.request(
+                    "controller", "follow", req, controller_pb2.MoveReply, timeout=longest + 120.0
+                )
+                for p in found:
+                    await truth.until(p.robot, reply.t_end_ns + 20_000_000)
+            finally:
+                watcher.cancel()
+    except RemoteError as exc:
+        print(f"cell follow: {exc.message}", file=sys.stderr)
+        return 2 if exc.code in ("bad_request", "plan", "unknown_robot") else 1
+    except BusError as exc:
+        print(f"cell follow: no cell answered ({exc})", file=sys.stderr)
+        return 1
+    starts = []
+    for p in found:
+        arm = arm_model(config.robot(p.robot).model)
+        traj = Trajectory.build(p.t, p.q, joint_names=p.joint_names or None, robot_joints=arm.joints)
+        q_real = truth.at(p.robot, reply.t0_ns + traj.t * 1e9)
+        err = np.array(
+            [np.linalg.norm(arm.fk(a)[0] - arm.fk(b)[0]) for a, b in zip(q_real, traj.q, strict=True)]
+        )
+        err *= 1000
+        print(
+            f"{p.robot}: {traj.points} points over {traj.duration:.2f} s ({p.name or p.source}); tool path "
+            f"error at the points max {err.max():.3f} mm, median {np.median(err):.3f} mm"
+        )
+        with contextlib.suppress(IndexError):  # (a robot that never moved has no start)
+            starts.append(truth.start_of_motion(p.robot, reply.t0_ns - 20_000_000))
+    if len(starts) > 1:
+        print(f"start shift between robots: {(max(starts) - min(starts)) / 1e6:.2f} ms")
+    return 0
+
+
+register(
+    Command(
+        "follow",
+        "run a trajectory planned elsewhere (JSON, CSV, ROS 2 bag) on a running cell",
+        arguments,
+        run,
+        rank=4,
+    )
+)

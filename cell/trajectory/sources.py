@@ -1,0 +1,207 @@
+"""Where trajectories come from: JSON and CSV files, and ROS 2 bags (rosbag2, MCAP or SQLite storage)
+holding `trajectory_msgs/msg/JointTrajectory`, `control_msgs` FollowJointTrajectory goals or MoveIt's
+`moveit_msgs/msg/DisplayTrajectory`, read with the pure-Python `rosbags` (no ROS installation).
+
+Each source gives `Points`: raw, as the file has them (joint names not yet mapped to a robot's: the
+cell does that, cell.trajectory.model.joint_order).  Anything that cannot be read is a TrajectoryError
+with one line saying what and where.
+
+JSON: {"trajectories": [{"robot": "r1", "name": "...", "joint_names": [...], "points": [{"t": 0.0,
+"positions": [...], "velocities": [...], "accelerations": [...]}, ...]}, ...]} (or one such object
+on its own; velocities and accelerations optional).  CSV: a header row `t,<joint>,...` (positions,
+rad), optionally `<joint>.vel` columns (rad/s); one row a point.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cell.trajectory.model import MAX_POINTS, TrajectoryError
+
+JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
+
+
+@dataclass
+class Points:
+    joint_names: list[str]
+    t: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray | None = None
+    qdd: np.ndarray | None = None
+    robot: str = ""  # as the source names it ("": whichever robot the user says)
+    name: str = ""
+    source: str = field(default="", repr=False)
+
+
+def load(path: str | Path, topic: str | None = None, index: int | None = None) -> list[Points]:
+    """The trajectories in a file or bag (TrajectoryError naming what is wrong)."""
+    p = Path(path)
+    if not p.exists():
+        raise TrajectoryError(f"{p}: no such file or directory")
+    if p.is_dir() or p.suffix in (".mcap", ".db3"):
+        return read_bag(p, topic, index)
+    if p.suffix == ".json":
+        return read_json(p)
+    if p.suffix == ".csv":
+        return read_csv(p)
+    raise TrajectoryError(f"{p}: not a .json, .csv, .mcap, .db3 or rosbag2 directory")
+
+
+def read_json(path: Path) -> list[Points]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise TrajectoryError(f"{path}: not readable JSON ({exc})") from None
+    entries = data.get("trajectories", [data]) if isinstance(data, dict) else None
+    if not isinstance(entries, list) or not entries:
+        raise TrajectoryError(f"{path}: no trajectories (see docs/trajectories.md for the format)")
+    out = []
+    for i, e in enumerate(entries):
+        where = f"{path}: trajectory {i}"
+        try:
+            pts = e["points"]
+            if len(pts) > MAX_POINTS:
+                raise TrajectoryError(f"{where}: {len(pts)} points: at most {MAX_POINTS:,}")
+            t = np.array([float(p["t"]) for p in pts])
+            q = np.array([p["positions"] for p in pts], np.float64)
+            qd = (
+                np.array([p["velocities"] for p in pts], np.float64)
+                if pts and "velocities" in pts[0]
+                else None
+            )
+            qdd = (
+                np.array([p["accelerations"] for p in pts], np.float64)
+                if pts and "accelerations" in pts[0]
+                else None
+            )
+            names = [str(n) for n in e.get("joint_names", [])]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise TrajectoryError(f"{where}: {type(exc).__name__} {exc} (each point: t, positions)") from None
+        out.append(Points(names, t, q, qd, qdd, str(e.get("robot", "")), str(e.get("name", "")), str(path)))
+    return out
+
+
+def read_csv(path: Path) -> list[Points]:
+    try:
+        with path.open(newline="") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise TrajectoryError(f"{path}: not readable CSV ({exc})") from None
+    if len(rows) < 3:
+        raise TrajectoryError(f"{path}: a header row and at least 2 points")
+    if len(rows) - 1 > MAX_POINTS:
+        raise TrajectoryError(f"{path}: {len(rows) - 1} points: at most {MAX_POINTS:,}")
+    header = [h.strip() for h in rows[0]]
+    if header[0] not in ("t", "time_from_start"):
+        raise TrajectoryError(f"{path}: the first column must be t (s from the start), not {header[0]!r}")
+    pos = [i for i, h in enumerate(header) if i > 0 and not h.endswith(".vel")]
+    vel = {h.removesuffix(".vel"): i for i, h in enumerate(header) if h.endswith(".vel")}
+    names = [header[i] for i in pos]
+    try:
+        table = np.array([[float(x) for x in r] for r in rows[1:]], np.float64)
+    except ValueError as exc:
+        raise TrajectoryError(f"{path}: {exc}") from None
+    qd = None
+    if vel:
+        if set(vel) != set(names):
+            raise TrajectoryError(f"{path}: velocity columns {sorted(vel)} for joints {names}")
+        qd = table[:, [vel[n] for n in names]]
+    return [Points(names, table[:, 0], table[:, pos], qd, None, "", path.stem, str(path))]
+
+
+# --- ROS 2 bags -------------------------------------------------------------------------------------
+
+
+def _seconds(d: object) -> float:
+    return float(d.sec) + float(d.nanosec) * 1e-9  # type: ignore[attr-defined]
+
+
+def _from_message(msg: object) -> list[object]:
+    """The JointTrajectory messages in a message: itself, a FollowJointTrajectory goal's trajectory,
+    or each of a DisplayTrajectory's robot trajectories (told apart by their fields)."""
+    if hasattr(msg, "points") and hasattr(msg, "joint_names"):
+        return [msg]
+    inner = getattr(msg, "trajectory", None)
+    if inner is not None and hasattr(inner, "points"):
+        return [inner]
+    if isinstance(inner, list):
+        return [rt.joint_trajectory for rt in inner if hasattr(rt, "joint_trajectory")]
+    return []
+
+
+def _points(jt: object, source: str, name: str) -> Points:
+    pts = jt.points  # type: ignore[attr-defined]
+    if len(pts) > MAX_POINTS:
+        raise TrajectoryError(f"{source}: {len(pts)} points: at most {MAX_POINTS:,}")
+    names = list(jt.joint_names)  # type: ignore[attr-defined]
+    t = np.array([_seconds(p.time_from_start) for p in pts])
+    n = len(names)
+
+    def column(attr: str) -> np.ndarray | None:
+        rows = [np.asarray(getattr(p, attr), np.float64) for p in pts]
+        if not rows or all(r.size == 0 for r in rows):
+            return None
+        bad = next((i for i, r in enumerate(rows) if r.size != n), None)
+        if bad is not None:
+            raise TrajectoryError(f"{source}: point {bad}: {rows[bad].size} {attr} for {n} joints")
+        return np.vstack(rows)
+
+    q = column("positions")
+    if q is None:
+        raise TrajectoryError(f"{source}: a JointTrajectory without positions")
+    return Points(names, t, q, column("velocities"), column("accelerations"), "", name, source)
+
+
+def read_bag(path: Path, topic: str | None = None, index: int | None = None) -> list[Points]:
+    """The trajectories of one message of a bag: the `index`-th (default: the last) on `topic` (default:
+    the only topic of a trajectory type)."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    bag = path if path.is_dir() else path.parent
+    try:
+        reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except Exception as exc:  # (rosbags raises its own errors per storage: one line says which)
+        raise TrajectoryError(f"{path}: not a readable ROS 2 bag ({type(exc).__name__}: {exc})") from None
+    try:
+        kinds = ("JointTrajectory", "FollowJointTrajectory", "DisplayTrajectory")
+        wanted = [c for c in reader.connections if any(k in c.msgtype for k in kinds)]
+        if topic is not None:
+            wanted = [c for c in wanted if c.topic == topic]
+        topics = sorted({c.topic for c in wanted})
+        if not topics:
+            have = ", ".join(sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})) or "none"
+            what = f"topic {topic!r} of a trajectory type" if topic else "a topic of a trajectory type"
+            raise TrajectoryError(f"{path}: no {what} (topics: {have})")
+        if len(topics) > 1:
+            raise TrajectoryError(f"{path}: trajectories on {', '.join(topics)}: choose one with --topic")
+        try:
+            raws = [(c, raw) for c, _t, raw in reader.messages(connections=wanted)]
+        except Exception as exc:
+            raise TrajectoryError(f"{path}: cannot read its messages ({type(exc).__name__}: {exc})") from None
+        if not raws:
+            raise TrajectoryError(f"{path}: no message on {topics[0]}")
+        k = len(raws) - 1 if index is None else index
+        if not -len(raws) <= k < len(raws):
+            raise TrajectoryError(f"{path}: message {index} of {len(raws)} on {topics[0]}")
+        conn, raw = raws[k]
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except Exception as exc:
+            why = f"{type(exc).__name__}: {exc}"
+            raise TrajectoryError(
+                f"{path}: cannot decode {conn.msgtype} ({why}): is its type defined in the bag?"
+            ) from None
+        source = f"{path} {conn.topic} #{k % len(raws)}"
+        found = _from_message(msg)
+        if not found:
+            raise TrajectoryError(f"{path}: {conn.msgtype} holds no JointTrajectory")
+        return [_points(jt, source, f"{conn.topic}#{k % len(raws)}") for jt in found]
+    finally:
+        reader.close()

@@ -1,0 +1,109 @@
+"""`cell follow` on a running cell: trajectories from ROS 2 bags (MCAP and SQLite, written with
+rosbags as ROS tools write them), JSON and CSV; what cannot be run is refused in one line, exit 2,
+nothing moved."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from cell.bus import Bus
+from cell.trajectory.sources import load
+from cell.v1 import controller_pb2
+from tests.conftest import free_port, run_cell
+from tests.trajectory.test_trajectory import Q0, UR, wave
+
+TS = get_typestore(Stores.ROS2_HUMBLE)
+
+
+def write_bag(path: Path, t: np.ndarray, q: np.ndarray, names: list[str], storage: StoragePlugin) -> Path:
+    """A bag of one trajectory_msgs/msg/JointTrajectory on /planned, as a planner's exporter records it."""
+    T = TS.types
+    points = [
+        T["trajectory_msgs/msg/JointTrajectoryPoint"](
+            positions=np.ascontiguousarray(qi, np.float64),
+            velocities=np.array([], np.float64),
+            accelerations=np.array([], np.float64),
+            effort=np.array([], np.float64),
+            time_from_start=T["builtin_interfaces/msg/Duration"](sec=int(ti), nanosec=round(ti % 1 * 1e9)),
+        )
+        for ti, qi in zip(t, q, strict=True)
+    ]
+    header = T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="base"
+    )
+    msg = T["trajectory_msgs/msg/JointTrajectory"](header=header, joint_names=names, points=points)
+    with Writer(path, version=8, storage_plugin=storage) as w:
+        conn = w.add_connection("/planned", msg.__msgtype__, typestore=TS)
+        w.write(conn, 1, TS.serialize_cdr(msg, msg.__msgtype__))
+    return path
+
+
+def test_sources_read_bags_json_and_csv_alike(tmp_path) -> None:
+    traj = wave(20, 2.0)
+    order = [5, 0, 1, 2, 3, 4]  # (columns in another order than the robot's, named)
+    names = [UR[i] for i in order]
+    for storage in (StoragePlugin.MCAP, StoragePlugin.SQLITE3):
+        (pts,) = load(write_bag(tmp_path / f"bag-{storage.name}", traj.t, traj.q[:, order], names, storage))
+        assert (
+            pts.joint_names == names
+            and np.allclose(pts.t, traj.t)
+            and np.array_equal(pts.q, traj.q[:, order])
+        )
+    js = tmp_path / "t.json"
+    js.write_text(json.dumps({"robot": "r2", "joint_names": UR, "points": [
+        {"t": float(t), "positions": q.tolist()} for t, q in zip(traj.t, traj.q, strict=True)]}))  # fmt: skip
+    (pts,) = load(js)
+    assert pts.robot == "r2" and np.array_equal(pts.q, traj.q) and pts.qd is None
+    csv = tmp_path / "t.csv"
+    rows = ["t," + ",".join(UR) + "," + ",".join(f"{n}.vel" for n in UR)]
+    rows += [
+        ",".join(repr(float(x)) for x in [t, *q, *np.ones(6)]) for t, q in zip(traj.t, traj.q, strict=True)
+    ]
+    csv.write_text("\n".join(rows) + "\n")
+    (pts,) = load(csv)
+    assert pts.joint_names == UR and np.array_equal(pts.q, traj.q) and (pts.qd == 1.0).all()
+
+
+async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_nothing(
+    start_cell, tmp_path
+) -> None:
+    robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "mujoco", "truth_hz": 500}]
+    cell = await start_cell(run=["bus", "dataplane", "robots", "controller"], robots=robots)
+    cfg = str(cell.path)
+    traj = wave(40, 4.0)
+    bag = write_bag(tmp_path / "plan", traj.t, traj.q[:, ::-1], list(reversed(UR)), StoragePlugin.MCAP)
+    done = await asyncio.to_thread(run_cell, "follow", str(bag), "--config", cfg, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    got = re.search(r"r1: 40 points over 4\.00 s .* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout)
+    assert got is not None, done.stdout
+    assert float(got.group(1)) <= 1.0 and float(got.group(2)) <= 0.1, done.stdout
+    # a point that is not a number: refused in one line, exit 2, nothing loaded or moved
+    q = traj.q.copy()
+    q[7, 2] = np.nan
+    bad = write_bag(tmp_path / "bad", traj.t, q, UR, StoragePlugin.SQLITE3)
+    async with Bus.connect(cell.config.bus, "test") as bus:
+        before = await bus.request(
+            "controller", "pose", controller_pb2.RobotRequest(robot="r1"), controller_pb2.PoseReply
+        )
+        refused = await asyncio.to_thread(run_cell, "follow", str(bad), "--config", cfg, timeout=60)
+        assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0, refused.stderr
+        assert "point 7: positions not a finite number" in refused.stderr
+        fast = write_bag(tmp_path / "fast", traj.t / 8, traj.q, UR, StoragePlugin.MCAP)  # 8 times too fast
+        refused = await asyncio.to_thread(run_cell, "follow", str(fast), "--config", cfg, timeout=60)
+        assert refused.returncode == 2 and re.search(r"point \d+ \(t = [\d.]+ s\): joint \d", refused.stderr)
+        missing = await asyncio.to_thread(run_cell, "follow", str(bag), "--topic", "/nope", "--config", cfg)
+        assert missing.returncode == 2 and "no topic '/nope' of a trajectory type" in missing.stderr
+        after = await bus.request(
+            "controller", "pose", controller_pb2.RobotRequest(robot="r1"), controller_pb2.PoseReply
+        )
+        # (it still settles onto the first trajectory's end, by tenths of a mrad; the refused ones would
+        # have swung it by tenths of a rad)
+        assert np.abs(np.array(after.joints) - np.array(before.joints)).max() < 1e-3
+    assert np.abs(np.array(after.joints) - Q0).max() < 2e-3  # where the trajectory ended: its start
