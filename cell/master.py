@@ -31,6 +31,7 @@ from cell.config import CellConfig
 from cell.launcher import child_cell
 from cell.rlink.client import EventClient
 from cell.skills.client import RobotClient
+from cell.trajectory.model import Trajectory
 from cell.v1 import controller_pb2, skills_pb2
 from cell.vision.client import VisionClient
 
@@ -122,6 +123,27 @@ class Cell:
         )
         reply = await self.request("controller", "move_together", req, controller_pb2.MoveReply, 120.0)
         return reply.t_start_ns / 1e9, reply.t_end_ns / 1e9  # type: ignore[attr-defined]
+
+    async def follow(
+        self, trajectories: dict[str, Trajectory], speed: float = 50.0
+    ) -> controller_pb2.MoveReply:
+        """Trajectories planned elsewhere (cell.trajectory.model.Trajectory, columns in each robot's
+        joint order), one per robot, their time 0 at one data-plane time (docs/trajectories.md);
+        the reply when all have ended, its t0_ns when their time 0 was."""
+        req = controller_pb2.FollowRequest(speed=speed)
+        for name, traj in trajectories.items():
+            req.trajectories.add(
+                robot=name,
+                t=traj.t.tolist(),
+                positions=traj.q.ravel().tolist(),
+                velocities=[] if traj.qd is None else traj.qd.ravel().tolist(),
+                accelerations=[] if traj.qdd is None else traj.qdd.ravel().tolist(),
+                name=traj.name,
+            )
+        timeout = max(t.duration for t in trajectories.values()) + 120.0
+        return await self.request(
+            "controller", "follow", req, controller_pb2.MoveReply, timeout
+        )  # (MoveReply)
 
     async def prepare_alternates(
         self, robot: str, goals_deg: dict[str, list[float]], speed: float = 100.0, every: int = 1

@@ -107,3 +107,41 @@ async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_n
         # have swung it by tenths of a rad)
         assert np.abs(np.array(after.joints) - np.array(before.joints)).max() < 1e-3
     assert np.abs(np.array(after.joints) - Q0).max() < 2e-3  # where the trajectory ended: its start
+
+
+async def test_two_robots_follow_together_from_json_and_from_a_task_script(start_cell, tmp_path) -> None:
+    robots = [
+        {"id": i, "name": f"r{i}", "skill_port": free_port(), "backend": "mujoco", "truth_hz": 500}
+        for i in (1, 2)
+    ]
+    cell = await start_cell(run=["bus", "dataplane", "robots", "controller", "skills"], robots=robots)
+    cfg = str(cell.path)
+    a, b = wave(30, 3.0), wave(30, 3.0, amp=np.array([-0.5, 0.3, -0.2, 0.4, -0.3, 0.6]))
+    js = tmp_path / "two.json"
+    js.write_text(json.dumps({"trajectories": [
+        {"robot": name, "name": name, "joint_names": UR,
+         "points": [{"t": float(t), "positions": q.tolist()} for t, q in zip(tr.t, tr.q, strict=True)]}
+        for name, tr in (("r1", a), ("r2", b))]}))  # fmt: skip
+    # a task script moves r2 off its start first: it is brought back while r1 waits, then both go
+    script = tmp_path / "away.py"
+    script.write_text(
+        "import numpy as np\n"
+        "from cell.trajectory.model import Trajectory\n"
+        "async def main(cell):\n"
+        "    q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])\n"
+        "    t = np.array([0.0, 1.0, 2.0])\n"
+        "    q = np.vstack([q0, q0 + 0.3, q0 + 0.3])\n"
+        "    reply = await cell.follow({'r2': Trajectory.build(t, q, name='away')})\n"
+        "    assert reply.t0_ns > 0\n"
+    )
+    ran = await asyncio.to_thread(run_cell, "run", str(script), "--config", cfg, timeout=60)
+    assert ran.returncode == 0, ran.stderr[-2000:]
+    done = await asyncio.to_thread(run_cell, "follow", str(js), "--config", cfg, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    for name in ("r1", "r2"):
+        got = re.search(
+            rf"{name}: 30 points over 3\.00 s .* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout
+        )
+        assert got is not None and float(got.group(1)) <= 1.0 and float(got.group(2)) <= 0.1, done.stdout
+    shift = re.search(r"start shift between robots: ([\d.]+) ms", done.stdout)
+    assert shift is not None and float(shift.group(1)) < 2.0, done.stdout  # (one start time for both)
