@@ -14,6 +14,7 @@ import numpy as np
 from cell.bus import BusError, RemoteError, RpcFault
 from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
 from cell.controller.plan import PlanError
+from cell.controller.schedule import FollowResult
 from cell.counters import Counters
 from cell.robot.kinematics import Unreachable
 from cell.robot.pose import from_adept, to_adept
@@ -56,6 +57,7 @@ class ControllerService:
             t_end_ns=result.end_ns,
             joints=result.q_end.tolist(),
             pose=to_adept(pos, rot),
+            t0_ns=result.t0_ns if isinstance(result, FollowResult) else 0,
         )
 
     async def _guard(self, robot: int, coro) -> controller_pb2.MoveReply:
@@ -110,19 +112,8 @@ class ControllerService:
             if rid in trajs:
                 raise RpcFault("bad_request", f"two trajectories for robot {m.robot!r}")
             trajs[rid] = trajectory_of(m, self.ctl.arm_of(rid).joints)
-        first = next(iter(trajs))
-        speed = _speed(req.speed or 50.0)
-        try:
-            result = await self.ctl.follow(trajs, speed)
-        except PlanError as exc:
-            raise RpcFault("plan", str(exc)) from None
-        except MotionStopped as exc:
-            raise RpcFault("stopped", str(exc)) from None
-        except BusError as exc:
-            raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
-        reply = self._reply(int(first), result)
-        reply.t0_ns = result.t0_ns
-        return reply
+        first = int(next(iter(trajs)))
+        return await self._guard(first, self.ctl.follow(trajs, _speed(req.speed or 50.0)))
 
     async def move_together(self, req: controller_pb2.MoveTogetherRequest) -> controller_pb2.MoveReply:
         if not req.moves:
