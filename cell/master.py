@@ -32,6 +32,7 @@ from cell.launcher import child_cell
 from cell.rlink.client import EventClient
 from cell.skills.client import RobotClient
 from cell.trajectory.model import Trajectory
+from cell.trajectory.wire import to_message
 from cell.v1 import controller_pb2, skills_pb2
 from cell.vision.client import VisionClient
 
@@ -130,16 +131,13 @@ class Cell:
         """Trajectories planned elsewhere (cell.trajectory.model.Trajectory, columns in each robot's
         joint order), one per robot, their time 0 at one data-plane time (docs/trajectories.md);
         the reply when all have ended, its t0_ns when their time 0 was."""
-        req = controller_pb2.FollowRequest(speed=speed)
-        for name, traj in trajectories.items():
-            req.trajectories.add(
-                robot=name,
-                t=traj.t.tolist(),
-                positions=traj.q.ravel().tolist(),
-                velocities=[] if traj.qd is None else traj.qd.ravel().tolist(),
-                accelerations=[] if traj.qdd is None else traj.qdd.ravel().tolist(),
-                name=traj.name,
-            )
+        req = controller_pb2.FollowRequest(
+            speed=speed,
+            trajectories=[
+                to_message(robot, tr.t, tr.q, tr.qd, tr.qdd, name=tr.name)
+                for robot, tr in trajectories.items()
+            ],
+        )
         timeout = max(t.duration for t in trajectories.values()) + 120.0
         return await self.request(
             "controller", "follow", req, controller_pb2.MoveReply, timeout

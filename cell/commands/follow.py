@@ -56,19 +56,11 @@ async def _follow(config, found, speed: float) -> int:
     from cell.robot.arm import arm_model
     from cell.robot.truth import Truth
     from cell.trajectory.model import Trajectory
+    from cell.trajectory.wire import to_message
     from cell.v1 import controller_pb2
 
-    req = controller_pb2.FollowRequest(speed=speed)
-    for p in found:
-        req.trajectories.add(
-            robot=p.robot,
-            joint_names=p.joint_names,
-            t=p.t.tolist(),
-            positions=p.q.ravel().tolist(),
-            velocities=[] if p.qd is None else p.qd.ravel().tolist(),
-            accelerations=[] if p.qdd is None else p.qdd.ravel().tolist(),
-            name=p.name,
-        )
+    trajectories = [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
+    req = controller_pb2.FollowRequest(speed=speed, trajectories=trajectories)
     longest = max(float(p.t[-1] - p.t[0]) for p in found)
     try:
         async with Bus.connect(config.bus, "cell-follow") as bus:

@@ -194,41 +194,40 @@ class Controller(Engine):
         naming the first offending point), cut into TPs and streamed like the controller's own motions.
         A robot not at its trajectory's first point is first brought there (a joint move at `speed`;
         all robots wait for the slowest), which a trajectory that starts moving cannot allow."""
-        checked: dict[int, tuple[Track, Trajectory]] = {}
+        checked: dict[int, tuple[Track, TimedMotion]] = {}
         for robot, traj in trajectories.items():
             track = self.track(robot)
             lim, arm = track.limits, self.arm_of(track.robot)
+            timed = TimedMotion(traj)  # (its spline solved once: checked, then followed)
             try:
-                traj.check(arm.limits.q_min, arm.limits.q_max, lim.v_max, lim.a_max)
+                timed.check(arm.limits.q_min, arm.limits.q_max, lim.v_max, lim.a_max)
             except TrajectoryError as exc:
                 named = f" {traj.name!r}" if traj.name else ""
                 raise PlanError(f"robot {track.robot}: trajectory{named}: {exc}") from None
-            checked[track.robot] = (track, traj)
+            checked[track.robot] = (track, timed)
         approaches: dict[int, Motion | None] = {}
-        for rid, (track, traj) in checked.items():
+        for rid, (track, timed) in checked.items():
             self.check_running(track)
             q0 = await self.start_q(track)
-            motion = TimedMotion(traj)
-            off = float(np.abs(q0 - traj.q[0]).max())
+            off = float(np.abs(q0 - timed.q[0]).max())
             if off <= AT_START_RAD:
                 approaches[rid] = None
-            elif np.abs(motion.qd[0]).max() > 1e-9:
+            elif np.abs(timed.qd[0]).max() > 1e-9:
                 raise PlanError(
                     f"robot {rid}: the trajectory starts moving and the robot is {off:.3g} rad from its "
                     "first point: bring it there first"
                 )
             else:
-                approaches[rid] = plan_joint(q0, traj.q[0], track.limits.scaled(speed))
+                approaches[rid] = plan_joint(q0, timed.q[0], track.limits.scaled(speed))
         lead = max((a.duration for a in approaches.values() if a is not None), default=0.0)
         motions: dict[int, Motion] = {}
-        for rid, (_track, traj) in checked.items():
-            timed = TimedMotion(traj)
+        for rid, (_track, timed) in checked.items():
             a = approaches[rid]
             if lead == 0.0:
                 motions[rid] = timed
                 continue
             if a is None:  # (it waits at its first point for the others' approaches)
-                a = SampledMotion(np.array([0.0, lead]), np.vstack([traj.q[0], traj.q[0]]))
+                a = SampledMotion(np.array([0.0, lead]), np.vstack([timed.q[0], timed.q[0]]))
             motions[rid] = ChainedMotion([ChainedMotion([a], pad=lead - a.duration), timed])
             self.unfinished.pop(rid, None)  # (a trajectory is not resumed from a stop: it is run again)
         result, tracks = await self.launch(motions)

@@ -19,6 +19,7 @@ from cell.counters import Counters
 from cell.robot.kinematics import Unreachable
 from cell.robot.pose import from_adept, to_adept
 from cell.trajectory.model import Trajectory, TrajectoryError
+from cell.trajectory.wire import from_message
 from cell.v1 import controller_pb2
 
 Kind, Frame = controller_pb2.MoveRequest.Kind, controller_pb2.MoveRequest.Frame
@@ -111,7 +112,10 @@ class ControllerService:
             rid = self._robot(m.robot)
             if rid in trajs:
                 raise RpcFault("bad_request", f"two trajectories for robot {m.robot!r}")
-            trajs[rid] = trajectory_of(m, self.ctl.arm_of(rid).joints)
+            try:
+                trajs[rid] = from_message(m, self.ctl.arm_of(rid).joints)
+            except TrajectoryError as exc:
+                raise RpcFault("bad_request", f"trajectory of {m.robot}: {exc}") from None
         first = int(next(iter(trajs)))
         return await self._guard(first, self.ctl.follow(trajs, _speed(req.speed or 50.0)))
 
@@ -234,34 +238,6 @@ class ControllerService:
             raise RpcFault("plan", str(exc)) from None
         assert run is not None
         return controller_pb2.LoopReply(t_start_ns=run.start_ns, lap_ns=run.lap_ns, laps=laps)
-
-
-def trajectory_of(m: controller_pb2.JointTrajectory, robot_joints: list[str]) -> Trajectory:
-    """A JointTrajectory message as a Trajectory in the robot's joint order; bad_request if it cannot
-    be one (the reason names the first offending point)."""
-    n, dof = len(m.t), len(m.joint_names) or len(robot_joints)
-    if not m.positions:
-        raise RpcFault("bad_request", f"trajectory of {m.robot}: no positions")
-
-    def rows(values, what: str) -> np.ndarray | None:
-        if not values:
-            return None
-        if len(values) != n * dof:
-            raise RpcFault("bad_request", f"{what}: {len(values)} values for {n} points of {dof} joints")
-        return np.array(values, np.float64).reshape(n, dof)
-
-    try:
-        return Trajectory.build(
-            np.array(m.t, np.float64),
-            rows(m.positions, "positions"),  # type: ignore[arg-type]
-            rows(m.velocities, "velocities"),
-            rows(m.accelerations, "accelerations"),
-            joint_names=list(m.joint_names) or None,
-            robot_joints=robot_joints,
-            name=m.name,
-        )
-    except TrajectoryError as exc:
-        raise RpcFault("bad_request", f"trajectory of {m.robot}: {exc}") from None
 
 
 def _speed(percent: float) -> float:

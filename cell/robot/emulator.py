@@ -267,10 +267,6 @@ class RobotGroup:
         over the `periods` status periods since the last one; (rows that stopped, rows that resumed,
         the periods the backend has yet to step)."""
         self.receive(cutoff_ns)
-        return self.end_windows(periods)
-
-    def end_windows(self, periods: int) -> tuple[np.ndarray, np.ndarray, int]:
-        """take() once the commands are in."""
         stopping = resuming = np.empty(0, np.int64)
         last, self.tick_no = self.tick_no, self.tick_no + periods
         # windows end at periods W, 2W, ... (W status periods a window); one may have ended since last
@@ -295,10 +291,15 @@ class RobotGroup:
         if self.later is not None:  # the answers to this tick's status: the next window's
             self.drives.command(*self.later)
             self.later = None
-        self.counters.protective_stops += stopping.size
-        self.counters.resumes += resuming.size
-        self.counters.commands_ignored = self.drives.ignored
+        self.count_stops(stopping, resuming)
         return stopping, resuming, left
+
+    def count_stops(self, stopping: np.ndarray, resuming: np.ndarray) -> None:
+        """The counters of windows that ended: protective stops and resumes, the commands ignored."""
+        c = self.counters
+        c.protective_stops += stopping.size
+        c.resumes += resuming.size
+        c.commands_ignored = self.drives.ignored
 
     def _pack(self) -> None:
         """The next status of every joint, ready to go at the next deadline."""

@@ -95,30 +95,8 @@ class Trajectory:
         return Trajectory(t_arr, arrays[0], arrays[1], arrays[2], name)
 
     def check(self, q_min: np.ndarray, q_max: np.ndarray, v_max: np.ndarray, a_max: np.ndarray) -> None:
-        """TrajectoryError naming the first point that leaves the robot's limits (its position range,
-        its velocity and acceleration, given or as the spline through the points has them)."""
-        dof = q_min.size
-        if self.q.shape[1] != dof:
-            raise TrajectoryError(f"{self.q.shape[1]} joints per point for a robot of {dof}")
-        motion = TimedMotion(self)
-        checks = [
-            ("position", self.q, None, q_min, q_max),
-            ("velocity", motion.qd, None, -v_max * LIMIT_SLACK, v_max * LIMIT_SLACK),
-            ("acceleration", motion.acceleration(), self.qdd, -a_max * LIMIT_SLACK, a_max * LIMIT_SLACK),
-        ]
-        first: tuple[int, str] | None = None
-        for what, values, given, lo, hi in checks:
-            for arr in (values, given):
-                if arr is None:
-                    continue
-                out = np.argwhere((arr < lo) | (arr > hi))
-                if out.size and (first is None or out[0][0] < first[0]):
-                    i, j = (int(x) for x in out[0])
-                    limit = hi[j] if arr[i, j] > hi[j] else lo[j]
-                    first = (i, f"point {i} (t = {self.t[i]:.3f} s): joint {j + 1} {what} {arr[i, j]:.4g} "
-                                f"beyond its limit {limit:.4g}")  # fmt: skip
-        if first is not None:
-            raise TrajectoryError(first[1])
+        """TrajectoryError naming the first point that leaves the robot's limits (TimedMotion.check)."""
+        TimedMotion(self).check(q_min, q_max, v_max, a_max)
 
 
 def joint_order(names: Sequence[str], robot_joints: Sequence[str]) -> list[int]:
@@ -198,6 +176,31 @@ class TimedMotion(Motion):
         v = (6 * s2 - 6 * s) * (p0 - p1) + (3 * s2 - 4 * s + 1) * m0 + (3 * s2 - 2 * s) * m1
         v = v / h
         return q, v
+
+    def check(self, q_min: np.ndarray, q_max: np.ndarray, v_max: np.ndarray, a_max: np.ndarray) -> None:
+        """TrajectoryError naming the first point that leaves the robot's limits (its position range,
+        its velocity and acceleration, given or as the spline through the points has them)."""
+        traj, dof = self.traj, q_min.size
+        if self.q.shape[1] != dof:
+            raise TrajectoryError(f"{self.q.shape[1]} joints per point for a robot of {dof}")
+        checks = [
+            ("position", self.q, None, q_min, q_max),
+            ("velocity", self.qd, None, -v_max * LIMIT_SLACK, v_max * LIMIT_SLACK),
+            ("acceleration", self.acceleration(), traj.qdd, -a_max * LIMIT_SLACK, a_max * LIMIT_SLACK),
+        ]
+        first: tuple[int, str] | None = None
+        for what, values, given, lo, hi in checks:
+            for arr in (values, given):
+                if arr is None:
+                    continue
+                out = np.argwhere((arr < lo) | (arr > hi))
+                if out.size and (first is None or out[0][0] < first[0]):
+                    i, j = (int(x) for x in out[0])
+                    limit = hi[j] if arr[i, j] > hi[j] else lo[j]
+                    first = (i, f"point {i} (t = {self.t[i]:.3f} s): joint {j + 1} {what} {arr[i, j]:.4g} "
+                                f"beyond its limit {limit:.4g}")  # fmt: skip
+        if first is not None:
+            raise TrajectoryError(first[1])
 
     def acceleration(self) -> np.ndarray:
         """The spline's acceleration at each point (the larger of the two segments' ends meeting there)."""

@@ -27,13 +27,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
 
 from cell.config import RobotConfig, URConfig
+from cell.counters import Counters
 from cell.robot.emulator import Lateness, RobotGroup
 from cell.ur import primary
 from cell.ur.arm import RobotMode, RuntimeState, SafetyMode
@@ -81,6 +84,20 @@ def _mode_name(kind: type[Enum], value: int) -> str:
 Publish = Callable[[str, object], None]
 
 
+@dataclass(slots=True)
+class DaemonCounters(Counters):
+    connections: int = 0  # RTDE sessions made
+    lost: int = 0  # sessions lost after they started
+    programs_sent: int = 0
+    packages: int = 0  # RTDE packages served (status periods)
+    windows_written: int = 0
+    out_of_order: int = 0  # packages whose cycle came before the last's (counted, not served)
+    cycles_missed: int = 0  # the controller's cycles it sent no package for
+    cycles_missed_max: int = 0  # (a gauge: the longest such gap)
+    controller_texts: int = 0
+    runtime_exceptions: int = 0
+
+
 class Daemon(RobotGroup):
     """One robot of backend "ur": its UR controller at RobotConfig.ur_host, through the daemon."""
 
@@ -118,9 +135,7 @@ class Daemon(RobotGroup):
         self.origin_block: list[int] = []
         self.status_us, self.write_us = Lateness(), Lateness()  # (10 us bins)
         self.echo_ms: list[float] = []
-        self.stats = {"connections": 0, "lost": 0, "programs_sent": 0, "packages": 0, "windows_written": 0,
-                      "out_of_order": 0, "cycles_missed": 0, "cycles_missed_max": 0, "controller_texts": 0,
-                      "runtime_exceptions": 0}  # fmt: skip
+        self.stats = DaemonCounters()
 
     # --- the session -------------------------------------------------------------------------
 
@@ -171,16 +186,16 @@ class Daemon(RobotGroup):
             await asyncio.wait({self._started, self._lost}, return_when=asyncio.FIRST_COMPLETED)
             if self._lost.done():
                 raise OSError(self._lost.result())
-        self.stats["connections"] += 1
+        self.stats.connections += 1
         v = self.client.controller or (0, 0, 0, 0)
         log.info("%s: RTDE session with the UR controller at %s (URControl %d.%d.%d.%d)",
                  self.robots[0].name, self.address, *v)  # fmt: skip
         while True:
-            seen = self.stats["packages"]
+            seen = self.stats.packages
             try:
                 return await asyncio.wait_for(asyncio.shield(self._lost), SILENT_S)
             except TimeoutError:
-                if self.stats["packages"] == seen:
+                if self.stats.packages == seen:
                     return f"no RTDE package for {SILENT_S:g} s"
 
     def silence(self, robot_id: int, seconds: float) -> bool:
@@ -202,7 +217,7 @@ class Daemon(RobotGroup):
             if t is not None:
                 t.abort()
         self._rtde = self._primary = None
-        self.stats["lost"] += self.client is not None and self.client.started
+        self.stats.lost += int(self.client is not None and self.client.started)
         self.client = None
 
     def close(self) -> None:
@@ -245,11 +260,11 @@ class Daemon(RobotGroup):
                 continue
             name = self.robots[0].name
             if what == primary.RobotMessage.RUNTIME_EXCEPTION and len(rest) >= 8:
-                self.stats["runtime_exceptions"] += 1
+                self.stats.runtime_exceptions += 1
                 line = int.from_bytes(rest[:4], "big", signed=True)
                 log.warning("%s: the controller: line %d: %s", name, line, rest[8:].decode(errors="replace"))
             elif what == primary.RobotMessage.TEXT:
-                self.stats["controller_texts"] += 1
+                self.stats.controller_texts += 1
                 log.info("%s: the controller says: %s", name, rest.decode(errors="replace"))
 
     # --- one package: one status period --------------------------------------------------------
@@ -263,13 +278,13 @@ class Daemon(RobotGroup):
             self.tick_no = tick - 1
         periods = tick - self.tick_no
         if periods <= 0:  # (a controller does not resend: a clock reset, say; counted, not served)
-            self.stats["out_of_order"] += 1
+            self.stats.out_of_order += 1
             self.tick_no = tick if periods < -1000 else self.tick_no
             return
-        self.stats["packages"] += 1
+        self.stats.packages += 1
         if periods > 1:  # cycles the controller sent no package for
-            self.stats["cycles_missed"] += periods - 1
-            self.stats["cycles_missed_max"] = max(self.stats["cycles_missed_max"], periods - 1)
+            self.stats.cycles_missed += periods - 1
+            self.stats.cycles_missed_max = max(self.stats.cycles_missed_max, periods - 1)
         b = self.backend
         b.q[0], b.qd[0] = q, qd
         self.digital_out[0] = outputs
@@ -315,10 +330,7 @@ class Daemon(RobotGroup):
         stopping, resuming = self.drives.end_window()
         self.stops[0].extend(stopping.tolist())
         self.stops[1].extend(resuming.tolist())
-        c = self.counters
-        c.protective_stops += stopping.size
-        c.resumes += resuming.size
-        c.commands_ignored = self.drives.ignored
+        self.count_stops(stopping, resuming)
 
     def receive(self, cutoff_ns: int = 0) -> int:
         self._received_ns = time.perf_counter_ns()
@@ -349,7 +361,7 @@ class Daemon(RobotGroup):
         number = (self.drives.windows if number is None else number) & 0x7FFFFFFF
         self._rtde.write(self.client.write((number, *target.tolist())))
         self.written = target.copy()
-        self.stats["windows_written"] += 1
+        self.stats.windows_written += 1
         self.write_us.add((time.perf_counter_ns() - arrived_ns) / 1e3)
         self.window_sent[number] = arrived_ns
         if len(self.window_sent) > 64:
@@ -394,7 +406,7 @@ class Daemon(RobotGroup):
             return
         self._primary.write(self.program.encode())
         self.sent_at, self.awaiting = now, True
-        self.stats["programs_sent"] += 1
+        self.stats.programs_sent += 1
         self.written[:] = np.nan  # (the program starts from what the registers hold: write them again)
 
     def _reason(self, state: DaemonState, robot_mode: int, safety_mode: int) -> str:
@@ -433,7 +445,7 @@ class Daemon(RobotGroup):
     # --- figures -------------------------------------------------------------------------------
 
     def report(self) -> dict[str, float]:
-        out: dict[str, float] = {f"daemon.{k}": float(v) for k, v in self.stats.items()}
+        out = self.stats.as_dict("daemon.")
         out["daemon.running"] = float(self.state == DaemonState.RUNNING)  # (summed: daemons running)
         out[f"daemon.{self.robots[0].name}.running"] = out["daemon.running"]
         for name, h in (("status_us", self.status_us), ("write_us", self.write_us)):
@@ -455,8 +467,6 @@ class _Stream(asyncio.Protocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         sock = transport.get_extra_info("socket")
         if sock is not None:
-            import socket
-
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
     def data_received(self, data: bytes) -> None:
