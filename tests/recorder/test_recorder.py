@@ -136,13 +136,7 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
 
 
 def test_cell_demo_runs_the_main_job_end_to_end(tmp_path) -> None:
-    """The default cell's demo, with r2 a UR10e beside r1's UR5e: each robot planned, simulated and
-    drawn with its own model, and the cell in real time with their two groups ticking."""
-    robots = [
-        {"id": 1, "name": "r1", "skill_port": free_port()},
-        {"id": 2, "name": "r2", "skill_port": free_port(), "model": "ur10e"},
-    ]
-    cfg = write_config(tmp_path / "cell.toml", cell_overrides(robots))
+    cfg = write_config(tmp_path / "cell.toml", cell_overrides())
     out = tmp_path / "demo.rrd"
     proc = subprocess.run(
         [sys.executable, "-m", "cell", "demo", "--config", str(cfg), "--out", str(out)],
