@@ -570,7 +570,21 @@ class Attacks:
 
     async def huge_line(self, rep: Report, mb: int = 100) -> None:
         """A 100 MB line: refused once (line_too_long), never buffered; the next command works."""
-        reader, writer = await asyncio.open_connection(*self.skill_addr)
+        # (on a connection the server has taken: the targets before may still hold this peer's places,
+        # and a refusal then (busy: too many connections) would be no answer to the line)
+        for _ in range(40):
+            reader, writer = await asyncio.open_connection(*self.skill_addr)
+            writer.write(Command("before00", "break").encode())
+            async with asyncio.timeout(10):
+                taken = parse_reply((await reader.readuntil(b"\r\n"))[:-2])
+            if getattr(taken, "code", "done") != ErrorCode.BUSY:
+                break
+            writer.close()
+            await asyncio.sleep(0.05)
+        else:
+            rep.inputs, rep.hangs = 1, rep.hangs + 1
+            rep.detail = {"why": "the skill server refused every connection for 2 s (busy)"}
+            return
         block = b"A" * (1 << 20)
         t0 = time.monotonic()
         try:
