@@ -345,6 +345,7 @@ class RecorderConfig:
     path: str
     hz: float = _check(lambda v: None if 0 < v <= 500 else f"must be in (0, 500] (got {v})")
     series_batch_s: float = _check(lambda v: None if 0 < v <= 10 else f"must be in (0, 10] s (got {v})")
+    bag: str  # a rosbag2 directory (MCAP) the run is written to as well ("": none; cell.recorder.bag)
 
 
 @dataclass(frozen=True)

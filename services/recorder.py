@@ -1,8 +1,8 @@
-"""Service `recorder`: the cell drawn in Rerun, live (spawn, serve) or into an .rrd file (save).
+"""Service `recorder`: the cell's run drawn in Rerun (cell/recorder/live.py: live in a viewer, or into
+an .rrd file) and/or written as a ROS 2 bag (cell/recorder/bag.py), as [recorder] says.
 
-What it draws is cell/recorder/live.py.  With [recorder] mode = "off" (the
-default of `cell up`) it only says it is ready: Rerun, with pyarrow about
-0.4 s of imports, is loaded only when something is recorded.
+With mode = "off" and no bag (the default of `cell up`) it only says it is ready: Rerun (with
+pyarrow, about 0.4 s of imports) and rosbags are loaded only when something is recorded.
 """
 
 from __future__ import annotations
@@ -13,17 +13,35 @@ from cell.service import ServiceContext, ServiceSpec
 
 
 async def run(ctx: ServiceContext) -> None:
-    if ctx.config.recorder.mode == "off":
+    cfg = ctx.config.recorder
+    parts = []
+    if cfg.bag:
+        from cell.recorder import bag
+
+        parts.append(bag.record)
+    if cfg.mode != "off":
+        from cell.recorder import live
+
+        parts.append(live.record)
+    if not parts:
         ctx.ready()
         await asyncio.Event().wait()
-    from cell.recorder.live import record
+    waiting = len(parts)
 
-    await record(ctx)
+    def one_ready() -> None:  # ready once every part subscribed
+        nonlocal waiting
+        waiting -= 1
+        if waiting == 0:
+            ctx.ready()
+
+    async with asyncio.TaskGroup() as tg:
+        for part in parts:
+            tg.create_task(part(ctx, one_ready))
 
 
 SERVICE = ServiceSpec(
     name="recorder",
     run=run,
-    description="draws the cell in Rerun (live viewer, web viewer, or an .rrd file)",
+    description="records the run: Rerun (live viewer, web viewer, .rrd file) and/or a ROS 2 bag (MCAP)",
     ready_on_start=False,
 )

@@ -122,7 +122,7 @@ async def run(ctx: ServiceContext) -> None:
         starts = {id(g): t0 + round(k * g.period * 1e9 / len(ticking)) for k, g in enumerate(ticking)}
         async with asyncio.TaskGroup() as tg:
             for g in groups:
-                tick = Publisher(ctx.bus, g, node, ur_of.get(id(g)))
+                tick = Publisher(ctx.bus, g, node, ur_of.get(id(g)), full_rate=bool(ctx.config.recorder.bag))
                 tg.create_task(g.run(tick, starts.get(id(g))), name=f"robots:{g.robots[0].backend}")
             for g in hidden:
                 tick = ur_of[id(g)].after_tick

@@ -15,8 +15,18 @@ def with_rerun(config: CellConfig, words: list[str]) -> CellConfig:
     if mode not in ("spawn", "serve", "save", "off") or len(rest) != (1 if mode == "save" else 0):
         raise ConfigError("--rerun", "", "expected spawn, serve, save PATH.rrd or off")
     recorder = replace(config.recorder, mode=mode, path=rest[0] if rest else config.recorder.path)
+    return _recording(config, recorder)
+
+
+def with_bag(config: CellConfig, path: str) -> CellConfig:
+    """`--bag DIR`: the run written as a ROS 2 bag too (cell.recorder.bag)."""
+    return _recording(config, replace(config.recorder, bag=path))
+
+
+def _recording(config: CellConfig, recorder) -> CellConfig:
+    """The recorder as given, and its service run on this host if it records anything."""
     run = config.services.run
-    if mode != "off" and "recorder" not in run:
+    if (recorder.mode != "off" or recorder.bag) and "recorder" not in run:
         run = [*run, "recorder"]
     return replace(config, recorder=recorder, services=replace(config.services, run=run))
 
@@ -39,6 +49,11 @@ def arguments(p: argparse.ArgumentParser) -> None:
         help="draw the run in Rerun: spawn (local viewer), serve (web viewer on 127.0.0.1), "
         "save PATH.rrd, or off (default: [recorder] mode)",
     )
+    p.add_argument(
+        "--bag",
+        metavar="DIR",
+        help="write the run as a ROS 2 bag (rosbag2, MCAP) in DIR as well ([recorder] bag)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
     config = load(args)
     if args.rerun:
         config = with_rerun(config, args.rerun)
+    if args.bag:
+        config = with_bag(config, args.bag)
     layout = "each" if args.processes else args.layout
     if layout is not None:
         config = replace(config, services=replace(config.services, layout=layout))

@@ -21,26 +21,25 @@ from __future__ import annotations
 import asyncio
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import rerun as rr
 
-from cell.bus import EnvelopeError, Subscription
-from cell.recorder import serve
+from cell.recorder import base_position, each, serve
+from cell.recorder.events import EVENT_TOPICS, Event, Events
 from cell.recorder.scene import ArmDrawer
 from cell.recorder.series import SeriesBatch
 from cell.robot.arm import arm_model
 from cell.robot.node import output_name
 from cell.service import ServiceContext
-from cell.snp.packet import Denial
 from cell.snp.state import realtime_offset_ns
-from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, snp_pb2, vision_pb2
+from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, vision_pb2
 
 PATH_POINTS = 600  # tool path points kept per robot
 PATH_EVERY_NS = 200_000_000  # the tool path (a line of up to PATH_POINTS) is drawn this often
 LINK_EVERY_NS = 1_000_000_000  # a node's link counters are drawn at most this often
-SPACING = 1.2  # m between robots' bases in the 3D view
 TIMELINE = "cell_time"
 GANTT_BARS = 600  # the newest requests drawn in the Gantt chart
 VISION_COLOR, ROBOT_COLOR = (255, 150, 30), (40, 110, 220)  # Fig. 10: vision orange, robot blue
@@ -55,8 +54,7 @@ class Recorder:
         n = len(cfg.robots)
         self.names = {r.id: r.name for r in cfg.robots}
         self.drawers = {
-            r.id: ArmDrawer(arm_model(r.model), r.name, (0.0, (i - (n - 1) / 2) * SPACING, 0.0))
-            for i, r in enumerate(cfg.robots)
+            r.id: ArmDrawer(arm_model(r.model), r.name, base_position(i, n)) for i, r in enumerate(cfg.robots)
         }
         self.ids = {r.name: r.id for r in cfg.robots}
         self.last_drawn: dict[int, int] = {}
@@ -132,8 +130,7 @@ class Recorder:
         self.logged += 1
 
     def outputs(self, e: robot_pb2.RobotEvent) -> None:
-        """A robot's digital outputs changed: each output ever set, as a 0/1 series, and the log's line."""
-        self.text(e.t_ns, f"{e.name}: outputs {e.text}", "INFO")
+        """A robot's digital outputs changed: each output ever set, as a 0/1 series."""
         seen = self.outputs_seen.get(e.name, 0) | e.digital_out
         self.outputs_seen[e.name] = seen
         self.at(e.t_ns)
@@ -216,18 +213,16 @@ class Recorder:
             )
         self.restarts[hb.service] = hb.restarts
 
-    def service_event(self, e: health_pb2.ServiceEvent, t_mono_ns: int) -> None:
-        """A service's lifecycle event; from its failure to its next start: services/<name>/recover_s."""
-        SE = health_pb2.ServiceEvent
-        text = f"service {e.service}: {SE.Kind.Name(e.kind)} {e.text}".strip()
-        if e.kind == SE.KIND_FAILED:
+    def service_event(self, e: health_pb2.ServiceEvent, text: str, t_mono_ns: int) -> str:
+        """From a service's failure to its next start: services/<name>/recover_s (the line says it too)."""
+        if e.kind == health_pb2.ServiceEvent.KIND_FAILED:
             self.failed_ns.setdefault(e.service, t_mono_ns)
-        elif e.kind == SE.KIND_STARTED and e.service in self.failed_ns:
+        elif e.kind == health_pb2.ServiceEvent.KIND_STARTED and e.service in self.failed_ns:
             took = (t_mono_ns - self.failed_ns.pop(e.service)) / 1e9
             self.at(t_mono_ns)
             self.rec.log(f"services/{e.service}/recover_s", rr.Scalars(took))
             text += f" (back {took:.2f} s after it failed)"
-        self.text(t_mono_ns, text, "WARN" if e.kind != SE.KIND_STARTED else "INFO")
+        return text
 
     # --- events and skill commands --------------------------------------------------------------------
 
@@ -235,18 +230,14 @@ class Recorder:
         self.at(t_mono_ns)
         self.rec.log("events", rr.TextLog(text, level=level))
 
-    def skill(self, tr: skills_pb2.SkillTrace) -> None:
+    def skill(self, tr: skills_pb2.SkillTrace, ev: Event) -> None:
+        """A skill command as a span of skills/<robot>/busy, and its line in skills/<robot>/log."""
         entity = f"skills/{tr.robot}/busy"
         self.at(tr.started_ns)
         self.rec.log(entity, rr.Scalars(1.0))
         self.at(tr.answered_ns)
         self.rec.log(entity, rr.Scalars(0.0))
-        took = (tr.answered_ns - tr.started_ns) / 1e6
-        level = "INFO" if tr.status == "done" else "WARN"
-        what = (
-            f"{tr.robot}: {tr.id}:{tr.skill} {tr.status}{(' ' + tr.code) if tr.code else ''} in {took:.1f} ms"
-        )
-        self.rec.log(f"skills/{tr.robot}/log", rr.TextLog(what, level=level))
+        self.rec.log(f"skills/{tr.robot}/log", rr.TextLog(ev.text, level=ev.level))
 
     # --- vision and the Gantt chart of requests (the Adept paper's Figs. 9 and 10) ------------------
 
@@ -302,16 +293,7 @@ def open_recording(mode: str, path: str, name: str) -> rr.RecordingStream:
     return rec
 
 
-async def _each(sub: Subscription, handle) -> None:
-    while True:
-        for env in await sub.recv_batch():
-            try:
-                handle(env)
-            except EnvelopeError:  # a payload that does not parse: counted, dropped, never the recorder's end
-                sub.malformed += 1
-
-
-async def record(ctx: ServiceContext) -> None:
+async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
     """Draw the cell until cancelled, as [recorder] says (its mode is not "off")."""
     cfg = ctx.config.recorder
     rec = open_recording(cfg.mode, cfg.path, ctx.config.cell.name)
@@ -322,15 +304,13 @@ async def record(ctx: ServiceContext) -> None:
         "truth": await bus.subscribe("truth/"),
         "plan": await bus.subscribe("plan/"),
         "dataplane": await bus.subscribe("dataplane/counters"),
-        "events": await bus.subscribe("events/", "run/events", "skills/", "announce/robot/"),
+        "events": await bus.subscribe(*EVENT_TOPICS),
         "health": await bus.subscribe("health/"),
         "vision": await bus.subscribe("vision/image", "vision/measurement"),
         "requests": await bus.subscribe(
             "run/vision/request", *(f"run/{rb.name}/request" for rb in ctx.config.robots)
         ),
     }
-
-    joined: set[int] = set()
 
     def on_truth(env) -> None:
         if r.wants_truth(env.topic.removeprefix("truth/"), env.sent_ns):
@@ -344,39 +324,21 @@ async def record(ctx: ServiceContext) -> None:
         if any(k.startswith("rlink.L") for k in hb.counters):
             r.link(hb, env.sent_ns)
 
+    events = Events()
+
     def on_event(env) -> None:
-        topic = env.topic
-        if topic.startswith("skills/") and topic.endswith("/trace"):
-            r.skill(env.decode(skills_pb2.SkillTrace))
-        elif topic.startswith("skills/") and topic.endswith("/air"):
-            a = env.decode(skills_pb2.AirState)
-            r.text(a.t_ns, f"{a.robot}: vacuum {'on' if a.on else 'off'}")
-        elif topic == "run/events":
-            e = env.decode(skills_pb2.RunEvent)
-            r.text(
-                e.t_ns,
-                f"task script {e.script}: {e.state} {e.text}".strip(),
-                "ERROR" if e.state == "failed" else "INFO",
-            )
-        elif topic.startswith("announce/robot/"):
-            a = env.decode(robot_pb2.RobotAnnounce)
-            if a.robot_id not in joined:
-                joined.add(a.robot_id)
-                r.text(
-                    env.sent_ns, f"robot {a.name} (id {a.robot_id}, {a.backend}) joined at {a.udp_address}"
-                )
-        elif topic == "events/snp/denial":
-            d = env.decode(snp_pb2.SnpDenial)
-            why = Denial(d.explanation).name if d.explanation in iter(Denial) else str(d.explanation)
-            r.text(d.t_ns, f"SnP query {d.query_id} from {d.peer} denied: {why}", "WARN")
-        elif topic.startswith("events/robot/"):
-            e = env.decode(robot_pb2.RobotEvent)
-            if e.kind == robot_pb2.RobotEvent.KIND_OUTPUTS:
-                r.outputs(e)
-            else:
-                r.text(e.t_ns, f"{e.name}: {robot_pb2.RobotEvent.Kind.Name(e.kind)} {e.text}", "WARN")
-        elif topic.startswith("events/service/"):
-            r.service_event(env.decode(health_pb2.ServiceEvent), env.sent_ns)
+        ev = events.describe(env)
+        if ev is None:
+            return
+        msg, text = ev.msg, ev.text
+        if isinstance(msg, skills_pb2.SkillTrace):
+            r.skill(msg, ev)
+            return
+        if isinstance(msg, robot_pb2.RobotEvent) and msg.kind == robot_pb2.RobotEvent.KIND_OUTPUTS:
+            r.outputs(msg)
+        elif isinstance(msg, health_pb2.ServiceEvent):
+            text = r.service_event(msg, text, ev.t_ns)
+        r.text(ev.t_ns, text, ev.level)
 
     if cfg.mode == "serve":
         ctx.log.info("Rerun web viewer (loopback only): http://127.0.0.1:9090 (gRPC on 127.0.0.1:9876)")
@@ -398,22 +360,20 @@ async def record(ctx: ServiceContext) -> None:
 
     try:
         async with asyncio.TaskGroup() as tg:
-            tg.create_task(_each(subs["truth"], on_truth))
-            tg.create_task(_each(subs["plan"], lambda env: r.plan(env.decode(controller_pb2.Plan))))
+            tg.create_task(each(subs["truth"], on_truth))
+            tg.create_task(each(subs["plan"], lambda env: r.plan(env.decode(controller_pb2.Plan))))
             tg.create_task(
-                _each(
+                each(
                     subs["dataplane"],
                     lambda env: r.dataplane(env.decode(dataplane_pb2.DataplaneState), env.sent_ns),
                 )
             )
-            tg.create_task(_each(subs["events"], on_event))
-            tg.create_task(_each(subs["health"], on_health))
-            tg.create_task(_each(subs["vision"], on_vision))
-            tg.create_task(
-                _each(subs["requests"], lambda env: r.request(env.decode(skills_pb2.RequestTrace)))
-            )
+            tg.create_task(each(subs["events"], on_event))
+            tg.create_task(each(subs["health"], on_health))
+            tg.create_task(each(subs["vision"], on_vision))
+            tg.create_task(each(subs["requests"], lambda env: r.request(env.decode(skills_pb2.RequestTrace))))
             tg.create_task(flush_series())
-            ctx.ready()
+            ready()
     finally:
         r.series.flush()
         r.gantt()

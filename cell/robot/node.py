@@ -98,11 +98,14 @@ def announcements(group: RobotGroup, dataplane: str) -> list[robot_pb2.RobotAnno
 class Publisher:
     """What one group tells the bus after each tick."""
 
-    def __init__(self, bus: Bus, group: RobotGroup, node: RobotsNode | None = None, ur=None) -> None:
+    def __init__(
+        self, bus: Bus, group: RobotGroup, node: RobotsNode | None = None, ur=None, full_rate: bool = False
+    ) -> None:
+        """full_rate: ground truth every tick whatever truth_hz says (a bag is recorded)."""
         self.bus = bus
         self.node = node
         self.ur = ur  # the group's UR interfaces (cell.ur.server.URInterfaces), told of every tick
-        hz = group.robots[0].truth_hz
+        hz = group.robots[0].status_hz if full_rate else group.robots[0].truth_hz
         self.every = max(1, round(group.robots[0].status_hz / hz)) if hz > 0 else 0
         self.names = [r.name for r in group.robots]
         self.outputs = group.digital_out.copy()  # the digital outputs the bus was last told of

@@ -137,9 +137,9 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
 
 def test_cell_demo_runs_the_main_job_end_to_end(tmp_path) -> None:
     cfg = write_config(tmp_path / "cell.toml", cell_overrides())
-    out = tmp_path / "demo.rrd"
+    out, bag = tmp_path / "demo.rrd", tmp_path / "demo-bag"
     proc = subprocess.run(
-        [sys.executable, "-m", "cell", "demo", "--config", str(cfg), "--out", str(out)],
+        [sys.executable, "-m", "cell", "demo", "--config", str(cfg), "--out", str(out), "--bag", str(bag)],
         env=cell_env(),
         capture_output=True,
         text=True,
@@ -165,6 +165,25 @@ def test_cell_demo_runs_the_main_job_end_to_end(tmp_path) -> None:
     assert any(e.startswith("/skills/r1/busy") for e in rows) and any(
         e.startswith("/skills/r2/busy") for e in rows
     )
+    # the same run as a ROS 2 bag, read back with rosbags: every robot's joint states at its full 500 Hz
+    # over the run, the plans the controller loaded, the demo's events on /rosout
+    from cell.recorder.bag import info
+
+    b = info(bag)
+    topics = {t.topic: t for t in b.topics}
+    for robot in ("r1", "r2"):
+        js = topics[f"/{robot}/joint_states"]
+        assert js.msgtype == "sensor_msgs/msg/JointState" and abs(js.rate_hz - 500) <= 5, js
+        assert js.count > 0.95 * 500 * b.duration_s  # over the whole run
+        assert topics[f"/{robot}/planned"].count >= 2 and topics[f"/{robot}/joint_commands"].count == js.count
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == "/rosout"]
+        logs = [reader.deserialize(raw, c.msgtype).msg for c, _, raw in reader.messages(connections=conns)]
+    assert any(line.startswith("task script") and "demo.py: started" in line for line in logs), logs[:20]
+    assert any(":move_rel_world done" in line for line in logs) and any("joined at" in line for line in logs)
+    assert f"ROS 2 bag: {bag}" in text
 
 
 def _listeners(port: int) -> set[str]:

@@ -15,7 +15,6 @@ from functools import cache
 
 from cell.robot.models.registry import RobotModel, get
 
-JOINT_NAMES = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
 FLANGE_RGBA = "0.2 0.4 0.8 1"
 
 
@@ -42,7 +41,7 @@ def mjcf(name: str) -> str:
     """The model registered under `name`, as MJCF."""
     m = get(name)
     n = m.joints
-    names = JOINT_NAMES if n == 6 else tuple(f"joint_{i + 1}" for i in range(n))
+    names = m.joint_names
     lines = [
         f'<mujoco model="{m.name}-cell">',
         '  <compiler angle="radian" autolimits="true"/>',

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 Vec = tuple[float, ...]
+UR_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,16 @@ class RobotModel:
     @property
     def joints(self) -> int:
         return len(self.a)
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Its joints as the MJCF names them (UR's: shoulder_pan ... wrist_3)."""
+        return UR_JOINTS if self.joints == 6 else tuple(f"joint_{i + 1}" for i in range(self.joints))
+
+    @property
+    def ros_joint_names(self) -> tuple[str, ...]:
+        """Its joints as ROS names them (ur_description's shoulder_pan_joint ... wrist_3_joint)."""
+        return tuple(f"{n}_joint" for n in self.joint_names)
 
     def __post_init__(self) -> None:
         n = len(self.a)
