@@ -15,6 +15,7 @@ rad), optionally `<joint>.vel` columns (rad/s); one row a point.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -122,16 +123,47 @@ def _seconds(d: object) -> float:
 
 
 def _from_message(msg: object) -> list[object]:
-    """The JointTrajectory messages in a message: itself, a FollowJointTrajectory goal's trajectory,
-    or each of a DisplayTrajectory's robot trajectories (told apart by their fields)."""
-    if hasattr(msg, "points") and hasattr(msg, "joint_names"):
-        return [msg]
-    inner = getattr(msg, "trajectory", None)
-    if inner is not None and hasattr(inner, "points"):
-        return [inner]
-    if isinstance(inner, list):
-        return [rt.joint_trajectory for rt in inner if hasattr(rt, "joint_trajectory")]
-    return []
+    """The JointTrajectory messages in a message, found by type through its fields: itself, a
+    FollowJointTrajectory goal's (the goal, its SendGoal request, or the service event `ros2 bag
+    record` takes of it), a DisplayTrajectory's RobotTrajectories.  Empty ones are left out (a goal
+    with only a multi-DOF trajectory)."""
+    found: list[object] = []
+
+    def walk(obj: object, depth: int) -> None:
+        if getattr(obj, "__msgtype__", "") == JOINT_TRAJECTORY:
+            if obj.points:  # type: ignore[attr-defined]
+                found.append(obj)
+        elif depth and dataclasses.is_dataclass(obj):
+            for f in dataclasses.fields(obj):
+                v = getattr(obj, f.name)
+                for item in v if isinstance(v, list) else (v,):
+                    walk(item, depth - 1)
+
+    walk(msg, 6)
+    return found
+
+
+def _cat(a: np.ndarray | None, b: np.ndarray | None, k: int) -> np.ndarray | None:
+    return None if a is None or b is None else np.vstack([a, b[k:]])
+
+
+def _joined(parts: list[Points]) -> list[Points]:
+    """Consecutive segments of one joint group (a DisplayTrajectory's RobotTrajectories: MoveIt
+    plans them to run one after the other, each timed from 0) as one trajectory; a segment's first
+    point is dropped where it repeats the one before."""
+    out: list[Points] = []
+    for p in parts:
+        prev = out[-1] if out else None
+        if prev is None or prev.joint_names != p.joint_names or p.q.shape[1] != prev.q.shape[1]:
+            out.append(p)
+            continue
+        same = p.t[0] == 0.0 and np.array_equal(p.q[0], prev.q[-1])
+        k = 1 if same else 0
+        t = np.concatenate([prev.t, prev.t[-1] + p.t[k:] - p.t[0] + (0.0 if same else 1e-3)])
+
+        q, qd, qdd = np.vstack([prev.q, p.q[k:]]), _cat(prev.qd, p.qd, k), _cat(prev.qdd, p.qdd, k)
+        out[-1] = Points(prev.joint_names, t, q, qd, qdd, prev.robot, prev.name, prev.source)
+    return out
 
 
 def _points(jt: object, source: str, name: str) -> Points:
@@ -202,6 +234,10 @@ def read_bag(path: Path, topic: str | None = None, index: int | None = None) -> 
         found = _from_message(msg)
         if not found:
             raise TrajectoryError(f"{path}: {conn.msgtype} holds no JointTrajectory")
-        return [_points(jt, source, f"{conn.topic}#{k % len(raws)}") for jt in found]
+        points = _joined([_points(jt, source, f"{conn.topic}#{k % len(raws)}") for jt in found])
+        total = sum(p.t.size for p in points)
+        if total > MAX_POINTS:
+            raise TrajectoryError(f"{source}: {total} points: at most {MAX_POINTS:,}")
+        return points
     finally:
         reader.close()

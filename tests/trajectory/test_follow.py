@@ -10,20 +10,50 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from cell.bus import Bus
+from cell.robot.arm import arm_model
+from cell.trajectory import sources
+from cell.trajectory.model import Trajectory, TrajectoryError
 from cell.trajectory.sources import load
 from cell.v1 import controller_pb2
 from tests.conftest import free_port, run_cell
 from tests.trajectory.test_trajectory import Q0, UR, wave
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
+# The types of control_msgs and moveit_msgs, as their .msg/.action files define them (RobotState without
+# its attached collision objects, which a trajectory does not read): bags embed the definitions they
+# were written with, and rosbags decodes by those, as it does a bag MoveIt or ros2_control recorded.
+TYPES = {
+    "control_msgs/msg/JointTolerance": (
+        "string name\nfloat64 position\nfloat64 velocity\nfloat64 acceleration\n"
+    ),
+    "control_msgs/action/FollowJointTrajectory_Goal": (
+        "trajectory_msgs/JointTrajectory trajectory\n"
+        "trajectory_msgs/MultiDOFJointTrajectory multi_dof_trajectory\n"
+        "control_msgs/JointTolerance[] path_tolerance\ncontrol_msgs/JointTolerance[] goal_tolerance\n"
+        "builtin_interfaces/Duration goal_time_tolerance\n"
+    ),
+    "moveit_msgs/msg/RobotTrajectory": (
+        "trajectory_msgs/JointTrajectory joint_trajectory\n"
+        "trajectory_msgs/MultiDOFJointTrajectory multi_dof_joint_trajectory\n"
+    ),
+    "moveit_msgs/msg/RobotState": (
+        "sensor_msgs/JointState joint_state\n"
+        "sensor_msgs/MultiDOFJointState multi_dof_joint_state\nbool is_diff\n"
+    ),
+    "moveit_msgs/msg/DisplayTrajectory": (
+        "string model_id\nmoveit_msgs/RobotTrajectory[] trajectory\nmoveit_msgs/RobotState trajectory_start\n"
+    ),
+}
+for _name, _text in TYPES.items():
+    TS.register(get_types_from_msg(_text, _name))
 
 
-def write_bag(path: Path, t: np.ndarray, q: np.ndarray, names: list[str], storage: StoragePlugin) -> Path:
-    """A bag of one trajectory_msgs/msg/JointTrajectory on /planned, as a planner's exporter records it."""
+def joint_trajectory(t: np.ndarray, q: np.ndarray, names: list[str]) -> object:
     T = TS.types
     points = [
         T["trajectory_msgs/msg/JointTrajectoryPoint"](
@@ -38,11 +68,59 @@ def write_bag(path: Path, t: np.ndarray, q: np.ndarray, names: list[str], storag
     header = T["std_msgs/msg/Header"](
         stamp=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="base"
     )
-    msg = T["trajectory_msgs/msg/JointTrajectory"](header=header, joint_names=names, points=points)
+    return T["trajectory_msgs/msg/JointTrajectory"](header=header, joint_names=names, points=points)
+
+
+def write_bag(path: Path, t: np.ndarray, q: np.ndarray, names: list[str], storage: StoragePlugin) -> Path:
+    """A bag of one trajectory_msgs/msg/JointTrajectory on /planned, as a planner's exporter records it."""
+    return write_message(path, "/planned", joint_trajectory(t, q, names), storage)
+
+
+def write_message(path: Path, topic: str, msg: object, storage: StoragePlugin = StoragePlugin.MCAP) -> Path:
     with Writer(path, version=8, storage_plugin=storage) as w:
-        conn = w.add_connection("/planned", msg.__msgtype__, typestore=TS)
+        conn = w.add_connection(topic, msg.__msgtype__, typestore=TS)
         w.write(conn, 1, TS.serialize_cdr(msg, msg.__msgtype__))
     return path
+
+
+def empty_multi_dof() -> object:
+    T = TS.types
+    header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="")
+    return T["trajectory_msgs/msg/MultiDOFJointTrajectory"](header=header, joint_names=[], points=[])
+
+
+def display_trajectory(segments: list[tuple[np.ndarray, np.ndarray]]) -> object:
+    """What MoveIt publishes on /display_planned_path: the plan's segments, each timed from 0."""
+    T = TS.types
+    robot_trajectories = [
+        T["moveit_msgs/msg/RobotTrajectory"](
+            joint_trajectory=joint_trajectory(t, q, UR), multi_dof_joint_trajectory=empty_multi_dof()
+        )
+        for t, q in segments
+    ]
+    header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="")
+    e = np.zeros(0)
+    q0 = segments[0][1][0]
+    joints = T["sensor_msgs/msg/JointState"](header=header, name=UR, position=q0, velocity=e, effort=e)
+    multi = T["sensor_msgs/msg/MultiDOFJointState"](
+        header=header, joint_names=[], transforms=[], twist=[], wrench=[]
+    )
+    start = T["moveit_msgs/msg/RobotState"](joint_state=joints, multi_dof_joint_state=multi, is_diff=False)
+    return T["moveit_msgs/msg/DisplayTrajectory"](
+        model_id="ur5e", trajectory=robot_trajectories, trajectory_start=start
+    )
+
+
+def follow_goal(t: np.ndarray, q: np.ndarray) -> object:
+    """A FollowJointTrajectory goal as a joint trajectory controller gets it.  (Its SendGoal request
+    wraps it in one more message: rosbags cannot write an action type nested in another, but the
+    cell's reader finds the trajectory at any depth.)"""
+    T = TS.types
+    goal = T["control_msgs/action/FollowJointTrajectory_Goal"](
+        trajectory=joint_trajectory(t, q, UR), multi_dof_trajectory=empty_multi_dof(), path_tolerance=[],
+        goal_tolerance=[], goal_time_tolerance=T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+    )  # fmt: skip
+    return goal
 
 
 def test_sources_read_bags_json_and_csv_alike(tmp_path) -> None:
@@ -71,6 +149,65 @@ def test_sources_read_bags_json_and_csv_alike(tmp_path) -> None:
     assert pts.joint_names == UR and np.array_equal(pts.q, traj.q) and (pts.qd == 1.0).all()
 
 
+def test_follow_joint_trajectory_goals_and_moveits_display_trajectory_read_as_their_trajectories(
+    tmp_path,
+) -> None:
+    traj = wave(30, 3.0)
+    for storage in (StoragePlugin.MCAP, StoragePlugin.SQLITE3):
+        msg = follow_goal(traj.t, traj.q)
+        (pts,) = load(write_message(tmp_path / f"goal-{storage.name}", "/arm/goal", msg, storage))
+        assert pts.joint_names == UR and np.allclose(pts.t, traj.t) and np.array_equal(pts.q, traj.q)
+    # MoveIt's plan of two segments, each timed from 0, the second starting where the first ends: one
+    # trajectory, the repeated point once
+    a, b = traj.q[:16], traj.q[15:]
+    msg = display_trajectory([(traj.t[:16], a), (traj.t[15:] - traj.t[15], b)])
+    (pts,) = load(write_message(tmp_path / "display", "/display_planned_path", msg))
+    assert pts.t.size == 30 and np.allclose(pts.t, traj.t) and np.array_equal(pts.q, traj.q)
+
+
+def test_bad_bags_are_refused_in_one_line_naming_the_problem(tmp_path, monkeypatch) -> None:
+    traj = wave(20, 2.0)
+
+    def refused(path: Path, words: str, **kw) -> None:
+        with pytest.raises(TrajectoryError) as e:
+            load(path, **kw)
+        assert words in str(e.value) and "\n" not in str(e.value), str(e.value)
+
+    bag = write_bag(tmp_path / "cut", traj.t, traj.q, UR, StoragePlugin.MCAP)
+    mcap = next(bag.glob("*.mcap"))
+    mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])  # truncated
+    refused(bag, "not a readable ROS 2 bag")
+    bag = write_bag(tmp_path / "storage", traj.t, traj.q, UR, StoragePlugin.MCAP)
+    meta = bag / "metadata.yaml"
+    meta.write_text(meta.read_text().replace("storage_identifier: mcap", "storage_identifier: rosbag_v1"))
+    refused(bag, "not a readable ROS 2 bag")
+    refused(
+        write_bag(tmp_path / "ok", traj.t, traj.q, UR, StoragePlugin.MCAP),
+        "no topic '/other'",
+        topic="/other",
+    )
+    garbage = tmp_path / "garbage"
+    with Writer(garbage, version=8, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conn = w.add_connection("/planned", "trajectory_msgs/msg/JointTrajectory", typestore=TS)
+        w.write(conn, 1, b"\x00\x01\x00\x00not a trajectory")
+    refused(garbage, "cannot decode trajectory_msgs/msg/JointTrajectory")
+    monkeypatch.setattr(sources, "MAX_POINTS", 19)  # (the check of 10^6 points, on 20)
+    refused(write_bag(tmp_path / "long", traj.t, traj.q, UR, StoragePlugin.MCAP), "20 points: at most 19")
+    monkeypatch.undo()
+    joints = arm_model("ur5e").joints
+    for change, words in (
+        (lambda t, q, n: (t[::-1], q, n), "point 1: time"),  # out of order
+        (lambda t, q, n: (t, np.where(np.arange(q.size).reshape(q.shape) == 13, np.nan, q), n), "point 2"),
+        (lambda t, q, n: (t, q, [*n[:5], "elbow_2_joint"]), "'elbow_2_joint' is not one of this robot's"),
+    ):  # fmt: skip
+        t, q, n = change(traj.t, traj.q, UR)
+        (pts,) = load(
+            write_bag(tmp_path / words[:8].replace(" ", "_").replace("'", ""), t, q, n, StoragePlugin.MCAP)
+        )
+        with pytest.raises(TrajectoryError, match=re.escape(words)):
+            Trajectory.build(pts.t, pts.q, joint_names=pts.joint_names, robot_joints=joints)
+
+
 async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_nothing(
     start_cell, tmp_path
 ) -> None:
@@ -84,6 +221,14 @@ async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_n
     got = re.search(r"r1: 40 points over 4\.00 s .* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout)
     assert got is not None, done.stdout
     assert float(got.group(1)) <= 1.0 and float(got.group(2)) <= 0.1, done.stdout
+    # MoveIt's DisplayTrajectory of two segments, joined, within the same bounds
+    w = wave(30, 3.0)
+    shown = display_trajectory([(w.t[:16], w.q[:16]), (w.t[15:] - w.t[15], w.q[15:])])
+    display = write_message(tmp_path / "display", "/display_planned_path", shown)
+    done = await asyncio.to_thread(run_cell, "follow", str(display), "--config", cfg, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    got = re.search(r"r1: 30 points over 3\.00 s .* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout)
+    assert got is not None and float(got.group(1)) <= 1.0 and float(got.group(2)) <= 0.1, done.stdout
     # a point that is not a number: refused in one line, exit 2, nothing loaded or moved
     q = traj.q.copy()
     q[7, 2] = np.nan
