@@ -126,22 +126,42 @@ class Cell:
         return reply.t_start_ns / 1e9, reply.t_end_ns / 1e9  # type: ignore[attr-defined]
 
     async def follow(
-        self, trajectories: dict[str, Trajectory], speed: float = 50.0
+        self, trajectories: dict[str, Trajectory], speed: float = 50.0, replace: bool = False
     ) -> controller_pb2.MoveReply:
         """Trajectories planned elsewhere (cell.trajectory.model.Trajectory, columns in each robot's
         joint order), one per robot, their time 0 at one data-plane time (docs/trajectories.md);
-        the reply when all have ended, its t0_ns when their time 0 was."""
+        the reply when all have ended, its t0_ns when their time 0 was.  replace: a robot under way
+        is switched onto its trajectory on the fly (one robot)."""
         req = controller_pb2.FollowRequest(
             speed=speed,
             trajectories=[
                 to_message(robot, tr.t, tr.q, tr.qd, tr.qdd, name=tr.name)
                 for robot, tr in trajectories.items()
             ],
+            replace=replace,
         )
         timeout = max(t.duration for t in trajectories.values()) + 120.0
         return await self.request(
             "controller", "follow", req, controller_pb2.MoveReply, timeout
         )  # (MoveReply)
+
+    async def name_trajectories(
+        self, name: str, trajectories: dict[str, Trajectory]
+    ) -> controller_pb2.NameReply:
+        """Give the cell trajectories under a name (checked now; a name given again is replaced), for
+        the skill servers' follow:<name> (`Follow(name)` on a robot client) and follow_named()."""
+        req = controller_pb2.NameRequest(
+            name=name,
+            trajectories=[
+                to_message(r, tr.t, tr.q, tr.qd, tr.qdd, name=tr.name) for r, tr in trajectories.items()
+            ],
+        )
+        return await self.request("controller", "name", req, controller_pb2.NameReply, 30.0)  # type: ignore[return-value]
+
+    async def follow_named(self, name: str, *robots: str, speed: float = 50.0) -> controller_pb2.MoveReply:
+        """Run the trajectories named so (of these robots, or all) together; the reply when all have ended."""
+        req = controller_pb2.FollowRequest(name=name, robots=list(robots), speed=speed)
+        return await self.request("controller", "follow", req, controller_pb2.MoveReply, 3600.0)  # type: ignore[return-value]
 
     async def prepare_alternates(
         self, robot: str, goals_deg: dict[str, list[float]], speed: float = 100.0, every: int = 1

@@ -36,6 +36,7 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
             "replan": (controller_pb2.MoveRequest, svc.replan),
             "move_together": (controller_pb2.MoveTogetherRequest, svc.move_together),
             "follow": (controller_pb2.FollowRequest, svc.follow),
+            "name": (controller_pb2.NameRequest, svc.name),
             "prepare_alternates": (controller_pb2.AlternatesRequest, svc.prepare_alternates),
             "take_alternate": (controller_pb2.TakeAlternate, svc.take_alternate),
             "loop": (controller_pb2.LoopRequest, svc.loop),

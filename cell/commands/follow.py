@@ -21,6 +21,17 @@ def arguments(p: argparse.ArgumentParser) -> None:
         metavar="PCT",
         help="the approach to the first point (default 50 %%)",
     )
+    p.add_argument(
+        "--name",
+        metavar="NAME",
+        help="do not run it: give it to the cell under NAME (checked now), for the skill servers' "
+        "follow:NAME and task scripts; a name given again is replaced",
+    )
+    p.add_argument(
+        "--replace",
+        action="store_true",
+        help="a robot under way is switched onto it on the fly (one robot), not after its motion",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,10 +54,36 @@ def run(args: argparse.Namespace) -> int:
         if pts.robot not in names:
             print(f"cell follow: no robot {pts.robot!r} in this cell ({', '.join(names)})", file=sys.stderr)
             return 2
-    return aio.run(_follow(config, found, args.speed))
+    if args.name:
+        return aio.run(_name(config, found, args.name))
+    return aio.run(_follow(config, found, args.speed, args.replace))
 
 
-async def _follow(config, found, speed: float) -> int:
+async def _name(config, found, name: str) -> int:
+    from cell.bus import Bus, BusError, RemoteError
+    from cell.trajectory.wire import to_message
+    from cell.v1 import controller_pb2
+
+    trajectories = [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
+    req = controller_pb2.NameRequest(name=name, trajectories=trajectories)
+    try:
+        async with Bus.connect(config.bus, "cell-follow") as bus:
+            reply = await bus.request("controller", "name", req, controller_pb2.NameReply, timeout=60.0)
+    except RemoteError as exc:
+        print(f"cell follow: {exc.message}", file=sys.stderr)
+        return 2
+    except BusError as exc:
+        print(f"cell follow: no cell answered ({exc})", file=sys.stderr)
+        return 1
+    robots = ", ".join(reply.robots)
+    print(
+        f"named {reply.name!r}: {robots}, {reply.points} points over {reply.duration_s:.2f} s; "
+        f"run it with {reply.name!r} as follow:{reply.name} on a skill server"
+    )
+    return 0
+
+
+async def _follow(config, found, speed: float, replace: bool) -> int:
     import asyncio
     import contextlib
 
@@ -60,7 +97,7 @@ async def _follow(config, found, speed: float) -> int:
     from cell.v1 import controller_pb2
 
     trajectories = [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
-    req = controller_pb2.FollowRequest(speed=speed, trajectories=trajectories)
+    req = controller_pb2.FollowRequest(speed=speed, trajectories=trajectories, replace=replace)
     longest = max(float(p.t[-1] - p.t[0]) for p in found)
     try:
         async with Bus.connect(config.bus, "cell-follow") as bus:

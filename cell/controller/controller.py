@@ -46,6 +46,8 @@ from cell.controller.tps import cut
 from cell.trajectory.model import TimedMotion, Trajectory, TrajectoryError
 
 AT_START_RAD = 1e-3  # a robot this close to a trajectory's first point follows it from where it stands
+MAX_NAMED = 64  # trajectories kept under names (follow_named) at once
+MAX_NAMED_POINTS = 2_000_000  # and their points, all together
 __all__ = [
     "STOP_JERK", "Controller", "Goal", "MotionKind", "MotionResult", "MotionState", "MotionStopped",
     "Segment", "Track",
@@ -53,6 +55,10 @@ __all__ = [
 
 
 class Controller(Engine):
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.named: dict[str, dict[int, Trajectory]] = {}  # name -> robot -> trajectory (follow_named)
+
     async def __aenter__(self) -> Controller:
         await super().__aenter__()
         return self
@@ -186,25 +192,101 @@ class Controller(Engine):
         result, tracks = await self.launch(motions, fine)
         return await self.finish(tracks, result)
 
-    async def follow(
-        self, trajectories: dict[int | str, Trajectory], speed: float = 0.5, wait: bool = True
-    ) -> FollowResult:
-        """Trajectories planned elsewhere (cell.trajectory), one per robot, their time 0 at one
-        data-plane time; each checked against its robot's limits before anything is loaded (PlanError
-        naming the first offending point), cut into TPs and streamed like the controller's own motions.
-        A robot not at its trajectory's first point is first brought there (a joint move at `speed`;
-        all robots wait for the slowest), which a trajectory that starts moving cannot allow."""
+    def check_trajectories(
+        self, trajectories: dict[int | str, Trajectory]
+    ) -> dict[int, tuple[Track, TimedMotion]]:
+        """Each trajectory against its robot's limits (PlanError naming the first offending point), as
+        the TimedMotion it will run as (its spline solved once: checked, then followed)."""
         checked: dict[int, tuple[Track, TimedMotion]] = {}
         for robot, traj in trajectories.items():
             track = self.track(robot)
             lim, arm = track.limits, self.arm_of(track.robot)
-            timed = TimedMotion(traj)  # (its spline solved once: checked, then followed)
+            timed = TimedMotion(traj)
             try:
                 timed.check(arm.limits.q_min, arm.limits.q_max, lim.v_max, lim.a_max)
             except TrajectoryError as exc:
                 named = f" {traj.name!r}" if traj.name else ""
                 raise PlanError(f"robot {track.robot}: trajectory{named}: {exc}") from None
             checked[track.robot] = (track, timed)
+        return checked
+
+    def name_trajectories(self, name: str, trajectories: dict[int | str, Trajectory]) -> None:
+        """Keep checked trajectories under a name (`follow_named`, the skill servers' follow:<name>);
+        a name given again is replaced.  PlanError when beyond a robot's limits, or no room."""
+        self.check_trajectories(trajectories)
+        keep = {self.track(r).robot: t for r, t in trajectories.items()}
+        if name not in self.named and len(self.named) >= MAX_NAMED:
+            raise PlanError(f"{MAX_NAMED} trajectories are named already: name this one as one of those")
+        points = sum(t.points for ts in self.named.values() for t in ts.values()) - sum(
+            t.points for t in self.named.get(name, {}).values()
+        )
+        new = sum(t.points for t in keep.values())
+        if points + new > MAX_NAMED_POINTS:
+            raise PlanError(
+                f"named trajectories would hold {points + new:,} points: at most {MAX_NAMED_POINTS:,}"
+            )
+        self.named[name] = keep
+
+    def named_trajectories(
+        self, name: str, robots: list[int | str] | None = None
+    ) -> dict[int | str, Trajectory]:
+        """The trajectories kept under name (of the robots given, or all); PlanError if there are none."""
+        found = self.named.get(name)
+        if found is None:
+            known = ", ".join(sorted(self.named)) or "none"
+            raise PlanError(f"no trajectory named {name!r} (named: {known})")
+        if not robots:
+            return dict(found)
+        ids = [self.track(r).robot for r in robots]
+        missing = [r for r in ids if r not in found]
+        if missing:
+            raise PlanError(f"trajectory {name!r} has nothing for robot(s) {missing}")
+        return {r: found[r] for r in ids}
+
+    async def follow(
+        self,
+        trajectories: dict[int | str, Trajectory],
+        speed: float = 0.5,
+        wait: bool = True,
+        replace: bool = False,
+    ) -> FollowResult:
+        """Trajectories planned elsewhere (cell.trajectory), one per robot, their time 0 at one
+        data-plane time; each checked against its robot's limits before anything is loaded (PlanError
+        naming the first offending point), cut into TPs and streamed like the controller's own motions.
+        A robot not at its trajectory's first point is first brought there (a joint move at `speed`;
+        all robots wait for the slowest), which a trajectory that starts moving cannot allow.
+        replace: a robot under way is switched onto it on the fly (TrajectorySwitcher, as `replan`),
+        through a joint move from its predicted state to the first point; one robot at a time."""
+        checked = self.check_trajectories(trajectories)
+        if replace:
+            if len(checked) != 1:
+                raise PlanError("replacing a running motion takes the trajectory of one robot")
+            ((rid, (track, timed)),) = checked.items()
+            self.check_running(track)
+            if track.moving and track.segment is not None:
+                if np.abs(timed.qd[0]).max() > 1e-9:
+                    raise PlanError(f"robot {rid}: a trajectory that starts moving cannot replace a motion")
+                lim = track.limits.scaled(speed)
+                lead: list[float] = []
+
+                def onto(q: np.ndarray, v: np.ndarray) -> Motion:
+                    approach = plan_joint(q, timed.q[0], lim, v0=v)
+                    lead[:] = [approach.duration]
+                    return ChainedMotion([approach, timed])
+
+                switched = await self.switch(track, onto)
+                if switched is not None:
+                    self.unfinished.pop(rid, None)
+                    out = FollowResult(
+                        switched.start_ns,
+                        switched.end_ns,
+                        switched.q_end,
+                        switched.start_ns + round(lead[0] * 1e9),
+                    )
+                    if wait:
+                        await self.finish([track], switched)
+                    return out
+                # too late to branch: it follows once the motion under way has ended
         approaches: dict[int, Motion | None] = {}
         for rid, (track, timed) in checked.items():
             self.check_running(track)
@@ -219,19 +301,21 @@ class Controller(Engine):
                 )
             else:
                 approaches[rid] = plan_joint(q0, timed.q[0], track.limits.scaled(speed))
-        lead = max((a.duration for a in approaches.values() if a is not None), default=0.0)
+        lead_s = max((a.duration for a in approaches.values() if a is not None), default=0.0)
         motions: dict[int, Motion] = {}
         for rid, (_track, timed) in checked.items():
             a = approaches[rid]
-            if lead == 0.0:
+            if lead_s == 0.0:
                 motions[rid] = timed
                 continue
             if a is None:  # (it waits at its first point for the others' approaches)
-                a = SampledMotion(np.array([0.0, lead]), np.vstack([timed.q[0], timed.q[0]]))
-            motions[rid] = ChainedMotion([ChainedMotion([a], pad=lead - a.duration), timed])
+                a = SampledMotion(np.array([0.0, lead_s]), np.vstack([timed.q[0], timed.q[0]]))
+            motions[rid] = ChainedMotion([ChainedMotion([a], pad=lead_s - a.duration), timed])
             self.unfinished.pop(rid, None)  # (a trajectory is not resumed from a stop: it is run again)
         result, tracks = await self.launch(motions)
-        out = FollowResult(result.start_ns, result.end_ns, result.q_end, result.start_ns + round(lead * 1e9))
+        out = FollowResult(
+            result.start_ns, result.end_ns, result.q_end, result.start_ns + round(lead_s * 1e9)
+        )
         if wait:
             await self.finish(tracks, result)
         return out
@@ -258,20 +342,32 @@ class Controller(Engine):
     async def replan(self, robot: int | str, q_goal: np.ndarray, speed: float = 1.0) -> MotionResult:
         """Switch a moving robot onto a new motion to q_goal, branching at a TP far enough ahead."""
         track = self.track(robot)
+        goal = np.asarray(q_goal, np.float64)
+        if track.moving and track.segment is not None:
+            lim = track.limits.scaled(speed)
+            switched = await self.switch(track, lambda q, v: plan_joint(q, goal, lim, v0=v))
+            if switched is not None:
+                return await self.finish([track], switched)
+            await self.wait_idle(track)  # too late to branch: finish, then move
+        return await self.move_joints(robot, goal, speed)
+
+    async def switch(
+        self, track: Track, plan: Callable[[np.ndarray, np.ndarray], Motion]
+    ) -> MotionResult | None:
+        """Branch the track's running motion, at a TP far enough ahead, onto plan(q, v) from the state
+        predicted there; once in place, the new motion streams on.  None if it is too late to branch
+        (the running motion ends first)."""
         seg = track.segment
-        if not track.moving or seg is None:
-            return await self.move_joints(robot, q_goal, speed)
+        assert seg is not None
         for _attempt in range(4):
             t_plan = time.perf_counter_ns()
             q_s, v_s, status_ns = await self.joints_now(track)
             k = branch_point(seg, self.link.now() + self.link.rtt_ns + self.plan_ns + SWITCH_MARGIN_NS)
-            if k is None:  # too late to branch: finish, then move
-                await self.wait_idle(track)
-                return await self.move_joints(robot, q_goal, speed)
+            if k is None:
+                return None
             t_b = seg.t_ns(k)
             q_pred, v_pred = predict_at(seg, q_s, v_s, status_ns, t_b)
-            lim = track.limits.scaled(speed)
-            motion = plan_joint(q_pred, np.asarray(q_goal, np.float64), lim, v0=v_pred)
+            motion = plan(q_pred, v_pred)
             tick0 = self.phase_at(seg, t_b)
             sections = cut(
                 motion, self.rate_hz, np.resize(self.gain, track.joints), self.loop(track), v_pred, tick0
@@ -301,7 +397,7 @@ class Controller(Engine):
         track.segment = new
         self.stream(track, new)
         self.publish_plan(track, new)
-        return await self.finish([track], MotionResult(t_b, new.end_ns, sections.q[-1].copy()))
+        return MotionResult(t_b, new.end_ns, sections.q[-1].copy())
 
     # --- stops over the Responsive Link, and the watch on the data plane ---------------------------
 

@@ -7,6 +7,7 @@ serves it on the bus.
 from __future__ import annotations
 
 import asyncio
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,7 @@ from cell.trajectory.wire import from_message
 from cell.v1 import controller_pb2
 
 Kind, Frame = controller_pb2.MoveRequest.Kind, controller_pb2.MoveRequest.Frame
+NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")  # a named trajectory's name (it travels in skill commands)
 
 
 @dataclass(slots=True)
@@ -102,13 +104,12 @@ class ControllerService:
             return await self._guard(rid, ctl.move_linear(rid, pos, rot, speed, req.fine, wait))
         return await self._guard(rid, ctl.move_to(rid, pos, rot, speed, req.fine, wait))
 
-    async def follow(self, req: controller_pb2.FollowRequest) -> controller_pb2.MoveReply:
-        """Trajectories planned elsewhere: each checked and refused with its first offending point
-        (bad_request for one that cannot be a trajectory, plan for one beyond the robot's limits)."""
-        if not req.trajectories:
+    def _trajectories(self, msgs) -> dict[int | str, Trajectory]:
+        """The messages as Trajectories by robot (bad_request for one that cannot be a trajectory)."""
+        if not msgs:
             raise RpcFault("bad_request", "no trajectories")
         trajs: dict[int | str, Trajectory] = {}
-        for m in req.trajectories:
+        for m in msgs:
             rid = self._robot(m.robot)
             if rid in trajs:
                 raise RpcFault("bad_request", f"two trajectories for robot {m.robot!r}")
@@ -116,8 +117,42 @@ class ControllerService:
                 trajs[rid] = from_message(m, self.ctl.arm_of(rid).joints)
             except TrajectoryError as exc:
                 raise RpcFault("bad_request", f"trajectory of {m.robot}: {exc}") from None
+        return trajs
+
+    async def follow(self, req: controller_pb2.FollowRequest) -> controller_pb2.MoveReply:
+        """Trajectories planned elsewhere, given or named: each checked and refused with its first
+        offending point (bad_request for one that cannot be a trajectory, plan for one beyond the
+        robot's limits or a name not known)."""
+        if req.name:
+            robots: list[int | str] = [self._robot(r) for r in req.robots]
+            try:
+                trajs = self.ctl.named_trajectories(req.name, robots)
+            except PlanError as exc:
+                raise RpcFault("plan", str(exc)) from None
+        else:
+            trajs = self._trajectories(req.trajectories)
         first = int(next(iter(trajs)))
-        return await self._guard(first, self.ctl.follow(trajs, _speed(req.speed or 50.0)))
+        speed = _speed(req.speed or 50.0)
+        run = self.ctl.follow(trajs, speed, wait=not req.start_only, replace=req.replace)
+        return await self._guard(first, run)
+
+    async def name(self, req: controller_pb2.NameRequest) -> controller_pb2.NameReply:
+        """Keep trajectories under a name, checked now (plan: beyond a limit, or no room left)."""
+        if not NAME.fullmatch(req.name):
+            raise RpcFault(
+                "bad_request", f"a trajectory's name is 1-64 of A-Z a-z 0-9 _ . - (got {req.name[:80]!r})"
+            )
+        trajs = self._trajectories(req.trajectories)
+        try:
+            self.ctl.name_trajectories(req.name, trajs)
+        except PlanError as exc:
+            raise RpcFault("plan", str(exc)) from None
+        return controller_pb2.NameReply(
+            name=req.name,
+            robots=[next(c.name for c in self.ctl.config.robots if c.id == r) for r in trajs],
+            points=sum(t.points for t in trajs.values()),
+            duration_s=max(t.duration for t in trajs.values()),
+        )
 
     async def move_together(self, req: controller_pb2.MoveTogetherRequest) -> controller_pb2.MoveReply:
         if not req.moves:

@@ -25,11 +25,11 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from cell.bus import Bus
-from cell.skills.protocol import Command, Done, Error, ReplyReader
+from cell.bus import Bus, RemoteError
+from cell.skills.protocol import NO_ID, Command, Done, Error, ReplyReader
 from cell.v1 import skills_pb2
 
-Message = tuple[str, tuple[float, ...]]  # (skill, arguments)
+Message = tuple[str, tuple[float, ...] | tuple[str, ...]]  # (skill, arguments: numbers, or names)
 
 
 # --- commands ----------------------------------------------------------------------------------
@@ -150,7 +150,20 @@ class DisableAir:
         return [("disable_air", ())]
 
 
-RobotCommand = _Motion | SetSpeed | Break | EnableAir | DisableAir
+@dataclass(frozen=True)
+class Follow:
+    """Run the trajectory the cell was given under `name` (its part for this robot; docs/trajectories.md),
+    at the speed set for the approach to its first point; with brk, return when it has ended."""
+
+    name: str
+    brk: bool = field(default=True, kw_only=True)
+
+    def get_messages(self) -> list[Message]:
+        out: list[Message] = [("follow", (self.name,))]
+        return [*out, ("break", ())] if self.brk else out
+
+
+RobotCommand = _Motion | SetSpeed | Break | EnableAir | DisableAir | Follow
 
 
 # --- replies and errors --------------------------------------------------------------------------
@@ -256,7 +269,12 @@ class RobotClient:
         writer = self._writer
         async with self._send_lock:  # one batch's messages go out together, nothing between them
             for skill, args in messages:
-                cmd = Command(self._new_id(), skill, args)
+                named = bool(args) and isinstance(args[0], str)
+                cmd = (
+                    Command(self._new_id(), skill, names=args)
+                    if named
+                    else Command(self._new_id(), skill, args)
+                )  # type: ignore[arg-type]
                 fut: asyncio.Future[Done | Error] = loop.create_future()
                 self._waiting[cmd.id] = fut
                 data = cmd.encode()
@@ -305,6 +323,32 @@ class RobotClient:
                 ((c, fut, t),) = await self._send([message])
                 acks.append(await self._await(c, fut, t, timeout))
         return acks
+
+    async def follow(
+        self, trajectory, *, speed: float | None = None, name: str = "", timeout: float | None = None
+    ) -> list[Ack]:
+        """Run a trajectory planned elsewhere (cell.trajectory.model.Trajectory, this robot's joint
+        order) in turn with this robot's other commands; return when it has ended.  It is given to the
+        cell under `name` (default `<robot>.script`, replaced by the next call) over the bus, checked
+        there (SkillError naming the first point beyond a limit), then run by follow:<name>."""
+        from cell.trajectory.wire import to_message
+        from cell.v1 import controller_pb2
+
+        if self.bus is None:
+            raise RuntimeError(
+                f"{self.name}: follow() needs the client's bus (the cell's task scripts have it)"
+            )
+        name = name or f"{self.name}.script"
+        t = trajectory
+        req = controller_pb2.NameRequest(
+            name=name, trajectories=[to_message(self.name, t.t, t.q, t.qd, t.qdd, name=t.name)]
+        )
+        try:
+            await self.bus.request("controller", "name", req, controller_pb2.NameReply, 30.0)
+        except RemoteError as exc:  # (refused: beyond a limit, no room; the reason as an error reply says)
+            raise SkillError(self.name, "follow", Error(NO_ID, exc.code, exc.message)) from None
+        cmds: list[RobotCommand] = [SetSpeed(speed)] if speed is not None else []
+        return await self.cmdexec(*cmds, Follow(name), timeout=timeout)
 
     async def cmdexec_joined(self, *cmds: RobotCommand, timeout: float | None = None) -> list[Ack]:
         """Send all the commands' messages at once (the server still runs them in order); every

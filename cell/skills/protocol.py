@@ -46,6 +46,10 @@ MOTIONS = POSE_SKILLS + JOINT_SKILLS
 # (new: the cell's e-stop and release over the Responsive Link; answered out of turn, at once)
 NAMED_SKILLS = ("estop", "resume")
 _ROBOT_NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+# skills that take one name of something the cell was given (new: follow:<name> runs the trajectory
+# named so, cell/trajectory/, for this server's robot; queued as motions are)
+NAME_SKILLS = ("follow",)
+_NAME = _ROBOT_NAME
 
 
 class ErrorCode:
@@ -66,7 +70,7 @@ class Command:
     id: str
     skill: str
     args: tuple[float, ...] = ()
-    names: tuple[str, ...] = ()  # NAMED_SKILLS: robots
+    names: tuple[str, ...] = ()  # NAMED_SKILLS: robots; NAME_SKILLS: the one name
 
     def encode(self) -> bytes:
         if self.names:
@@ -126,8 +130,15 @@ def parse_command(line: bytes) -> Command | Error:
         if bad:
             return Error(cid, ErrorCode.ARGUMENTS, f"{skill} takes robot names or 'all', got {bad[0][:40]!r}")
         return Command(cid, skill, names=tuple(raw))
+    if skill in NAME_SKILLS:
+        if len(raw) != 1 or not _NAME.fullmatch(raw[0]):
+            got = ",".join(raw)[:40]
+            return Error(
+                cid, ErrorCode.ARGUMENTS, f"{skill} takes one name of 1-64 A-Z a-z 0-9 _ . -, got {got!r}"
+            )
+        return Command(cid, skill, names=(raw[0],))
     if skill not in SKILLS:
-        known = ", ".join([*SKILLS, *NAMED_SKILLS])
+        known = ", ".join([*SKILLS, *NAME_SKILLS, *NAMED_SKILLS])
         return Error(cid, ErrorCode.UNKNOWN_SKILL, f"no skill {skill!r} (skills: {known})")
     want = SKILLS[skill]
     if len(raw) != want:

@@ -283,6 +283,11 @@ class RobotSkills:
             req = M(robot=name, kind=kind, frame=frame, values=values, speed=speed, start_only=True)
             moved = await self._ask("move", req, controller_pb2.MoveReply)
             return self._done(cmd, started_ns, moved.pose)
+        if cmd.skill == "follow":  # the trajectory named so, this robot's part; answered once started
+            speed, self.speed = self.speed or 100.0, None
+            req = controller_pb2.FollowRequest(name=cmd.names[0], robots=[name], speed=speed, start_only=True)
+            followed = await self._ask("follow", req, controller_pb2.MoveReply)
+            return self._done(cmd, started_ns, followed.pose)
         if cmd.skill == "break":
             tolerance = self.config.skills.break_tolerance_rad
             req = controller_pb2.ArriveRequest(robot=name, tolerance_rad=tolerance, timeout_s=self._timeout())

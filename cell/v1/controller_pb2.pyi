@@ -90,12 +90,40 @@ class JointTrajectory(_message.Message):
     def __init__(self, robot: _Optional[str] = ..., joint_names: _Optional[_Iterable[str]] = ..., t: _Optional[_Iterable[float]] = ..., positions: _Optional[_Iterable[float]] = ..., velocities: _Optional[_Iterable[float]] = ..., accelerations: _Optional[_Iterable[float]] = ..., name: _Optional[str] = ...) -> None: ...
 
 class FollowRequest(_message.Message):
-    __slots__ = ("trajectories", "speed")
+    __slots__ = ("trajectories", "speed", "name", "robots", "replace", "start_only")
     TRAJECTORIES_FIELD_NUMBER: _ClassVar[int]
     SPEED_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    REPLACE_FIELD_NUMBER: _ClassVar[int]
+    START_ONLY_FIELD_NUMBER: _ClassVar[int]
     trajectories: _containers.RepeatedCompositeFieldContainer[JointTrajectory]
     speed: float
-    def __init__(self, trajectories: _Optional[_Iterable[_Union[JointTrajectory, _Mapping]]] = ..., speed: _Optional[float] = ...) -> None: ...
+    name: str
+    robots: _containers.RepeatedScalarFieldContainer[str]
+    replace: bool
+    start_only: bool
+    def __init__(self, trajectories: _Optional[_Iterable[_Union[JointTrajectory, _Mapping]]] = ..., speed: _Optional[float] = ..., name: _Optional[str] = ..., robots: _Optional[_Iterable[str]] = ..., replace: _Optional[bool] = ..., start_only: _Optional[bool] = ...) -> None: ...
+
+class NameRequest(_message.Message):
+    __slots__ = ("name", "trajectories")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    TRAJECTORIES_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    trajectories: _containers.RepeatedCompositeFieldContainer[JointTrajectory]
+    def __init__(self, name: _Optional[str] = ..., trajectories: _Optional[_Iterable[_Union[JointTrajectory, _Mapping]]] = ...) -> None: ...
+
+class NameReply(_message.Message):
+    __slots__ = ("name", "robots", "points", "duration_s")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    POINTS_FIELD_NUMBER: _ClassVar[int]
+    DURATION_S_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    robots: _containers.RepeatedScalarFieldContainer[str]
+    points: int
+    duration_s: float
+    def __init__(self, name: _Optional[str] = ..., robots: _Optional[_Iterable[str]] = ..., points: _Optional[int] = ..., duration_s: _Optional[float] = ...) -> None: ...
 
 class StopRequest(_message.Message):
     __slots__ = ("robots",)

@@ -56,6 +56,12 @@ def test_messages_split_anywhere_come_out_whole() -> None:
         (b"12345678:set_speed:0", b"12345678:error:arguments:set_speed takes a percentage in (0, 100]"),
         (b"12345678:set_speed:101", b"12345678:error:arguments:set_speed takes a percentage in (0, 100]"),
         (b"12345678:move_to:1:2", b"12345678:error:malformed:too many ':' fields"),
+        (
+            b"12345678:follow",
+            b"12345678:error:arguments:follow takes one name of 1-64 A-Z a-z 0-9 _ . -, got ''",
+        ),
+        (b"12345678:follow:a,b", b"12345678:error:arguments:follow takes one name"),
+        (b"12345678:follow:p ick", b"12345678:error:arguments:follow takes one name"),
     ],
 )
 def test_every_error_path_has_its_reply(line: bytes, reply: bytes) -> None:
@@ -63,6 +69,12 @@ def test_every_error_path_has_its_reply(line: bytes, reply: bytes) -> None:
     assert len(got) == 1 and isinstance(got[0], Error)
     assert got[0].encode().startswith(reply)
     assert got[0].encode().endswith(b"\r\n") and got[0].encode().count(b"\r\n") == 1
+
+
+def test_follow_takes_one_trajectory_name_and_encodes_back_to_its_bytes() -> None:
+    (cmd,) = CommandReader().feed(b"a81bd206:follow:pick.place-2\r\n")
+    assert (cmd.id, cmd.skill, cmd.names, cmd.args) == ("a81bd206", "follow", ("pick.place-2",), ())
+    assert cmd.encode() == b"a81bd206:follow:pick.place-2\r\n"
 
 
 def test_an_overlong_line_is_refused_once_and_the_next_one_works() -> None:

@@ -16,6 +16,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from cell.bus import Bus
 from cell.robot.arm import arm_model
+from cell.skills.client import RobotClient, SkillError
 from cell.trajectory import sources
 from cell.trajectory.model import Trajectory, TrajectoryError
 from cell.trajectory.sources import load
@@ -290,3 +291,71 @@ async def test_two_robots_follow_together_from_json_and_from_a_task_script(start
         assert got is not None and float(got.group(1)) <= 1.0 and float(got.group(2)) <= 0.1, done.stdout
     shift = re.search(r"start shift between robots: ([\d.]+) ms", done.stdout)
     assert shift is not None and float(shift.group(1)) < 2.0, done.stdout  # (one start time for both)
+
+
+def ramp(q_from: np.ndarray, q_to: np.ndarray, points: int = 25, seconds: float = 2.0) -> Trajectory:
+    """From rest to rest on 1 - cos: positions only."""
+    t = np.linspace(0.0, seconds, points)
+    s = (1 - np.cos(np.pi * t / seconds)) / 2
+    return Trajectory.build(t, q_from + np.outer(s, q_to - q_from), name="ramp")
+
+
+async def test_skill_servers_run_named_trajectories_and_robot_clients_follow_in_turn(
+    start_cell, tmp_path
+) -> None:
+    """follow:<name> on the AdeptServer-style skill servers, as any client sends it (raw TCP here):
+    named by `cell follow --name`, each robot its own part; a name not known is an error reply and
+    the connection goes on; RobotClient.follow() from a script runs one in turn with its commands."""
+    robots = [
+        {"id": i, "name": f"r{i}", "skill_port": free_port(), "backend": "mujoco", "truth_hz": 100}
+        for i in (1, 2)
+    ]
+    cell = await start_cell(run=["bus", "dataplane", "robots", "controller", "skills"], robots=robots)
+    cfg = str(cell.path)
+    goal = {
+        "r1": Q0 + np.array([0.4, -0.2, 0.2, 0.3, 0.2, 0.5]),
+        "r2": Q0 - np.array([0.3, 0.1, 0.2, 0.2, 0.3, 0.4]),
+    }
+    js = tmp_path / "pick.json"
+    entries = []
+    for name, g in goal.items():
+        tr = ramp(Q0, g)
+        points = [{"t": float(t), "positions": q.tolist()} for t, q in zip(tr.t, tr.q, strict=True)]
+        entries.append({"robot": name, "joint_names": UR, "points": points})
+    js.write_text(json.dumps({"trajectories": entries}))
+    named = await asyncio.to_thread(
+        run_cell, "follow", str(js), "--name", "pick", "--config", cfg, timeout=60
+    )
+    assert named.returncode == 0 and "named 'pick': r1, r2, 50 points over 2.00 s" in named.stdout, (
+        named.stderr
+    )
+    arm = arm_model("ur5e")
+    for name in ("r1", "r2"):
+        port = cell.config.robot(name).skill_port
+        reader, writer = await asyncio.open_connection(cell.config.skills.host, port)
+        writer.write(b"abcd0001:follow:nope\r\nabcd0002:follow:pick\r\nabcd0003:break\r\n")
+        await writer.drain()
+        lines = [(await asyncio.wait_for(reader.readuntil(b"\r\n"), 30)).decode() for _ in range(3)]
+        writer.close()
+        assert lines[0].startswith("abcd0001:error:unreachable:no trajectory named 'nope' (named: pick)"), (
+            lines
+        )
+        assert lines[1].startswith("abcd0002:done:") and lines[2].startswith("abcd0003:done:"), lines
+        x, y, z = (float(v) for v in lines[2].split(":")[3].split(",")[:3])  # the pose it stands at, mm
+        want = arm.fk(goal[name])[0] * 1000
+        assert np.abs(np.array([x, y, z]) - want).max() < 0.5, (lines[2], want)
+    async with Bus.connect(cell.config.bus, "test") as bus:
+        robot = await RobotClient(
+            "r1", cell.config.skills.host, cell.config.robot("r1").skill_port, bus
+        ).connect()
+        try:
+            acks = await robot.follow(ramp(goal["r1"], Q0), speed=50)
+            assert [a.skill for a in acks] == ["set_speed", "follow", "break"]
+            with pytest.raises(SkillError, match=r"follow .* plan: robot 1: trajectory 'ramp': point \d+"):
+                await robot.follow(ramp(Q0, Q0 + 1.0, seconds=0.2))  # far too fast: refused, nothing moved
+        finally:
+            await robot.close()
+        pose = await bus.request(
+            "controller", "pose", controller_pb2.RobotRequest(robot="r1"), controller_pb2.PoseReply
+        )
+    assert np.abs(np.array(pose.joints) - Q0).max() < 1e-3

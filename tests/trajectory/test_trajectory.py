@@ -151,4 +151,20 @@ async def test_a_mujoco_arm_follows_a_trajectory_within_the_cells_own_accuracy(s
                 ]
             )
             assert err.max() <= 1.0 and np.median(err) <= 0.1, (err.max(), np.median(err))
+            # onto a trajectory on the fly: a slow move under way is switched (TrajectorySwitcher), the
+            # trajectory starts long before the move would have ended, and is followed as accurately
+            move = await ctl.move_joints("r1", Q0 + 0.5, speed=0.1, wait=False)
+            await truth.until("r1", move.start_ns + 300_000_000)
+            other = wave(40, 4.0, amp=np.array([-0.3, 0.2, -0.2, 0.3, 0.3, -0.5]))
+            res = await ctl.follow({"r1": other}, speed=0.5, replace=True)
+            assert res.start_ns < move.end_ns - 1_000_000_000 and ctl.last_switch is not None
+            await truth.until("r1", res.end_ns + 10_000_000)
+            q_real = truth.at("r1", res.t0_ns + other.t * 1e9)
+            err = np.array(
+                [
+                    np.linalg.norm(kin.fk(a)[0] - kin.fk(b)[0]) * 1000
+                    for a, b in zip(q_real, other.q, strict=True)
+                ]
+            )
+            assert err.max() <= 1.0 and np.median(err) <= 0.1, (err.max(), np.median(err))
             watcher.cancel()
