@@ -145,6 +145,19 @@ class Cell:
             "controller", "follow", req, controller_pb2.MoveReply, timeout
         )  # (MoveReply)
 
+    async def cartesian(self, robot: str, poses) -> Trajectory:
+        """A Cartesian path (cell.trajectory.cartesian.Poses: tool positions in m in the robot's base
+        frame, optional rotations, times or a maximum tool speed) as the robot's joint trajectory,
+        solved by IK from where it stands now; TrajectoryError naming a waypoint out of reach.
+        Follow it with follow({robot: ...})."""
+        from cell.robot.arm import arm_model
+        from cell.robot.kinematics import Kinematics
+        from cell.trajectory.cartesian import solve
+
+        req = controller_pb2.RobotRequest(robot=robot)
+        here = await self.request("controller", "pose", req, controller_pb2.PoseReply, 10.0)
+        return solve(Kinematics(arm_model(self.config.robot(robot).model)), list(here.joints), poses)  # type: ignore[attr-defined]
+
     async def name_trajectories(
         self, name: str, trajectories: dict[str, Trajectory]
     ) -> controller_pb2.NameReply:

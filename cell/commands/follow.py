@@ -28,6 +28,12 @@ def arguments(p: argparse.ArgumentParser) -> None:
         "follow:NAME and task scripts; a name given again is replaced",
     )
     p.add_argument(
+        "--max-speed",
+        type=float,
+        metavar="M_S",
+        help="a Cartesian path whose poses have no times: the tool's top speed between them (m/s)",
+    )
+    p.add_argument(
         "--replace",
         action="store_true",
         help="a robot under way is switched onto it on the fly (one robot), not after its motion",
@@ -54,23 +60,49 @@ def run(args: argparse.Namespace) -> int:
         if pts.robot not in names:
             print(f"cell follow: no robot {pts.robot!r} in this cell ({', '.join(names)})", file=sys.stderr)
             return 2
+        if args.max_speed is not None and hasattr(pts, "max_speed"):
+            pts.max_speed = args.max_speed
     if args.name:
         return aio.run(_name(config, found, args.name))
     return aio.run(_follow(config, found, args.speed, args.replace))
 
 
+async def joint_points(bus, config, found: list) -> list:
+    """Every source's trajectories as joint points: a Cartesian path (cell.trajectory.cartesian) is
+    solved by IK from where its robot stands now (the controller says); TrajectoryError if it cannot."""
+    from cell.robot.arm import arm_model
+    from cell.robot.kinematics import Kinematics
+    from cell.trajectory.cartesian import Poses, solve
+    from cell.trajectory.sources import Points
+    from cell.v1 import controller_pb2
+
+    out = []
+    for p in found:
+        if not isinstance(p, Poses):
+            out.append(p)
+            continue
+        req = controller_pb2.RobotRequest(robot=p.robot)
+        here = await bus.request("controller", "pose", req, controller_pb2.PoseReply, timeout=10.0)
+        arm = arm_model(config.robot(p.robot).model)
+        traj = solve(Kinematics(arm), list(here.joints), p)
+        out.append(Points(list(arm.joints), traj.t, traj.q, None, None, p.robot, p.name, p.source))
+    return out
+
+
 async def _name(config, found, name: str) -> int:
     from cell.bus import Bus, BusError, RemoteError
+    from cell.trajectory.model import TrajectoryError
     from cell.trajectory.wire import to_message
     from cell.v1 import controller_pb2
 
-    trajectories = [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
-    req = controller_pb2.NameRequest(name=name, trajectories=trajectories)
     try:
         async with Bus.connect(config.bus, "cell-follow") as bus:
+            found = await joint_points(bus, config, found)
+            trajectories = [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
+            req = controller_pb2.NameRequest(name=name, trajectories=trajectories)
             reply = await bus.request("controller", "name", req, controller_pb2.NameReply, timeout=60.0)
-    except RemoteError as exc:
-        print(f"cell follow: {exc.message}", file=sys.stderr)
+    except (RemoteError, TrajectoryError) as exc:
+        print(f"cell follow: {getattr(exc, 'message', exc)}", file=sys.stderr)
         return 2
     except BusError as exc:
         print(f"cell follow: no cell answered ({exc})", file=sys.stderr)
@@ -92,15 +124,16 @@ async def _follow(config, found, speed: float, replace: bool) -> int:
     from cell.bus import Bus, BusError, RemoteError
     from cell.robot.arm import arm_model
     from cell.robot.truth import Truth
-    from cell.trajectory.model import Trajectory
+    from cell.trajectory.model import Trajectory, TrajectoryError
     from cell.trajectory.wire import to_message
     from cell.v1 import controller_pb2
 
-    trajectories = [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
-    req = controller_pb2.FollowRequest(speed=speed, trajectories=trajectories, replace=replace)
-    longest = max(float(p.t[-1] - p.t[0]) for p in found)
     try:
         async with Bus.connect(config.bus, "cell-follow") as bus:
+            found = await joint_points(bus, config, found)
+            trajectories = [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
+            req = controller_pb2.FollowRequest(speed=speed, trajectories=trajectories, replace=replace)
+            longest = max(float(p.t[-1] - p.t[0]) for p in found)
             truth = Truth()
             watcher = asyncio.ensure_future(truth.run(bus))
             try:
@@ -111,6 +144,9 @@ async def _follow(config, found, speed: float, replace: bool) -> int:
                     await truth.until(p.robot, reply.t_end_ns + 20_000_000)
             finally:
                 watcher.cancel()
+    except TrajectoryError as exc:
+        print(f"cell follow: {exc}", file=sys.stderr)
+        return 2
     except RemoteError as exc:
         print(f"cell follow: {exc.message}", file=sys.stderr)
         return 2 if exc.code in ("bad_request", "plan", "unknown_robot") else 1

@@ -8,8 +8,10 @@ with one line saying what and where.
 
 JSON: {"trajectories": [{"robot": "r1", "name": "...", "joint_names": [...], "points": [{"t": 0.0,
 "positions": [...], "velocities": [...], "accelerations": [...]}, ...]}, ...]} (or one such object
-on its own; velocities and accelerations optional).  CSV: a header row `t,<joint>,...` (positions,
-rad), optionally `<joint>.vel` columns (rad/s); one row a point.
+on its own; velocities and accelerations optional); or, a Cartesian path, "poses" instead of
+"points" (cell.trajectory.cartesian: Poses, solved by IK once the robot's joints are known).
+CSV: a header row `t,<joint>,...` (positions, rad), optionally `<joint>.vel` columns (rad/s); one
+row a point.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cell.trajectory.cartesian import Poses, quaternion_matrix
 from cell.trajectory.model import MAX_POINTS, TrajectoryError
 
 JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
@@ -39,7 +42,7 @@ class Points:
     source: str = field(default="", repr=False)
 
 
-def load(path: str | Path, topic: str | None = None, index: int | None = None) -> list[Points]:
+def load(path: str | Path, topic: str | None = None, index: int | None = None) -> list[Points | Poses]:
     """The trajectories in a file or bag (TrajectoryError naming what is wrong)."""
     p = Path(path)
     if not p.exists():
@@ -53,7 +56,7 @@ def load(path: str | Path, topic: str | None = None, index: int | None = None) -
     raise TrajectoryError(f"{p}: not a .json, .csv, .mcap, .db3 or rosbag2 directory")
 
 
-def read_json(path: Path) -> list[Points]:
+def read_json(path: Path) -> list[Points | Poses]:
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -61,9 +64,12 @@ def read_json(path: Path) -> list[Points]:
     entries = data.get("trajectories", [data]) if isinstance(data, dict) else None
     if not isinstance(entries, list) or not entries:
         raise TrajectoryError(f"{path}: no trajectories (see docs/trajectories.md for the format)")
-    out = []
+    out: list[Points | Poses] = []
     for i, e in enumerate(entries):
         where = f"{path}: trajectory {i}"
+        if isinstance(e, dict) and "poses" in e:
+            out.append(_poses(e, where, str(path)))
+            continue
         try:
             pts = e["points"]
             if len(pts) > MAX_POINTS:
@@ -85,6 +91,35 @@ def read_json(path: Path) -> list[Points]:
             raise TrajectoryError(f"{where}: {type(exc).__name__} {exc} (each point: t, positions)") from None
         out.append(Points(names, t, q, qd, qdd, str(e.get("robot", "")), str(e.get("name", "")), str(path)))
     return out
+
+
+def _poses(e: dict, where: str, source: str) -> Poses:
+    """A Cartesian path of a JSON file: {"poses": [{"position": [x, y, z] m, "orientation": [x, y, z,
+    w] (optional), "t": s (optional)}, ...], "max_speed": m/s (when the poses have no t)}."""
+    try:
+        poses = e["poses"]
+        if len(poses) > MAX_POINTS:
+            raise TrajectoryError(f"{where}: {len(poses)} poses: at most {MAX_POINTS:,}")
+        positions = np.array([p["position"] for p in poses], np.float64)
+        with_t = [("t" in p) for p in poses]
+        if any(with_t) and not all(with_t):
+            raise TrajectoryError(f"{where}: some poses have a time t and some do not")
+        t = np.array([float(p["t"]) for p in poses]) if poses and all(with_t) else None
+        with_rot = [("orientation" in p) for p in poses]
+        if any(with_rot) and not all(with_rot):
+            raise TrajectoryError(f"{where}: some poses have an orientation and some do not")
+        rots = (
+            np.array([quaternion_matrix(p["orientation"]) for p in poses])
+            if poses and all(with_rot)
+            else None
+        )
+        speed = e.get("max_speed")
+        max_speed = None if speed is None else float(speed)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise TrajectoryError(
+            f"{where}: {type(exc).__name__} {exc} (each pose: position, [orientation], [t])"
+        ) from None
+    return Poses(positions, rots, t, max_speed, str(e.get("robot", "")), str(e.get("name", "")), source)
 
 
 def read_csv(path: Path) -> list[Points]:

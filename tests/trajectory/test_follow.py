@@ -230,6 +230,30 @@ async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_n
     assert done.returncode == 0, done.stderr[-2000:]
     got = re.search(r"r1: 30 points over 3\.00 s .* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout)
     assert got is not None and float(got.group(1)) <= 1.0 and float(got.group(2)) <= 0.1, done.stdout
+    # a Cartesian square of 100 mm from a JSON file of tool poses and a top speed: through IK, within
+    # the same bounds
+    p0 = arm_model("ur5e").fk(Q0)[0]
+    corners = [p0 + d for d in ([0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0], [0, 0.1, 0], [0, 0, 0])]
+    square = tmp_path / "square.json"
+    square.write_text(
+        json.dumps({"name": "square", "max_speed": 0.1, "poses": [{"position": list(c)} for c in corners]})
+    )
+    done = await asyncio.to_thread(run_cell, "follow", str(square), "--config", cfg, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    got = re.search(
+        r"r1: (\d+) points over ([\d.]+) s \(square\).* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout
+    )
+    assert got is not None and int(got.group(1)) > 100, done.stdout
+    assert float(got.group(3)) <= 1.0 and float(got.group(4)) <= 0.1, done.stdout
+    far = tmp_path / "far.json"
+    far.write_text(
+        json.dumps({"max_speed": 0.1, "poses": [{"position": list(p0)}, {"position": [1.5, 0.0, 0.5]}]})
+    )
+    refused = await asyncio.to_thread(run_cell, "follow", str(far), "--config", cfg, timeout=60)
+    assert (
+        refused.returncode == 2
+        and "waypoint 1 (1500.0, 0.0, 500.0 mm): no joint positions reach" in refused.stderr
+    )
     # a point that is not a number: refused in one line, exit 2, nothing loaded or moved
     q = traj.q.copy()
     q[7, 2] = np.nan

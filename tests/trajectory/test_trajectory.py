@@ -16,7 +16,9 @@ from cell.controller.plan import PlanError
 from cell.controller.tps import cut
 from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics
+from cell.robot.pose import rotation_error
 from cell.robot.truth import Truth
+from cell.trajectory.cartesian import Poses, solve
 from cell.trajectory.model import TimedMotion, Trajectory, TrajectoryError, joint_order, spline_velocities
 from tests.conftest import free_port
 
@@ -106,6 +108,33 @@ def test_missing_velocities_come_from_the_spline_and_the_motion_passes_through_e
         Q0 + np.array([0.6, -0.4, 0.3, 0.5, 0.4, 0.8]) * ((1 - np.cos(2 * np.pi * mid / 4.0)) / 2)[:, None]
     )
     assert np.abs(motion.sample(mid)[0] - exact).max() < 1e-4
+
+
+def test_a_cartesian_path_goes_straight_between_waypoints_and_names_what_it_cannot_reach() -> None:
+    kin = Kinematics()
+    p0, r0 = kin.fk(Q0)
+    corners = np.array([p0 + d for d in ([0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0], [0, 0.1, 0], [0, 0, 0])])
+    traj = solve(kin, Q0, Poses(corners, max_speed=0.1), rate_hz=50)
+    tool = np.array([kin.fk(q)[0] for q in traj.q])
+    # every point on the square's edges (straight lines, not a joint spline's arcs), orientation kept
+    off_edge = np.minimum(np.abs(tool[:, 0] - p0[0]), np.abs(tool[:, 0] - p0[0] - 0.1))
+    off_edge = np.minimum(off_edge, np.minimum(np.abs(tool[:, 1] - p0[1]), np.abs(tool[:, 1] - p0[1] - 0.1)))
+    assert off_edge.max() < 1e-6 and np.abs(tool[:, 2] - p0[2]).max() < 1e-6
+    assert max(np.abs(rotation_error(kin.fk(q)[1], r0)).max() for q in traj.q) < 1e-6
+    # 1 - cos between corners at 0.1 m/s top: each edge takes pi/2 s, the tool's speed peaks at the limit
+    assert traj.duration == pytest.approx(4 * np.pi / 2 * 0.1 / 0.1, rel=1e-9)
+    speed = np.linalg.norm(np.diff(tool, axis=0), axis=1) / np.diff(traj.t)
+    assert 0.095 < speed.max() <= 0.1 + 1e-6
+    at_corners = [int(np.argmin(np.abs(traj.t - k * np.pi / 2))) for k in range(5)]
+    assert np.allclose(tool[at_corners], corners, atol=1e-7)
+    with pytest.raises(
+        TrajectoryError, match=r"^waypoint 1 \(1500\.0, 0\.0, 500\.0 mm\): no joint positions reach"
+    ):
+        solve(kin, Q0, Poses(np.array([p0, [1.5, 0.0, 0.5]]), max_speed=0.1))
+    with pytest.raises(TrajectoryError, match="times or a maximum tool speed"):
+        solve(kin, Q0, Poses(corners))
+    timed = solve(kin, Q0, Poses(corners, t=np.arange(5.0)))  # with times: the poses are the points
+    assert timed.points == 5 and np.allclose([kin.fk(q)[0] for q in timed.q], corners, atol=1e-7)
 
 
 def test_tp_sections_end_on_the_points_when_they_are_no_denser_than_the_tps() -> None:
