@@ -155,6 +155,15 @@ def test_tp_sections_end_on_the_points_when_they_are_no_denser_than_the_tps() ->
     )
 
 
+async def path_error_mm(truth: Truth, kin: Kinematics, res, traj: Trajectory) -> np.ndarray:
+    """The tool's distance from the trajectory at each of its points, mm, from ground truth."""
+    await truth.until("r1", res.end_ns + 10_000_000)
+    q_real = truth.at("r1", res.t0_ns + traj.t * 1e9)
+    return np.array(
+        [np.linalg.norm(kin.fk(a)[0] - kin.fk(b)[0]) * 1000 for a, b in zip(q_real, traj.q, strict=True)]
+    )
+
+
 async def test_a_mujoco_arm_follows_a_trajectory_within_the_cells_own_accuracy(start_cell) -> None:
     robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "mujoco", "truth_hz": 500}]
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots)
@@ -171,14 +180,7 @@ async def test_a_mujoco_arm_follows_a_trajectory_within_the_cells_own_accuracy(s
             traj = wave(40, 4.0)
             res = await ctl.follow({"r1": traj})
             assert res.t0_ns > res.start_ns  # (the approach)
-            await truth.until("r1", res.end_ns + 10_000_000)
-            q_real = truth.at("r1", res.t0_ns + traj.t * 1e9)
-            err = np.array(
-                [
-                    np.linalg.norm(kin.fk(a)[0] - kin.fk(b)[0]) * 1000
-                    for a, b in zip(q_real, traj.q, strict=True)
-                ]
-            )
+            err = await path_error_mm(truth, kin, res, traj)
             assert err.max() <= 1.0 and np.median(err) <= 0.1, (err.max(), np.median(err))
             # onto a trajectory on the fly: a slow move under way is switched (TrajectorySwitcher), the
             # trajectory starts long before the move would have ended, and is followed as accurately
@@ -187,13 +189,6 @@ async def test_a_mujoco_arm_follows_a_trajectory_within_the_cells_own_accuracy(s
             other = wave(40, 4.0, amp=np.array([-0.3, 0.2, -0.2, 0.3, 0.3, -0.5]))
             res = await ctl.follow({"r1": other}, speed=0.5, replace=True)
             assert res.start_ns < move.end_ns - 1_000_000_000 and ctl.last_switch is not None
-            await truth.until("r1", res.end_ns + 10_000_000)
-            q_real = truth.at("r1", res.t0_ns + other.t * 1e9)
-            err = np.array(
-                [
-                    np.linalg.norm(kin.fk(a)[0] - kin.fk(b)[0]) * 1000
-                    for a, b in zip(q_real, other.q, strict=True)
-                ]
-            )
+            err = await path_error_mm(truth, kin, res, other)
             assert err.max() <= 1.0 and np.median(err) <= 0.1, (err.max(), np.median(err))
             watcher.cancel()
