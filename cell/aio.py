@@ -13,6 +13,18 @@ from typing import Any, TypeVar
 
 T = TypeVar("T")
 log = logging.getLogger("cell")
+_shutting_down = False
+
+
+def begin_shutdown() -> None:
+    """This process is stopping on purpose (its supervisor was told to): what then goes away (the bus,
+    a peer) is the shutdown, not a fault, and is not logged as one."""
+    global _shutting_down
+    _shutting_down = True
+
+
+def shutting_down() -> bool:
+    return _shutting_down
 
 
 def run(coro: Coroutine[Any, Any, T]) -> T:

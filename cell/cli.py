@@ -60,5 +60,15 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"cell: {exc}", file=sys.stderr)
         return EXIT_CONFIG
+    except BrokenPipeError:  # (`cell status | head`: the reader has what it wanted)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return 141  # what a shell reports for a writer that SIGPIPE ended
     except KeyboardInterrupt:
         return 130
+    except Exception as exc:  # no traceback for what is not a bug: no cell to talk to
+        from cell.bus import BusUnavailable
+
+        if not isinstance(exc, BusUnavailable):
+            raise
+        print(f"cell {args.command}: no cell answered ({exc})", file=sys.stderr)
+        return 1

@@ -20,7 +20,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable
 
-from cell import meter, sched
+from cell import aio, meter, sched
 from cell.bus import Bus, BusError
 from cell.config import MAIN_GROUP, CellConfig
 from cell.service import ServiceContext, ServiceSpec
@@ -167,6 +167,7 @@ class Supervisor:
                 services = [tg.create_task(r.run(), name=f"service:{r.name}") for r in self.runners]
                 beats = tg.create_task(self._heartbeats(), name="heartbeats")
                 await stop.wait()
+                aio.begin_shutdown()
                 for task in services:
                     task.cancel()
                 await asyncio.gather(*services, return_exceptions=True)

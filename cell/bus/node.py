@@ -18,6 +18,7 @@ import contextlib
 import inspect
 import itertools
 import logging
+import time
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass
@@ -28,6 +29,7 @@ from google.protobuf.message import Message
 from zmq.utils.monitor import parse_monitor_message
 
 import cell.bus.curve as curve
+from cell import aio
 from cell.bus.envelope import (
     Encoder,
     Envelope,
@@ -310,7 +312,8 @@ class Bus:
         self._reader: asyncio.Task[None] | None = None
         self._watchers: list[asyncio.Task[None]] = []
         self._monitors: list[tuple[zmq.Socket, zmq.Socket]] = []  # (watched socket, its monitor)
-        self.disconnects = 0
+        self.disconnects = 0  # drops of the connection to the forwarder (both sockets' at once: one)
+        self._dropped_at = -1e9  # monotonic s of the last drop counted
         self.refused = ""  # why the forwarder refused us, if it did (CurveZMQ)
         self.published = 0
         self.dropped = 0
@@ -385,13 +388,22 @@ class Bus:
                         )
                     log.warning("%s: %s", self.source, self.refused)
                 elif event == zmq.EVENT_DISCONNECTED:
-                    self.disconnects += 1
                     self._ctl_live = False
                     n = self.abandon(
                         None, "bus_lost", "the bus connection dropped; it may or may not have been done"
                     )
-                    log.warning(
-                        "%s: the bus connection dropped (%d waiting request(s) answered)", self.source, n
+                    now = time.monotonic()
+                    if now - self._dropped_at < 1.0 and n == 0:
+                        continue  # (the node's other socket telling of the same drop)
+                    self._dropped_at = now
+                    self.disconnects += 1
+                    # (at a clean stop the bus goes as everything goes: not a fault, unless it cost answers)
+                    level = logging.DEBUG if aio.shutting_down() and n == 0 else logging.WARNING
+                    log.log(
+                        level,
+                        "%s: the bus connection dropped (%d waiting request(s) answered)",
+                        self.source,
+                        n,
                     )
 
     async def _stop_tasks(self) -> None:

@@ -64,6 +64,17 @@ def config_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", metavar="NAME", help="which of the config's [hosts] this is (a cell of several)")
 
 
+def seconds(text: str) -> float:
+    """An argparse type: a duration, s, finite and > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be > 0 s (got {text})")
+    return value
+
+
 def json_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="also print the figures as one JSON line, last")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cell.commands import Command, config_arg, load, register
+from cell.commands import Command, config_arg, load, register, seconds
 
 ORDERS = {
     "estop": "emergency stop over the Responsive Link: the drives brake at once",
@@ -18,7 +18,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("robots", nargs="*", metavar="ROBOT")
     config_arg(p)
     p.add_argument("--no-wait", action="store_true", help="send the order and return")
-    p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="wait at most S (default 5)")
+    p.add_argument("--timeout", type=seconds, default=5.0, metavar="S", help="wait at most S (default 5)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -26,6 +26,14 @@ def run(args: argparse.Namespace) -> int:
     from cell.rlink.client import EventClient
 
     config = load(args)
+    known = {r.name for r in config.robots} | {str(r.id) for r in config.robots}
+    unknown = [r for r in args.robots if r not in known]
+    if unknown:
+        robots = ", ".join(f"{r.name} ({r.id})" for r in config.robots)
+        print(
+            f"cell {args.command}: no robot {unknown[0]!r} in this cell (robots: {robots})", file=sys.stderr
+        )
+        return 2
 
     async def go() -> dict[int, float]:
         async with EventClient(config) as client:

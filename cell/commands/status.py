@@ -6,13 +6,13 @@ import argparse
 import json
 import sys
 
-from cell.commands import Command, config_arg, load, register
+from cell.commands import Command, config_arg, load, register, seconds
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
     config_arg(p)
     p.add_argument(
-        "--timeout", type=float, default=2.0, metavar="S", help="give up after S seconds (default 2)"
+        "--timeout", type=seconds, default=2.0, metavar="S", help="give up after S seconds (default 2)"
     )
     p.add_argument("--json", action="store_true", help="print the status as JSON")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
-from cell.commands import Command, config_arg, load, register
+from cell.commands import Command, config_arg, load, register, seconds
 from cell.config import CellConfig, ConfigError
 
 
@@ -33,7 +33,7 @@ def _recording(config: CellConfig, recorder) -> CellConfig:
 
 def arguments(p: argparse.ArgumentParser) -> None:
     config_arg(p)
-    p.add_argument("--duration", type=float, metavar="S", help="stop cleanly after S seconds")
+    p.add_argument("--duration", type=seconds, metavar="S", help="stop cleanly after S seconds")
     p.add_argument(
         "--layout",
         choices=["groups", "single", "each"],

@@ -68,3 +68,51 @@ def test_config_show_prints_each_arms_ur_address_resolved(capsys: pytest.Capture
     assert main(["config", "show"]) == 0
     data = tomllib.loads(capsys.readouterr().out)
     assert [r["ur_address"] for r in data["robots"]] == ["127.0.1.1", "127.0.1.2"]  # r1, r2 (default "")
+
+
+def test_what_a_user_gets_wrong_is_one_line_and_its_exit_code(tmp_path) -> None:
+    """No traceback for anything but a bug: no cell to talk to, a robot that is not there, a negative
+    time, a reader that stops reading."""
+    import subprocess
+    import sys
+
+    from tests.conftest import cell_env, cell_overrides, free_port, run_cell, write_config
+
+    # a config whose bus nobody serves (free ports), so that "no cell" is certain
+    data = cell_overrides(run=["bus"])
+    data["bus"] = {"pub": f"tcp://127.0.0.1:{free_port()}", "sub": f"tcp://127.0.0.1:{free_port()}"}
+    cfg = str(write_config(tmp_path / "c.toml", data))
+    script = tmp_path / "s.py"
+    script.write_text("async def main(cell):\n    pass\n")
+    for argv, rc, words in (
+        (["run", str(script)], 1, "cell run: no cell answered (no bus forwarder answered"),
+        (["estop", "99"], 2, "cell estop: no robot '99' in this cell (robots: r1 (1), r2 (2))"),
+        (["estop", "--timeout", "-5"], 2, "argument --timeout: must be > 0 s (got -5)"),
+        (["up", "--duration", "-1"], 2, "argument --duration: must be > 0 s (got -1)"),
+    ):
+        got = run_cell(*argv, "--config", cfg, timeout=60)
+        assert got.returncode == rc and words in got.stderr, (argv, got.returncode, got.stderr[-2000:])
+        assert "Traceback" not in got.stderr, got.stderr
+    if True:  # a reader that stops after one line (`cell config show | head -1`): no BrokenPipeError
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "cell", "config", "show"], env=cell_env(), stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert proc.stdout is not None and proc.stdout.readline().startswith("# effective configuration")
+        proc.stdout.close()
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode in (0, 141) and "Traceback" not in err, err
+
+
+def test_a_clean_stop_says_nothing_of_the_bus_going_away(tmp_path) -> None:
+    """At a clean stop the bus goes as everything goes: no service warns that it dropped (each used to,
+    twice, which read as a failure)."""
+    from tests.conftest import cell_overrides, run_cell, write_config
+
+    path = write_config(tmp_path / "c.toml", cell_overrides())  # the default cell, in its process groups
+    got = run_cell("up", "--config", str(path), "--duration", "3", timeout=60)
+    assert got.returncode == 0, got.stderr[-2000:]
+    assert "is up in" in got.stderr  # (its log is there ...)
+    assert "the bus connection dropped" not in got.stderr and " WARNING " not in got.stderr, got.stderr[
+        -3000:
+    ]
