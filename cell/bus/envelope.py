@@ -200,31 +200,67 @@ def decode(frame: bytes) -> Envelope:
 
 
 class GapCounter:
-    """Counts messages lost on the way from publishers to one subscriber.
+    """Counts messages lost on the way from publishers to one subscriber, believing only what a
+    stream itself confirms (a forged or replayed envelope on the bus must not make `cell status` lie).
 
-    A jump in a (publisher instance, topic) sequence adds the missing count to
-    `lost`; a sequence that goes backwards is counted as `reordered` and restarts
-    tracking from there.  A restarted publisher has a new instance id, so its
-    fresh sequence starts a new stream instead of looking like a loss.
+    Each (publisher instance, topic) is a stream of consecutive sequence numbers.  A jump ahead is
+    held, not yet counted: the stream's next message confirms it (it goes on from the jump: the
+    messages between were lost) or refutes it (it goes on from before: the jump was not the
+    stream's, counted `implausible`).  A jump of more than MAX_GAP is never believed, and a sequence
+    number behind the stream is `reordered` (a duplicate or a replay) without moving it back.  A
+    restarted publisher has a new instance id, so its fresh sequence starts a new stream.  At most
+    MAX_STREAMS streams are followed, the least recently heard forgotten first (forged instance ids
+    cannot fill memory).
     """
 
-    __slots__ = ("_next", "lost", "reordered")
+    MAX_GAP = 1_000_000  # more than any subscriber's queue could have dropped
+    MAX_STREAMS = 4096
+
+    __slots__ = ("_jump", "_next", "implausible", "lost", "reordered")
 
     def __init__(self) -> None:
-        self._next: dict[tuple[int, str], int] = {}
+        self._next: dict[tuple[int, str], int] = {}  # the stream's next sequence number (LRU order)
+        self._jump: dict[tuple[int, str], int] = {}  # a jump ahead not yet confirmed: the seq it came with
         self.lost = 0
         self.reordered = 0
+        self.implausible = 0
 
     def observe(self, instance: int, topic: str, seq: int) -> int:
-        """Record one message; return how many messages were lost just before it."""
+        """Record one message; return how many messages were lost before it (counted once confirmed)."""
         key = (instance, topic)
-        expected = self._next.get(key)
-        self._next[key] = seq + 1
-        if expected is None or seq == expected:
+        nexts = self._next
+        expected = nexts.pop(key, None)  # (re-inserted below: most recently heard last)
+        if expected is None:  # joining late is not a loss
+            if len(nexts) >= self.MAX_STREAMS:
+                old = next(iter(nexts))
+                del nexts[old]
+                self._jump.pop(old, None)
+            nexts[key] = seq + 1
             return 0
-        if seq > expected:
-            gap = seq - expected
+        if seq == expected:
+            nexts[key] = seq + 1
+            if self._jump.pop(key, None) is not None:
+                self.implausible += 1  # the stream went on from before the jump: not its message
+            return 0
+        if seq < expected:
+            nexts[key] = expected
+            self.reordered += 1
+            return 0
+        jump, gap = self._jump.get(key), 0
+        if jump is not None and seq > jump:  # it goes on past the jump: those before the jump were lost
+            gap = jump - expected
             self.lost += gap
-            return gap
-        self.reordered += 1
-        return 0
+            if seq == jump + 1:
+                del self._jump[key]
+                nexts[key] = seq + 1
+                return gap
+            expected = jump + 1  # (and it jumped again: held as the first was)
+        elif jump is not None:  # it went on from before the jump: the jump was not the stream's
+            self.implausible += 1
+        nexts[key] = expected
+        if seq - expected > self.MAX_GAP:
+            self._jump.pop(key, None)
+            self.implausible += 1
+        else:
+            self._jump[key] = seq
+        return gap

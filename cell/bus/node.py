@@ -287,7 +287,7 @@ class Subscription:
             retired = self._bus._retired  # its counts stay in the node's totals
             retired["received"] += self.received
             retired["lost"] += self.lost
-            retired["malformed"] += self.malformed
+            retired["malformed"] += self.malformed + self.gaps.implausible
 
 
 class Bus:
@@ -433,7 +433,10 @@ class Bus:
             "bus.dropped": self.dropped,
             "bus.received": old["received"] + sum(s.received for s in self._subs),
             "bus.lost": old["lost"] + sum(s.lost for s in self._subs),
-            "bus.malformed": self.malformed + old["malformed"] + sum(s.malformed for s in self._subs),
+            # (an envelope whose sequence number its stream refutes is as bad as one that does not parse)
+            "bus.malformed": self.malformed
+            + old["malformed"]
+            + sum(s.malformed + s.gaps.implausible for s in self._subs),
             "bus.requests": self.requests,
             "bus.served": self.served,
             "bus.late_replies": self.late_replies,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 import struct
 
 import pytest
@@ -106,12 +107,48 @@ def test_gap_counter() -> None:
     g = GapCounter()
     assert g.observe(1, "a", 5) == 0  # joining late is not a loss
     assert g.observe(1, "a", 6) == 0
-    assert g.observe(1, "a", 9) == 2  # 7 and 8 lost
+    assert g.observe(1, "a", 9) == 0  # a jump: held until the stream says whether it was its own
+    assert g.observe(1, "a", 10) == 2  # it goes on from 9: 7 and 8 were lost
     assert g.observe(1, "b", 0) == 0  # another topic is another stream
     assert g.observe(2, "a", 0) == 0  # a restarted publisher has a new instance
-    assert g.observe(1, "a", 4) == 0  # backwards: reordered, not lost
-    assert (g.lost, g.reordered) == (2, 1)
-    assert g.observe(1, "a", 5) == 0  # tracking restarted from 4
+    assert g.observe(1, "a", 4) == 0  # behind the stream: reordered (a duplicate, a replay), not lost
+    assert g.observe(1, "a", 11) == 0  # ... and the stream was not moved back by it
+    assert (g.lost, g.reordered, g.implausible) == (2, 1, 0)
+
+
+def test_forged_and_replayed_sequence_numbers_cannot_inflate_the_loss_count() -> None:
+    """What `cell fuzz` did to every service's bus.lost (6.6e19): forged envelopes on real streams."""
+    g = GapCounter()
+    for seq in range(100):
+        g.observe(7, "truth/r1", seq)
+    g.observe(7, "truth/r1", 2**64 - 1)  # never believed: beyond any queue's loss
+    g.observe(7, "truth/r1", 150)  # held, then refuted: the stream goes on from 100
+    g.observe(7, "truth/r1", 100)
+    g.observe(7, "truth/r1", 40)  # a replay
+    g.observe(7, "truth/r1", 101)
+    assert (g.lost, g.reordered, g.implausible) == (0, 1, 2)
+    # random forgeries into a stream that really loses bursts: the count stays within the forgeries
+    rng = random.Random(35)
+    for _trial in range(50):
+        g, real_lost, forged, seq = GapCounter(), 0, 0, 0
+        for _ in range(2000):
+            if rng.random() < 0.02:
+                burst = rng.randint(1, 50)
+                seq += burst
+                real_lost += burst
+            g.observe(1, "t", seq)
+            seq += 1
+            if rng.random() < 0.05:
+                forged += 1
+                g.observe(1, "t", rng.choice([rng.getrandbits(64), seq + rng.randint(-30, 30)]))
+        g.observe(1, "t", seq)  # (the last jump confirmed)
+        assert real_lost - forged <= g.lost <= real_lost + forged, (g.lost, real_lost, forged)
+    # forged publisher instances cannot fill memory: the least recently heard streams are forgotten
+    g = GapCounter()
+    for instance in range(3 * GapCounter.MAX_STREAMS):
+        g.observe(instance, "x", 0)
+    g.observe(0, "y", 0)
+    assert len(g._next) == GapCounter.MAX_STREAMS
 
 
 @pytest.mark.parametrize("topic", ["status/r1", "a", "dataplane/counters", "events/service/bus", "x-y.z_1/"])
