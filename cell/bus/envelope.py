@@ -204,13 +204,13 @@ class GapCounter:
     stream itself confirms (a forged or replayed envelope on the bus must not make `cell status` lie).
 
     Each (publisher instance, topic) is a stream of consecutive sequence numbers.  A jump ahead is
-    held, not yet counted: the stream's next message confirms it (it goes on from the jump: the
-    messages between were lost) or refutes it (it goes on from before: the jump was not the
-    stream's, counted `implausible`).  A jump of more than MAX_GAP is never believed, and a sequence
-    number behind the stream is `reordered` (a duplicate or a replay) without moving it back.  A
-    restarted publisher has a new instance id, so its fresh sequence starts a new stream.  At most
-    MAX_STREAMS streams are followed, the least recently heard forgotten first (forged instance ids
-    cannot fill memory).
+    held, not yet counted: the stream's next message confirms it (it is the jump's successor: the
+    messages between were lost) or refutes it (anything else: the jump was not the stream's,
+    counted `implausible`; a real loss right after a jump is then counted from the next jump).  A
+    jump of more than MAX_GAP is never believed, and a sequence number behind the stream is
+    `reordered` (a duplicate or a replay) without moving it back.  A restarted publisher has a new
+    instance id, so its fresh sequence starts a new stream.  At most MAX_STREAMS streams are
+    followed, the least recently heard forgotten first (forged instance ids cannot fill memory).
     """
 
     MAX_GAP = 1_000_000  # more than any subscriber's queue could have dropped
@@ -246,21 +246,19 @@ class GapCounter:
             nexts[key] = expected
             self.reordered += 1
             return 0
-        jump, gap = self._jump.get(key), 0
-        if jump is not None and seq > jump:  # it goes on past the jump: those before the jump were lost
+        jump = self._jump.get(key)
+        if jump is not None and seq == jump + 1:  # it goes on from the jump: those between were lost
+            del self._jump[key]
+            nexts[key] = seq + 1
             gap = jump - expected
             self.lost += gap
-            if seq == jump + 1:
-                del self._jump[key]
-                nexts[key] = seq + 1
-                return gap
-            expected = jump + 1  # (and it jumped again: held as the first was)
-        elif jump is not None:  # it went on from before the jump: the jump was not the stream's
-            self.implausible += 1
+            return gap
         nexts[key] = expected
+        if jump is not None:  # neither from before the jump nor from it: the jump is not believed
+            self.implausible += 1
         if seq - expected > self.MAX_GAP:
             self._jump.pop(key, None)
             self.implausible += 1
         else:
             self._jump[key] = seq
-        return gap
+        return 0
