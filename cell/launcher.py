@@ -7,6 +7,7 @@ import contextlib
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -18,7 +19,7 @@ from pathlib import Path
 from cell import sched
 from cell.aio import stop_on_signals, stop_on_stdin_eof
 from cell.bus import Bus, BusError
-from cell.config import CellConfig
+from cell.config import CellConfig, parse_host_port
 from cell.layout import Process, process_for, process_named, processes
 from cell.processes import ChildProcess
 from cell.service import load_all
@@ -35,6 +36,10 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
     The services go into processes as `[services] layout` says (cell/layout.py); the
     launcher itself keeps the status registry and, in the "single" layout, runs everything.
     """
+    running = await already_running(config)
+    if running:
+        print(f"cell: {running}", file=sys.stderr)
+        return 1
     with contextlib.ExitStack() as stack:
         if config.dataplane.backend == "xdp":
             from cell.dataplane.xdp.switch import SwitchError, switch_namespace
@@ -45,6 +50,30 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
                 print(f"cell: {exc}", file=sys.stderr)
                 return 2
         return await _up(config, duration=duration, log_level=log_level)
+
+
+async def already_running(config: CellConfig) -> str:
+    """Why this cell cannot start here ("" if it can): its bus address is taken, by a running cell
+    (which one, where, started how) or by another program.  Checked before anything starts, so that a
+    second `cell up` never half-starts and joins the first one's bus."""
+    if "bus" not in config.services.run or not config.bus.pub.startswith("tcp://"):
+        return ""
+    host, port = parse_host_port(config.bus.pub.removeprefix("tcp://"))
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # (a port in TIME_WAIT is free)
+        try:
+            s.bind((host, port))
+            return ""
+        except OSError:
+            pass
+    try:
+        st = await fetch_status(config, timeout=2.0)
+    except BusError:
+        return f"the bus address {config.bus.pub} is taken by another program: free it or set [bus] pub"
+    return (
+        f"cell {st.cell!r} is already running on {config.bus.pub} (cell up pid {st.launcher_pid}, config "
+        f"{st.config or '?'}, up {st.uptime_s:.0f} s): stop it first (Ctrl-C there, or kill it)"
+    )
 
 
 async def _up(config: CellConfig, *, duration: float | None, log_level: str) -> int:

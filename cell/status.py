@@ -7,6 +7,7 @@ heartbeats arrive.
 
 from __future__ import annotations
 
+import os
 import socket
 import time
 
@@ -42,8 +43,18 @@ def host_name(config: CellConfig) -> str:
 class StatusRegistry:
     """Every service's last heartbeat, by its status name, with every expected one listed."""
 
-    def __init__(self, cell: str, mode: str, expected: list[str], *, host: str = "", qualify: bool = False):
+    def __init__(
+        self,
+        cell: str,
+        mode: str,
+        expected: list[str],
+        *,
+        host: str = "",
+        qualify: bool = False,
+        config_source: str = "",
+    ):
         self.cell = cell
+        self.config_source = config_source
         self.mode = mode
         self.expected = list(expected)
         self.host = host
@@ -83,6 +94,7 @@ class StatusRegistry:
             status_names(config, everywhere=True),
             host=host_name(config),
             qualify=bool(config.hosts),
+            config_source=config.source,
         )
 
     def observe(self, hb: health_pb2.Heartbeat, at: float | None = None) -> None:
@@ -91,7 +103,10 @@ class StatusRegistry:
 
     def status(self, _request: object = None) -> health_pb2.CellStatus:
         now = time.monotonic()
-        out = health_pb2.CellStatus(cell=self.cell, mode=self.mode, uptime_s=now - self.started)
+        out = health_pb2.CellStatus(
+            cell=self.cell, mode=self.mode, uptime_s=now - self.started, config=self.config_source,
+            launcher_pid=os.getpid(),
+        )  # fmt: skip
         names = self.expected + sorted(set(self._last) - set(self.expected))
         for name in names:
             entry = out.services.add(name=name)

@@ -218,3 +218,18 @@ def test_duration_stops_cleanly_with_a_summary(tmp_path) -> None:
     lines = result.stdout.splitlines()
     assert lines[0].startswith("cell 'default' (layout groups)")
     assert lines[2].split()[:2] == ["bus", "ok"]
+
+
+async def test_a_second_cell_up_on_the_same_bus_is_refused_before_it_starts_anything(start_cell) -> None:
+    """It used to print 'cell is up', fail on the bound ports in hundreds of traceback lines, let its
+    controller join the first cell's bus, and exit 0."""
+    cell = await start_cell(run=["bus", "dataplane", "controller"])
+    t0 = time.monotonic()
+    second = await asyncio.to_thread(run_cell, "up", "--config", str(cell.path), "--duration", "30")
+    assert second.returncode == 1 and time.monotonic() - t0 < 10, second.stderr[-2000:]
+    (line,) = second.stderr.strip().splitlines()
+    assert line.startswith(f"cell: cell 'default' is already running on {cell.config.bus.pub} (cell up pid ")
+    assert f"pid {cell.proc.pid}, config {cell.path}" in line
+    st = await fetch_status(cell.config)
+    assert st.launcher_pid == cell.proc.pid  # the first cell's, untouched
+    assert {s.name for s in st.services if s.health == "ok"} == {"bus", "dataplane", "controller"}
