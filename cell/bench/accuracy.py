@@ -64,117 +64,116 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
     shifts: dict[str, list[float]] = {"shared": [], "merged": [], "independent": [], "switch": []}
     jumps: list[float] = []
     paper_pred: list[float] = []  # the same switches, start state as Sec. 6.1 of the paper predicts it
-    async with running_cell(overrides) as config, Bus.connect(config.bus, "bench-accuracy") as bus:
-        truth = Truth()
-        watcher = asyncio.ensure_future(truth.run(bus))
-        try:
-            async with Controller(bus, config) as ctl:
-                await robots_heard(ctl, {1, 2})
+    async with (
+        running_cell(overrides) as config,
+        Bus.connect(config.bus, "bench-accuracy") as bus,
+        Truth.watching(bus) as truth,
+        Controller(bus, config) as ctl,
+    ):
+        await robots_heard(ctl, {1, 2})
 
-                async def settle_and_read(name: str, goal: np.ndarray, end_ns: int) -> None:
-                    await truth.until(name, end_ns + int(SETTLE_S * 1e9))
-                    q = truth.at(name, np.array([end_ns + SETTLE_S * 1e9]))[0]
-                    stop_err.append(float(np.abs(q - goal).max()))
+        async def settle_and_read(name: str, goal: np.ndarray, end_ns: int) -> None:
+            await truth.until(name, end_ns + int(SETTLE_S * 1e9))
+            q = truth.at(name, np.array([end_ns + SETTLE_S * 1e9]))[0]
+            stop_err.append(float(np.abs(q - goal).max()))
 
-                # joint moves, each from where the last ended
-                rng = np.random.default_rng(7)
-                n_joint = 2 if quick else 5
-                for i in range(n_joint):
-                    goal = Q0 + rng.uniform(-0.6, 0.6, 6)
-                    res = await ctl.move_joints("r1", goal, speed=0.6)
-                    path_joint.append(tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
-                    await settle_and_read("r1", goal, res.end_ns)
-                    log(
-                        f"joint move {i + 1}: path error at TPs max {path_joint[-1].max():.2f} mm "
-                        f"(TP {int(path_joint[-1].argmax()) + 1} of {path_joint[-1].size}), "
-                        f"stop error {stop_err[-1]:.1e} rad"
-                    )
-                await ctl.move_joints("r1", Q0, speed=0.6)
-                # straight lines: a square of 200 mm, tool pointing down, and a diagonal down and back
-                pos0, rot0 = kin.fk(Q0)
-                legs = [(0.2, 0, 0), (0, 0.2, 0), (-0.2, 0, 0), (0, -0.2, 0)]
-                if not quick:
-                    legs += [(0.1, 0.1, -0.15), (-0.1, -0.1, 0.15)]
-                pos = pos0.copy()
-                for i, leg in enumerate(legs):
-                    pos = pos + np.array(leg)
-                    res = await ctl.move_linear("r1", pos, rot0, speed=1.0)
-                    path_linear.append(tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
-                    e = path_linear[-1]
-                    log(
-                        f"linear move {i + 1}: path error at TPs max {e.max():.2f} mm "
-                        f"(TP {int(e.argmax()) + 1} of {e.size}), median {np.median(e):.2f} mm"
-                    )
-                goal = ctl.track("r1").q_hold
-                assert goal is not None
-                await settle_and_read("r1", goal, res.end_ns)
-                log(f"after the lines: stop error {stop_err[-1]:.1e} rad")
-                # re-planning on the fly: branch off a long motion to another goal
-                for k in range(2 if quick else 6):
-                    far = Q0 + np.array([1.0, -0.4, 0.3, 0.2, 0.0, 0.5]) * (1 if k % 2 == 0 else -1)
-                    first = asyncio.ensure_future(ctl.move_joints("r1", far, speed=0.4))
-                    await asyncio.sleep(0.6 + 0.2 * k)
-                    seg0 = ctl.track("r1").segment
-                    t_req = ctl.link.now()
-                    await ctl.replan("r1", Q0 + np.array([0.2, 0.2, -0.2, 0.0, 0.1, 0.0]), speed=0.6)
-                    with contextlib.suppress(MotionStopped):
-                        await first
-                    sw = ctl.last_switch
-                    assert sw is not None and seg0 is not None
-                    q_real = truth.at("r1", np.array([sw.t_branch_ns]))[0]
-                    jumps.append(float(np.abs(q_real - sw.q_pred).max()))
-                    paper_pred.append(
-                        float(np.abs(q_real - paper_start(truth, "r1", seg0, t_req, sw.t_branch_ns)).max())
-                    )
-                    await ctl.move_joints("r1", Q0, speed=0.6)
-                log(
-                    f"re-planning: {max(jumps) * 1000:.2f} mrad from the predicted start at the switch "
-                    f"(the paper's binned predictor: {max(paper_pred) * 1000:.2f} mrad)"
-                )
-                # synchronised starts
-                await ctl.move_together({"r1": Q0, "r2": Q0}, speed=0.6)
-                trials = 1 if quick else 3
-                for k in range(trials):
-                    delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
-                    here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
-                    res = await ctl.move_together({n: q + delta for n, q in here.items()}, speed=0.6)
-                    t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
-                    shifts["shared"].append(abs(t1 - t2) / 1e6)
-                    # independently: one request after the other (each answered once its motion is
-                    # loaded and started), as two controllers would send them
-                    here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
-                    t_req = ctl.link.now()
-                    for n, q in here.items():
-                        await ctl.move_joints(n, q - delta, speed=0.6, wait=False)
-                    for n in here:
-                        await ctl.wait_idle(ctl.track(n))
-                    t1, t2 = (truth.start_of_motion(n, t_req) for n in ("r1", "r2"))
-                    shifts["independent"].append(abs(t1 - t2) / 1e6)
-                # independent robots started by two pre-planned switch entries (Sec. 7.2): armed, then
-                # fired by one update
-                for k in range(3 if quick else 20):
-                    delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
-                    here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
-                    armed = await ctl.arm({n: q + delta for n, q in here.items()}, speed=0.6)
-                    res = await ctl.fire(armed)
-                    t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
-                    shifts["switch"].append(abs(t1 - t2) / 1e6)
-                merged = await ctl.merge(["r1", "r2"])
-                for k in range(3 if quick else 20):
-                    delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
-                    here_q = merged.q_hold
-                    assert here_q is not None
-                    res = await ctl.move_joints("r1", here_q + np.tile(delta, 2), speed=0.6)
-                    t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
-                    shifts["merged"].append(abs(t1 - t2) / 1e6)
-                log(
-                    "start shift between two robots (ms): shared start "
-                    f"{max(shifts['shared']):.2f}, merged {max(shifts['merged']):.2f}, "
-                    f"two switch entries {max(shifts['switch']):.2f}, "
-                    f"one after the other {max(shifts['independent']):.2f}"
-                )
-        finally:
-            watcher.cancel()
+        # joint moves, each from where the last ended
+        rng = np.random.default_rng(7)
+        n_joint = 2 if quick else 5
+        for i in range(n_joint):
+            goal = Q0 + rng.uniform(-0.6, 0.6, 6)
+            res = await ctl.move_joints("r1", goal, speed=0.6)
+            path_joint.append(tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
+            await settle_and_read("r1", goal, res.end_ns)
+            log(
+                f"joint move {i + 1}: path error at TPs max {path_joint[-1].max():.2f} mm "
+                f"(TP {int(path_joint[-1].argmax()) + 1} of {path_joint[-1].size}), "
+                f"stop error {stop_err[-1]:.1e} rad"
+            )
+        await ctl.move_joints("r1", Q0, speed=0.6)
+        # straight lines: a square of 200 mm, tool pointing down, and a diagonal down and back
+        pos0, rot0 = kin.fk(Q0)
+        legs = [(0.2, 0, 0), (0, 0.2, 0), (-0.2, 0, 0), (0, -0.2, 0)]
+        if not quick:
+            legs += [(0.1, 0.1, -0.15), (-0.1, -0.1, 0.15)]
+        pos = pos0.copy()
+        for i, leg in enumerate(legs):
+            pos = pos + np.array(leg)
+            res = await ctl.move_linear("r1", pos, rot0, speed=1.0)
+            path_linear.append(tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
+            e = path_linear[-1]
+            log(
+                f"linear move {i + 1}: path error at TPs max {e.max():.2f} mm "
+                f"(TP {int(e.argmax()) + 1} of {e.size}), median {np.median(e):.2f} mm"
+            )
+        goal = ctl.track("r1").q_hold
+        assert goal is not None
+        await settle_and_read("r1", goal, res.end_ns)
+        log(f"after the lines: stop error {stop_err[-1]:.1e} rad")
+        # re-planning on the fly: branch off a long motion to another goal
+        for k in range(2 if quick else 6):
+            far = Q0 + np.array([1.0, -0.4, 0.3, 0.2, 0.0, 0.5]) * (1 if k % 2 == 0 else -1)
+            first = asyncio.ensure_future(ctl.move_joints("r1", far, speed=0.4))
+            await asyncio.sleep(0.6 + 0.2 * k)
+            seg0 = ctl.track("r1").segment
+            t_req = ctl.link.now()
+            await ctl.replan("r1", Q0 + np.array([0.2, 0.2, -0.2, 0.0, 0.1, 0.0]), speed=0.6)
+            with contextlib.suppress(MotionStopped):
+                await first
+            sw = ctl.last_switch
+            assert sw is not None and seg0 is not None
+            q_real = truth.at("r1", np.array([sw.t_branch_ns]))[0]
+            jumps.append(float(np.abs(q_real - sw.q_pred).max()))
+            paper_pred.append(
+                float(np.abs(q_real - paper_start(truth, "r1", seg0, t_req, sw.t_branch_ns)).max())
+            )
+            await ctl.move_joints("r1", Q0, speed=0.6)
+        log(
+            f"re-planning: {max(jumps) * 1000:.2f} mrad from the predicted start at the switch "
+            f"(the paper's binned predictor: {max(paper_pred) * 1000:.2f} mrad)"
+        )
+        # synchronised starts
+        await ctl.move_together({"r1": Q0, "r2": Q0}, speed=0.6)
+        trials = 1 if quick else 3
+        for k in range(trials):
+            delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
+            here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
+            res = await ctl.move_together({n: q + delta for n, q in here.items()}, speed=0.6)
+            t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
+            shifts["shared"].append(abs(t1 - t2) / 1e6)
+            # independently: one request after the other (each answered once its motion is
+            # loaded and started), as two controllers would send them
+            here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
+            t_req = ctl.link.now()
+            for n, q in here.items():
+                await ctl.move_joints(n, q - delta, speed=0.6, wait=False)
+            for n in here:
+                await ctl.wait_idle(ctl.track(n))
+            t1, t2 = (truth.start_of_motion(n, t_req) for n in ("r1", "r2"))
+            shifts["independent"].append(abs(t1 - t2) / 1e6)
+        # independent robots started by two pre-planned switch entries (Sec. 7.2): armed, then
+        # fired by one update
+        for k in range(3 if quick else 20):
+            delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
+            here = {n: ctl.track(n).q_hold for n in ("r1", "r2")}
+            armed = await ctl.arm({n: q + delta for n, q in here.items()}, speed=0.6)
+            res = await ctl.fire(armed)
+            t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
+            shifts["switch"].append(abs(t1 - t2) / 1e6)
+        merged = await ctl.merge(["r1", "r2"])
+        for k in range(3 if quick else 20):
+            delta = np.array([0.3, -0.2, 0.2, 0.1, 0.1, 0.3]) * (1 if k % 2 == 0 else -1)
+            here_q = merged.q_hold
+            assert here_q is not None
+            res = await ctl.move_joints("r1", here_q + np.tile(delta, 2), speed=0.6)
+            t1, t2 = (truth.start_of_motion(n, res.start_ns - 10_000_000) for n in ("r1", "r2"))
+            shifts["merged"].append(abs(t1 - t2) / 1e6)
+        log(
+            "start shift between two robots (ms): shared start "
+            f"{max(shifts['shared']):.2f}, merged {max(shifts['merged']):.2f}, "
+            f"two switch entries {max(shifts['switch']):.2f}, "
+            f"one after the other {max(shifts['independent']):.2f}"
+        )
     joint_all = np.concatenate(path_joint)
     linear_all = np.concatenate(path_linear)
     both = np.concatenate([joint_all, linear_all])

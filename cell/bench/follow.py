@@ -60,26 +60,24 @@ async def _run(points: int, seconds: float, sample_s: float) -> dict[str, Any]:
     async with running_cell(overrides) as config, Bus.connect(config.bus, "bench-follow") as bus:
         status = await fetch_status(config)
         pid = next(s.last.pid for s in status.services if s.name == "controller")
-        truth = Truth()
         samples: list[tuple[float, float]] = []
-        watcher = asyncio.ensure_future(truth.run(bus))
         req = controller_pb2.FollowRequest(
             speed=50.0, trajectories=[to_message("r1", traj.t, traj.q, name=traj.name)]
         )
         rss_before = rss_mb(pid)
         t0 = time.monotonic()
-        follow = asyncio.ensure_future(
-            bus.request("controller", "follow", req, controller_pb2.MoveReply, timeout=seconds + 120.0)
-        )
-        try:
-            while not follow.done():
-                samples.append((time.monotonic() - t0, rss_mb(pid)))
-                await asyncio.wait([follow], timeout=sample_s)
-            reply = follow.result()
+        async with Truth.watching(bus) as truth:
+            follow = asyncio.ensure_future(
+                bus.request("controller", "follow", req, controller_pb2.MoveReply, timeout=seconds + 120.0)
+            )
+            try:
+                while not follow.done():
+                    samples.append((time.monotonic() - t0, rss_mb(pid)))
+                    await asyncio.wait([follow], timeout=sample_s)
+                reply = follow.result()
+            finally:
+                follow.cancel()
             await truth.until("r1", reply.t_end_ns + 20_000_000)
-        finally:
-            watcher.cancel()
-            follow.cancel()
         q_real = truth.at("r1", reply.t0_ns + traj.t * 1e9)
     err = (
         np.array([np.linalg.norm(arm.fk(a)[0] - arm.fk(b)[0]) for a, b in zip(q_real, traj.q, strict=True)])

@@ -199,16 +199,11 @@ async def _bridge_run(moves: int) -> dict[str, float]:
     overrides = {"services": {"run": ["bus", "dataplane", "robots"]}, "robots": robots}
     kin = Kinematics()
     async with running_cell(overrides) as config, Bus.connect(config.bus, "bench-ur") as bus:
-        truth = Truth()
-        watcher = asyncio.ensure_future(truth.run(bus))
-        try:
-            async with Controller(bus, config) as ctl:
-                await robots_heard(ctl, {1, 2})
-                # one after the other, so that neither path pays for the other's load
-                direct = await _demo(ctl, kin, truth, "r1", moves)
-                daemon = await _demo(ctl, kin, truth, "r2", moves)
-        finally:
-            watcher.cancel()
+        async with Truth.watching(bus) as truth, Controller(bus, config) as ctl:
+            await robots_heard(ctl, {1, 2})
+            # one after the other, so that neither path pays for the other's load
+            direct = await _demo(ctl, kin, truth, "r1", moves)
+            daemon = await _demo(ctl, kin, truth, "r2", moves)
         status = await fetch_status(config)
         c = next(s for s in status.services if s.name == "robots").last.counters
     return {

@@ -7,6 +7,8 @@ time, and when a robot started to move.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+from collections.abc import AsyncIterator
 
 import numpy as np
 
@@ -31,6 +33,19 @@ class Truth:
                 continue
             ts.append(msg.t_ns)
             self.q.setdefault(name, []).append(np.array(msg.q))
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def watching(cls, bus: Bus) -> AsyncIterator[Truth]:
+        """A Truth fed from the bus while the block runs (its watch cancelled on the way out)."""
+        truth = cls()
+        watcher = asyncio.ensure_future(truth.run(bus))
+        try:
+            yield truth
+        finally:
+            watcher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await watcher
 
     def at(self, name: str, t_ns: np.ndarray) -> np.ndarray:
         """Joint positions at the given times, interpolated between samples."""
