@@ -150,13 +150,9 @@ class Cell:
         frame, optional rotations, times or a maximum tool speed) as the robot's joint trajectory,
         solved by IK from where it stands now; TrajectoryError naming a waypoint out of reach.
         Follow it with follow({robot: ...})."""
-        from cell.robot.arm import arm_model
-        from cell.robot.kinematics import Kinematics
-        from cell.trajectory.cartesian import solve
+        from cell.trajectory.cartesian import solve_where_it_stands
 
-        req = controller_pb2.RobotRequest(robot=robot)
-        here = await self.request("controller", "pose", req, controller_pb2.PoseReply, 10.0)
-        return solve(Kinematics(arm_model(self.config.robot(robot).model)), list(here.joints), poses)  # type: ignore[attr-defined]
+        return await solve_where_it_stands(self.bus, self.config, robot, poses)
 
     async def name_trajectories(
         self, name: str, trajectories: dict[str, Trajectory]

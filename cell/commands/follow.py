@@ -71,35 +71,35 @@ async def joint_points(bus, config, found: list) -> list:
     """Every source's trajectories as joint points: a Cartesian path (cell.trajectory.cartesian) is
     solved by IK from where its robot stands now (the controller says); TrajectoryError if it cannot."""
     from cell.robot.arm import arm_model
-    from cell.robot.kinematics import Kinematics
-    from cell.trajectory.cartesian import Poses, solve
+    from cell.trajectory.cartesian import Poses, solve_where_it_stands
     from cell.trajectory.sources import Points
-    from cell.v1 import controller_pb2
 
     out = []
     for p in found:
-        if not isinstance(p, Poses):
-            out.append(p)
-            continue
-        req = controller_pb2.RobotRequest(robot=p.robot)
-        here = await bus.request("controller", "pose", req, controller_pb2.PoseReply, timeout=10.0)
-        arm = arm_model(config.robot(p.robot).model)
-        traj = solve(Kinematics(arm), list(here.joints), p)
-        out.append(Points(list(arm.joints), traj.t, traj.q, None, None, p.robot, p.name, p.source))
+        if isinstance(p, Poses):
+            traj = await solve_where_it_stands(bus, config, p.robot, p)
+            joints = list(arm_model(config.robot(p.robot).model).joints)
+            p = Points(joints, traj.t, traj.q, None, None, p.robot, p.name, p.source)
+        out.append(p)
     return out
+
+
+def messages(found: list) -> list:
+    """The joint points as the bus carries them (controller.follow and controller.name alike)."""
+    from cell.trajectory.wire import to_message
+
+    return [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
 
 
 async def _name(config, found, name: str) -> int:
     from cell.bus import Bus, BusError, RemoteError
     from cell.trajectory.model import TrajectoryError
-    from cell.trajectory.wire import to_message
     from cell.v1 import controller_pb2
 
     try:
         async with Bus.connect(config.bus, "cell-follow") as bus:
             found = await joint_points(bus, config, found)
-            trajectories = [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
-            req = controller_pb2.NameRequest(name=name, trajectories=trajectories)
+            req = controller_pb2.NameRequest(name=name, trajectories=messages(found))
             reply = await bus.request("controller", "name", req, controller_pb2.NameReply, timeout=60.0)
     except (RemoteError, TrajectoryError) as exc:
         print(f"cell follow: {getattr(exc, 'message', exc)}", file=sys.stderr)
@@ -116,7 +116,6 @@ async def _name(config, found, name: str) -> int:
 
 
 async def _follow(config, found, speed: float, replace: bool) -> int:
-    import asyncio
     import contextlib
 
     import numpy as np
@@ -125,25 +124,19 @@ async def _follow(config, found, speed: float, replace: bool) -> int:
     from cell.robot.arm import arm_model
     from cell.robot.truth import Truth
     from cell.trajectory.model import Trajectory, TrajectoryError
-    from cell.trajectory.wire import to_message
     from cell.v1 import controller_pb2
 
     try:
         async with Bus.connect(config.bus, "cell-follow") as bus:
             found = await joint_points(bus, config, found)
-            trajectories = [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
-            req = controller_pb2.FollowRequest(speed=speed, trajectories=trajectories, replace=replace)
+            req = controller_pb2.FollowRequest(speed=speed, trajectories=messages(found), replace=replace)
             longest = max(float(p.t[-1] - p.t[0]) for p in found)
-            truth = Truth()
-            watcher = asyncio.ensure_future(truth.run(bus))
-            try:
+            async with Truth.watching(bus) as truth:
                 reply = await bus.request(
                     "controller", "follow", req, controller_pb2.MoveReply, timeout=longest + 120.0
                 )
                 for p in found:
                     await truth.until(p.robot, reply.t_end_ns + 20_000_000)
-            finally:
-                watcher.cancel()
     except TrajectoryError as exc:
         print(f"cell follow: {exc}", file=sys.stderr)
         return 2

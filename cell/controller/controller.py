@@ -213,18 +213,13 @@ class Controller(Engine):
     def name_trajectories(self, name: str, trajectories: dict[int | str, Trajectory]) -> None:
         """Keep checked trajectories under a name (`follow_named`, the skill servers' follow:<name>);
         a name given again is replaced.  PlanError when beyond a robot's limits, or no room."""
-        self.check_trajectories(trajectories)
-        keep = {self.track(r).robot: t for r, t in trajectories.items()}
+        keep = {rid: timed.traj for rid, (_track, timed) in self.check_trajectories(trajectories).items()}
         if name not in self.named and len(self.named) >= MAX_NAMED:
             raise PlanError(f"{MAX_NAMED} trajectories are named already: name this one as one of those")
-        points = sum(t.points for ts in self.named.values() for t in ts.values()) - sum(
-            t.points for t in self.named.get(name, {}).values()
-        )
-        new = sum(t.points for t in keep.values())
-        if points + new > MAX_NAMED_POINTS:
-            raise PlanError(
-                f"named trajectories would hold {points + new:,} points: at most {MAX_NAMED_POINTS:,}"
-            )
+        kept = {**self.named, name: keep}  # (the name's old trajectories replaced)
+        points = sum(t.points for ts in kept.values() for t in ts.values())
+        if points > MAX_NAMED_POINTS:
+            raise PlanError(f"named trajectories would hold {points:,} points: at most {MAX_NAMED_POINTS:,}")
         self.named[name] = keep
 
     def named_trajectories(

@@ -7,7 +7,6 @@ serves it on the bus.
 from __future__ import annotations
 
 import asyncio
-import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,12 +18,12 @@ from cell.controller.schedule import FollowResult
 from cell.counters import Counters
 from cell.robot.kinematics import Unreachable
 from cell.robot.pose import from_adept, to_adept
+from cell.skills.protocol import NAME  # (a named trajectory's name travels in skill commands)
 from cell.trajectory.model import Trajectory, TrajectoryError
 from cell.trajectory.wire import from_message
 from cell.v1 import controller_pb2
 
 Kind, Frame = controller_pb2.MoveRequest.Kind, controller_pb2.MoveRequest.Frame
-NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")  # a named trajectory's name (it travels in skill commands)
 
 
 @dataclass(slots=True)

@@ -121,7 +121,7 @@ class BagWriter:
         t, stamp = self.stamp(t_mono_ns)
         n = len(self.robots)
         transforms = [
-            self._transform(stamp, "world", f"{r.name}/base_link", base_position(i, n), (1.0, 0.0, 0.0, 0.0))
+            self._transform(stamp, "world", f"{r.name}/base_link", (*base_position(i, n), 0.0, 0.0, 0.0, 1.0))
             for i, r in enumerate(self.robots.values())
         ]
         self.write("/tf_static", t, self.TFMessage(transforms=transforms), TF)
@@ -164,13 +164,8 @@ class BagWriter:
             )
 
         def tf(v: dict) -> bytes:
-            p = pose(v)
-            xyz = (p.position.x, p.position.y, p.position.z)
-            wxyz = (p.orientation.w, p.orientation.x, p.orientation.y, p.orientation.z)
-            return ser(
-                self.TFMessage(transforms=[self._transform(v["stamp"], base, f"{r.name}/tool0", xyz, wxyz)]),
-                TF,
-            )
+            transform = self._transform(v["stamp"], base, f"{r.name}/tool0", v["pose"])
+            return ser(self.TFMessage(transforms=[transform]), TF)
 
         T = self.Time
         self.templates[r.id] = tpl = {
@@ -217,9 +212,9 @@ class BagWriter:
         """Writes metadata.yaml: the bag is complete."""
         self.writer.close()
 
-    def _transform(self, stamp, parent: str, child: str, xyz, wxyz) -> object:
-        x, y, z = (float(v) for v in xyz)
-        qw, qx, qy, qz = (float(v) for v in wxyz)
+    def _transform(self, stamp, parent: str, child: str, pose: Sequence[float]) -> object:
+        """child in parent: pose is x, y, z, then the quaternion x, y, z, w (geometry_msgs' order)."""
+        x, y, z, qx, qy, qz, qw = (float(v) for v in pose)
         return self.TransformStamped(
             header=self.Header(stamp=stamp, frame_id=parent),
             child_frame_id=child,

@@ -45,11 +45,11 @@ MOTIONS = POSE_SKILLS + JOINT_SKILLS
 # skills that name robots rather than take numbers: none = the server's own robot, "all" = every robot
 # (new: the cell's e-stop and release over the Responsive Link; answered out of turn, at once)
 NAMED_SKILLS = ("estop", "resume")
-_ROBOT_NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+# a name a command carries: a robot's, or one the cell was given (a named trajectory's)
+NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 # skills that take one name of something the cell was given (new: follow:<name> runs the trajectory
 # named so, cell/trajectory/, for this server's robot; queued as motions are)
 NAME_SKILLS = ("follow",)
-_NAME = _ROBOT_NAME
 
 
 class ErrorCode:
@@ -126,12 +126,12 @@ def parse_command(line: bytes) -> Command | Error:
         return Error(cid, ErrorCode.MALFORMED, "too many ':' fields")
     raw = [a.strip() for a in parts[2].split(",")] if len(parts) == 3 and parts[2].strip() else []
     if skill in NAMED_SKILLS:
-        bad = [n for n in raw if not _ROBOT_NAME.fullmatch(n)]
+        bad = [n for n in raw if not NAME.fullmatch(n)]
         if bad:
             return Error(cid, ErrorCode.ARGUMENTS, f"{skill} takes robot names or 'all', got {bad[0][:40]!r}")
         return Command(cid, skill, names=tuple(raw))
     if skill in NAME_SKILLS:
-        if len(raw) != 1 or not _NAME.fullmatch(raw[0]):
+        if len(raw) != 1 or not NAME.fullmatch(raw[0]):
             got = ",".join(raw)[:40]
             return Error(
                 cid, ErrorCode.ARGUMENTS, f"{skill} takes one name of 1-64 A-Z a-z 0-9 _ . -, got {got!r}"

@@ -100,12 +100,13 @@ def solve(
         t = np.array(t_list)
     if len(samples) > MAX_POINTS:
         raise TrajectoryError(f"{len(samples):,} points: at most {MAX_POINTS:,} (a lower rate_hz?)")
-    near = q_start
-    for k in range(len(p)):  # every waypoint within reach, before the path between them is solved
-        try:
-            near = kin.ik(p[k], rots[k], near)
-        except Unreachable as exc:
-            raise TrajectoryError(f"{_waypoint(k, p)}: {exc.reason}") from None
+    if poses.t is None:  # every waypoint within reach, before the path between them is solved
+        near = q_start
+        for k in range(len(p)):
+            try:
+                near = kin.ik(p[k], rots[k], near)
+            except Unreachable as exc:
+                raise TrajectoryError(f"{_waypoint(k, p)}: {exc.reason}") from None
     q = np.empty((len(samples), q_start.size))
     near = q_start
     for i, (where, pos, rot) in enumerate(samples):
@@ -125,3 +126,14 @@ def solve(
 
 def _waypoint(k: int, p: np.ndarray) -> str:
     return f"waypoint {k} ({', '.join(f'{v * 1000:.1f}' for v in p[k])} mm)"
+
+
+async def solve_where_it_stands(bus, config, robot: str, poses: Poses) -> Trajectory:
+    """solve() from the robot's joints as the controller reports them now, with its model's IK (for a
+    task script's Cell.cartesian and `cell follow` alike)."""
+    from cell.robot.arm import arm_model
+    from cell.v1 import controller_pb2
+
+    req = controller_pb2.RobotRequest(robot=robot)
+    here = await bus.request("controller", "pose", req, controller_pb2.PoseReply, timeout=10.0)
+    return solve(Kinematics(arm_model(config.robot(robot).model)), list(here.joints), poses)
