@@ -19,7 +19,6 @@ feeds it from the bus.
 from __future__ import annotations
 
 import asyncio
-import shutil
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -52,6 +51,20 @@ LATCHED = Qos(  # what /tf_static publishers offer: a late subscriber (or `ros2 
 )  # fmt: skip
 
 
+def set_aside(path: Path) -> Path | None:
+    """An earlier bag at path moved to path.<its time> (None if there was none): never deleted, since
+    it may be this very run's, written before the recorder restarted."""
+    if not path.exists():
+        return None
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(path.stat().st_mtime))
+    kept, k = path.with_name(f"{path.name}.{stamp}"), 0
+    while kept.exists():
+        k += 1
+        kept = path.with_name(f"{path.name}.{stamp}.{k}")
+    path.rename(kept)
+    return kept
+
+
 @dataclass(frozen=True)
 class BagRobot:
     id: int
@@ -64,8 +77,7 @@ class BagWriter:
 
     def __init__(self, path: str | Path, robots: Sequence[BagRobot], offset_ns: int) -> None:
         self.path = Path(path)
-        if self.path.exists():  # rosbags refuses an existing directory: a run's bag replaces the last one
-            shutil.rmtree(self.path)
+        self.kept = set_aside(self.path)  # (rosbags writes only into a new directory)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.offset = offset_ns
         self.ts = get_typestore(Stores.ROS2_HUMBLE)
@@ -238,6 +250,8 @@ async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
     bag.start(time.monotonic_ns())
     events = Events()
     ctx.log.info("recording a ROS 2 bag (MCAP) to %s", bag.path)
+    if bag.kept is not None:
+        ctx.log.info("the bag that was there is kept as %s", bag.kept)
 
     def counted() -> None:
         ctx.counters["bag_messages"] = bag.counts.total()
@@ -305,6 +319,10 @@ def info(path: str | Path) -> BagInfo:
     if not p.exists():
         raise BagError(f"{p}: no such file or directory")
     bag = p if p.is_dir() else p.parent
+    if not (bag / "metadata.yaml").exists() and any(bag.glob("*.mcap")):
+        raise BagError(
+            f"{bag}: no metadata.yaml (its recorder was cut off): `ros2 bag reindex {bag}` rebuilds it"
+        )
     try:
         with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
             first: dict[int, int] = {}

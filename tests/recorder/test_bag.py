@@ -10,11 +10,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from ruamel.yaml import YAML  # rosbags' own YAML reader
 
-from cell.recorder.bag import BagRobot, BagWriter
+from cell.recorder.bag import BagError, BagRobot, BagWriter, info
 from cell.recorder.cdr import Template
 from cell.recorder.events import Event
 from cell.robot.models import get as get_model
@@ -115,6 +116,22 @@ def test_a_bag_holds_standard_messages_at_the_cells_clock_and_reads_back_with_ro
     assert np.allclose(plan.points[2].positions, 0.3) and np.allclose(plan.points[2].velocities, 0.15)
     log = seen["/rosout"][0][1]
     assert (log.level, log.name, log.msg) == (30, "cell.robot.r1", "r1: KIND_STOP a stop was ordered")
+
+
+def test_a_bag_already_there_is_kept_aside_never_deleted(tmp_path) -> None:
+    """It may be this very run's, written before the recorder was restarted (or killed)."""
+    first = write_bag(tmp_path / "run")
+    second = write_bag(tmp_path / "run")
+    third = write_bag(tmp_path / "run")
+    assert first.kept is None and second.kept is not None and third.kept is not None
+    assert second.kept != third.kept and second.kept.name.startswith("run.")
+    for path in (second.kept, third.kept, tmp_path / "run"):
+        with AnyReader([path], default_typestore=TS) as reader:
+            assert reader.message_count == sum(first.counts.values())
+    # one cut off (a recorder killed: no metadata.yaml) is said so, with the way to mend it
+    (second.kept / "metadata.yaml").unlink()
+    with pytest.raises(BagError, match=r"no metadata\.yaml \(its recorder was cut off\): `ros2 bag reindex "):
+        info(second.kept)
 
 
 def test_a_bags_plans_feed_back_to_cell_follow_and_cell_bag_info_reads_it(tmp_path) -> None:

@@ -14,12 +14,13 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from cell.bus import Bus
+from cell.bus import Bus, RemoteError
 from cell.robot.arm import arm_model
 from cell.skills.client import RobotClient, SkillError
 from cell.trajectory import sources
 from cell.trajectory.model import Trajectory, TrajectoryError
 from cell.trajectory.sources import load
+from cell.trajectory.wire import to_message
 from cell.v1 import controller_pb2
 from tests.conftest import free_port, run_cell
 from tests.trajectory.test_trajectory import Q0, UR, wave
@@ -369,6 +370,21 @@ async def test_skill_servers_run_named_trajectories_and_robot_clients_follow_in_
         want = arm.fk(goal[name])[0] * 1000
         assert np.abs(np.array([x, y, z]) - want).max() < 0.5, (lines[2], want)
     async with Bus.connect(cell.config.bus, "test") as bus:
+        # names that cannot travel in a skill command, and no trajectories: refused, nothing kept
+        one = to_message("r1", ramp(Q0, goal["r1"]).t, ramp(Q0, goal["r1"]).q)
+        for req, words in (
+            (
+                controller_pb2.NameRequest(name="p ick", trajectories=[one]),
+                "bad_request: a trajectory's name is",
+            ),
+            (
+                controller_pb2.NameRequest(name="x" * 65, trajectories=[one]),
+                "bad_request: a trajectory's name is",
+            ),
+            (controller_pb2.NameRequest(name="empty"), "bad_request: no trajectories"),
+        ):
+            with pytest.raises(RemoteError, match=re.escape(words)):
+                await bus.request("controller", "name", req, controller_pb2.NameReply)
         robot = await RobotClient(
             "r1", cell.config.skills.host, cell.config.robot("r1").skill_port, bus
         ).connect()
