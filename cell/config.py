@@ -325,6 +325,11 @@ class ControllerConfig:
     tool_a_max: float = _check(_positive)
     tool_j_max: float = _check(_positive)
     tool_w_max: float = _check(_positive)
+    # a motion is answered done only after the robot's status, read after its plan ended, has every
+    # joint within goal_tolerance_rad of the end (and still: |v| within 10x that per second), at most
+    # settle_s after the plan's end; else it failed (NotAtGoal), saying where the robot stands
+    goal_tolerance_rad: float = _check(_positive)
+    settle_s: float = _check(_positive)
 
 
 @dataclass(frozen=True)

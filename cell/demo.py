@@ -25,6 +25,7 @@ from cell.robot.truth import Truth
 from cell.skills.client import DisableAir, EnableAir, MoveJoints, MoveRelWorld, MoveToolZ, SetSpeed
 from cell.snp.client import DeadlineMissed, QueryDenied, SnpClient
 from cell.snp.packet import Quantity, item_id
+from cell.status import rt_throttling
 from cell.v1 import controller_pb2, health_pb2
 
 HOME = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]  # deg
@@ -97,9 +98,17 @@ def real_time_rows(status: health_pb2.CellStatus, rb: dict[str, float]) -> list[
         ("robot ticks missed / late sends", f"{missed:,.0f} of {periods:,.0f} ({share:.2%}) / {late:,.0f}"),
         ("tick lateness p50 / p99 / max", f"{p50:.0f} / {p99:.0f} / {rb.get('lateness_max_us', 0):.0f} us"),
         ("real time", verdict),
+        ("RT throttling", _throttling_row(status)),
         (f"processes ({status.mode})", "; ".join(f"{p}: {w}" for p, w in places.items())),
         ("event-loop time per service, mean", ", ".join(f"{n} {v:.0f}" for n, v in loads) + " ms/s"),
     ]
+
+
+def _throttling_row(status: health_pb2.CellStatus) -> str:
+    said = rt_throttling(status)
+    if said is None:
+        return "not watched (no process ran at a real-time priority)"
+    return said.removeprefix("RT throttling: ") or "none (no real-time process was held back by the kernel)"
 
 
 SETTLED_RAD = 1e-5  # a robot this close to its goal on every joint has come to rest there

@@ -22,6 +22,8 @@ import time
 from collections.abc import Coroutine
 from typing import Any
 
+from cell import sched
+
 
 class Account:
     """Loop time used by one service, ns."""
@@ -35,6 +37,9 @@ class Account:
 
 ACCOUNT: contextvars.ContextVar[Account | None] = contextvars.ContextVar("cell_account", default=None)
 _now = time.perf_counter_ns
+# a real-time process's watch on the kernel holding its loop back (RT throttling), checked as a task
+# steps: the first step after a wake sees it (sched.Held; install(..., held=True))
+HELD: sched.Held | None = None
 
 
 class _Metered(collections.abc.Coroutine):
@@ -47,6 +52,8 @@ class _Metered(collections.abc.Coroutine):
 
     def send(self, value: Any) -> Any:
         t0 = _now()
+        if HELD is not None and t0 >= HELD.next_ns:
+            HELD.check(t0)
         try:
             return self._coro.send(value)
         finally:
@@ -85,7 +92,11 @@ def _charge(t0: int) -> None:
 
 
 def install(loop: asyncio.AbstractEventLoop) -> None:
-    """Meter every task created on `loop` from now on (once per loop; other factories are kept)."""
+    """Meter every task created on `loop` from now on (once per loop; other factories are kept); in a
+    real-time process, also watch for the kernel holding the loop back (HELD)."""
+    global HELD
+    if HELD is None and sched.realtime():
+        HELD = sched.Held()
     previous = loop.get_task_factory()
     if getattr(previous, "_cell_meter", False):
         return

@@ -13,6 +13,7 @@ later (ZeroMQ's I/O thread) inherit it.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 
@@ -56,6 +57,10 @@ def place(cpus: list[int], rt_priority: int, nice: int) -> list[str]:
         try:
             for tid in _threads():
                 os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(rt_priority))
+            # (the nice value too, for what such a thread does at the normal policy: Spin's polls)
+            with contextlib.suppress(OSError):
+                for tid in _threads():
+                    os.setpriority(os.PRIO_PROCESS, tid, nice)
             return problems
         except OSError as exc:
             problems.append(f"SCHED_FIFO {rt_priority} refused ({exc.strerror}): nice {nice} instead")
@@ -66,6 +71,104 @@ def place(cpus: list[int], rt_priority: int, nice: int) -> list[str]:
         except OSError as exc:
             problems.append(f"nice {nice} refused ({exc.strerror}): normal priority")
     return problems
+
+
+HELD_NS = 5_000_000  # a real-time thread runnable this long without running was held back
+CHECK_NS = 1_000_000  # Held.check reads the kernel's figure at most this often
+
+
+class Held:
+    """When the scheduler held this (real-time) thread back: runnable, yet not run.
+
+    The kernel's RT throttling (sched_rt_runtime_us: SCHED_FIFO threads get at most 950 ms of each
+    second of a CPU, by default) stops every real-time thread of a CPU that used up its share for
+    the rest of that second, 20-50 ms in which robots miss ticks and modules their cycles.  It says
+    so in dmesg once per boot only; this sees each time: the thread's time spent waiting on a run
+    queue (/proc/thread-self/schedstat, field 2) growing by HELD_NS or more between two checks.  At
+    FIFO priority on a core of its own a thread waits microseconds for the CPU otherwise, and a VM
+    whose vCPU did not run is not counted (it was not waiting on the guest's run queue).  Call
+    check() on every wake of the thread's loop (it costs about 2.5 us, at most every CHECK_NS)."""
+
+    def __init__(self) -> None:
+        try:
+            self._fd = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
+        except OSError:  # (not Linux, or no CONFIG_SCHED_INFO)
+            self._fd = -1
+        self.events = 0  # times held back
+        self.total_ns = 0
+        self.max_ns = 0
+        self.next_ns = 0  # (the caller's clock: the next check due)
+        self._delay = self._read()
+
+    def _read(self) -> int:
+        if self._fd < 0:
+            return 0
+        try:
+            return int(os.pread(self._fd, 64, 0).split()[1])
+        except (OSError, IndexError, ValueError):
+            return self._delay
+
+    def check(self, now_ns: int) -> int:
+        """How long the thread was held back since the last check (ns; 0: not HELD_NS)."""
+        self.next_ns = now_ns + CHECK_NS
+        delay = self._read()
+        grew, self._delay = delay - self._delay, delay
+        if grew < HELD_NS:
+            return 0
+        self.events += 1
+        self.total_ns += grew
+        self.max_ns = max(self.max_ns, grew)
+        return grew
+
+    def counters(self, prefix: str = "rt.") -> dict[str, float]:
+        return {
+            f"{prefix}held": self.events,
+            f"{prefix}held_ms": self.total_ns / 1e6,
+            f"{prefix}held_max_ms": self.max_ns / 1e6,
+        }
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+
+class Spin:
+    """A loop that polls without sleeping (the SnP cycles: a wake from epoll costs as much as the
+    work) must never do so at a real-time priority: the kernel's RT throttling would stop it, and
+    every other real-time thread of its CPU, for the rest of the second.  It sleeps at its real-time
+    priority (a wake comes at once) and polls at the normal policy and its nice value (polling is
+    never real-time time): poll() before a poll without sleeping, sleep() before a sleep or when
+    done.  Two system calls a cycle; nothing at all in a thread that is not real-time."""
+
+    def __init__(self) -> None:
+        self.policy = os.sched_getscheduler(0) & 0xFF if hasattr(os, "sched_getscheduler") else 0
+        rt = self.policy in (getattr(os, "SCHED_FIFO", 1), getattr(os, "SCHED_RR", 2))
+        self.prio = os.sched_getparam(0).sched_priority if rt else 0
+        self.low = False
+
+    def poll(self) -> None:
+        if self.prio and not self.low:
+            try:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+                self.low = True
+            except OSError:
+                pass
+
+    def sleep(self) -> None:
+        if self.low:
+            try:
+                os.sched_setscheduler(0, self.policy, os.sched_param(self.prio))
+                self.low = False
+            except OSError:
+                pass
+
+
+def realtime() -> bool:
+    """Whether this thread runs at a real-time policy (SCHED_FIFO or SCHED_RR)."""
+    if not hasattr(os, "sched_getscheduler"):
+        return False
+    return os.sched_getscheduler(0) & 0xFF in (getattr(os, "SCHED_FIFO", 1), getattr(os, "SCHED_RR", 2))
 
 
 def describe() -> str:

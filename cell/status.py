@@ -185,6 +185,8 @@ def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
         )
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows]
+    if throttled := rt_throttling(st):
+        lines.append(throttled)
     if counters:
         for s in st.services:
             if s.last.counters:
@@ -192,6 +194,34 @@ def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
                 lines.append(f"  {s.name}: " + ", ".join(f"{k}={_fmt_count(v)}" for k, v in items))
         lines += format_links(st)
     return "\n".join(lines)
+
+
+RT_DOC = "docs/running.md#rt-throttling"
+
+
+def rt_throttling(st: health_pb2.CellStatus) -> str | None:
+    """The kernel holding the cell's real-time processes back (RT throttling, sched.Held), in one
+    line; "" if they never were, None if no process runs at a real-time priority (none watched)."""
+    held: dict[str, tuple[float, float, float]] = {}
+    for s in st.services:
+        c = s.last.counters
+        if "process.rt.held" in c:
+            held[s.last.process or s.name] = (
+                c["process.rt.held"],
+                c.get("process.rt.held_ms", 0.0),
+                c.get("process.rt.held_max_ms", 0.0),
+            )
+    if not held:
+        return None
+    hit = {p: v for p, v in held.items() if v[0]}
+    if not hit:
+        return ""
+    each = "; ".join(f"{p} {n:.0f}x, {ms:.0f} ms" for p, (n, ms, _) in sorted(hit.items()))
+    longest = max(m for _, _, m in hit.values())
+    return (
+        f"RT throttling: the kernel held real-time processes back ({each}; longest {longest:.0f} ms): "
+        f"they used up their share of a CPU; see {RT_DOC}"
+    )
 
 
 def _link_counter(key: str) -> bool:

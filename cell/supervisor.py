@@ -194,6 +194,8 @@ class Supervisor:
         process = {"process.cpu_s": cpu_s}
         if (cpu := self._cpu.update(cpu_s * 1e3)) is not None:
             process["process.cpu_ms_per_s"] = cpu
+        if meter.HELD is not None:  # (a real-time process: the kernel's RT throttling, seen)
+            process.update(meter.HELD.counters("process.rt."))
         placement = sched.describe()
         for r in self.runners:
             self._bus.publish(f"health/{r.name}", r.heartbeat(process, placement))

@@ -375,7 +375,15 @@ class Campaign:
                 if c1.get(k, 0.0) != c0.get(k, 0.0)
             }
             held["packet_path"] = not grew and not stops
-            detail["packet_path"] = f"grew: {grew}" if grew else ""
+            # (the kernel's RT throttling stops the packet path's processes for up to 50 ms: said)
+            rt = {
+                k: c1.get(k, 0.0) - c0.get(k, 0.0)
+                for k in ("robots.process.rt.held", "dataplane.process.rt.held")
+                if c1.get(k, 0.0) != c0.get(k, 0.0)
+            }
+            detail["packet_path"] = (f"grew: {grew}" if grew else "") + (
+                f"; RT throttled: {rt}" if rt else ""
+            )
         if "status" in fault.promises:
             held["status"], detail["status"] = self._status_held(fault, after, restarts_before, stale_seen)
         works = [o for o in back if o.status == "done"]

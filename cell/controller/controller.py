@@ -35,6 +35,7 @@ from cell.controller.schedule import (
     MotionResult,
     MotionState,
     MotionStopped,
+    NotAtGoal,
     Segment,
     Switch,
     Track,
@@ -50,7 +51,7 @@ MAX_NAMED = 64  # trajectories kept under names (follow_named) at once
 MAX_NAMED_POINTS = 2_000_000  # and their points, all together
 __all__ = [
     "STOP_JERK", "Controller", "Goal", "MotionKind", "MotionResult", "MotionState", "MotionStopped",
-    "Segment", "Track",
+    "NotAtGoal", "Segment", "Track",
 ]  # fmt: skip
 
 
@@ -100,8 +101,11 @@ class Controller(Engine):
     async def arrive(
         self, robot: int | str, tolerance: float = 2e-4, timeout: float = 10.0
     ) -> tuple[np.ndarray, int]:
-        """Until the robot has ended its motions and stands within `tolerance` (rad, every joint) of
-        where they end; its measured joints and their data-plane time.  (V+'s BREAK.)"""
+        """Until the robot has ended its motions and is read standing within `tolerance` (rad, every
+        joint) of where they end; its measured joints and their data-plane time.  (V+'s BREAK.)
+        MotionStopped if a stop or loss ends a motion meanwhile (also one that comes while a reading
+        is on its way: that reading is not of the goal's robot any more); NotAtGoal if its last motion
+        ended elsewhere."""
         track = self.track(robot)
         # (not while the take-over at our start stops every robot: that stop would end this wait
         # with "stopped", though no motion of ours was under way; seen as a flake under load)
@@ -109,15 +113,21 @@ class Controller(Engine):
         await self.wait_idle(track)
         if track.stop_reason:  # its last motion ended early (lost or stopped before we were asked):
             why, track.stop_reason = track.stop_reason, None  # it will not arrive where that motion
-            raise MotionStopped(why)  # was to end; said once (the next break finds it standing)
+            if isinstance(track.failure, NotAtGoal):  # was to end; said once (the next break finds
+                raise NotAtGoal(why)  # it standing)
+            raise MotionStopped(why)
         epoch = track.epoch
         async with asyncio.timeout(timeout):
             while True:
-                if track.epoch != epoch:  # stopped or lost while we waited for it to settle
-                    raise MotionStopped(track.stop_reason or "the robot was stopped")
+                await self.wait_idle(track)  # (a motion started meanwhile: its end is the goal)
+                goal = track.q_hold  # None: no motion yet, the robot stands where it stands
                 q, v, t_ns = await self.joints_now(track)
-                goal = track.q_hold if track.q_hold is not None else q
-                if np.abs(q - goal).max() <= tolerance and np.abs(v).max() <= 10 * tolerance:
+                if track.epoch != epoch:  # stopped or lost while we waited (or read)
+                    raise MotionStopped(track.stop_reason or "the robot was stopped")
+                if track.moving or track.q_hold is not goal:
+                    continue
+                near = goal is None or np.abs(q - goal).max() <= tolerance
+                if near and np.abs(v).max() <= 10 * tolerance:
                     return q, t_ns
                 await asyncio.sleep(0.01)
 

@@ -34,6 +34,7 @@ from cell.controller.schedule import (
     LoopRun,
     MotionResult,
     MotionStopped,
+    NotAtGoal,
     Segment,
     Switch,
     Track,
@@ -66,6 +67,7 @@ class Engine(RobotBook):
         self.tracks: dict[int, Track] = {}
         self.plan_ns = 100_000_000  # how long planning a re-plan takes (measured, pessimistic)
         self.late_starts = 0  # motions whose first TPs were in place only after their start time
+        self.not_at_goal = 0  # motions that ended with the robot read elsewhere (answered failed)
         self.last_switch: Switch | None = None
         self.unfinished: dict[int, Goal] = {}  # robot -> the motion a stop interrupted (for resume)
         self.stopped: set[int] = set()  # robots stopped over the Responsive Link, until released
@@ -131,7 +133,8 @@ class Engine(RobotBook):
                 await coro
             except Exception as exc:
                 track.failure = exc
-                track.stop_reason = track.stop_reason or f"its streaming failed: {exc}"
+                why = str(exc) if isinstance(exc, NotAtGoal) else f"its streaming failed: {exc}"
+                track.stop_reason = track.stop_reason or why
                 log.error("the motion of robot(s) %s failed: %s", track.robots, exc)
 
         track.failure = None
@@ -186,7 +189,8 @@ class Engine(RobotBook):
             if me is not None and me.cancelling():
                 raise
             raise MotionStopped(track.stop_reason or "the motion under way was stopped") from None
-        _raise_failure(track.failure)
+        if not isinstance(track.failure, NotAtGoal):  # (that one is its own caller's: we start from
+            _raise_failure(track.failure)  # where the robot stands)
 
     async def tables_in_hand(self) -> None:
         """Until supervise() has the data plane's tables in hand (its take-over at our start, or after
@@ -317,6 +321,34 @@ class Engine(RobotBook):
                     raise
                 await asyncio.sleep(TIDY_NS / 1e9)
         track.q_hold = seg.sections.q[-1].copy()
+        await self.settle(track, seg.end_ns)
+
+    async def settle(self, track: Track, end_ns: int) -> None:
+        """Until the track's robots are read standing at the end of its motion: a status measured
+        after the plan's end (end_ns, data-plane clock) with every joint within the goal tolerance
+        and still.  The one gate of a `done` (its motion task ends only then): a motion whose TPs
+        all went in but whose robot is elsewhere raises NotAtGoal with where it stands, at most
+        settle_s after the plan's end, and the next motion plans from where the robot stands."""
+        cc = self.config.controller
+        tol, goal = cc.goal_tolerance_rad, track.q_hold
+        assert goal is not None
+        deadline = max(end_ns, self.link.now()) + int(cc.settle_s * 1e9)
+        while True:
+            q, v, t_ns = await self.joints_now(track)
+            err = np.abs(q - goal)
+            if t_ns >= end_ns and err.max() <= tol and np.abs(v).max() <= 10 * tol:
+                return
+            if self.link.now() >= deadline:
+                j = int(err.argmax())
+                self.not_at_goal += 1
+                track.q_hold = None  # (the next motion starts from where it stands)
+                raise NotAtGoal(
+                    f"robot(s) {track.robots} not at the goal {cc.settle_s:g} s after the motion's end: "
+                    f"joint {j} stands {err[j]:.4f} rad from it (tolerance {tol:g}), moving at up to "
+                    f"{np.abs(v).max():.4f} rad/s; joints {np.round(q, 4).tolist()}"
+                    + ("" if t_ns >= end_ns else "; no status since the motion's end")
+                )
+            await asyncio.sleep(0.005)
 
     def _prepared_ids(self, track: Track, seg: Segment) -> set[int]:
         """The TPs of alternates prepared for this segment: streaming leaves them loaded."""

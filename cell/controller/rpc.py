@@ -14,7 +14,7 @@ import numpy as np
 from cell.bus import BusError, RemoteError, RpcFault
 from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
 from cell.controller.plan import PlanError
-from cell.controller.schedule import FollowResult
+from cell.controller.schedule import FollowResult, NotAtGoal
 from cell.counters import Counters
 from cell.robot.kinematics import Unreachable
 from cell.robot.pose import from_adept, to_adept
@@ -31,6 +31,7 @@ class ControllerCounters(Counters):
     alternates_taken: int = 0  # armed alternates taken on an event from the bus
     alternates_refused: int = 0
     late_starts: int = 0  # motions whose first point was due before it reached the data plane
+    not_at_goal: int = 0  # motions that ran to their end with the robot read elsewhere (failed)
     stopped_on_link: int = 0  # robots stopped over the Responsive Link now (a gauge)
     motions_lost: int = 0  # robots whose motion was lost with the data plane (a gauge)
 
@@ -43,7 +44,12 @@ class ControllerService:
     def report(self) -> dict[str, float]:
         """The counters for the heartbeat, the controller's gauges read now."""
         c, ctl = self.counters, self.ctl
-        c.late_starts, c.stopped_on_link, c.motions_lost = ctl.late_starts, len(ctl.stopped), len(ctl.lost)
+        c.late_starts, c.not_at_goal, c.stopped_on_link, c.motions_lost = (
+            ctl.late_starts,
+            ctl.not_at_goal,
+            len(ctl.stopped),
+            len(ctl.lost),
+        )
         return c.as_dict()
 
     def _robot(self, name: str) -> int:
@@ -72,6 +78,8 @@ class ControllerService:
             raise RpcFault("plan", str(exc)) from None
         except MotionStopped as exc:
             raise RpcFault("stopped", str(exc)) from None
+        except NotAtGoal as exc:
+            raise RpcFault("failed", str(exc)) from None
         except BusError as exc:
             raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
         return controller_pb2.MoveReply() if result is None else self._reply(robot, result)
@@ -197,6 +205,8 @@ class ControllerService:
             q, t_ns = await self.ctl.arrive(rid, req.tolerance_rad or 2e-4, req.timeout_s or 60.0)
         except MotionStopped as exc:
             raise RpcFault("stopped", str(exc)) from None
+        except NotAtGoal as exc:
+            raise RpcFault("failed", str(exc)) from None
         except BusError as exc:  # (a BusTimeout is a TimeoutError too: not the robot's)
             raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
         except TimeoutError:
@@ -257,6 +267,8 @@ class ControllerService:
             if not req.start_only:
                 laps = await asyncio.shield(run.done)
                 await self.ctl.wait_idle(rid)  # (back where it began)
+                if isinstance(track.failure, NotAtGoal):
+                    raise RpcFault("failed", str(track.failure))
         except PlanError as exc:
             raise RpcFault("plan", str(exc)) from None
         except MotionStopped as exc:

@@ -51,6 +51,10 @@ class MotionStopped(Exception):
     """The motion was cut short by a stop (or replaced by a re-plan)."""
 
 
+class NotAtGoal(Exception):
+    """The motion ran to its end but the robot was not read standing at its goal: never a `done`."""
+
+
 @dataclass
 class MotionResult:
     start_ns: int  # data-plane clock

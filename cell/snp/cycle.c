@@ -180,6 +180,9 @@ int snp_cycle_run(module_t **mods, int n, int64_t until, int64_t mono_of_real, i
     for (int i = 0; i < n; i++) fds[i].fd = (int)mods[i]->fd, fds[i].events = POLLIN;
     int64_t spin_until = 0;
     uint8_t p[2048];
+    spin_t spin;
+    spin_init(&spin);
+    int ret = RUN_UNTIL;
     for (;;) {
         int64_t now = host_now(), wake = until;
         int busy = 0, full = 0;
@@ -192,13 +195,20 @@ int snp_cycle_run(module_t **mods, int n, int64_t until, int64_t mono_of_real, i
             int64_t w = host_of(m, m->stage != STAGE_DONE && m->deadline < m->next_start ? m->deadline : m->next_start);
             if (w < wake) wake = w;
         }
-        if (full) return RUN_RECORDS_FULL;
-        if (now >= until) return RUN_UNTIL;
+        if (full) {
+            ret = RUN_RECORDS_FULL;
+            break;
+        }
+        if (now >= until) break;
         int64_t wait = 0; /* ns; 0: poll without sleeping */
         if (!busy && now >= spin_until && wake - lead_ns > now) wait = wake - lead_ns - now;
+        if (wait) spin_sleep(&spin); else spin_poll(&spin);
         struct timespec ts = {wait / 1000000000, wait % 1000000000};
         int ready = ppoll(fds, (nfds_t)n, &ts, NULL);
-        if (ready < 0 && errno != EINTR) return -errno;
+        if (ready < 0 && errno != EINTR) {
+            ret = -errno;
+            break;
+        }
         if (ready <= 0) continue;
         for (int i = 0; i < n; i++) {
             if (!(fds[i].revents & (POLLIN | POLLERR))) continue;
@@ -208,8 +218,11 @@ int snp_cycle_run(module_t **mods, int n, int64_t until, int64_t mono_of_real, i
             while ((got = receive((int)m->fd, p, sizeof p, mono_of_real, &ip, &port, &at)) >= 0) {
                 spin_until = host_now() + spin_ns;
                 if (m->active && fast_path(m, p, got, at)) continue;
+                spin_sleep(&spin);
                 return hand(h, i, p, got, at, ip, port, buf, cap);
             }
         }
     }
+    spin_sleep(&spin);
+    return ret;
 }

@@ -218,19 +218,29 @@ int snp_master_run(master_t *m, int64_t until, int64_t mono_of_real, int64_t spi
     struct pollfd pfd = {.fd = (int)m->fd, .events = POLLIN};
     int64_t spin_until = 0;
     uint8_t p[2048];
+    spin_t spin;
+    spin_init(&spin);
+    int ret = RUN_UNTIL;
     for (;;) {
         int64_t now = host_now();
         int64_t wake = fdir(m, now);
-        if (m->n_events) return RUN_EVENT;
-        if (now >= until) return RUN_UNTIL;
+        if (m->n_events) {
+            ret = RUN_EVENT;
+            break;
+        }
+        if (now >= until) break;
         int64_t start = (floor_div(now - m->phase_ns, m->period_ns) + 1) * m->period_ns + m->phase_ns;
         wake = wake < until ? wake : until;
         wake = wake < start - lead_ns ? wake : start - lead_ns;
         int64_t wait = 0; /* ns; 0: poll without sleeping */
         if (now >= spin_until && wake > now) wait = wake - now;
+        if (wait) spin_sleep(&spin); else spin_poll(&spin);
         struct timespec ts = {wait / 1000000000, wait % 1000000000};
         int ready = ppoll(&pfd, 1, &ts, NULL);
-        if (ready < 0 && errno != EINTR) return -errno;
+        if (ready < 0 && errno != EINTR) {
+            ret = -errno;
+            break;
+        }
         if (ready <= 0) {
             if (wait) spin_until = host_now() + spin_ns + lead_ns; /* woken on time: spin through */
             continue;
@@ -241,8 +251,11 @@ int snp_master_run(master_t *m, int64_t until, int64_t mono_of_real, int64_t spi
             spin_until = host_now() + spin_ns;
             if (fast_path(m, p, got, ip, port, at)) continue;
             serve(m);
+            spin_sleep(&spin);
             return hand(h, 0, p, got, at, ip, port, buf, cap);
         }
         serve(m);
     }
+    spin_sleep(&spin);
+    return ret;
 }

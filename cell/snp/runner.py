@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from cell.sched import Spin
 from cell.snp.modular import JointModule, Master, ModuleState, Stage
 from cell.snp.packet import stamp_departure, time_packet
 from cell.snp.tsp import Oscillator, on_grid
@@ -205,6 +206,7 @@ def serve_master(
     spin_until = 0
     lead = LEAD_NS if spin_ns else 0  # (spin_ns 0: never poll without sleeping)
     due = master.next_due()
+    rt = Spin()  # (polls at the normal policy: never into the kernel's RT throttling)
     try:
         while not stop():
             now = clock()
@@ -212,6 +214,9 @@ def serve_master(
             if now >= spin_until and (wake := min(due, master.next_cycle_start(now) - lead)) > now:
                 alarm.set(wake)
                 timeout = COARSE_S
+                rt.sleep()
+            else:
+                rt.poll()
             readable = False
             for fd, _ in ep.poll(timeout):
                 if fd == alarm.fd:
@@ -233,6 +238,7 @@ def serve_master(
             if polled or out or readable:  # (what it was sent or did may have moved its timers)
                 due = master.next_due()
     finally:
+        rt.sleep()
         ep.close()
         alarm.close()
     return link
@@ -402,6 +408,7 @@ def run_modules(
     live: list[Slot] = []  # the slots plugged in
     now = clock()
     next_event = events()
+    rt = Spin()  # (polls at the normal policy: never into the kernel's RT throttling)
     try:
         while now < end:
             if now >= next_event:
@@ -413,8 +420,10 @@ def run_modules(
                 busy = busy or (cy is not None and cy.stage != Stage.DONE)
             if not (busy and spin) and wake - now > lead:  # nothing in flight: sleep until (just before) it
                 alarm.set(wake - lead)
+                rt.sleep()
                 ready = ep.poll(COARSE_S)
             else:
+                rt.poll()
                 ready = ep.poll(0)
             for fd, _ in ready:
                 s = by_fd.get(fd)
@@ -436,6 +445,7 @@ def run_modules(
                     s.wake = wake_of(s)
             now = clock()
     finally:
+        rt.sleep()
         for s in slots:
             if s.sock is not None:
                 with contextlib.suppress(OSError):

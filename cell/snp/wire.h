@@ -10,6 +10,7 @@
 #include <math.h>
 #include <netinet/in.h>
 #include <poll.h>
+#include <sched.h>
 #include <stdint.h>
 #include <string.h>
 #include <sys/socket.h>
@@ -26,6 +27,39 @@ enum { RUN_UNTIL = 0, RUN_HANDED = 1, RUN_RECORDS_FULL = 2, RUN_EVENT = 3 };
 typedef struct {
     int64_t index, len, at, ip, port;
 } handed_t;
+
+/* --- polling without sleeping, never at a real-time priority (cell.sched.Spin) ---------------
+ * A SCHED_FIFO thread that polls through its cycles runs into the kernel's RT throttling (95% of
+ * each second of a CPU at most: the rest of that second none of the CPU's real-time threads run,
+ * 20-50 ms of silence for every module at once).  The loops sleep at their real-time priority, so
+ * that a wake-up comes at once, and poll at the normal policy (their nice value), so that polling
+ * is never real-time time.  Two system calls a cycle (~1-2 us). */
+typedef struct {
+    int prio; /* the real-time priority the thread came with (0: none, nothing to do) */
+    int policy;
+    int low;  /* polling at the normal policy now */
+} spin_t;
+
+static inline void spin_init(spin_t *s) {
+    struct sched_param sp;
+    int policy = sched_getscheduler(0) & 0xff; /* (without SCHED_RESET_ON_FORK) */
+    s->prio = 0, s->low = 0, s->policy = policy;
+    if ((policy == SCHED_FIFO || policy == SCHED_RR) && sched_getparam(0, &sp) == 0) s->prio = sp.sched_priority;
+}
+
+static inline void spin_poll(spin_t *s) { /* about to poll without sleeping */
+    if (s->prio && !s->low) {
+        struct sched_param sp = {.sched_priority = 0};
+        s->low = sched_setscheduler(0, SCHED_OTHER, &sp) == 0;
+    }
+}
+
+static inline void spin_sleep(spin_t *s) { /* about to sleep, or return: real-time again */
+    if (s->low) {
+        struct sched_param sp = {.sched_priority = s->prio};
+        s->low = sched_setscheduler(0, s->policy, &sp) != 0;
+    }
+}
 
 /* --- the RMAP CRC-8 (x^8 + x^2 + x + 1, reflected, init 0): cell.snp.packet.crc8 ------------ */
 

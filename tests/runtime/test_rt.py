@@ -1,0 +1,125 @@
+"""RT throttling (issue 36, part 5): a real-time loop that polls without sleeping at SCHED_FIFO runs
+into it and the cell sees each time (sched.Held); polling through sched.Spin never does."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from cell.launcher import fetch_status
+from cell.status import rt_throttling
+from tests.conftest import free_port, run_cell
+
+# a loop on a CPU of its own busy ~98% of the time for 1.6 s, at SCHED_FIFO 50, one on each CPU (the
+# kernel lends a CPU's unused real-time share to another: the SnP bench's master and modules, both
+# polling, used up both): "fifo" polls at that priority, "spin" polls through sched.Spin (the normal
+# policy while polling, FIFO while asleep); its largest gap between two turns (the kernel not running
+# it) and what sched.Held saw
+LOOP = """
+import json, os, sys, time
+from cell import sched
+how, cpu = sys.argv[1], int(sys.argv[2])
+problems = sched.place([cpu], 50, -10)
+if problems:
+    print(json.dumps({"refused": problems})); sys.exit(0)
+held, rt = sched.Held(), sched.Spin()
+clock = time.perf_counter_ns
+end = clock() + 1_600_000_000
+gap = last = clock()
+gap = 0
+policies = set()
+while (now := clock()) < end:
+    gap, last = max(gap, now - last), now
+    if now >= held.next_ns:
+        held.check(now)
+    if how == "spin":
+        rt.poll()
+    policies.add(os.sched_getscheduler(0) & 0xFF)
+    if (now // 1_000_000) % 100 == 99:  # ~1-2 ms in 100 asleep
+        rt.sleep()
+        policies.add(os.sched_getscheduler(0) & 0xFF)
+        time.sleep(0.0009)
+        last = clock()
+print(json.dumps({"gap_ms": gap / 1e6, "held": held.counters(), "policies": sorted(policies)}))
+"""
+
+
+def run(how: str) -> dict:
+    """Both loops at once; the figures of the one the kernel held back longest."""
+    procs = spinners(how)
+    got = []
+    for p in procs:
+        out, _ = p.communicate(timeout=30)
+        assert p.returncode == 0
+        got.append(json.loads(out.strip().splitlines()[-1]))
+    if refused := [g["refused"] for g in got if "refused" in g]:
+        pytest.skip(f"SCHED_FIFO is not allowed here: {refused}")
+    return max(got, key=lambda g: g["gap_ms"])
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2 or not sys.platform.startswith("linux"), reason="2 CPUs, Linux")
+def test_polling_at_fifo_is_throttled_and_seen_polling_through_spin_is_not() -> None:
+    if throttling_off():
+        pytest.skip("RT throttling is off on this host (sched_rt_runtime_us = -1)")
+    fifo = run("fifo")
+    # the kernel stopped it for the rest of a second (its share is 95% of each), and Held saw it
+    assert fifo["gap_ms"] >= 20, fifo
+    assert fifo["held"]["rt.held"] >= 1 and fifo["held"]["rt.held_max_ms"] >= 20, fifo
+    assert fifo["policies"] == [os.SCHED_FIFO], fifo
+    spin = run("spin")
+    # the same work polled at the normal policy: never a throttled stretch (CFS slices are ms)
+    assert spin["gap_ms"] < 15, spin
+    assert spin["held"]["rt.held_max_ms"] < 15, spin
+    assert spin["policies"] == [os.SCHED_OTHER, os.SCHED_FIFO], spin  # (asleep at FIFO, polling not)
+
+
+def throttling_off() -> bool:
+    with open("/proc/sys/kernel/sched_rt_runtime_us") as f:
+        return int(f.read()) < 0
+
+
+def spinners(how: str) -> list[subprocess.Popen]:
+    return [
+        subprocess.Popen([sys.executable, "-c", LOOP, how, str(cpu)], stdout=subprocess.PIPE, text=True)
+        for cpu in (0, 1)
+    ]
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2 or not sys.platform.startswith("linux"), reason="2 CPUs, Linux")
+async def test_a_cell_held_back_by_rt_throttling_says_so_in_cell_status(start_cell) -> None:
+    if throttling_off():
+        pytest.skip("RT throttling is off on this host (sched_rt_runtime_us = -1)")
+    robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "kinematic"}]
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots)
+    before = {s.name: s for s in (await fetch_status(cell.config)).services}
+    if not before["robots"].last.sched.startswith("fifo"):
+        pytest.skip(f"the robots' process is not real-time here ({before['robots'].last.sched})")
+    assert before["robots"].last.counters["process.rt.held"] == 0  # (a quiet start)
+    assert "process.rt.held" not in before["bus"].last.counters  # (watched in real-time processes only)
+    # two loops polling at SCHED_FIFO use up the machine's real-time share: the kernel stops every
+    # real-time thread, the cell's robots and data plane with them, for the rest of each second
+    for _ in range(3):  # (the kernel picks which CPU's real-time threads it stops: once more if not r1's)
+        loops = spinners("fifo")
+        await asyncio.to_thread(lambda: [p.communicate(timeout=30) for p in loops])  # noqa: B023
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(3):  # (the next heartbeats carry it)
+                while True:
+                    st = await fetch_status(cell.config)
+                    robots_now = next(s for s in st.services if s.name == "robots").last.counters
+                    if robots_now["process.rt.held"] >= 1:
+                        break
+                    await asyncio.sleep(0.2)
+        if robots_now["process.rt.held"] >= 1:
+            break
+    assert robots_now["process.rt.held_max_ms"] >= 5
+    said = rt_throttling(st)
+    assert said and said.startswith("RT throttling: the kernel held real-time processes back (")
+    assert "robots " in said and "docs/running.md#rt-throttling" in said
+    table = await asyncio.to_thread(run_cell, "status", "--config", str(cell.path))
+    assert table.returncode == 0 and "RT throttling: the kernel held" in table.stdout, table.stdout
