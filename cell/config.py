@@ -153,6 +153,7 @@ class BusConfig:
     curve: bool  # CurveZMQ on every bus connection (cell/bus/curve.py)
     keys: str  # the directory `cell keys generate` wrote
     client: str = _check(_name)  # this host's client certificate in it
+    cell: str = field(default="", metadata={"internal": True})  # [cell] name: who the bus belongs to
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         if self.pub == self.sub:
@@ -607,6 +608,7 @@ class CellConfig:
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         del data["source"]
+        del data["bus"]["cell"]  # (internal: [cell] name, as the bus knows it)
         return data
 
     def to_toml(self) -> str:
@@ -660,6 +662,7 @@ def config_from_dict(data: dict[str, Any], source: str = DEFAULT_SOURCE) -> Cell
     if isinstance(services, dict):
         data = {**data, "services": _with_defaults(services, "groups", services.get("group_defaults"))}
     config = replace(_build(CellConfig, data, "", source), source=source)
+    config = replace(config, bus=replace(config.bus, cell=config.cell.name))
     here = config.here()
     if here is not None:  # a host of several: it runs its own services, with its own bus certificate
         services = replace(config.services, run=list(here.run))

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from cell import sched
 from cell.aio import stop_on_signals, stop_on_stdin_eof
-from cell.bus import Bus, BusError
+from cell.bus import Bus, BusError, BusRefused, identity
 from cell.config import CellConfig, parse_host_port
 from cell.layout import Process, process_for, process_named, processes
 from cell.processes import ChildProcess
@@ -40,6 +40,7 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
     if running:
         print(f"cell: {running}", file=sys.stderr)
         return 1
+    await _join(config)
     with contextlib.ExitStack() as stack:
         if config.dataplane.backend == "xdp":
             from cell.dataplane.xdp.switch import SwitchError, switch_namespace
@@ -50,6 +51,22 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
                 print(f"cell: {exc}", file=sys.stderr)
                 return 2
         return await _up(config, duration=duration, log_level=log_level)
+
+
+async def _join(config: CellConfig) -> None:
+    """Make this start's processes members of their cell on its bus (cell/bus/identity.py): a new
+    start where the bus runs; on another host of the cell, the start of the one running there."""
+    if "bus" in config.services.run:
+        identity.new_start()
+        return
+    try:
+        st = await fetch_status(config, timeout=config.bus.connect_timeout_s)
+    except BusError:  # (not up yet: this host's services join as the cell's clients do)
+        log.warning(
+            "no cell %r answered on its bus yet: this host joins it without a start", config.cell.name
+        )
+        return
+    identity.join(st.member)
 
 
 async def already_running(config: CellConfig) -> str:
@@ -68,6 +85,11 @@ async def already_running(config: CellConfig) -> str:
             pass
     try:
         st = await fetch_status(config, timeout=2.0)
+    except BusRefused:
+        return (
+            f"the bus address {config.bus.pub} is taken by another cell's bus (not {config.cell.name!r}'s): "
+            "stop it, or set [bus] pub"
+        )
     except BusError:
         return f"the bus address {config.bus.pub} is taken by another program: free it or set [bus] pub"
     return (

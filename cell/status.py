@@ -11,7 +11,7 @@ import os
 import socket
 import time
 
-from cell.bus import Bus
+from cell.bus import Bus, identity
 from cell.config import CellConfig
 from cell.v1 import health_pb2
 
@@ -106,6 +106,7 @@ class StatusRegistry:
         out = health_pb2.CellStatus(
             cell=self.cell, mode=self.mode, uptime_s=now - self.started, config=self.config_source,
             launcher_pid=os.getpid(),
+            member=identity.member_token(),
         )  # fmt: skip
         names = self.expected + sorted(set(self._last) - set(self.expected))
         for name in names:

@@ -16,6 +16,7 @@ async def run(ctx: ServiceContext) -> None:
         ctx.ready()
         while True:
             ctx.counters.update((await forwarder.statistics()).as_counters())
+            ctx.counters.update(forwarder.counters())
             await asyncio.sleep(ctx.config.services.heartbeat_s / 2)
     finally:
         forwarder.stop()

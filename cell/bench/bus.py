@@ -30,7 +30,7 @@ import zmq
 
 from cell import aio
 from cell.bench.registry import Bench, Figures, register
-from cell.bus import Bus, Forwarder
+from cell.bus import Bus, Forwarder, identity
 from cell.config import BusConfig, load_config
 from cell.v1 import bus_pb2
 
@@ -52,9 +52,23 @@ class Route:
     pub: str  # senders connect here
     sub: str  # receivers bind (direct) or connect (forwarder) here
     direct: bool
+    cell: str = ""  # through the forwarder: the cell its peers say they belong to (cell.bus.identity)
 
     def attach_receiver(self, sock: zmq.Socket) -> None:
+        if not self.direct:
+            identity.identify(sock, self.cell)
         (sock.bind if self.direct else sock.connect)(self.sub)
+
+    def connect_receiver(self, sock: zmq.Socket) -> None:
+        """A receiver that connects whichever way (where the far end binds it, direct)."""
+        if not self.direct:
+            identity.identify(sock, self.cell)
+        sock.connect(self.sub)
+
+    def attach_sender(self, sock: zmq.Socket) -> None:
+        if not self.direct:
+            identity.identify(sock, self.cell)
+        sock.connect(self.pub)
 
 
 @dataclass(frozen=True)
@@ -120,7 +134,7 @@ def _raw_echo(ping: Route, pong: Route, out: Any) -> None:
     if pong.direct:
         pub.bind(pong.sub)
     else:
-        pub.connect(pong.pub)
+        pong.attach_sender(pub)
     out.put("ready")
     while sub.poll(IDLE_S * 1000):
         frame = sub.recv()
@@ -191,7 +205,7 @@ def raw_throughput(route: Route, framing: Framing, n: int) -> dict[str, float]:
     ctx = zmq.Context()
     pub = ctx.socket(zmq.PUB)
     pub.setsockopt(zmq.SNDHWM, 0)
-    pub.connect(route.pub)
+    route.attach_sender(pub)
     warm = framing.pack(WARM)
     while True:  # raw PUB/SUB drops until connected: warm up until the sink hears us
         framing.send(pub, warm)
@@ -247,8 +261,8 @@ def raw_round_trip(ping: Route, pong: Route, pings: int) -> dict[str, float]:
     proc, _ = _spawn(_raw_echo, ping, pong)
     ctx = zmq.Context()
     pub, sub = ctx.socket(zmq.PUB), ctx.socket(zmq.SUB)
-    pub.connect(ping.pub)
-    sub.connect(pong.sub)
+    ping.attach_sender(pub)
+    pong.connect_receiver(sub)
     sub.subscribe(PONG)
     frame = PING + b"\0" + PAYLOAD
     while True:  # warm up until a pong comes back: both directions are connected
@@ -315,7 +329,7 @@ def run(messages: int = 200_000, pings: int = 2_000, rounds: int = 3) -> dict[st
     """Alternate every variant `rounds` times; keep the best of each; the bus's share of each raw one."""
     base = load_config().bus
     cfg = replace(base, pub=_endpoint(), sub=_endpoint(), hwm=max(base.hwm, messages * 2))
-    via_fwd = Route(cfg.pub, cfg.sub, direct=False)
+    via_fwd = Route(cfg.pub, cfg.sub, direct=False, cell=cfg.cell)
     ctx = mp.get_context("spawn")
     ready, stop = ctx.Event(), ctx.Event()
     fwd = ctx.Process(target=_forwarder, args=(cfg, ready, stop), daemon=True)

@@ -11,6 +11,7 @@ from cell.bus.forwarder import Forwarder, ForwarderStats
 from cell.bus.node import (
     Bus,
     BusError,
+    BusRefused,
     BusTimeout,
     BusUnavailable,
     RemoteError,
@@ -21,6 +22,7 @@ from cell.bus.node import (
 __all__ = [
     "Bus",
     "BusError",
+    "BusRefused",
     "BusTimeout",
     "BusUnavailable",
     "Envelope",

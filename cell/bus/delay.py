@@ -23,7 +23,8 @@ from dataclasses import replace
 
 import zmq
 
-from cell.bus.node import readable, tune, zmq_context
+import cell.bus.identity as identity
+from cell.bus.node import readable, secure_client, secure_server, tune, zmq_context
 from cell.config import BusConfig
 
 
@@ -58,9 +59,17 @@ class DelayLink:
         down_in = ctx.socket(zmq.SUB)  # everything from the bus ...
         down_out = ctx.socket(zmq.XPUB)  # ... out to the far nodes' subscriptions
         socks = (up_in, up_out, down_in, down_out)
+        # (its far side asks the far nodes who they are, as the forwarder would, with a guard of its
+        # own where the forwarder is elsewhere: it lets in the nodes of this cell's name; the forwarder
+        # sees the link itself, a client)
+        guard = None if self.bus.curve else identity.Guard.register(ctx, self.bus.cell, "")
         try:
             for s in socks:
                 tune(s, self.bus)
+            for s in (up_in, down_out):  # (the far nodes shake hands with the link as with the bus)
+                secure_server(s, self.bus)
+            for s in (up_out, down_in):
+                secure_client(s, self.bus)
             up_in.bind(self.config.pub)
             up_in.send(b"\x01")  # subscribe to everything the far publishers send
             up_out.connect(self.bus.pub)
@@ -74,6 +83,8 @@ class DelayLink:
         finally:
             for s in socks:
                 s.close()
+            if guard is not None:
+                guard.release()
 
     async def _drain(self, xpub: zmq.Socket) -> None:
         """Subscription messages from the far side: XPUB filters by them itself; read them away."""

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import zmq
 
 import cell.bus.curve as curve
-from cell.bus.node import BusError, readable, tune, zmq_context
+import cell.bus.identity as identity
+from cell.bus.node import BusError, readable, secure_server, tune, zmq_context
 from cell.config import BusConfig
 
 _ids = itertools.count()
@@ -50,20 +51,23 @@ class Forwarder:
         self._control_ep = f"inproc://cell-forwarder-{next(_ids)}"
         self._ctl = None
         self._auth = None
+        self.guard: identity.Guard | None = None
 
     def start(self) -> None:
         """Bind both endpoints (BusError if taken) and start forwarding."""
         ctx = zmq_context()
-        if self.config.curve:  # the allow-list's guard comes first: no connection gets in before it
+        # the guard comes first: no connection gets in before it (the allow-list of keys, or the
+        # cell's identity: cell/bus/identity.py)
+        if self.config.curve:
             self._auth = curve.start_authenticator(ctx, self.config)
+        else:
+            self.guard = identity.Guard.register(ctx, self.config.cell, identity.member_token())
         xsub, xpub, rep = ctx.socket(zmq.XSUB), ctx.socket(zmq.XPUB), ctx.socket(zmq.REP)
         self._sockets = (xsub, xpub, rep)
         for sock in self._sockets:
             sock.setsockopt(zmq.LINGER, 0)
-        if self.config.curve:
-            for sock in (xsub, xpub):
-                curve.secure_server(sock, self.config)
         for sock in (xsub, xpub):
+            secure_server(sock, self.config)
             tune(sock, self.config)
         try:
             xsub.bind(self.config.pub)
@@ -83,6 +87,10 @@ class Forwarder:
         self._ctl = zmq_context().socket(zmq.REQ)
         self._ctl.setsockopt(zmq.LINGER, 0)
         self._ctl.connect(self._control_ep)
+
+    def counters(self) -> dict[str, float]:
+        """What the guard refused (connections of another cell, or of another start of this one)."""
+        return self.guard.counters() if self.guard is not None else {}
 
     async def statistics(self) -> ForwarderStats:
         assert self._ctl is not None, "start() first"
@@ -124,3 +132,6 @@ class Forwarder:
         if self._auth is not None:
             self._auth.stop()
             self._auth = None
+        if self.guard is not None:
+            self.guard.release()
+            self.guard = None

@@ -29,6 +29,7 @@ from google.protobuf.message import Message
 from zmq.utils.monitor import parse_monitor_message
 
 import cell.bus.curve as curve
+import cell.bus.identity as identity
 from cell import aio
 from cell.bus.envelope import (
     Encoder,
@@ -64,6 +65,11 @@ class BusUnavailable(BusError):
     """No forwarder answered: the cell (or its bus service) is not running at the configured endpoints."""
 
 
+class BusRefused(BusUnavailable):
+    """The forwarder refused this node: another cell's bus (or another start's), or a key it does
+    not allow.  A service refused so ends (it is not of this cell); it is never let in by waiting."""
+
+
 class BusTimeout(BusError, TimeoutError):
     """A request got no reply in time."""
 
@@ -87,6 +93,22 @@ class RpcFault(Exception):
 def zmq_context() -> zmq.Context:
     """The process's one ZeroMQ context (inproc endpoints are shared within it)."""
     return zmq.Context.instance()
+
+
+def secure_client(sock: zmq.Socket, config: BusConfig) -> None:
+    """A node's socket: its CurveZMQ key (curve = true), else the cell and start it belongs to."""
+    if config.curve:
+        curve.secure_client(sock, config)
+    else:
+        identity.identify(sock, config.cell)
+
+
+def secure_server(sock: zmq.Socket, config: BusConfig) -> None:
+    """A forwarder's (or a link's) socket: CurveZMQ's server side, else it asks who a node is."""
+    if config.curve:
+        curve.secure_server(sock, config)
+    else:
+        identity.serve_identity(sock, config.cell)
 
 
 def tune(sock: zmq.Socket, config: BusConfig) -> zmq.Socket:
@@ -323,6 +345,7 @@ class Bus:
         self.malformed = 0
         self.patient = False  # see connect(wait=False)
         self._ctl_live = False  # a ping has come back on the control socket: replies will reach us
+        self.joined = False  # it has been on the bus (a drop before that is a failure to connect: said so)
 
     # --- lifetime ----------------------------------------------------------------------------
 
@@ -340,9 +363,8 @@ class Bus:
         bus._pub = tune(ctx.socket(zmq.PUB), config)
         bus._ctl = tune(ctx.socket(zmq.SUB), config)
         try:
-            if config.curve:
-                curve.secure_client(bus._pub, config)
-                curve.secure_client(bus._ctl, config)
+            secure_client(bus._pub, config)
+            secure_client(bus._ctl, config)
             bus._pub.connect(config.pub)
             bus._ctl.subscribe(bus._reply_topic.encode())
             bus._ctl.subscribe(_SYNC + f"{bus.instance:08x}/c".encode())
@@ -351,7 +373,7 @@ class Bus:
             # the caller's own exceptions in ExceptionGroups); they are awaited on the way out
             bus._reader = asyncio.create_task(bus._read_control(), name=f"bus-reader:{source}")
             gone = zmq.EVENT_DISCONNECTED
-            for sock, events in ((bus._pub, gone | _HANDSHAKE_FAILED), (bus._ctl, gone)):
+            for sock, events in ((bus._pub, gone | _HANDSHAKE_FAILED), (bus._ctl, gone | _HANDSHAKE_FAILED)):
                 mon = sock.get_monitor_socket(events)
                 bus._monitors.append((sock, mon))
                 watch = bus._watch_connection(mon)
@@ -379,14 +401,27 @@ class Bus:
                     break
                 event = parse_monitor_message(frames)["event"]
                 if event & _HANDSHAKE_FAILED:
-                    self.refused = "the bus refused this node's CurveZMQ key (not in its allow-list?)"
+                    if self.config.curve:
+                        self.refused = "the bus refused this node's CurveZMQ key (not in its allow-list?)"
+                    else:  # (cell.bus.identity: the forwarder's log and forwarder.refused say which)
+                        member = " (a member of a `cell up` of its own)" if identity.member_token() else ""
+                        self.refused = (
+                            f"the bus at {self.config.sub} refused this node of cell {self.config.cell!r}"
+                            f"{member}: it is another cell's bus, or another start's of this cell"
+                        )
                     if event == zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL:
                         self.refused = (
                             "the handshake with the bus failed: it went away mid-handshake, or the "
                             "curve settings differ (this node: curve = "
                             f"{'true' if self.config.curve else 'false'})"
                         )
-                    log.warning("%s: %s", self.source, self.refused)
+                    # (a node that gives up says it in its error; one that waits on, here)
+                    log.log(
+                        logging.WARNING if self.patient else logging.DEBUG,
+                        "%s: %s",
+                        self.source,
+                        self.refused,
+                    )
                 elif event == zmq.EVENT_DISCONNECTED:
                     self._ctl_live = False
                     n = self.abandon(
@@ -398,7 +433,11 @@ class Bus:
                     self._dropped_at = now
                     self.disconnects += 1
                     # (at a clean stop the bus goes as everything goes: not a fault, unless it cost answers)
-                    level = logging.DEBUG if aio.shutting_down() and n == 0 else logging.WARNING
+                    # (not news: a clean stop, a refusal said already, a client's failure to connect)
+                    quiet = (
+                        aio.shutting_down() or self.refused or not (self.joined or self.patient)
+                    ) and n == 0
+                    level = logging.DEBUG if quiet else logging.WARNING
                     log.log(
                         level,
                         "%s: the bus connection dropped (%d waiting request(s) answered)",
@@ -454,6 +493,8 @@ class Bus:
         warned = False
         try:
             while not done.done():
+                if self.refused and not self.refused.startswith("the handshake"):
+                    raise BusRefused(self.refused)  # (never joins: waiting would not change that)
                 if asyncio.get_running_loop().time() > deadline:
                     if not self.patient:
                         why = self.refused or "is the cell's 'bus' service running?"
@@ -474,7 +515,7 @@ class Bus:
 
     async def _sync_control(self) -> None:
         await self._sync(f"c{next(self._tokens)}", self._ctl_token_wait)
-        self._ctl_live = True
+        self._ctl_live = self.joined = True
 
     async def _ctl_token_wait(self, token: bytes) -> None:
         fut = self._syncs[token] = asyncio.get_running_loop().create_future()
@@ -510,8 +551,7 @@ class Bus:
         """A Subscription to topics starting with any of prefixes ('' is everything), live on return."""
         raw = [check_topic(p) if p else b"" for p in prefixes] or [b""]
         sock = tune(zmq_context().socket(zmq.SUB), self.config)
-        if self.config.curve:
-            curve.secure_client(sock, self.config)
+        secure_client(sock, self.config)
         for p in raw:
             sock.subscribe(p)
         sub = Subscription(self, sock, tuple(prefixes))

@@ -38,6 +38,7 @@ from cell.bus import Bus, BusTimeout, RemoteError
 from cell.bus.envelope import Encoder, EnvelopeError
 from cell.bus.envelope import Kind as BusKind
 from cell.bus.envelope import decode as decode_frame
+from cell.bus.node import secure_client
 from cell.config import CellConfig, ConfigError, config_from_text, load_config, parse_host_port
 from cell.fuzz import strategies
 from cell.fuzz import ur as ur_fuzz
@@ -381,6 +382,8 @@ class Listeners:
         pub.setsockopt(zmq.LINGER, 0)
         sub.setsockopt(zmq.LINGER, 0)
         sub.setsockopt(zmq.SUBSCRIBE, reply_topic)
+        secure_client(pub, self.config.bus)  # (a client of this cell: forged frames, not a forged cell)
+        secure_client(sub, self.config.bus)
         pub.connect(self.config.bus.pub)
         sub.connect(self.config.bus.sub)
         corr = 0

@@ -96,17 +96,19 @@ class ServiceStatus(_message.Message):
     def __init__(self, name: _Optional[str] = ..., health: _Optional[str] = ..., heartbeat_age_s: _Optional[float] = ..., last: _Optional[_Union[Heartbeat, _Mapping]] = ...) -> None: ...
 
 class CellStatus(_message.Message):
-    __slots__ = ("cell", "mode", "uptime_s", "services", "config", "launcher_pid")
+    __slots__ = ("cell", "mode", "uptime_s", "services", "config", "launcher_pid", "member")
     CELL_FIELD_NUMBER: _ClassVar[int]
     MODE_FIELD_NUMBER: _ClassVar[int]
     UPTIME_S_FIELD_NUMBER: _ClassVar[int]
     SERVICES_FIELD_NUMBER: _ClassVar[int]
     CONFIG_FIELD_NUMBER: _ClassVar[int]
     LAUNCHER_PID_FIELD_NUMBER: _ClassVar[int]
+    MEMBER_FIELD_NUMBER: _ClassVar[int]
     cell: str
     mode: str
     uptime_s: float
     services: _containers.RepeatedCompositeFieldContainer[ServiceStatus]
     config: str
     launcher_pid: int
-    def __init__(self, cell: _Optional[str] = ..., mode: _Optional[str] = ..., uptime_s: _Optional[float] = ..., services: _Optional[_Iterable[_Union[ServiceStatus, _Mapping]]] = ..., config: _Optional[str] = ..., launcher_pid: _Optional[int] = ...) -> None: ...
+    member: str
+    def __init__(self, cell: _Optional[str] = ..., mode: _Optional[str] = ..., uptime_s: _Optional[float] = ..., services: _Optional[_Iterable[_Union[ServiceStatus, _Mapping]]] = ..., config: _Optional[str] = ..., launcher_pid: _Optional[int] = ..., member: _Optional[str] = ...) -> None: ...

@@ -16,7 +16,7 @@ import zmq
 
 from cell.bus import Bus, BusError, BusTimeout, BusUnavailable, Forwarder, RemoteError, RpcFault, node
 from cell.bus.envelope import Encoder
-from cell.bus.node import zmq_context
+from cell.bus.node import secure_client, zmq_context
 from cell.config import BusConfig
 from cell.v1 import bus_pb2
 from tests.conftest import cell_env, free_port
@@ -85,6 +85,7 @@ async def test_no_lost_first_messages_to_a_new_subscription(forwarder: BusConfig
 def raw_publisher(cfg: BusConfig) -> zmq.Socket:
     sock = zmq_context().socket(zmq.PUB)
     sock.setsockopt(zmq.LINGER, 0)
+    secure_client(sock, cfg)  # (the cell's identity: else the forwarder refuses it)
     sock.connect(cfg.pub)
     return sock
 

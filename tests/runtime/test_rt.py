@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -16,7 +17,7 @@ from cell.launcher import fetch_status
 from cell.status import rt_throttling
 from tests.conftest import free_port, run_cell
 
-# a loop on a CPU of its own busy ~98% of the time for 1.6 s, at SCHED_FIFO 50, one on each CPU (the
+# a loop on a CPU of its own busy ~98% of the time for 2.2 s, at SCHED_FIFO 50, one on each CPU (the
 # kernel lends a CPU's unused real-time share to another: the SnP bench's master and modules, both
 # polling, used up both): "fifo" polls at that priority, "spin" polls through sched.Spin (the normal
 # policy while polling, FIFO while asleep); its largest gap between two turns (the kernel not running
@@ -24,13 +25,14 @@ from tests.conftest import free_port, run_cell
 LOOP = """
 import json, os, sys, time
 from cell import sched
-how, cpu = sys.argv[1], int(sys.argv[2])
+how, cpu, start = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 problems = sched.place([cpu], 50, -10)
 if problems:
     print(json.dumps({"refused": problems})); sys.exit(0)
 held, rt = sched.Held(), sched.Spin()
-clock = time.perf_counter_ns
-end = clock() + 1_600_000_000
+clock = time.monotonic_ns  # (both loops start at once: CLOCK_MONOTONIC is the machine's)
+time.sleep(max(0.0, (start - clock()) / 1e9))
+end = clock() + 2_200_000_000
 gap = last = clock()
 gap = 0
 policies = set()
@@ -85,8 +87,12 @@ def throttling_off() -> bool:
 
 
 def spinners(how: str) -> list[subprocess.Popen]:
+    """The loop on each CPU, both starting at the same moment (after their imports)."""
+    start = str(time.monotonic_ns() + 1_500_000_000)
     return [
-        subprocess.Popen([sys.executable, "-c", LOOP, how, str(cpu)], stdout=subprocess.PIPE, text=True)
+        subprocess.Popen(
+            [sys.executable, "-c", LOOP, how, str(cpu), start], stdout=subprocess.PIPE, text=True
+        )
         for cpu in (0, 1)
     ]
 
