@@ -24,8 +24,10 @@ import os
 import signal
 import socket
 import time
+import tomllib
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -366,6 +368,9 @@ class Campaign:
                     first.setdefault(r, (t - t0) / 1e6)
             held["stop_windows"] = len(first) == len(self.robots) and max(first.values()) <= bound
             detail["stop_windows"] = f"stops after {sorted(first.values())} ms (bound {bound:.0f} ms)"
+        if "kernel_answers" in fault.promises:  # (the program in the kernel kept the robots commanded)
+            held["kernel_answers"] = not stops
+            detail["kernel_answers"] = f"protective stops after {sorted(stops)} ms" if stops else ""
         after = recovered_st
         if "packet_path" in fault.promises:
             c0, c1 = counters_before, _counters(after) if after is not None else {}
@@ -449,9 +454,10 @@ def _counters(st: health_pb2.CellStatus | None) -> dict[str, float]:
     return {f"{s.name}.{k}": v for s in st.services for k, v in s.last.counters.items()}
 
 
-def _cell_overrides(link_pub: str, link_sub: str) -> dict[str, Any]:
-    """The default cell, one process per service, its controller behind the campaign's link."""
-    base = load_config(None)
+def _cell_overrides(link_pub: str, link_sub: str, config_path: str | None = None) -> dict[str, Any]:
+    """The default cell (with config_path's settings over it), one process per service, its controller
+    behind the campaign's link."""
+    base = load_config(config_path)
     groups = [asdict(g) for g in base.services.groups]
     groups.append(
         {"name": "remote-controller", "services": ["controller"], "bus_pub": link_pub, "bus_sub": link_sub}
@@ -465,11 +471,19 @@ def _cell_overrides(link_pub: str, link_sub: str) -> dict[str, Any]:
     return {"services": {"layout": "each", "groups": groups}, "robots": robots}
 
 
-async def campaign(rounds: int = 1, only: list[str] | None = None, log_fn=print) -> dict[str, Any]:
-    """Run the campaign; the figures (faults, held, failed, per fault) as a dict."""
+async def campaign(
+    rounds: int = 1, only: list[str] | None = None, log_fn=print, config_path: str | None = None
+) -> dict[str, Any]:
+    """Run the campaign; the figures (faults, held, failed, per fault) as a dict.  config_path: a
+    cell config whose settings go under the campaign's own (its bus, robots and layout)."""
     bus_pub, bus_sub = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
     link_pub, link_sub = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
-    overrides = {"bus": {"pub": bus_pub, "sub": bus_sub}, **_cell_overrides(link_pub, link_sub)}
+    user = tomllib.loads(await asyncio.to_thread(Path(config_path).read_text)) if config_path else {}
+    overrides = {
+        **user,
+        "bus": {**user.get("bus", {}), "pub": bus_pub, "sub": bus_sub},
+        **_cell_overrides(link_pub, link_sub, config_path),
+    }
     base_bus = load_config(None).bus
     link = DelayLink(replace(base_bus, pub=bus_pub, sub=bus_sub), link_pub, link_sub, 0.0, 0.0, seed=1)
     results: list[FaultResult] = []
@@ -482,7 +496,8 @@ async def campaign(rounds: int = 1, only: list[str] | None = None, log_fn=print)
                 try:
                     camp = Campaign(config, link, obs)
                     ur = tuple(r.name for r in config.robots if r.backend == "ur")
-                    faults = catalogue(camp.robots, ur_robots=ur)
+                    in_kernel = config.dataplane.backend == "xdp"
+                    faults = catalogue(camp.robots, ur_robots=ur, in_kernel=in_kernel)
                     if only:
                         faults = [f for f in faults if any(o in f.name for o in only)]
                     for k in range(rounds):

@@ -8,6 +8,7 @@ link (cell.bus.delay), a robot that stops answering (robot/<name>.silence).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 # services on the packet path: the robots' commands stop when one of them does
@@ -52,6 +53,7 @@ PROMISES = {
     "completed": "a command answered done really ended at its goal (nothing acknowledged is lost)",
     "packet_path": "the packet path ran on: no protective stop, no trajectory dropped",
     "stop_windows": "robots on a stop within the watchdog's windows (+1 for the one under way)",
+    "kernel_answers": "the XDP program answered on without its control plane: no robot protective-stopped",
     "no_lunge": "no unplanned motion: once at rest after the fault, robots stay at rest",
     "status": "cell status shows the restart (count, last error) or the hang (stale), then ok",
     "recovered": "motions work again on every robot after the fault",
@@ -59,14 +61,16 @@ PROMISES = {
 _BASE = ("answered", "completed", "no_lunge", "recovered")
 
 
-def _promises(actions: tuple[Action, ...]) -> tuple[str, ...]:
+def _promises(actions: tuple[Action, ...], in_kernel: bool = False) -> tuple[str, ...]:
+    """in_kernel: the data plane is an XDP program (examples/xdp.toml); its service's process is only
+    its control plane, and the program answers the robots on while that process is dead or hung."""
     out = list(_BASE)
     services = {a.target for a in actions if a.kind in ("kill", "stop")}
     silent = any(a.kind == "silence" for a in actions)
     if services & set(PACKET_PATH) or silent:
         out += ["answered_1s"]
     if services & {"dataplane"} and not services & {"robots"}:
-        out += ["stop_windows"]
+        out += ["kernel_answers" if in_kernel else "stop_windows"]
     if not services & {*PACKET_PATH, "rlink"} and not silent:
         out += ["packet_path"]
     if services:
@@ -74,8 +78,8 @@ def _promises(actions: tuple[Action, ...]) -> tuple[str, ...]:
     return tuple(out)
 
 
-def fault(name: str, *actions: Action) -> Fault:
-    return Fault(name, actions, _promises(actions))
+def _fault(name: str, *actions: Action, in_kernel: bool = False) -> Fault:
+    return Fault(name, actions, _promises(actions, in_kernel))
 
 
 def catalogue(
@@ -84,11 +88,14 @@ def catalogue(
     bus_gone_s: float = 5.0,
     link_s: float = 4.0,
     ur_robots: tuple[str, ...] = (),
+    in_kernel: bool = False,
 ) -> list[Fault]:
     """Every fault of a campaign round: each service killed, each hung, the bus gone, the controller's
     link slow and lossy, a robot mute, the UR controller of each robot of backend "ur" (`ur_robots`)
     gone (its daemon's link to it cut: the same request, robot/<name>.silence); then a few of them
-    together."""
+    together.  in_kernel: the data plane is an XDP program (see _promises)."""
+
+    fault = functools.partial(_fault, in_kernel=in_kernel)
     out = [fault(f"kill:{s}", Action("kill", s)) for s in SERVICES]
     out += [fault(f"hang:{s}", Action("stop", s, hang_s)) for s in SERVICES if s != "bus"]
     out.append(fault("bus-gone", Action("stop", "bus", bus_gone_s)))

@@ -13,6 +13,13 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--only", nargs="+", metavar="TEXT", help="only the faults whose name contains one of these"
     )
+    p.add_argument(
+        "--config",
+        "-c",
+        metavar="FILE",
+        help="a cell config merged over the default before the campaign's own settings (e.g. "
+        "examples/xdp.toml: the data plane in the kernel)",
+    )
     json_arg(p)
 
 
@@ -22,7 +29,17 @@ def run(args: argparse.Namespace) -> int:
     from cell.chaos.campaign import campaign
 
     print(f"{'RD':>2} {'FAULT':<28} {'HELD?':<7} {'DETECT':>8} {'RECOVER':>8}  WHAT FAILED")
-    result = asyncio.run(campaign(args.rounds, args.only, log_fn=lambda line: print(line, flush=True)))
+    from cell.config import ConfigError, load_config
+
+    if args.config:
+        try:
+            load_config(args.config)  # (a bad file is said in one line before anything starts)
+        except ConfigError as exc:
+            print(f"cell chaos: {exc}")
+            return 2
+    result = asyncio.run(
+        campaign(args.rounds, args.only, log_fn=lambda line: print(line, flush=True), config_path=args.config)
+    )
     print(f"{result['held']} of {result['faults']} faults held every promise ({result['rounds']} round(s))")
     if args.json:
         print(json.dumps(result))

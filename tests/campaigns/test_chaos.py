@@ -29,6 +29,14 @@ def test_every_fault_has_the_promises_its_targets_call_for() -> None:
     assert "status" not in faults["controller-link"].promises  # nothing restarts there
 
 
+def test_on_the_xdp_backend_the_kernel_answers_while_the_data_planes_process_is_down() -> None:
+    """The dataplane service is only the XDP program's control plane: the robots must not stop."""
+    faults = {f.name: f for f in catalogue(["r1", "r2"], in_kernel=True)}
+    for name in ("kill:dataplane", "hang:dataplane", "kill:dataplane+controller"):
+        assert "kernel_answers" in faults[name].promises and "stop_windows" not in faults[name].promises
+    assert not any("kernel_answers" in f.promises for f in catalogue(["r1", "r2"]))
+
+
 def test_truth_that_arrives_out_of_order_is_judged_by_its_own_times() -> None:
     """After a reconnection the forwarder drains the old connection's backlog while the new one brings
     fresh samples: a motion's last samples arrive after its rest.  That is no lunge."""
