@@ -23,6 +23,7 @@ import logging
 import os
 import signal
 import socket
+import subprocess
 import time
 import tomllib
 from collections import deque
@@ -252,6 +253,8 @@ class Campaign:
             os.kill(pids[action.target], signal.SIGSTOP)
         elif action.kind == "link":
             self.link.delay, self.link.jitter, self.link.loss = LINK
+        elif action.kind == "switch-down":
+            await asyncio.to_thread(self._switch_port, "down")
         elif action.kind == "silence":
             async with Bus.connect(self.config.bus, "chaos-silence") as bus:
                 req = robot_pb2.SilenceRequest(robot=action.target, seconds=action.seconds)
@@ -263,6 +266,13 @@ class Campaign:
                 os.kill(pids[action.target], signal.SIGCONT)
         elif action.kind == "link":
             self.link.delay = self.link.jitter = self.link.loss = 0.0
+        elif action.kind == "switch-down":
+            self._switch_port("up")
+
+    def _switch_port(self, state: str) -> None:
+        """The XDP switch's port to the robots (its end of the veth pair) down or up."""
+        x = self.config.dataplane.xdp
+        subprocess.run(["ip", "-n", x.netns, "link", "set", f"{x.veth}1", state], check=True, timeout=10)
 
     async def run(self, fault: Fault) -> FaultResult:
         held: dict[str, bool] = {}
@@ -289,6 +299,8 @@ class Campaign:
                 t_fault.append(time.monotonic_ns())
                 for a in others:
                     await self.inject(a, pids)
+                if any(a.kind == "switch-down" for a in others):  # (down once `ip` has returned: the
+                    t_fault[0] = time.monotonic_ns()  # command's few ms are not the robots')
             deadline = time.monotonic() + fault.seconds
             outcomes: list[Outcome] = []
             pending = set(drives)

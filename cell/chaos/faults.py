@@ -20,7 +20,8 @@ SERVICES = ("bus", "dataplane", "robots", "controller", "skills", "snp", "record
 @dataclass(frozen=True)
 class Action:
     """One thing done to the cell: kind is kill, stop (SIGSTOP for `seconds`), link (the controller's
-    bus link slowed for `seconds`) or silence (a robot mute for `seconds`)."""
+    bus link slowed for `seconds`), silence (a robot mute for `seconds`) or switch-down (the XDP
+    switch's veth port down for `seconds`: every robot's cable at once)."""
 
     kind: str
     target: str  # a service, or for silence a robot's name
@@ -67,11 +68,14 @@ def _promises(actions: tuple[Action, ...], in_kernel: bool = False) -> tuple[str
     out = list(_BASE)
     services = {a.target for a in actions if a.kind in ("kill", "stop")}
     silent = any(a.kind == "silence" for a in actions)
-    if services & set(PACKET_PATH) or silent:
+    cut = any(a.kind == "switch-down" for a in actions)  # (every robot's cable at once)
+    if services & set(PACKET_PATH) or silent or cut:
         out += ["answered_1s"]
     if services & {"dataplane"} and not services & {"robots"}:
         out += ["kernel_answers" if in_kernel else "stop_windows"]
-    if not services & {*PACKET_PATH, "rlink"} and not silent:
+    if cut:
+        out += ["stop_windows"]
+    if not services & {*PACKET_PATH, "rlink"} and not silent and not cut:
         out += ["packet_path"]
     if services:
         out += ["status"]
@@ -112,4 +116,6 @@ def catalogue(
         ),
         fault("kill:skills+mute", Action("kill", "skills"), Action("silence", mute, hang_s)),
     ]
+    if in_kernel:  # the switch's own faults: its port to the robots down for 2 s
+        out.append(fault("switch-down", Action("switch-down", "dataplane", 2.0)))
     return out

@@ -35,6 +35,10 @@ def test_on_the_xdp_backend_the_kernel_answers_while_the_data_planes_process_is_
     for name in ("kill:dataplane", "hang:dataplane", "kill:dataplane+controller"):
         assert "kernel_answers" in faults[name].promises and "stop_windows" not in faults[name].promises
     assert not any("kernel_answers" in f.promises for f in catalogue(["r1", "r2"]))
+    # the switch's port down: every robot's cable at once, they stop on their watchdogs
+    assert {"answered_1s", "stop_windows"} <= set(faults["switch-down"].promises)
+    assert "packet_path" not in faults["switch-down"].promises
+    assert "switch-down" not in {f.name for f in catalogue(["r1", "r2"])}
 
 
 def test_truth_that_arrives_out_of_order_is_judged_by_its_own_times() -> None:
