@@ -173,6 +173,7 @@ class Campaign:
         self.robots = [r.name for r in config.robots]
         self.home = {r.name: np.array(r.q0, np.float64) for r in config.robots}
         self.window_ms = {r.name: 1e3 / r.command_hz for r in config.robots}
+        self.tick_ms = {r.name: 1e3 / r.status_hz for r in config.robots}
         self.watchdog = {r.name: r.watchdog_windows for r in config.robots}
         self.out = {r: False for r in self.robots}  # which end of the swing each robot is at
         self.last_status: health_pb2.CellStatus | None = None
@@ -373,7 +374,8 @@ class Campaign:
         # the robots' protective stops after the fault
         stops = [(t - t0) / 1e6 for t, r in self.obs.stops if t0 <= t <= t_check]
         if "stop_windows" in fault.promises:
-            bound = max((self.watchdog[r] + 1) * self.window_ms[r] for r in self.robots)
+            # (a robot looks at its watchdog on its ticks: the one after the last window ends it)
+            bound = max((self.watchdog[r] + 1) * self.window_ms[r] + self.tick_ms[r] for r in self.robots)
             first = {}
             for t, r in self.obs.stops:
                 if t0 <= t <= t_check:

@@ -72,5 +72,5 @@ async def test_a_campaign_on_the_default_cell_holds_its_promises() -> None:
     assert result["faults"] == 2 and result["failed"] == 0, rows
     dp = result["per_fault"]["kill:dataplane"]
     assert dp["held"] == 1 and max(dp["detect_ms"]) < 100  # the robots stopped on their own, at once
-    assert dp["moved_after_rest_mrad"] < 2.0 and dp["stop_ms_max"] <= 32.0
+    assert dp["moved_after_rest_mrad"] < 2.0 and dp["stop_ms_max"] <= 34.0  # 3+1 windows of 8 ms, a tick
     json.dumps(result)  # the figures are machine-readable as they are
