@@ -38,7 +38,8 @@ class Account:
 ACCOUNT: contextvars.ContextVar[Account | None] = contextvars.ContextVar("cell_account", default=None)
 _now = time.perf_counter_ns
 # a real-time process's watch on the kernel holding its loop back (RT throttling), checked as a task
-# steps: the first step after a wake sees it (sched.Held; install(..., held=True))
+# steps: the first step after a wake sees it (sched.Held; made by install() where the process is
+# real-time)
 HELD: sched.Held | None = None
 
 

@@ -26,6 +26,14 @@ _POLICY = {
 }
 
 
+_REALTIME = (getattr(os, "SCHED_FIFO", 1), getattr(os, "SCHED_RR", 2))
+
+
+def _policy() -> int:
+    """This thread's scheduling policy, without SCHED_RESET_ON_FORK."""
+    return os.sched_getscheduler(0) & 0xFF
+
+
 def _threads() -> list[int]:
     try:
         return [int(t) for t in os.listdir("/proc/self/task")]
@@ -90,7 +98,7 @@ class Held:
     check() on every wake of the thread's loop (it costs about 2.5 us, at most every CHECK_NS)."""
 
     def __init__(self) -> None:
-        try:
+        try:  # (open for the process's life: one pread a check)
             self._fd = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
         except OSError:  # (not Linux, or no CONFIG_SCHED_INFO)
             self._fd = -1
@@ -127,11 +135,6 @@ class Held:
             f"{prefix}held_max_ms": self.max_ns / 1e6,
         }
 
-    def close(self) -> None:
-        if self._fd >= 0:
-            os.close(self._fd)
-            self._fd = -1
-
 
 class Spin:
     """A loop that polls without sleeping (the SnP cycles: a wake from epoll costs as much as the
@@ -142,8 +145,8 @@ class Spin:
     done.  Two system calls a cycle; nothing at all in a thread that is not real-time."""
 
     def __init__(self) -> None:
-        self.policy = os.sched_getscheduler(0) & 0xFF if hasattr(os, "sched_getscheduler") else 0
-        rt = self.policy in (getattr(os, "SCHED_FIFO", 1), getattr(os, "SCHED_RR", 2))
+        rt = realtime()
+        self.policy = _policy() if rt else 0  # (the one to go back to)
         self.prio = os.sched_getparam(0).sched_priority if rt else 0
         self.low = False
 
@@ -166,18 +169,16 @@ class Spin:
 
 def realtime() -> bool:
     """Whether this thread runs at a real-time policy (SCHED_FIFO or SCHED_RR)."""
-    if not hasattr(os, "sched_getscheduler"):
-        return False
-    return os.sched_getscheduler(0) & 0xFF in (getattr(os, "SCHED_FIFO", 1), getattr(os, "SCHED_RR", 2))
+    return hasattr(os, "sched_getscheduler") and _policy() in _REALTIME
 
 
 def describe() -> str:
     """How the OS schedules this process now: 'fifo 70, cpu 1', 'nice -5, cpus 0-1', 'normal, cpus 0-1'."""
     if not hasattr(os, "sched_getscheduler"):
         return "unknown"
-    policy = os.sched_getscheduler(0) & 0xFF  # without SCHED_RESET_ON_FORK
+    policy = _policy()
     name = _POLICY.get(policy, f"policy {policy}")
-    if name in ("fifo", "rr"):
+    if policy in _REALTIME:
         what = f"{name} {os.sched_getparam(0).sched_priority}"
     else:
         niceness = os.getpriority(os.PRIO_PROCESS, 0)

@@ -54,21 +54,20 @@ class Route:
     direct: bool
     cell: str = ""  # through the forwarder: the cell its peers say they belong to (cell.bus.identity)
 
-    def attach_receiver(self, sock: zmq.Socket) -> None:
-        if not self.direct:
+    def _identify(self, sock: zmq.Socket) -> zmq.Socket:
+        if not self.direct:  # (the forwarder lets in only nodes that say which cell they are of)
             identity.identify(sock, self.cell)
-        (sock.bind if self.direct else sock.connect)(self.sub)
+        return sock
+
+    def attach_receiver(self, sock: zmq.Socket) -> None:
+        (sock.bind if self.direct else self._identify(sock).connect)(self.sub)
 
     def connect_receiver(self, sock: zmq.Socket) -> None:
         """A receiver that connects whichever way (where the far end binds it, direct)."""
-        if not self.direct:
-            identity.identify(sock, self.cell)
-        sock.connect(self.sub)
+        self._identify(sock).connect(self.sub)
 
     def attach_sender(self, sock: zmq.Socket) -> None:
-        if not self.direct:
-            identity.identify(sock, self.cell)
-        sock.connect(self.pub)
+        self._identify(sock).connect(self.pub)
 
 
 @dataclass(frozen=True)

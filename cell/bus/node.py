@@ -336,7 +336,8 @@ class Bus:
         self._monitors: list[tuple[zmq.Socket, zmq.Socket]] = []  # (watched socket, its monitor)
         self.disconnects = 0  # drops of the connection to the forwarder (both sockets' at once: one)
         self._dropped_at = -1e9  # monotonic s of the last drop counted
-        self.refused = ""  # why the forwarder refused us, if it did (CurveZMQ)
+        self.refused = ""  # why the forwarder refused us, if it did (CurveZMQ, or the cell's identity)
+        self._refused_for_good = False  # (a refusal; not a handshake cut short, which may go through)
         self.published = 0
         self.dropped = 0
         self.requests = 0
@@ -409,7 +410,8 @@ class Bus:
                             f"the bus at {self.config.sub} refused this node of cell {self.config.cell!r}"
                             f"{member}: it is another cell's bus, or another start's of this cell"
                         )
-                    if event == zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL:
+                    self._refused_for_good = event != zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+                    if not self._refused_for_good:
                         self.refused = (
                             "the handshake with the bus failed: it went away mid-handshake, or the "
                             "curve settings differ (this node: curve = "
@@ -432,8 +434,8 @@ class Bus:
                         continue  # (the node's other socket telling of the same drop)
                     self._dropped_at = now
                     self.disconnects += 1
-                    # (at a clean stop the bus goes as everything goes: not a fault, unless it cost answers)
-                    # (not news: a clean stop, a refusal said already, a client's failure to connect)
+                    # (not news unless it cost answers: a clean stop, where the bus goes as everything
+                    # goes; a refusal said already; a client's failure to connect, said in its error)
                     quiet = (
                         aio.shutting_down() or self.refused or not (self.joined or self.patient)
                     ) and n == 0
@@ -493,7 +495,7 @@ class Bus:
         warned = False
         try:
             while not done.done():
-                if self.refused and not self.refused.startswith("the handshake"):
+                if self._refused_for_good:
                     raise BusRefused(self.refused)  # (never joins: waiting would not change that)
                 if asyncio.get_running_loop().time() > deadline:
                     if not self.patient:

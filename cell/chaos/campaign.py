@@ -388,18 +388,10 @@ class Campaign:
         after = recovered_st
         if "packet_path" in fault.promises:
             c0, c1 = counters_before, _counters(after) if after is not None else {}
-            grew = {
-                k: c1.get(k, 0.0) - c0.get(k, 0.0)
-                for k in ("robots.protective_stops", "dataplane.dropped")
-                if c1.get(k, 0.0) != c0.get(k, 0.0)
-            }
+            grew = _grew(c0, c1, ("robots.protective_stops", "dataplane.dropped"))
             held["packet_path"] = not grew and not stops
             # (the kernel's RT throttling stops the packet path's processes for up to 50 ms: said)
-            rt = {
-                k: c1.get(k, 0.0) - c0.get(k, 0.0)
-                for k in ("robots.process.rt.held", "dataplane.process.rt.held")
-                if c1.get(k, 0.0) != c0.get(k, 0.0)
-            }
+            rt = _grew(c0, c1, ("robots.process.rt.held", "dataplane.process.rt.held"))
             detail["packet_path"] = (f"grew: {grew}" if grew else "") + (
                 f"; RT throttled: {rt}" if rt else ""
             )
@@ -466,6 +458,13 @@ def _counters(st: health_pb2.CellStatus | None) -> dict[str, float]:
     if st is None:
         return {}
     return {f"{s.name}.{k}": v for s in st.services for k, v in s.last.counters.items()}
+
+
+def _grew(before: dict[str, float], after: dict[str, float], keys: tuple[str, ...]) -> dict[str, float]:
+    """How much each of these counters grew (those that changed)."""
+    return {
+        k: after.get(k, 0.0) - before.get(k, 0.0) for k in keys if after.get(k, 0.0) != before.get(k, 0.0)
+    }
 
 
 def _cell_overrides(link_pub: str, link_sub: str, config_path: str | None = None) -> dict[str, Any]:

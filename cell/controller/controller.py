@@ -41,6 +41,7 @@ from cell.controller.schedule import (
     Track,
     branch_point,
     predict_at,
+    stands_at,
     tp_batch,
 )
 from cell.controller.tps import cut
@@ -126,8 +127,7 @@ class Controller(Engine):
                     raise MotionStopped(track.stop_reason or "the robot was stopped")
                 if track.moving or track.q_hold is not goal:
                     continue
-                near = goal is None or np.abs(q - goal).max() <= tolerance
-                if near and np.abs(v).max() <= 10 * tolerance:
+                if stands_at(q, v, goal, tolerance):
                     return q, t_ns
                 await asyncio.sleep(0.01)
 

@@ -42,6 +42,7 @@ from cell.controller.schedule import (
     episode_update,
     episode_wake,
     hold_batch,
+    stands_at,
     status_of,
     stop_limits,
     stop_segment,
@@ -335,10 +336,10 @@ class Engine(RobotBook):
         deadline = max(end_ns, self.link.now()) + int(cc.settle_s * 1e9)
         while True:
             q, v, t_ns = await self.joints_now(track)
-            err = np.abs(q - goal)
-            if t_ns >= end_ns and err.max() <= tol and np.abs(v).max() <= 10 * tol:
+            if t_ns >= end_ns and stands_at(q, v, goal, tol):
                 return
             if self.link.now() >= deadline:
+                err = np.abs(q - goal)
                 j = int(err.argmax())
                 self.not_at_goal += 1
                 track.q_hold = None  # (the next motion starts from where it stands)

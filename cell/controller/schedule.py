@@ -405,6 +405,13 @@ def dropped(st: dataplane_pb2.DataplaneState, seen: dict[int, int], track_of) ->
     return out
 
 
+def stands_at(q: np.ndarray, v: np.ndarray, goal: np.ndarray | None, tolerance: float) -> bool:
+    """Whether joints q, moving at v, stand at goal: every joint within tolerance (rad) of it (goal
+    None: anywhere) and still (within 10x that per second)."""
+    near = goal is None or np.abs(q - goal).max() <= tolerance
+    return bool(near and np.abs(v).max() <= 10 * tolerance)
+
+
 def status_of(
     track: Track, by_id: dict[int, dataplane_pb2.RobotPlaneState]
 ) -> tuple[np.ndarray, np.ndarray, int] | None:
