@@ -138,7 +138,7 @@ def _xdp_reflector_target(robots: int, out: Any, stop: Any, net: Any) -> None:
         out.put((net.switch_addr, XDP_PORT))
         stop.wait()
     finally:
-        program.detach()
+        in_namespace(net.netns, program.detach)
         program.close()
 
 

@@ -39,6 +39,8 @@ from cell.bus.delay import DelayLink
 from cell.chaos.faults import PROMISES, Action, Fault, catalogue
 from cell.config import CellConfig, load_config
 from cell.launcher import fetch_status
+from cell.rlink.client import EventClient
+from cell.robot import models
 from cell.skills.client import ConnectionLost, MoveJoints, RobotClient, SetSpeed, SkillError
 from cell.v1 import health_pb2, robot_pb2
 
@@ -49,6 +51,11 @@ LUNGE = 2e-3  # rad: moving further than this from where it came to rest is an u
 ARRIVED = 2e-3  # rad: a motion answered done ended within this of its goal
 LINK = (0.050, 0.020, 0.05)  # the controller's slow link: delay, jitter (s), loss
 SWING = np.array([0.6, -0.25, 0.25, 0.0, 0.0, 0.5])  # rad: the motion driven back and forth
+ESTOP_AT_S = 1.2  # the e-stop comes this long after the fault (after answered_1s's second, in the fault)
+# beyond its braking: the order to the drives (p99 2 ms), the arm following its braking drive (the
+# MuJoCo joints trail their reference by 30-40 ms) and the truth sample (10 ms) that shows it stand
+ESTOP_MARGIN_MS = 60.0
+REPORT_MS = 100.0  # a robot's own report of standing comes later: still is < 1 mrad/s, rest < 2
 
 
 @dataclass
@@ -59,6 +66,15 @@ class Outcome:
     status: str  # done, stopped, failed, lost (connection), timeout
     text: str
     after_s: float  # from the fault (negative: before it)
+
+
+@dataclass
+class EStop:
+    """An e-stop issued during a fault: when, and what each robot reported."""
+
+    t_ns: int
+    still_ms: dict[str, float]  # robot -> its report of standing still, ms after the order
+    error: str = ""
 
 
 @dataclass
@@ -241,6 +257,29 @@ class Campaign:
                 while not all((x := self.obs.latest(r)) is not None and x[1] > 0.1 for r in self.robots):
                     await self.obs.sample()
 
+    async def estop(self) -> EStop:
+        """An e-stop of every robot over the Responsive Link, as `cell estop` sends it; until each
+        robot reports it stands (or 5 s)."""
+        t0 = time.monotonic_ns()
+        names = {r.id: r.name for r in self.config.robots}
+        try:
+            async with EventClient(self.config) as ev:
+                ms = await ev.estop(timeout=5.0)
+        except (TimeoutError, OSError) as exc:
+            return EStop(t0, {}, str(exc))
+        return EStop(t0, {names[i]: v for i, v in ms.items()})
+
+    async def resume(self) -> None:
+        with contextlib.suppress(TimeoutError, OSError):
+            async with EventClient(self.config) as ev:
+                await ev.resume(timeout=10.0)
+
+    def estop_bound_ms(self, robot: str, speed: float) -> float:
+        """How long a robot at this speed may take to stand after an e-stop: its full braking (the
+        slowest joint's deceleration) and ESTOP_MARGIN_MS."""
+        a = float(np.min(models.get(self.config.robot(robot).model).a_max))
+        return speed / a * 1e3 + ESTOP_MARGIN_MS
+
     # --- faults ------------------------------------------------------------------------------------
 
     def pids(self, st: health_pb2.CellStatus) -> dict[str, int]:
@@ -256,6 +295,8 @@ class Campaign:
             self.link.delay, self.link.jitter, self.link.loss = LINK
         elif action.kind == "switch-down":
             await asyncio.to_thread(self._switch_port, "down")
+        elif action.kind == "detach":
+            await asyncio.to_thread(self._switch_port, "xdpgeneric", "off")
         elif action.kind == "silence":
             async with Bus.connect(self.config.bus, "chaos-silence") as bus:
                 req = robot_pb2.SilenceRequest(robot=action.target, seconds=action.seconds)
@@ -270,10 +311,13 @@ class Campaign:
         elif action.kind == "switch-down":
             self._switch_port("up")
 
-    def _switch_port(self, state: str) -> None:
-        """The XDP switch's port to the robots (its end of the veth pair) down or up."""
+    def _switch_port(self, *setting: str) -> None:
+        """`ip link set` on the XDP switch's port to the robots (its end of the veth pair): down, up,
+        xdpgeneric off."""
         x = self.config.dataplane.xdp
-        subprocess.run(["ip", "-n", x.netns, "link", "set", f"{x.veth}1", state], check=True, timeout=10)
+        subprocess.run(
+            ["ip", "-n", x.netns, "link", "set", "dev", f"{x.veth}1", *setting], check=True, timeout=10
+        )
 
     async def run(self, fault: Fault) -> FaultResult:
         held: dict[str, bool] = {}
@@ -306,7 +350,11 @@ class Campaign:
             outcomes: list[Outcome] = []
             pending = set(drives)
             ended = False
-            while pending or not ended:
+            stopping: asyncio.Future[EStop] | None = None
+            wants_estop = "estop" in fault.promises
+            while pending or not ended or (wants_estop and (stopping is None or not stopping.done())):
+                if wants_estop and stopping is None and time.monotonic_ns() - t_fault[0] >= ESTOP_AT_S * 1e9:
+                    stopping = asyncio.ensure_future(self.estop())
                 if not ended and time.monotonic() >= deadline:
                     for a in fault.actions:
                         self.end(a, pids)
@@ -327,11 +375,15 @@ class Campaign:
             for a in fault.actions:
                 self.end(a, pids)
         t_end = time.monotonic_ns()
+        estop = stopping.result() if stopping is not None else None
         # recovery: every service ok again, then a motion on every robot (back where each came from)
         recovered_st = None
         with contextlib.suppress(TimeoutError):
             killed = {a.target: pids[a.target] for a in fault.actions if a.kind == "kill"}
             recovered_st = await self.healthy(timeout=60.0, dead=killed)
+        t_resume = time.monotonic_ns()
+        if estop is not None:  # (released once the cell is whole again, as an operator would)
+            await self.resume()
         t_check = time.monotonic_ns()
         back = await asyncio.gather(*(self.drive(r, self.goal(r), [t_check]) for r in self.robots))
         t_recovered = time.monotonic_ns()
@@ -346,7 +398,9 @@ class Campaign:
             f"{o.robot}: {o.status} after {o.after_s:.2f} s {o.text}" for o in outcomes
         )
         if "answered_1s" in fault.promises:
-            stopped = [o for o in outcomes if o.status == "stopped"]
+            # (those the e-stop answered are the e-stop's: it comes after this promise's second)
+            by_estop = (estop.t_ns - t0) / 1e9 if estop is not None else float("inf")
+            stopped = [o for o in outcomes if o.status == "stopped" and o.after_s < by_estop]
             late = [o.robot for o in stopped if o.after_s > 1.0]
             held["answered_1s"] = not late and (bool(stopped) or killed_skills)
             detail["answered_1s"] = f"late: {late}" if late else ("" if stopped else "none answered stopped")
@@ -382,19 +436,31 @@ class Campaign:
                     first.setdefault(r, (t - t0) / 1e6)
             held["stop_windows"] = len(first) == len(self.robots) and max(first.values()) <= bound
             detail["stop_windows"] = f"stops after {sorted(first.values())} ms (bound {bound:.0f} ms)"
+        if "reattached" in fault.promises:
+            c1 = _counters(recovered_st)
+            grew = _grew(
+                counters_before, c1, ("dataplane.xdp.reattached", "dataplane.xdp.answered_in_user_space")
+            )
+            held["reattached"] = grew.get("dataplane.xdp.reattached", 0) >= 1
+            detail["reattached"] = f"grew: {grew}"
         if "kernel_answers" in fault.promises:  # (the program in the kernel kept the robots commanded)
             held["kernel_answers"] = not stops
             detail["kernel_answers"] = f"protective stops after {sorted(stops)} ms" if stops else ""
         after = recovered_st
         if "packet_path" in fault.promises:
             c0, c1 = counters_before, _counters(after) if after is not None else {}
-            grew = _grew(c0, c1, ("robots.protective_stops", "dataplane.dropped"))
+            grew = _grew(c0, c1, ("robots.protective_stops", "dataplane.dropped", "dataplane.dropped.stop"))
+            asked = grew.pop("dataplane.dropped.stop", 0.0)  # (the e-stop's: asked for)
+            if grew.get("dataplane.dropped", 0.0) - asked <= 0:
+                grew.pop("dataplane.dropped", None)
             held["packet_path"] = not grew and not stops
             # (the kernel's RT throttling stops the packet path's processes for up to 50 ms: said)
             rt = _grew(c0, c1, ("robots.process.rt.held", "dataplane.process.rt.held"))
             detail["packet_path"] = (f"grew: {grew}" if grew else "") + (
                 f"; RT throttled: {rt}" if rt else ""
             )
+        if estop is not None:
+            held["estop"], detail["estop"] = self._estop_held(fault, estop, t0, t_resume)
         if "status" in fault.promises:
             held["status"], detail["status"] = self._status_held(fault, after, restarts_before, stale_seen)
         works = [o for o in back if o.status == "done"]
@@ -407,11 +473,40 @@ class Campaign:
         recover = (t_recovered - t0) / 1e9
         answers = [o.after_s for o in outcomes if o.status == "stopped"]
         figures = {
+            "estop_still_ms_max": max(estop.still_ms.values(), default=0.0) if estop else 0.0,
             "stop_ms_max": max(stops) if stops else 0.0,
             "moved_after_rest_mrad": max(lunges.values()) * 1e3,
             "stopped_answer_s_max": max(answers) if answers else 0.0,
         }
         return FaultResult(fault.name, held, detail, detect, recover, figures)
+
+    def _estop_held(self, fault: Fault, e: EStop, t_fault: int, t_resume: int) -> tuple[bool, str]:
+        """Every robot stood within its bound of the order, by its truth (no motion from then until
+        the release), or where no truth was heard (the bus down) by its own report over the
+        Responsive Link (REPORT_MS later).  No order gets through a killed or hung hub: the link's
+        watchdog must then stop the robots ([rlink] watchdog_s and a beacon period after the fault)."""
+        rl = self.config.rlink
+        through = bool(e.still_ms) and max(e.still_ms.values()) < 1e3
+        if "rlink" in fault.services and not through:
+            since = t_fault + int((rl.watchdog_s + 1.0 / rl.beacon_hz) * 1e9)
+        else:
+            since = e.t_ns
+        notes, ok = [], True
+        for r in self.robots:
+            before = self.obs.between(r, since - 500_000_000, since)  # (its speed when the stop came)
+            bound = self.estop_bound_ms(r, before[-1][1] if before else 0.0)
+            samples = self.obs.between(r, since, t_resume)
+            moving = [t for t, qd, _, _ in samples if qd >= REST]
+            by_truth = (max(moving) - since) / 1e6 if moving else 0.0
+            heard = bool(samples) and samples[-1][0] - since > bound * 1e6
+            reported = e.still_ms.get(r) if through else None
+            good = by_truth <= bound and (heard or (reported is not None and reported <= bound + REPORT_MS))
+            ok = ok and good
+            told = "no report" if reported is None else f"reported still {reported:.0f} ms"
+            truth = f"truth moving until {by_truth:.0f} ms" if heard else "no truth heard"
+            notes.append(f"{r}: {truth}, {told} (bound {bound:.0f} ms)")
+        how = "by the order" if since == e.t_ns else "by the link's watchdog (the hub down)"
+        return ok, f"{how}: " + "; ".join(notes) + (f"; {e.error}" if e.error else "")
 
     def _q_near(self, robot: str, t_ns: int) -> np.ndarray:
         """The robot's joints at the last truth sample before t_ns."""

@@ -20,8 +20,9 @@ SERVICES = ("bus", "dataplane", "robots", "controller", "skills", "snp", "record
 @dataclass(frozen=True)
 class Action:
     """One thing done to the cell: kind is kill, stop (SIGSTOP for `seconds`), link (the controller's
-    bus link slowed for `seconds`), silence (a robot mute for `seconds`) or switch-down (the XDP
-    switch's veth port down for `seconds`: every robot's cable at once)."""
+    bus link slowed for `seconds`), silence (a robot mute for `seconds`), switch-down (the XDP
+    switch's veth port down for `seconds`: every robot's cable at once) or detach (the XDP program
+    taken off the switch's port, as `ip link set dev ... xdpgeneric off` does; watched `seconds`)."""
 
     kind: str
     target: str  # a service, or for silence a robot's name
@@ -55,7 +56,10 @@ PROMISES = {
     "packet_path": "the packet path ran on: no protective stop, no trajectory dropped",
     "stop_windows": "robots on a stop within the watchdog's windows (+1 for the one under way)",
     "kernel_answers": "the XDP program answered on without its control plane: no robot protective-stopped",
+    "reattached": "the data plane answered through its detached XDP program and attached it again",
     "no_lunge": "no unplanned motion: once at rest after the fault, robots stay at rest",
+    "estop": "an e-stop issued during the fault stops every robot within its deadline (its braking from "
+    "the speed it had, +60 ms); with the Responsive Link's hub down, the link's watchdog stops them",
     "status": "cell status shows the restart (count, last error) or the hang (stale), then ok",
     "recovered": "motions work again on every robot after the fault",
 }
@@ -77,6 +81,10 @@ def _promises(actions: tuple[Action, ...], in_kernel: bool = False) -> tuple[str
         out += ["stop_windows"]
     if not services & {*PACKET_PATH, "rlink"} and not silent and not cut:
         out += ["packet_path"]
+    if any(a.kind == "detach" for a in actions):
+        out += ["reattached"]
+    if "robots" not in services:  # (a dead or hung arm emulator is not an arm the e-stop can judge)
+        out += ["estop"]
     if services:
         out += ["status"]
     return tuple(out)
@@ -116,6 +124,7 @@ def catalogue(
         ),
         fault("kill:skills+mute", Action("kill", "skills"), Action("silence", mute, hang_s)),
     ]
-    if in_kernel:  # the switch's own faults: its port to the robots down for 2 s
+    if in_kernel:  # the switch's own faults: its port to the robots down for 2 s, its program detached
         out.append(fault("switch-down", Action("switch-down", "dataplane", 2.0)))
+        out.append(fault("xdp-detached", Action("detach", "dataplane", 1.0)))
     return out

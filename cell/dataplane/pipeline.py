@@ -90,6 +90,7 @@ class PipelineCounters:
     limited: int = 0  # commands clamped by LimitVelocity
     stop_commands: int = 0  # commands from the StopRamp (robots under REG_stop)
     dropped: int = 0  # trajectories dropped (Tables.reg_dropped_why says why)
+    dropped_stop: int = 0  # of them, by a stop order (an e-stop, a stop): asked for, not a fault
 
 
 class Pipeline:
@@ -273,6 +274,8 @@ class Pipeline:
             t.reg_dropped_ns[e] = now
             t.reg_dropped_why[e] = why
             self.counters.dropped += int(e.size)
+            if why == DROP_STOP:
+                self.counters.dropped_stop += int(e.size)
 
     # --- stops -------------------------------------------------------------------------------
 

@@ -17,6 +17,8 @@ controller's register updates for them are refused (`stopped`).
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import os
 import socket
 import time
@@ -45,6 +47,8 @@ from cell.rlink.station import Order
 from cell.robot import datagram, models, udp
 from cell.robot.datagram import SCALE, Kind
 from cell.v1 import dataplane_pb2
+
+log = logging.getLogger("cell.dataplane")
 
 _STATUS = int(Kind.STATUS)
 _DROP_WHY = {DROP_WATCHDOG: "watchdog", DROP_UNDERRUN: "underrun", DROP_STOP: "stop", DROP_QUIET: "quiet"}
@@ -416,6 +420,7 @@ class DataPlane:
             "limited": c.limited,
             "stop_commands": c.stop_commands,
             "dropped": c.dropped,
+            "dropped.stop": c.dropped_stop,
             "tps_loaded": self.tables.loaded,
         }
         out.update({f"rejected.{k}": v for k, v in self.rejected.items()})
@@ -492,10 +497,13 @@ class XdpDataPlane(DataPlane):
         g["listen_addr"] = int.from_bytes(socket.inet_aton(host), "little")  # (network order in memory)
         g["listen_port"] = socket.htons(port)
         self.robot_addr = _Pins(self.program.robots)
+        self.netns, self.port = x.netns, f"{x.veth}1"
+        self.watch = XdpWatch()
 
         def attach() -> socket.socket:
-            self.program.attach(socket.if_nametoindex(f"{x.veth}1"))
-            # the user-space end, for the first stop commands the Responsive Link asks for at once
+            self.watch.prog_id = self.program.attach(socket.if_nametoindex(self.port))
+            # the user-space end: the first stop commands the Responsive Link asks for at once, and
+            # the statuses that reach it when the program is not attached
             return udp.open_socket(host, port)
 
         try:
@@ -506,12 +514,65 @@ class XdpDataPlane(DataPlane):
         self.sender = udp.Sender(self.sock, datagram.SIZE)
 
     def close(self) -> None:
+        from cell.dataplane.xdp.switch import in_namespace
+
         self.sock.close()
-        self.program.detach()
+        with contextlib.suppress(OSError, RuntimeError):  # (the namespace may be gone already)
+            in_namespace(self.netns, self.program.detach)
         self.program.close()
 
     async def run(self) -> None:
-        await asyncio.Event().wait()  # the kernel answers; nothing to do here until cancelled
+        """The kernel answers every status; this watches that the program stays attached.  A status
+        that reaches this process's socket is one the program did not see (someone detached it:
+        `ip link set dev <veth>1 xdpgeneric off`, a tool that cleans up XDP programs): it is answered
+        at once through the very program (BPF_PROG_TEST_RUN on its maps), and the program is
+        attached again.  Another program attached in its place is reported, not fought."""
+        loop = asyncio.get_running_loop()
+        woke = asyncio.Event()
+        loop.add_reader(self.sock.fileno(), woke.set)
+        try:
+            while True:
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(XdpWatch.PERIOD_S):
+                        await woke.wait()
+                woke.clear()
+                if self._answer_passed() or self.watch.due():
+                    self._check_attached()
+        finally:
+            loop.remove_reader(self.sock.fileno())
+
+    def _answer_passed(self) -> int:
+        """Answer, through the program, the statuses waiting at the socket; how many there were."""
+        seen = 0
+        for _ in range(XdpWatch.BURSTS):
+            got = udp.recv_batch(self.sock)
+            if got is None:
+                break
+            data, seg, src, _ = got
+            for off in range(0, len(data), max(seg, 1)):
+                seen += 1
+                out = self.program.answer(data[off : off + seg], src[:2])
+                if out is not None:
+                    self.sock.sendto(out, src[:2])
+                    self.watch.answered += 1
+        return seen
+
+    def _check_attached(self) -> None:
+        from cell.dataplane.xdp.switch import in_namespace
+
+        def look() -> tuple[int, int]:
+            now = self.program.attached()
+            if now == 0:  # detached: ours goes back on
+                return now, self.program.attach(socket.if_nametoindex(self.port))
+            return now, now
+
+        t0 = time.monotonic_ns()
+        try:
+            found, now = in_namespace(self.netns, look)
+        except (OSError, RuntimeError) as exc:
+            log.warning("cannot check the XDP program on %s: %s", self.port, exc)
+            return
+        self.watch.checked(found, now, self.port, (time.monotonic_ns() - t0) / 1e6)
 
     async def update(self, req: dataplane_pb2.TableUpdate) -> dataplane_pb2.UpdateReply:
         """As the numpy backend's; apply_us is how long the kernel's packet path was held (the gate
@@ -545,8 +606,54 @@ class XdpDataPlane(DataPlane):
         out.update({n: k[n] for n in k if n.startswith("rejected.")})
         out["xdp.held"], out["xdp.datagrams"] = k["held"], k["datagrams"]
         out["xdp.gates"] = self.program.gates
+        out.update(self.watch.counters())
         out["xdp.gate_us_max"] = max(self.program.closed_ns, default=0) / 1e3  # (the recent 4,096)
         return out
+
+
+class XdpWatch:
+    """What the control plane saw of its program's attachment (XdpDataPlane.run)."""
+
+    PERIOD_S = 1.0  # a check this often with no status passed up (a program put in ours' place)
+    BURSTS = 256  # socket reads per wake: a flood of passed-up datagrams cannot hold the loop
+
+    def __init__(self) -> None:
+        self.prog_id = 0  # ours, as attached
+        self.reattached = 0
+        self.answered = 0  # statuses answered from user space, through the program
+        self.replaced_by = 0  # another program's id, while one holds our port
+        self._next = time.monotonic() + self.PERIOD_S
+
+    def due(self) -> bool:
+        if time.monotonic() < self._next:
+            return False
+        self._next = time.monotonic() + self.PERIOD_S
+        return True
+
+    def checked(self, found: int, now: int, port: str, took_ms: float) -> None:
+        if found == 0:
+            self.reattached += 1
+            self.prog_id, self.replaced_by = now, 0
+            log.warning(
+                "the XDP program was detached from %s: attached again in %.1f ms (%d statuses answered "
+                "from user space so far)", port, took_ms, self.answered,
+            )  # fmt: skip
+        elif found != self.prog_id and found != self.replaced_by:
+            self.replaced_by = found
+            log.error(
+                "another XDP program (id %d) is attached to %s in place of the cell's (id %d): the robots "
+                "are not ours to command until it is removed (`ip link set dev %s xdpgeneric off`)",
+                found, port, self.prog_id, port,
+            )  # fmt: skip
+        elif found == self.prog_id:
+            self.replaced_by = 0
+
+    def counters(self) -> dict[str, float]:
+        return {
+            "xdp.reattached": self.reattached,
+            "xdp.answered_in_user_space": self.answered,
+            "xdp.replaced": float(self.replaced_by != 0),
+        }
 
 
 class _Pins:

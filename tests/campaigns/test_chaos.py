@@ -39,6 +39,9 @@ def test_on_the_xdp_backend_the_kernel_answers_while_the_data_planes_process_is_
     assert {"answered_1s", "stop_windows"} <= set(faults["switch-down"].promises)
     assert "packet_path" not in faults["switch-down"].promises
     assert "switch-down" not in {f.name for f in catalogue(["r1", "r2"])}
+    # its program detached: answered through from user space and attached again, the robots never notice
+    assert {"reattached", "packet_path"} <= set(faults["xdp-detached"].promises)
+    assert "stop_windows" not in faults["xdp-detached"].promises
 
 
 def test_truth_that_arrives_out_of_order_is_judged_by_its_own_times() -> None:

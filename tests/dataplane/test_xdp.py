@@ -8,6 +8,7 @@ object `make` builds; skipped with the reason otherwise.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import select
 import socket
@@ -306,3 +307,71 @@ def test_the_service_answers_from_the_kernel_and_its_control_plane_writes_the_ma
             plane.close()
     names = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
     assert tag not in names
+
+
+async def test_a_detached_program_is_answered_for_from_user_space_and_attached_again() -> None:
+    """Someone detaches the program (`ip link set dev ... xdpgeneric off`): the statuses then reach the
+    control plane's socket.  It answers them through the program itself, at once, and attaches it
+    again; a program put in its place is reported, not fought."""
+    from dataclasses import asdict
+
+    from cell.config import XdpConfig, load_config
+    from cell.dataplane.plane import XdpDataPlane
+    from cell.dataplane.xdp.switch import in_namespace, switch_namespace
+
+    tag = f"cxd{os.getpid()}"[:12]
+    net = XdpConfig(netns=tag, veth=tag, host_addr="10.198.0.1", switch_addr="10.198.0.2", prefix=24, cpu=-1)
+    dp = {"listen": f"10.198.0.2:{PORT}", "backend": "xdp", "xdp": asdict(net)}
+    cfg = load_config(overrides={"robots": [{"id": 1, "name": "x1", "skill_port": 23001}], "dataplane": dp})
+
+    def xdp_on_port() -> str:
+        out = subprocess.run(
+            ["ip", "-n", tag, "-d", "link", "show", f"{tag}1"], capture_output=True, text=True
+        )
+        return out.stdout
+
+    with switch_namespace(net):
+        plane = XdpDataPlane(cfg)
+        robot = udp.open_socket(net.host_addr)
+        watcher = asyncio.create_task(plane.run())
+        loop = asyncio.get_running_loop()
+        try:
+            recs = datagram.empty(6)
+            dst = (net.switch_addr, PORT)
+
+            async def exchange(seq: int) -> np.ndarray:
+                datagram.pack(recs, 1, np.arange(6), 0, seq, 0.2, 0.5)
+                robot.sendto(recs.tobytes(), dst)
+                return await loop.run_in_executor(None, _recv, robot)
+
+            first = await exchange(1)
+            assert (first["kind"] == 1).all() and plane.counters()["xdp.answered_in_user_space"] == 0
+            subprocess.run(
+                ["ip", "-n", tag, "link", "set", "dev", f"{tag}1", "xdpgeneric", "off"], check=True
+            )
+            assert "xdpgeneric" not in xdp_on_port()
+            second = await exchange(2)  # answered all the same: from user space, by the program
+            assert second.size == 6 and (second["kind"] == 1).all() and (second["seq"] == 2).all()
+            c = plane.counters()
+            assert c["xdp.answered_in_user_space"] == 1 and c["xdp.reattached"] == 1
+            assert f"id {plane.watch.prog_id}" in xdp_on_port()  # back on the port
+            third = await exchange(3)  # and the kernel answers again, nothing passed up
+            assert (third["seq"] == 3).all() and plane.counters()["xdp.answered_in_user_space"] == 1
+            # another program in its place (the bare reflector): reported, left alone
+            other = xdp.XdpProgram(1, 2, 1)
+            try:
+                other_id = in_namespace(
+                    tag, lambda: other.attach(socket.if_nametoindex(f"{tag}1"), reflect=True)
+                )
+                plane._check_attached()
+                assert plane.watch.replaced_by == other_id and plane.counters()["xdp.replaced"] == 1
+                assert f"id {other_id}" in xdp_on_port()
+            finally:
+                other.ifindex = None  # (the plane's close below detaches whatever is attached)
+                other.close()
+        finally:
+            watcher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await watcher
+            robot.close()
+            plane.close()

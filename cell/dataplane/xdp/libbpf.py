@@ -81,6 +81,7 @@ def lib() -> ctypes.CDLL:
         ("bpf_prog_test_run_opts", i, [i, p]),
         ("bpf_xdp_attach", i, [i, i, u32, p]),
         ("bpf_xdp_detach", i, [i, u32, p]),
+        ("bpf_xdp_query_id", i, [i, i, ctypes.POINTER(u32)]),
         ("libbpf_num_possible_cpus", i, []),
         ("libbpf_set_print", p, [_PRINT]),
     ):

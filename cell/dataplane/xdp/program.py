@@ -12,6 +12,8 @@ import contextlib
 import ctypes
 import mmap
 import os
+import socket
+import struct
 import time
 from pathlib import Path
 
@@ -25,6 +27,7 @@ OBJECT = Path(__file__).with_name("dataplane.bpf.o")
 MAX_JOINTS = 12  # the C program's TP width
 MAX_ENTITIES = 4096
 XDP_DROP, XDP_PASS, XDP_TX = 1, 2, 3
+SKB_MODE = 1 << 1  # XDP_FLAGS_SKB_MODE: generic XDP, the mode veth and lo offer here
 GATE_WAIT_S = 0.05  # a packet in flight takes microseconds; this long means something is wrong
 
 ROBOT = np.dtype(
@@ -170,6 +173,23 @@ class XdpProgram:
         """The program's verdict on one Ethernet frame, and the frame as it leaves."""
         return libbpf.test_run(self.prog_fd, packet, max(len(packet), 64) + 256)
 
+    def answer(self, payload: bytes, src: tuple[str, int]) -> bytes | None:
+        """The program's answer to a status datagram that reached user space instead of it (the
+        program was detached): the same frame the kernel would have seen, run through the program in
+        the kernel (BPF_PROG_TEST_RUN, so its maps and counters are the real ones); the commands'
+        payload, or None where the program drops it (malformed, spoofed)."""
+        g = self.globals
+        dst = int(g["listen_addr"]).to_bytes(4, "little")
+        udp = struct.pack("!HHHH", src[1], socket.ntohs(int(g["listen_port"])), 8 + len(payload), 0)
+        ip = struct.pack(
+            "!BBHHHBBH4s4s", 0x45, 0, 28 + len(payload), 0, 0, 64, 17, 0, socket.inet_aton(src[0]), dst
+        )
+        frame = bytes(6) + bytes(6) + b"\x08\x00" + ip + udp + payload
+        verdict, out = self.run(frame)
+        if verdict != XDP_TX:
+            return None
+        return out[14 + 20 + 8 : 14 + 20 + 8 + len(payload)]
+
     # --- the gate: the control plane's batches appear at once ----------------------------------
 
     def close_gate(self) -> None:
@@ -239,17 +259,27 @@ class XdpProgram:
 
     # --- attaching -----------------------------------------------------------------------------
 
-    def attach(self, ifindex: int, reflect: bool = False) -> None:
-        """Attach in generic (skb) mode, the mode veth and lo offer here, to an interface of the
-        calling thread's network namespace; reflect: the bare reflector instead (a benchmark's baseline)."""
-        skb_mode = 1 << 1  # XDP_FLAGS_SKB_MODE
+    def attach(self, ifindex: int, reflect: bool = False) -> int:
+        """Attach in generic (skb) mode to an interface of the calling thread's network namespace;
+        reflect: the bare reflector instead (a benchmark's baseline).  The program's id as attached."""
         fd = self.reflect_fd if reflect else self.prog_fd
-        libbpf.check(self._bpf.bpf_xdp_attach(ifindex, fd, skb_mode, None), "attaching XDP")
+        libbpf.check(self._bpf.bpf_xdp_attach(ifindex, fd, SKB_MODE, None), "attaching XDP")
         self.ifindex = ifindex
+        return self.attached()
+
+    def attached(self) -> int:
+        """The id of the program attached (generic mode) to our interface, 0 if none (the calling
+        thread in the interface's network namespace)."""
+        if self.ifindex is None:
+            return 0
+        prog_id = ctypes.c_uint32(0)
+        libbpf.check(self._bpf.bpf_xdp_query_id(self.ifindex, SKB_MODE, ctypes.byref(prog_id)), "XDP query")
+        return prog_id.value
 
     def detach(self) -> None:
+        """(The calling thread in the interface's network namespace: an ifindex is per namespace.)"""
         if self.ifindex is not None:
-            self._bpf.bpf_xdp_detach(self.ifindex, 1 << 1, None)
+            self._bpf.bpf_xdp_detach(self.ifindex, SKB_MODE, None)
             self.ifindex = None
 
     def close(self) -> None:
