@@ -653,7 +653,20 @@ def config_from_text(text: str, source: str, overrides: dict[str, Any] | None = 
         data = _merge(data, user)
     if overrides:
         data = _merge(data, overrides)
-    return config_from_dict(data, source)
+    return config_from_dict(_listen_follows_backend(data), source)
+
+
+def _listen_follows_backend(data: dict[str, Any]) -> dict[str, Any]:
+    """[dataplane] backend = "xdp" alone moves the data plane's listen address (left at its
+    default) onto the switch's end of the veth pair, keeping its port: the only address it can have."""
+    dp, default = data.get("dataplane"), _default_data()["dataplane"]
+    if not isinstance(dp, dict) or dp.get("backend") != "xdp" or dp.get("listen") != default["listen"]:
+        return data
+    switch = dp.get("xdp", {}).get("switch_addr") if isinstance(dp.get("xdp"), dict) else None
+    if not isinstance(switch, str):
+        return data
+    port = str(default["listen"]).rpartition(":")[2]
+    return {**data, "dataplane": {**dp, "listen": f"{switch}:{port}"}}
 
 
 def config_from_dict(data: dict[str, Any], source: str = DEFAULT_SOURCE) -> CellConfig:

@@ -329,15 +329,15 @@ class Campaign:
         t_fault: list[int] = []
         slow_link = any(a.kind == "link" for a in fault.actions)
         others = [a for a in fault.actions if a.kind != "link"]
-        if slow_link:  # motions planned over the slow link: it comes first
-            for a in fault.actions:
+        if slow_link:  # motions planned over the slow link: it comes first (and the fault with it,
+            for a in fault.actions:  # when it is the only one: a motion may be stopped before it moves)
                 if a.kind == "link":
                     await self.inject(a, pids)
+            if not others:
+                t_fault.append(time.monotonic_ns())
         goals = {r: self.goal(r) for r in self.robots}
         drives = [asyncio.ensure_future(self.drive(r, goals[r], t_fault)) for r in self.robots]
         await self.moving()
-        if not others:
-            t_fault.append(time.monotonic_ns())
         stale_seen: set[str] = set()
         try:
             if others:

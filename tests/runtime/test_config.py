@@ -265,7 +265,7 @@ def test_status_names_a_service_by_host_and_a_restart_counts_only_on_its_own() -
 @pytest.mark.parametrize(
     ("dataplane", "key", "problem"),
     [
-        ({"backend": "xdp"}, "dataplane.listen", "switch_addr (10.199.0.2)"),
+        ({"backend": "xdp", "listen": "127.0.0.2:50000"}, "dataplane.listen", "switch_addr (10.199.0.2)"),
         (
             {"backend": "xdp", "listen": "10.199.0.2:50000", "xdp": {"switch_addr": "10.200.0.2"}},
             "dataplane.listen",
@@ -289,6 +289,15 @@ def test_an_xdp_data_plane_that_cannot_work_is_refused(dataplane: dict, key: str
     with pytest.raises(ConfigError) as info:
         load_config(overrides={"dataplane": dataplane})
     assert key in str(info.value) and problem in str(info.value)
+
+
+def test_the_xdp_backend_alone_moves_the_default_listen_address_onto_the_switch() -> None:
+    """The listen address follows the backend unless the user set it (then it is checked)."""
+    dp = load_config(overrides={"dataplane": {"backend": "xdp"}}).dataplane
+    assert dp.listen == "10.199.0.2:50000"
+    moved = {"backend": "xdp", "xdp": {"host_addr": "10.5.0.1", "switch_addr": "10.5.0.2"}}
+    assert load_config(overrides={"dataplane": moved}).dataplane.listen == "10.5.0.2:50000"
+    assert load_config(None).dataplane.listen == "127.0.0.1:50000"  # (numpy: untouched)
 
 
 def test_the_xdp_example_is_a_valid_cell() -> None:
