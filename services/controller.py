@@ -66,7 +66,17 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
         """Stops and releases over the Responsive Link, as the hub tells them after the fact, and URScript
         programs holding a robot, as its UR interfaces tell them."""
         RE = robot_pb2.RobotEvent
+        # the hub's time of each robot's last stop or release: one older comes late (a hub's backlog
+        # drained by the forwarder after its reconnection, behind the newer events), and is no order
+        latest: dict[int, int] = {}
         async for ev in events.messages(RE):
+            if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP, RE.KIND_RESUME):
+                if ev.t_ns < latest.get(ev.robot_id, 0):
+                    svc.counters.stale_link_events += 1
+                    kind = RE.Kind.Name(ev.kind)
+                    ctx.log.warning("an old %s of robot %d came late: ignored", kind, ev.robot_id)
+                    continue
+                latest[ev.robot_id] = ev.t_ns
             if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP):
                 await ctl.stopped_on_link(ev.robot_id)
             elif ev.kind == RE.KIND_RESUME:

@@ -329,15 +329,15 @@ class Campaign:
         t_fault: list[int] = []
         slow_link = any(a.kind == "link" for a in fault.actions)
         others = [a for a in fault.actions if a.kind != "link"]
-        if slow_link:  # motions planned over the slow link: it comes first (and the fault with it,
-            for a in fault.actions:  # when it is the only one: a motion may be stopped before it moves)
+        if slow_link:  # motions planned over the slow link: it comes first
+            for a in fault.actions:
                 if a.kind == "link":
                     await self.inject(a, pids)
-            if not others:
-                t_fault.append(time.monotonic_ns())
         goals = {r: self.goal(r) for r in self.robots}
         drives = [asyncio.ensure_future(self.drive(r, goals[r], t_fault)) for r in self.robots]
         await self.moving()
+        if not others:  # (the fault's time is when the robots move: their rest before is no lunge)
+            t_fault.append(time.monotonic_ns())
         stale_seen: set[str] = set()
         try:
             if others:
@@ -418,7 +418,9 @@ class Campaign:
         held["completed"] = not far
         detail["completed"] = f"done but not at the goal: {far}" if far else ""
         # no lunge between the fault and the recovery check
-        lunge_at = {r: self.obs.lunge(r, t0, t_check) for r in self.robots}
+        # (from each robot's answer on: a motion stalled on a late TP rests, then goes on as planned)
+        answered_at = {o.robot: t0 + int(max(0.0, o.after_s) * 1e9) for o in outcomes}
+        lunge_at = {r: self.obs.lunge(r, answered_at.get(r, t0), t_check) for r in self.robots}
         lunges = {r: moved for r, (moved, _, _) in lunge_at.items()}
         held["no_lunge"] = all(v < LUNGE for v in lunges.values())
         detail["no_lunge"] = ", ".join(
@@ -445,7 +447,8 @@ class Campaign:
             detail["reattached"] = f"grew: {grew}"
         if "kernel_answers" in fault.promises:  # (the program in the kernel kept the robots commanded)
             held["kernel_answers"] = not stops
-            detail["kernel_answers"] = f"protective stops after {sorted(stops)} ms" if stops else ""
+            who = sorted((round((t - t0) / 1e6, 1), r) for t, r in self.obs.stops if t0 <= t <= t_check)
+            detail["kernel_answers"] = f"protective stops (ms after the fault, robot): {who}" if stops else ""
         after = recovered_st
         if "packet_path" in fault.promises:
             c0, c1 = counters_before, _counters(after) if after is not None else {}
@@ -467,7 +470,8 @@ class Campaign:
         held["recovered"] = recovered_st is not None and len(works) == len(self.robots)
         detail["recovered"] = "; ".join(f"{o.robot}: {o.status} {o.text}" for o in back if o.status != "done")
         # the first reaction: a stopped answer, a protective stop, or a service event
-        reactions = [o.after_s * 1e3 for o in outcomes if o.status == "stopped"] + stops
+        # (a motion planned over a slow link may be stopped before it moved: that is at the fault)
+        reactions = [max(0.0, o.after_s) * 1e3 for o in outcomes if o.status == "stopped"] + stops
         reactions += [(t - t0) / 1e6 for t, _, _, _ in self.obs.service_events if t >= t0]
         detect = min(reactions) if reactions else None
         recover = (t_recovered - t0) / 1e9
@@ -484,11 +488,12 @@ class Campaign:
         """Every robot stood within its bound of the order, by its truth (no motion from then until
         the release), or where no truth was heard (the bus down) by its own report over the
         Responsive Link (REPORT_MS later).  No order gets through a killed or hung hub: the link's
-        watchdog must then stop the robots ([rlink] watchdog_s and a beacon period after the fault)."""
+        watchdog must then stop the robots ([rlink] watchdog_s after the fault, +1/4 of it: how often a
+        node looks)."""
         rl = self.config.rlink
         through = bool(e.still_ms) and max(e.still_ms.values()) < 1e3
-        if "rlink" in fault.services and not through:
-            since = t_fault + int((rl.watchdog_s + 1.0 / rl.beacon_hz) * 1e9)
+        if "rlink" in fault.services and not through:  # (a node looks at its watchdog 4 times in one)
+            since = t_fault + int(rl.watchdog_s * 1.25 * 1e9)
         else:
             since = e.t_ns
         notes, ok = [], True

@@ -34,6 +34,7 @@ class ControllerCounters(Counters):
     not_at_goal: int = 0  # motions that ran to their end with the robot read elsewhere (failed)
     stopped_on_link: int = 0  # robots stopped over the Responsive Link now (a gauge)
     motions_lost: int = 0  # robots whose motion was lost with the data plane (a gauge)
+    stale_link_events: int = 0  # stops and releases older than the robot's last one heard: ignored
 
 
 class ControllerService:

@@ -526,24 +526,52 @@ class XdpDataPlane(DataPlane):
         that reaches this process's socket is one the program did not see (someone detached it:
         `ip link set dev <veth>1 xdpgeneric off`, a tool that cleans up XDP programs): it is answered
         at once through the very program (BPF_PROG_TEST_RUN on its maps), and the program is
-        attached again.  Another program attached in its place is reported, not fought."""
+        attached again meanwhile (in a thread inside the namespace: an attach takes ~15 ms of
+        statuses).  Another program attached in its place is reported, not fought."""
+        from cell.dataplane.xdp.switch import namespace_thread
+
         loop = asyncio.get_running_loop()
-        woke = asyncio.Event()
-        loop.add_reader(self.sock.fileno(), woke.set)
-        try:
+        passed, look = asyncio.Event(), asyncio.Event()
+        netns = namespace_thread(self.netns)
+        loop.add_reader(self.sock.fileno(), passed.set)
+
+        async def answer() -> None:
+            while True:
+                await passed.wait()
+                passed.clear()
+                if self._answer_passed():
+                    look.set()
+
+        async def watch() -> None:
             while True:
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(XdpWatch.PERIOD_S):
-                        await woke.wait()
-                woke.clear()
-                if self._answer_passed() or self.watch.due():
-                    self._check_attached()
+                        await look.wait()
+                look.clear()
+                t0 = time.monotonic_ns()
+                try:
+                    found, now = await loop.run_in_executor(netns, self._attached_or_attach)
+                except (OSError, RuntimeError) as exc:
+                    log.warning("cannot check the XDP program on %s: %s", self.port, exc)
+                    continue
+                self.watch.checked(found, now, self.port, (time.monotonic_ns() - t0) / 1e6)
+
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(answer(), name="xdp-passed")
+                tg.create_task(watch(), name="xdp-watch")
         finally:
-            loop.remove_reader(self.sock.fileno())
+            with contextlib.suppress(ValueError, OSError):  # (the socket may be closed already)
+                loop.remove_reader(self.sock.fileno())
+            netns.shutdown(wait=False)
 
     def _answer_passed(self) -> int:
-        """Answer, through the program, the statuses waiting at the socket; how many there were."""
+        """Answer, through the program, the statuses waiting at the socket; how many there were.  A
+        status older than what the program last saw of its robot is dropped unanswered (counted): it
+        waited here while the program, attached again, answered newer ones, and run through it now
+        it would read as a jump in status numbers (a robot that lived without us)."""
         seen = 0
+        seqs, heard = self.program.robots["status_seq"], self.program.robots["status_ns"]
         for _ in range(XdpWatch.BURSTS):
             got = udp.recv_batch(self.sock)
             if got is None:
@@ -551,27 +579,36 @@ class XdpDataPlane(DataPlane):
             data, seg, src, _ = got
             for off in range(0, len(data), max(seg, 1)):
                 seen += 1
-                out = self.program.answer(data[off : off + seg], src[:2])
+                one = data[off : off + seg]
+                if len(one) % datagram.SIZE == 0 and one:
+                    recs = np.frombuffer(one, datagram.DTYPE)
+                    robot = recs["robot_id"].astype(np.int64)
+                    known = robot < len(seqs)
+                    known[known] &= heard[robot[known]] > 0  # (a robot never heard has no last)
+                    ahead = (recs["seq"][known].astype(np.int64) - seqs[robot[known]]) & 0xFFFFFFFF
+                    if known.all() and ((ahead == 0) | (ahead >= 1 << 31)).all():
+                        self.watch.stale += 1
+                        continue
+                out = self.program.answer(one, src[:2])
                 if out is not None:
                     self.sock.sendto(out, src[:2])
                     self.watch.answered += 1
         return seen
 
+    def _attached_or_attach(self) -> tuple[int, int]:
+        """(In the namespace.)  The id of the program found on the port, and of the one there now:
+        ours attached again if none was."""
+        found = self.program.attached()
+        if found == 0:
+            return found, self.program.attach(socket.if_nametoindex(self.port))
+        return found, found
+
     def _check_attached(self) -> None:
+        """As the watch does, from any thread (tests)."""
         from cell.dataplane.xdp.switch import in_namespace
 
-        def look() -> tuple[int, int]:
-            now = self.program.attached()
-            if now == 0:  # detached: ours goes back on
-                return now, self.program.attach(socket.if_nametoindex(self.port))
-            return now, now
-
         t0 = time.monotonic_ns()
-        try:
-            found, now = in_namespace(self.netns, look)
-        except (OSError, RuntimeError) as exc:
-            log.warning("cannot check the XDP program on %s: %s", self.port, exc)
-            return
+        found, now = in_namespace(self.netns, self._attached_or_attach)
         self.watch.checked(found, now, self.port, (time.monotonic_ns() - t0) / 1e6)
 
     async def update(self, req: dataplane_pb2.TableUpdate) -> dataplane_pb2.UpdateReply:
@@ -621,14 +658,8 @@ class XdpWatch:
         self.prog_id = 0  # ours, as attached
         self.reattached = 0
         self.answered = 0  # statuses answered from user space, through the program
+        self.stale = 0  # of those passed up, older than the program's last of their robot: dropped
         self.replaced_by = 0  # another program's id, while one holds our port
-        self._next = time.monotonic() + self.PERIOD_S
-
-    def due(self) -> bool:
-        if time.monotonic() < self._next:
-            return False
-        self._next = time.monotonic() + self.PERIOD_S
-        return True
 
     def checked(self, found: int, now: int, port: str, took_ms: float) -> None:
         if found == 0:
@@ -652,6 +683,7 @@ class XdpWatch:
         return {
             "xdp.reattached": self.reattached,
             "xdp.answered_in_user_space": self.answered,
+            "xdp.stale_passed": self.stale,
             "xdp.replaced": float(self.replaced_by != 0),
         }
 

@@ -19,6 +19,7 @@ shows as busy_ms_per_s in `cell status`.
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections import deque
 from collections.abc import Callable
@@ -36,6 +37,8 @@ from cell.robot.node import output_name
 from cell.service import ServiceContext
 from cell.snp.state import realtime_offset_ns
 from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, vision_pb2
+
+log = logging.getLogger("cell.service.recorder")
 
 PATH_POINTS = 600  # tool path points kept per robot
 PATH_EVERY_NS = 200_000_000  # the tool path (a line of up to PATH_POINTS) is drawn this often
@@ -282,12 +285,14 @@ class Recorder:
 
 
 def open_recording(mode: str, path: str, name: str) -> rr.RecordingStream:
+    """The run's recording: saved to `path`, served on loopback (its address logged: the one that
+    opens the viewer on this recording, not on Rerun's welcome page) or in a spawned viewer."""
     rec = rr.RecordingStream(application_id=f"cell-{name}")
     if mode == "save":
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         rec.save(path)
     elif mode == "serve":  # loopback only (cell/recorder/serve.py): the SDK's own serve binds everything
-        serve.serve(rec)
+        log.info("Rerun web viewer (loopback only): %s", serve.serve(rec))
     elif mode == "spawn":
         rec.spawn()
     return rec
@@ -340,9 +345,7 @@ async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
             text = r.service_event(msg, text, ev.t_ns)
         r.text(ev.t_ns, text, ev.level)
 
-    if cfg.mode == "serve":
-        ctx.log.info("Rerun web viewer (loopback only): http://127.0.0.1:9090 (gRPC on 127.0.0.1:9876)")
-    elif cfg.mode == "save":
+    if cfg.mode == "save":
         ctx.log.info("recording to %s", cfg.path)
 
     def on_vision(env) -> None:

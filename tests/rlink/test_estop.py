@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 
 import numpy as np
 import pytest
@@ -130,3 +131,28 @@ async def test_a_task_script_estops_and_resumes_a_robot(cell) -> None:
     assert "r1 e-stopped: standing still" in out
     assert "the interrupted move: stopped" in out and "a motion while stopped: stopped" in out
     assert "released; moved on to" in out
+
+
+async def test_a_stop_that_comes_late_behind_a_newer_release_is_not_obeyed(cell) -> None:
+    """A hub that hung loses its bus connection; the forwarder drains the old connection's backlog
+    after the new one's events, so an e-stop can reach the controller after its robot's release.
+    The hub's own time says it is old: the controller ignores it (and counts it)."""
+    config = cell.config
+    r1 = await Conn.open(config.robots[0].skill_port)
+    async with EventClient(config) as link, Bus.connect(config.bus, "test") as bus:
+        old = time.monotonic_ns()
+        await link.estop(["r1"])
+        await counters_until(config, "controller", lambda c: c.get("stopped_on_link") == 1)
+        await link.resume(["r1"])
+        await counters_until(config, "controller", lambda c: c.get("stopped_on_link") == 0)
+        RE = robot_pb2.RobotEvent
+        late = RE(robot_id=1, name="r1", kind=RE.KIND_ESTOP, text="the backlog", t_ns=old)
+        bus.publish("events/robot/r1", late)
+        c = await counters_until(config, "controller", lambda c: c.get("stale_link_events", 0) >= 1)
+        assert c["stopped_on_link"] == 0
+        far = list(Q0_DEG)
+        far[0] = 30.0
+        await r1.send(b"mv000001:move_joints:" + joints(far) + b"\r\nbr000001:break\r\n")
+        moved, arrived = await r1.replies(2, timeout=20)
+        assert isinstance(moved, Done) and isinstance(arrived, Done), (moved, arrived)
+    r1.close()
