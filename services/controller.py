@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 
+from cell.bus import BusError
 from cell.controller.controller import Controller
 from cell.controller.rpc import ControllerService
 from cell.service import ServiceContext, ServiceSpec
@@ -62,6 +63,16 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
             async for ev in armings.messages(controller_pb2.TakeAlternate):
                 takes.create_task(take(ev))
 
+    async def stopped_now(robot: int) -> bool:
+        """Whether the data plane holds the robot stopped now.  The hub tells the bus after the fact,
+        and a hub that hung tells it seconds late, after the robot's release and a new motion: the
+        data plane, which every stop reaches first, is the one to ask.  Unanswered: stopped."""
+        try:
+            st = await ctl.dp.state([robot], robots_only=True, timeout=0.5)
+        except (BusError, TimeoutError):
+            return True
+        return not st.robots or st.robots[0].stopped
+
     async def follow_link() -> None:
         """Stops and releases over the Responsive Link, as the hub tells them after the fact, and URScript
         programs holding a robot, as its UR interfaces tell them."""
@@ -78,6 +89,10 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
                     continue
                 latest[ev.robot_id] = ev.t_ns
             if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP):
+                if not await stopped_now(ev.robot_id):
+                    svc.counters.stale_link_events += 1
+                    ctx.log.warning("robot %d: a stop came after its release (late): ignored", ev.robot_id)
+                    continue
                 await ctl.stopped_on_link(ev.robot_id)
             elif ev.kind == RE.KIND_RESUME:
                 ctl.released_on_link(ev.robot_id)

@@ -218,6 +218,17 @@ class Campaign:
                     return st  # type: ignore[return-value]
                 await asyncio.sleep(0.1)
 
+    async def counted(
+        self, st: health_pb2.CellStatus, key: str, before: dict[str, float], timeout: float = 3.0
+    ) -> health_pb2.CellStatus:
+        """The first status (from st on, for at most timeout) whose counter `key` grew past before's."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout):
+                while _counters(st).get(key, 0.0) <= before.get(key, 0.0):
+                    await asyncio.sleep(0.1)
+                    st = await self.status() or st
+        return st
+
     # --- driving -----------------------------------------------------------------------------------
 
     def goal(self, robot: str) -> np.ndarray:
@@ -381,6 +392,8 @@ class Campaign:
         with contextlib.suppress(TimeoutError):
             killed = {a.target: pids[a.target] for a in fault.actions if a.kind == "kill"}
             recovered_st = await self.healthy(timeout=60.0, dead=killed)
+        if "reattached" in fault.promises and recovered_st is not None:  # (counters come with heartbeats)
+            recovered_st = await self.counted(recovered_st, "dataplane.xdp.reattached", counters_before)
         t_resume = time.monotonic_ns()
         if estop is not None:  # (released once the cell is whole again, as an operator would)
             await self.resume()

@@ -111,7 +111,7 @@ class StateRequest(_message.Message):
     def __init__(self, robot_ids: _Optional[_Iterable[int]] = ..., robots_only: _Optional[bool] = ...) -> None: ...
 
 class RobotPlaneState(_message.Message):
-    __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns", "position", "velocity", "status_ns", "dropped_ns", "stalled", "dropped_why")
+    __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns", "position", "velocity", "status_ns", "dropped_ns", "stalled", "dropped_why", "stopped")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     ENTITY_FIELD_NUMBER: _ClassVar[int]
     TP_ID_FIELD_NUMBER: _ClassVar[int]
@@ -122,6 +122,7 @@ class RobotPlaneState(_message.Message):
     DROPPED_NS_FIELD_NUMBER: _ClassVar[int]
     STALLED_FIELD_NUMBER: _ClassVar[int]
     DROPPED_WHY_FIELD_NUMBER: _ClassVar[int]
+    STOPPED_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     entity: int
     tp_id: int
@@ -132,7 +133,8 @@ class RobotPlaneState(_message.Message):
     dropped_ns: int
     stalled: bool
     dropped_why: str
-    def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., position: _Optional[_Iterable[float]] = ..., velocity: _Optional[_Iterable[float]] = ..., status_ns: _Optional[int] = ..., dropped_ns: _Optional[int] = ..., stalled: _Optional[bool] = ..., dropped_why: _Optional[str] = ...) -> None: ...
+    stopped: bool
+    def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., position: _Optional[_Iterable[float]] = ..., velocity: _Optional[_Iterable[float]] = ..., status_ns: _Optional[int] = ..., dropped_ns: _Optional[int] = ..., stalled: _Optional[bool] = ..., dropped_why: _Optional[str] = ..., stopped: _Optional[bool] = ...) -> None: ...
 
 class DataplaneState(_message.Message):
     __slots__ = ("now_ns", "loaded", "capacity", "robots", "counters", "boot_id", "realtime_offset_ns")
