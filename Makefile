@@ -36,6 +36,11 @@ test: $(STAMP_TEST)
 	@# the modular robot's cycle in C (cell/snp/cycle.c) is built with cc on first use
 	@command -v cc >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
 		apt-get install -y -q gcc libc6-dev >/dev/null 2>&1; } || true
+	@# the web viewer's test opens the printed address in a real browser (Debian's headless Chromium)
+	@command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+		{ apt-get install -y -q --no-install-recommends chromium >/dev/null 2>&1 || \
+		{ apt-get update -q >/dev/null 2>&1 && \
+		apt-get install -y -q --no-install-recommends chromium >/dev/null 2>&1; }; }; } || true
 	@$(MAKE) -s bpf-if-possible
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/python -m pytest

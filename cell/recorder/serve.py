@@ -51,8 +51,11 @@ def _listening(port: int) -> bool:
         return s.connect_ex((HOST, port)) == 0
 
 
-def serve(rec: rr.RecordingStream, grpc_port: int = GRPC_PORT, web_port: int = WEB_PORT) -> str:
-    """Start the loopback viewer server and stream `rec` to it; its web address."""
+def serve(rec: rr.RecordingStream, grpc_port: int | None = None, web_port: int | None = None) -> str:
+    """Start the loopback viewer server and stream `rec` to it; the web address that opens the viewer
+    on this recording (the bare address opens Rerun's welcome page).  Ports: GRPC_PORT, WEB_PORT."""
+    grpc_port = GRPC_PORT if grpc_port is None else grpc_port
+    web_port = WEB_PORT if web_port is None else web_port
     for port in (grpc_port, web_port):
         if _listening(port):
             raise ServeError(
@@ -72,7 +75,7 @@ def serve(rec: rr.RecordingStream, grpc_port: int = GRPC_PORT, web_port: int = W
         time.sleep(0.05)
     rec.connect_grpc(f"rerun+http://{HOST}:{grpc_port}/proxy")
     _servers[id(rec)] = proc
-    return f"http://{HOST}:{web_port}?url=rerun%2Bhttp%3A%2F%2F{HOST}%3A{grpc_port}%2Fproxy"
+    return f"http://{HOST}:{web_port}/?url=rerun%2Bhttp%3A%2F%2F{HOST}%3A{grpc_port}%2Fproxy"
 
 
 def close(rec: rr.RecordingStream) -> None:
