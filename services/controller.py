@@ -66,12 +66,15 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
     async def stopped_now(robot: int) -> bool:
         """Whether the data plane holds the robot stopped now.  The hub tells the bus after the fact,
         and a hub that hung tells it seconds late, after the robot's release and a new motion: the
-        data plane, which every stop reaches first, is the one to ask.  Unanswered: stopped."""
-        try:
-            st = await ctl.dp.state([robot], robots_only=True, timeout=0.5)
-        except (BusError, TimeoutError):
-            return True
-        return not st.robots or st.robots[0].stopped
+        data plane, which every stop reaches first, is the one to ask (three times: one that is
+        starting up answers within a second or two).  Unanswered: stopped."""
+        for _ in range(3):
+            try:
+                st = await ctl.dp.state([robot], robots_only=True, timeout=0.5)
+            except (BusError, TimeoutError):
+                continue
+            return not st.robots or st.robots[0].stopped
+        return True
 
     async def follow_link() -> None:
         """Stops and releases over the Responsive Link, as the hub tells them after the fact, and URScript

@@ -409,11 +409,11 @@ class Controller(Engine):
     async def stopped_on_link(self, robot: int) -> None:
         """A robot was stopped over the Responsive Link (the data plane has cleared its registers and
         ramps it down): stop streaming its motion (MotionStopped to whoever waits) and unload it."""
-        self.stopped.add(robot)
+        self.stopped[robot] = time.monotonic()
         await self._let_go(robot, f"robot {robot} was stopped over the Responsive Link")
 
     def released_on_link(self, robot: int) -> None:
-        self.stopped.discard(robot)
+        self.stopped.pop(robot, None)
 
     async def held_by_program(self, robot: int, text: str) -> None:
         """A URScript program sent to the robot's UR interfaces holds it (cell.ur): the data plane's

@@ -71,7 +71,8 @@ class Engine(RobotBook):
         self.not_at_goal = 0  # motions that ended with the robot read elsewhere (answered failed)
         self.last_switch: Switch | None = None
         self.unfinished: dict[int, Goal] = {}  # robot -> the motion a stop interrupted (for resume)
-        self.stopped: set[int] = set()  # robots stopped over the Responsive Link, until released
+        # robots stopped over the Responsive Link, until released (-> when we heard it, monotonic s)
+        self.stopped: dict[int, float] = {}
         self.programs: dict[int, str] = {}  # robots a URScript program holds (cell.ur): what holds them
         self.lost: list[tuple[float, str]] = []  # (monotonic s, reason) of each loss, for the record
         # set while supervise() has the tables in hand: motions wait for it (a take-over's flush

@@ -29,6 +29,7 @@ import numpy as np
 import rerun as rr
 
 from cell.recorder import base_position, each, serve
+from cell.recorder.blueprint import cell_blueprint
 from cell.recorder.events import EVENT_TOPICS, Event, Events
 from cell.recorder.scene import ArmDrawer
 from cell.recorder.series import SeriesBatch
@@ -302,6 +303,8 @@ async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
     """Draw the cell until cancelled, as [recorder] says (its mode is not "off")."""
     cfg = ctx.config.recorder
     rec = open_recording(cfg.mode, cfg.path, ctx.config.cell.name)
+    camera = "vision" in ctx.config.services.run
+    rec.send_blueprint(cell_blueprint([r.name for r in ctx.config.robots], camera))
     r = Recorder(ctx, rec)
     r.start()
     bus = ctx.bus

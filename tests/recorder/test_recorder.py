@@ -133,6 +133,17 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
         [str(rerun), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120
     )
     assert check.returncode == 0, check.stderr
+    # the view comes laid out for the cell (cell.recorder.blueprint): the blueprint is in the file,
+    # its views named after the cell's robots
+    printed = subprocess.run(
+        [str(rerun), "rrd", "print", "-vvv", str(rrd)], capture_output=True, text=True, timeout=120
+    ).stdout
+    for view in (
+        "r1: joint position (rad)",
+        "r2: velocity and command (rad/s)",
+        "data plane: status -> command",
+    ):
+        assert view in printed, view
 
 
 def test_cell_demo_runs_the_main_job_end_to_end(tmp_path) -> None:

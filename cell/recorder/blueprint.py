@@ -1,0 +1,58 @@
+"""The live view's layout (a Rerun blueprint), made for a robot cell rather than left to Rerun's guess.
+
+Rerun's own guess is a grid with a view per entity root: the services' restart counters took as
+much room as the arms.  Here the arms in 3D take the largest area (tool paths as trails, the active
+TP marked, the planned TPs), beside them each robot's joints (position actual and planned, velocity
+actual and commanded), the data plane's time from status to command, the camera and the event log;
+the health counters (data plane, services, Responsive Link, the skill requests) sit in a second
+tab, out of the way until wanted.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import rerun.blueprint as rrb
+
+
+def robot_joints(robot: str) -> rrb.Vertical:
+    """One robot's joints: position (actual, planned), velocity (actual, commanded)."""
+    return rrb.Vertical(
+        rrb.TimeSeriesView(origin=f"joints/{robot}/position", name=f"{robot}: joint position (rad)"),
+        rrb.TimeSeriesView(origin=f"joints/{robot}/velocity", name=f"{robot}: velocity and command (rad/s)"),
+        name=robot,
+    )
+
+
+def cell_blueprint(robots: Sequence[str], camera: bool = True) -> rrb.Blueprint:
+    """The cell's view: `robots` by name; camera: the vision service runs (its image has a place)."""
+    side: list[rrb.Container | rrb.View] = [
+        rrb.Tabs(*(robot_joints(r) for r in robots), name="joints")
+        if robots
+        else rrb.Vertical(name="joints"),
+        rrb.TimeSeriesView(
+            origin="dataplane",
+            contents=["dataplane/batch_p50_us", "dataplane/batch_p99_us"],
+            name="data plane: status -> command (us, p50 / p99)",
+        ),
+    ]
+    if camera:
+        side.append(rrb.Spatial2DView(origin="vision/camera", name="camera"))
+    side.append(rrb.TextLogView(origin="events", name="events"))
+    cell = rrb.Horizontal(
+        rrb.Spatial3DView(origin="/", contents=["robots/**"], name="cell"),
+        rrb.Vertical(*side, row_shares=[3, 1, 2, 2][: len(side)]),
+        column_shares=[3, 2],
+        name="cell",
+    )
+    health = rrb.Tabs(
+        rrb.TimeSeriesView(
+            origin="dataplane", contents=["dataplane/**", "- dataplane/drops/**"], name="data plane"
+        ),
+        rrb.TimeSeriesView(origin="dataplane/drops", name="data plane drops"),
+        rrb.TimeSeriesView(origin="services", name="services"),
+        rrb.TimeSeriesView(origin="rlink", name="Responsive Link"),
+        rrb.Spatial2DView(origin="gantt", name="skill requests"),
+        name="health",
+    )
+    return rrb.Blueprint(rrb.Tabs(cell, health, active_tab=0), collapse_panels=True)
