@@ -30,7 +30,9 @@ from cell.v1 import health_pb2
 log = logging.getLogger("cell")
 
 
-async def up(config: CellConfig, *, duration: float | None = None, log_level: str = "INFO") -> int:
+async def up(
+    config: CellConfig, *, duration: float | None = None, log_level: str = "INFO", counters: bool = False
+) -> int:
     """Run the cell until SIGINT/SIGTERM or `duration`; print a summary; 0 on a clean stop.
 
     The services go into processes as `[services] layout` says (cell/layout.py); the
@@ -50,7 +52,7 @@ async def up(config: CellConfig, *, duration: float | None = None, log_level: st
             except SwitchError as exc:
                 print(f"cell: {exc}", file=sys.stderr)
                 return 2
-        return await _up(config, duration=duration, log_level=log_level)
+        return await _up(config, duration=duration, log_level=log_level, counters=counters)
 
 
 async def _join(config: CellConfig) -> None:
@@ -98,7 +100,7 @@ async def already_running(config: CellConfig) -> str:
     )
 
 
-async def _up(config: CellConfig, *, duration: float | None, log_level: str) -> int:
+async def _up(config: CellConfig, *, duration: float | None, log_level: str, counters: bool) -> int:
     layout = config.services.layout
     registry = StatusRegistry.of(config)
     stop = asyncio.Event()
@@ -140,8 +142,8 @@ async def _up(config: CellConfig, *, duration: float | None, log_level: str) -> 
         print(f"cell: {failed}; the cell stopped (services.on_failure = 'stop')", file=sys.stderr)
         return 1
     log.info("cell %r stopped after %.1f s", config.cell.name, time.monotonic() - t0)
-    if final is not None:
-        print(format_status(final))
+    if final is not None:  # (the counters with --verbose, or from `cell status` while it runs)
+        print(format_status(final, counters=counters))
     return 0
 
 

@@ -54,6 +54,9 @@ def arguments(p: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="write the run as a ROS 2 bag (rosbag2, MCAP) in DIR as well ([recorder] bag)",
     )
+    p.add_argument(
+        "--verbose", "-v", action="store_true", help="at the stop, every service's counters below the table"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,7 +72,9 @@ def run(args: argparse.Namespace) -> int:
     if layout is not None:
         config = replace(config, services=replace(config.services, layout=layout))
     check_all(config)  # unknown services are config errors (exit 2), before anything starts
-    return aio.run(launcher.up(config, duration=args.duration, log_level=args.log_level))
+    return aio.run(
+        launcher.up(config, duration=args.duration, log_level=args.log_level, counters=args.verbose)
+    )
 
 
 register(

@@ -161,6 +161,12 @@ def test_cell_demo_runs_the_main_job_end_to_end(tmp_path) -> None:
     for line in ("moves done", "tool path error at TPs", "SnP queries answered", "verified", "real time"):
         assert line in text, text[-3000:]
     assert "NOT verified" not in text
+    # a verdict where there is an aim, the worst TP named, which data plane ran and why; the counters
+    # left to `cell status` (or `cell up --verbose`)
+    worst = re.search(r"tool path error at TPs, max / median\s+([✓✗]) .*worst: (r[12]), plan (\d+)", text)
+    assert worst is not None, text[-3000:]
+    assert re.search(r"data plane\s+(numpy|xdp) \(", text) and re.search(r"stop error .*\s[✓✗] ", text)
+    assert "forwarder.messages_in=" not in text and "bus.published=" not in text
     # the default cell keeps real time under the demo's load: the robots (the ground truth of every
     # figure) miss fewer than 0.5% of their 2 ms ticks (aim 0.1%; single-process missed 15-30%)
     got = re.search(r"robot ticks missed / late sends\s+([\d,]+) of ([\d,]+)", text)
