@@ -186,12 +186,15 @@ def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
         )
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows]
+    lines += format_robots(st)
     if throttled := rt_throttling(st):
         lines.append(throttled)
     if counters:
         for s in st.services:
             if s.last.counters:
-                items = sorted((k, v) for k, v in s.last.counters.items() if not _link_counter(k))
+                items = sorted(
+                    (k, v) for k, v in s.last.counters.items() if not _link_counter(k) and not _robot_state(k)
+                )
                 lines.append(f"  {s.name}: " + ", ".join(f"{k}={_fmt_count(v)}" for k, v in items))
         lines += format_links(st)
     return "\n".join(lines)
@@ -223,6 +226,37 @@ def rt_throttling(st: health_pb2.CellStatus) -> str | None:
         f"RT throttling: the kernel held real-time processes back ({each}; longest {longest:.0f} ms): "
         f"they used up their share of a CPU; see {RT_DOC}"
     )
+
+
+# what each code of robot.<name>.state means (cell.robot.node.robot_states)
+ROBOT_STATES = (
+    "standing",
+    "moving",
+    "protective stop (no commands for its watchdog's windows)",
+    "e-stopped (cell resume releases it)",
+    "held by its UR state (powered off, braked or safety-stopped)",
+    "under a URScript program",
+    "mute (a fault injected: robot/<name>.silence)",
+)
+
+
+def _robot_state(key: str) -> bool:
+    return key.startswith("robot.") and key.endswith(".state")
+
+
+def format_robots(st: health_pb2.CellStatus) -> list[str]:
+    """What each robot is doing, from the robots services' heartbeats: a table of its own."""
+    rows = []
+    for s in st.services:
+        for k, v in sorted(s.last.counters.items()):
+            if _robot_state(k):
+                code = int(v)
+                what = ROBOT_STATES[code] if 0 <= code < len(ROBOT_STATES) else f"? (state {code})"
+                rows.append((k[len("robot.") : -len(".state")], what))
+    if not rows:
+        return []
+    width = max(len("ROBOT"), *(len(r) for r, _ in rows))
+    return [f"{'ROBOT':<{width}}  STATE", *(f"{r:<{width}}  {what}" for r, what in rows)]
 
 
 def _link_counter(key: str) -> bool:

@@ -35,6 +35,7 @@ from cell.robot.node import (
     build_groups,
     counters,
     has_node,
+    robot_states,
 )
 from cell.service import ServiceContext, ServiceSpec
 from cell.ur.remote import Daemon
@@ -70,6 +71,7 @@ async def run(ctx: ServiceContext) -> None:
         async def report() -> None:
             while True:
                 ctx.counters.update(counters(groups))
+                ctx.counters.update(robot_states(groups))
                 for u in urs:
                     ctx.counters.update(u.report())
                 if daemons:

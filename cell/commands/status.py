@@ -14,7 +14,10 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--timeout", type=seconds, default=2.0, metavar="S", help="give up after S seconds (default 2)"
     )
-    p.add_argument("--json", action="store_true", help="print the status as JSON")
+    p.add_argument("--json", action="store_true", help="print the status as JSON (one line)")
+    p.add_argument(
+        "--indent", type=int, nargs="?", const=2, metavar="N", help="with --json: indented N spaces (2)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,7 +38,8 @@ def run(args: argparse.Namespace) -> int:
             json.dumps(
                 json_format.MessageToDict(
                     st, always_print_fields_with_no_presence=True, preserving_proto_field_name=True
-                )
+                ),
+                indent=args.indent,
             )
         )
     else:

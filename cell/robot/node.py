@@ -18,6 +18,7 @@ from cell.rlink.events import Reason, RobotState, StateReport
 from cell.rlink.leaf import LeafNode
 from cell.rlink.packet import EventType, Kind
 from cell.rlink.station import Order
+from cell.robot.drive import HOLD_ESTOP, HOLD_UR
 from cell.robot.emulator import RobotGroup
 from cell.v1 import robot_pb2
 
@@ -234,6 +235,38 @@ def counters(groups: list[RobotGroup]) -> dict[str, float]:
             total[k] = max(total[k], v) if k.startswith("lateness") else total[k] + v
     total["robots"] = sum(g.n for g in groups)
     return dict(total)
+
+
+# what a robot is doing, as `cell status` shows it (a code in the robots service's counters,
+# robot.<name>.state; cell.status.ROBOT_STATES names them)
+STANDING, MOVING, PROTECTIVE_STOP, ESTOPPED, UR_HELD, UR_SCRIPT, SILENT = range(7)
+
+
+def robot_states(groups: list[RobotGroup]) -> dict[str, float]:
+    """Each robot's state now (robot.<name>.state): the first that holds of e-stopped, held by its
+    UR state (powered off, braked, safety-stopped), protective stop, mute, under a URScript program,
+    moving, standing."""
+    out: dict[str, float] = {}
+    now = time.monotonic()
+    for g in groups:
+        d = g.drives
+        for row, r in enumerate(g.robots):
+            if d.holds[row] & HOLD_ESTOP:
+                state = ESTOPPED
+            elif d.holds[row] & HOLD_UR:
+                state = UR_HELD
+            elif d.stopped[row]:
+                state = PROTECTIVE_STOP
+            elif g.silent_until[row] > now:
+                state = SILENT
+            elif d.scripted[row]:
+                state = UR_SCRIPT
+            elif np.abs(g.backend.qd[row]).max() >= STILL_RAD_S:
+                state = MOVING
+            else:
+                state = STANDING
+            out[f"robot.{r.name}.state"] = state
+    return out
 
 
 def has_node(config: CellConfig) -> bool:

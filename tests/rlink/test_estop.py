@@ -91,6 +91,15 @@ async def test_an_estop_skill_stops_a_moving_robot_and_motions_are_refused_until
         await counters_until(
             config, "robots", lambda c: c.get("rlink.estops", 0) >= 1 and c.get("rlink.stopped") == 1
         )
+        # cell status says what each robot is doing, in a table of its own
+        from cell.robot.node import ESTOPPED
+        from cell.status import format_status
+
+        await counters_until(config, "robots", lambda c: c.get("robot.r1.state") == ESTOPPED)
+        table = format_status(await fetch_status(config, timeout=2.0), counters=False).splitlines()
+        robots = table[next(i for i, line in enumerate(table) if line.startswith("ROBOT ")) + 1 :]
+        assert robots[0].split()[:2] == ["r1", "e-stopped"] and robots[1].split()[0] == "r2", table
+        assert robots[1].split()[1] in ("standing", "moving"), table
         # released, it moves again, from where it stands
         await r1.send(b"rs000001:resume\r\n")
         (resumed,) = await r1.replies(1)

@@ -148,6 +148,10 @@ async def test_cell_status_command(start_cell) -> None:
     by_name = {s["name"]: s for s in data["services"]}
     assert by_name["bus"]["last"]["counters"]["forwarder.messages_in"] > 0
     assert by_name["echo"]["last"]["state"] == "SERVICE_STATE_RUNNING"
+    assert len(js.stdout.strip().splitlines()) == 1  # one line, for machines
+    pretty = run_cell("status", "--config", str(cell.path), "--json", "--indent")
+    assert pretty.returncode == 0 and pretty.stdout.startswith('{\n  "')  # and for people
+    assert json.loads(pretty.stdout)["mode"] == "groups"
     assert by_name["echo"]["last"]["uptime_s"] > 0
     # every service reports its share of its process's event loop, and the process its CPU time
     assert by_name["echo"]["last"]["process"] == "side"
