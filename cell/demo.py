@@ -94,7 +94,7 @@ def backend_why(config: Any) -> str:
         return "numpy in user space: XDP needs root"
     if not OBJECT.exists():
         return "numpy in user space: the XDP object is not built (make bpf needs clang)"
-    return "numpy in user space: the default; --config examples/xdp.toml runs it in the kernel"
+    return "numpy in user space: the embedded default (--config examples/xdp.toml runs it in the kernel)"
 
 
 def real_time_rows(status: health_pb2.CellStatus, rb: dict[str, float]) -> list[tuple[str, str]]:
