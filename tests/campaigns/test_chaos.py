@@ -77,3 +77,46 @@ async def test_a_campaign_on_the_default_cell_holds_its_promises() -> None:
     assert dp["held"] == 1 and max(dp["detect_ms"]) < 100  # the robots stopped on their own, at once
     assert dp["moved_after_rest_mrad"] < 2.0 and dp["stop_ms_max"] <= 34.0  # 3+1 windows of 8 ms, a tick
     json.dumps(result)  # the figures are machine-readable as they are
+
+
+def test_an_estop_is_judged_by_the_robots_truth_against_their_braking() -> None:
+    """Each robot must stand within its braking from the speed it had (+ ESTOP_MARGIN_MS) of the order,
+    by its truth; with the hub down no order gets through, and the link's watchdog must stop it."""
+    from cell.chaos.campaign import ESTOP_MARGIN_MS, Campaign, EStop
+    from cell.chaos.faults import Action, Fault
+    from cell.config import load_config
+
+    config = load_config(None)
+    robots = [r.name for r in config.robots]
+
+    def camp_with(stop_after_ms: dict[str, float], order_ns: int) -> Campaign:
+        """Robots at 0.5 rad/s until stop_after_ms past the order, then at rest (10 ms truth)."""
+        obs = Observer.__new__(Observer)
+        obs.truth = {}
+        for r in robots:
+            t = np.arange(order_ns - 500_000_000, order_ns + 3_000_000_000, 10_000_000)
+            qd = np.where(t < order_ns + stop_after_ms[r] * 1e6, 0.5, 0.0)
+            obs.truth[r] = deque((int(ti), float(v), np.zeros(6), False) for ti, v in zip(t, qd, strict=True))
+        camp = Campaign.__new__(Campaign)
+        camp.config, camp.obs, camp.robots = config, obs, robots
+        return camp
+
+    bound = 0.5 / 5.0 * 1e3 + ESTOP_MARGIN_MS  # the UR5e's joints brake at 5 rad/s^2
+    fault = Fault("kill:vision", (Action("kill", "vision"),), ())
+    t0, order = 1_000_000_000_000, 1_001_200_000_000
+    order_heard = EStop(order, {r: 120.0 for r in robots})
+    ok, why = camp_with({r: bound - 20 for r in robots}, order)._estop_held(
+        fault, order_heard, t0, order + 2 * 10**9
+    )
+    assert ok, why
+    late = {r: bound - 20 for r in robots} | {robots[0]: bound + 40}
+    ok, why = camp_with(late, order)._estop_held(fault, order_heard, t0, order + 2 * 10**9)
+    assert not ok and why.startswith("by the order"), why
+    # the hub killed: no report, the robots stand by the link's watchdog ([rlink] watchdog_s x 1.25)
+    hub = Fault("kill:rlink", (Action("kill", "rlink"),), ())
+    unheard = EStop(order, {}, "robot(s) [1, 2] did not report still within 5.0 s")
+    watchdog = t0 + int(config.rlink.watchdog_s * 1.25e9)
+    ok, why = camp_with({r: (watchdog - order) / 1e6 + bound - 20 for r in robots}, order)._estop_held(
+        hub, unheard, t0, order + 2 * 10**9
+    )
+    assert ok and why.startswith("by the link's watchdog"), why

@@ -129,3 +129,19 @@ async def test_a_cell_held_back_by_rt_throttling_says_so_in_cell_status(start_ce
     assert "robots " in said and "docs/running.md#rt-throttling" in said
     table = await asyncio.to_thread(run_cell, "status", "--config", str(cell.path))
     assert table.returncode == 0 and "RT throttling: the kernel held" in table.stdout, table.stdout
+
+
+def test_many_short_waits_over_a_long_while_are_no_hold(monkeypatch) -> None:
+    """A busy loop that reaches its check seldom sums short waits behind other real-time threads: 9.5 s
+    of them over 28 s of a flooded hub read as one 9.5 s hold.  Only a wait that filled at least half
+    the time since the last check is one."""
+    from cell import sched
+
+    held = sched.Held()
+    run_delay = iter([0, 0, 9_500_000_000, 9_500_000_000 + 40_000_000])
+    monkeypatch.setattr(held, "_read", lambda: next(run_delay))
+    held._delay = held._read()
+    assert held.check(1_000_000_000) == 0  # the first check only takes a baseline
+    assert held.check(29_000_000_000) == 0  # 9.5 s of waits over 28 s: not a hold
+    assert held.check(29_050_000_000) == 40_000_000  # 40 ms of the last 50: held back
+    assert held.events == 1 and held.max_ns == 40_000_000
