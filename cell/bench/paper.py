@@ -70,6 +70,13 @@ def _plt() -> Any:
     return plt
 
 
+def _whole_numbers(ax: Any) -> None:
+    """Ticks only at whole numbers: the axis counts things (TPs, stops, re-plans)."""
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+
+
 def _save(fig: Any, out: Path, name: str) -> str:
     fig.tight_layout()
     fig.savefig(out / name, dpi=90)
@@ -90,10 +97,21 @@ def accuracy(quick: bool, out: Path, log: Log) -> list[Section]:
     plt = _plt()
     joint, linear = np.concatenate(s["path_joint_mm"]), np.concatenate(s["path_linear_mm"])
     fig, ax = plt.subplots(figsize=(6, 3.2))
+    first_linear = len(s["path_joint_mm"])
     for i, e in enumerate(s["path_joint_mm"] + s["path_linear_mm"]):
-        ax.plot(np.arange(1, len(e) + 1), e, marker=".", lw=0.8, label="joint moves" if i == 0 else None)
+        label = "joint moves" if i == 0 else "straight lines" if i == first_linear else None
+        ax.plot(
+            np.arange(1, len(e) + 1),
+            e,
+            marker=".",
+            lw=0.8,
+            label=label,
+            color="C0" if i < first_linear else "C1",
+        )
     ax.axhline(1.0, color="k", ls="--", lw=0.8, label="1 mm")
     ax.set_xlabel("TP of the move")
+    _whole_numbers(ax)
+    ax.legend(fontsize=7)
     ax.set_ylabel("tool path error (mm)")
     ax.set_title("tool path error at TPs, every move (MuJoCo arm)")
     path = Section(
@@ -122,6 +140,7 @@ def accuracy(quick: bool, out: Path, log: Log) -> list[Section]:
     ax.semilogy(np.arange(1, len(s["stop_rad"]) + 1), s["stop_rad"], "o")
     ax.axhline(1e-7, color="k", ls="--", lw=0.8, label="1e-7 rad")
     ax.set_xlabel("stop")
+    _whole_numbers(ax)
     ax.set_ylabel("|q - goal| (rad)")
     ax.legend()
     stop = Section(
@@ -161,6 +180,7 @@ def accuracy(quick: bool, out: Path, log: Log) -> list[Section]:
         np.arange(1, n + 1), np.array(s["switch_paper_rad"]) * 1000, "s", label="Sec. 6.1 formula, binned"
     )
     ax.set_xlabel("re-plan")
+    _whole_numbers(ax)
     ax.set_ylabel("|p_start - p_status(switch)| (mrad)")
     ax.legend()
     switch = Section(
@@ -577,7 +597,7 @@ def write_page(
         parts.append("</table>")
         if s.notes:
             parts.append(f"<p>{e(s.notes)}</p>")
-        parts.append(f"<p><small>{s.seconds:.1f} s</small></p>")
+        parts.append(f"<p><small>this experiment's share of the run: {s.seconds:.1f} s</small></p>")
     parts.append(
         "<script type=application/json id=figures>"
         + e(json.dumps({s.key: s.figures for s in sections}))
