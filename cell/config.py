@@ -665,7 +665,7 @@ def _listen_follows_backend(data: dict[str, Any]) -> dict[str, Any]:
     switch = dp.get("xdp", {}).get("switch_addr") if isinstance(dp.get("xdp"), dict) else None
     if not isinstance(switch, str):
         return data
-    port = str(default["listen"]).rpartition(":")[2]
+    port = parse_host_port(default["listen"])[1]
     return {**data, "dataplane": {**dp, "listen": f"{switch}:{port}"}}
 
 

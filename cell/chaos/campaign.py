@@ -441,14 +441,14 @@ class Campaign:
             for r, (m, v, t) in lunge_at.items()
         )
         # the robots' protective stops after the fault
-        stops = [(t - t0) / 1e6 for t, r in self.obs.stops if t0 <= t <= t_check]
+        stopped_at = [((t - t0) / 1e6, r) for t, r in self.obs.stops if t0 <= t <= t_check]  # (ms, robot)
+        stops = [ms for ms, _ in stopped_at]
         if "stop_windows" in fault.promises:
             # (a robot looks at its watchdog on its ticks: the one after the last window ends it)
             bound = max((self.watchdog[r] + 1) * self.window_ms[r] + self.tick_ms[r] for r in self.robots)
             first = {}
-            for t, r in self.obs.stops:
-                if t0 <= t <= t_check:
-                    first.setdefault(r, (t - t0) / 1e6)
+            for ms, r in stopped_at:
+                first.setdefault(r, ms)
             held["stop_windows"] = len(first) == len(self.robots) and max(first.values()) <= bound
             detail["stop_windows"] = f"stops after {sorted(first.values())} ms (bound {bound:.0f} ms)"
         if "reattached" in fault.promises:
@@ -460,7 +460,7 @@ class Campaign:
             detail["reattached"] = f"grew: {grew}"
         if "kernel_answers" in fault.promises:  # (the program in the kernel kept the robots commanded)
             held["kernel_answers"] = not stops
-            who = sorted((round((t - t0) / 1e6, 1), r) for t, r in self.obs.stops if t0 <= t <= t_check)
+            who = sorted((round(ms, 1), r) for ms, r in stopped_at)
             detail["kernel_answers"] = f"protective stops (ms after the fault, robot): {who}" if stops else ""
         after = recovered_st
         if "packet_path" in fault.promises:

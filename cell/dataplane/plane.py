@@ -466,7 +466,7 @@ class DataPlane:
                 dropped_ns=int(t.reg_dropped_ns[e]),
                 stalled=bool(t.reg_stalled[e]),
                 dropped_why=_DROP_WHY.get(int(t.reg_dropped_why[e]), ""),
-                stopped=bool(self.pipeline.reg_stop[robot]),
+                stopped=self.stopped(robot),
             )
         return st
 
