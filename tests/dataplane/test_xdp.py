@@ -349,7 +349,9 @@ async def test_a_detached_program_is_answered_for_from_user_space_and_attached_a
             detach = ["ip", "-n", tag, "link", "set", "dev", f"{tag}1", "xdpgeneric", "off"]
             subprocess.run(detach, check=True)
             assert "xdpgeneric" not in xdp_on_port()
+            robot.sendto(b"\x00" * 23, dst)  # junk, passed up too: dropped by the program, counted
             second = await exchange(2)  # answered all the same: from user space, by the program
+            assert plane.counters()["rejected.length"] == 1
             assert second.size == 6 and (second["kind"] == 1).all() and (second["seq"] == 2).all()
             async with asyncio.timeout(5):  # (the attach runs in the namespace's thread meanwhile)
                 while plane.counters()["xdp.reattached"] < 1:
