@@ -134,6 +134,7 @@ def tune(sock: zmq.Socket, config: BusConfig) -> zmq.Socket:
 
 
 _waiting: set[int] = set()
+DROP_NEWS_S = 0.5  # a dropped bus connection is news only if no clean stop began within this
 RECHECK_S = 0.1  # a waiter looks at EVENTS this often even if the FD never says so (see readable()):
 # well inside the controller's 0.5 s verdict on a silent data plane (DEAD_S), which one lost edge at
 # 0.5 s once reached (an RPC reply left waiting in the queue reads as a data plane gone)
@@ -436,16 +437,22 @@ class Bus:
                     self.disconnects += 1
                     # (not news unless it cost answers: a clean stop, where the bus goes as everything
                     # goes; a refusal said already; a client's failure to connect, said in its error)
-                    quiet = (
-                        aio.shutting_down() or self.refused or not (self.joined or self.patient)
-                    ) and n == 0
-                    level = logging.DEBUG if quiet else logging.WARNING
-                    log.log(
-                        level,
-                        "%s: the bus connection dropped (%d waiting request(s) answered)",
-                        self.source,
-                        n,
-                    )
+                    quiet = (self.refused or not (self.joined or self.patient)) and n == 0
+                    if n or quiet:
+                        self._say_dropped(n, quiet)
+                    else:  # (a clean stop's SIGTERM can reach this process just after the bus went)
+                        asyncio.get_running_loop().call_later(DROP_NEWS_S, self._say_dropped, n, False)
+
+    def _say_dropped(self, n: int, quiet: bool) -> None:
+        """Log a dropped bus connection: a warning unless nothing was lost by it and it is expected
+        (a clean stop, where the bus goes as everything goes)."""
+        quiet = (quiet or aio.shutting_down()) and n == 0
+        log.log(
+            logging.DEBUG if quiet else logging.WARNING,
+            "%s: the bus connection dropped (%d waiting request(s) answered)",
+            self.source,
+            n,
+        )
 
     async def _stop_tasks(self) -> None:
         tasks = [t for t in (self._reader, *self._watchers, *self._handlers) if t is not None]

@@ -40,7 +40,7 @@ from cell.controller.schedule import (
     Switch,
     Track,
     branch_point,
-    predict_at,
+    predict_state,
     stands_at,
     tp_batch,
 )
@@ -206,14 +206,16 @@ class Controller(Engine):
         self, trajectories: dict[int | str, Trajectory]
     ) -> dict[int, tuple[Track, TimedMotion]]:
         """Each trajectory against its robot's limits (PlanError naming the first offending point), as
-        the TimedMotion it will run as (its spline solved once: checked, then followed)."""
+        the TimedMotion it will run as (its spline solved once: checked, then followed).  A trajectory
+        planned elsewhere may use the drives' whole acceleration: the controller's own a_max (what its
+        TPs track closely) is for the motions it plans."""
         checked: dict[int, tuple[Track, TimedMotion]] = {}
         for robot, traj in trajectories.items():
             track = self.track(robot)
             lim, arm = track.limits, self.arm_of(track.robot)
             timed = TimedMotion(traj)
             try:
-                timed.check(arm.limits.q_min, arm.limits.q_max, lim.v_max, lim.a_max)
+                timed.check(arm.limits.q_min, arm.limits.q_max, lim.v_max, arm.limits.a_max)
             except TrajectoryError as exc:
                 named = f" {traj.name!r}" if traj.name else ""
                 raise PlanError(f"robot {track.robot}: trajectory{named}: {exc}") from None
@@ -371,11 +373,12 @@ class Controller(Engine):
             if k is None:
                 return None
             t_b = seg.t_ns(k)
-            q_pred, v_pred = predict_at(seg, q_s, v_s, status_ns, t_b)
+            loop = self.loop(track)
+            (q_pred, v_pred, held), _ = predict_state(seg, loop, (q_s, v_s, status_ns), t_b)
             motion = plan(q_pred, v_pred)
             tick0 = self.phase_at(seg, t_b)
             sections = cut(
-                motion, self.rate_hz, np.resize(self.gain, track.joints), self.loop(track), v_pred, tick0
+                motion, self.rate_hz, np.resize(self.gain, track.joints), loop, v_pred, tick0, held
             )
             ids = track.take_ids(len(sections) + 1)
             new = Segment(t_b, motion, sections, ids, tick0 if seg.tick0 is not None else None, seg.robot)

@@ -28,6 +28,7 @@ from cell.controller.link import Link
 from cell.controller.plan import Motion, MotionLimits, PlanError
 from cell.controller.robots import RobotBook
 from cell.controller.schedule import (
+    STOP_MARGIN_NS,
     TIDY_NS,
     Alternate,
     Goal,
@@ -36,6 +37,7 @@ from cell.controller.schedule import (
     MotionStopped,
     NotAtGoal,
     Segment,
+    StopPlan,
     Switch,
     Track,
     concat,
@@ -45,7 +47,7 @@ from cell.controller.schedule import (
     stands_at,
     status_of,
     stop_limits,
-    stop_segment,
+    stop_plan,
     tidy_ns,
     tp_batch,
 )
@@ -68,6 +70,8 @@ class Engine(RobotBook):
         self.tracks: dict[int, Track] = {}
         self.plan_ns = 100_000_000  # how long planning a re-plan takes (measured, pessimistic)
         self.late_starts = 0  # motions whose first TPs were in place only after their start time
+        self.stop_plan_ns = 5_000_000  # how long planning a stop takes (measured, pessimistic)
+        self.late_stops = 0  # stops in place after the command window they were planned for began
         self.not_at_goal = 0  # motions that ended with the robot read elsewhere (answered failed)
         self.last_switch: Switch | None = None
         self.unfinished: dict[int, Goal] = {}  # robot -> the motion a stop interrupted (for resume)
@@ -442,22 +446,18 @@ class Engine(RobotBook):
             await self._halt(t)
         st = await self.link.state()
         by_id = {r.robot_id: r for r in st.robots}
-        apply_ns = self.link.now() + self.link.rtt_ns
-        batches, registers, remove, results = [], [], [], {}
-        for t in tracks:
-            status = status_of(t, by_id)
-            if status is None or any(r in self.stopped for r in t.robots):
-                continue  # never heard of, or stopping on the data plane's ramp already: nothing to do
-            seg = stop_segment(
-                t, status, self.link.now(), apply_ns, self.stop_limits(t), self.gain, self.loop(t)
-            )
-            batches.append(tp_batch(t, seg, 0, len(seg.ids)))
-            registers.append((t.robot, seg.ids[0], seg.t_ns(0)))
+        stops = self._plan_stops(tracks, by_id)
+        batches, registers, remove, results, modelled = [], [], [], {}, {}
+        for t, stop in stops:
+            seg = stop.segment
+            batches.append(stop.batch)
+            registers.append(stop.register)
             remove += [(t.robot, i) for i in t.loaded]
-            t.loaded, t.segment, t.q_hold = list(seg.ids), seg, seg.sections.q[-1].copy()
+            t.loaded, t.segment, t.q_hold = [int(i) for i in stop.batch.id], seg, seg.sections.q[-1].copy()
             t.stop_reason, t.epoch = t.stop_reason or "the robot was stopped", t.epoch + 1
             self.publish_plan(t, seg)
-            results[t.robot] = MotionResult(apply_ns, seg.end_ns, seg.sections.q[-1].copy())
+            results[t.robot] = MotionResult(seg.start_ns, seg.end_ns, seg.sections.q[-1].copy())
+            modelled[t.robot] = stop.modelled
         flushed = sorted({r for t in tracks for r in t.robots}) if flush else []
         if flushed:
             remove = []
@@ -467,11 +467,51 @@ class Engine(RobotBook):
                 reply = await self.dp.update(insert=insert, remove=remove, registers=registers, flush=flushed)
                 for t in tracks:
                     t.loads += 1
-            for r in results.values():
-                r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
+            for rid, r in results.items():
+                if not modelled[rid]:
+                    r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
+                    continue
+                if reply.now_ns > self._last_status_ns(self.track(rid), self.track(rid).segment):
+                    self.late_stops += 1  # it brakes a window later than its plan
+                    log.warning(
+                        "stop of robot %s in place %.1f ms into the window it was planned for",
+                        rid,
+                        (reply.now_ns - r.start_ns) / 1e6,
+                    )
+                r.start_ns = max(r.start_ns, reply.now_ns)
             for t in tracks:
                 t.loaded_ns = reply.now_ns
         return results
+
+    def _plan_stops(
+        self, tracks: list[Track], by_id: dict[int, dataplane_pb2.RobotPlaneState]
+    ) -> list[tuple[Track, StopPlan]]:
+        """The tracks' stops, planned for when the update reaches the data plane: after the planning
+        (measured) and half a round trip.  A stop planned from the loop model must be in place
+        before the last status of its first window; planning that overran it is done again for
+        the next window (a stop a window late would brake a window after its plan)."""
+        todo = [(t, s) for t in tracks if (s := status_of(t, by_id)) is not None]
+        todo = [(t, s) for t, s in todo if not any(r in self.stopped for r in t.robots)]
+        stops: list[tuple[Track, StopPlan]] = []
+        for _attempt in range(3):
+            t0 = time.perf_counter_ns()
+            now = self.link.now()
+            apply_ns = now + self.stop_plan_ns * len(todo) + self.link.rtt_ns // 2 + STOP_MARGIN_NS
+            stops = [
+                (t, stop_plan(t, s, now, apply_ns, self.stop_limits(t), self.gain, self.loop(t)))
+                for t, s in todo
+            ]
+            took = (time.perf_counter_ns() - t0) // max(1, len(todo))
+            self.stop_plan_ns = max(took, int(0.7 * self.stop_plan_ns + 0.3 * took))
+            arrive = self.link.now() + self.link.rtt_ns // 2 + STOP_MARGIN_NS
+            if all(not p.modelled or arrive <= self._last_status_ns(t, p.segment) for t, p in stops):
+                break
+        return stops
+
+    def _last_status_ns(self, track: Track, seg: Segment) -> int:
+        """When the last status of the window a segment starts in is due."""
+        loop = self.loop(track)
+        return seg.start_ns + round((loop.window - 1) * loop.status_s * 1e9)
 
     def stop_limits(self, track: Track) -> MotionLimits:
         """A stop brakes with the drives' full deceleration, reached at once (they limit no jerk)."""

@@ -29,6 +29,36 @@ _STEPS = 12  # regula falsi steps after the grid pass, at most (two or three are
 _TOL_RAD = 1e-7  # a fitted TP puts the modelled robot this close to the plan (about 0.1 um at the tool)
 
 
+TRACKABLE = 0.4  # (see trackable_accel)
+
+
+def trackable_accel(drive_a_max: np.ndarray, window_s: float, section_s: float) -> np.ndarray:
+    """The planned acceleration the fitted TPs can keep a robot on, per joint.
+
+    Each section's TP sets one command that holds, nearly constant, through the section, and the
+    command kept at its end acts for the next section's first window: an accelerating robot ends
+    each section below the plan's speed, and the next TP must make up for it with a steeper ramp.
+    That recursion is stable only while (plan's acceleration / drive's) + (window / section) stays
+    below about 1/2 (with more, the speed error grows from TP to TP until no command can put the
+    robot on the plan: 4 mrad, 1.8 mm at the tool, at 2.5 of the drives' 5 rad/s^2 and 10 TP/s).
+    The bound keeps a margin: TRACKABLE rather than 1/2."""
+    return np.asarray(drive_a_max, np.float64) * max(0.05, TRACKABLE - window_s / section_s)
+
+
+@dataclass(frozen=True)
+class LoopTrace:
+    """The modelled robot at a fitted motion's start (row 0) and at each section's end (row k + 1):
+    where the loop model says it is, how fast it goes and the command it keeps, and how many status
+    periods from the motion's start that is.  A motion branching off at a TP, or a stop cutting in
+    between two, starts from this state: the robot's real one, to within the model's accuracy,
+    where a prediction from its last status is off by the sample-and-hold between TPs (mrad)."""
+
+    q: np.ndarray  # (n + 1, dof)
+    v: np.ndarray
+    held: np.ndarray
+    periods: np.ndarray  # (n + 1,) int
+
+
 @dataclass(frozen=True)
 class LoopModel:
     c1: np.ndarray  # the data plane's constants, per joint
@@ -90,10 +120,17 @@ class LoopModel:
         return 6 * self.window * self.status_s
 
     def fit(
-        self, q_end: np.ndarray, t_end: np.ndarray, q0: np.ndarray, v0: np.ndarray, tick0: int = 0
-    ) -> np.ndarray:
+        self,
+        q_end: np.ndarray,
+        t_end: np.ndarray,
+        q0: np.ndarray,
+        v0: np.ndarray,
+        tick0: int = 0,
+        held0: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, LoopTrace]:
         """v_trg for each section (rows of q_end, ending at t_end s) so that the modelled robot,
-        starting at (q0, v0), is on q_end at each section's end.
+        starting at (q0, v0) and keeping the command held0 (default v0), is on q_end at each
+        section's end; and the modelled states on the way (LoopTrace).
 
         Per section: a grid of candidates brackets the crossing (the end position grows with
         v_trg), then regula falsi closes in on it: the loop is piecewise linear in v_trg (a
@@ -101,9 +138,17 @@ class LoopModel:
         """
         dof = q0.size
         joint = np.arange(dof)
-        q, v, held = q0.astype(np.float64), v0.astype(np.float64), v0.astype(np.float64)
+        q, v = q0.astype(np.float64), v0.astype(np.float64)
+        held = v.copy() if held0 is None else np.asarray(held0, np.float64)
         tick, t0 = tick0, 0.0
         out = np.empty((len(t_end), dof))
+        trace = LoopTrace(
+            np.empty((len(t_end) + 1, dof)),
+            np.empty((len(t_end) + 1, dof)),
+            np.empty((len(t_end) + 1, dof)),
+            np.zeros(len(t_end) + 1, np.int64),
+        )
+        trace.q[0], trace.v[0], trace.held[0] = q, v, held
         span = 4.0 * self.v_max + 1.0
         for k in range(len(t_end)):
             n = max(1, round((t_end[k] - t0) / self.status_s))
@@ -136,4 +181,6 @@ class LoopModel:
             q, v, held = state
             tick += n
             t0 = float(t_end[k])
-        return out
+            trace.q[k + 1], trace.v[k + 1], trace.held[k + 1] = q, v, held
+            trace.periods[k + 1] = tick - tick0
+        return out, trace

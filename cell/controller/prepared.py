@@ -39,6 +39,7 @@ from cell.controller.schedule import (
     Switch,
     concat,
     hold_batch,
+    modelled_at,
     tp_batch,
     window_ns,
 )
@@ -237,15 +238,21 @@ async def prepare_alternates(
     ks = [k for k in range(0, len(seg.sections) - 1, max(1, every)) if seg.t_ns(k) >= ahead]
     prepared: dict[str, list[Alternate]] = {}
     batches = []
+    loop = ctl.loop(track)
     for name, q_goal in goals.items():
         branches = []
         for k in ks:
-            t_k = float(seg.sections.t_end[k])
-            q_k, v_k = seg.motion.sample(np.array([t_k]))
-            motion = plan_joint(q_k[0], np.asarray(q_goal, np.float64), track.limits.scaled(speed), v0=v_k[0])
+            # from the loop model's robot at the TP where it has one (what a switch starts from), else
+            # the plan there
+            here = modelled_at(seg, loop, seg.t_ns(k))
+            if here is None:
+                q_k, v_k = seg.motion.sample(np.array([float(seg.sections.t_end[k])]))
+                here = (q_k[0], v_k[0], v_k[0])
+            q_k, v_k, held = here
+            motion = plan_joint(q_k, np.asarray(q_goal, np.float64), track.limits.scaled(speed), v0=v_k)
             tick0 = ctl.phase_at(seg, seg.t_ns(k))
             sections = await asyncio.to_thread(
-                cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), ctl.loop(track), v_k[0], tick0
+                cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), loop, v_k, tick0, held
             )
             ids = track.take_ids(len(sections) + 1)
             alt = Segment(

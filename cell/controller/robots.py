@@ -13,7 +13,7 @@ import numpy as np
 from cell.bus import Bus, BusError, Subscription
 from cell.config import CellConfig
 from cell.controller.link import Link
-from cell.controller.loop import LoopModel
+from cell.controller.loop import LoopModel, trackable_accel
 from cell.controller.plan import MotionLimits
 from cell.controller.schedule import Grid, Segment, Track, grid_start, phase_at
 from cell.robot.arm import ArmModel, arm_model
@@ -37,6 +37,7 @@ class RobotBook:
         # robot -> its tick grid, from its announcements (see grid_start())
         self.grids: dict[int, Grid] = {}
         self._asked: set[int] = set()  # robots asked for their announcement (see know_grid())
+        self._capped: set[int] = set()  # robots whose configured a_max was capped (warned once)
 
     def robot_id(self, robot: int | str) -> int:
         if isinstance(robot, int):
@@ -62,10 +63,11 @@ class RobotBook:
         for rid in robots:
             lim = self.arm_of(rid).limits
             n = lim.v_max.size
+            a_max = np.minimum(lim.a_max, np.resize(np.array(cc.a_max), n))
             per.append(
                 (
                     np.minimum(lim.v_max, np.resize(np.array(dpc.v_max), n)),
-                    np.minimum(lim.a_max, np.resize(np.array(cc.a_max), n)),
+                    np.minimum(a_max, self._trackable_accel(rid, lim.a_max, a_max)),
                     np.resize(np.array(cc.j_max), n),
                 )
             )
@@ -78,6 +80,28 @@ class RobotBook:
             tool_j_max=cc.tool_j_max,
             tool_w_max=cc.tool_w_max,
         )
+
+    def _trackable_accel(self, robot: int, drive: np.ndarray, asked: np.ndarray) -> np.ndarray:
+        """The planned acceleration the robot's TPs can keep it on (LoopModel.trackable_accel), with a
+        warning, once per robot, where the configured controller.a_max asks for more."""
+        r = self.robots.get(robot)
+        status_hz, command_hz = (500, 125) if r is None else (r.status_hz, r.command_hz)
+        window_s = (status_hz // command_hz) / status_hz
+        bound = trackable_accel(drive, window_s, 1.0 / self.config.controller.tp_rate_hz)
+        if np.any(asked > bound + 1e-9) and robot not in self._capped:
+            self._capped.add(robot)
+            log.warning(
+                "robot %s: controller.a_max %s rad/s^2 capped to %s: with the drives' %s, a %.0f ms "
+                "command window and %g TP/s the TPs cannot keep the robot on a plan that accelerates "
+                "harder (docs/controller.md#planned-acceleration)",
+                robot,
+                np.round(asked, 2).tolist(),
+                np.round(np.minimum(asked, bound), 2).tolist(),
+                np.round(drive, 2).tolist(),
+                window_s * 1e3,
+                self.config.controller.tp_rate_hz,
+            )
+        return bound
 
     def loop(self, track: Track) -> LoopModel:
         """The closed loop the track's TPs drive (cell.controller.loop)."""

@@ -31,6 +31,7 @@ class ControllerCounters(Counters):
     alternates_taken: int = 0  # armed alternates taken on an event from the bus
     alternates_refused: int = 0
     late_starts: int = 0  # motions whose first point was due before it reached the data plane
+    late_stops: int = 0  # stops in place after the command window they were planned from began
     not_at_goal: int = 0  # motions that ran to their end with the robot read elsewhere (failed)
     stopped_on_link: int = 0  # robots stopped over the Responsive Link now (a gauge)
     motions_lost: int = 0  # robots whose motion was lost with the data plane (a gauge)
@@ -45,8 +46,9 @@ class ControllerService:
     def report(self) -> dict[str, float]:
         """The counters for the heartbeat, the controller's gauges read now."""
         c, ctl = self.counters, self.ctl
-        c.late_starts, c.not_at_goal, c.stopped_on_link, c.motions_lost = (
+        c.late_starts, c.late_stops, c.not_at_goal, c.stopped_on_link, c.motions_lost = (
             ctl.late_starts,
+            ctl.late_stops,
             ctl.not_at_goal,
             len(ctl.stopped),
             len(ctl.lost),

@@ -8,15 +8,17 @@ engine (cell.controller.engine) sends what these decide and keeps the answers:
   3n TPs per robot are loaded and the controller has a whole episode's time to deliver the next;
 - a motion starts on its robot's tick grid (`grid_start`), so its first TP meets the command window
   the TPs were fitted for;
-- a re-plan branches off at a TP far enough ahead (`branch_point`) from a start state predicted
-  with the paper's formula (`predict_at`, Sec. 6.1);
-- a stop is a motion planned from the last status (`stop_segment`);
+- a re-plan branches off at a TP far enough ahead (`branch_point`) from the loop model's state there
+  where the robot follows it, else the paper's prediction (`predict_state`, `predict_at`, Sec. 6.1);
+- a stop is a motion planned from the model's state at the next command window, bridged to by copies
+  of the old TPs, or from the last status (`stop_plan`);
 - a robot whose trajectory the data plane dropped has its motion end with the reason (`dropped`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -24,8 +26,8 @@ from enum import Enum, StrEnum
 
 import numpy as np
 
-from cell.controller.loop import LoopModel
-from cell.controller.plan import Motion, MotionLimits, plan_stop
+from cell.controller.loop import LoopModel, LoopTrace
+from cell.controller.plan import Motion, MotionLimits, SampledMotion, plan_stop
 from cell.controller.tps import Sections, cut
 from cell.dataplane.tables import TPBatch
 from cell.v1 import dataplane_pb2
@@ -39,6 +41,7 @@ STOP_RATE_HZ = 20.0  # TPs of a stop: sections still long enough to fit them to 
 # section's duration, which can be a fraction of a millisecond: then the resting robot's hold stepped
 # on every status packet, a storm of resubmits costing the data plane CPU for nothing
 HOLD_S = 1.0
+STOP_MARGIN_NS = 1_000_000  # a stop's update is planned to arrive this much before its window's last status
 STALE_STATUS_NS = 50_000_000  # a robot's status older than this: no command reached it, it stands
 WINDOW_NS = 8_000_000  # a command window, for robots that have not told their grid
 
@@ -352,6 +355,49 @@ def predict_at(
     return q_traj[1] + (q_s - q_traj[0]) + (v_s - v_traj[0]) * dt, v_traj[1]
 
 
+State = tuple[np.ndarray, np.ndarray, np.ndarray]  # a robot in the loop: (q, v, the command it keeps)
+
+FOLLOW_RAD = 1e-3  # a status this close to the loop model's robot (plus a period's travel): it follows
+
+
+def modelled_at(seg: Segment, loop: LoopModel, t_ns: int) -> State | None:
+    """The loop model's robot on the segment at t_ns (to the status period), from the state its fit
+    traced at the section's start; after the last TP, the final hold.  None if the TPs were not
+    fitted (short sections: the fine mode)."""
+    s, tr = seg.sections, seg.sections.trace
+    if tr is None:
+        return None
+    n = round((t_ns - seg.start_ns) / (loop.status_s * 1e9))
+    k = max(0, int(np.searchsorted(tr.periods, n, side="right")) - 1)
+    q, v, held = tr.q[k], tr.v[k], tr.held[k]
+    rest = n - int(tr.periods[k])
+    if rest <= 0:
+        return q, v, held
+    p_trg, v_trg = (s.q[k], s.v_ff[k]) if k < len(s) else (s.q[-1], np.zeros_like(v))
+    return loop.run(q, v, held, (seg.tick0 or 0) + int(tr.periods[k]), rest, p_trg, v_trg)
+
+
+def predict_state(
+    seg: Segment, loop: LoopModel, status: tuple[np.ndarray, np.ndarray, int], t_ns: int
+) -> tuple[State, bool]:
+    """The robot's state at t_ns on its running segment, and whether it came from the loop model.
+
+    The loop model's robot, where the robot's last status agrees with it (it follows its TPs):
+    exact at a TP and between TPs too, with the command the robot keeps.  The paper's prediction
+    from the last status (predict_at) is off by the sample-and-hold between TPs: the robot is
+    up to a few mrad off the plan's curve there, and that offset, carried to the branch TP where the
+    robot is back on the plan, was a jump of 3.5 mrad into the new motion.  A robot that does not
+    follow (held on an underrun, stopped by its watchdog) gets the paper's prediction."""
+    q_s, v_s, status_ns = status
+    at_status, then = modelled_at(seg, loop, status_ns), modelled_at(seg, loop, t_ns)
+    if at_status is not None and then is not None:
+        slack = FOLLOW_RAD + np.abs(at_status[1]) * loop.status_s
+        if np.all(np.abs(q_s - at_status[0]) <= slack):
+            return (then[0].copy(), then[1].copy(), then[2].copy()), True
+    q, v = predict_at(seg, q_s, v_s, status_ns, t_ns)
+    return (q, v, v.copy()), False
+
+
 # --- stops and losses ---------------------------------------------------------------------------------
 
 
@@ -362,7 +408,17 @@ def stop_limits(limits: MotionLimits, a_max: np.ndarray) -> MotionLimits:
     return replace(limits, a_max=np.resize(a_max, n) * 0.95, j_max=np.full(n, STOP_JERK))
 
 
-def stop_segment(
+@dataclass
+class StopPlan:
+    """A stop as loaded: its segment, the TPs to insert and the robot's register to set."""
+
+    segment: Segment
+    batch: TPBatch
+    register: tuple[int, int, int]  # (robot, the TP its register points at, when it steps on)
+    modelled: bool  # from the loop model's robot (else from the last status)
+
+
+def stop_plan(
     track: Track,
     status: tuple[np.ndarray, np.ndarray, int],
     now_ns: int,
@@ -370,16 +426,116 @@ def stop_segment(
     limits: MotionLimits,
     gain: np.ndarray,
     loop: LoopModel,
-) -> Segment:
-    """A stop of the track from its last status, in effect at apply_ns; a status older than
-    STALE_STATUS_NS means no command reached the robot: it stands (its watchdog)."""
+) -> StopPlan:
+    """A stop of the track, the update expected at the data plane at apply_ns.
+
+    A robot following its segment brakes on a plan its TPs meet to within their accuracy, as at a
+    switch.  The stop starts at a command window's start t_w, the first whose last status comes
+    after apply_ns: the robot enters that window in the loop model's state and keeps, for that
+    window, the command the old TPs gave it (so the stop's plan coasts that window, then brakes
+    as hard as plan_stop may).  Until t_w the register points at copies of the old segment's TPs
+    (a bridge) that step onto the stop at t_w: however early the update comes, the robot meets the
+    commands the model had for it.  A stop planned from the last status and set at once (as
+    before) missed by a window whenever the update came late in one: 1-3 mm at the stop's TPs.
+
+    A robot not following its segment (held, stopped by its watchdog, a status older than
+    STALE_STATUS_NS: no command reached it, it stands) is stopped from its last status at once."""
     q, v, status_ns = status
+    seg = track.segment
+    if seg is not None and seg.start_ns <= now_ns and now_ns - status_ns <= STALE_STATUS_NS:
+        period = round(loop.status_s * 1e9)
+        w = loop.window
+        origin = seg.start_ns - (seg.tick0 or 0) * period  # a window's start on the segment's grid
+        window = w * period
+        t_w = origin + -(-(apply_ns - origin - (w - 1) * period) // window) * window
+        (q0, v0, held), modelled = predict_state(seg, loop, status, t_w)
+        if modelled:
+            return _modelled_stop(track, seg, loop, t_w, (q0, v0, held), now_ns, limits)
     if now_ns - status_ns > STALE_STATUS_NS:
         v = np.zeros_like(v)
     q_pred = q + v * max(0.0, (apply_ns - status_ns) / 1e9)
     motion = plan_stop(q_pred, v, limits)
     sections = cut(motion, STOP_RATE_HZ, np.resize(gain, track.joints), loop, v)
-    return Segment(apply_ns, motion, sections, track.take_ids(len(sections) + 1))
+    stop = Segment(apply_ns, motion, sections, track.take_ids(len(sections) + 1))
+    return StopPlan(
+        stop, tp_batch(track, stop, 0, len(stop.ids)), (track.robot, stop.ids[0], stop.t_ns(0)), False
+    )
+
+
+def _modelled_stop(
+    track: Track,
+    seg: Segment,
+    loop: LoopModel,
+    t_w: int,
+    state: State,
+    now_ns: int,
+    limits: MotionLimits,
+) -> StopPlan:
+    """The stop as the loop runs it: one TP a command window, each giving the robot the command
+    that brakes it along its path (every joint's velocity scaled down together, the slowest to
+    stop at limits.a_max) from the window after the one it coasts through on the command it keeps.
+    The plan is the loop model's robot under those commands, so the robot is on it at every TP to
+    within the model's accuracy; a plan_stop curve fitted with the usual TPs could not be followed
+    (a section's one number meets its end position, not its end velocity: the robot came out of
+    the braking still moving and overshot its stop by 1-2 mrad)."""
+    period = round(loop.status_s * 1e9)
+    w, dt, window_s = loop.window, loop.status_s, loop.window * loop.status_s
+    q, v, held = (np.array(x, np.float64) for x in state)
+    qs, vs, helds, path = [q], [v], [held], [q]
+    t_end, q_end, v_trg, v_end = [], [], [], []
+    scale = None
+    m = 0
+    while scale is None or m < scale.size:
+        for i in range(w):  # the drive in window m, on the command kept from window m - 1
+            if i == w - 1:
+                q_k, v_k = q, v  # the window's last status, whose answer the robot keeps
+            goal = np.minimum(np.maximum(held, -loop.v_max), loop.v_max)
+            dv = np.clip(goal - v, -loop.a_max * dt, loop.a_max * dt)
+            q, v = q + (v + 0.5 * dv) * dt, v + dv
+            path.append(q)
+        if scale is None:  # once coasted: every joint's velocity down together, to 0 in brake_s
+            brake_s = float(np.max(np.abs(v) / np.maximum(limits.a_max, 1e-9)))
+            windows = max(1, math.ceil(brake_s / window_s - 1e-9))
+            scale = np.clip(1.0 - np.arange(1, windows + 2) * window_s / max(brake_s, 1e-12), 0.0, 1.0)
+            v_coast = v
+        held = scale[m] * v_coast
+        # the TP: u = (1 - c1) v_k + c1 v_trg + c2 (p_trg - q_k), with p_trg the section's end position
+        v_trg.append((held - (1.0 - loop.c1) * v_k - loop.c2 * (q - q_k)) / loop.c1)
+        t_end.append((m + 1) * window_s)
+        q_end.append(q)
+        v_end.append(v)
+        qs.append(q)
+        vs.append(v)
+        helds.append(held)
+        m += 1
+    n = len(t_end)
+    trace = LoopTrace(np.array(qs), np.array(vs), np.array(helds), np.arange(n + 1) * w)
+    sections = Sections(
+        np.array(t_end), np.full(n, window_s), np.array(q_end), np.array(v_trg), np.array(v_end), trace
+    )
+    motion = SampledMotion(np.arange(len(path)) * dt, np.array(path))
+    known = 0 if seg.tick0 is not None else None
+    stop = Segment(t_w, motion, sections, track.take_ids(n + 1), known, seg.robot)
+    # the bridge: the old TPs from the one running now to the one the status before t_w meets
+    s, n_sec = seg.sections, len(seg.sections)
+    t_rel = (np.array([now_ns, t_w - period]) - seg.start_ns) / 1e9
+    first, last = (min(int(x), n_sec) for x in np.searchsorted(s.t_end, t_rel - 1e-12, side="left"))
+    first = min(first, last)
+    copies = list(range(first, last + 1))
+    ids = track.take_ids(len(copies))
+    ends = [seg.t_ns(k) for k in copies[:-1]] + [t_w]
+    starts = [seg.start_ns if first == 0 else seg.t_ns(first - 1), *ends[:-1]]
+    bridge = TPBatch(
+        np.full(len(copies), track.robot, np.int64),
+        np.array(ids, np.int64),
+        np.array([*ids[1:], stop.ids[0]], np.int64),
+        (np.array(ends) - np.array(starts)) / 1e9,
+        np.full(len(copies), track.joints, np.int64),
+        seg.q[copies],
+        seg.v[copies],
+    )
+    batch = concat([bridge, tp_batch(track, stop, 0, len(stop.ids))])
+    return StopPlan(stop, batch, (track.robot, ids[0], ends[0] - period // 4), True)
 
 
 DROPPED = {

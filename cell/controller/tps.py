@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cell.controller.loop import LoopModel
+from cell.controller.loop import LoopModel, LoopTrace
 from cell.controller.plan import Motion
 
 
@@ -34,6 +34,7 @@ class Sections:
     q: np.ndarray  # (n, dof) planned positions at t_end
     v_ff: np.ndarray  # (n, dof) the TPs' target velocities (feed-forward, see above)
     q_plan_v: np.ndarray  # (n, dof) planned velocities at t_end (for predictions)
+    trace: LoopTrace | None = None  # the loop model's robot on the way (fitted TPs only)
 
     def __len__(self) -> int:
         return int(self.t_end.size)
@@ -81,10 +82,12 @@ def cut(
     loop: LoopModel | None = None,
     v0: np.ndarray | None = None,
     tick0: int = 0,
+    held0: np.ndarray | None = None,
 ) -> Sections:
     """Sections of 1/rate_hz s (the last shorter) covering the motion; gain = c2 / c1 per joint.
     With a loop model and sections long enough for it, the target velocities are fitted to it
-    (cell.controller.loop); v0: the velocity the robot starts with."""
+    (cell.controller.loop); v0: the velocity the robot starts with, held0 the command it keeps
+    (default v0), tick0 its status period in its command window."""
     d = 1.0 / rate_hz
     if motion.knots is not None and motion.duration > 1e-9:
         t_end = _knotted(motion.knots, motion.duration, d, loop.status_s if loop is not None else 0.0)
@@ -92,6 +95,10 @@ def cut(
         n = max(1, math.ceil(motion.duration / d - 1e-9))
         # a motion of no length (already there) is one section of holding
         uniform = np.minimum(np.arange(1, n + 1) * d, motion.duration)
+        if n > 1 and motion.duration - uniform[-2] < 0.5 * d:
+            # a sliver at the end joins the section before: a last TP a few ms after the one before
+            # gets no command of its own to the robot (0.56 mrad off at the end of a switched motion)
+            uniform = np.delete(uniform, -2)
         t_end = uniform if motion.duration > 1e-9 else np.array([d])
     t_start = np.concatenate([[0.0], t_end[:-1]])
     duration = t_end - t_start
@@ -102,7 +109,8 @@ def cut(
     v_ff = mean - np.asarray(gain)[None, : q_end.shape[1]] * (q_end - q_mid)
     # (the sections' usual length decides: a short last one is fitted too, as it always was)
     usual = d if motion.knots is None or duration.size == 1 else float(duration[:-1].min())
+    trace = None
     if loop is not None and usual >= loop.min_section_s():
         start = np.zeros(q_end.shape[1]) if v0 is None else np.asarray(v0, np.float64)
-        v_ff = loop.fit(q_end, t_end, q_start[0], start, tick0)
-    return Sections(t_end, duration, q_end, v_ff, v_end)
+        v_ff, trace = loop.fit(q_end, t_end, q_start[0], start, tick0, held0)
+    return Sections(t_end, duration, q_end, v_ff, v_end, trace)

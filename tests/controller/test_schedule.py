@@ -22,7 +22,7 @@ from cell.controller.schedule import (
     predict_at,
     status_of,
     stop_limits,
-    stop_segment,
+    stop_plan,
     tp_batch,
 )
 from cell.controller.tps import cut
@@ -98,7 +98,7 @@ def test_a_replan_branches_ahead_from_the_predicted_state() -> None:
     assert np.allclose(q, q_plan[1] - dq - dv * (t_b - status_ns) / 1e9)
 
 
-def test_a_stop_plans_to_rest_from_the_last_status_and_a_stale_one_stands() -> None:
+def test_a_stop_of_a_robot_without_a_motion_plans_to_rest_from_its_status_and_a_stale_one_stands() -> None:
     from cell.controller.loop import LoopModel
 
     track = Track(1, [1], LIMITS)
@@ -107,11 +107,11 @@ def test_a_stop_plans_to_rest_from_the_last_status_and_a_stale_one_stands() -> N
     assert np.allclose(lim.a_max, 4.75) and lim.j_max[0] == 1000.0
     v = np.array([0.5, -0.4, 0.3, 0.0, 0.0, 0.1])
     now = START
-    seg = stop_segment(track, (Q0, v, now - 1_000_000), now, now + 2_000_000, lim, np.ones(6), loop)
+    seg = stop_plan(track, (Q0, v, now - 1_000_000), now, now + 2_000_000, lim, np.ones(6), loop).segment
     q_end, v_end = seg.motion.sample(np.array([seg.motion.duration]))
     assert np.allclose(v_end, 0) and seg.motion.duration == pytest.approx(0.5 / 4.75, rel=0.1)
     assert np.all(np.sign(q_end[0] - Q0)[v != 0] == np.sign(v[v != 0]))  # it brakes onward
-    stale = stop_segment(track, (Q0, v, now - STALE_STATUS_NS - 1), now, now, lim, np.ones(6), loop)
+    stale = stop_plan(track, (Q0, v, now - STALE_STATUS_NS - 1), now, now, lim, np.ones(6), loop).segment
     assert np.allclose(stale.motion.sample(np.array([stale.motion.duration]))[0], Q0)  # it stands
 
 

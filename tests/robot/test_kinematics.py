@@ -174,7 +174,7 @@ def test_a_section_too_short_for_a_command_is_fitted_without_error() -> None:
     robot is then, and the fit must still give one (it used to fail on such a section)."""
     loop = LoopModel(np.ones(6), np.full(6, 2.0), np.full(6, np.pi), np.full(6, 5.0))
     q_end = np.vstack([Q0 + 0.01, Q0 + 0.0101])
-    v_trg = loop.fit(q_end, np.array([0.1, 0.102]), Q0, np.zeros(6))  # the last: one status period
+    v_trg, _ = loop.fit(q_end, np.array([0.1, 0.102]), Q0, np.zeros(6))  # the last: one status period
     assert v_trg.shape == (2, 6) and np.isfinite(v_trg).all()
     q, _, _ = stepwise(loop, Q0, np.zeros(6), np.zeros(6), 0, 50, q_end[0], v_trg[0])
     assert np.abs(q - q_end[0]).max() < 1e-6
