@@ -66,7 +66,9 @@ class Loop:
             j_max=np.array(cc.j_max),
         )
         self.c1, self.c2 = np.array(dpc.c1), np.array(dpc.c2)
-        self.loop = LoopModel(self.c1, self.c2, np.array(dpc.v_max), lim.a_max, PERIOD_NS / 1e9, WINDOW)
+        self.loop = LoopModel(
+            self.c1, self.c2, np.array(dpc.v_max), lim.a_max, PERIOD_NS / 1e9, WINDOW, dpc.n_bits
+        )
         self.rate = cc.tp_rate_hz
         self.controller, self.pid = controller, pid
         self.sim = BACKENDS[backend](arm, Q0[None, :], 1_000_000)
@@ -116,7 +118,7 @@ class Loop:
         ids = np.arange(self.next_id, self.next_id + n)
         self.next_id += n
         q0 = motion.sample(np.array([0.0]))[0][0]
-        pos = np.vstack([q0, secs.q, secs.q[-1:]])
+        pos = np.vstack([q0, secs.q if secs.p_trg is None else secs.p_trg, secs.q[-1:]])
         vel = np.vstack([np.zeros(6), secs.v_ff, np.zeros((1, 6))])
         dur = np.concatenate([[1.0], secs.duration, [1.0]])
         nxt = np.append(ids[1:], ids[-1])

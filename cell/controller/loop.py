@@ -24,6 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cell.dataplane.approx import TransformTable
+from cell.robot.datagram import SCALE
+
 _CANDIDATES = 48
 _STEPS = 12  # regula falsi steps after the grid pass, at most (two or three are usual)
 _TOL_RAD = 1e-7  # a fitted TP puts the modelled robot this close to the plan (about 0.1 um at the tool)
@@ -67,6 +70,7 @@ class LoopModel:
     a_max: np.ndarray  # the drive's acceleration limit
     status_s: float = 0.002  # one status packet per joint this often
     window: int = 4  # status packets per command window
+    n_bits: int = 0  # the data plane's Transform tables keep this many significant bits (0: exact)
 
     def run(
         self,
@@ -115,6 +119,26 @@ class LoopModel:
     def _bounds(self) -> np.ndarray:
         """(window, dof): how far the drive's velocity can move in 1, 2, ... status periods."""
         return np.arange(1, self.window + 1)[:, None] * (self.a_max * self.status_s)[None, :]
+
+    def tp_positions(self, q: np.ndarray, v_trg: np.ndarray) -> np.ndarray:
+        """The positions to load into TPs of target velocities v_trg and plan positions q (rows), so
+        that the data plane's command is the model's to within the rounding of the tables' inputs.
+
+        TransformTrgVelocity gives c1 v_trg to n significant bits only: at 8 bits up to 1/512 of
+        it (2 mrad/s at 1 rad/s, 0.2 mrad over a section, 0.15 mm at the tool).  The controller
+        knows the tables, so it moves the TP's position by the error / c2: the P term, whose
+        exact part (the "(c-1)x" trick) passes fine differences through, adds it back."""
+        if self.n_bits <= 0:
+            return q
+        x = np.rint(np.asarray(v_trg, np.float64) * SCALE).astype(np.int64)
+        got = np.stack([t(x[:, j]) for j, t in enumerate(self._trg_tables)], axis=1)
+        short = self.c1 * x - got  # wire units of velocity the table leaves out
+        gain = np.where(self.c2 > 0, self.c2, np.inf)
+        return q + short / gain / SCALE
+
+    @functools.cached_property
+    def _trg_tables(self) -> list[TransformTable]:
+        return [TransformTable(float(c), self.n_bits) for c in self.c1]
 
     def min_section_s(self) -> float:
         return 6 * self.window * self.status_s

@@ -115,6 +115,7 @@ class RobotBook:
             a_max=np.concatenate([self.arm_of(r).limits.a_max for r in track.robots])[:n],
             status_s=1.0 / status_hz,
             window=status_hz // command_hz,
+            n_bits=dpc.n_bits,
         )
 
     async def _follow_announcements(self, sub: Subscription) -> None:

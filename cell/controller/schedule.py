@@ -95,7 +95,8 @@ class Segment:
     def __post_init__(self) -> None:
         s = self.sections
         assert len(self.ids) == len(s) + 1
-        self.q = np.vstack([s.q, s.q[-1:]])  # the TPs' positions, velocities and durations
+        tp_q = s.q if s.p_trg is None else s.p_trg
+        self.q = np.vstack([tp_q, s.q[-1:]])  # the TPs' positions, velocities and durations
         self.v = np.vstack([s.v_ff, np.zeros_like(s.v_ff[-1:])])
         self.d = np.append(s.duration, HOLD_S)
 
@@ -510,8 +511,15 @@ def _modelled_stop(
         m += 1
     n = len(t_end)
     trace = LoopTrace(np.array(qs), np.array(vs), np.array(helds), np.arange(n + 1) * w)
+    q_end_a, v_trg_a = np.array(q_end), np.array(v_trg)
     sections = Sections(
-        np.array(t_end), np.full(n, window_s), np.array(q_end), np.array(v_trg), np.array(v_end), trace
+        np.array(t_end),
+        np.full(n, window_s),
+        q_end_a,
+        v_trg_a,
+        np.array(v_end),
+        trace,
+        loop.tp_positions(q_end_a, v_trg_a),
     )
     motion = SampledMotion(np.arange(len(path)) * dt, np.array(path))
     known = 0 if seg.tick0 is not None else None

@@ -35,6 +35,7 @@ class Sections:
     v_ff: np.ndarray  # (n, dof) the TPs' target velocities (feed-forward, see above)
     q_plan_v: np.ndarray  # (n, dof) planned velocities at t_end (for predictions)
     trace: LoopTrace | None = None  # the loop model's robot on the way (fitted TPs only)
+    p_trg: np.ndarray | None = None  # (n, dof) the TPs' positions, if not q (LoopModel.tp_positions)
 
     def __len__(self) -> int:
         return int(self.t_end.size)
@@ -113,4 +114,5 @@ def cut(
     if loop is not None and usual >= loop.min_section_s():
         start = np.zeros(q_end.shape[1]) if v0 is None else np.asarray(v0, np.float64)
         v_ff, trace = loop.fit(q_end, t_end, q_start[0], start, tick0, held0)
-    return Sections(t_end, duration, q_end, v_ff, v_end, trace)
+    p_trg = loop.tp_positions(q_end, v_ff) if loop is not None else None
+    return Sections(t_end, duration, q_end, v_ff, v_end, trace, p_trg)
