@@ -216,8 +216,9 @@ def format_result(r: dict[str, Any]) -> str:
         "",
         f"twin drive (Table 2, K_v {t['kv_nms_per_rad']:.3f} N m s/rad): the usual motor follows speed "
         f"commands from {t['usual_follows_from_rad_s'] * 1e3:.2f} mrad/s "
-        f"(sticks below {t['stick_band_rad_s'] * 1e3:.2f}), "
-        f"the twin drive from {t['twin_follows_from_rad_s'] * 1e3:.3f} mrad/s",
+        f"(sticks below {t['stick_band_rad_s'] * 1e3:.2f}) and then runs "
+        f"{t['usual_lag_rad_s'] * 1e3:.2f} mrad/s behind; the twin drive from "
+        f"{t['twin_follows_from_rad_s'] * 1e3:.3f} mrad/s, {t['twin_lag_rad_s'] * 1e3:.3f} mrad/s behind",
         "arms' joints (sponge, lockstep): "
         + "; ".join(
             f"{k} drives {v['force_error_rms_n']:.3f} N |fl+fr| rms, "
@@ -233,10 +234,22 @@ def format_result(r: dict[str, Any]) -> str:
             f"|fl+fr| rms {row['force_error_rms_n']:6.3f} N, "
             f"peak {row['peak_force_remote_n']:6.2f} N, rho {row['spectral_radius']:.4f}"
         )
-    lines.append(f"  loss of stability (linear model): {r['critical_delay_ms']}")
+    crit = r["critical_delay_ms"]
+    lines.append(
+        "  unstable from (linear model): "
+        + "; ".join(
+            f"{obj} {_delay(crit[f'{obj}_modified'])} (modified law), "
+            f"{_delay(crit[f'{obj}_conventional'])} (conventional)"
+            for obj in ("sponge", "wood")
+        )
+    )
     lines.append("")
     lines.append("PNGs: " + ", ".join(r["png"].values()))
     return "\n".join(lines)
+
+
+def _delay(ms: int | None) -> str:
+    return f"+{ms} ms" if ms is not None else "none up to +50 ms"
 
 
 def _ms(v: float | None) -> str:

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from cell.teleop.side import COLUMNS, PERIOD_S
+from cell.teleop.twindrive import standing_band
 
 C = {c: i for i, c in enumerate(COLUMNS)}
 
@@ -90,17 +91,26 @@ def plot_runs(runs: dict[str, tuple[np.ndarray, np.ndarray]], path: str | Path, 
         f.plot(t, -lo[:, C["fz"]], ":", lw=1.6, label="local (sign reversed)")
         f.set_ylabel("force z (N)")
         f.set_title(f"{name}")
-        f.legend(loc="upper right", fontsize=8)
         z.plot(t, re[:, C["z"]] * 1e3, "-", lw=1.2, label="remote")
         z.plot(t, lo[:, C["z"]] * 1e3, ":", lw=1.6, label="local")
         z.set_ylabel("tip z (mm)")
         z.set_xlabel("time (s)")
-        z.legend(loc="upper right", fontsize=8)
         for ax in (f, z):
             ax.grid(alpha=0.3)
+    # one legend for all, above the plots: inside them it covered the last push
+    handles, _ = axes[0][0].get_legend_handles_labels()
+    top = 0.9 if title else 0.94
+    fig.legend(
+        handles,
+        ["remote", "local (force with its sign reversed)"],
+        loc="lower center",
+        bbox_to_anchor=(0.5, top),
+        ncol=2,
+        fontsize=9,
+    )
     if title:
-        fig.suptitle(title)
-    fig.tight_layout()
+        fig.suptitle(title, y=0.99, fontsize=11)
+    fig.tight_layout(rect=(0, 0, 1, top))
     return _save(fig, path, plt)
 
 
@@ -109,13 +119,16 @@ def plot_ramp(ramp: Any, path: str | Path) -> str:
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     t = np.arange(len(ramp.command)) * 1e-3
-    for ax, speed, name, lo in (
-        (axes[0], ramp.usual, "usual motor", ramp.usual_follows_from),
-        (axes[1], ramp.twin, "twin drive", ramp.twin_follows_from),
+    for ax, speed, name, lag in (
+        (axes[0], ramp.usual, "usual motor", ramp.usual_lag),
+        (axes[1], ramp.twin, "twin drive", ramp.twin_lag),
     ):
         ax.plot(t, ramp.command * 1e3, "--", color="gray", lw=1, label="command")
         ax.plot(t, speed * 1e3, lw=1.3, label="output speed")
-        ax.set_title(f"{name}: follows from {lo * 1e3:.2f} mrad/s")
+        # what the eye sees: where it stands still, and how far behind the command it then runs
+        still = standing_band(ramp.command, speed)
+        stands = f"stands still below {still * 1e3:.1f} mrad/s, then" if still > 0 else "never sticks,"
+        ax.set_title(f"{name}: {stands} {lag * 1e3:.2f} mrad/s behind the command", fontsize=10)
         ax.set_xlabel("time (s)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)

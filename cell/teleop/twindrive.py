@@ -87,10 +87,20 @@ class Ramp:
     usual_follows_from: float  # rad/s: the lowest |command| from which on the usual drive follows
     twin_follows_from: float
 
+    @property
+    def usual_lag(self) -> float:
+        return lag(self.command, self.usual, self.usual_follows_from)
+
+    @property
+    def twin_lag(self) -> float:
+        return lag(self.command, self.twin, self.twin_follows_from)
+
     def summary(self) -> dict[str, float]:
         return {
             "usual_follows_from_rad_s": self.usual_follows_from,
             "twin_follows_from_rad_s": self.twin_follows_from,
+            "usual_lag_rad_s": self.usual_lag,
+            "twin_lag_rad_s": self.twin_lag,
             "stick_band_rad_s": COULOMB / KV,
             "kv_nms_per_rad": KV,
         }
@@ -124,3 +134,17 @@ def follows_from(cmd: np.ndarray, speed: np.ndarray, within: float = 0.5) -> flo
     bad = np.abs(cmd)[(speed * np.sign(cmd) < within * np.abs(cmd)) & (cmd != 0)]
     step = float(np.abs(np.diff(cmd)).max())
     return float(bad.max() + step) if bad.size else step
+
+
+def lag(cmd: np.ndarray, speed: np.ndarray, follows_from: float) -> float:
+    """How far the drive's speed stays behind the command where it follows (median |command - speed|
+    over |command| >= follows_from, rad/s): a friction-loaded servo's steady error, Coulomb / K_v."""
+    on = np.abs(cmd) >= follows_from
+    return float(np.median(np.abs(cmd[on] - speed[on]))) if on.any() else float("nan")
+
+
+def standing_band(cmd: np.ndarray, speed: np.ndarray, still: float = 1e-4) -> float:
+    """The largest |command| (rad/s) at which the drive stands still (|speed| under `still` and a tenth
+    of the command); 0: never."""
+    stuck = np.abs(cmd)[(np.abs(speed) < np.minimum(still, 0.1 * np.abs(cmd))) & (cmd != 0)]
+    return float(stuck.max()) if stuck.size else 0.0

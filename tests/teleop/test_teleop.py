@@ -231,6 +231,10 @@ def test_the_usual_motor_sticks_at_small_speeds_and_the_twin_drive_does_not() ->
     assert r.twin_follows_from < 0.1 * band
     big = np.abs(r.command) > 0.002
     assert np.allclose(r.twin[big], r.command[big], rtol=0.02)
+    # the usual motor, once it turns, runs behind its command by its servo's friction error
+    assert r.usual_lag == pytest.approx(band, rel=0.15) and r.twin_lag < 0.05 * band
+    assert twindrive.standing_band(r.command, r.usual) == pytest.approx(band, rel=0.1)
+    assert twindrive.standing_band(r.command, r.twin) == 0.0
 
 
 def test_usual_drives_at_the_joints_spoil_what_the_operator_feels() -> None:
