@@ -86,6 +86,17 @@ def test_the_paper_bench_writes_a_page_with_its_numbers(tmp_path) -> None:
     # tick and the tick's first pass takes one of them: 3 of every 4 steps are resubmissions
     assert resub["resubmits_per_step_10hz"] == 0 and resub["resubmits_per_step_500hz"] == 0
     assert resub["resubmits_per_step_2000hz"] == pytest.approx(0.75, abs=0.01)
+    # a summary at the top, a row per figure with the paper's number, ours and a verdict
+    at = page.index("id=summary-table")
+    summary = page[at : page.index("</table>", at)]
+    assert summary.count("<tr>") == 3 and summary.count(">yes</span>") == 2
+    assert f"{scaling['largest_fleet']:,} robots" in summary
+    # captions, a print stylesheet, and text that says what the plot shows
+    assert "<figcaption>Figure 1. " in page and "<figcaption>Figure 2. " in page and "@media print" in page
+    lo, hi = resub["ns_per_packet_10hz"], resub["ns_per_packet_2000hz"]
+    assert f"from {lo:.0f} to {hi:.0f} ns" in page and "stays flat" not in page
+    # progress with what each part is expected to take
+    assert re.search(r"\[2/2\] scaling: about \d+ s \(\d+ s so far, about \d+ s to go\)", run.stdout)
 
 
 def test_benches_write_their_own_section_of_the_results_page(tmp_path) -> None:
