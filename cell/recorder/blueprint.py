@@ -2,10 +2,10 @@
 
 Rerun's own guess is a grid with a view per entity root: the services' restart counters took as
 much room as the arms.  Here the arms in 3D take the largest area (tool paths as trails, the active
-TP marked, the planned TPs), beside them each robot's joints (position actual and planned, velocity
-actual and commanded), the data plane's time from status to command, the camera and the event log;
-the health counters (data plane, services, Responsive Link, the skill requests) sit in a second
-tab, out of the way until wanted.
+TP marked, the planned TPs, the camera as a frustum where it stands), beside them each robot's
+joints (position actual and planned, velocity actual and commanded), the data plane's time from
+status to command, the camera's image and the event log; the health counters (data plane,
+services, Responsive Link, the skill requests) sit in a second tab, out of the way until wanted.
 """
 
 from __future__ import annotations
@@ -56,3 +56,22 @@ def cell_blueprint(robots: Sequence[str], camera: bool = True) -> rrb.Blueprint:
         name="health",
     )
     return rrb.Blueprint(rrb.Tabs(cell, health, active_tab=0), collapse_panels=True)
+
+
+def teleop_blueprint() -> rrb.Blueprint:
+    """`cell teleop`'s view (cell.teleop.view): the two arms and the object in 3D, beside them the
+    forces of both sides (the paper's Figs. 16-17: the local one reversed, so the curves lie on each
+    other when the operator feels what the object does), the tips' heights and the run's log."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="teleop/world", name="local and remote arms"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="teleop/force", name="force z (N): remote, local reversed"),
+                rrb.TimeSeriesView(origin="teleop/z", name="tip z (mm)"),
+                rrb.TextLogView(origin="teleop/log", name="log"),
+                row_shares=[2, 2, 1],
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )

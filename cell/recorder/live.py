@@ -31,13 +31,14 @@ import rerun as rr
 from cell.recorder import base_position, each, serve
 from cell.recorder.blueprint import cell_blueprint
 from cell.recorder.events import EVENT_TOPICS, Event, Events
-from cell.recorder.scene import ArmDrawer
+from cell.recorder.scene import ArmDrawer, log_camera
 from cell.recorder.series import SeriesBatch
 from cell.robot.arm import arm_model
 from cell.robot.node import output_name
 from cell.service import ServiceContext
 from cell.snp.state import realtime_offset_ns
 from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, vision_pb2
+from cell.vision.acquisition import camera_spec
 
 log = logging.getLogger("cell.service.recorder")
 
@@ -87,6 +88,10 @@ class Recorder:
     def start(self) -> None:
         for d in self.drawers.values():
             d.log_static(self.rec)
+        cfg = self.ctx.config
+        if "vision" in cfg.services.run and cfg.robots:
+            watched = cfg.vision.robot or cfg.robots[0].name
+            log_camera(self.rec, watched, camera_spec(cfg.vision))
         self.rec.log("events", rr.TextLog("recorder started", level="INFO"), static=False)
 
     # --- ground truth ---------------------------------------------------------------------------

@@ -9,6 +9,7 @@ at a fixed offset so that several robots are side by side.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import mujoco
@@ -16,6 +17,7 @@ import numpy as np
 import rerun as rr
 
 from cell.robot.arm import ArmModel
+from cell.vision.camera import CameraSpec, camera_axes
 
 _ROUND = (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER))
 
@@ -91,3 +93,27 @@ class ArmDrawer:
             w, x, y, z = d.xquat[b]
             out.append((f"robots/{self.name}/links/{g.body}", d.xpos[b].copy(), np.array([x, y, z, w])))
         return out
+
+
+def camera_rotation(spec: CameraSpec) -> np.ndarray:
+    """The camera's orientation in Rerun's camera convention (RDF: x right, y down in the image, z the
+    way it looks), as columns in its robot's base frame."""
+    x, y, z = camera_axes(np.array(spec.axis))
+    return np.column_stack([x, -y, -z])
+
+
+def log_camera(rec: rr.RecordingStream, robot: str, spec: CameraSpec) -> None:
+    """The vision service's camera as a frustum in the 3D view, where it stands in its robot's base
+    frame and with its lens's field of view (static: it does not move)."""
+    entity = f"robots/{robot}/camera"
+    rec.log(entity, rr.Transform3D(translation=spec.position_m, mat3x3=camera_rotation(spec)), static=True)
+    rec.log(
+        entity,
+        rr.Pinhole(
+            fov_y=math.radians(spec.lens.fovy_deg(spec.height_px)),
+            aspect_ratio=spec.width_px / spec.height_px,
+            resolution=[spec.width_px, spec.height_px],
+            image_plane_distance=0.1,
+        ),
+        static=True,
+    )

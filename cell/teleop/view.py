@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
+from cell.recorder.blueprint import teleop_blueprint
 from cell.teleop.figures import C
 from cell.teleop.model import HOME, L1, L2, OBJECTS, SHOULDER_Z, SURFACE_Z, TIP_RADIUS
 from cell.teleop.wire import Role
@@ -33,6 +34,7 @@ class TeleopView:
     def __init__(self, rec: rr.RecordingStream, obj: str) -> None:
         self.rec = rec
         self.obj = OBJECTS[obj]
+        rec.send_blueprint(teleop_blueprint())
         rec.log("teleop/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         for role, y in Y.items():
             name = role.name.lower()

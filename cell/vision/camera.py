@@ -35,13 +35,18 @@ class CameraSpec:
     noise_dn: float = 1.5
 
 
-def _xyaxes(axis: np.ndarray) -> str:
-    """MuJoCo's camera frame for a view along `axis`: it looks along its -z, its y is up in the image."""
-    z = -axis / np.linalg.norm(axis)
+def camera_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The camera's frame for a view along `axis`, as MuJoCo takes it: it looks along its -z, its x
+    is right and its y up in the image (the recorder draws its frustum from the same frame)."""
+    z = -np.asarray(axis, float) / np.linalg.norm(axis)
     ref = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = ref - z * (ref @ z)
     x /= np.linalg.norm(x)
-    y = np.cross(z, x)
+    return x, np.cross(z, x), z
+
+
+def _xyaxes(axis: np.ndarray) -> str:
+    x, y, _ = camera_axes(axis)
     return " ".join(f"{v:.9f}" for v in (*x, *y))
 
 

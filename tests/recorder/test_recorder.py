@@ -8,6 +8,7 @@ import re
 import subprocess
 import sys
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -259,3 +260,27 @@ def test_rerun_serve_refuses_a_taken_port_and_says_what_to_do_instead() -> None:
             assert "taken" in str(exc) and "save" in str(exc)
         else:
             raise AssertionError("a taken port was not refused")
+
+
+def test_the_camera_is_drawn_as_a_frustum_where_it_stands_looking_its_way(tmp_path) -> None:
+    import rerun as rr
+
+    from cell.config import load_config
+    from cell.recorder.scene import camera_rotation, log_camera
+    from cell.vision.acquisition import camera_spec
+    from cell.vision.camera import camera_axes
+
+    spec = camera_spec(load_config(None).vision)
+    for axis in ((0.0, 0.0, 1.0), (0.6, 0.0, -0.8), (0.0, 1.0, 0.0)):
+        s = replace(spec, axis=axis)
+        rot = camera_rotation(s)
+        assert np.allclose(rot @ [0, 0, 1], np.array(axis) / np.linalg.norm(axis))  # it looks its way
+        assert np.allclose(rot @ [0, -1, 0], camera_axes(np.array(axis))[1])  # up in the image as MuJoCo's
+        assert np.isclose(np.linalg.det(rot), 1.0)
+    rrd = tmp_path / "camera.rrd"
+    rec = rr.RecordingStream("cell-test")
+    rec.save(str(rrd))
+    log_camera(rec, "r1", spec)
+    rec.disconnect()  # (the file is finished: its footer written)
+    rows = rows_by_entity(rrd)
+    assert rows["/robots/r1/camera"] >= 2  # its pose and its pinhole (the frustum)

@@ -13,6 +13,7 @@ import struct
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -322,6 +323,12 @@ def test_cell_teleop_runs_the_experiment_and_draws_it(tmp_path) -> None:
     assert rows.get("/teleop/force/local_reversed", 0) > 1000
     assert rows.get("/teleop/world/remote/arm", 0) > 10 and rows.get("/teleop/world/local/arm", 0) > 10
     assert rows.get("/teleop/world/remote/object", 0) > 10
+    # the view comes laid out for the experiment (cell.recorder.blueprint.teleop_blueprint)
+    rerun = Path(sys.executable).parent / "rerun"
+    printed = subprocess.run(
+        [str(rerun), "rrd", "print", "-vvv", str(rrd)], capture_output=True, text=True, timeout=120
+    ).stdout
+    assert "local and remote arms" in printed and "force z (N): remote, local reversed" in printed
 
 
 def test_cell_teleop_refuses_bad_options() -> None:
