@@ -45,6 +45,7 @@ from cell.skills.client import ConnectionLost, MoveJoints, RobotClient, SetSpeed
 from cell.v1 import health_pb2, robot_pb2
 
 log = logging.getLogger("cell.chaos")
+FAULT_S = 6.0  # how long one fault takes on this machine kind (injected, judged, the cell whole again)
 
 REST = 2e-3  # rad/s: a robot whose every joint is slower than this is at rest
 LUNGE = 2e-3  # rad: moving further than this from where it came to rest is an unplanned motion
@@ -626,11 +627,16 @@ async def campaign(
                     faults = catalogue(camp.robots, ur_robots=ur, in_kernel=in_kernel)
                     if only:
                         faults = [f for f in faults if any(o in f.name for o in only)]
+                    total = rounds * len(faults)
+                    log_fn(
+                        f"{len(faults)} faults x {rounds} round(s): about "
+                        f"{total * FAULT_S / 60:.0f} min here (about {FAULT_S:.0f} s a fault)"
+                    )
                     for k in range(rounds):
-                        for f in faults:
+                        for i, f in enumerate(faults, 1):
                             r = await camp.run(f)
                             results.append(r)
-                            log_fn(_row(k + 1, r))
+                            log_fn(f"[{k * len(faults) + i}/{total}] " + _row(k + 1, r))
                 finally:
                     watch.cancel()
         finally:

@@ -77,6 +77,9 @@ async def test_a_campaign_on_the_default_cell_holds_its_promises() -> None:
     assert dp["held"] == 1 and max(dp["detect_ms"]) < 100  # the robots stopped on their own, at once
     assert dp["moved_after_rest_mrad"] < 2.0 and dp["stop_ms_max"] <= 34.0  # 3+1 windows of 8 ms, a tick
     json.dumps(result)  # the figures are machine-readable as they are
+    # progress: what it will take, then a line per fault as it is judged
+    assert rows[0].startswith("2 faults x 1 round(s): about ") and rows[1].startswith("[1/2] ")
+    assert rows[2].startswith("[2/2] ") and "kill:dataplane+controller" in rows[2]
 
 
 def test_an_estop_is_judged_by_the_robots_truth_against_their_braking() -> None:
