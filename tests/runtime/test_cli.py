@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from cell.cli import build_parser, main
@@ -116,3 +118,14 @@ def test_a_clean_stop_says_nothing_of_the_bus_going_away(tmp_path) -> None:
     assert "the bus connection dropped" not in got.stderr and " WARNING " not in got.stderr, got.stderr[
         -3000:
     ]
+
+
+def test_every_package_of_cell_is_in_the_packaging() -> None:
+    """pyproject.toml lists the packages by hand (services/ installs as cell.services): one left out is
+    missing from a wheel, and pip warns about it at every install."""
+    import tomllib
+
+    root = Path(__file__).resolve().parents[2]
+    listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(root).parts) for p in (root / "cell").rglob("__init__.py")}
+    assert found <= listed, sorted(found - listed)
