@@ -268,6 +268,9 @@ class XdpConfig:
     cpu: int = _check(lambda v: None if v >= -1 else f"must be a CPU number or -1 (got {v})")
 
 
+XDP_MAX_ENTITIES = 4096  # entities the XDP program's maps hold (cell/dataplane/xdp/dataplane.bpf.c)
+
+
 @dataclass(frozen=True)
 class ForwardRule:
     """Ordinary (non-robot) UDP traffic the data plane forwards: what arrives on `listen` goes to
@@ -281,6 +284,7 @@ class ForwardRule:
 class DataplaneConfig:
     listen: str = _check(_host_port)
     capacity: int = _check(_positive)
+    max_entities: int = _check(_positive)
     max_joints: int = _check(_positive)
     n_bits: int = _check(lambda v: None if 2 <= v <= 16 else f"must be 2..16 (got {v})")
     c1: list[float] = field(metadata={"check": _joint_vector})
@@ -306,6 +310,9 @@ class DataplaneConfig:
             if self.forward or self.egress.rate_mbps > 0:
                 why = "the XDP backend has no forwarding rules or egress model yet (the numpy one has)"
                 raise err("backend", why)
+            if self.max_entities > XDP_MAX_ENTITIES:
+                why = f"the XDP program holds {XDP_MAX_ENTITIES} (MAX_ENTITIES in dataplane.bpf.c)"
+                raise err("max_entities", why)
         for i, f in enumerate(self.forward):
             if f.listen == self.listen or any(o.listen == f.listen for o in self.forward[:i]):
                 raise err(f"forward[{i}].listen", f"{f.listen} is taken by the data plane or another rule")

@@ -57,10 +57,22 @@ def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False, n
     """The data plane service's packet path: numpy here, or (net: the switch's XdpConfig) the XDP
     program attached in the switch's namespace, this process its control plane."""
     pin(1)
+    from cell.dataplane.tables import Refused
+
+    try:
+        plane = _loaded_plane(robots, net, updates)
+    except Exception as exc:  # (past the target's capacity: the search's limit, told to the parent)
+        out.put({"error": str(exc) if isinstance(exc, Refused) else f"{type(exc).__name__}: {exc}"})
+        return
+    out.put(plane.sock.getsockname())
+    _serve(plane, robots, out, stop, updates)
+
+
+def _loaded_plane(robots: int, net: Any, updates: bool) -> Any:
+    """A data plane with `robots` robots, each heading for its own TP (and the TPs updates delete)."""
     from cell.config import load_config
     from cell.dataplane.plane import DataPlane, XdpDataPlane
-    from cell.dataplane.tables import TP, TPBatch
-    from cell.dataplane.wire import encode_keys, encode_tps
+    from cell.dataplane.tables import TP
 
     rob = [{"id": r, "name": f"b{r}", "skill_port": 20000 + r} for r in range(1, robots + 1)]
     if net is None:
@@ -78,7 +90,13 @@ def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False, n
     if updates:  # the old TPs the updates will delete, loaded before the load starts
         old_tps = [TP(1 + i % robots, 1000 + i, 1000 + i, 1.0, [0.0] * 6, [0.0] * 6) for i in range(PRELOAD)]
         plane.tables.insert(old_tps)
-    out.put(plane.sock.getsockname())
+    return plane
+
+
+def _serve(plane: Any, robots: int, out: Any, stop: Any, updates: bool) -> None:
+    """Run the loaded data plane until `stop`, a controller's updates each second with `updates`."""
+    from cell.dataplane.tables import TPBatch
+    from cell.dataplane.wire import encode_keys, encode_tps
 
     update_ms: list[float] = []
     hold_ms: list[float] = []  # the longest the packet path waited, per update
@@ -321,7 +339,12 @@ def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> di
     args = (robots, out, stop) if net is None else (robots, out, stop, net)
     proc = ctx.Process(target=TARGETS[target], args=args, daemon=True)
     proc.start()
-    addr = out.get(timeout=60)
+    addr = _address(proc, out)
+    if isinstance(addr, str):  # it could not take this many robots: the search's limit, not a traceback
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()
+        return {"target": target, "robots": robots, "rate": robots * 6 * 500, "ok": False, "limit": addr}
     try:
         result = load(addr, robots, seconds, bind="127.0.0.1" if net is None else net.host_addr)
     finally:
@@ -336,6 +359,21 @@ def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> di
     result["target"] = target
     result["ok"] = result["on_time_fraction"] >= ON_TIME
     return result
+
+
+def _address(proc: Any, out: Any, timeout: float = 60.0) -> tuple[str, int] | str:
+    """The target's address once it is up, or why it is not (it refused this many robots, died, or
+    did not come up in time)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            got = out.get(timeout=0.5)
+        except queue.Empty:
+            if not proc.is_alive():
+                return f"the target died (exit code {proc.exitcode})"
+            continue
+        return got["error"] if isinstance(got, dict) else tuple(got)
+    return f"the target did not come up in {timeout:.0f} s"
 
 
 def sustained(target: str, start: int, seconds: float, log: Any = None, net: Any = None) -> dict[str, Any]:
@@ -356,6 +394,8 @@ def sustained(target: str, start: int, seconds: float, log: Any = None, net: Any
                 if best is None or t["rate"] > best["rate"]:
                     best = t
                 return True
+            if t.get("limit"):  # (past its capacity: a second try would only say it again)
+                return False
         return False
 
     ok, r = 0, start
@@ -364,16 +404,19 @@ def sustained(target: str, start: int, seconds: float, log: Any = None, net: Any
     bad = r
     for _ in range(2):
         mid = (ok + bad) // 2
-        if mid <= ok:
+        if mid <= ok or trials[-1].get("limit"):  # (a target past its capacity: no use bisecting)
             break
         if passes(mid):
             ok = mid
         else:
             bad = mid
-    return {"target": target, "best": best, "trials": trials}
+    limit = next((f"{t['robots']} robots: {t['limit']}" for t in trials if t.get("limit")), None)
+    return {"target": target, "best": best, "trials": trials, "limit": limit}
 
 
 def format_trial(t: dict[str, Any]) -> str:
+    if t.get("limit"):
+        return f"{t['target']:>10} {t['robots']:>4} robots: over the target's capacity ({t['limit']})"
     verdict = "ok  " if t["ok"] else "FAIL"
     return (
         f"{t['target']:>10} {t['robots']:>4} robots ({t['rate']:>9,} status/s): {verdict} "
@@ -411,6 +454,7 @@ def format_result(result: dict[str, Any]) -> str:
     lines = ["status datagrams/s answered >= 99% within the 8 ms command window (one core each side):"]
     lines += [
         f"  {name:>10}: {rate:>10,.0f}"
+        + (f"  (stopped at its capacity, {tp[name]['limit']})" if tp[name].get("limit") else "")
         for name, rate in (("reflector", ref), ("dataplane", dp), ("naive", naive))
     ]
     if ref and naive:
@@ -527,8 +571,13 @@ def format_xdp(result: dict[str, Any]) -> str:
         f"  xdp-reflector: {ref:>10,.0f}   (bare XDP_TX: the switch's limit here)",
         f"            xdp: {xdp:>10,.0f}   = {100 * s['xdp_of_reflector']:.0f}% of the reflector",
         f"          numpy: {numpy:>10,.0f}   (xdp = {s['xdp_over_numpy']:.1f}x numpy)",
-        "status-to-command time, robots x 6 joints x 500 Hz, XDP backend, its program on core 1:",
     ]
+    lines += [
+        f"  {name} stopped at its capacity: {t['limit']}"
+        for name, t in result["throughput"].items()
+        if t.get("limit")
+    ]
+    lines += ["status-to-command time, robots x 6 joints x 500 Hz, XDP backend, its program on core 1:"]
     lines += [f"  {format_trial(t)}" for t in result["latency"]]
     lines.append("  ... and on the sender's core (cpu = -1: no cross-CPU hop):")
     lines += [f"  {format_trial(t)}" for t in result["latency_same_core"]]
@@ -555,6 +604,13 @@ def _main(args: argparse.Namespace) -> Figures:
     def trial_log(trial: dict) -> None:
         log(format_trial(trial))
 
+    from cell.config import load_config
+
+    dp = load_config(None).dataplane
+    log(
+        f"the data plane holds {dp.capacity:,} TPs and {dp.max_entities:,} robots ([dataplane] capacity, "
+        "max_entities): a search stops there; robots double from 20 until a trial fails, then two bisections"
+    )
     if args.backend == "xdp":
         from cell.dataplane.xdp.switch import SwitchError
 

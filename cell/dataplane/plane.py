@@ -94,7 +94,8 @@ class DataPlane:
 
     def _state(self, config: CellConfig, constants: ControlConstants) -> tuple[Tables, Pipeline, np.ndarray]:
         """The tables, the pipeline over them and each robot's joint count (0: not configured)."""
-        tables = Tables(config.dataplane.capacity, max_joints=config.dataplane.max_joints)
+        dp = config.dataplane
+        tables = Tables(dp.capacity, dp.max_entities, dp.max_joints)
         return tables, Pipeline(tables, constants), np.zeros(1 << 16, np.int64)
 
     def _open(self, config: CellConfig) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
 
@@ -112,3 +113,32 @@ def test_benches_write_their_own_section_of_the_results_page(tmp_path) -> None:
     assert text.index("## bus") < text.index("## snp") and text.count("## snp") == 1
     assert "| `cycle_ms_p99` | 0.12 |" in text and "0.09" not in text  # replaced, not appended
     assert "| `msg_per_s` | 250000 |" in text and "`cell bench snp --seconds 1`" in text
+
+
+def test_a_search_past_the_data_planes_capacity_reports_the_limit_not_a_traceback(monkeypatch) -> None:
+    """The data plane holds [dataplane] max_entities robots: a trial with more gets the target's own
+    refusal back at once (it used to die, and the parent waited 60 s for an address that never came),
+    and the throughput search stops there and says so."""
+    from cell.bench import dataplane as bench
+    from cell.config import load_config
+
+    cap = load_config(None).dataplane.max_entities
+    assert cap >= 4096
+    t0 = time.monotonic()
+    t = bench.trial("dataplane", cap + 1, 0.5)
+    assert time.monotonic() - t0 < 30
+    assert not t["ok"] and "table_full" in t["limit"] and f"all {cap} entities in use" in t["limit"]
+    assert "over the target's capacity (table_full" in bench.format_trial(t)
+
+    # the search: doubling from 1,500 passes 1,500 and 3,000, meets the limit at 6,000 and stops there
+    calls: list[int] = []
+
+    def trial(target: str, robots: int, seconds: float, net: object = None) -> dict:
+        calls.append(robots)
+        if robots > cap:
+            return {"target": target, "robots": robots, "rate": robots * 3000, "ok": False, "limit": "full"}
+        return {"target": target, "robots": robots, "rate": robots * 3000, "ok": True}
+
+    monkeypatch.setattr(bench, "trial", trial)
+    r = bench.sustained("dataplane", 1500, 0.5)
+    assert calls == [1500, 3000, 6000] and r["best"]["robots"] == 3000 and r["limit"] == "6000 robots: full"

@@ -281,6 +281,11 @@ def test_status_names_a_service_by_host_and_a_restart_counts_only_on_its_own() -
             "dataplane.backend",
             "no forwarding rules or egress model",
         ),
+        (
+            {"backend": "xdp", "listen": "10.199.0.2:50000", "max_entities": 5000},
+            "dataplane.max_entities",
+            "the XDP program holds 4096",
+        ),
         ({"xdp": {"netns": "a name with spaces"}}, "dataplane.xdp.netns", "A-Z a-z 0-9"),
         ({"backend": "ebpf"}, "dataplane.backend", "numpy"),
     ],
@@ -304,3 +309,12 @@ def test_the_xdp_example_is_a_valid_cell() -> None:
     config = load_config(ROOT / "examples" / "xdp.toml")
     dp = config.dataplane
     assert dp.backend == "xdp" and dp.listen.startswith(dp.xdp.switch_addr)
+
+
+def test_the_xdp_programs_entity_count_is_the_one_the_config_checks_against() -> None:
+    from cell.config import XDP_MAX_ENTITIES
+    from cell.dataplane.xdp.program import MAX_ENTITIES
+
+    source = (Path(__file__).resolve().parents[2] / "cell/dataplane/xdp/dataplane.bpf.c").read_text()
+    assert XDP_MAX_ENTITIES == MAX_ENTITIES and f"#define MAX_ENTITIES {MAX_ENTITIES}" in source
+    assert load_config(None).dataplane.max_entities <= XDP_MAX_ENTITIES  # (the default suits both)
