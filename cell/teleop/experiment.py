@@ -201,6 +201,10 @@ def format_result(r: dict[str, Any]) -> str:
             f"{x['position_pp_local_mm']:5.2f}mm {x['period_p50_ms']:7.3f}/{x['period_p99_ms']:.3f}ms "
             f"{x['missed_periods_pct']:6.3f}%"
         )
+    lines.append(
+        "paper (Figs. 16-17): forces reach about 6 N on both sides, the curves on each other; the tip's "
+        "z swings much more on the sponge than on the wood"
+    )
     e = r["estop_delayed"]
     es = e["estop"]
     lines += [
