@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from cell.bench.accuracy import SETTLE_S  # (the stop error is read as the bench reads it)
 from cell.config import RobotConfig
 from cell.robot.arm import arm_model
 from cell.robot.truth import Truth
@@ -133,9 +134,6 @@ def _throttling_row(status: health_pb2.CellStatus) -> str:
     if said is None:
         return "not watched (no process ran at a real-time priority)"
     return said.removeprefix("RT throttling: ") or "none (no real-time process was held back by the kernel)"
-
-
-SETTLE_S = 4.0  # after the last move, the stop error is read by this (as `cell bench accuracy` reads it)
 
 
 async def settled_error(truth: Truth, names: tuple[str, ...], goal: np.ndarray, deadline: float) -> float:

@@ -48,6 +48,12 @@ def trackable_accel(drive_a_max: np.ndarray, window_s: float, section_s: float) 
     return np.asarray(drive_a_max, np.float64) * max(0.05, TRACKABLE - window_s / section_s)
 
 
+@functools.cache
+def _table(c: float, n_bits: int) -> TransformTable:
+    """The data plane's Transform table for x -> c x (built once: a LoopModel is made per motion)."""
+    return TransformTable(c, n_bits)
+
+
 @dataclass(frozen=True)
 class LoopTrace:
     """The modelled robot at a fitted motion's start (row 0) and at each section's end (row k + 1):
@@ -131,14 +137,10 @@ class LoopModel:
         if self.n_bits <= 0:
             return q
         x = np.rint(np.asarray(v_trg, np.float64) * SCALE).astype(np.int64)
-        got = np.stack([t(x[:, j]) for j, t in enumerate(self._trg_tables)], axis=1)
+        got = np.stack([_table(float(c), self.n_bits)(x[:, j]) for j, c in enumerate(self.c1)], axis=1)
         short = self.c1 * x - got  # wire units of velocity the table leaves out
         gain = np.where(self.c2 > 0, self.c2, np.inf)
         return q + short / gain / SCALE
-
-    @functools.cached_property
-    def _trg_tables(self) -> list[TransformTable]:
-        return [TransformTable(float(c), self.n_bits) for c in self.c1]
 
     def min_section_s(self) -> float:
         return 6 * self.window * self.status_s

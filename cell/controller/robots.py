@@ -82,10 +82,10 @@ class RobotBook:
         )
 
     def _trackable_accel(self, robot: int, drive: np.ndarray, asked: np.ndarray) -> np.ndarray:
-        """The planned acceleration the robot's TPs can keep it on (LoopModel.trackable_accel), with a
-        warning, once per robot, where the configured controller.a_max asks for more."""
-        r = self.robots.get(robot)
-        status_hz, command_hz = (500, 125) if r is None else (r.status_hz, r.command_hz)
+        """The planned acceleration the robot's TPs can keep it on (cell.controller.loop's
+        trackable_accel), with a warning, once per robot, where the configured controller.a_max asks
+        for more."""
+        status_hz, command_hz = self._rates(robot)
         window_s = (status_hz // command_hz) / status_hz
         bound = trackable_accel(drive, window_s, 1.0 / self.config.controller.tp_rate_hz)
         if np.any(asked > bound + 1e-9) and robot not in self._capped:
@@ -103,10 +103,14 @@ class RobotBook:
             )
         return bound
 
+    def _rates(self, robot: int) -> tuple[int, int]:
+        """The robot's status and command rates (Hz); a robot not in the config: a UR's."""
+        r = self.robots.get(robot)
+        return (500, 125) if r is None else (r.status_hz, r.command_hz)
+
     def loop(self, track: Track) -> LoopModel:
         """The closed loop the track's TPs drive (cell.controller.loop)."""
-        robot = self.robots.get(track.robots[0])
-        status_hz, command_hz = (500, 125) if robot is None else (robot.status_hz, robot.command_hz)
+        status_hz, command_hz = self._rates(track.robots[0])
         dpc, n = self.config.dataplane, track.joints
         return LoopModel(
             c1=np.resize(np.array(dpc.c1), n),

@@ -490,9 +490,9 @@ def _modelled_stop(
         for i in range(w):  # the drive in window m, on the command kept from window m - 1
             if i == w - 1:
                 q_k, v_k = q, v  # the window's last status, whose answer the robot keeps
-            goal = np.minimum(np.maximum(held, -loop.v_max), loop.v_max)
-            dv = np.clip(goal - v, -loop.a_max * dt, loop.a_max * dt)
-            q, v = q + (v + 0.5 * dv) * dt, v + dv
+            # (one period of the model's drive on the kept command: tick 0 computes none, and one it
+            # computed would act only from the next period)
+            q, v, _ = loop.run(q, v, held, 0, 1, q, np.zeros_like(q))
             path.append(q)
         if scale is None:  # once coasted: every joint's velocity down together, to 0 in brake_s
             brake_s = float(np.max(np.abs(v) / np.maximum(limits.a_max, 1e-9)))
