@@ -78,31 +78,40 @@ async def serve(ctx: ServiceContext, svc: ControllerService) -> None:
 
     async def follow_link() -> None:
         """Stops and releases over the Responsive Link, as the hub tells them after the fact, and URScript
-        programs holding a robot, as its UR interfaces tell them."""
+        programs holding a robot, as its UR interfaces tell them.  A stop is checked with the data plane
+        on the side (seconds when it hangs): the events behind it, a release first, are not held up."""
         RE = robot_pb2.RobotEvent
         # the hub's time of each robot's last stop or release: one older comes late (a hub's backlog
         # drained by the forwarder after its reconnection, behind the newer events), and is no order
         latest: dict[int, int] = {}
-        async for ev in events.messages(RE):
-            if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP, RE.KIND_RESUME):
-                if ev.t_ns < latest.get(ev.robot_id, 0):
-                    svc.counters.stale_link_events += 1
-                    kind = RE.Kind.Name(ev.kind)
-                    ctx.log.warning("an old %s of robot %d came late: ignored", kind, ev.robot_id)
-                    continue
-                latest[ev.robot_id] = ev.t_ns
-            if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP):
-                if not await stopped_now(ev.robot_id):
-                    svc.counters.stale_link_events += 1
-                    ctx.log.warning("robot %d: a stop came after its release (late): ignored", ev.robot_id)
-                    continue
-                await ctl.stopped_on_link(ev.robot_id)
-            elif ev.kind == RE.KIND_RESUME:
-                ctl.released_on_link(ev.robot_id)
-            elif ev.kind == RE.KIND_PROGRAM:
-                await ctl.held_by_program(ev.robot_id, ev.text)
-            elif ev.kind == RE.KIND_PROGRAM_END:
-                ctl.program_ended(ev.robot_id)
+
+        async def stop(ev: robot_pb2.RobotEvent) -> None:
+            held = await stopped_now(ev.robot_id)
+            if latest.get(ev.robot_id) != ev.t_ns:
+                return  # a newer stop or release came meanwhile: it rules (a real stop's drop is noted)
+            if not held:
+                svc.counters.stale_link_events += 1
+                ctx.log.warning("robot %d: a stop came after its release (late): ignored", ev.robot_id)
+                return
+            await ctl.stopped_on_link(ev.robot_id)
+
+        async with asyncio.TaskGroup() as checks:
+            async for ev in events.messages(RE):
+                if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP, RE.KIND_RESUME):
+                    if ev.t_ns < latest.get(ev.robot_id, 0):
+                        svc.counters.stale_link_events += 1
+                        kind = RE.Kind.Name(ev.kind)
+                        ctx.log.warning("an old %s of robot %d came late: ignored", kind, ev.robot_id)
+                        continue
+                    latest[ev.robot_id] = ev.t_ns
+                if ev.kind in (RE.KIND_ESTOP, RE.KIND_STOP):
+                    checks.create_task(stop(ev))
+                elif ev.kind == RE.KIND_RESUME:
+                    ctl.released_on_link(ev.robot_id)
+                elif ev.kind == RE.KIND_PROGRAM:
+                    await ctl.held_by_program(ev.robot_id, ev.text)
+                elif ev.kind == RE.KIND_PROGRAM_END:
+                    ctl.program_ended(ev.robot_id)
 
     async with asyncio.TaskGroup() as tg:
         tg.create_task(follow_link(), name="follow-link")

@@ -139,7 +139,7 @@ class Controller(Engine):
         once it is loaded and its start time set."""
         track = self.track(robot)
         async with track.starting:
-            self.check_running(track)
+            await self.confirm_running(track)
             q0 = await self.start_q(track)
             result, tracks = await self.launch({track.robot: plan(track, q0)}, fine)
         return await self.finish(tracks, result) if wait else result
@@ -269,7 +269,7 @@ class Controller(Engine):
             if len(checked) != 1:
                 raise PlanError("replacing a running motion takes the trajectory of one robot")
             ((rid, (track, timed)),) = checked.items()
-            self.check_running(track)
+            await self.confirm_running(track)
             if track.moving and track.segment is not None:
                 if np.abs(timed.qd[0]).max() > 1e-9:
                     raise PlanError(f"robot {rid}: a trajectory that starts moving cannot replace a motion")
@@ -296,7 +296,7 @@ class Controller(Engine):
                 # too late to branch: it follows once the motion under way has ended
         approaches: dict[int, Motion | None] = {}
         for rid, (track, timed) in checked.items():
-            self.check_running(track)
+            await self.confirm_running(track)
             q0 = await self.start_q(track)
             off = float(np.abs(q0 - timed.q[0]).max())
             if off <= AT_START_RAD:

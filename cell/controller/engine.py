@@ -57,6 +57,7 @@ from cell.dataplane.tables import TPBatch
 from cell.v1 import controller_pb2, dataplane_pb2
 
 log = logging.getLogger("cell.controller")
+CONFIRM_S = 1.5  # how long a motion asked for waits on the data plane to confirm a stop the controller holds
 
 
 class Engine(RobotBook):
@@ -165,6 +166,26 @@ class Engine(RobotBook):
             raise PlanError(f"no status from robot(s) {track.robots} at the data plane yet")
         return status
 
+    def released(self, st: dataplane_pb2.DataplaneState, asked: float) -> None:
+        """The data plane is the authority on Responsive Link stops (every stop reaches it first); the
+        hub's events on the bus only tell sooner, or late: a robot held for stopped since before this
+        reading (asked: its time.monotonic()), and that the data plane no longer holds, was released
+        while its release went unheard or is still on its way (a hub's backlog, a controller that
+        started between the stop and the release, a stop's check still waiting on the data plane)."""
+        free = {r.robot_id for r in st.robots if not r.stopped}
+        for robot in [r for r, since in self.stopped.items() if since < asked and r in free]:
+            self.stopped.pop(robot, None)
+
+    async def confirm_running(self, track: Track) -> None:
+        """check_running, once the data plane has confirmed the stops the controller holds: a motion
+        asked for right after a release must not be refused for news of the release still on its way.
+        Unanswered, the stop holds."""
+        if any(r in self.stopped for r in track.robots):
+            asked = time.monotonic()
+            with contextlib.suppress(BusError, TimeoutError):
+                self.released(await self.link.state(track.robots, timeout=CONFIRM_S), asked)
+        self.check_running(track)
+
     def check_running(self, track: Track) -> None:
         held = [r for r in track.robots if r in self.stopped]
         if held:
@@ -221,7 +242,7 @@ class Engine(RobotBook):
         planned = []
         for robot, motion in motions.items():
             track = self.track(robot)
-            self.check_running(track)
+            await self.confirm_running(track)
             # (in a worker thread: fitting a long motion's TPs takes 0.1-0.5 s of CPU, which would hold
             # up everything else this controller does, its watch on the data plane too)
             sections = await asyncio.to_thread(

@@ -60,7 +60,7 @@ async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.
     planned = []
     for robot, q_goal in goals.items():
         track = ctl.track(robot)
-        ctl.check_running(track)
+        await ctl.confirm_running(track)
         q0 = await ctl.start_q(track)
         motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
         sections = await asyncio.to_thread(
@@ -137,7 +137,7 @@ async def run_loop(
         raise PlanError(f"laps must be >= 0 (0: until ended), got {laps}")
     track = ctl.track(robot)
     async with track.starting:
-        ctl.check_running(track)
+        await ctl.confirm_running(track)
         q0 = await ctl.start_q(track)
         await ctl.know_grid(track.robot)
         window = _window_ns(ctl, track.robot)

@@ -16,7 +16,6 @@ import time
 from cell.bus import BusError
 from cell.controller.engine import Engine
 from cell.controller.schedule import dropped
-from cell.v1 import dataplane_pb2
 
 WATCH_S = 0.1  # how often supervise() reads the data plane's registers
 DEAD_S = 0.5  # a data plane silent this long has lost the motions it carried (for us)
@@ -48,7 +47,7 @@ async def supervise(ctl: Engine) -> None:
             await asyncio.sleep(WATCH_S)
             continue
         silent_since = time.monotonic()
-        released(ctl, st, asked)
+        ctl.released(st, asked)
         if boot is None or st.boot_id != boot or gone:
             if boot is not None and st.boot_id != boot:
                 ready.clear()
@@ -71,16 +70,6 @@ async def supervise(ctl: Engine) -> None:
             with contextlib.suppress(BusError):
                 await flush_lost(ctl)
         await asyncio.sleep(WATCH_S)
-
-
-def released(ctl: Engine, st: dataplane_pb2.DataplaneState, asked: float) -> None:
-    """The data plane is the authority on Responsive Link stops (every stop reaches it first); the
-    hub's events on the bus only tell sooner, or late: a robot the controller holds for stopped since
-    before this reading, and that the data plane no longer holds, was released while its release
-    went unheard (a hub's backlog, a controller that started between the stop and the release)."""
-    free = {r.robot_id for r in st.robots if not r.stopped}
-    for robot in [r for r, since in ctl.stopped.items() if since < asked and r in free]:
-        ctl.stopped.pop(robot, None)
 
 
 async def flush_lost(ctl: Engine) -> None:

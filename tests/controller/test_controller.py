@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections.abc import AsyncIterator
 
 import numpy as np
@@ -194,6 +195,22 @@ def crossing_time(samples: list[tuple[int, np.ndarray, np.ndarray]], q0: np.ndar
             return prev_t + (t_ns - prev_t) * (dist - prev_d) / (d - prev_d)
         prev_t, prev_d = t_ns, d
     raise AssertionError("the robot never moved")
+
+
+async def test_a_link_stop_whose_release_is_still_on_its_way_does_not_refuse_a_motion(start_cell) -> None:
+    """The hub tells the bus of a Responsive Link release after the fact (behind a backlog, or a stop
+    still being checked with a data plane that hung): a motion asked for before the news arrives goes
+    once the data plane, the authority on stops, says the robot is free."""
+    async with driving(start_cell, robots("kinematic")) as (ctl, truth):
+        ctl.stopped[1] = time.monotonic()  # stopped by the link; the data plane has released it since
+        goal = Q0 + np.array([0.2, 0, 0, 0, 0, 0])
+        await ctl.move_joints("r1", goal)
+        assert 1 not in ctl.stopped
+        assert np.abs(truth.last("r1") - goal).max() < 2e-3
+        # a stop noted after the data plane was asked is not taken back by that (older) reading
+        ctl.stopped[1] = time.monotonic() + 60.0
+        with pytest.raises(MotionStopped, match="stopped over the Responsive Link"):
+            await ctl.move_joints("r1", Q0)
 
 
 async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell) -> None:
