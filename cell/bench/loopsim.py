@@ -55,10 +55,12 @@ class Pid:
 class Loop:
     """One arm and one controller, stepped a status period at a time."""
 
-    def __init__(self, controller: str, backend: str = "mujoco", pid: Pid = Pid()) -> None:
+    def __init__(
+        self, controller: str, backend: str = "mujoco", pid: Pid = Pid(), model: str | None = None
+    ) -> None:
         cfg = load_config(None)
         dpc, cc = cfg.dataplane, cfg.controller
-        arm = arm_model(cfg.robots[0].model)  # (the default cell's first robot)
+        arm = arm_model(model or cfg.robots[0].model)  # (default: the default cell's first robot's)
         lim = arm.limits
         self.limits = MotionLimits(
             v_max=np.minimum(lim.v_max, dpc.v_max),

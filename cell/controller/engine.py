@@ -40,6 +40,7 @@ from cell.controller.schedule import (
     StopPlan,
     Switch,
     Track,
+    beside,
     concat,
     episode_update,
     episode_wake,
@@ -239,31 +240,41 @@ class Engine(RobotBook):
         # a stop, a program taking a robot over, a loss while this motion is planned and loaded bumps
         # its track's epoch: the motion must not then run (it would stream to a robot that is not ours)
         epochs = {r: self.track(r).epoch for r in motions}
+        # the lead starts on a window start of its grid; each other robot at its own status nearest
+        # to that, fitted for its window phase there (grids of two models' emulators differ)
+        lead_id = next(iter(motions))
+        for robot in motions:
+            await self.know_grid(robot)
+        near = {
+            r: (0, 0) if r == lead_id else beside(self.grids.get(lead_id), self.grids.get(r)) for r in motions
+        }
         planned = []
         for robot, motion in motions.items():
             track = self.track(robot)
             await self.confirm_running(track)
             # (in a worker thread: fitting a long motion's TPs takes 0.1-0.5 s of CPU, which would hold
             # up everything else this controller does, its watch on the data plane too)
+            phase = near[robot][1] if near[robot] is not None else 0
             sections = await asyncio.to_thread(
-                cut, motion, rate, np.resize(self.gain, track.joints), self.loop(track), tick0=0
+                cut, motion, rate, np.resize(self.gain, track.joints), self.loop(track), tick0=phase
             )
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the
         # update's way to the data plane (planning first would eat it on a busy host: a late start)
-        lead = planned[0][0]
-        await self.know_grid(lead.robot)
         await self.link.state()  # a fresh clock and round trip
-        start, at, tick0 = self.grid_start(lead.robot, self.link.now() + self.lead_ns + 2 * self.link.rtt_ns)
+        start, at, tick0 = self.grid_start(lead_id, self.link.now() + self.lead_ns + 2 * self.link.rtt_ns)
         first: list[TPBatch] = []
         registers, remove, segments = [], [], []
         for track, motion, sections, (hold_id, *ids) in planned:
             q0 = motion.sample(np.array([0.0]))[0][0]
-            # (the other robots of a shared start have grids of their own: phase unknown to the fit)
-            seg = Segment(start, motion, sections, ids, tick0 if track is lead else None, track.robot)
+            # (a robot whose grid is not known beside the lead's: started with it, phase unknown to the fit)
+            off, phase = (
+                near[track.robot] if near[track.robot] is not None and tick0 is not None else (0, None)
+            )
+            seg = Segment(start + off, motion, sections, ids, phase, track.robot)
             first.append(hold_batch(track, hold_id, ids[0], q0))
             first.append(tp_batch(track, seg, 0, min(self.episode, len(ids))))
-            registers.append((track.robot, hold_id, at))
+            registers.append((track.robot, hold_id, at + off))
             remove += [(track.robot, i) for i in track.loaded]
             segments.append((track, seg, hold_id))
         for track, _, _ in segments:

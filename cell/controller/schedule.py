@@ -321,6 +321,22 @@ def grid_start(grid: Grid | None, earliest_ns: int, realtime_offset_ns: int) -> 
     return start, start - period // 4, 0
 
 
+def beside(lead: Grid | None, other: Grid | None) -> tuple[int, int] | None:
+    """Where another robot of a shared start starts beside the lead, whose start is on a window start
+    of its own grid (grid_start): the offset of the other's nearest status from it (ns, within half a
+    status period) and the other's window phase there, for its TPs to be fitted for.  The same at every
+    start of the lead, so known before the start time is.  None if a grid is unknown, or the two
+    tick at different rates (a phase that changes from start to start)."""
+    if lead is None or other is None:
+        return None
+    (o1, p1, w1), (o2, p2, w2) = lead, other
+    if p1 != p2 or w1 % w2:
+        return None
+    d = (o2 - o1) % p1
+    e = d if d <= p1 // 2 else d - p1
+    return e, round((o1 - o2 + e) / p1) % w2
+
+
 def phase_at(grid: Grid | None, seg: Segment, t_ns: int) -> int:
     """The model's window phase at a time on a segment started on its robot's grid (else 0)."""
     if seg.tick0 is None or grid is None:

@@ -184,6 +184,15 @@ def fast_truth(backend: str, n: int = 1) -> list[dict]:
     return [dict(r, truth_hz=500) for r in robots(backend, n)]
 
 
+def planned_crossing(seg, dist: float) -> float:
+    """When the segment's plan first gets `dist` rad away from where it starts (ns, data-plane clock:
+    this host's monotonic, as the robots' ground truth)."""
+    t = np.linspace(0.0, seg.motion.duration, 20_001)
+    q, _ = seg.motion.sample(t)
+    k = int(np.argmax(np.abs(q - q[0]).max(axis=1) >= dist))
+    return seg.start_ns + t[k] * 1e9
+
+
 def crossing_time(samples: list[tuple[int, np.ndarray, np.ndarray]], q0: np.ndarray, dist: float) -> float:
     """When the robot first got `dist` rad away from q0 (ns, interpolated between samples)."""
     prev_t, prev_d = None, 0.0
@@ -270,17 +279,35 @@ async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
         assert np.allclose(result.q_end, goal)
 
 
-@pytest.mark.parametrize("merged", [False, True])
-async def test_robots_started_together_start_within_a_status_period(start_cell, merged: bool) -> None:
-    async with driving(start_cell, fast_truth("kinematic", 2)) as (ctl, truth):
+@pytest.mark.parametrize("merged", [False, True, "models"])
+async def test_robots_started_together_start_within_a_status_period(start_cell, merged: bool | str) -> None:
+    arms = fast_truth("kinematic", 2)
+    if merged == "models":  # a UR5e and a UR10e: emulated on tick grids of their own
+        arms[1]["model"] = "ur10e"
+    async with driving(start_cell, arms) as (ctl, truth):
         delta = np.array([0.5, -0.3, 0.2, 0.0, 0.0, 0.4])
-        if merged:
+        if merged is True:
             await ctl.merge(["r1", "r2"])
             await ctl.move_joints("r1", np.concatenate([Q0 + delta, Q0 + delta]))
         else:
             await ctl.move_together({"r1": Q0 + delta, "r2": Q0 + delta})
         t1, t2 = (crossing_time(truth.samples[n], Q0, 1e-3) for n in ("r1", "r2"))
+        if merged == "models":  # two plans of their own (other limits): each robot's lag behind its own,
+            # where it is well under way (at its first mrad, the TPs' fit still leads the smooth plan)
+            t1, t2 = (
+                crossing_time(truth.samples[n], Q0, 0.1) - planned_crossing(ctl.track(n).segment, 0.1)
+                for n in ("r1", "r2")
+            )
         assert abs(t1 - t2) / 1e6 <= 2.0
+        if merged == "models":  # r2 started on a status of its own grid, its TPs fitted for its phase there
+            seg, (origin, period, w) = ctl.track("r2").segment, ctl.grids[2]
+            assert seg is not None and seg.tick0 is not None
+            rt = ctl.link.realtime_offset_ns
+            assert ctl.grids[1][0] != origin and rt is not None
+            ticks = (seg.start_ns + rt - origin) / period
+            assert (
+                abs(ticks - round(ticks)) < 0.05 and round(ticks) % w == seg.tick0
+            )  # (rt: re-estimated since)
 
 
 async def test_the_controller_service_moves_stops_and_resumes_over_the_bus(start_cell) -> None:

@@ -38,7 +38,9 @@ async def pull_tps(bus: Bus, name: str, robot_id: int) -> None:
 
 async def test_a_motion_the_robot_did_not_follow_is_failed_with_where_it_stands(start_cell) -> None:
     cell = await start_cell(
-        run=["bus", "dataplane", "robots", "controller", "skills"], robots=robots("kinematic")
+        run=["bus", "dataplane", "robots", "controller", "skills"],
+        robots=robots("kinematic"),
+        sections={"controller": {"settle_s": 0.5}},  # (a robot left standing is not waited on for long)
     )
     rc = cell.config.robot("r1")
     async with Bus.connect(cell.config.bus, "client") as bus:
@@ -58,7 +60,7 @@ async def test_a_motion_the_robot_did_not_follow_is_failed_with_where_it_stands(
         # a skill server's move and its break (pyadept's cmdexec): the break is answered failed
         client = await RobotClient("r1", cell.config.skills.host, rc.skill_port).connect()
         try:
-            move = asyncio.create_task(client.cmdexec(SetSpeed(30), MoveJoints(tuple(np.degrees(goal)))))
+            move = asyncio.create_task(client.cmdexec(SetSpeed(60), MoveJoints(tuple(np.degrees(goal)))))
             await pull_tps(bus, "r1", rc.id)
             with pytest.raises(SkillError) as info:
                 await move
@@ -73,13 +75,13 @@ async def test_a_motion_the_robot_did_not_follow_is_failed_with_where_it_stands(
         assert np.abs(said - stands).max() < 1e-3  # where it stands, as it was read
 
         # the next motion plans from where the robot stands and is done there, read at its goal
-        done = await call("move", M(robot="r1", kind=M.JOINTS, values=list(goal), speed=50))
+        done = await call("move", M(robot="r1", kind=M.JOINTS, values=list(goal), speed=100))
         assert np.allclose(done.joints, goal)
         here = await call("pose", controller_pb2.RobotRequest(robot="r1"), controller_pb2.PoseReply)
         assert np.abs(np.array(here.joints) - goal).max() <= cell.config.controller.goal_tolerance_rad
 
         # a motion over the bus that waits for its end (a task script's): failed, not done
-        back = asyncio.create_task(call("move", M(robot="r1", kind=M.JOINTS, values=list(Q0), speed=30)))
+        back = asyncio.create_task(call("move", M(robot="r1", kind=M.JOINTS, values=list(Q0), speed=60)))
         await pull_tps(bus, "r1", rc.id)
         with pytest.raises(RemoteError) as err:
             await back

@@ -12,6 +12,7 @@ from cell.controller.schedule import (
     STALE_STATUS_NS,
     Segment,
     Track,
+    beside,
     branch_point,
     concat,
     dropped,
@@ -80,6 +81,28 @@ def test_a_start_is_on_the_robots_tick_grid_its_register_a_quarter_period_early(
     assert at == start - period // 4 and at >= earliest - period // 4
     assert start - (period * w) < earliest + period // 4 <= start  # the first window that fits
     assert grid_start(None, earliest, offset) == (earliest, earliest, None)
+
+
+@pytest.mark.parametrize("shift", [0, 1, 999_999, 1_000_000, 1_000_001, 5_300_000, -7_100_000])
+def test_a_robot_started_beside_the_lead_starts_on_its_own_nearest_status_fitted_for_its_phase(
+    shift: int,
+) -> None:
+    """Two robots on grids of their own (two models' emulators): at every start of the lead (a window
+    start of its grid) the other's nearest status is within half a period, at a window phase that
+    beside() says before the start time is known."""
+    period, w = 2_000_000, 4
+    lead = (1_000_000_000, period, w)
+    other = (1_000_000_000 + shift, period, w)
+    off, phase = beside(lead, other)
+    assert abs(off) <= period // 2
+    for k in (3, 17, 1000):
+        start = lead[0] + k * period * w
+        t = start + off
+        assert (t - other[0]) % period == 0  # one of the other's statuses
+        assert ((t - other[0]) // period) % w == phase
+    assert beside(lead, (other[0], period // 2, w)) is None  # other rates: no fixed phase
+    assert beside(None, other) is None and beside(lead, None) is None
+    assert beside(lead, lead) == (0, 0)
 
 
 def test_a_replan_branches_ahead_from_the_predicted_state() -> None:
