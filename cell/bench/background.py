@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -180,7 +181,7 @@ def robots_main(robots: int, seconds: float) -> None:
         out = _load((SWITCH_R, STATUS_PORT), robots, seconds, bind=ROBOT_ADDR, sink=sink)
     finally:
         sink.close()
-    print(json.dumps(out), flush=True)
+    print(json.dumps(dataclasses.asdict(out)), flush=True)
 
 
 # --- the experiment -------------------------------------------------------------------------------

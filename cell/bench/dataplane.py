@@ -28,6 +28,7 @@ import socket
 import struct
 import sys
 import time
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -222,7 +223,45 @@ TARGETS = {
 # --- the load generator (this process) -----------------------------------------------------------
 
 
-def load(addr: tuple[str, int], robots: int, seconds: float, bind: str = "127.0.0.1") -> dict[str, float]:
+@dataclass
+class Trial:
+    """One load of `robots` robots (x 6 joints x 500 Hz) against a target: what came back, and when."""
+
+    target: str
+    robots: int
+    rate: int  # status datagrams/s offered
+    sent: int = 0
+    answered: int = 0
+    on_time: int = 0  # answered within the command window
+    on_time_fraction: float = 0.0
+    generator_late_ticks: int = 0  # the load's own ticks more than a period late (this VM's stalls)
+    sink_datagrams: int = 0  # ordinary traffic counted meanwhile (cell.bench.background)
+    sink_bytes: int = 0
+    span_s: float = 0.0
+    p50_us: float = float("nan")  # status to command (kernel stamps)
+    p99_us: float = float("nan")
+    max_us: float = float("nan")
+    update_ms: list[float] = field(default_factory=list)  # each controller update's time (+updates)
+    hold_ms: list[float] = field(default_factory=list)  # the packet path held by each update, at most
+    ok: bool = False  # >= ON_TIME answered within the window
+    limit: str = ""  # why the target refused this load (its capacity), if it did
+
+
+@dataclass
+class Search:
+    """sustained(): the best passing trial of a target, every trial run, and the capacity it met."""
+
+    target: str
+    best: Trial | None
+    trials: list[Trial]
+    limit: str | None = None
+
+    @property
+    def rate(self) -> float:
+        return float(self.best.rate) if self.best is not None else 0.0
+
+
+def load(addr: tuple[str, int], robots: int, seconds: float, bind: str = "127.0.0.1") -> Trial:
     """Play `robots` robots at 500 Hz against addr for `seconds`; status-to-command times of every answer."""
     with pinned(0):
         return _load(addr, robots, seconds, bind)
@@ -234,7 +273,7 @@ def _load(
     seconds: float,
     bind: str = "127.0.0.1",
     sink: socket.socket | None = None,
-) -> dict[str, float]:
+) -> Trial:
     """As load(); bind: the robots' address; sink: a socket whose datagrams are counted meanwhile
     (ordinary traffic forwarded to the robots' host, cell.bench.background)."""
     sock = udp.open_socket(bind, timestamps=True)
@@ -302,22 +341,23 @@ def _load(
     times = np.concatenate(lat) if lat else np.zeros(0, np.int64)
     answered = times.size
     on_time = int((times <= WINDOW_NS).sum())
-    out = {
-        "robots": robots,
-        "rate": n * 500,
-        "sent": sent,
-        "answered": answered,
-        "on_time": on_time,
-        "on_time_fraction": on_time / max(sent, 1),
-        "generator_late_ticks": late_ticks,
-        "sink_datagrams": sunk_in_span[0],
-        "sink_bytes": sunk_in_span[1],
-        "span_s": span_ns / 1e9,
-    }
+    out = Trial(
+        "",
+        robots,
+        n * 500,
+        sent=sent,
+        answered=answered,
+        on_time=on_time,
+        on_time_fraction=on_time / max(sent, 1),
+        generator_late_ticks=late_ticks,
+        sink_datagrams=sunk_in_span[0],
+        sink_bytes=sunk_in_span[1],
+        span_s=span_ns / 1e9,
+    )
     if times.size:
-        out["p50_us"] = float(np.percentile(times, 50)) / 1e3
-        out["p99_us"] = float(np.percentile(times, 99)) / 1e3
-        out["max_us"] = float(times.max()) / 1e3
+        out.p50_us = float(np.percentile(times, 50)) / 1e3
+        out.p99_us = float(np.percentile(times, 99)) / 1e3
+        out.max_us = float(times.max()) / 1e3
     return out
 
 
@@ -332,7 +372,7 @@ def _drain(sock: socket.socket, arrivals: list[tuple[int, bytes]], offset: int) 
         arrivals.append((got[3] - offset if got[3] else time.monotonic_ns(), got[0]))
 
 
-def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> dict[str, float]:
+def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> Trial:
     """One run of `robots` robots against a target; net: the switch (XdpConfig) of the xdp targets."""
     ctx = mp.get_context("spawn")
     out, stop = ctx.Queue(), ctx.Event()
@@ -344,7 +384,7 @@ def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> di
         proc.join(10)
         if proc.is_alive():
             proc.kill()
-        return {"target": target, "robots": robots, "rate": robots * 6 * 500, "ok": False, "limit": addr}
+        return Trial(target, robots, robots * 6 * 500, limit=addr)
     try:
         result = load(addr, robots, seconds, bind="127.0.0.1" if net is None else net.host_addr)
     finally:
@@ -352,12 +392,12 @@ def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> di
     if target.startswith(("dataplane", "xdp")) and target != "xdp-reflector":
         try:
             stats = out.get(timeout=30)
-            result["update_ms"], result["hold_ms"] = stats.get("update_ms", []), stats.get("hold_ms", [])
+            result.update_ms, result.hold_ms = stats.get("update_ms", []), stats.get("hold_ms", [])
         except queue.Empty:
-            result["update_ms"], result["hold_ms"] = [], []
+            pass
     proc.join(10)
-    result["target"] = target
-    result["ok"] = result["on_time_fraction"] >= ON_TIME
+    result.target = target
+    result.ok = result.on_time_fraction >= ON_TIME
     return result
 
 
@@ -376,12 +416,12 @@ def _address(proc: Any, out: Any, timeout: float = 60.0) -> tuple[str, int] | st
     return f"the target did not come up in {timeout:.0f} s"
 
 
-def sustained(target: str, start: int, seconds: float, log: Any = None, net: Any = None) -> dict[str, Any]:
+def sustained(target: str, start: int, seconds: float, log: Any = None, net: Any = None) -> Search:
     """The most status datagrams/s answered within the window: R doubles until a trial fails, then two
     bisections narrow it down.  A failed trial is run once more (this VM stalls for milliseconds now
     and then), so a rate counts when one of two trials passes."""
-    trials: list[dict[str, Any]] = []
-    best: dict[str, Any] | None = None
+    trials: list[Trial] = []
+    best: Trial | None = None
 
     def passes(r: int) -> bool:
         nonlocal best
@@ -390,11 +430,11 @@ def sustained(target: str, start: int, seconds: float, log: Any = None, net: Any
             trials.append(t)
             if log:
                 log(t)
-            if t["ok"]:
-                if best is None or t["rate"] > best["rate"]:
+            if t.ok:
+                if best is None or t.rate > best.rate:
                     best = t
                 return True
-            if t.get("limit"):  # (past its capacity: a second try would only say it again)
+            if t.limit:  # (past its capacity: a second try would only say it again)
                 return False
         return False
 
@@ -404,57 +444,73 @@ def sustained(target: str, start: int, seconds: float, log: Any = None, net: Any
     bad = r
     for _ in range(2):
         mid = (ok + bad) // 2
-        if mid <= ok or trials[-1].get("limit"):  # (a target past its capacity: no use bisecting)
+        if mid <= ok or trials[-1].limit:  # (a target past its capacity: no use bisecting)
             break
         if passes(mid):
             ok = mid
         else:
             bad = mid
-    limit = next((f"{t['robots']} robots: {t['limit']}" for t in trials if t.get("limit")), None)
-    return {"target": target, "best": best, "trials": trials, "limit": limit}
+    limit = next((f"{t.robots} robots: {t.limit}" for t in trials if t.limit), None)
+    return Search(target, best, trials, limit)
 
 
-def format_trial(t: dict[str, Any]) -> str:
-    if t.get("limit"):
-        return f"{t['target']:>10} {t['robots']:>4} robots: over the target's capacity ({t['limit']})"
-    verdict = "ok  " if t["ok"] else "FAIL"
+def format_trial(t: Trial) -> str:
+    if t.limit:
+        return f"{t.target:>10} {t.robots:>4} robots: over the target's capacity ({t.limit})"
+    verdict = "ok  " if t.ok else "FAIL"
     return (
-        f"{t['target']:>10} {t['robots']:>4} robots ({t['rate']:>9,} status/s): {verdict} "
-        f"on time {100 * t['on_time_fraction']:6.2f}%  p50/p99 {t.get('p50_us', float('nan')):7.0f}/"
-        f"{t.get('p99_us', float('nan')):7.0f} us  generator late ticks {t['generator_late_ticks']}"
+        f"{t.target:>10} {t.robots:>4} robots ({t.rate:>9,} status/s): {verdict} "
+        f"on time {100 * t.on_time_fraction:6.2f}%  p50/p99 {t.p50_us:7.0f}/"
+        f"{t.p99_us:7.0f} us  generator late ticks {t.generator_late_ticks}"
     )
 
 
-def run(seconds: float = 2.0, log: Any = None) -> dict[str, Any]:
-    result: dict[str, Any] = {
-        "throughput": {
-            t: sustained(t, s, seconds, log) for t, s in (("reflector", 20), ("dataplane", 20), ("naive", 5))
-        }
+@dataclass
+class Run:
+    """What `cell bench dataplane` measured: each target's search, latency at 10/100/300 robots, and
+    the same 100-robot load without and with a controller's updates; with --backend xdp also the
+    latency with the program on the sender's core, and the issue's figures flat (summary)."""
+
+    throughput: dict[str, Search]
+    latency: list[Trial]
+    updates: tuple[Trial, Trial]  # (quiet, with updates)
+    latency_same_core: list[Trial] = field(default_factory=list)
+    summary: dict[str, float] = field(default_factory=dict)
+
+    def best(self, target: str) -> float:
+        return self.throughput[target].rate
+
+    def figures(self) -> dict[str, Any]:
+        """The JSON line: the summary's flat figures first, then every trial."""
+        out = asdict(self)
+        return {**out.pop("summary"), **out}
+
+
+def run(seconds: float = 2.0, log: Any = None) -> Run:
+    throughput = {
+        t: sustained(t, s, seconds, log) for t, s in (("reflector", 20), ("dataplane", 20), ("naive", 5))
     }
-    result["latency"] = [trial("dataplane", r, seconds) for r in (10, 100, 300)]
-    if log:
-        for t in result["latency"]:
-            log(t)
+    latency = [trial("dataplane", r, seconds) for r in (10, 100, 300)]
     # updates under load: the same load with and without a controller's updates each second
-    result["updates"] = [trial(t, 100, max(seconds, 3.5)) for t in ("dataplane", "dataplane+updates")]
-    if log:
-        for t in result["updates"]:
-            log(t)
-    return result
+    quiet, busy = (trial(t, 100, max(seconds, 3.5)) for t in ("dataplane", "dataplane+updates"))
+    for t in [*latency, quiet, busy] if log else ():
+        log(t)
+    return Run(throughput, latency, (quiet, busy))
 
 
-def format_result(result: dict[str, Any]) -> str:
-    tp = result["throughput"]
+def _updates_line(quiet: Trial, busy: Trial) -> tuple[float, float, float]:
+    """Mean and longest update (ms), and the longest the packet path was held (ms)."""
+    ms, hold = busy.update_ms or [float("nan")], busy.hold_ms or [float("nan")]
+    return float(np.mean(ms)), float(max(ms)), float(max(hold))
 
-    def best(name: str) -> float:
-        b = tp[name]["best"]
-        return float(b["rate"]) if b else 0.0
 
-    ref, dp, naive = best("reflector"), best("dataplane"), best("naive")
+def format_result(result: Run) -> str:
+    tp = result.throughput
+    ref, dp, naive = result.best("reflector"), result.best("dataplane"), result.best("naive")
     lines = ["status datagrams/s answered >= 99% within the 8 ms command window (one core each side):"]
     lines += [
         f"  {name:>10}: {rate:>10,.0f}"
-        + (f"  (stopped at its capacity, {tp[name]['limit']})" if tp[name].get("limit") else "")
+        + (f"  (stopped at its capacity, {tp[name].limit})" if tp[name].limit else "")
         for name, rate in (("reflector", ref), ("dataplane", dp), ("naive", naive))
     ]
     if ref and naive:
@@ -462,17 +518,14 @@ def format_result(result: dict[str, Any]) -> str:
             f"  dataplane = {100 * dp / ref:.0f}% of the reflector, {dp / naive:.1f}x the naive asyncio one"
         )
     lines.append("status-to-command time, robots x 6 joints x 500 Hz:")
-    lines += [f"  {format_trial(t)}" for t in result["latency"]]
-    quiet, busy = result["updates"]
-    ms = busy.get("update_ms") or [float("nan")]
-    hold = busy.get("hold_ms") or [float("nan")]
+    lines += [f"  {format_trial(t)}" for t in result.latency]
+    quiet, busy = result.updates
+    mean, longest, held = _updates_line(quiet, busy)
     lines.append(
-        f"updates under load (100 robots; 1,600 inserts + 10,000 deletes a second, {len(ms)} updates): "
-        f"{np.mean(ms):.1f} ms per update (max {max(ms):.1f}), "
-        f"the packet path held at most {max(hold):.2f} ms; "
-        f"p99 {busy.get('p99_us', float('nan')):.0f} us "
-        f"with vs {quiet.get('p99_us', float('nan')):.0f} us without "
-        f"(ratio {busy.get('p99_us', float('nan')) / quiet.get('p99_us', float('nan')):.2f})"
+        f"updates under load (100 robots; 1,600 inserts + 10,000 deletes a second, "
+        f"{len(busy.update_ms)} updates): {mean:.1f} ms per update (max {longest:.1f}), the packet path "
+        f"held at most {held:.2f} ms; p99 {busy.p99_us:.0f} us with vs {quiet.p99_us:.0f} us without "
+        f"(ratio {busy.p99_us / quiet.p99_us:.2f})"
     )
     return "\n".join(lines)
 
@@ -497,7 +550,7 @@ def xdp_dataplane(net: Any) -> dict[str, Any]:
     return {"listen": f"{net.switch_addr}:{XDP_PORT}", "backend": "xdp", "xdp": asdict(net)}
 
 
-def run_xdp(seconds: float = 2.0, log: Any = None) -> dict[str, Any]:
+def run_xdp(seconds: float = 2.0, log: Any = None) -> Run:
     """The XDP data plane next to the bare XDP reflector (same switch) and the numpy data plane (on
     loopback, as the default cell runs it), under the same generator on core 0.  Throughput, latency
     and updates with the switch's program on core 1 (RPS), as the numpy target has core 1; latency
@@ -505,7 +558,7 @@ def run_xdp(seconds: float = 2.0, log: Any = None) -> dict[str, Any]:
     and the built object (SwitchError says which)."""
     from cell.dataplane.xdp.switch import switch_namespace
 
-    def trials(targets: tuple[str, ...], robots: int, secs: float, net: Any) -> list[dict[str, Any]]:
+    def trials(targets: tuple[str, ...], robots: int, secs: float, net: Any) -> list[Trial]:
         out = [trial(t, robots, secs, net) for t in targets]
         for t in out if log else ():
             log(t)
@@ -517,16 +570,15 @@ def run_xdp(seconds: float = 2.0, log: Any = None) -> dict[str, Any]:
         with switch_namespace(net):
             throughput = {t: sustained(t, 20, seconds, log, net) for t in ("xdp-reflector", "xdp")}
             latency = [x for r in (10, 100, 300) for x in trials(("xdp",), r, seconds, net)]
-            updates = trials(("xdp", "xdp+updates"), 100, max(seconds, 3.5), net)
+            quiet, busy = trials(("xdp", "xdp+updates"), 100, max(seconds, 3.5), net)
         same_core = xdp_switch(cpu=-1)
         with switch_namespace(same_core):
             local = [x for r in (10, 100, 300) for x in trials(("xdp",), r, seconds, same_core)]
     finally:
         signal.signal(signal.SIGTERM, previous)
     throughput["dataplane"] = sustained("dataplane", 20, seconds, log)
-    result: dict[str, Any] = {"throughput": throughput, "latency": latency, "updates": updates}
-    result["latency_same_core"] = local
-    result["summary"] = xdp_summary(result)
+    result = Run(throughput, latency, (quiet, busy), local)
+    result.summary = xdp_summary(result)
     return result
 
 
@@ -534,14 +586,9 @@ def _exit_on_sigterm(*_: Any) -> None:
     raise SystemExit(143)
 
 
-def xdp_summary(result: dict[str, Any]) -> dict[str, float]:
+def xdp_summary(result: Run) -> dict[str, float]:
     """The figures issue 18 asks for, as flat keys."""
-
-    def best(name: str) -> float:
-        b = result["throughput"][name]["best"]
-        return float(b["rate"]) if b else 0.0
-
-    ref, xdp, numpy = best("xdp-reflector"), best("xdp"), best("dataplane")
+    ref, xdp, numpy = result.best("xdp-reflector"), result.best("xdp"), result.best("dataplane")
     out: dict[str, float] = {
         "xdp_status_per_s": xdp,
         "xdp_reflector_status_per_s": ref,
@@ -549,22 +596,20 @@ def xdp_summary(result: dict[str, Any]) -> dict[str, float]:
         "xdp_of_reflector": xdp / ref if ref else 0.0,
         "xdp_over_numpy": xdp / numpy if numpy else 0.0,
     }
-    for key, trials in (("", result["latency"]), ("same_core_", result["latency_same_core"])):
+    for key, trials in (("", result.latency), ("same_core_", result.latency_same_core)):
         for t in trials:
-            out[f"{key}p50_us_{t['robots']}"] = t.get("p50_us", float("nan"))
-            out[f"{key}p99_us_{t['robots']}"] = t.get("p99_us", float("nan"))
-            out[f"{key}on_time_{t['robots']}"] = t["on_time_fraction"]
-    quiet, busy = result["updates"]
-    ms, hold = busy.get("update_ms") or [float("nan")], busy.get("hold_ms") or [float("nan")]
-    out["update_ms_mean"], out["update_ms_max"] = float(np.mean(ms)), float(max(ms))
-    out["hold_ms_max"] = float(max(hold))
-    out["p99_us_updates"] = busy.get("p99_us", float("nan"))
-    out["p99_us_quiet"] = quiet.get("p99_us", float("nan"))
+            out[f"{key}p50_us_{t.robots}"] = t.p50_us
+            out[f"{key}p99_us_{t.robots}"] = t.p99_us
+            out[f"{key}on_time_{t.robots}"] = t.on_time_fraction
+    quiet, busy = result.updates
+    out["update_ms_mean"], out["update_ms_max"], out["hold_ms_max"] = _updates_line(quiet, busy)
+    out["p99_us_updates"] = busy.p99_us
+    out["p99_us_quiet"] = quiet.p99_us
     return out
 
 
-def format_xdp(result: dict[str, Any]) -> str:
-    s = result["summary"]
+def format_xdp(result: Run) -> str:
+    s = result.summary
     lines = ["status datagrams/s answered >= 99% within the 8 ms command window (generator on core 0):"]
     ref, xdp, numpy = s["xdp_reflector_status_per_s"], s["xdp_status_per_s"], s["numpy_status_per_s"]
     lines += [
@@ -573,14 +618,12 @@ def format_xdp(result: dict[str, Any]) -> str:
         f"          numpy: {numpy:>10,.0f}   (xdp = {s['xdp_over_numpy']:.1f}x numpy)",
     ]
     lines += [
-        f"  {name} stopped at its capacity: {t['limit']}"
-        for name, t in result["throughput"].items()
-        if t.get("limit")
+        f"  {name} stopped at its capacity: {t.limit}" for name, t in result.throughput.items() if t.limit
     ]
     lines += ["status-to-command time, robots x 6 joints x 500 Hz, XDP backend, its program on core 1:"]
-    lines += [f"  {format_trial(t)}" for t in result["latency"]]
+    lines += [f"  {format_trial(t)}" for t in result.latency]
     lines.append("  ... and on the sender's core (cpu = -1: no cross-CPU hop):")
-    lines += [f"  {format_trial(t)}" for t in result["latency_same_core"]]
+    lines += [f"  {format_trial(t)}" for t in result.latency_same_core]
     lines.append(
         f"updates under load (100 robots; 1,600 inserts + 10,000 deletes a second): "
         f"{s['update_ms_mean']:.1f} ms per update (max {s['update_ms_max']:.1f}), the kernel's packet path "
@@ -601,7 +644,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _main(args: argparse.Namespace) -> Figures:
-    def trial_log(trial: dict) -> None:
+    def trial_log(trial: Trial) -> None:
         log(format_trial(trial))
 
     from cell.config import load_config
@@ -619,11 +662,10 @@ def _main(args: argparse.Namespace) -> Figures:
         except SwitchError as exc:
             print(f"cell bench dataplane: {exc}", file=sys.stderr)
             return Figures({"error": str(exc)}, exit_code=2)
-        text = format_xdp(result)
         # the issue's figures first, flat (the trials follow in the full result)
-        return Figures({**result.pop("summary"), **result}, text)
+        return Figures(result.figures(), format_xdp(result))
     result = run(args.seconds, log=trial_log)
-    return Figures(result, format_result(result))
+    return Figures(result.figures(), format_result(result))
 
 
 register(

@@ -38,11 +38,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cell.bench.registry import Bench, Figures, log, register
+
+if TYPE_CHECKING:
+    from cell.bench.dataplane import Trial
 
 Log = Callable[[str], None]
 
@@ -304,9 +307,9 @@ def latency(quick: bool, out: Path, log: Log) -> list[Section]:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 3))
     x = np.arange(len(trials))
-    ax.bar(x - 0.2, [t["p50_us"] for t in trials], 0.4, label="p50")
-    ax.bar(x + 0.2, [t["p99_us"] for t in trials], 0.4, label="p99")
-    ax.set_xticks(x, [f"{t['robots']} robots" for t in trials])
+    ax.bar(x - 0.2, [t.p50_us for t in trials], 0.4, label="p50")
+    ax.bar(x + 0.2, [t.p99_us for t in trials], 0.4, label="p99")
+    ax.set_xticks(x, [f"{t.robots} robots" for t in trials])
     ax.set_yscale("log")
     _paper(ax, 1.3, "Tofino 0.6-1.3 us")
     ax.set_ylabel("status to command (us)")
@@ -316,27 +319,26 @@ def latency(quick: bool, out: Path, log: Log) -> list[Section]:
         "Response time",
         "Sec. 7.1, Fig. 14",
         [
-            (f"status to command, {t['robots']} robots, p50 / p99", "0.6-1.3 us (Tofino, 64 B)", _us(t))
+            (f"status to command, {t.robots} robots, p50 / p99", "0.6-1.3 us (Tofino, 64 B)", _us(t))
             for t in trials
         ]
         + [
             (
                 "answered within the 8 ms command window",
                 ">= 99 %",
-                f"{100 * trials[-1]['on_time_fraction']:.2f} %",
+                f"{100 * trials[-1].on_time_fraction:.2f} %",
             )
         ],
         _save(fig, out, "latency.png"),
         "A load generator on one core plays the robots (real UDP on loopback); the data plane runs on "
         "the other.  With background traffic at a congested port: see Appendix C below.",
-        {f"p99_us_{t['robots']}": t["p99_us"] for t in trials}
-        | {f"p50_us_{t['robots']}": t["p50_us"] for t in trials},
+        {f"p99_us_{t.robots}": t.p99_us for t in trials} | {f"p50_us_{t.robots}": t.p50_us for t in trials},
         caption="Status-to-command time through the data plane (log scale), median and p99, per fleet "
         "size, with the paper's Tofino figure.",
-        headline=("0.6-1.3 us (Tofino)", f"{_us(trials[-1])} ({trials[-1]['robots']} robots)"),
-        verdict="scaled" if trials[-1]["on_time_fraction"] >= 0.99 else "no",
+        headline=("0.6-1.3 us (Tofino)", f"{_us(trials[-1])} ({trials[-1].robots} robots)"),
+        verdict="scaled" if trials[-1].on_time_fraction >= 0.99 else "no",
     )
-    ms = busy.get("update_ms") or [float("nan")]
+    ms = busy.update_ms or [float("nan")]
     churn = Section(
         "churn",
         "Table churn under load",
@@ -347,24 +349,24 @@ def latency(quick: bool, out: Path, log: Log) -> list[Section]:
             (
                 "p99 with / without churn (100 robots)",
                 "-",
-                f"{busy['p99_us']:.0f} / {quiet['p99_us']:.0f} us",
+                f"{busy.p99_us:.0f} / {quiet.p99_us:.0f} us",
             ),
         ],
         None,
         "",
         {
             "update_ms_mean": float(np.mean(ms)),
-            "p99_us_churn": busy["p99_us"],
-            "p99_us_quiet": quiet["p99_us"],
+            "p99_us_churn": busy.p99_us,
+            "p99_us_quiet": quiet.p99_us,
         },
-        headline=("no effect of churn on latency", f"p99 {busy['p99_us']:.0f} / {quiet['p99_us']:.0f} us"),
-        verdict="yes" if busy["p99_us"] <= 2 * quiet["p99_us"] else "no",
+        headline=("no effect of churn on latency", f"p99 {busy.p99_us:.0f} / {quiet.p99_us:.0f} us"),
+        verdict="yes" if busy.p99_us <= 2 * quiet.p99_us else "no",
     )
     return [lat, churn]
 
 
-def _us(t: dict[str, Any]) -> str:
-    return f"{t['p50_us']:.0f} / {t['p99_us']:.0f} us"
+def _us(t: Trial) -> str:
+    return f"{t.p50_us:.0f} / {t.p99_us:.0f} us"
 
 
 def resubmission(quick: bool, out: Path, log: Log) -> list[Section]:

@@ -13,9 +13,9 @@ from cell.bench import bus, dataplane
 @pytest.mark.slow
 def test_dataplane_bench_answers_every_status_of_a_small_load() -> None:
     t = dataplane.trial("dataplane", robots=5, seconds=0.5)
-    assert t["sent"] == 5 * 6 * 250  # 250 ticks of 2 ms
-    assert t["answered"] == t["sent"] and t["ok"]
-    assert 0 < t["p50_us"] < 8000
+    assert t.sent == 5 * 6 * 250  # 250 ticks of 2 ms
+    assert t.answered == t.sent and t.ok
+    assert 0 < t.p50_us < 8000
 
 
 @pytest.mark.slow
@@ -127,18 +127,19 @@ def test_a_search_past_the_data_planes_capacity_reports_the_limit_not_a_tracebac
     t0 = time.monotonic()
     t = bench.trial("dataplane", cap + 1, 0.5)
     assert time.monotonic() - t0 < 30
-    assert not t["ok"] and "table_full" in t["limit"] and f"all {cap} entities in use" in t["limit"]
+    assert not t.ok and "table_full" in t.limit and f"all {cap} entities in use" in t.limit
     assert "over the target's capacity (table_full" in bench.format_trial(t)
 
     # the search: doubling from 1,500 passes 1,500 and 3,000, meets the limit at 6,000 and stops there
     calls: list[int] = []
 
-    def trial(target: str, robots: int, seconds: float, net: object = None) -> dict:
+    def trial(target: str, robots: int, seconds: float, net: object = None) -> bench.Trial:
         calls.append(robots)
         if robots > cap:
-            return {"target": target, "robots": robots, "rate": robots * 3000, "ok": False, "limit": "full"}
-        return {"target": target, "robots": robots, "rate": robots * 3000, "ok": True}
+            return bench.Trial(target, robots, robots * 3000, limit="full")
+        return bench.Trial(target, robots, robots * 3000, ok=True)
 
     monkeypatch.setattr(bench, "trial", trial)
     r = bench.sustained("dataplane", 1500, 0.5)
-    assert calls == [1500, 3000, 6000] and r["best"]["robots"] == 3000 and r["limit"] == "6000 robots: full"
+    assert calls == [1500, 3000, 6000] and r.best is not None and r.best.robots == 3000
+    assert r.limit == "6000 robots: full" and r.rate == 3000 * 3000
