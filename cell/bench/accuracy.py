@@ -20,6 +20,7 @@ import asyncio
 import contextlib
 import time
 from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -48,7 +49,48 @@ def tool_errors_mm(kin: Kinematics, truth: Truth, name: str, seg: Segment, joint
     )
 
 
-async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy") -> dict[str, Any]:
+@dataclass
+class Samples:
+    """The raw figures, for plots (cell bench paper); not part of the JSON line."""
+
+    path_joint_mm: list[list[float]]  # each joint move's tool error at its TPs
+    path_linear_mm: list[list[float]]  # each straight line's
+    stop_rad: list[float]  # each stop's largest joint error at rest
+    switch_rad: list[float]  # each switch's start-state error, ours
+    switch_paper_rad: list[float]  # the same, with Sec. 6.1's binned predictor
+    shift_ms: dict[str, list[float]]  # start shifts between the two robots, by way of starting
+
+
+@dataclass
+class Accuracy:
+    """What `cell bench accuracy` measured (NSDI'22 Secs. 6.1, 7.2-7.4)."""
+
+    stop_error_rad_max: float
+    path_error_mm_max: float
+    path_error_mm_median: float
+    path_error_mm_max_joint: float
+    path_error_mm_max_linear: float
+    switch_error_rad_max: float
+    switch_error_paper_rad_max: float
+    sync_shift_ms_max: float
+    sync_shift_ms_shared: float
+    sync_shift_ms_merged: float
+    sync_shift_ms_independent: float
+    sync_shift_ms_switch: float
+    settle_s: float
+    quick: bool
+    samples: Samples = field(repr=False)
+    backend: str = "numpy"
+    seconds: float = 0.0
+
+    def figures(self) -> dict[str, Any]:
+        """The JSON line: every figure but the samples."""
+        out = asdict(self)
+        out.pop("samples")
+        return out
+
+
+async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy") -> Accuracy:
     robots = [
         {"id": i, "name": f"r{i}", "skill_port": _port(), "backend": "mujoco", "truth_hz": 500}
         for i in (1, 2)
@@ -182,31 +224,31 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
     joint_all = np.concatenate(path_joint)
     linear_all = np.concatenate(path_linear)
     both = np.concatenate([joint_all, linear_all])
-    return {
-        "stop_error_rad_max": max(stop_err),
-        "path_error_mm_max": float(both.max()),
-        "path_error_mm_median": float(np.median(both)),
-        "path_error_mm_max_joint": float(joint_all.max()),
-        "path_error_mm_max_linear": float(linear_all.max()),
-        "switch_error_rad_max": max(jumps),
-        "switch_error_paper_rad_max": max(paper_pred),
-        "sync_shift_ms_max": max(max(shifts["shared"]), max(shifts["merged"])),
-        "sync_shift_ms_shared": max(shifts["shared"]),
-        "sync_shift_ms_merged": max(shifts["merged"]),
-        "sync_shift_ms_independent": max(shifts["independent"]),
-        "sync_shift_ms_switch": max(shifts["switch"]),
-        "settle_s": SETTLE_S,
-        "quick": quick,
-        # the raw figures, for plots (cell bench paper); not part of the JSON line
-        "samples": {
-            "path_joint_mm": [a.tolist() for a in path_joint],
-            "path_linear_mm": [a.tolist() for a in path_linear],
-            "stop_rad": stop_err,
-            "switch_rad": jumps,
-            "switch_paper_rad": paper_pred,
-            "shift_ms": shifts,
-        },
-    }
+    return Accuracy(
+        stop_error_rad_max=max(stop_err),
+        path_error_mm_max=float(both.max()),
+        path_error_mm_median=float(np.median(both)),
+        path_error_mm_max_joint=float(joint_all.max()),
+        path_error_mm_max_linear=float(linear_all.max()),
+        switch_error_rad_max=max(jumps),
+        switch_error_paper_rad_max=max(paper_pred),
+        sync_shift_ms_max=max(max(shifts["shared"]), max(shifts["merged"])),
+        sync_shift_ms_shared=max(shifts["shared"]),
+        sync_shift_ms_merged=max(shifts["merged"]),
+        sync_shift_ms_independent=max(shifts["independent"]),
+        sync_shift_ms_switch=max(shifts["switch"]),
+        settle_s=SETTLE_S,
+        quick=quick,
+        samples=Samples(
+            [a.tolist() for a in path_joint],
+            [a.tolist() for a in path_linear],
+            stop_err,
+            jumps,
+            paper_pred,
+            shifts,
+        ),
+        backend=backend,
+    )
 
 
 def granularity(p: np.ndarray, n_bits: int) -> np.ndarray:
@@ -232,32 +274,31 @@ def paper_start(
     return np.floor(p_predict / g) * g
 
 
-def run(quick: bool, log: Callable[[str], None] = print, backend: str = "numpy") -> dict[str, Any]:
+def run(quick: bool, log: Callable[[str], None] = print, backend: str = "numpy") -> Accuracy:
     t0 = time.monotonic()
     result = asyncio.run(measure(quick, log, backend))
-    result["backend"] = backend
-    result["seconds"] = round(time.monotonic() - t0, 1)
+    result.seconds = round(time.monotonic() - t0, 1)
     return result
 
 
-def format_result(r: dict[str, Any]) -> str:
+def format_result(r: Accuracy) -> str:
     """The figures, each with the NSDI'22 paper's beside it (Secs. 6.1, 7.2-7.4)."""
     return "\n".join(
         [
-            f"stop error (held {r['settle_s']:.0f} s on the last TP): max {r['stop_error_rad_max']:.1e} rad "
+            f"stop error (held {r.settle_s:.0f} s on the last TP): max {r.stop_error_rad_max:.1e} rad "
             "(paper: ~0.5e-7 rad)",
-            f"tool path error at TPs: max {r['path_error_mm_max']:.2f} mm, "
-            f"median {r['path_error_mm_median']:.2f} mm (joint moves max {r['path_error_mm_max_joint']:.2f}, "
-            f"lines max {r['path_error_mm_max_linear']:.2f}) (paper: 3.2 / 2.23 mm in-network, "
+            f"tool path error at TPs: max {r.path_error_mm_max:.2f} mm, "
+            f"median {r.path_error_mm_median:.2f} mm (joint moves max {r.path_error_mm_max_joint:.2f}, "
+            f"lines max {r.path_error_mm_max_linear:.2f}) (paper: 3.2 / 2.23 mm in-network, "
             "0.1 / 0.04 mm with ROS's PID)",
-            f"re-planning: at the switch the robot was {r['switch_error_rad_max'] * 1000:.2f} mrad from the "
+            f"re-planning: at the switch the robot was {r.switch_error_rad_max * 1000:.2f} mrad from the "
             "predicted start state (the jump the new branch has to absorb); the paper's binned "
-            f"predictor (Sec. 6.1) {r['switch_error_paper_rad_max'] * 1000:.2f} mrad",
-            f"start shift: shared start {r['sync_shift_ms_shared']:.2f} ms, "
-            f"merged {r['sync_shift_ms_merged']:.2f} ms, "
-            f"started one after the other {r['sync_shift_ms_independent']:.2f} ms "
+            f"predictor (Sec. 6.1) {r.switch_error_paper_rad_max * 1000:.2f} mrad",
+            f"start shift: shared start {r.sync_shift_ms_shared:.2f} ms, "
+            f"merged {r.sync_shift_ms_merged:.2f} ms, "
+            f"started one after the other {r.sync_shift_ms_independent:.2f} ms "
             "(paper: 0 merged, up to 8 ms started apart)",
-            f"({r['seconds']} s)",
+            f"({r.seconds} s)",
         ]
     )
 
@@ -269,8 +310,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 def _main(args: argparse.Namespace) -> Figures:
     result = run(args.quick, log=log, backend=args.backend)
-    result.pop("samples")
-    return Figures(result, format_result(result))
+    return Figures(result.figures(), format_result(result))
 
 
 register(
