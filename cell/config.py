@@ -437,6 +437,10 @@ class RobotConfig:
     # backend "ur" only: emulate that controller here ("mujoco" or "kinematic"), an arm that offers only
     # its UR interfaces, as URSim or a real UR5e does ("": a real controller at ur_address)
     ur_emulate: Literal["", "mujoco", "kinematic"]
+    # "own": a UDP socket (address and port) of its own, as a real arm has; "shared": one socket for its
+    # whole group (robots of one backend, model and rates), all its statuses in one GSO send a tick and
+    # the data plane's answers to them in a few: fleets of hundreds of arms in one process
+    socket: Literal["own", "shared"]
 
     @property
     def ur_host(self) -> str:
@@ -477,6 +481,7 @@ class RobotDefaults:
     host: str = _check(lambda v: None if v == "" else _name(v))
     ur_address: str = _check(lambda v: None if v == "" else _host_port(f"{v}:1"))
     ur_emulate: Literal["", "mujoco", "kinematic"]
+    socket: Literal["own", "shared"]
 
 
 @dataclass(frozen=True)

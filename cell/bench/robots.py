@@ -62,12 +62,21 @@ def reflector(out: Any, stop: Any, answer: bool = True, core: int = 1) -> None:
     sock.close()
 
 
-def _trial_child(backend: str, n: int, seconds: float, dataplane: str, out: Any, core: int = 0) -> None:
+def _trial_child(
+    backend: str, n: int, seconds: float, dataplane: str, out: Any, core: int = 0, socket: str = "own"
+) -> None:
     pin(core)
     from cell.robot.emulator import RobotGroup
 
     robots = [
-        {"id": i + 1, "name": f"b{i}", "skill_port": 20000 + i, "backend": backend, "truth_hz": 0}
+        {
+            "id": i + 1,
+            "name": f"b{i}",
+            "skill_port": 20000 + i,
+            "backend": backend,
+            "truth_hz": 0,
+            "socket": socket,
+        }
         for i in range(n)
     ]
     cfg = load_config(overrides={"robots": robots})
@@ -98,13 +107,17 @@ def _trial_child(backend: str, n: int, seconds: float, dataplane: str, out: Any,
         group.close()
 
 
-def trial(backend: str, n: int, seconds: float = 3.0, answer: bool = True) -> dict[str, float]:
+def trial(
+    backend: str, n: int, seconds: float = 3.0, answer: bool = True, socket: str = "own"
+) -> dict[str, float]:
     ctx = mp.get_context("spawn")
     out, stop = ctx.Queue(), ctx.Event()
     refl = ctx.Process(target=reflector, args=(out, stop, answer), daemon=True)
     refl.start()
     host, port = out.get(timeout=30)
-    child = ctx.Process(target=_trial_child, args=(backend, n, seconds, f"{host}:{port}", out), daemon=True)
+    child = ctx.Process(
+        target=_trial_child, args=(backend, n, seconds, f"{host}:{port}", out, 0, socket), daemon=True
+    )
     child.start()
     try:
         result = out.get(timeout=seconds + 60)
@@ -124,6 +137,7 @@ def trial(backend: str, n: int, seconds: float = 3.0, answer: bool = True) -> di
     return {
         **result,
         "robots": n,
+        "socket": socket,
         "late_fraction": late,
         "expected": expected,
         "received": received,
@@ -133,13 +147,13 @@ def trial(backend: str, n: int, seconds: float = 3.0, answer: bool = True) -> di
 
 
 def max_robots(
-    backend: str, start: int, seconds: float, log: Any = None, answer: bool = True
+    backend: str, start: int, seconds: float, log: Any = None, answer: bool = True, socket: str = "own"
 ) -> dict[str, Any]:
     trials: list[dict[str, Any]] = []
 
     def run(n: int) -> bool:
         for _ in range(TRIES):
-            r = {"backend": backend, **trial(backend, n, seconds, answer)}
+            r = {"backend": backend, **trial(backend, n, seconds, answer, socket)}
             trials.append(r)
             if log:
                 log(r)
@@ -154,27 +168,38 @@ def max_robots(
         mid = (lo + hi) // 2
         lo, hi = (mid, hi) if run(mid) else (lo, mid)
     best = max((t for t in trials if t["ok"]), key=lambda t: t["robots"], default=None)
-    return {"backend": backend, "max_robots": lo, "best": best, "trials": trials}
+    return {"backend": backend, "socket": socket, "max_robots": lo, "best": best, "trials": trials}
 
 
 def run_bench(
-    backends: list[str], seconds: float = 3.0, log: Any = None, answer: bool = True
+    backends: list[str],
+    seconds: float = 3.0,
+    log: Any = None,
+    answer: bool = True,
+    sockets: tuple[str, ...] = ("own",),
 ) -> dict[str, Any]:
+    """Each backend's most robots, with a socket a robot (own) and with one for the group (shared)."""
     baseline = {"backend": "kinematic", **trial("kinematic", 1, seconds, answer)}
     if log:
         log(baseline)
-    starts = {"kinematic": 32, "mujoco": 16}
-    return {
-        "baseline": baseline,
-        "answered": answer,
-        **{b: max_robots(b, starts[b], seconds, log, answer) for b in backends},
+    starts = {
+        ("kinematic", "own"): 32,
+        ("mujoco", "own"): 16,
+        ("kinematic", "shared"): 128,
+        ("mujoco", "shared"): 16,
     }
+    out: dict[str, Any] = {"baseline": baseline, "answered": answer}
+    for b in backends:
+        for sock in sockets:
+            key = b if sock == "own" else f"{b}_shared"
+            out[key] = max_robots(b, starts[b, sock], seconds, log, answer, sock)
+    return out
 
 
 def format_trial(r: dict[str, Any]) -> str:
     verdict = "ok  " if r["ok"] else "FAIL"
     return (
-        f"{r.get('backend', ''):>10} {int(r['robots']):>4} robots: {verdict} "
+        f"{r.get('backend', ''):>10} {r.get('socket', 'own'):>6} {int(r['robots']):>4} robots: {verdict} "
         f"late {100 * r['late_fraction']:.3f}%  "
         f"sent {int(r.get('status_sent', 0)):,}/{int(r['expected']):,}  "
         f"commands {int(r.get('commands', 0)):,}  missed ticks {int(r.get('missed_ticks', 0))}  "
@@ -189,11 +214,16 @@ def format_result(result: dict[str, Any]) -> str:
     lines.append(
         f"  baseline, 1 robot (the machine's own stalls): {format_trial(result['baseline']).strip()}"
     )
-    for b in ("kinematic", "mujoco"):
+    for b in ("kinematic", "kinematic_shared", "mujoco", "mujoco_shared"):
         if b in result:
             r = result[b]
             best = f"  [{format_trial(r['best']).strip()}]" if r["best"] else ""
-            lines.append(f"  {b}: {r['max_robots']} robots{best}")
+            name = (
+                b.replace("_shared", ", one shared socket")
+                if b.endswith("_shared")
+                else f"{b}, a socket each"
+            )
+            lines.append(f"  {name}: {r['max_robots']} robots{best}")
     return "\n".join(lines)
 
 
@@ -203,12 +233,24 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--status-only", action="store_true", help="nobody answers the status (no command traffic)"
     )
+    p.add_argument(
+        "--socket",
+        choices=["own", "shared", "both"],
+        default="both",
+        help="a UDP socket per robot (a real arm's), one for the group (fleets: [robot_defaults] socket), "
+        "or both (default)",
+    )
 
 
 def _main(args: argparse.Namespace) -> Figures:
     backends = ["kinematic", "mujoco"] if args.backend == "all" else [args.backend]
+    sockets = ("own", "shared") if args.socket == "both" else (args.socket,)
     result = run_bench(
-        backends, args.seconds, log=lambda trial: log(format_trial(trial)), answer=not args.status_only
+        backends,
+        args.seconds,
+        log=lambda trial: log(format_trial(trial)),
+        answer=not args.status_only,
+        sockets=sockets,
     )
     return Figures(result, format_result(result))
 

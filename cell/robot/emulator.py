@@ -100,13 +100,14 @@ class RobotGroup:
         arms that offer only their UR interfaces, as a real UR does (RobotConfig.ur_emulate)."""
         first = robots[0]
         for r in robots:
-            if (r.backend, r.model, r.status_hz, r.command_hz) != (
+            if (r.backend, r.model, r.status_hz, r.command_hz, r.socket) != (
                 first.backend,
                 first.model,
                 first.status_hz,
                 first.command_hz,
+                first.socket,
             ):
-                raise ValueError("a robot group shares backend, model and rates")
+                raise ValueError("a robot group shares backend, model, rates and socket")
         self.robots = robots
         self.n = len(robots)
         self.arm = arm or arm_model(first.model)
@@ -119,15 +120,20 @@ class RobotGroup:
         self.drives = self.backend.drives
         self.ids = np.array([r.id for r in robots], np.uint16)
         self.datagrams = datagrams
+        # one socket a robot (a real arm's own port), or one for the group (first.socket == "shared"):
+        # then a robot's row is its id's, not its socket's, and a tick's statuses go out in one GSO run
+        self.shared = first.socket == "shared"
         self.socks = []
         try:
-            for _ in robots if datagrams else ():
+            for _ in (robots[:1] if self.shared else robots) if datagrams else ():
                 self.socks.append(udp.open_socket(host, timestamps=True))
         except BaseException:
             self.close()
             raise
         self.senders = [udp.Sender(s, datagram.SIZE) for s in self.socks]
         self.row_of_fd = {s.fileno(): i for i, s in enumerate(self.socks)}
+        self.row_of_id = np.full(0x10000, -1, np.int64)  # robot id -> its row (-1: not of this group)
+        self.row_of_id[[r.id for r in robots]] = np.arange(len(robots))
         self.poller = select.epoll()
         for s in self.socks:
             self.poller.register(s.fileno(), select.EPOLLIN)
@@ -164,7 +170,9 @@ class RobotGroup:
         return True
 
     def addresses(self) -> list[str]:
-        return [f"{h}:{p}" for h, p, *_ in (s.getsockname() for s in self.socks)]
+        """Each robot's address (the same for all with a shared socket)."""
+        names = [f"{h}:{p}" for h, p, *_ in (s.getsockname() for s in self.socks)]
+        return names * self.n if self.shared and names else names
 
     def close(self) -> None:
         if hasattr(self, "poller"):
@@ -207,10 +215,16 @@ class RobotGroup:
         if not chunks:
             return 0
         recs = datagram.view(b"".join(chunks))
-        rows = np.repeat(np.array(owners), counts)
+        if self.shared:  # (one socket: each record's robot says whose it is)
+            rows = self.row_of_id[recs["robot_id"]]
+            bad_robot = rows < 0
+            rows[bad_robot] = 0
+        else:
+            rows = np.repeat(np.array(owners), counts)
+            bad_robot = recs["robot_id"] != self.ids[rows]
         late = np.repeat(np.array(stamps) > cutoff_ns, counts) if cutoff_ns else None
         bad_kind = recs["kind"] != _COMMAND
-        bad_robot = ~bad_kind & (recs["robot_id"] != self.ids[rows])
+        bad_robot &= ~bad_kind
         bad_joint = ~bad_kind & ~bad_robot & (recs["joint_id"] >= self.dof)
         ok = ~(bad_kind | bad_robot | bad_joint)
         n_ok = int(ok.sum())
@@ -314,6 +328,16 @@ class RobotGroup:
         buf, addr, c = self._status_bytes, self.dataplane, self.counters
         late_after = deadline + self.period
         silent = self.silent_until > clock() if self.silent_until.any() else None
+        if self.shared and self.socks:
+            if silent is not None:  # (rare: `cell chaos` pulled a cable) the others' statuses only
+                buf = memoryview(self.status[np.repeat(~silent, self.dof)].view(np.uint8))
+            n = len(buf) // datagram.SIZE
+            sent = udp.send_segments(self.socks[0], buf, datagram.SIZE, addr)
+            c.status_sent += sent
+            c.status_unsent += n - sent
+            if clock() >= late_after:
+                c.late_sends += sent
+            return
         for r, sender in enumerate(self.senders):
             if silent is not None and silent[r]:
                 continue

@@ -28,14 +28,16 @@ STILL_RAD_S = 1e-3  # a stopped robot stands still once every joint is slower th
 
 
 def build_groups(config: CellConfig, publish: Publish | None = None) -> list[RobotGroup]:
-    """This host's robots, one group per (backend, model, rates), and one per robot of backend "ur"
+    """This host's robots, one group per (backend, model, rates, socket), and one per robot of backend "ur"
     (its daemon, cell.ur.remote, telling the bus through `publish`); they bind this host's address
     (in a cell of one host: the data plane's)."""
     from cell.ur.remote import Daemon
 
     by_key: dict[tuple, list[RobotConfig]] = defaultdict(list)
     for r in config.local_robots():
-        by_key[(r.backend, r.model, r.status_hz, r.command_hz, r.id if r.backend == "ur" else 0)].append(r)
+        by_key[
+            (r.backend, r.model, r.status_hz, r.command_hz, r.socket, r.id if r.backend == "ur" else 0)
+        ].append(r)
     here = config.here()
     host = here.address if here is not None else parse_host_port(config.dataplane.listen)[0]
     if config.dataplane.backend == "xdp" and here is None:  # the switch's namespace is not ours: its veth

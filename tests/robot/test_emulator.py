@@ -16,15 +16,23 @@ from tests.conftest import cell_overrides
 Q0 = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
 
 
-@pytest.fixture
-def plant():
-    """A socket standing in for the data plane, and a factory of robot groups sending to it."""
+@pytest.fixture(params=["own", "shared"])
+def plant(request):
+    """A socket standing in for the data plane, and a factory of robot groups sending to it: robots
+    with a socket each (a real arm's) and with one for the group (a fleet's), the same semantics."""
     dp = udp.open_socket("127.0.0.1")
     groups: list[RobotGroup] = []
 
     def make(backend: str = "kinematic", n: int = 1) -> RobotGroup:
         robots = [
-            {"id": 10 + i, "name": f"t{i}", "skill_port": 3000 + i, "backend": backend} for i in range(n)
+            {
+                "id": 10 + i,
+                "name": f"t{i}",
+                "skill_port": 3000 + i,
+                "backend": backend,
+                "socket": request.param,
+            }
+            for i in range(n)
         ]
         cfg = load_config(overrides={**cell_overrides(), "robots": robots})
         host, port = dp.getsockname()
@@ -51,7 +59,7 @@ def ticks(g: RobotGroup, n: int) -> list:
 
 
 def command_all(dp: socket.socket, g: RobotGroup, row: int, v: list[float]) -> None:
-    addr = g.socks[row].getsockname()
+    addr = g.socks[0 if g.shared else row].getsockname()
     for j, vj in enumerate(v):
         dp.sendto(datagram.encode(Datagram(int(g.ids[row]), j, Kind.COMMAND, 0, vj, 0.0)), addr)
 
@@ -67,6 +75,18 @@ def test_status_stream(plant) -> None:
     assert sorted(d.seq for d in got if (d.robot_id, d.joint_id) == (11, 4)) == [1, 2, 3]
     assert [d.position for d in got[:6]] == pytest.approx(Q0, abs=1e-7)
     assert g.counters.status_sent == 36 and g.counters.late_sends == 0
+
+
+def test_each_robot_takes_only_its_own_commands_whatever_socket_they_came_to(plant) -> None:
+    dp, make = plant
+    g = make(n=3)
+    assert len(g.socks) == (1 if g.shared else 3) and len(set(g.addresses())) == len(g.socks)
+    ticks(g, 1)
+    command_all(dp, g, 1, [0.2] * 6)
+    command_all(dp, g, 2, [-0.1] * 6)
+    ticks(g, 4)  # the window ends
+    assert g.drives.target[:, 0].tolist() == pytest.approx([0.0, 0.2, -0.1], abs=1e-7)
+    assert g.counters.commands == 12 and sum(g.counters.rejected.values()) == 0
 
 
 def test_commands_execute_at_the_window_end_latest_first(plant) -> None:
