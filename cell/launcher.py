@@ -256,15 +256,20 @@ async def wait_healthy(
 
 
 @contextlib.asynccontextmanager
-async def child_cell(config_path: Path | None, config: CellConfig) -> AsyncIterator[None]:
+async def child_cell(
+    config_path: Path | None, config: CellConfig, quiet: bool = False
+) -> AsyncIterator[None]:
     """`cell up` in a child process, healthy when the block starts, stopped when it ends (for
-    `cell run --up`, `cell demo` and benchmarks)."""
+    `cell run --up`, `cell demo` and benchmarks); quiet: without its summary at the stop."""
     cmd = [sys.executable, "-m", "cell", "--log-level", "WARNING", "up"]
     if config_path is not None:
         cmd += ["--config", str(config_path)]
     if config.cell.host:
         cmd += ["--host", config.cell.host]
-    proc = await asyncio.create_subprocess_exec(*cmd, stdin=subprocess.DEVNULL, env=dict(os.environ))
+    out = subprocess.DEVNULL if quiet else None
+    proc = await asyncio.create_subprocess_exec(
+        *cmd, stdin=subprocess.DEVNULL, stdout=out, env=dict(os.environ)
+    )
     try:
         await wait_healthy(config, set(status_names(config)), 60.0, proc)
         yield

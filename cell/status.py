@@ -244,6 +244,9 @@ def _robot_state(key: str) -> bool:
     return key.startswith("robot.") and key.endswith(".state")
 
 
+ROBOT_ROWS = 24  # more robots than this (a fleet) are counted by state, not listed one a line
+
+
 def format_robots(st: health_pb2.CellStatus) -> list[str]:
     """What each robot is doing, from the robots services' heartbeats: a table of its own."""
     rows = []
@@ -255,6 +258,14 @@ def format_robots(st: health_pb2.CellStatus) -> list[str]:
                 rows.append((k[len("robot.") : -len(".state")], what))
     if not rows:
         return []
+    if len(rows) > ROBOT_ROWS:  # a fleet: counted by state, a few named
+        by: dict[str, list[str]] = {}
+        for r, what in rows:
+            by.setdefault(what, []).append(r)
+        out = [f"ROBOTS  STATE ({len(rows)} robots, counted by state)"]
+        for what, names in by.items():
+            out.append(f"{len(names):>6}  {what}: {', '.join(names[:5])}{', ...' if len(names) > 5 else ''}")
+        return out
     width = max(len("ROBOT"), *(len(r) for r, _ in rows))
     return [f"{'ROBOT':<{width}}  STATE", *(f"{r:<{width}}  {what}" for r, what in rows)]
 

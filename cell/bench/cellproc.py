@@ -61,8 +61,8 @@ def ok_services(st: Any) -> set[str]:
 
 
 @contextlib.asynccontextmanager
-async def running_cell(overrides: dict[str, Any]) -> AsyncIterator[CellConfig]:
-    """`cell up` in a child process on free ports, until the block ends."""
+async def running_cell(overrides: dict[str, Any], quiet: bool = False) -> AsyncIterator[CellConfig]:
+    """`cell up` in a child process on free ports, until the block ends (quiet: without its summary)."""
     data = {
         "bus": {"pub": f"tcp://127.0.0.1:{free_port()}", "sub": f"tcp://127.0.0.1:{free_port()}"},
         "dataplane": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
@@ -74,7 +74,7 @@ async def running_cell(overrides: dict[str, Any]) -> AsyncIterator[CellConfig]:
         path = Path(tmp) / "bench.toml"
         path.write_text(tomli_w.dumps(data))
         config = load_config(path)
-        async with child_cell(path, config):
+        async with child_cell(path, config, quiet):
             yield config
 
 

@@ -261,7 +261,7 @@ class Engine(RobotBook):
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the
         # update's way to the data plane (planning first would eat it on a busy host: a late start)
-        await self.link.state()  # a fresh clock and round trip
+        await self.link.state([t.robot for t, *_ in planned])  # a fresh clock and round trip (its robots')
         start, at, tick0 = self.grid_start(lead_id, self.link.now() + self.lead_ns + 2 * self.link.rtt_ns)
         first: list[TPBatch] = []
         registers, remove, segments = [], [], []
@@ -289,10 +289,11 @@ class Engine(RobotBook):
                 raise MotionStopped(exc.message) from None
             raise
         except BusError as exc:  # it may yet be applied, late: it must not start unseen
-            tracks = [t for t, _, _ in planned]
-            self.lose(tracks, f"the data plane did not confirm the motion's start: {exc}")
+            tracks = [t for t, *_ in planned]
+            why = f"the data plane did not confirm the motion's start: {exc}"
+            self.lose(tracks, why)
             self.pending_flush.update({r: t.loads for t in tracks for r in t.robots})
-            raise MotionStopped(tracks[0].stop_reason or str(exc)) from None
+            raise MotionStopped(tracks[0].stop_reason or why) from None
         if moved_on := [t for t, _, _ in segments if t.epoch != epochs[t.robot]]:
             n = self.episode
             loaded = [(t.robot, i) for t, seg, hold_id in segments for i in (hold_id, *seg.ids[:n])]
@@ -371,6 +372,7 @@ class Engine(RobotBook):
         tol, goal = cc.goal_tolerance_rad, track.q_hold
         assert goal is not None
         deadline = max(end_ns, self.link.now()) + int(cc.settle_s * 1e9)
+        await self.link.sleep_until(end_ns)  # (no status before the plan's end can say it arrived)
         while True:
             q, v, t_ns = await self.joints_now(track)
             if t_ns >= end_ns and stands_at(q, v, goal, tol):
@@ -476,7 +478,9 @@ class Engine(RobotBook):
             tracks = list({id(t): t for t in map(self.track, robots)}.values())
         for t in tracks:
             await self._halt(t)
-        st = await self.link.state()
+        st = await self.link.state(
+            sorted({r for t in tracks for r in t.robots}) if robots is not None else ()
+        )
         by_id = {r.robot_id: r for r in st.robots}
         stops = self._plan_stops(tracks, by_id)
         batches, registers, remove, results, modelled = [], [], [], {}, {}

@@ -19,17 +19,36 @@ the midpoint rule of cell.controller.tps.
 
 from __future__ import annotations
 
+import ctypes
 import functools
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from cell.dataplane.approx import TransformTable
+from cell.native import NativeUnavailable, build
 from cell.robot.datagram import SCALE
 
 _CANDIDATES = 48
 _STEPS = 12  # regula falsi steps after the grid pass, at most (two or three are usual)
 _TOL_RAD = 1e-7  # a fitted TP puts the modelled robot this close to the plan (about 0.1 um at the tool)
+
+
+_LOOP_C = Path(__file__).with_name("loop.c")
+
+
+@functools.cache
+def _native() -> ctypes.CDLL | None:
+    """loop.c built (once per process), or None where it cannot be: run() then uses numpy."""
+    try:
+        lib = build("loop-model", (_LOOP_C,))
+    except (NativeUnavailable, OSError):
+        return None
+    p, i64 = ctypes.c_void_p, ctypes.c_int64
+    lib.loop_run.argtypes = [i64, i64, p, p, p, i64, i64, i64, p, p, p, p, p, p, ctypes.c_double]
+    lib.loop_run.restype = None
+    return lib
 
 
 TRACKABLE = 0.4  # (see trackable_accel)
@@ -99,6 +118,50 @@ class LoopModel:
         per window instead of a dozen per status period.  A command computed in a section's
         last period takes effect at the start of the next run (the next section).
         """
+        if (native := _native()) is not None:
+            return self._run_native(native, q, v, held, tick, n, p_trg, v_trg)
+        return self.run_numpy(q, v, held, tick, n, p_trg, v_trg)
+
+    def _run_native(self, lib: ctypes.CDLL, q, v, held, tick: int, n: int, p_trg, v_trg):
+        """run() in C (loop.c): the same arithmetic, joint by joint, candidate by candidate."""
+        shape = np.broadcast_shapes(
+            np.shape(q), np.shape(v), np.shape(held), np.shape(p_trg), np.shape(v_trg)
+        )
+        rows = int(np.prod(shape[:-1], dtype=np.int64))
+        arrays = []
+        for x in (q, v, held, p_trg, v_trg):  # C-ordered float64 copies, broadcast to the full shape
+            a = np.empty(shape)
+            a[...] = x
+            arrays.append(a)
+        qo, vo, ho, pt, vt = arrays
+        lib.loop_run(
+            rows, shape[-1], qo.ctypes.data, vo.ctypes.data, ho.ctypes.data, int(tick), int(n),
+            int(self.window), *self._per_joint, pt.ctypes.data, vt.ctypes.data, float(self.status_s),
+        )  # fmt: skip
+        return qo, vo, ho
+
+    @functools.cached_property
+    def _per_joint(self) -> tuple[int, ...]:
+        """The addresses of c1, c2, v_max and a_max * status_s as float64 arrays (loop.c's per-joint
+        inputs), kept alive with the model."""
+        arrays = tuple(
+            np.ascontiguousarray(np.atleast_1d(np.asarray(x, np.float64)))
+            for x in (self.c1, self.c2, self.v_max, np.asarray(self.a_max, np.float64) * self.status_s)
+        )
+        object.__setattr__(self, "_per_joint_arrays", arrays)  # (frozen: the arrays live as long)
+        return tuple(a.ctypes.data for a in arrays)
+
+    def run_numpy(
+        self,
+        q: np.ndarray,
+        v: np.ndarray,
+        held: np.ndarray,
+        tick: int,
+        n: int,
+        p_trg: np.ndarray,
+        v_trg: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """run() in numpy: the reference (and the fallback where no C compiler works)."""
         w = self.window
         pull = self.c1 * v_trg + self.c2 * p_trg  # the command's part that is fixed in the section
         goal = np.minimum(np.maximum(held, -self.v_max), self.v_max)

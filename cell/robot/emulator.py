@@ -52,6 +52,13 @@ class Lateness:
         if us > self.max_us:
             self.max_us = us
 
+    def add_all(self, us: np.ndarray) -> None:
+        """Many at once (one per datagram of a batch)."""
+        if us.size:
+            np.add.at(self.counts, np.clip((us / self.BIN_US).astype(np.int64), 0, self.BINS - 1), 1)
+            self.n += int(us.size)
+            self.max_us = max(self.max_us, float(us.max()))
+
     def clear(self) -> None:
         self.counts[:] = 0
         self.max_us, self.n = 0.0, 0
@@ -75,13 +82,17 @@ class GroupCounters(Counters):
     protective_stops: int = 0
     resumes: int = 0
     lateness: Lateness = field(default_factory=Lateness)  # tick starts after their deadlines
+    # each command datagram's time from the status it answers leaving to its arrival (kernel stamps):
+    # the whole loop as the robot sees it (the data plane's time and both ways through the network)
+    answers: Lateness = field(default_factory=Lateness)
 
     def as_dict(self, prefix: str = "") -> dict[str, float]:
         out = Counters.as_dict(self, prefix)
-        if self.lateness.n:
-            out[f"{prefix}lateness_p50_us"] = self.lateness.percentile(50)
-            out[f"{prefix}lateness_p99_us"] = self.lateness.percentile(99)
-            out[f"{prefix}lateness_max_us"] = self.lateness.max_us
+        for name, h in (("lateness", self.lateness), ("answer", self.answers)):
+            if h.n:
+                out[f"{prefix}{name}_p50_us"] = h.percentile(50)
+                out[f"{prefix}{name}_p99_us"] = h.percentile(99)
+                out[f"{prefix}{name}_max_us"] = h.max_us
         return out
 
 
@@ -149,6 +160,7 @@ class RobotGroup:
         self.tick_no = -1  # index of the last status period served (period k is due at start + k T)
         self.origin_ns = 0  # CLOCK_MONOTONIC ns period 0 was due at (0: not ticking yet)
         self.counters = GroupCounters()
+        self.sent_rt_ns = 0  # CLOCK_REALTIME the last tick's status left (0: none yet)
         # fault injection (`cell chaos`): a robot silent until this monotonic time sends no status and
         # takes no command, as with its cable pulled; its watchdog goes on running
         self.silent_until = np.zeros(self.n)
@@ -214,6 +226,11 @@ class RobotGroup:
                     stamps.append(got[3])
         if not chunks:
             return 0
+        if cutoff_ns and self.sent_rt_ns:  # (answers to the last status, or to this tick's if after it)
+            at = np.array(stamps, np.int64)
+            since = np.where(at > cutoff_ns, cutoff_ns, self.sent_rt_ns)
+            ok = at > 0
+            self.counters.answers.add_all(np.repeat((at - since)[ok] / 1e3, np.array(counts)[ok]))
         recs = datagram.view(b"".join(chunks))
         if self.shared:  # (one socket: each record's robot says whose it is)
             rows = self.row_of_id[recs["robot_id"]]
@@ -267,6 +284,7 @@ class RobotGroup:
         if self.at_deadline is not None:
             self.at_deadline()
         stopping, resuming, left = self.take(cutoff_ns, periods)
+        self.sent_rt_ns = cutoff_ns
         self.backend.step(self.period * left)
         # the instant q, qd now describe: one period past the latest deadline (the backend stepped from
         # the last state, one period past the last tick's deadline, over every period missed since)

@@ -132,6 +132,19 @@ class Publisher:
         if self.every and group.tick_no % self.every == 0:
             b = group.backend
             at = round(group.state_time * 1e9)  # CLOCK_MONOTONIC ns of the state, not of publishing
+            if group.shared:  # a fleet: every robot in one message
+                self.bus.publish(
+                    f"fleet/{self.names[0]}",
+                    robot_pb2.GroupTruth(
+                        t_ns=at,
+                        tick=group.tick_no,
+                        joints=group.dof,
+                        robot_id=group.ids.tolist(),
+                        q=b.q.ravel().tolist(),
+                        stopped=group.drives.stopped.tolist(),
+                    ),
+                )
+                return
             for row, name in enumerate(self.names):
                 q = b.q[row]
                 self.bus.publish(
@@ -234,7 +247,7 @@ def counters(groups: list[RobotGroup]) -> dict[str, float]:
     total: dict[str, float] = defaultdict(float)
     for g in groups:
         for k, v in g.counters.as_dict().items():
-            total[k] = max(total[k], v) if k.startswith("lateness") else total[k] + v
+            total[k] = max(total[k], v) if k.startswith(("lateness", "answer")) else total[k] + v
     total["robots"] = sum(g.n for g in groups)
     return dict(total)
 

@@ -12,24 +12,20 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
 import os
-import shutil
 import socket
-import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from cell.native import NativeUnavailable, build
 from cell.snp.modular import _IDS, JointModule, Master, Node, NodeState
 from cell.snp.modular import ModuleState as ModuleLife  # (ModuleState here: the C mirror)
 
 HERE = Path(__file__).parent
 SOURCES = (HERE / "cycle.c", HERE / "master.c")  # one library; both include wire.h
 HEADERS = (HERE / "wire.h",)
-CFLAGS = ["-O2", "-shared", "-fPIC", "-Wall", "-Werror"]
 RECORDS = 256
 RUN_UNTIL, RUN_HANDED, RUN_RECORDS_FULL, RUN_EVENT = 0, 1, 2, 3
 _I, _D = ctypes.c_int64, ctypes.c_double
@@ -104,38 +100,10 @@ def _sender(h: Handed) -> tuple[str, int]:
     return socket.inet_ntoa(h.ip.to_bytes(4, "big")), h.port
 
 
-class NativeUnavailable(RuntimeError):
-    """No C compiler, or the build failed: the message says which."""
-
-
-def _cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "cell"
-
-
 @functools.cache
 def library() -> ctypes.CDLL:
     """The built library (built now if its cached copy is missing); NativeUnavailable if it cannot be."""
-    source = b"".join(f.read_bytes() for f in (*SOURCES, *HEADERS))
-    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
-    if cc is None:
-        raise NativeUnavailable("no C compiler (cc, gcc or clang) on PATH")
-    digest = hashlib.sha256(source + " ".join(CFLAGS).encode()).hexdigest()[:16]
-    out = _cache_dir() / f"snp-cycle-{digest}.so"
-    if not out.exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
-            so = Path(tmp) / out.name
-            cmd = [cc, *CFLAGS, "-o", str(so), *(str(f) for f in SOURCES), "-lm"]
-            done = subprocess.run(cmd, capture_output=True, text=True)
-            if done.returncode != 0:
-                names = ", ".join(f.name for f in SOURCES)
-                raise NativeUnavailable(f"{cc} failed on {names}: {done.stderr.strip()[:2000]}")
-            os.replace(so, out)  # (atomic: another process building it at once is harmless)
-        for old in out.parent.glob("snp-cycle-*.so"):  # builds of earlier sources
-            if old != out:
-                old.unlink(missing_ok=True)
-    lib = ctypes.CDLL(str(out))  # (a CDLL call releases the GIL)
+    lib = build("snp-cycle", SOURCES, HEADERS)
     lib.snp_cycle_init.argtypes, lib.snp_cycle_init.restype = [ctypes.c_uint64], ctypes.c_int
     lib.snp_cycle_run.restype = ctypes.c_int
     lib.snp_cycle_run.argtypes = [

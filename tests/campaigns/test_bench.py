@@ -143,3 +143,22 @@ def test_a_search_past_the_data_planes_capacity_reports_the_limit_not_a_tracebac
     r = bench.sustained("dataplane", 1500, 0.5)
     assert calls == [1500, 3000, 6000] and r.best is not None and r.best.robots == 3000
     assert r.limit == "6000 robots: full" and r.rate == 3000 * 3000
+
+
+@pytest.mark.slow
+def test_the_fleet_bench_scores_every_arm_against_its_own_plan() -> None:
+    """A small fleet (one merged pair among twelve arms): every entity ran motions, every arm's TPs were
+    scored against the group's ground truth (a wrong column would be metres off), and the JSON line
+    has the issue's keys."""
+    import asyncio
+    import math
+
+    from cell.bench import fleet
+
+    r = asyncio.run(fleet.measure(12, 3.0, quiet=True))
+    assert r.robots == 12 and r.motions >= 11 and r.stopped == 0  # (11 entities: a pair and ten singles)
+    assert r.tps_scored > 12 * 5 and r.path_error_mm_median < 1.0 and r.path_error_mm_max < 5.0
+    assert math.isfinite(r.latency_us_p99) and r.updates_per_s > 0 and r.t_upd_ms > 0
+    assert r.stop_error_rad_max < 1e-3 and {"dataplane", "robots"} <= {k for k in r.cpu}
+    keys = {"robots", "late_status_pct", "latency_us_p99", "path_error_mm_median", "path_error_mm_p99"}
+    assert keys | {"t_upd_ms", "max_robots"} <= set(r.figures())

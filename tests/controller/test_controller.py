@@ -11,7 +11,7 @@ from collections.abc import AsyncIterator
 import numpy as np
 import pytest
 
-from cell.bus import Bus, RemoteError
+from cell.bus import Bus, BusTimeout, RemoteError
 from cell.bus.delay import DelayLink
 from cell.controller.controller import STOP_JERK, Controller, MotionState, MotionStopped
 from cell.dataplane.client import DataplaneClient
@@ -220,6 +220,25 @@ async def test_a_link_stop_whose_release_is_still_on_its_way_does_not_refuse_a_m
         ctl.stopped[1] = time.monotonic() + 60.0
         with pytest.raises(MotionStopped, match="stopped over the Responsive Link"):
             await ctl.move_joints("r1", Q0)
+
+
+async def test_a_start_the_data_plane_did_not_confirm_is_stopped_and_flushed_not_started(start_cell) -> None:
+    """An update lost on the bus (a data plane or bus overloaded: seen with 200 arms) may yet be applied:
+    the motion is answered stopped, saying so, its TPs flushed; the next motion runs."""
+    async with driving(start_cell, robots("kinematic")) as (ctl, truth):
+        real = ctl.dp.update
+
+        async def lost(*args, **kwargs):
+            await real(*args, **kwargs)  # (applied, but the reply never came)
+            raise BusTimeout("no reply from dataplane.update within 2 s")
+
+        ctl.dp.update = lost  # type: ignore[method-assign]
+        with pytest.raises(MotionStopped, match="did not confirm the motion's start"):
+            await ctl.move_joints("r1", Q0 + np.array([0.3, 0, 0, 0, 0, 0]))
+        ctl.dp.update = real  # type: ignore[method-assign]
+        goal = Q0 + np.array([-0.2, 0.1, 0, 0, 0, 0])
+        await ctl.move_joints("r1", goal)
+        assert np.abs(truth.last("r1") - goal).max() < 2e-3
 
 
 async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell) -> None:
