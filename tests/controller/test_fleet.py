@@ -28,7 +28,7 @@ async def test_a_hundred_arms_on_one_socket_each_reach_their_own_goal(start_cell
         }
         for i in range(1, N + 1)
     ]
-    cell = await start_cell(run=["bus", "dataplane", "robots", "controller"], robots=arms)
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=arms)  # (the controller: ours)
     rng = np.random.default_rng(38)
     goals = {a["name"]: Q0 + rng.uniform(-0.4, 0.4, 6) for a in arms}
     async with Bus.connect(cell.config.bus, "fleet") as bus, Controller(bus, cell.config) as ctl:
