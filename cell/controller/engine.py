@@ -230,6 +230,15 @@ class Engine(RobotBook):
             except TimeoutError:
                 raise MotionStopped("the data plane is not answering: no motion can start") from None
 
+    async def beside_lead(self, robots: list[int]) -> dict[int, tuple[int, int] | None]:
+        """Robots started together: the first (the lead) starts on a window start of its grid; each
+        other at its own status nearest to that, fitted for its window phase there (schedule.beside:
+        the grids of two models' emulators differ).  None: a grid not known beside the lead's."""
+        for robot in robots:
+            await self.know_grid(robot)
+        lead = self.grids.get(robots[0])
+        return {r: (0, 0) if k == 0 else beside(lead, self.grids.get(r)) for k, r in enumerate(robots)}
+
     async def launch(
         self, motions: dict[int, Motion], fine: bool = False
     ) -> tuple[MotionResult, list[Track]]:
@@ -240,14 +249,8 @@ class Engine(RobotBook):
         # a stop, a program taking a robot over, a loss while this motion is planned and loaded bumps
         # its track's epoch: the motion must not then run (it would stream to a robot that is not ours)
         epochs = {r: self.track(r).epoch for r in motions}
-        # the lead starts on a window start of its grid; each other robot at its own status nearest
-        # to that, fitted for its window phase there (grids of two models' emulators differ)
         lead_id = next(iter(motions))
-        for robot in motions:
-            await self.know_grid(robot)
-        near = {
-            r: (0, 0) if r == lead_id else beside(self.grids.get(lead_id), self.grids.get(r)) for r in motions
-        }
+        near = await self.beside_lead(list(motions))
         planned = []
         for robot, motion in motions.items():
             track = self.track(robot)

@@ -53,30 +53,45 @@ def _window_ns(ctl: Engine, robot: int) -> int:
 # --- armed starts ---------------------------------------------------------------------------------
 
 
+def _first_after(ctl: Engine, robot: int, near: tuple[int, int] | None) -> tuple[int, int] | None:
+    """beside()'s nearest status turned into the first status after a hold's step time (a quarter
+    period before the lead's status): the one a robot on a grid of its own leaves its hold at."""
+    grid = ctl.grids.get(robot)
+    if near is None or grid is None:
+        return near
+    off, phase = near
+    period, w = grid[1], grid[2]
+    return (off + period, (phase + 1) % w) if off <= -period // 4 else (off, phase)
+
+
 async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.0) -> Armed:
     """Load each robot's joint motion to its goal behind a hold that steps onto itself once a
-    command window (all holds at the same times, on the first robot's window grid)."""
+    command window (all holds at the same times, on the first robot's window grid).  A robot on a
+    grid of its own leaves its hold at its first status after those times: its TPs are fitted for
+    its window phase there."""
 
+    tracks = [ctl.track(robot) for robot in goals]
+    near = {r: _first_after(ctl, r, n) for r, n in (await ctl.beside_lead([t.robot for t in tracks])).items()}
     planned = []
-    for robot, q_goal in goals.items():
-        track = ctl.track(robot)
+    for track, q_goal in zip(tracks, goals.values(), strict=True):
         await ctl.confirm_running(track)
         q0 = await ctl.start_q(track)
         motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
+        phase = near[track.robot][1] if near[track.robot] is not None else 0
         sections = await asyncio.to_thread(
-            cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), ctl.loop(track), tick0=0
+            cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), ctl.loop(track), tick0=phase
         )
         planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
     lead = planned[0][0].robot
     await ctl.tables_in_hand()
-    await ctl.know_grid(lead)
-    await ctl.link.state()
+    await ctl.link.state([t.robot for t in tracks])
     start, at, tick0 = ctl.grid_start(lead, ctl.link.now() + ctl.lead_ns + 2 * ctl.link.rtt_ns)
     period = _window_ns(ctl, lead)
     batches, registers, remove, out = [], [], [], []
     for track, motion, sections, (hold_id, *ids) in planned:
         q0 = motion.sample(np.array([0.0]))[0][0]
-        seg = Segment(start, motion, sections, ids, tick0 if track.robot == lead else None, track.robot)
+        off, phase = near[track.robot] if near[track.robot] is not None and tick0 is not None else (0, None)
+        seg = Segment(start + off, motion, sections, ids, phase, track.robot)
         batches.append(hold_batch(track, hold_id, hold_id, q0, period / 1e9))
         batches.append(tp_batch(track, seg, 0, min(ctl.episode, len(ids))))
         registers.append((track.robot, hold_id, at))
@@ -91,11 +106,30 @@ async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.
     return Armed(out, period)
 
 
+def _between_steps(ctl: Engine, armed: Armed, late_ns: int) -> int:
+    """When to send fire()'s update (data-plane clock) so that it lands mid-way between the last
+    robot's hold step of one window (late_ns after the lead's) and the lead's next: every robot then
+    leaves its hold at the same step (else one would leave a whole window before the other)."""
+    period, base = armed.period_ns, armed.planned[0][1].start_ns  # (the lead's hold steps: base + k period)
+    way = ctl.link.rtt_ns // 2
+    now = ctl.link.now() + way
+    k = -(-(now - base - late_ns) // period)
+    land = base + k * period + late_ns + (period - late_ns) // 2
+    if land - now < way:  # (too close to call: the next window's gap)
+        land += period
+    return land - way
+
+
 async def fire(ctl: Engine, armed: Armed, wait: bool = True) -> MotionResult:
     """Start armed motions: one update sets every hold's switch entry; they leave their holds at
     the same hold step, the first after the update is in."""
 
     switches = [(track.robot, hold_id, seg.ids[0]) for track, seg, hold_id in armed.planned]
+    # (equal: the holds step at the same times; a robot on a grid of its own leaves at its first
+    # status after that, as armed: its segment was put that much after the lead's)
+    offsets = [seg.start_ns - armed.planned[0][1].start_ns for _, seg, _ in armed.planned]
+    if max(offsets) > 0:  # the switch must not land between the lead's step and another's
+        await ctl.link.sleep_until(_between_steps(ctl, armed, max(offsets)))
     async with ctl.loading:
         await ctl.dp.update(switches=switches)
     st = await ctl.link.state([r for track, _, _ in armed.planned for r in track.robots])
@@ -109,9 +143,10 @@ async def fire(ctl: Engine, armed: Armed, wait: bool = True) -> MotionResult:
         else:
             start = r.next_time_ns - round(seg.sections.t_end[seg.ids.index(r.tp_id)] * 1e9)
         starts.append(start)
-    start = min(starts)  # (they are equal: the holds step at the same times)
-    for track, seg, _ in armed.planned:
-        seg.start_ns = start
+    starts = [s + off for s, off in zip(starts, offsets, strict=True)]
+    start = min(starts)
+    for (track, seg, _), own in zip(armed.planned, starts, strict=True):
+        seg.start_ns = own
         track.stop_reason = None
         track.segment, track.q_hold = seg, None
         ctl.stream(track, seg)

@@ -83,7 +83,7 @@ def test_a_start_is_on_the_robots_tick_grid_its_register_a_quarter_period_early(
     assert grid_start(None, earliest, offset) == (earliest, earliest, None)
 
 
-@pytest.mark.parametrize("shift", [0, 1, 999_999, 1_000_000, 1_000_001, 5_300_000, -7_100_000])
+@pytest.mark.parametrize("shift", [0, 30_000, 999_999, 1_000_000, 1_000_001, 5_300_000, -7_100_000])
 def test_a_robot_started_beside_the_lead_starts_on_its_own_nearest_status_fitted_for_its_phase(
     shift: int,
 ) -> None:
@@ -103,6 +103,7 @@ def test_a_robot_started_beside_the_lead_starts_on_its_own_nearest_status_fitted
     assert beside(lead, (other[0], period // 2, w)) is None  # other rates: no fixed phase
     assert beside(None, other) is None and beside(lead, None) is None
     assert beside(lead, lead) == (0, 0)
+    assert beside(lead, (lead[0] + 150, period, w)) == (0, 0)  # (an announcement's clock jitter)
 
 
 def test_a_replan_branches_ahead_from_the_predicted_state() -> None:
