@@ -45,6 +45,7 @@ log = logging.getLogger("cell.service.recorder")
 PATH_POINTS = 600  # tool path points kept per robot
 PATH_EVERY_NS = 200_000_000  # the tool path (a line of up to PATH_POINTS) is drawn this often
 LINK_EVERY_NS = 1_000_000_000  # a node's link counters are drawn at most this often
+FLEET_HZ = 5.0  # a fleet's arms (GroupTruth) are drawn at most this often
 TIMELINE = "cell_time"
 GANTT_BARS = 600  # the newest requests drawn in the Gantt chart
 VISION_COLOR, ROBOT_COLOR = (255, 150, 30), (40, 110, 220)  # Fig. 10: vision orange, robot blue
@@ -62,6 +63,7 @@ class Recorder:
             r.id: ArmDrawer(arm_model(r.model), r.name, base_position(i, n)) for i, r in enumerate(cfg.robots)
         }
         self.ids = {r.name: r.id for r in cfg.robots}
+        self.group_drawn: dict[str, int] = {}  # a fleet's topic -> when its arms were last drawn
         self.last_drawn: dict[int, int] = {}
         self.paths: dict[int, deque[np.ndarray]] = {rid: deque(maxlen=PATH_POINTS) for rid in self.names}
         self.path_drawn: dict[int, int] = {}
@@ -100,6 +102,22 @@ class Recorder:
         """Whether a truth message sent at sent_ns is drawn (decided before decoding it)."""
         rid = self.ids.get(name)
         return rid is not None and sent_ns - self.last_drawn.get(rid, 0) >= self.min_dt
+
+    def group_truth(self, topic: str, m: robot_pb2.GroupTruth) -> None:
+        """A fleet's ground truth (robots on one socket, one message a tick for all): each arm's pose,
+        at most FLEET_HZ (hundreds of arms at the drawing rate would swamp the viewer); no series."""
+        if m.t_ns - self.group_drawn.get(topic, 0) < max(self.min_dt, int(1e9 / FLEET_HZ)):
+            return
+        self.group_drawn[topic] = m.t_ns
+        self.at(m.t_ns)
+        q = np.array(m.q).reshape(-1, m.joints)
+        for rid, qi in zip(m.robot_id, q, strict=True):
+            drawer = self.drawers.get(rid)
+            if drawer is None:
+                continue
+            for entity, pos, quat in drawer.poses(qi):
+                self.rec.log(entity, rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=quat)))
+        self.logged += 1
 
     def truth(self, m: robot_pb2.RobotTruth) -> None:
         rid = m.robot_id
@@ -315,6 +333,7 @@ async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
     bus = ctx.bus
     subs = {
         "truth": await bus.subscribe("truth/"),
+        "fleet": await bus.subscribe("fleet/"),
         "plan": await bus.subscribe("plan/"),
         "dataplane": await bus.subscribe("dataplane/counters"),
         "events": await bus.subscribe(*EVENT_TOPICS),
@@ -372,6 +391,9 @@ async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
     try:
         async with asyncio.TaskGroup() as tg:
             tg.create_task(each(subs["truth"], on_truth))
+            tg.create_task(
+                each(subs["fleet"], lambda env: r.group_truth(env.topic, env.decode(robot_pb2.GroupTruth)))
+            )
             tg.create_task(each(subs["plan"], lambda env: r.plan(env.decode(controller_pb2.Plan))))
             tg.create_task(
                 each(

@@ -284,3 +284,48 @@ def test_the_camera_is_drawn_as_a_frustum_where_it_stands_looking_its_way(tmp_pa
     rec.disconnect()  # (the file is finished: its footer written)
     rows = rows_by_entity(rrd)
     assert rows["/robots/r1/camera"] >= 2  # its pose and its pinhole (the frustum)
+
+
+async def test_a_fleet_on_one_socket_is_drawn_from_its_group_truth(tmp_path) -> None:
+    """Robots on one shared socket send their ground truth as one GroupTruth a tick (fleet/<name>): the
+    recorder draws every arm's pose from it, at most FLEET_HZ, while they move."""
+    from cell.config import load_config
+    from cell.recorder.live import FLEET_HZ
+    from tests.conftest import wait_status
+
+    rrd = tmp_path / "fleet.rrd"
+    robots = [
+        {"id": i, "name": f"f{i}", "skill_port": free_port(), "backend": "kinematic", "socket": "shared"}
+        for i in (1, 2, 3)
+    ]
+    services = ["bus", "dataplane", "robots", "recorder"]
+    data = cell_overrides(robots, run=services)
+    data["recorder"] = {"mode": "save", "path": str(rrd), "hz": 30.0}
+    cfg_path = write_config(tmp_path / "fleet.toml", data)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cell", "up", "--config", str(cfg_path)],
+        env=cell_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        config = load_config(cfg_path)
+        await wait_status(config, set(services))
+        async with Bus.connect(config.bus, "test") as bus, Controller(bus, config) as ctl:
+            async with asyncio.timeout(10):
+                while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} != {1, 2, 3}:
+                    await asyncio.sleep(0.05)
+            t0 = ctl.link.now()
+            await ctl.move_together({n: Q0 + 0.3 for n in ("f1", "f2", "f3")}, speed=0.8)
+            spent_s = (ctl.link.now() - t0) / 1e9
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=20)
+    assert proc.returncode == 0
+    rows = rows_by_entity(rrd)
+    for name in ("f1", "f2", "f3"):
+        links = [e for e in rows if e.startswith(f"/robots/{name}/links/") and not e.endswith("/geom")]
+        assert len(links) == 6, links
+        # drawn all along the motion, at most FLEET_HZ (and its start and end)
+        assert FLEET_HZ * spent_s * 0.5 <= min(rows[e] for e in links) <= FLEET_HZ * (spent_s + 4) + 2, rows
