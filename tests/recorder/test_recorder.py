@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import re
 import subprocess
@@ -42,6 +43,39 @@ def rows_by_entity(path: Path) -> Counter[str]:
     return rows
 
 
+@contextlib.asynccontextmanager
+async def saving_cell(tmp_path: Path, robots: list[dict], services: list[str], rrd: Path):
+    """`cell up` with the recorder saving to rrd, healthy; a controller of ours on it once the data plane
+    has heard every robot; (controller, bus, the cell's config).  The cell is stopped (cleanly: the
+    recording is closed) when the block ends."""
+    from cell.config import load_config
+    from tests.conftest import wait_status
+
+    data = cell_overrides(robots, run=services)
+    data["recorder"] = {"mode": "save", "path": str(rrd), "hz": 30.0}
+    cfg_path = write_config(tmp_path / f"{rrd.stem}.toml", data)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cell", "up", "--config", str(cfg_path)],
+        env=cell_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        config = load_config(cfg_path)
+        await wait_status(config, set(services))
+        async with Bus.connect(config.bus, "test") as bus, Controller(bus, config) as ctl:
+            ids = {r["id"] for r in robots}
+            async with asyncio.timeout(10):
+                while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} != ids:
+                    await asyncio.sleep(0.05)
+            yield ctl, bus, config
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=20)
+    assert proc.returncode == 0
+
+
 async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(start_cell, tmp_path) -> None:
     rrd = tmp_path / "run.rrd"
     robots = [
@@ -53,55 +87,30 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
     code, _, _, _ = cell.stop()
     assert code == 0
     # ... so start one that saves
-    data = cell_overrides(robots, run=services)
-    data["recorder"] = {"mode": "save", "path": str(rrd), "hz": 30.0}
-    cfg_path = write_config(tmp_path / "rec.toml", data)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cell", "up", "--config", str(cfg_path)],
-        env=cell_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        from cell.config import load_config
-        from tests.conftest import wait_status
-
-        config = load_config(cfg_path)
-        await wait_status(config, set(services))
-        async with Bus.connect(config.bus, "test") as bus, Controller(bus, config) as ctl:
-            async with asyncio.timeout(10):
-                while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} != {1, 2}:
-                    await asyncio.sleep(0.05)
-            await ctl.move_together({"r1": Q0 + 0.2, "r2": Q0 - 0.2}, speed=0.8)
-            async with EventClient(config) as link:  # an e-stop and a release, for the event log
-                await link.estop(["r2"])
-                await link.resume(["r2"])
-            # a digital output set and cleared by UR's own IO client, as a gripper would be, each shown
-            events = await bus.subscribe("events/robot/r1")
-            io = await asyncio.to_thread(rtde_io.RTDEIOInterface, config.robots[0].ur_host)
-            try:
-                for on in (True, False):
-                    assert io.setStandardDigitalOut(3, on)
-                    async with asyncio.timeout(5):
-                        while True:
-                            e = (await events.recv()).decode(robot_pb2.RobotEvent)
-                            if e.kind == robot_pb2.RobotEvent.KIND_OUTPUTS:
-                                break
-                    assert (e.text, e.digital_out) == (("DO3 on", 8) if on else ("DO3 off", 0))
-            finally:
-                io.disconnect()
-            busy = next(
-                s for s in (await fetch_status(config)).services if s.name == "recorder"
-            ).last.counters
-        # the recorder's own loop time stays well under a core; it is wall time, which a loaded
-        # 2-core machine stretches (250-320 ms/s seen in a full test run), so the bound is loose and
-        # the drawing rate is checked exactly below
-        assert 0 < busy["busy_ms_per_s"] < 500, dict(busy)
-    finally:
-        proc.terminate()
-        proc.communicate(timeout=20)
-    assert proc.returncode == 0
+    async with saving_cell(tmp_path, robots, services, rrd) as (ctl, bus, config):
+        await ctl.move_together({"r1": Q0 + 0.2, "r2": Q0 - 0.2}, speed=0.8)
+        async with EventClient(config) as link:  # an e-stop and a release, for the event log
+            await link.estop(["r2"])
+            await link.resume(["r2"])
+        # a digital output set and cleared by UR's own IO client, as a gripper would be, each shown
+        events = await bus.subscribe("events/robot/r1")
+        io = await asyncio.to_thread(rtde_io.RTDEIOInterface, config.robots[0].ur_host)
+        try:
+            for on in (True, False):
+                assert io.setStandardDigitalOut(3, on)
+                async with asyncio.timeout(5):
+                    while True:
+                        e = (await events.recv()).decode(robot_pb2.RobotEvent)
+                        if e.kind == robot_pb2.RobotEvent.KIND_OUTPUTS:
+                            break
+                assert (e.text, e.digital_out) == (("DO3 on", 8) if on else ("DO3 off", 0))
+        finally:
+            io.disconnect()
+        busy = next(s for s in (await fetch_status(config)).services if s.name == "recorder").last.counters
+    # the recorder's own loop time stays well under a core; it is wall time, which a loaded
+    # 2-core machine stretches (250-320 ms/s seen in a full test run), so the bound is loose and
+    # the drawing rate is checked exactly below
+    assert 0 < busy["busy_ms_per_s"] < 500, dict(busy)
     rows = rows_by_entity(rrd)
     for name in ("r1", "r2"):
         links = [e for e in rows if e.startswith(f"/robots/{name}/links/") and not e.endswith("/geom")]
@@ -289,40 +298,17 @@ def test_the_camera_is_drawn_as_a_frustum_where_it_stands_looking_its_way(tmp_pa
 async def test_a_fleet_on_one_socket_is_drawn_from_its_group_truth(tmp_path) -> None:
     """Robots on one shared socket send their ground truth as one GroupTruth a tick (fleet/<name>): the
     recorder draws every arm's pose from it, at most FLEET_HZ, while they move."""
-    from cell.config import load_config
     from cell.recorder.live import FLEET_HZ
-    from tests.conftest import wait_status
 
     rrd = tmp_path / "fleet.rrd"
     robots = [
         {"id": i, "name": f"f{i}", "skill_port": free_port(), "backend": "kinematic", "socket": "shared"}
         for i in (1, 2, 3)
     ]
-    services = ["bus", "dataplane", "robots", "recorder"]
-    data = cell_overrides(robots, run=services)
-    data["recorder"] = {"mode": "save", "path": str(rrd), "hz": 30.0}
-    cfg_path = write_config(tmp_path / "fleet.toml", data)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cell", "up", "--config", str(cfg_path)],
-        env=cell_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        config = load_config(cfg_path)
-        await wait_status(config, set(services))
-        async with Bus.connect(config.bus, "test") as bus, Controller(bus, config) as ctl:
-            async with asyncio.timeout(10):
-                while {r.robot_id for r in (await ctl.link.state()).robots if r.status_ns} != {1, 2, 3}:
-                    await asyncio.sleep(0.05)
-            t0 = ctl.link.now()
-            await ctl.move_together({n: Q0 + 0.3 for n in ("f1", "f2", "f3")}, speed=0.8)
-            spent_s = (ctl.link.now() - t0) / 1e9
-    finally:
-        proc.terminate()
-        proc.communicate(timeout=20)
-    assert proc.returncode == 0
+    async with saving_cell(tmp_path, robots, ["bus", "dataplane", "robots", "recorder"], rrd) as (ctl, _, _):
+        t0 = ctl.link.now()
+        await ctl.move_together({n: Q0 + 0.3 for n in ("f1", "f2", "f3")}, speed=0.8)
+        spent_s = (ctl.link.now() - t0) / 1e9
     rows = rows_by_entity(rrd)
     for name in ("f1", "f2", "f3"):
         links = [e for e in rows if e.startswith(f"/robots/{name}/links/") and not e.endswith("/geom")]
