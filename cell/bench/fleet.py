@@ -31,6 +31,7 @@ import numpy as np
 
 from cell.bench.cellproc import robots_heard, running_cell
 from cell.bench.registry import Bench, Figures, log, register
+from cell.bench.robots import late_statuses
 from cell.bus import Bus
 from cell.controller.controller import Controller, MotionStopped, Segment
 from cell.controller.schedule import NotAtGoal
@@ -129,19 +130,16 @@ def _cpu_s(pid: int) -> float:
         return float("nan")
 
 
-async def _processes(config: Any) -> dict[str, int]:
-    """The cell's processes: name -> pid (services sharing a process under one name)."""
+async def _snapshot(config: Any) -> tuple[dict[str, int], dict[str, float]]:
+    """The cell's processes (name -> pid; services sharing a process under one name) and the robots
+    service's counters, from one status."""
     st = await fetch_status(config)
     by_pid: dict[int, list[str]] = {}
     for s in st.services:
         if s.last.pid:
             by_pid.setdefault(s.last.pid, []).append(s.name)
-    return {"+".join(names): pid for pid, names in by_pid.items()}
-
-
-async def _robot_counters(config: Any) -> dict[str, float]:
-    st = await fetch_status(config)
-    return dict(next(s for s in st.services if s.name == "robots").last.counters)
+    robots = dict(next(s for s in st.services if s.name == "robots").last.counters)
+    return {"+".join(names): pid for pid, names in by_pid.items()}, robots
 
 
 async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = False) -> FleetRun:
@@ -168,7 +166,6 @@ async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = 
     singles = [x for x in names if x not in paired]
     run = FleetRun(n, backend, seconds)
     segments: list[tuple[list[str], Segment]] = []  # (the robots it drives, in its joint order)
-    stops: list[tuple[list[str], np.ndarray, int]] = []  # each entity's last goal and end
     truth = _Truth()
     async with (
         running_cell(overrides, quiet=True) as config,
@@ -182,8 +179,7 @@ async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = 
         ctl.dp = timed  # type: ignore[assignment]  (the engine's updates; its reads go through ctl.link)
         for p in pairs:
             await ctl.merge(p)
-        procs = await _processes(config)
-        c0 = await _robot_counters(config)
+        procs, c0 = await _snapshot(config)
         cpu0 = {k: _cpu_s(pid) for k, pid in procs.items()}
         me0 = resource.getrusage(resource.RUSAGE_SELF)
         t0 = time.monotonic()
@@ -197,7 +193,7 @@ async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = 
             while time.monotonic() < deadline - 1.0:
                 goal = here + rng.uniform(-0.5, 0.5, here.size)
                 try:
-                    res = await ctl.move_joints(entity[0], goal, speed=float(rng.uniform(0.4, 0.9)))
+                    await ctl.move_joints(entity[0], goal, speed=float(rng.uniform(0.4, 0.9)))
                 except (MotionStopped, NotAtGoal):
                     run.stopped += 1
                     return
@@ -206,7 +202,6 @@ async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = 
                     segments.append((entity, seg))
                 run.motions += 1
                 here = goal
-                stops.append((entity, goal, res.end_ns))
                 await asyncio.sleep(rng.uniform(0.0, DWELL_S))  # (a pick, a place: the arm dwells)
 
         async with asyncio.TaskGroup() as arms:
@@ -216,33 +211,26 @@ async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = 
         await asyncio.sleep(1.0)  # the last holds: the stop error is read 1 s on
         me1 = resource.getrusage(resource.RUSAGE_SELF)
         cpu1 = {k: _cpu_s(pid) for k, pid in procs.items()}
-        c1 = await _robot_counters(config)
+        _, c1 = await _snapshot(config)
         watcher.cancel()
     run.seconds = round(spent, 1)
     run.cpu = {k: round((cpu1[k] - cpu0[k]) / spent, 2) for k in procs}
     run.cpu["controller (this process)"] = round(
         (me1.ru_utime + me1.ru_stime - me0.ru_utime - me0.ru_stime) / spent, 2
     )
-    expected = n * 6 * 500 * spent
-    late = (c1.get("late_sends", 0) - c0.get("late_sends", 0)) + (
-        c1.get("missed_ticks", 0) - c0.get("missed_ticks", 0)
-    ) * n * 6
+    grew = {k: c1.get(k, 0) - c0.get(k, 0) for k in ("late_sends", "missed_ticks")}
+    late, expected = late_statuses(grew["late_sends"], grew["missed_ticks"], n, spent)
     run.late_status_pct = 100 * late / expected
     run.latency_us_p50, run.latency_us_p99 = c1.get("answer_p50_us", np.nan), c1.get("answer_p99_us", np.nan)
     if timed.ms:
         run.updates_per_s = len(timed.ms) / spent
         run.t_upd_ms, run.t_upd_ms_p99 = (float(np.percentile(timed.ms, p)) for p in (50, 99))
-    _score(run, truth, segments, stops)
+    _score(run, truth, segments)
     run.ok = run.late_status_pct < 100 * LATE_AIM and run.path_error_mm_median <= PATH_AIM_MM
     return run
 
 
-def _score(
-    run: FleetRun,
-    truth: _Truth,
-    segments: list[tuple[list[str], Segment]],
-    stops: list[tuple[list[str], np.ndarray, int]],
-) -> None:
+def _score(run: FleetRun, truth: _Truth, segments: list[tuple[list[str], Segment]]) -> None:
     """Each arm's tool error at the TPs of its motions (the truth at each TP's time, against the TP)."""
     if not truth.t or not segments:
         return
@@ -269,12 +257,13 @@ def _score(
     run.path_error_mm_median = float(np.median(medians))
     run.path_error_mm_p99 = float(np.percentile(list(maxima.values()), 99))
     run.worst_arm, run.path_error_mm_max = max(maxima.items(), key=lambda kv: kv[1])
-    # the stop error: each entity's last goal against where it stands (the truth's last sample)
+    # the stop error: each arm's last goal (its last segment's end) against where it stands (the
+    # truth's last sample)
     last: dict[str, tuple[np.ndarray, int]] = {}
-    for entity, goal, end in stops:
+    for entity, seg in segments:
         for j, name in enumerate(entity):
-            if end >= last.get(name, (None, -1))[1]:
-                last[name] = (goal[6 * j : 6 * j + 6], end)
+            if seg.end_ns >= last.get(name, (None, -1))[1]:
+                last[name] = (seg.sections.q[-1, 6 * j : 6 * j + 6], seg.end_ns)
     errs = [float(np.abs(q[-1, col[name]] - g).max()) for name, (g, end) in last.items() if end < t[-1]]
     run.stop_error_rad_max = max(errs) if errs else float("nan")
 

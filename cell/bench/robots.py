@@ -107,6 +107,14 @@ def _trial_child(
         group.close()
 
 
+def late_statuses(
+    late_sends: float, missed_ticks: float, robots: int, seconds: float, status_hz: int = 500, joints: int = 6
+) -> tuple[float, float]:
+    """(status datagrams that left late, those due) over `seconds`: a missed tick is a whole period of
+    every robot's status not sent on time."""
+    return late_sends + missed_ticks * robots * joints, robots * joints * seconds * status_hz
+
+
 def trial(
     backend: str, n: int, seconds: float = 3.0, answer: bool = True, socket: str = "own"
 ) -> dict[str, float]:
@@ -128,9 +136,13 @@ def trial(
     received, answered = out.get(timeout=10)
     refl.join(5)
     sent = result.get("status_sent", 0)
-    expected = n * 6 * (result.get("seconds", seconds) * load_config().robot_defaults.status_hz)
-    # a missed tick is a whole period of every robot's status not sent on time
-    late_count = result.get("late_sends", 0) + result.get("missed_ticks", 0) * n * 6
+    late_count, expected = late_statuses(
+        result.get("late_sends", 0),
+        result.get("missed_ticks", 0),
+        n,
+        result.get("seconds", seconds),
+        load_config().robot_defaults.status_hz,
+    )
     late = late_count / expected if result else 1.0
     unsent = result.get("status_unsent", 1)
     ok = bool(result) and late < LATE_LIMIT and unsent == 0 and sent >= 0.99 * expected

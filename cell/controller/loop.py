@@ -136,20 +136,19 @@ class LoopModel:
         qo, vo, ho, pt, vt = arrays
         lib.loop_run(
             rows, shape[-1], qo.ctypes.data, vo.ctypes.data, ho.ctypes.data, int(tick), int(n),
-            int(self.window), *self._per_joint, pt.ctypes.data, vt.ctypes.data, float(self.status_s),
+            int(self.window), *self._per_joint[1], pt.ctypes.data, vt.ctypes.data, float(self.status_s),
         )  # fmt: skip
         return qo, vo, ho
 
     @functools.cached_property
-    def _per_joint(self) -> tuple[int, ...]:
-        """The addresses of c1, c2, v_max and a_max * status_s as float64 arrays (loop.c's per-joint
-        inputs), kept alive with the model."""
+    def _per_joint(self) -> tuple[tuple[np.ndarray, ...], tuple[int, ...]]:
+        """c1, c2, v_max and a_max * status_s as float64 arrays (loop.c's per-joint inputs), and their
+        addresses (the arrays cached with them, so they live as long)."""
         arrays = tuple(
             np.ascontiguousarray(np.atleast_1d(np.asarray(x, np.float64)))
             for x in (self.c1, self.c2, self.v_max, np.asarray(self.a_max, np.float64) * self.status_s)
         )
-        object.__setattr__(self, "_per_joint_arrays", arrays)  # (frozen: the arrays live as long)
-        return tuple(a.ctypes.data for a in arrays)
+        return arrays, tuple(a.ctypes.data for a in arrays)
 
     def run_numpy(
         self,

@@ -143,8 +143,9 @@ class RobotGroup:
             raise
         self.senders = [udp.Sender(s, datagram.SIZE) for s in self.socks]
         self.row_of_fd = {s.fileno(): i for i, s in enumerate(self.socks)}
-        self.row_of_id = np.full(0x10000, -1, np.int64)  # robot id -> its row (-1: not of this group)
-        self.row_of_id[[r.id for r in robots]] = np.arange(len(robots))
+        if self.shared:  # robot id -> its row (-1: not of this group)
+            self.row_of_id = np.full(0x10000, -1, np.int64)
+            self.row_of_id[[r.id for r in robots]] = np.arange(len(robots))
         self.poller = select.epoll()
         for s in self.socks:
             self.poller.register(s.fileno(), select.EPOLLIN)
@@ -226,8 +227,8 @@ class RobotGroup:
                     stamps.append(got[3])
         if not chunks:
             return 0
+        at = np.array(stamps, np.int64)  # (kernel receive stamps, CLOCK_REALTIME; 0: none)
         if cutoff_ns and self.sent_rt_ns:  # (answers to the last status, or to this tick's if after it)
-            at = np.array(stamps, np.int64)
             since = np.where(at > cutoff_ns, cutoff_ns, self.sent_rt_ns)
             ok = at > 0
             self.counters.answers.add_all(np.repeat((at - since)[ok] / 1e3, np.array(counts)[ok]))
@@ -239,7 +240,7 @@ class RobotGroup:
         else:
             rows = np.repeat(np.array(owners), counts)
             bad_robot = recs["robot_id"] != self.ids[rows]
-        late = np.repeat(np.array(stamps) > cutoff_ns, counts) if cutoff_ns else None
+        late = np.repeat(at > cutoff_ns, counts) if cutoff_ns else None
         bad_kind = recs["kind"] != _COMMAND
         bad_robot &= ~bad_kind
         bad_joint = ~bad_kind & ~bad_robot & (recs["joint_id"] >= self.dof)
@@ -343,27 +344,28 @@ class RobotGroup:
 
     def _send(self, deadline: float, clock: Callable[[], float]) -> None:
         chunk = self.dof * datagram.SIZE
-        buf, addr, c = self._status_bytes, self.dataplane, self.counters
+        buf, addr = self._status_bytes, self.dataplane
         late_after = deadline + self.period
         silent = self.silent_until > clock() if self.silent_until.any() else None
         if self.shared and self.socks:
             if silent is not None:  # (rare: `cell chaos` pulled a cable) the others' statuses only
                 buf = memoryview(self.status[np.repeat(~silent, self.dof)].view(np.uint8))
-            n = len(buf) // datagram.SIZE
             sent = udp.send_segments(self.socks[0], buf, datagram.SIZE, addr)
-            c.status_sent += sent
-            c.status_unsent += n - sent
-            if clock() >= late_after:
-                c.late_sends += sent
+            self._count_sent(sent, len(buf) // datagram.SIZE, clock() >= late_after)
             return
         for r, sender in enumerate(self.senders):
             if silent is not None and silent[r]:
                 continue
             sent = sender.send(buf[r * chunk : (r + 1) * chunk], addr)
-            c.status_sent += sent
-            c.status_unsent += self.dof - sent
-            if clock() >= late_after:
-                c.late_sends += sent
+            self._count_sent(sent, self.dof, clock() >= late_after)
+
+    def _count_sent(self, sent: int, of: int, late: bool) -> None:
+        """Status datagrams sent (of `of`; the rest a full socket buffer kept), late or not."""
+        c = self.counters
+        c.status_sent += sent
+        c.status_unsent += of - sent
+        if late:
+            c.late_sends += sent
 
     # --- the schedule ----------------------------------------------------------------------
 
