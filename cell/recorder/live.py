@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
+from cell.bus.envelope import EnvelopeError
 from cell.recorder import base_position, each, serve
 from cell.recorder.blueprint import cell_blueprint
 from cell.recorder.events import EVENT_TOPICS, Event, Events
@@ -106,6 +107,10 @@ class Recorder:
     def group_truth(self, topic: str, m: robot_pb2.GroupTruth) -> None:
         """A fleet's ground truth (robots on one socket, one message a tick for all): each arm's pose,
         at most FLEET_HZ (hundreds of arms at the drawing rate would swamp the viewer); no series."""
+        if m.joints == 0 or len(m.q) != m.joints * len(m.robot_id):  # (each() counts it, drops it)
+            raise EnvelopeError(
+                f"{topic}: {len(m.q)} joint values for {len(m.robot_id)} robots of {m.joints}"
+            )
         if m.t_ns - self.group_drawn.get(topic, 0) < max(self.min_dt, int(1e9 / FLEET_HZ)):
             return
         self.group_drawn[topic] = m.t_ns
@@ -113,7 +118,7 @@ class Recorder:
         q = np.array(m.q).reshape(-1, m.joints)
         for rid, qi in zip(m.robot_id, q, strict=True):
             drawer = self.drawers.get(rid)
-            if drawer is None:
+            if drawer is None or drawer.arm.dof != m.joints:  # (not ours, or not the arm we draw)
                 continue
             for entity, pos, quat in drawer.poses(qi):
                 self.rec.log(entity, rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=quat)))

@@ -297,7 +297,8 @@ def test_the_camera_is_drawn_as_a_frustum_where_it_stands_looking_its_way(tmp_pa
 
 async def test_a_fleet_on_one_socket_is_drawn_from_its_group_truth(tmp_path) -> None:
     """Robots on one shared socket send their ground truth as one GroupTruth a tick (fleet/<name>): the
-    recorder draws every arm's pose from it, at most FLEET_HZ, while they move."""
+    recorder draws every arm's pose from it, at most FLEET_HZ, while they move.  A forged one that does
+    not add up (no joints; joint values for other robots than it names) is counted and dropped."""
     from cell.recorder.live import FLEET_HZ
 
     rrd = tmp_path / "fleet.rrd"
@@ -305,10 +306,23 @@ async def test_a_fleet_on_one_socket_is_drawn_from_its_group_truth(tmp_path) -> 
         {"id": i, "name": f"f{i}", "skill_port": free_port(), "backend": "kinematic", "socket": "shared"}
         for i in (1, 2, 3)
     ]
-    async with saving_cell(tmp_path, robots, ["bus", "dataplane", "robots", "recorder"], rrd) as (ctl, _, _):
+    services = ["bus", "dataplane", "robots", "recorder"]
+    async with saving_cell(tmp_path, robots, services, rrd) as (ctl, bus, config):
+        for junk in (
+            robot_pb2.GroupTruth(t_ns=1, joints=0, robot_id=[1], q=[0.0]),
+            robot_pb2.GroupTruth(t_ns=2, joints=6, robot_id=[1, 2], q=[0.0] * 6),
+        ):
+            bus.publish("fleet/forged", junk)
         t0 = ctl.link.now()
         await ctl.move_together({n: Q0 + 0.3 for n in ("f1", "f2", "f3")}, speed=0.8)
         spent_s = (ctl.link.now() - t0) / 1e9
+        async with asyncio.timeout(5):  # (counted with the recorder's next heartbeat)
+            while True:
+                rec = next(s for s in (await fetch_status(config)).services if s.name == "recorder")
+                if rec.last.counters.get("bus.malformed", 0) >= 2:
+                    break
+                await asyncio.sleep(0.1)
+        assert rec.health == "ok" and rec.last.restarts == 0
     rows = rows_by_entity(rrd)
     for name in ("f1", "f2", "f3"):
         links = [e for e in rows if e.startswith(f"/robots/{name}/links/") and not e.endswith("/geom")]
