@@ -208,6 +208,16 @@ def cpu_seconds() -> float:
     return t.user + t.system
 
 
+def process_cpu_seconds(pid: int) -> float:
+    """Another process's user + system CPU seconds so far (/proc/<pid>/stat); NaN once it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except OSError:
+        return float("nan")
+
+
 def settle_heap() -> None:
     """Collect what start-up left and move the rest out of the garbage collector's sight.
 

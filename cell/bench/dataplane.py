@@ -25,7 +25,7 @@ import queue
 import select
 import signal
 import socket
-import struct
+import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -35,9 +35,11 @@ import numpy as np
 
 from cell import aio
 from cell.bench import pin, pinned
+from cell.bench.driver import NaiveDriver
 from cell.bench.registry import Bench, Figures, log, register
 from cell.robot import datagram, udp
-from cell.robot.datagram import SCALE, Kind
+from cell.robot.datagram import Kind
+from cell.sched import process_cpu_seconds
 from cell.timer import realtime_offset
 
 XDP_PORT = 50000
@@ -167,38 +169,12 @@ def _reflector_target(robots: int, out: Any, stop: Any) -> None:
     reflector(out, stop, True, 1)
 
 
-class _Naive(asyncio.DatagramProtocol):
-    """The obvious way: one datagram at a time, struct and floats, a dict of targets."""
-
-    STRUCT = struct.Struct("!HBBIqq")
-
-    def __init__(self, targets: dict[int, list[float]]) -> None:
-        self.targets = targets
-        self.answered = 0
-
-    def connection_made(self, transport: Any) -> None:
-        self.transport = transport
-
-    def datagram_received(self, data: bytes, addr: Any) -> None:
-        if len(data) != 24:
-            return
-        rid, jid, kind, seq, v, p = self.STRUCT.unpack(data)
-        if kind != 0:
-            return
-        target = self.targets.get(rid)
-        vel, pos = v / SCALE, p / SCALE
-        cmd = 0.0 if target is None else vel + 1.0 * (0.0 - vel) + 5.0 * (target[jid] - pos)
-        cmd = max(-3.14159, min(3.14159, cmd))
-        self.transport.sendto(self.STRUCT.pack(rid, jid, 1, seq, round(cmd * SCALE), p), addr)
-        self.answered += 1
-
-
 def _naive_target(robots: int, out: Any, stop: Any) -> None:
     pin(1)
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
-        proto = _Naive({r: [0.1] * 6 for r in range(1, robots + 1)})
+        proto = NaiveDriver({r: [0.1] * 6 for r in range(1, robots + 1)})
         sock = udp.open_socket("127.0.0.1", gro=False)
         transport, _ = await loop.create_datagram_endpoint(lambda: proto, sock=sock)
         out.put(sock.getsockname())
@@ -209,6 +185,29 @@ def _naive_target(robots: int, out: Any, stop: Any) -> None:
     aio.run(main())
 
 
+def _drivers_target(robots: int, out: Any, stop: Any) -> None:
+    """App. B's baseline: one driver process per arm (cell.bench.driver), all on core 1 as the data
+    plane is; their addresses and pids told to the load."""
+    pin(1)
+    cmd = [sys.executable, "-m", "cell.bench.driver"]
+    procs = [
+        subprocess.Popen([*cmd, str(r)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        for r in range(1, robots + 1)
+    ]
+    try:
+        ports = [int(p.stdout.readline()) for p in procs]  # type: ignore[union-attr]
+        out.put({"addrs": [("127.0.0.1", port) for port in ports], "pids": [p.pid for p in procs]})
+        stop.wait()
+    finally:
+        for p in procs:
+            p.stdin.close()  # type: ignore[union-attr]  (each driver ends when its stdin does)
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
 TARGETS = {
     "xdp": _xdp_target,
     "xdp+updates": _xdp_updating_target,
@@ -217,6 +216,7 @@ TARGETS = {
     "dataplane+updates": _updating_target,
     "reflector": _reflector_target,
     "naive": _naive_target,
+    "drivers": _drivers_target,
 }
 
 
@@ -241,6 +241,7 @@ class Trial:
     p50_us: float = float("nan")  # status to command (kernel stamps)
     p99_us: float = float("nan")
     max_us: float = float("nan")
+    cpu_cores: float = float("nan")  # the target's CPU over the load (its processes', in cores)
     update_ms: list[float] = field(default_factory=list)  # each controller update's time (+updates)
     hold_ms: list[float] = field(default_factory=list)  # the packet path held by each update, at most
     ok: bool = False  # >= ON_TIME answered within the window
@@ -261,14 +262,18 @@ class Search:
         return float(self.best.rate) if self.best is not None else 0.0
 
 
-def load(addr: tuple[str, int], robots: int, seconds: float, bind: str = "127.0.0.1") -> Trial:
-    """Play `robots` robots at 500 Hz against addr for `seconds`; status-to-command times of every answer."""
+Address = tuple[str, int]
+
+
+def load(addr: Address | list[Address], robots: int, seconds: float, bind: str = "127.0.0.1") -> Trial:
+    """Play `robots` robots at 500 Hz against addr (or a list: each robot its own) for `seconds`;
+    status-to-command times of every answer."""
     with pinned(0):
         return _load(addr, robots, seconds, bind)
 
 
 def _load(
-    addr: tuple[str, int],
+    addr: Address | list[Address],
     robots: int,
     seconds: float,
     bind: str = "127.0.0.1",
@@ -288,6 +293,8 @@ def _load(
     )
     raw = memoryview(recs.view(np.uint8))
     chunk = 64 * datagram.SIZE  # GSO segments per call
+    if isinstance(addr, list):  # a driver per robot: one send of its 6 joints each
+        chunk = 6 * datagram.SIZE
     ticks = int(seconds * 1e9 / PERIOD_NS)
     sends = -(-len(raw) // chunk)
     sent_at = np.zeros((ticks + 1, sends), np.int64)
@@ -320,7 +327,8 @@ def _load(
             recs["seq"] = k
             for c, i in enumerate(range(0, len(raw), chunk)):
                 sent_at[k, c] = time.monotonic_ns()
-                sent += sender.send(raw[i : i + chunk], addr)
+                to = addr[c] if isinstance(addr, list) else addr
+                sent += sender.send(raw[i : i + chunk], to)
         span_ns, sunk_in_span = time.monotonic_ns() - start + 50_000_000, list(sunk)  # the sink's, over it
         end = time.monotonic_ns() + 500_000_000
         while time.monotonic_ns() < end and _received(arrivals) < sent:  # the last answers, if they come
@@ -385,8 +393,13 @@ def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> Tr
         if proc.is_alive():
             proc.kill()
         return Trial(target, robots, robots * 6 * 500, limit=addr)
+    pids = [proc.pid]
+    if isinstance(addr, dict):  # (a target of many processes: each arm's address, their pids)
+        pids, addr = addr["pids"], [tuple(a) for a in addr["addrs"]]
+    cpu0, t0 = sum(process_cpu_seconds(p) for p in pids), time.monotonic()
     try:
         result = load(addr, robots, seconds, bind="127.0.0.1" if net is None else net.host_addr)
+        result.cpu_cores = (sum(process_cpu_seconds(p) for p in pids) - cpu0) / (time.monotonic() - t0)
     finally:
         stop.set()
     if target.startswith(("dataplane", "xdp")) and target != "xdp-reflector":
@@ -401,7 +414,7 @@ def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> Tr
     return result
 
 
-def _address(proc: Any, out: Any, timeout: float = 60.0) -> tuple[str, int] | str:
+def _address(proc: Any, out: Any, timeout: float = 60.0) -> Address | dict | str:
     """The target's address once it is up, or why it is not (it refused this many robots, died, or
     did not come up in time)."""
     deadline = time.monotonic() + timeout
@@ -412,7 +425,9 @@ def _address(proc: Any, out: Any, timeout: float = 60.0) -> tuple[str, int] | st
             if not proc.is_alive():
                 return f"the target died (exit code {proc.exitcode})"
             continue
-        return got["error"] if isinstance(got, dict) else tuple(got)
+        if isinstance(got, dict):
+            return got if "addrs" in got else got["error"]
+        return tuple(got)
     return f"the target did not come up in {timeout:.0f} s"
 
 

@@ -14,6 +14,12 @@ arm's tool error at its TPs (the median over arms of each arm's median, the p99 
 arm's maximum, the worst arm), the stop error, the controller's table updates (a second, and t_upd:
 request to reply), and the CPU each process used.  --search finds the largest N that keeps late
 statuses < 0.5 % and the median path error <= 0.1 mm (each trial a fresh cell).
+
+--churn adds the paper's continuous table management (Sec. 7.4, Fig. 12) beside the arms: 3.4K TPs
+no arm follows loaded first, then each second 1.6K more inserted and, half a second on, the 1.6K
+oldest removed (about 10K joint entries: the paper's "+1.6K / -10K"), through the same data plane
+and its one update at a time, as a controller using the tables as a playback buffer would.  The
+arms' status-to-command time comes as a time series (each GroupTruth: the answers since the last).
 """
 
 from __future__ import annotations
@@ -21,7 +27,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import os
 import resource
 import time
 from dataclasses import asdict, dataclass, field
@@ -35,8 +40,10 @@ from cell.bench.robots import late_statuses
 from cell.bus import Bus
 from cell.controller.controller import Controller, MotionStopped, Segment
 from cell.controller.schedule import NotAtGoal
+from cell.dataplane.tables import TPBatch
 from cell.launcher import fetch_status
 from cell.robot.arm import arm_model
+from cell.sched import process_cpu_seconds
 from cell.v1 import robot_pb2
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
@@ -44,6 +51,8 @@ TRUTH_HZ = 250  # a sample every second status period: every TP of a motion star
 LATE_AIM = 0.005  # late statuses, fraction (the search's bound)
 PATH_AIM_MM = 0.1  # median path error (the search's bound)
 DWELL_S = 1.0  # an arm rests up to this long between motions (uniformly: a pick, a place)
+CHURN_PRELOAD, CHURN_TPS = 3_400, 1_600  # Fig. 12: TPs loaded first, then in and out each second
+CHURN_ID0 = 3_000_000_000  # the churn's TP ids: far above any the controller takes in a run
 PAPER = {
     "robots": "500 (one Tofino, t_upd-bound; Sec. 7.5), 1000 at shorter episodes",
     "x86": "45 arms on a 12-core server (App. B, the ROS driver)",
@@ -74,20 +83,49 @@ class FleetRun:
     t_upd_ms_p99: float = float("nan")
     cpu: dict[str, float] = field(default_factory=dict)  # share of a core, per process
     ok: bool = False  # late statuses and the median path error within the search's bounds
+    churn: Churn | None = None  # --churn: the table management beside the arms
+    series: Series | None = None  # the latency and the loaded TPs over the run
 
     def figures(self, max_robots: int | None = None) -> dict[str, Any]:
-        out = asdict(self)
+        out = {k: v for k, v in asdict(self).items() if k not in ("churn", "series")}
         out["max_robots"] = max_robots if max_robots is not None else (self.robots if self.ok else 0)
+        if self.churn is not None:
+            out["churn_update_ms_mean"] = self.churn.update_ms_mean
+            out["churn_updates"] = len(self.churn.phases)
         return out
+
+
+@dataclass
+class Series:
+    """Over the run (seconds from its start): the arms' status-to-command time, each sample the
+    answers of one GroupTruth interval (mean and max, us), and the TPs in the tables after each update."""
+
+    t_s: np.ndarray
+    latency_us_mean: np.ndarray
+    latency_us_max: np.ndarray
+    loaded_t_s: np.ndarray
+    loaded: np.ndarray
+
+
+@dataclass
+class Churn:
+    """--churn's updates: each phase (start s, end s, "insert" or "remove") and its time."""
+
+    phases: list[tuple[float, float, str]] = field(default_factory=list)
+
+    @property
+    def update_ms_mean(self) -> float:
+        return float(np.mean([1e3 * (b - a) for a, b, _ in self.phases])) if self.phases else float("nan")
 
 
 class _TimedUpdates:
     """The controller's data-plane client with each table update timed (t_upd, as the controller
     sees it: request to reply, the bus both ways)."""
 
-    def __init__(self, dp: Any) -> None:
+    def __init__(self, dp: Any, loaded: list[tuple[float, int]]) -> None:
         self.dp = dp
         self.ms: list[float] = []
+        self.loaded = loaded  # (monotonic s, TPs in the tables after the update)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.dp, name)
@@ -96,6 +134,7 @@ class _TimedUpdates:
         t0 = time.perf_counter()
         reply = await self.dp.update(*args, **kwargs)
         self.ms.append((time.perf_counter() - t0) * 1e3)
+        self.loaded.append((time.monotonic(), int(reply.loaded)))
         return reply
 
 
@@ -106,6 +145,7 @@ class _Truth:
         self.t: list[int] = []
         self.q: list[np.ndarray] = []
         self.columns: dict[int, int] = {}
+        self.answers: list[tuple[int, float, float]] = []  # each message's (answers, mean us, max us)
 
     async def run(self, bus: Bus) -> None:
         sub = await bus.subscribe("fleet/")
@@ -115,19 +155,10 @@ class _Truth:
                 self.columns = {int(r): i for i, r in enumerate(m.robot_id)}
             self.t.append(int(m.t_ns))
             self.q.append(np.array(m.q).reshape(-1, m.joints))
+            self.answers.append((m.answers, m.answer_us_mean, m.answer_us_max))
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         return np.array(self.t, np.int64), np.stack(self.q)
-
-
-def _cpu_s(pid: int) -> float:
-    """A process's user + system CPU seconds so far (/proc)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except OSError:
-        return float("nan")
 
 
 async def _snapshot(config: Any) -> tuple[dict[str, int], dict[str, float]]:
@@ -142,7 +173,9 @@ async def _snapshot(config: Any) -> tuple[dict[str, int], dict[str, float]]:
     return {"+".join(names): pid for pid, names in by_pid.items()}, robots
 
 
-async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = False) -> FleetRun:
+async def measure(
+    n: int, seconds: float, backend: str = "numpy", quiet: bool = False, churn: bool = False
+) -> FleetRun:
     say = (lambda _m: None) if quiet else log
     robots = [
         {
@@ -173,18 +206,28 @@ async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = 
         Controller(bus, config) as ctl,
         asyncio.TaskGroup() as tg,
     ):
-        watcher = tg.create_task(truth.run(bus))
+        background = [tg.create_task(truth.run(bus))]
         await robots_heard(ctl, set(range(1, n + 1)), timeout=30.0)
-        timed = _TimedUpdates(ctl.dp)
+        loaded: list[tuple[float, int]] = []
+        timed = _TimedUpdates(ctl.dp, loaded)
         ctl.dp = timed  # type: ignore[assignment]  (the engine's updates; its reads go through ctl.link)
         for p in pairs:
             await ctl.merge(p)
+        if churn:
+            run.churn = Churn()
+            owners = np.array([int(x[1:]) for x in singles])
+            reply = await timed.dp.update(insert=dealt(owners, 0, CHURN_PRELOAD))
+            loaded.append((time.monotonic(), int(reply.loaded)))
+            background.append(tg.create_task(_churn(timed.dp, owners, run.churn, loaded)))
         procs, c0 = await _snapshot(config)
-        cpu0 = {k: _cpu_s(pid) for k, pid in procs.items()}
+        cpu0 = {k: process_cpu_seconds(pid) for k, pid in procs.items()}
         me0 = resource.getrusage(resource.RUSAGE_SELF)
         t0 = time.monotonic()
         deadline = t0 + seconds
-        say(f"{n} arms ({len(pairs)} merged pairs) for {seconds:g} s, data plane {backend}")
+        say(
+            f"{n} arms ({len(pairs)} merged pairs) for {seconds:g} s, data plane {backend}"
+            + (f", table churn +{CHURN_TPS} / -{CHURN_TPS} TPs a second" if churn else "")
+        )
 
         async def drive(entity: list[str], seed: int) -> None:
             rng = np.random.default_rng(seed)
@@ -210,9 +253,10 @@ async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = 
         spent = time.monotonic() - t0
         await asyncio.sleep(1.0)  # the last holds: the stop error is read 1 s on
         me1 = resource.getrusage(resource.RUSAGE_SELF)
-        cpu1 = {k: _cpu_s(pid) for k, pid in procs.items()}
+        cpu1 = {k: process_cpu_seconds(pid) for k, pid in procs.items()}
         _, c1 = await _snapshot(config)
-        watcher.cancel()
+        for task in background:  # (they run until told)
+            task.cancel()
     run.seconds = round(spent, 1)
     run.cpu = {k: round((cpu1[k] - cpu0[k]) / spent, 2) for k in procs}
     run.cpu["controller (this process)"] = round(
@@ -226,8 +270,47 @@ async def measure(n: int, seconds: float, backend: str = "numpy", quiet: bool = 
         run.updates_per_s = len(timed.ms) / spent
         run.t_upd_ms, run.t_upd_ms_p99 = (float(np.percentile(timed.ms, p)) for p in (50, 99))
     _score(run, truth, segments)
+    run.series = _series(truth, loaded, t0)
+    if run.churn is not None:
+        run.churn.phases = [(a - t0, b - t0, kind) for a, b, kind in run.churn.phases]
     run.ok = run.late_status_pct < 100 * LATE_AIM and run.path_error_mm_median <= PATH_AIM_MM
     return run
+
+
+def dealt(owners: np.ndarray, first: int, n: int, id0: int = CHURN_ID0) -> TPBatch:
+    """Parked TPs first..first+n (ids from id0 on), dealt round the owners."""
+    k = np.arange(first, first + n)
+    return TPBatch.parked(owners[k % owners.size], id0 + k)
+
+
+async def _churn(dp: Any, owners: np.ndarray, churn: Churn, loaded: list[tuple[float, int]]) -> None:
+    """Each second 1,600 TPs in, and half a second on the 1,600 oldest out (the preload's first),
+    until cancelled; each phase timed, the tables' count after it kept."""
+    oldest, newest = 0, CHURN_PRELOAD
+    due = time.monotonic()
+    while True:
+        for kind in ("insert", "remove"):
+            due += 0.5
+            await asyncio.sleep(max(0.0, due - time.monotonic()))
+            a = time.monotonic()
+            if kind == "insert":
+                reply = await dp.update(insert=dealt(owners, newest, CHURN_TPS))
+                newest += CHURN_TPS
+            else:
+                gone = dealt(owners, oldest, CHURN_TPS)
+                reply = await dp.update(remove=gone.keys)
+                oldest += CHURN_TPS
+            b = time.monotonic()
+            churn.phases.append((a, b, kind))
+            loaded.append((b, int(reply.loaded)))
+
+
+def _series(truth: _Truth, loaded: list[tuple[float, int]], t0: float) -> Series:
+    t = np.array(truth.t, np.float64) / 1e9 - t0
+    a = np.array(truth.answers, np.float64).reshape(-1, 3)
+    some = a[:, 0] > 0
+    lt = np.array(loaded, np.float64).reshape(-1, 2)
+    return Series(t[some], a[some, 1], a[some, 2], lt[:, 0] - t0, lt[:, 1].astype(np.int64))
 
 
 def _score(run: FleetRun, truth: _Truth, segments: list[tuple[list[str], Segment]]) -> None:
@@ -314,6 +397,13 @@ def format_result(r: FleetRun, max_robots: int | None) -> str:
         f"p99 {r.t_upd_ms_p99:.1f} ms",
         f"  CPU (share of a core): {cpu}",
     ]
+    if r.churn is not None:
+        lines.insert(
+            3,
+            f"  table churn beside them: {len(r.churn.phases)} updates of {CHURN_TPS:,} TPs, "
+            f"{r.churn.update_ms_mean:.1f} ms each on average (paper: +1.6K / -10K entries a second, "
+            "no effect on latency)",
+        )
     if max_robots is not None:
         lines.append(
             f"largest fleet within < {100 * LATE_AIM:g}% late statuses and a median path error <= "
@@ -327,6 +417,11 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=10.0, help="how long they move (default 10)")
     p.add_argument("--backend", choices=["numpy", "xdp"], default="numpy", help="the data plane (xdp: root)")
     p.add_argument("--search", action="store_true", help="find the largest fleet within the bounds")
+    p.add_argument(
+        "--churn",
+        action="store_true",
+        help="table churn beside the arms: 1.6K TPs in and out a second (Fig. 12)",
+    )
 
 
 def _main(args: argparse.Namespace) -> Figures:
@@ -337,7 +432,7 @@ def _main(args: argparse.Namespace) -> Figures:
         top = max((r for r in runs if r.ok), key=lambda r: r.robots, default=runs[-1])
         return Figures(top.figures(best), format_result(top, best))
     with contextlib.suppress(KeyboardInterrupt):
-        r = asyncio.run(measure(args.robots, args.seconds, args.backend))
+        r = asyncio.run(measure(args.robots, args.seconds, args.backend, churn=args.churn))
         return Figures(r.figures(), format_result(r, None))
     return Figures({"error": "interrupted"}, "", 130)
 

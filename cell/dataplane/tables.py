@@ -96,6 +96,19 @@ class TPBatch:
             flat_v,
         )
 
+    @property
+    def keys(self) -> np.ndarray:
+        """(n, 2) robot, id: what removes these TPs again."""
+        return np.stack([self.robot, self.id], axis=1)
+
+    @classmethod
+    def parked(cls, robots: ArrayLike, ids: ArrayLike, joints: int = 6) -> TPBatch:
+        """TPs at zero that lead to themselves, for no register to point at: a benchmark's table
+        load (a playback buffer's episodes not yet switched to, or left behind)."""
+        ids = np.asarray(ids, np.int64)
+        zeros = np.zeros(ids.size * joints)
+        return cls.from_flat(robots, ids, ids, np.ones(ids.size), np.full(ids.size, joints), zeros, zeros)
+
     @classmethod
     def from_flat(
         cls,

@@ -45,23 +45,39 @@ class Lateness:
         self.counts = np.zeros(self.BINS, np.int64)
         self.max_us = 0.0
         self.n = 0
+        self._window = [0, 0.0, 0.0]  # count, sum, max since take_window()
 
     def add(self, us: float) -> None:
         self.counts[min(int(us / self.BIN_US), self.BINS - 1) if us > 0 else 0] += 1
         self.n += 1
         if us > self.max_us:
             self.max_us = us
+        w = self._window
+        w[0], w[1], w[2] = w[0] + 1, w[1] + us, max(w[2], us)
 
     def add_all(self, us: np.ndarray) -> None:
         """Many at once (one per datagram of a batch)."""
         if us.size:
             np.add.at(self.counts, np.clip((us / self.BIN_US).astype(np.int64), 0, self.BINS - 1), 1)
             self.n += int(us.size)
-            self.max_us = max(self.max_us, float(us.max()))
+            top = float(us.max())
+            self.max_us = max(self.max_us, top)
+            w = self._window
+            w[0] += int(us.size)
+            w[1] += float(us.sum())
+            w[2] = max(w[2], top)
+
+    def take_window(self) -> tuple[int, float, float]:
+        """(count, mean, max) of what add_all() added since the last call: a time series beside the
+        whole run's histogram."""
+        n, total, top = self._window
+        self._window = [0, 0.0, 0.0]
+        return n, (total / n if n else 0.0), top
 
     def clear(self) -> None:
         self.counts[:] = 0
         self.max_us, self.n = 0.0, 0
+        self._window = [0, 0.0, 0.0]
 
     def percentile(self, p: float) -> float:
         """The upper edge of the bin holding the p-th percentile (us)."""

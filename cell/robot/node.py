@@ -133,6 +133,7 @@ class Publisher:
             b = group.backend
             at = round(group.state_time * 1e9)  # CLOCK_MONOTONIC ns of the state, not of publishing
             if group.shared:  # a fleet: every robot in one message
+                answers, mean_us, max_us = group.counters.answers.take_window()
                 self.bus.publish(
                     f"fleet/{self.names[0]}",
                     robot_pb2.GroupTruth(
@@ -142,6 +143,9 @@ class Publisher:
                         robot_id=group.ids.tolist(),
                         q=b.q.ravel().tolist(),
                         stopped=group.drives.stopped.tolist(),
+                        answers=answers,
+                        answer_us_mean=mean_us,
+                        answer_us_max=max_us,
                     ),
                 )
                 return

@@ -62,20 +62,26 @@ class RobotTruth(_message.Message):
     def __init__(self, robot_id: _Optional[int] = ..., t_ns: _Optional[int] = ..., q: _Optional[_Iterable[float]] = ..., qd: _Optional[_Iterable[float]] = ..., tool_pose: _Optional[_Iterable[float]] = ..., target: _Optional[_Iterable[float]] = ..., stopped: _Optional[bool] = ..., tick: _Optional[int] = ..., digital_out: _Optional[int] = ...) -> None: ...
 
 class GroupTruth(_message.Message):
-    __slots__ = ("t_ns", "tick", "joints", "robot_id", "q", "stopped")
+    __slots__ = ("t_ns", "tick", "joints", "robot_id", "q", "stopped", "answers", "answer_us_mean", "answer_us_max")
     T_NS_FIELD_NUMBER: _ClassVar[int]
     TICK_FIELD_NUMBER: _ClassVar[int]
     JOINTS_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     Q_FIELD_NUMBER: _ClassVar[int]
     STOPPED_FIELD_NUMBER: _ClassVar[int]
+    ANSWERS_FIELD_NUMBER: _ClassVar[int]
+    ANSWER_US_MEAN_FIELD_NUMBER: _ClassVar[int]
+    ANSWER_US_MAX_FIELD_NUMBER: _ClassVar[int]
     t_ns: int
     tick: int
     joints: int
     robot_id: _containers.RepeatedScalarFieldContainer[int]
     q: _containers.RepeatedScalarFieldContainer[float]
     stopped: _containers.RepeatedScalarFieldContainer[bool]
-    def __init__(self, t_ns: _Optional[int] = ..., tick: _Optional[int] = ..., joints: _Optional[int] = ..., robot_id: _Optional[_Iterable[int]] = ..., q: _Optional[_Iterable[float]] = ..., stopped: _Optional[_Iterable[bool]] = ...) -> None: ...
+    answers: int
+    answer_us_mean: float
+    answer_us_max: float
+    def __init__(self, t_ns: _Optional[int] = ..., tick: _Optional[int] = ..., joints: _Optional[int] = ..., robot_id: _Optional[_Iterable[int]] = ..., q: _Optional[_Iterable[float]] = ..., stopped: _Optional[_Iterable[bool]] = ..., answers: _Optional[int] = ..., answer_us_mean: _Optional[float] = ..., answer_us_max: _Optional[float] = ...) -> None: ...
 
 class RobotEvent(_message.Message):
     __slots__ = ("robot_id", "name", "kind", "text", "t_ns", "digital_out")

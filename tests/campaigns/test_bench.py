@@ -62,15 +62,15 @@ def test_the_paper_bench_writes_a_page_with_its_numbers(tmp_path) -> None:
 
     out = tmp_path / "paper"
     run = subprocess.run(
-        [sys.executable, "-m", "cell", "bench", "paper", "--quick", "--only", "resubmission,scaling",
-         "--out", str(out), "--json"],
+        [sys.executable, "-m", "cell", "bench", "paper", "--quick", "--only",
+         "resubmission,scaling,resources,episodes", "--out", str(out), "--json"],
         capture_output=True, text=True, timeout=240,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr[-2000:]
-    assert "[1/2] resubmission" in run.stdout and "[2/2] scaling" in run.stdout  # progress as it runs
+    assert "[1/4] resubmission" in run.stdout and "[2/4] scaling" in run.stdout  # progress as it runs
     result = json.loads(run.stdout.strip().splitlines()[-1])
     page = (out / "index.html").read_text()
-    for key in ("resubmission", "scaling"):
+    for key in ("resubmission", "scaling", "resources", "episodes"):
         assert f"<h2 id={key}>" in page
         assert (out / f"{key}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for label in ("host", "cpu", "commit", "date"):
@@ -90,14 +90,26 @@ def test_the_paper_bench_writes_a_page_with_its_numbers(tmp_path) -> None:
     # a summary at the top, a row per figure with the paper's number, ours and a verdict
     at = page.index("id=summary-table")
     summary = page[at : page.index("</table>", at)]
-    assert summary.count("<tr>") == 3 and summary.count(">yes</span>") == 2
+    assert summary.count("<tr>") == 5 and summary.count(">yes</span>") >= 2
     assert f"{scaling['largest_fleet']:,} robots" in summary
     # captions, a print stylesheet, and text that says what the plot shows
     assert "<figcaption>Figure 1. " in page and "<figcaption>Figure 2. " in page and "@media print" in page
     lo, hi = resub["ns_per_packet_10hz"], resub["ns_per_packet_2000hz"]
     assert f"from {lo:.0f} to {hi:.0f} ns" in page and "stays flat" not in page
     # progress with what each part is expected to take
-    assert re.search(r"\[2/2\] scaling: about \d+ s \(\d+ s so far, about \d+ s to go\)", run.stdout)
+    assert re.search(r"\[2/4\] scaling: about \d+ s \(\d+ s so far, about \d+ s to go\)", run.stdout)
+    # Fig. 13a-b: memory grows with arms x TPs an arm, by what a row holds; the XDP program's rows map
+    # (where the object loads) by exactly its 208-byte row
+    res = result["figures"]["resources"]
+    assert res["numpy_mb_1000x200"] > res["numpy_mb_1000x50"] > res["numpy_mb_100x50"] > 0
+    assert 150 < res["bytes_per_tp_numpy"] < 400
+    if "xdp_map_mb_100x50" in res:
+        assert res["bytes_per_tp_xdp"] == pytest.approx(208, abs=1) and res["instructions"] > 100
+    # Fig. 13c-d: t_upd through the live service grows with the TPs an update moves; the derived arms
+    # at 1 s episodes were checked by sending that many updates at once
+    ep = result["figures"]["episodes"]
+    assert ep["t_upd_ms_1600"] > ep["t_upd_ms_1"] > 0 and ep["t_upd_us_per_tp"] > 0
+    assert ep["checked_arms"] == min(int(ep["arms_1s_10tps"]), 1000) and ep["checked_s"] > 0
 
 
 def test_benches_write_their_own_section_of_the_results_page(tmp_path) -> None:
@@ -147,18 +159,46 @@ def test_a_search_past_the_data_planes_capacity_reports_the_limit_not_a_tracebac
 
 @pytest.mark.slow
 def test_the_fleet_bench_scores_every_arm_against_its_own_plan() -> None:
-    """A small fleet (one merged pair among twelve arms): every entity ran motions, every arm's TPs were
-    scored against the group's ground truth (a wrong column would be metres off), and the JSON line
-    has the issue's keys."""
+    """A small fleet (one merged pair among twelve arms) with the table churn beside it: every entity
+    ran motions, every arm's TPs were scored against the group's ground truth (a wrong column would be
+    metres off), the churn's TPs went in and out as timed phases, and the JSON line has the issue's
+    keys."""
     import asyncio
+    import itertools
     import math
 
     from cell.bench import fleet
 
-    r = asyncio.run(fleet.measure(12, 3.0, quiet=True))
+    r = asyncio.run(fleet.measure(12, 3.0, quiet=True, churn=True))
     assert r.robots == 12 and r.motions >= 11 and r.stopped == 0  # (11 entities: a pair and ten singles)
     assert r.tps_scored > 12 * 5 and r.path_error_mm_median < 1.0 and r.path_error_mm_max < 5.0
     assert math.isfinite(r.latency_us_p99) and r.updates_per_s > 0 and r.t_upd_ms > 0
     assert r.stop_error_rad_max < 1e-3 and {"dataplane", "robots"} <= {k for k in r.cpu}
     keys = {"robots", "late_status_pct", "latency_us_p99", "path_error_mm_median", "path_error_mm_p99"}
-    assert keys | {"t_upd_ms", "max_robots"} <= set(r.figures())
+    assert keys | {"t_upd_ms", "max_robots", "churn_update_ms_mean"} <= set(r.figures())
+    # Fig. 12: insert and remove phases alternate, half a second apart; each moves the tables' count by
+    # the churn's 1,600 TPs (give or take the arms' own episodes loaded meanwhile); the latency comes
+    # as a series over the run, every sample a positive time
+    assert r.churn is not None and r.series is not None
+    kinds = [k for _, _, k in r.churn.phases]
+    assert len(kinds) >= 4 and kinds[:4] == ["insert", "remove", "insert", "remove"]
+    starts = [a for a, _, _ in r.churn.phases]
+    assert all(0.3 < b - a < 0.7 for a, b in itertools.pairwise(starts))
+    assert r.series.loaded.max() - r.series.loaded.min() >= fleet.CHURN_TPS
+    assert r.series.loaded.min() >= fleet.CHURN_PRELOAD
+    assert r.series.t_s.size > 100 and (r.series.latency_us_mean > 0).all()
+    assert (r.series.latency_us_max >= r.series.latency_us_mean).all()
+
+
+def test_a_driver_per_arm_answers_its_own_arm_and_is_gone_afterwards() -> None:
+    """App. B's baseline: each arm's statuses go to its own driver process, which answers them all;
+    the processes' CPU is counted, and none is left running."""
+    import subprocess
+
+    from cell.bench import dataplane
+
+    t = dataplane.trial("drivers", 2, 1.0)
+    assert t.answered == t.sent > 0 and t.on_time_fraction >= 0.99, t
+    assert 0 < t.cpu_cores < 2
+    left = subprocess.run(["pgrep", "-f", "cell.bench.driver"], capture_output=True, text=True)
+    assert left.stdout.strip() == ""

@@ -9,6 +9,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import struct
 from functools import cache
 
 
@@ -77,6 +78,7 @@ def lib() -> ctypes.CDLL:
         ("bpf_map__max_entries", u32, [p]),
         ("bpf_map__fd", i, [p]),
         ("bpf_program__fd", i, [p]),
+        ("bpf_obj_get_info_by_fd", i, [i, p, ctypes.POINTER(u32)]),
         ("bpf_map_lookup_elem", i, [i, p, p]),
         ("bpf_prog_test_run_opts", i, [i, p]),
         ("bpf_xdp_attach", i, [i, i, u32, p]),
@@ -121,3 +123,19 @@ def test_run(prog_fd: int, data: bytes, out_size: int = 4096) -> tuple[int, byte
     )
     check(lib().bpf_prog_test_run_opts(prog_fd, ctypes.byref(opts)), "BPF_PROG_TEST_RUN")
     return int(opts.retval), dst.raw[: opts.data_size_out]
+
+
+def prog_sizes(prog_fd: int) -> tuple[int, int]:
+    """(translated, JIT-compiled) bytes of a loaded program: struct bpf_prog_info's jited_prog_len
+    and xlated_prog_len (offsets 16 and 20, stable since they were added)."""
+    info = ctypes.create_string_buffer(256)
+    size = ctypes.c_uint32(len(info))
+    check(lib().bpf_obj_get_info_by_fd(prog_fd, info, ctypes.byref(size)), "reading a program's info")
+    jited, xlated = struct.unpack_from("<II", info.raw, 16)
+    return xlated, jited
+
+
+def fdinfo(fd: int) -> dict[str, str]:
+    """The kernel's fdinfo of a BPF map or program (memlock, verified_insns, ...)."""
+    with open(f"/proc/self/fdinfo/{fd}") as f:
+        return {k.strip(): v.strip() for k, _, v in (line.partition(":") for line in f) if v}

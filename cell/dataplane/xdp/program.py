@@ -15,6 +15,7 @@ import os
 import socket
 import struct
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +109,24 @@ COUNTERS = (
 )
 
 
+MAPS = ("robots", "status", "entities", "rows", "transform", "limits", "globals", "counters")
+PROGRAMS = ("velocity_control", "gate", "reflect")
+
+
+@dataclass(frozen=True)
+class Resources:
+    """What a loaded program takes of the kernel (Fig. 13a-b's resources, for this target): each
+    map's entries and locked memory, each program's instructions (translated, and as many as the
+    verifier walked through its paths) and its JIT-compiled size."""
+
+    maps: dict[str, tuple[int, int]]  # name -> (entries, bytes)
+    programs: dict[str, tuple[int, int, int]]  # name -> (instructions, verified, JIT bytes)
+
+    @property
+    def map_bytes(self) -> int:
+        return sum(b for _, b in self.maps.values())
+
+
 class XdpProgram:
     """The velocity-control program and its maps; close() unloads it (and detaches it if attached)."""
 
@@ -149,6 +168,19 @@ class XdpProgram:
         self.closed_ns: list[int] = []  # how long each closing lasted (recent ones)
         self._closed_at = 0
         self._priority: int | None = None  # the thread's own while it holds the gate at the ceiling
+
+    def resources(self) -> Resources:
+        maps = {}
+        for name in MAPS:
+            m = self._map(name)
+            info = libbpf.fdinfo(self._bpf.bpf_map__fd(m))
+            maps[name] = (int(self._bpf.bpf_map__max_entries(m)), int(info.get("memlock", 0)))
+        programs = {}
+        for name in PROGRAMS:
+            fd = self._prog(name)
+            xlated, jited = libbpf.prog_sizes(fd)
+            programs[name] = (xlated // 8, int(libbpf.fdinfo(fd).get("verified_insns", -1)), jited)
+        return Resources(maps, programs)
 
     def _map(self, name: str) -> int:
         return libbpf.pointer(self._bpf.bpf_object__find_map_by_name(self.obj, name.encode()), f"map {name}")
