@@ -373,9 +373,24 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--buffer-ms", type=float, default=3.0, help="its buffer per queue, in ms of it (default 3)"
     )
+    p.add_argument(
+        "--xdp",
+        action="store_true",
+        help="instead: the XDP pipeline's response time beside ordinary traffic at rising rates, next to "
+        "plain forwarding (Sec. 7.1)",
+    )
 
 
 def _main(args: argparse.Namespace) -> Figures:
+    if args.xdp:
+        from cell.bench import background_xdp
+        from cell.dataplane.xdp.switch import missing
+
+        if why := missing():
+            return Figures({"error": why}, f"cell bench background --xdp: {why}", 2)
+        s = background_xdp.sweep(args.quick, log=log)
+        rows = [dataclasses.asdict(p) | {"apart_us": p.apart_us} for p in s.points]
+        return Figures(s.figures() | {"rows": rows}, background_xdp.format_result(s))
     result = run(args.quick, args.rate_mbps, args.buffer_ms, log=log)
     return Figures(summary(result) | {"rows": result["rows"]}, format_result(result))
 

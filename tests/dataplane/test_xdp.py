@@ -394,3 +394,23 @@ async def test_a_detached_program_is_answered_for_from_user_space_and_attached_a
                 await watcher
             robot.close()
             plane.close()
+
+
+def test_the_background_sweep_times_both_programs_beside_ordinary_traffic_and_cleans_up() -> None:
+    """Sec. 7.1 on XDP, one point: the generator offers what was asked through the switch's program,
+    probes come back through both the velocity-control pipeline and plain forwarding, and the switch's
+    namespace and the generator are gone afterwards."""
+    from cell.bench import background_xdp as bx
+    from cell.dataplane.xdp.switch import missing
+
+    if why := missing():
+        pytest.skip(why)
+    s = bx.sweep(seconds=0.5, frames=(64,), rates=(40,), rounds=1, log=lambda _line: None)
+    (p,) = s.points
+    assert p.frame == 64 and 0.8 * 40 <= p.offered_kpps <= 1.2 * 40
+    assert p.offered_mbps == pytest.approx(p.offered_kpps * 1e3 * 64 * 8 / 1e6, rel=1e-6)
+    assert 0 < p.forward_p50_us <= p.forward_p99_us and 0 < p.control_p50_us <= p.control_p99_us
+    assert p.control_on_time >= 0.99
+    assert s.figures()["apart_us_64"] == pytest.approx(p.control_p50_us - p.forward_p50_us)
+    left = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    assert "cbb" not in left

@@ -18,12 +18,24 @@ What each experiment runs:
   at 500 Hz x 6 joints (Sec. 7.1; the paper's is a Tofino's, in ns);
 - churn: the fleet bench's arms moving, without and with the paper's table churn
   beside them (+1.6K / -1.6K TPs a second; Sec. 7.4, Fig. 12);
+- xdp-background: the XDP pipeline's response time while ordinary traffic passes through it
+  at rising rates, next to plain forwarding (Sec. 7.1; root);
 - background: robots and ordinary traffic through one congested egress port of the data plane,
   one shared FIFO against strict priority, in network namespaces (Appendix C, Fig. 14; root);
 - resubmission: Algorithm 1's one TP step per pass, and what each further
   pass (resubmission) costs, for TP rates up to 4x the status rate;
 - scaling: the table capacity against robots x episode x TP rate
-  (Appendix A, Fig. 13) and the update time t_upd against batch size.
+  (Appendix A, Fig. 13) and the update time t_upd against batch size;
+- resources: the memory the tables take against arms for 50/100/200 TPs an arm, on
+  the loaded XDP object and the numpy Tables, and the program's size (Fig. 13a-b);
+- episodes: t_upd through the live data plane service, and the arms it keeps fed
+  against the episode length at 10 and 43 TPs/s, checked (Fig. 13c-d);
+- x86: a driver process per arm (the paper's ROS driver's shape) against the data
+  plane, arms on one core at 500 Hz (Appendix B).
+
+The experiments live by subject: motion.py (accuracy, pid), network.py (latency,
+resubmission, background, xdp-background), scale.py (the rest); page.py holds the
+Section each returns and the page they are written to.
 """
 
 from __future__ import annotations
@@ -35,7 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from cell.bench.paper.motion import accuracy, pid
-from cell.bench.paper.network import background, latency, resubmission
+from cell.bench.paper.network import background, latency, resubmission, xdp_background
 from cell.bench.paper.page import Log, Section, machine, write_page
 from cell.bench.paper.scale import churn, episodes, resources, scaling, x86
 from cell.bench.registry import Bench, Figures, log, register
@@ -46,6 +58,7 @@ EXPECTED_S = {
     "latency": (12, 20),
     "churn": (35, 60),
     "background": (50, 150),
+    "xdp-background": (25, 60),
     "resubmission": (5, 20),
     "scaling": (2, 5),
     "resources": (5, 8),
@@ -59,6 +72,7 @@ EXPERIMENTS: dict[str, Callable[[bool, Path, Log], list[Section]]] = {
     "latency": latency,
     "churn": churn,
     "background": background,
+    "xdp-background": xdp_background,
     "resubmission": resubmission,
     "scaling": scaling,
     "resources": resources,
