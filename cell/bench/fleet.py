@@ -38,6 +38,7 @@ from cell.bench.cellproc import robots_heard, running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bench.robots import late_statuses
 from cell.bus import Bus
+from cell.config import load_config
 from cell.controller.controller import Controller, MotionStopped, Segment
 from cell.controller.schedule import NotAtGoal
 from cell.dataplane.tables import TPBatch
@@ -192,7 +193,14 @@ async def measure(
     if backend == "xdp":
         from cell.bench.dataplane import xdp_dataplane, xdp_switch
 
-        overrides["dataplane"] = xdp_dataplane(xdp_switch(tag="cbf"))
+        overrides["dataplane"] = xdp_dataplane(xdp_switch(cpu=0, tag="cbf"))
+        # the kernel runs the packet path (on the robots' core, as it sends): the data plane's process
+        # is only its control plane, so it leaves the robots' core to them
+        groups = [asdict(g) for g in load_config(None).services.groups]
+        for g in groups:
+            if g["name"] == "dataplane":
+                g["cpus"] = [0]
+        overrides["services"]["groups"] = groups
     names = [r["name"] for r in robots]
     pairs = [names[i : i + 2] for i in range(0, n // 10 * 2, 2)] if n >= 10 else []  # a tenth, merged
     paired = {x for p in pairs for x in p}

@@ -46,8 +46,11 @@ def _native() -> ctypes.CDLL | None:
     except (NativeUnavailable, OSError):
         return None
     p, i64 = ctypes.c_void_p, ctypes.c_int64
-    lib.loop_run.argtypes = [i64, i64, p, p, p, i64, i64, i64, p, p, p, p, p, p, ctypes.c_double]
+    d = ctypes.c_double
+    lib.loop_run.argtypes = [i64, i64, p, p, p, i64, i64, i64, p, p, p, p, p, p, d]
     lib.loop_run.restype = None
+    lib.loop_fit.argtypes = [i64, i64, p, p, p, p, p, i64, i64, p, p, p, p, d, i64, i64, d, p, p, p, p]
+    lib.loop_fit.restype = ctypes.c_int
     return lib
 
 
@@ -224,6 +227,55 @@ class LoopModel:
         v_trg), then regula falsi closes in on it: the loop is piecewise linear in v_trg (a
         limit starts or stops acting at the kinks), so it lands exactly within a few steps.
         """
+        if (native := _native()) is not None and q0.size <= 64:
+            return self._fit_native(native, q_end, t_end, q0, v0, tick0, held0)
+        return self.fit_numpy(q_end, t_end, q0, v0, tick0, held0)
+
+    def _fit_native(
+        self,
+        lib: ctypes.CDLL,
+        q_end: np.ndarray,
+        t_end: np.ndarray,
+        q0: np.ndarray,
+        v0: np.ndarray,
+        tick0: int,
+        held0: np.ndarray | None,
+    ) -> tuple[np.ndarray, LoopTrace]:
+        """fit() in C (loop.c's loop_fit): the same steps, a whole motion in one call."""
+        dof, sections = q0.size, len(t_end)
+        q = np.array(q0, np.float64, order="C")
+        v = np.array(v0, np.float64, order="C")
+        held = v.copy() if held0 is None else np.array(held0, np.float64, order="C")
+        targets = np.ascontiguousarray(q_end, np.float64).reshape(sections, dof)
+        steps = np.diff(np.asarray(t_end, np.float64), prepend=0.0) / self.status_s
+        ns = np.maximum(1, np.rint(steps)).astype(np.int64)  # (round half to even, as round())
+        out = np.empty((sections, dof))
+        trace = LoopTrace(
+            np.empty((sections + 1, dof)),
+            np.empty((sections + 1, dof)),
+            np.empty((sections + 1, dof)),
+            np.concatenate([[0], np.cumsum(ns)]).astype(np.int64),
+        )
+        ok = lib.loop_fit(
+            sections, dof, targets.ctypes.data, ns.ctypes.data, q.ctypes.data, v.ctypes.data,
+            held.ctypes.data, int(tick0), int(self.window), *self._per_joint[1], float(self.status_s),
+            _CANDIDATES, _STEPS, _TOL_RAD, out.ctypes.data, trace.q.ctypes.data, trace.v.ctypes.data,
+            trace.held.ctypes.data,
+        )  # fmt: skip
+        if ok != 0:
+            return self.fit_numpy(q_end, t_end, q0, v0, tick0, held0)
+        return out, trace
+
+    def fit_numpy(
+        self,
+        q_end: np.ndarray,
+        t_end: np.ndarray,
+        q0: np.ndarray,
+        v0: np.ndarray,
+        tick0: int = 0,
+        held0: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, LoopTrace]:
+        """fit() step by step in Python around run(): the reference (and the fallback)."""
         dof = q0.size
         joint = np.arange(dof)
         q, v = q0.astype(np.float64), v0.astype(np.float64)

@@ -448,10 +448,11 @@ class DataPlane:
         )
         if not brief:
             st.counters.update(self.counters())
-        robots = np.flatnonzero(t.robot_entity != NO_ROW).tolist()
-        if req is not None and req.robot_ids:
-            wanted = set(req.robot_ids)
-            robots = [r for r in robots if r in wanted]
+        if req is not None and req.robot_ids:  # (the usual read: a few robots; no scan of all ids)
+            known = len(t.robot_entity)
+            robots = sorted({r for r in req.robot_ids if 0 <= r < known and t.robot_entity[r] != NO_ROW})
+        else:
+            robots = np.flatnonzero(t.robot_entity != NO_ROW).tolist()
         for robot in robots:
             e = int(t.robot_entity[robot])
             n = int(self.robot_joints[robot])

@@ -34,3 +34,24 @@ def test_a_motions_tps_are_the_same_fitted_in_c_or_numpy(monkeypatch) -> None:
     monkeypatch.setattr(loopmod, "_native", lambda: None)  # (no compiler: numpy runs it)
     slow = cut(motion, 10, sim.c2 / sim.c1, sim.loop, tick0=1)
     assert np.array_equal(fast.v_ff, slow.v_ff) and np.array_equal(fast.q, slow.q)
+
+
+def test_the_c_fit_is_the_python_fit_step_for_step() -> None:
+    """loop_fit (a whole motion in one C call) against fit_numpy (Python around the C run): the same
+    v_trg and the same states on the way, bit for bit, from any start state, tick and section lengths."""
+    sim = Loop("dataplane", "kinematic")
+    model = sim.loop
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        k = int(rng.integers(1, 40))
+        t_end = np.cumsum(rng.uniform(0.004, 0.2, k))
+        q0 = rng.uniform(-2, 2, 6)
+        q_end = q0 + np.cumsum(rng.uniform(-0.05, 0.05, (k, 6)), axis=0)
+        v0 = rng.uniform(-0.5, 0.5, 6)
+        held0 = None if trial % 3 == 0 else rng.uniform(-1, 1, 6)
+        tick0 = int(rng.integers(0, 8))
+        got, got_trace = model.fit(q_end, t_end, q0, v0, tick0, held0)
+        want, want_trace = model.fit_numpy(q_end, t_end, q0, v0, tick0, held0)
+        assert np.array_equal(got, want), trial
+        for name in ("q", "v", "held", "periods"):
+            assert np.array_equal(getattr(got_trace, name), getattr(want_trace, name)), (trial, name)
