@@ -334,6 +334,10 @@ def format_result(result: dict[str, Any]) -> str:
         f"{100 * r['lost_fraction']:7.2f}"
         for r in result["rows"]
     ]
+    lines.append(
+        "the paper (Appendix C, Fig. 14; 5 Gbit/s port): one FIFO ~3 ms and some (5 Gbit/s) to almost all "
+        "(9 Gbit/s) robot packets lost; strict priority sub-millisecond, none lost; ~1 us at low load"
+    )
     lines.append(f"took {result['took_s']:.0f} s")
     return "\n".join(lines)
 
