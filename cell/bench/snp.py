@@ -288,6 +288,7 @@ def run(
     slot_ns: int = SLOT_NS,
     native: bool | None = None,
     management_ns: int | None = None,
+    tracking: bool = True,
 ) -> dict[str, Any]:
     """native: the cycle in C at both ends, the modules' and the master's (cell.snp.native; None:
     if it builds here).  Baselines in the same run: all in Python, and the modules in C with the
@@ -330,7 +331,13 @@ def run(
     back = {**pulled, "plug_s": 2.5, "unplug_s": None}
     plugged = trial([*chain, back], 3.5, config=config, native=native)
     plug = plug_figures(plugged, late["module_id"], pulled["module_id"], 1.0, 2.0)
-    return {
+    vdc = None
+    if tracking:  # the arm the cycle serves: VDC over the four messages, on the MuJoCo arm
+        from cell.modular.experiment import measure as measure_tracking
+
+        vdc = measure_tracking()
+    return (vdc.figures() if vdc is not None else {}) | {
+        "vdc": [dataclasses.asdict(row) for row in vdc.rows] if vdc is not None else [],
         "slaves": slaves,
         "seconds": seconds,
         "modules": "c" if native else "python",
@@ -371,6 +378,12 @@ def run(
 
 def _ms(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.3f} ms"
+
+
+def _tracking_text(rows: list[dict[str, Any]]) -> str:
+    from cell.modular.experiment import Row, VdcFigures, format_figures
+
+    return format_figures(VdcFigures([Row(**row) for row in rows]))
 
 
 def format_result(r: dict[str, Any]) -> str:
@@ -415,6 +428,7 @@ def format_result(r: dict[str, Any]) -> str:
             f"{p.get('back_ms', nan):.0f} ms; the others missed {p['others_missed_pct']:.2f}% "
             f"meanwhile, the master guessed {p['guessed_by_master']} module-cycles",
         ]
+        + ([_tracking_text(r["vdc"])] if r.get("vdc") else [])
     )
 
 
@@ -433,6 +447,12 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         help="where in the period the master sends beacons and probes and the bench samples the "
         "clocks: its management slot, after the joints' exchanges (default: CycleConfig's)",
+    )
+    p.add_argument(
+        "--no-tracking",
+        dest="tracking",
+        action="store_false",
+        help="leave out the arm's tracking figures (VDC on the MuJoCo arm, about 20 s)",
     )
     p.add_argument(
         "--cycle",
@@ -455,6 +475,7 @@ def _main(args: argparse.Namespace) -> Figures:
         slot_ns=int(args.slot_us * 1000),
         native=native,
         management_ns=management_ns,
+        tracking=args.tracking,
     )
     return Figures(result, format_result(result))
 

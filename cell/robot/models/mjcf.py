@@ -37,15 +37,17 @@ def _inertia(m: RobotModel, i: int) -> tuple[float, float, float]:
 
 
 @cache
-def mjcf(name: str) -> str:
-    """The model registered under `name`, as MJCF."""
+def mjcf(name: str, torque: bool = False, timestep: float = 0.002) -> str:
+    """The model registered under `name`, as MJCF.  torque: its joints driven by torque motors
+    (ctrl in N m within each joint's maximum) with no gravity compensation, for controllers that
+    compute the torque themselves (the modular robot, cell.modular)."""
     m = get(name)
     n = m.joints
     names = m.joint_names
     lines = [
-        f'<mujoco model="{m.name}-cell">',
+        f'<mujoco model="{m.name}-cell{"-torque" if torque else ""}">',
         '  <compiler angle="radian" autolimits="true"/>',
-        '  <option timestep="0.002" integrator="implicitfast" gravity="0 0 -9.81"/>',
+        f'  <option timestep="{_n(timestep)}" integrator="implicitfast" gravity="0 0 -9.81"/>',
         "  <custom>",
         f'    <numeric name="joint_max_velocity" data="{_n(*m.v_max, digits=9)}"/>',
         f'    <numeric name="joint_max_acceleration" data="{_n(*m.a_max, digits=9)}"/>',
@@ -56,6 +58,7 @@ def mjcf(name: str) -> str:
         'rgba="0.25 0.27 0.3 1"/>',
     ]
     indent = "    "
+    comp = "" if torque else ' gravcomp="1"'
     for i in range(n):
         if i == 0:
             frame = ""
@@ -70,7 +73,7 @@ def mjcf(name: str) -> str:
         r, hh, z = m.housings[i]
         rgba = f' rgba="{FLANGE_RGBA}"' if i == n - 1 else ""
         lines += [
-            f'{indent}<body name="link{i + 1}"{frame} gravcomp="1">',
+            f'{indent}<body name="link{i + 1}"{frame}{comp}>',
             f'{indent}  <joint name="{names[i]}" axis="0 0 1" range="{_n(m.q_min[i], m.q_max[i], digits=6)}" '
             f'armature="{_n(dr.armature)}" damping="{_n(dr.damping)}"/>',
             f'{indent}  <inertial pos="{_n(*ipos)}" mass="{_n(m.mass[i])}" '
@@ -90,6 +93,9 @@ def mjcf(name: str) -> str:
     lines += ["  </worldbody>", "  <actuator>"]
     for i in range(n):
         dr, t = m.drives[i], m.torque[i]
+        if torque:
+            lines.append(f'    <motor name="{names[i]}" joint="{names[i]}" ctrlrange="{_n(-t, t)}"/>')
+            continue
         lines.append(
             f'    <position name="{names[i]}" joint="{names[i]}" kp="{_n(dr.kp)}" kv="{_n(dr.kv)}" '
             f'forcerange="{_n(-t, t)}"/>'

@@ -1,0 +1,152 @@
+"""Virtual Decomposition Control (W.-H. Zhu, "Virtual Decomposition Control: Toward Hyper Degrees of
+Freedom Robots", Springer 2010), distributed as seed 002's slides distribute it: the master runs
+the kinematics and the force propagation, each module the dynamics of its own rigid body.
+
+One control cycle, the four messages of the slides (docs/modular.md has the equations):
+- A, module i -> master: its joint position and velocity (q_i, qd_i);
+- B, master -> module i: its required joint velocity and acceleration (qd_r,i, qdd_r,i), and its
+  rigid body's required velocity, required acceleration and actual velocity in its own frame
+  (V_r,i, dV_r,i, V_i: the forward recursion over the chain);
+- C, module i -> master: the required net force/moment of its rigid body, F*_r,i, computed from
+  its own inertia (dynamics, gravity, and velocity feedback in its body frame);
+- D, master -> module i: its required joint torque tau_r,i = z^T F_r,i, F_r,i = F*_r,i plus the
+  force its outboard neighbour's body needs, propagated from the tip (the backward recursion).
+The module adds its motor's part (rotor inertia, friction) and a joint velocity feedback, and
+drives its motor with the sum.
+
+[C, D] may also be computed by a module itself (WHERE_LOCAL: with its outboard neighbour's force of
+the cycle before) or by the module with its neighbour's force of this cycle (WHERE_NEIGHBOUR),
+instead of the master (WHERE_MASTER): the same arithmetic, other messages.
+
+All of it is pure (no sockets, no clock): cell.modular.loop runs it against the MuJoCo arm with
+messages lost or late, cell.snp carries it between processes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cell.modular.arm import AXIS, GRAVITY, Body, crf, crm
+
+WHERE_MASTER, WHERE_NEIGHBOUR, WHERE_LOCAL = "master", "neighbour", "local"
+
+
+@dataclass(frozen=True)
+class Gains:
+    """lam: joint position error into the required velocity (1/s); body_rot, body_lin: the velocity
+    feedback of each rigid body in its frame, per kg of it (N m s/rad, N s/m); joint: the module's
+    joint velocity feedback for the biggest motor (150 N m; N m s/rad), smaller ones in proportion."""
+
+    lam: float = 40.0
+    body_rot: float = 2.0
+    body_lin: float = 40.0
+    joint: float = 30.0
+
+
+@dataclass(frozen=True)
+class A:
+    q: float
+    qd: float
+
+
+@dataclass(frozen=True)
+class B:
+    qd_r: float
+    qdd_r: float
+    v_r: np.ndarray  # (6,) the module's body, its frame
+    a_r: np.ndarray
+    v: np.ndarray
+
+
+@dataclass(frozen=True)
+class C:
+    f_star: np.ndarray  # (6,) required net force/moment [n; f] of the module's body, its frame
+
+
+@dataclass(frozen=True)
+class D:
+    tau_r: float
+
+
+@dataclass
+class Master:
+    """The master's half: the forward recursion (A -> B) and the backward one (C -> D)."""
+
+    bodies: tuple[Body, ...]
+    gains: Gains = field(default_factory=Gains)
+    transforms: list[np.ndarray] = field(default_factory=list)  # this cycle's ^iX_{i-1}
+
+    def forward(self, a: list[A], q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray) -> list[B]:
+        """B for every module from their A and the reference (position, velocity, acceleration)."""
+        lam = self.gains.lam
+        v_prev, vr_prev = np.zeros(6), np.zeros(6)
+        ar_prev = np.concatenate([np.zeros(3), -GRAVITY])  # gravity as the base's upward acceleration
+        self.transforms = []
+        out = []
+        for i, body in enumerate(self.bodies):
+            q, qd = a[i].q, a[i].qd
+            qd_r = qd_d[i] + lam * (q_d[i] - q)
+            qdd_r = qdd_d[i] + lam * (qd_d[i] - qd)
+            x = body.transform(q)
+            self.transforms.append(x)
+            v = x @ v_prev + AXIS * qd
+            carried = x @ vr_prev
+            v_r = carried + AXIS * qd_r
+            # d/dt of X V_r,i-1 + z qd_r: X's rate is -(z qd) x X
+            a_r = x @ ar_prev + AXIS * qdd_r + crm(carried) @ (AXIS * qd)
+            out.append(B(qd_r, qdd_r, v_r, a_r, v))
+            v_prev, vr_prev, ar_prev = v, v_r, a_r
+        return out
+
+    def backward(self, c: list[C]) -> list[D]:
+        """D for every module: each body's required force plus what it carries for the bodies out to
+        the tip, projected on its joint."""
+        f_out = np.zeros(6)
+        taus = [0.0] * len(c)
+        for i in range(len(c) - 1, -1, -1):
+            f = c[i].f_star + (self.transforms[i + 1].T @ f_out if i + 1 < len(c) else 0.0)
+            taus[i] = float(AXIS @ f)
+            f_out = f
+        return [D(t) for t in taus]
+
+
+def carried_force(x_next: np.ndarray, f_next: np.ndarray) -> np.ndarray:
+    """The force module i+1's body needs from module i's, in module i's frame (^{i+1}X_i^T f)."""
+    return x_next.T @ f_next
+
+
+@dataclass
+class Module:
+    """A module's half: its body's required net force (B -> C) and its motor torque (D -> tau)."""
+
+    body: Body
+    gains: Gains = field(default_factory=Gains)
+
+    def net_force(self, b: B) -> C:
+        """F*_r = I dV_r + V x* I V_r + K (V_r - V): the body's dynamics (gravity included through
+        the base's acceleration) and its velocity feedback in its own frame."""
+        inertia = self.body.inertia
+        mass = inertia[5, 5]
+        k = np.concatenate([np.full(3, self.gains.body_rot * mass), np.full(3, self.gains.body_lin * mass)])
+        f = inertia @ b.a_r + crf(b.v) @ (inertia @ b.v_r) + k * (b.v_r - b.v)
+        return C(f)
+
+    def torque(self, tau_r: float, b: B, qd: float) -> float:
+        """The motor's torque: the chain's share, the motor's own (rotor, friction) and the joint's
+        velocity feedback, within the motor's limit."""
+        body = self.body
+        tau = (
+            tau_r
+            + body.armature * b.qdd_r
+            + body.damping * b.qd_r
+            + self.gains.joint * body.torque_max / 150.0 * (b.qd_r - qd)
+        )
+        return float(np.clip(tau, -body.torque_max, body.torque_max))
+
+    def force_with(self, c: C, carried: np.ndarray) -> tuple[np.ndarray, float]:
+        """[C, D] here ([C, D] by the module or with its neighbour): F = F* + what the outboard
+        body needs, and its projection on the joint."""
+        f = c.f_star + carried
+        return f, float(AXIS @ f)
