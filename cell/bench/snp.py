@@ -29,6 +29,7 @@ import numpy as np
 
 from cell.bench.registry import Bench, Figures, register
 from cell.snp.modular import CycleConfig
+from cell.snp.spacewire import FAILOVER_CYCLES, failover_ms
 
 WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settles meanwhile
 MODULE0 = 101
@@ -337,6 +338,7 @@ def run(
 
         vdc = measure_tracking()
     return (vdc.figures() if vdc is not None else {}) | {
+        "path_failover_ms": failover_ms(),
         "vdc": [dataclasses.asdict(row) for row in vdc.rows] if vdc is not None else [],
         "slaves": slaves,
         "seconds": seconds,
@@ -427,6 +429,11 @@ def format_result(r: dict[str, Any]) -> str:
             f"{p.get('lost_ms') or nan:.0f} ms, plugged back it ran again after "
             f"{p.get('back_ms', nan):.0f} ms; the others missed {p['others_missed_pct']:.2f}% "
             f"meanwhile, the master guessed {p['guessed_by_master']} module-cycles",
+        ]
+        + [
+            f"  routed network, single redundancy (two routers): a permanently failed path left for the "
+            f"other {r['path_failover_ms']:.1f} ms after the failure ({FAILOVER_CYCLES} cycles missed in a "
+            "row, each guessed, no retry: the slides' FDIR)"
         ]
         + ([_tracking_text(r["vdc"])] if r.get("vdc") else [])
     )

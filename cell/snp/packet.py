@@ -105,6 +105,9 @@ def split_item_id(item: int) -> tuple[int, int, int]:
 # values like the dataclasses below, made four times as fast (a decoded query is five of them).
 
 
+DEFAULT_LA = 0xFE  # SpaceWire's default logical address (a node addressed by path)
+
+
 class Header(NamedTuple):
     destination: int = 0  # logical address, u8
     pid: int = Pid.MRT
@@ -113,10 +116,11 @@ class Header(NamedTuple):
     destination_process: int = 0  # u32
 
     def reversed(self) -> Header:
-        """The header of the answer: back to where this came from."""
-        return Header(
-            self.destination, self.pid, self.return_address, self.destination_process, self.source_process
-        )
+        """The header of the answer: the processes swapped, routed back by this packet's return
+        address (spacewire.routed_reply puts it in front as path addresses), so it carries none
+        itself, and addressed to the default logical address (an SnP-MrT header does not carry the
+        asker's)."""
+        return Header(DEFAULT_LA, self.pid, b"", self.destination_process, self.source_process)
 
 
 class Item(NamedTuple):

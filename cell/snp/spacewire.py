@@ -1,0 +1,315 @@
+"""A SpaceWire-style routed network, sans IO: what seed 002's modular robot assumes under SnP-MrT.
+
+Addressing as ECSS-E-ST-50-12C's routers do it, on a packet's leading byte:
+- 0: the router's own configuration port (here: it answers who it is and which ports are up);
+- 1..31: path addressing: the router sends the packet out of that port, the byte deleted;
+- 32..254: logical addressing: the routing table names the port(s), the byte kept; with several,
+  the first whose link is up (group adaptive routing: a network-layer redundancy);
+- 255: reserved, dropped.
+A packet's end is its EOP, or an EEP when the link it was crossing failed: routers and nodes
+discard EEP-ended packets.  SpaceWire has no hop count; a misrouted packet would circulate until a
+router's packet timeout spilled it: here a packet that has crossed MAX_HOPS routers is dropped and
+counted as a loop.  Nothing a peer sends makes a router raise: every drop is counted by reason.
+
+`Network` joins routers and end nodes with links that go down and up, delivers a packet hop by
+hop (each hop HOP_NS), and `explore()` finds the topology from one node by path addresses alone,
+as the master does at start.  `Redundant` keeps two different paths to a destination and moves to
+the other after FAILOVER_CYCLES cycles in a row without an answer over the first (the slides' FDIR:
+no retry; a miss is guessed, a run of misses is a permanent failure).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from enum import IntEnum, StrEnum
+
+from cell.counters import Counters, tally
+from cell.snp.packet import Header, Pid, Query, Reply, decode, encode
+
+CONFIG_PORT = 0
+MAX_PATH_PORT = 31
+RESERVED = 255
+MAX_HOPS = 16
+HOP_NS = 2_000  # a router's forwarding plus a link's transfer of a short packet (100 Mbit/s)
+FAILOVER_CYCLES = 3  # answers missed in a row over a path before it counts as failed
+
+
+class End(IntEnum):
+    EOP = 0
+    EEP = 1
+
+
+class Drop(StrEnum):
+    EMPTY = "empty"
+    EEP = "eep"
+    LOOP = "loop"
+    BAD_PORT = "bad_port"  # a path address beyond the router's ports
+    LINK_DOWN = "link_down"  # the port's link (every port of the group) is down
+    NO_ROUTE = "no_route"  # a logical address the routing table does not hold
+    RESERVED = "reserved"
+
+
+@dataclass(frozen=True)
+class Packet:
+    data: bytes
+    end: End = End.EOP
+    hops: int = 0
+
+
+@dataclass(slots=True)
+class RouterCounters(Counters):
+    forwarded: int = 0
+    config: int = 0
+    dropped: dict[str, int] = tally(keys=tuple(d.value for d in Drop))
+
+
+class Router:
+    """One router: `ports` numbered 1..ports, a routing table of logical addresses."""
+
+    def __init__(self, router_id: int, ports: int, table: dict[int, tuple[int, ...]] | None = None) -> None:
+        if not 1 <= ports <= MAX_PATH_PORT:
+            raise ValueError(f"a router has 1..{MAX_PATH_PORT} ports (got {ports})")
+        self.id = router_id
+        self.ports = ports
+        self.table = dict(table or {})
+        self.up = set(range(1, ports + 1))
+        self.counters = RouterCounters()
+
+    def _drop(self, why: Drop) -> list[tuple[int, Packet]]:
+        self.counters.dropped[why.value] += 1
+        return []
+
+    def route(self, pkt: Packet) -> list[tuple[int, Packet]]:
+        """Where the packet goes: [(port, packet)] (port 0: this router's configuration port), or []
+        dropped (counted)."""
+        if not pkt.data:
+            return self._drop(Drop.EMPTY)
+        if pkt.end == End.EEP:
+            return self._drop(Drop.EEP)
+        if pkt.hops >= MAX_HOPS:
+            return self._drop(Drop.LOOP)
+        first = pkt.data[0]
+        if first == CONFIG_PORT:
+            self.counters.config += 1
+            return [(CONFIG_PORT, Packet(pkt.data[1:], pkt.end, pkt.hops + 1))]
+        if first <= MAX_PATH_PORT:
+            if first > self.ports:
+                return self._drop(Drop.BAD_PORT)
+            if first not in self.up:
+                return self._drop(Drop.LINK_DOWN)
+            self.counters.forwarded += 1
+            return [(first, Packet(pkt.data[1:], pkt.end, pkt.hops + 1))]
+        if first == RESERVED:
+            return self._drop(Drop.RESERVED)
+        group = self.table.get(first)
+        if not group:
+            return self._drop(Drop.NO_ROUTE)
+        for port in group:
+            if port in self.up:
+                self.counters.forwarded += 1
+                return [(port, Packet(pkt.data, pkt.end, pkt.hops + 1))]
+        return self._drop(Drop.LINK_DOWN)
+
+    def identity(self) -> bytes:
+        """What the configuration port answers: b"R", its id, its port count, a bit per port up."""
+        mask = sum(1 << p for p in self.up)
+        return b"R" + bytes([self.id & 0xFF, self.ports]) + mask.to_bytes(4, "big")
+
+
+def parse_identity(data: bytes) -> tuple[int, int, set[int]] | None:
+    """(router id, ports, ports up) from a router's identity; None for anything else."""
+    if len(data) != 7 or data[:1] != b"R":
+        return None
+    mask = int.from_bytes(data[3:7], "big")
+    return data[1], data[2], {p for p in range(1, data[2] + 1) if mask >> p & 1}
+
+
+@dataclass
+class Node:
+    """An end node (the master, a module): one or more ports, its identity."""
+
+    name: str
+    ports: int = 1
+    inbox: list[tuple[int, Packet]] = field(default_factory=list)  # (port, packet) delivered
+
+    def identity(self) -> bytes:
+        return b"N" + self.name.encode()
+
+
+@dataclass
+class Delivery:
+    node: str
+    port: int
+    packet: Packet
+    ns: int  # its way's time
+
+
+class Network:
+    """Routers and nodes joined by links; packets delivered hop by hop."""
+
+    def __init__(self) -> None:
+        self.routers: dict[str, Router] = {}
+        self.nodes: dict[str, Node] = {}
+        self.links: dict[tuple[str, int], tuple[str, int]] = {}  # both directions
+        self.down: set[frozenset[tuple[str, int]]] = set()
+
+    def add_router(self, name: str, router: Router) -> Router:
+        self.routers[name] = router
+        return router
+
+    def add_node(self, node: Node) -> Node:
+        self.nodes[node.name] = node
+        return node
+
+    def link(self, a: tuple[str, int], b: tuple[str, int]) -> None:
+        self.links[a], self.links[b] = b, a
+
+    def set_link(self, a: tuple[str, int], up: bool) -> None:
+        """A link down (both ends see it: their routers' ports go down) or back up."""
+        b = self.links[a]
+        key = frozenset((a, b))
+        (self.down.discard if up else self.down.add)(key)
+        for name, port in (a, b):
+            if name in self.routers:
+                (self.routers[name].up.add if up else self.routers[name].up.discard)(port)
+
+    def send(self, node: str, port: int, data: bytes) -> list[Delivery]:
+        """A node sends data out of one of its ports: where it arrived (a router's configuration
+        port answers at once, back along the packet's return path given as its tail: see explore)."""
+        out: list[Delivery] = []
+        queue: deque[tuple[tuple[str, int], Packet, int]] = deque([((node, port), Packet(data), 0)])
+        while queue:
+            (here, at), pkt, ns = queue.popleft()
+            there = self.links.get((here, at))
+            if there is None or frozenset(((here, at), there)) in self.down:
+                continue  # (nothing there, or a link down: what was on it is lost)
+            name, in_port = there
+            ns += HOP_NS
+            if name in self.nodes:
+                if pkt.end == End.EOP:
+                    self.nodes[name].inbox.append((in_port, pkt))
+                    out.append(Delivery(name, in_port, pkt, ns))
+                continue
+            router = self.routers[name]
+            for out_port, fwd in router.route(pkt):
+                if out_port == CONFIG_PORT:
+                    out.append(Delivery(name, CONFIG_PORT, fwd, ns))
+                else:
+                    queue.append(((name, out_port), fwd, ns))
+        return out
+
+
+def explore(net: Network, node: str, port: int = 1, max_depth: int = 8) -> dict[tuple[int, ...], str]:
+    """The topology as `node` finds it through its port, by path addresses alone: every path (the
+    router ports from its own) to what answers there, a router's configuration port or a node.
+    Breadth first; a router met again by another path is not explored twice.  (Each answer is
+    read where it is given: its way back is the same hops, reversed.)"""
+    found: dict[tuple[int, ...], str] = {}
+    seen: set[int] = set()
+    frontier: list[tuple[int, ...]] = [()]
+    for _ in range(max_depth):
+        nxt: list[tuple[int, ...]] = []
+        for path in frontier:
+            here = net.send(node, port, bytes(path) + bytes([CONFIG_PORT]))
+            answer = next((d for d in here if d.port == CONFIG_PORT), None)
+            if answer is not None:  # a router at the end of the path: note it, go through its ports
+                router = net.routers[answer.node]
+                ident = parse_identity(router.identity())
+                assert ident is not None
+                rid, _, up = ident
+                found[path] = f"router {rid}"
+                if rid in seen:
+                    continue
+                seen.add(rid)
+                nxt += [(*path, p) for p in sorted(up)]
+                continue
+            hit = next((d for d in here if d.port != CONFIG_PORT), None)
+            if hit is not None and hit.node != node:  # a node: the packet (its config byte) reached it
+                found[path] = f"node {hit.node}"
+        frontier = nxt
+        if not frontier:
+            break
+    return found
+
+
+Route = tuple[int, bytes]  # a node's port, and the path address bytes from there
+
+
+@dataclass
+class Redundant:
+    """Two different routes to one destination; the first until FAILOVER_CYCLES answers in a row are
+    missed over it, then the other (each miss meanwhile guessed, not retried)."""
+
+    routes: tuple[Route, Route]
+    active: int = 0
+    missed: int = 0
+    failovers: int = 0
+
+    @property
+    def route(self) -> Route:
+        return self.routes[self.active]
+
+    def answered(self, ok: bool) -> bool:
+        """A cycle's outcome over the active path; True when it now moved to the other."""
+        if ok:
+            self.missed = 0
+            return False
+        self.missed += 1
+        if self.missed < FAILOVER_CYCLES:
+            return False
+        self.active, self.missed = 1 - self.active, 0
+        self.failovers += 1
+        return True
+
+
+def ring(modules: Iterable[str]) -> tuple[Network, dict[str, tuple[Route, Route]]]:
+    """The demonstrator's network with single redundancy: the master and every module on two
+    routers (R1 by port 1, R2 by port 2 of each node); the two routes from the master to each
+    module, one through each router."""
+    net = Network()
+    names = list(modules)
+    net.add_node(Node("master", ports=2))
+    r1 = net.add_router("R1", Router(1, 1 + len(names)))
+    r2 = net.add_router("R2", Router(2, 1 + len(names)))
+    net.link(("master", 1), ("R1", 1))
+    net.link(("master", 2), ("R2", 1))
+    paths = {}
+    for k, name in enumerate(names):
+        net.add_node(Node(name, ports=2))
+        net.link((name, 1), ("R1", 2 + k))
+        net.link((name, 2), ("R2", 2 + k))
+        r1.table[0x20 + k] = (2 + k,)
+        r2.table[0x20 + k] = (2 + k,)
+        paths[name] = ((1, bytes([2 + k])), (2, bytes([2 + k])))
+    return net, paths
+
+
+def failover_ms(fail_at_cycle: int = 10, cycles: int = 40, cycle_ns: int = 1_000_000) -> float:
+    """Time from a permanent failure of the link between R1 and module m1 to the master's first
+    cycle answered again (over R2).  Each cycle one SnP-MrT query goes out over the active route
+    with the way back from the router as its return address, and m1 answers along that return
+    address; FDIR as Redundant's."""
+    net, routes = ring(["m1", "m2"])
+    way = Redundant(routes["m1"])
+    for k in range(cycles):
+        if k == fail_at_cycle:
+            net.set_link(("R1", 2), False)
+        port, path = way.route
+        query = encode(Header(0x20, Pid.MRT, bytes([1]), 1, 2), Query(k, 0))
+        there = [d for d in net.send("master", port, path + query) if d.node == "m1"]
+        ok = False
+        if there:
+            asked = decode(there[0].packet.data)
+            answer = routed_reply(asked.header, encode(asked.header.reversed(), Reply(k)))
+            ok = any(d.node == "master" for d in net.send("m1", there[0].port, answer))
+        if k >= fail_at_cycle and ok:
+            return (k - fail_at_cycle) * cycle_ns / 1e6 + 2 * there[0].ns / 1e6
+        way.answered(ok)
+    return float("nan")
+
+
+def routed_reply(request: Header, reply: bytes) -> bytes:
+    """A reply's packet on a routed network: the request's return address leads it back."""
+    return bytes(request.return_address) + reply

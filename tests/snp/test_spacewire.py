@@ -1,0 +1,89 @@
+"""The SpaceWire-style routed network (cell.snp.spacewire): addressing byte by byte, what a router
+does with bad packets and loops, replies routed by their return address, exploration, failover."""
+
+from __future__ import annotations
+
+from cell.snp.packet import DEFAULT_LA, Header, Pid, Query, Reply, decode, encode
+from cell.snp.spacewire import (
+    FAILOVER_CYCLES,
+    HOP_NS,
+    End,
+    Network,
+    Node,
+    Packet,
+    Redundant,
+    Router,
+    explore,
+    failover_ms,
+    parse_identity,
+    ring,
+    routed_reply,
+)
+
+
+def test_a_router_forwards_by_path_and_by_logical_address_byte_by_byte() -> None:
+    r = Router(7, 4, {0x40: (3, 4)})
+    # path addressing: out of port 2, the address byte deleted
+    assert r.route(Packet(b"\x02\x40xyz")) == [(2, Packet(b"\x40xyz", End.EOP, 1))]
+    # logical addressing: the table's first port that is up, the address byte kept
+    assert r.route(Packet(b"\x40abc")) == [(3, Packet(b"\x40abc", End.EOP, 1))]
+    r.up.discard(3)
+    assert r.route(Packet(b"\x40abc")) == [(4, Packet(b"\x40abc", End.EOP, 1))]
+    # the configuration port answers who the router is and which ports are up
+    assert r.route(Packet(b"\x00")) == [(0, Packet(b"", End.EOP, 1))]
+    assert parse_identity(r.identity()) == (7, 4, {1, 2, 4})
+    assert r.counters.forwarded == 3 and r.counters.config == 1
+
+
+def test_bad_packets_and_loops_are_dropped_and_counted_never_raised() -> None:
+    r = Router(1, 2, {0x40: (1,)})
+    bad = [b"", b"\x05x", b"\xff", b"\x41x"]
+    for data in bad:
+        assert r.route(Packet(data)) == []
+    assert r.route(Packet(b"\x01x", End.EEP)) == []
+    r.up.discard(1)
+    assert r.route(Packet(b"\x01x")) == [] and r.route(Packet(b"\x40x")) == []
+    d = r.counters.dropped
+    got = (d["empty"], d["bad_port"], d["reserved"], d["no_route"], d["eep"], d["link_down"])
+    assert got == (1, 1, 1, 1, 1, 2) and r.counters.forwarded == 0
+    # two routers whose tables send a logical address to each other: the packet goes round until
+    # the hop bound, then it is dropped as a loop (it would otherwise circulate for ever)
+    net = Network()
+    a = net.add_router("A", Router(1, 2, {0x50: (2,)}))
+    b = net.add_router("B", Router(2, 2, {0x50: (1,)}))
+    net.add_node(Node("n"))
+    net.link(("n", 1), ("A", 1))
+    net.link(("A", 2), ("B", 1))
+    assert net.send("n", 1, b"\x50hello") == []
+    assert a.counters.dropped["loop"] + b.counters.dropped["loop"] == 1
+
+
+def test_a_reply_finds_its_way_back_by_the_return_address() -> None:
+    net, routes = ring(["m1", "m2"])
+    port, path = routes["m2"][1]  # through R2
+    q = encode(Header(0x21, Pid.MRT, bytes([1]), 5, 6), Query(3, 0))
+    got = [d for d in net.send("master", port, path + q) if d.node == "m2"]
+    assert len(got) == 1 and got[0].ns == 2 * HOP_NS and got[0].packet.data == q  # the path byte deleted
+    asked = decode(got[0].packet.data)
+    back = asked.header.reversed()
+    assert back == Header(DEFAULT_LA, Pid.MRT, b"", 6, 5)  # processes swapped, no return address
+    answer = routed_reply(asked.header, encode(back, Reply(3)))
+    home = net.send("m2", got[0].port, answer)
+    assert [d.node for d in home] == ["master"] and decode(home[0].packet.data).body == Reply(3)
+
+
+def test_the_master_finds_the_topology_by_path_addresses() -> None:
+    net, _ = ring(["m1", "m2", "m3"])
+    for port, router in ((1, "router 1"), (2, "router 2")):
+        assert explore(net, "master", port) == {(): router, (2,): "node m1", (3,): "node m2", (4,): "node m3"}
+    net.set_link(("R1", 3), False)  # m2's link to R1 down: not found through R1, still through R2
+    assert (3,) not in explore(net, "master", 1) and explore(net, "master", 2)[(3,)] == "node m2"
+
+
+def test_a_failed_path_is_left_for_the_other_after_the_fdir_bound() -> None:
+    way = Redundant(((1, b"\x02"), (2, b"\x02")))
+    assert [way.answered(False) for _ in range(FAILOVER_CYCLES)] == [False] * (FAILOVER_CYCLES - 1) + [True]
+    assert way.route == (2, b"\x02") and way.failovers == 1
+    assert not way.answered(True) and way.missed == 0
+    ms = failover_ms()
+    assert FAILOVER_CYCLES <= ms < FAILOVER_CYCLES + 1
