@@ -15,7 +15,7 @@ replaced by a guess from physical continuity (data obsolescence), and counted:
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -88,13 +88,16 @@ def track_vdc(
     faults: Faults = Faults(),
     where: tuple[str, ...] = (WHERE_MASTER,) * 6,
     gains: Gains | None = None,
+    believed: float = 1.0,
 ) -> Tracking:
-    """VDC over the four messages, [C, D] computed where `where` says per module."""
+    """VDC over the four messages, [C, D] computed where `where` says per module; believed: the
+    modules' own mass properties as this share of the arm's (1: exact; gains.adapt > 0 adapts
+    them as the arm moves)."""
     arm = ModularArm(ref.q[0])
     gains = gains or Gains()
     rng = np.random.default_rng(faults.seed)
     master = Master(arm.bodies, gains)
-    modules = [Module(b, gains) for b in arm.bodies]
+    modules = [Module(replace(b, inertia=b.inertia * believed), gains) for b in arm.bodies]
     run = _record(arm, ref, "vdc")
     n_mod = arm.dof
     last_a = [A(float(q), 0.0) for q in ref.q[0]]
@@ -135,7 +138,7 @@ def track_vdc(
                 b.append(b_sent[i])
         last_b = b
         # C: each body's required net force (the master's copy, or its last)
-        c = [modules[i].net_force(b[i]) for i in range(n_mod)]
+        c = [modules[i].net_force(b[i], CYCLE_S) for i in range(n_mod)]
         c_master = [last_c[i] if lost(i, "C") else c[i] for i in range(n_mod)]
         last_c = c_master
         # [C, D] from the tip in: by the master, or by the module with its neighbour's force

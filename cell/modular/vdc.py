@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cell.modular.arm import AXIS, GRAVITY, Body, crf, crm
+from cell.modular.arm import AXIS, GRAVITY, Body, crf, crm, skew
 
 WHERE_MASTER, WHERE_NEIGHBOUR, WHERE_LOCAL = "master", "neighbour", "local"
 
@@ -43,6 +43,7 @@ class Gains:
     body_rot: float = 2.0
     body_lin: float = 40.0
     joint: float = 30.0
+    adapt: float = 0.0  # the inertial parameters' adaptation gain (0: none)
 
 
 @dataclass(frozen=True)
@@ -117,20 +118,61 @@ def carried_force(x_next: np.ndarray, f_next: np.ndarray) -> np.ndarray:
     return x_next.T @ f_next
 
 
+def inertia_of(theta: np.ndarray) -> np.ndarray:
+    """The 6x6 spatial inertia of a body's ten inertial parameters theta = [m, m c (3), the
+    rotational inertia about the frame's origin: xx, yy, zz, xy, xz, yz]: linear in theta."""
+    m, mc, (xx, yy, zz, xy, xz, yz) = theta[0], theta[1:4], theta[4:10]
+    out = np.zeros((6, 6))
+    out[:3, :3] = [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]
+    out[:3, 3:] = skew(mc)
+    out[3:, :3] = skew(mc).T
+    out[3:, 3:] = m * np.eye(3)
+    return out
+
+
+def theta_of(inertia: np.ndarray) -> np.ndarray:
+    """inertia_of's inverse."""
+    rot, mc = inertia[:3, :3], np.array([inertia[2, 4], inertia[0, 5], inertia[1, 3]])
+    return np.array([inertia[5, 5], *mc, rot[0, 0], rot[1, 1], rot[2, 2], rot[0, 1], rot[0, 2], rot[1, 2]])
+
+
+_BASIS = np.stack([inertia_of(np.eye(10)[k]) for k in range(10)])  # d inertia / d theta_k
+
+
 @dataclass
 class Module:
-    """A module's half: its body's required net force (B -> C) and its motor torque (D -> tau)."""
+    """A module's half: its body's required net force (B -> C) and its motor torque (D -> tau).
+
+    With gains.adapt > 0 the module adapts its body's inertial parameters as it runs (VDC's
+    parameter adaptation: F*_r = Y theta + K (V_r - V), theta' = adapt Y^T (V_r - V), Y the
+    regressor of I dV_r + V x* I V_r in theta), each kept within bounds of where it started (the
+    projection of Zhu's law: mass properties stay physical)."""
 
     body: Body
     gains: Gains = field(default_factory=Gains)
+    theta: np.ndarray = field(init=False)
 
-    def net_force(self, b: B) -> C:
+    def __post_init__(self) -> None:
+        self.theta = theta_of(self.body.inertia)
+        m0 = float(self.theta[0])
+        # how far each parameter may move: 4x its start, and at least what a body this heavy could
+        # have (its mass 10 cm off the axis, 1 dm^2 of it in inertia)
+        self._bound = 4.0 * np.abs(self.theta) + m0 * np.array([1.0, *[0.1] * 3, *[0.01] * 6])
+        self._mass0 = m0
+
+    def net_force(self, b: B, dt: float = 0.0) -> C:
         """F*_r = I dV_r + V x* I V_r + K (V_r - V): the body's dynamics (gravity included through
-        the base's acceleration) and its velocity feedback in its own frame."""
-        inertia = self.body.inertia
-        mass = inertia[5, 5]
+        the base's acceleration) and its velocity feedback in its own frame; with adaptation, the
+        inertial parameters moved on by dt of the adaptation law."""
+        inertia = inertia_of(self.theta) if self.gains.adapt > 0 else self.body.inertia
+        mass = self.body.inertia[5, 5]
         k = np.concatenate([np.full(3, self.gains.body_rot * mass), np.full(3, self.gains.body_lin * mass)])
         f = inertia @ b.a_r + crf(b.v) @ (inertia @ b.v_r) + k * (b.v_r - b.v)
+        if self.gains.adapt > 0 and dt > 0:
+            y = _BASIS @ b.a_r + np.einsum("ij,kjl,l->ki", crf(b.v), _BASIS, b.v_r)  # (10, 6): Y^T
+            step = self.gains.adapt * dt * (y @ (b.v_r - b.v))
+            self.theta = np.clip(self.theta + step, -self._bound, self._bound)
+            self.theta[0] = max(self.theta[0], 0.25 * self._mass0)
         return C(f)
 
     def torque(self, tau_r: float, b: B, qd: float) -> float:
