@@ -26,13 +26,22 @@ from cell import sched
 
 
 class Account:
-    """Loop time used by one service, ns."""
+    """Loop time used by one service, ns; and its longest single step (a coroutine running without
+    giving the loop back) and whose it was: what holds a real-time loop's next tick up."""
 
-    __slots__ = ("busy_ns", "name")
+    __slots__ = ("busy_ns", "longest_in", "longest_ns", "name")
 
     def __init__(self, name: str) -> None:
         self.name = name
         self.busy_ns = 0
+        self.longest_ns = 0
+        self.longest_in = ""
+
+    def take_longest(self) -> tuple[float, str]:
+        """(ms, coroutine) of the longest step since the last call; then starts over."""
+        out = (self.longest_ns / 1e6, self.longest_in)
+        self.longest_ns, self.longest_in = 0, ""
+        return out
 
 
 ACCOUNT: contextvars.ContextVar[Account | None] = contextvars.ContextVar("cell_account", default=None)
@@ -58,14 +67,14 @@ class _Metered(collections.abc.Coroutine):
         try:
             return self._coro.send(value)
         finally:
-            _charge(t0)
+            _charge(t0, self._coro)
 
     def throw(self, *exc: Any) -> Any:
         t0 = _now()
         try:
             return self._coro.throw(*exc)
         finally:
-            _charge(t0)
+            _charge(t0, self._coro)
 
     def close(self) -> None:
         self._coro.close()
@@ -86,10 +95,14 @@ class _Metered(collections.abc.Coroutine):
         raise AttributeError(name)
 
 
-def _charge(t0: int) -> None:
+def _charge(t0: int, coro: Any) -> None:
     account = ACCOUNT.get()
     if account is not None:
-        account.busy_ns += _now() - t0
+        took = _now() - t0
+        account.busy_ns += took
+        if took > account.longest_ns:
+            account.longest_ns = took
+            account.longest_in = getattr(getattr(coro, "cr_code", None), "co_qualname", "?")
 
 
 def install(loop: asyncio.AbstractEventLoop) -> None:

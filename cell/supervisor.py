@@ -28,6 +28,7 @@ from cell.status import POLL_TOPIC, host_name
 from cell.v1 import health_pb2
 
 log = logging.getLogger("cell.supervisor")
+LONG_STEP_MS = 5.0  # a real-time service's loop held this long in one step is logged (cell up --verbose)
 State = health_pb2.ServiceState
 Event = health_pb2.ServiceEvent
 
@@ -122,6 +123,12 @@ class ServiceRunner:
         counters["busy_s"] = busy_ms / 1e3  # since the process started (restarts included)
         if (busy := self._busy.update(busy_ms)) is not None:
             counters["busy_ms_per_s"] = busy
+        # the longest the service held its loop in one go since the last heartbeat (a real-time
+        # service: what delays its next tick), and in which coroutine, logged when past a tick
+        longest_ms, where = self.account.take_longest()
+        counters["busy_step_max_ms"] = longest_ms
+        if longest_ms > LONG_STEP_MS and sched.realtime():
+            log.info("service %s held its loop %.1f ms in one step (%s)", self.name, longest_ms, where)
         return health_pb2.Heartbeat(
             service=self.name,
             host=host_name(self.config),

@@ -57,6 +57,35 @@ COMMAND_BPS_PER_ROBOT = 6 * 500 * (24 + HEADERS) * 8  # six 24-byte commands at 
 Log = Callable[[str], None]
 
 
+@dataclasses.dataclass
+class Point:
+    """One scheduling, frame size and load: what was offered and forwarded, and the robots' times."""
+
+    scheduling: str  # "fifo" or "priority"
+    frame: int  # bytes
+    load: float  # x the port's rate
+    offered_mbps: float
+    forwarded_mbps: float
+    p50_us: float
+    p99_us: float
+    max_us: float
+    lost_fraction: float
+    on_time_fraction: float
+
+
+@dataclasses.dataclass
+class Result:
+    rate_mbps: float
+    buffer_ms: float
+    robots: int
+    seconds: float
+    rows: list[Point]
+    took_s: float
+
+    def at(self, scheduling: str, load: float) -> list[Point]:
+        return [r for r in self.rows if r.scheduling == scheduling and r.load == load]
+
+
 # --- the namespaces ------------------------------------------------------------------------------
 
 
@@ -229,7 +258,7 @@ def run(
     log: Log = print,
     loads: tuple[float, ...] | None = None,
     frames: tuple[int, ...] = FRAMES,
-) -> dict[str, Any]:
+) -> Result:
     why = available()
     if why:
         raise RuntimeError(f"cell bench background {why}")
@@ -237,7 +266,7 @@ def run(
     seconds = seconds or (1.0 if quick else 2.0)
     robots = max(1, round(ROBOT_SHARE * rate_mbps * 1e6 / COMMAND_BPS_PER_ROBOT))
     buffer_kb = rate_mbps * 1e6 / 8 * buffer_ms / 1e3 / 1024
-    rows: list[dict[str, Any]] = []
+    rows: list[Point] = []
     t0 = time.monotonic()
     with namespaces() as ns:
         for scheduling in ("fifo", "priority"):
@@ -258,25 +287,25 @@ def run(
                         bg = max(0.0, load * rate_mbps - robots * COMMAND_BPS_PER_ROBOT / 1e6)
                         p = point(ns, robots, frame, bg, seconds)
                         r = p["robot"]
-                        row = {
-                            "scheduling": scheduling,
-                            "frame": frame,
-                            "load": load,
-                            "offered_mbps": p["gen"]["mbps"] + robots * COMMAND_BPS_PER_ROBOT / 1e6,
-                            "forwarded_mbps": p["sink_mbps"],
-                            "p50_us": r.get("p50_us", float("nan")),
-                            "p99_us": r.get("p99_us", float("nan")),
-                            "max_us": r.get("max_us", float("nan")),
-                            "lost_fraction": p["lost_fraction"],
-                            "on_time_fraction": r["on_time_fraction"],
-                        }
+                        row = Point(
+                            scheduling,
+                            frame,
+                            load,
+                            offered_mbps=p["gen"]["mbps"] + robots * COMMAND_BPS_PER_ROBOT / 1e6,
+                            forwarded_mbps=p["sink_mbps"],
+                            p50_us=r.get("p50_us", float("nan")),
+                            p99_us=r.get("p99_us", float("nan")),
+                            max_us=r.get("max_us", float("nan")),
+                            lost_fraction=p["lost_fraction"],
+                            on_time_fraction=r["on_time_fraction"],
+                        )
                         rows.append(row)
                         log(
                             f"  {scheduling:8s} {frame:5d} B  load {load:.1f}x: offered "
-                            f"{row['offered_mbps']:6.1f} Mbit/s, forwarded {row['forwarded_mbps']:6.1f}; "
+                            f"{row.offered_mbps:6.1f} Mbit/s, forwarded {row.forwarded_mbps:6.1f}; "
                             "robots "
-                            f"p50 {row['p50_us']:8.0f} us  p99 {row['p99_us']:8.0f} us  lost "
-                            f"{100 * row['lost_fraction']:5.1f}%"
+                            f"p50 {row.p50_us:8.0f} us  p99 {row.p99_us:8.0f} us  lost "
+                            f"{100 * row.lost_fraction:5.1f}%"
                         )
             finally:
                 sw.send_signal(signal.SIGTERM)
@@ -294,51 +323,43 @@ def run(
                 f"ordinary frames dropped {counters['egress.bulk_dropped']:.0f}, longest robot queueing "
                 f"{counters['egress.robot_delay_ms_max']:.2f} ms"
             )
-    return {
-        "rate_mbps": rate_mbps,
-        "buffer_ms": buffer_ms,
-        "robots": robots,
-        "seconds": seconds,
-        "rows": rows,
-        "took_s": time.monotonic() - t0,
-    }
+    return Result(rate_mbps, buffer_ms, robots, seconds, rows, time.monotonic() - t0)
 
 
-def summary(result: dict[str, Any]) -> dict[str, Any]:
+def summary(result: Result) -> dict[str, Any]:
     """The figures the paper states, ours: at the highest load, per scheduling, the worst over sizes."""
-    out: dict[str, Any] = {"rate_mbps": result["rate_mbps"], "robots": result["robots"]}
-    top = max(r["load"] for r in result["rows"])
-    low = min(r["load"] for r in result["rows"])
+    out: dict[str, Any] = {"rate_mbps": result.rate_mbps, "robots": result.robots}
+    top = max(r.load for r in result.rows)
+    low = min(r.load for r in result.rows)
     for s in ("fifo", "priority"):
-        hi = [r for r in result["rows"] if r["scheduling"] == s and r["load"] == top]
-        lo = [r for r in result["rows"] if r["scheduling"] == s and r["load"] == low]
-        out[f"{s}_p99_us_at_{top:g}x"] = max(r["p99_us"] for r in hi)
-        out[f"{s}_lost_at_{top:g}x"] = max(r["lost_fraction"] for r in hi)
-        out[f"{s}_p50_us_at_{low:g}x"] = max(r["p50_us"] for r in lo)
+        hi, lo = result.at(s, top), result.at(s, low)
+        out[f"{s}_p99_us_at_{top:g}x"] = max(r.p99_us for r in hi)
+        out[f"{s}_lost_at_{top:g}x"] = max(r.lost_fraction for r in hi)
+        out[f"{s}_p50_us_at_{low:g}x"] = max(r.p50_us for r in lo)
     return out
 
 
-def format_result(result: dict[str, Any]) -> str:
+def format_result(result: Result) -> str:
     lines = [
-        f"egress port {result['rate_mbps']:g} Mbit/s, buffer {result['buffer_ms']:g} ms per queue, "
-        f"{result['robots']} robots x 6 joints at 500 Hz (10% of the load at 1x), "
-        f"{result['seconds']:g} s a point"
+        f"egress port {result.rate_mbps:g} Mbit/s, buffer {result.buffer_ms:g} ms per queue, "
+        f"{result.robots} robots x 6 joints at 500 Hz (10% of the load at 1x), "
+        f"{result.seconds:g} s a point"
     ]
     lines.append(
         f"{'scheduling':10s} {'frame':>6s} {'load':>5s} {'offered':>8s} {'fwd':>7s} "
         f"{'p50 us':>8s} {'p99 us':>8s} {'max us':>8s} {'lost %':>7s}"
     )
     lines += [
-        f"{r['scheduling']:10s} {r['frame']:6d} {r['load']:5.1f} {r['offered_mbps']:8.1f} "
-        f"{r['forwarded_mbps']:7.1f} {r['p50_us']:8.0f} {r['p99_us']:8.0f} {r['max_us']:8.0f} "
-        f"{100 * r['lost_fraction']:7.2f}"
-        for r in result["rows"]
+        f"{r.scheduling:10s} {r.frame:6d} {r.load:5.1f} {r.offered_mbps:8.1f} "
+        f"{r.forwarded_mbps:7.1f} {r.p50_us:8.0f} {r.p99_us:8.0f} {r.max_us:8.0f} "
+        f"{100 * r.lost_fraction:7.2f}"
+        for r in result.rows
     ]
     lines.append(
         "the paper (Appendix C, Fig. 14; 5 Gbit/s port): one FIFO ~3 ms and some (5 Gbit/s) to almost all "
         "(9 Gbit/s) robot packets lost; strict priority sub-millisecond, none lost; ~1 us at low load"
     )
-    lines.append(f"took {result['took_s']:.0f} s")
+    lines.append(f"took {result.took_s:.0f} s")
     return "\n".join(lines)
 
 
@@ -396,7 +417,8 @@ def _main(args: argparse.Namespace) -> Figures:
         rows = [dataclasses.asdict(p) | {"apart_us": p.apart_us} for p in s.points]
         return Figures(s.figures() | {"rows": rows}, background_xdp.format_result(s))
     result = run(args.quick, args.rate_mbps, args.buffer_ms, log=log)
-    return Figures(summary(result) | {"rows": result["rows"]}, format_result(result))
+    rows = [dataclasses.asdict(r) for r in result.rows]
+    return Figures(summary(result) | {"rows": rows}, format_result(result))
 
 
 register(

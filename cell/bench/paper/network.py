@@ -168,31 +168,31 @@ def background(quick: bool, out: Path, log: Log) -> list[Section]:
             )
         ]
     r = bg.run(quick, log=log)
-    rows, top, low = r["rows"], max(bg.QUICK_LOADS), min(bg.QUICK_LOADS)
+    top, low = max(bg.QUICK_LOADS), min(bg.QUICK_LOADS)
     plt = plt_()
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
     for sched, color in (("fifo", "tab:red"), ("priority", "tab:green")):
         for frame, style in ((64, "-o"), (1280, "--s")):
-            pts = [x for x in rows if x["scheduling"] == sched and x["frame"] == frame]
-            loads = [x["load"] for x in pts]
+            pts = [x for x in r.rows if x.scheduling == sched and x.frame == frame]
+            loads = [x.load for x in pts]
             label = f"{sched}, {frame} B"
-            axes[0].plot(loads, [x["p50_us"] / 1e3 for x in pts], style, color=color, label=label)
+            axes[0].plot(loads, [x.p50_us / 1e3 for x in pts], style, color=color, label=label)
             axes[0].fill_between(
                 loads,
-                [x["p50_us"] / 1e3 for x in pts],
-                [x["p99_us"] / 1e3 for x in pts],
+                [x.p50_us / 1e3 for x in pts],
+                [x.p99_us / 1e3 for x in pts],
                 color=color,
                 alpha=0.12,
             )
-            axes[1].plot(loads, [100 * x["lost_fraction"] for x in pts], style, color=color, label=label)
-    axes[0].set_xlabel(f"load offered to the port (x its {r['rate_mbps']:g} Mbit/s)")
+            axes[1].plot(loads, [100 * x.lost_fraction for x in pts], style, color=color, label=label)
+    axes[0].set_xlabel(f"load offered to the port (x its {r.rate_mbps:g} Mbit/s)")
     axes[0].set_ylabel("robot response time (ms), p50-p99")
     axes[1].set_xlabel(axes[0].get_xlabel())
     axes[1].set_ylabel("robot packets lost (%)")
     axes[0].legend(fontsize=7)
 
     def at(sched: str, load: float, key: str, agg: Callable[..., float] = max) -> float:
-        return agg(x[key] for x in rows if x["scheduling"] == sched and x["load"] == load)
+        return agg(getattr(x, key) for x in r.at(sched, load))
 
     return [
         Section(
@@ -203,7 +203,7 @@ def background(quick: bool, out: Path, log: Log) -> list[Section]:
                 (
                     "port rate; buffer",
                     "5 Gbit/s; (3 ms seen)",
-                    f"{r['rate_mbps']:g} Mbit/s; {r['buffer_ms']:g} ms",
+                    f"{r.rate_mbps:g} Mbit/s; {r.buffer_ms:g} ms",
                 ),
                 (
                     "response time at 0.2x load (1 Gbps of 5), p50",
