@@ -63,14 +63,14 @@ def test_the_paper_bench_writes_a_page_with_its_numbers(tmp_path) -> None:
     out = tmp_path / "paper"
     run = subprocess.run(
         [sys.executable, "-m", "cell", "bench", "paper", "--quick", "--only",
-         "resubmission,scaling,resources,episodes", "--out", str(out), "--json"],
+         "resubmission,scaling,resources,episodes,pid", "--out", str(out), "--json"],
         capture_output=True, text=True, timeout=240,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr[-2000:]
-    assert "[1/4] resubmission" in run.stdout and "[2/4] scaling" in run.stdout  # progress as it runs
+    assert "[1/5] resubmission" in run.stdout and "[2/5] scaling" in run.stdout  # progress as it runs
     result = json.loads(run.stdout.strip().splitlines()[-1])
     page = (out / "index.html").read_text()
-    for key in ("resubmission", "scaling", "resources", "episodes"):
+    for key in ("resubmission", "scaling", "resources", "episodes", "pid"):
         assert f"<h2 id={key}>" in page
         assert (out / f"{key}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for label in ("host", "cpu", "commit", "date"):
@@ -90,14 +90,14 @@ def test_the_paper_bench_writes_a_page_with_its_numbers(tmp_path) -> None:
     # a summary at the top, a row per figure with the paper's number, ours and a verdict
     at = page.index("id=summary-table")
     summary = page[at : page.index("</table>", at)]
-    assert summary.count("<tr>") == 5 and summary.count(">yes</span>") >= 2
+    assert summary.count("<tr>") == 6 and summary.count(">yes</span>") >= 2
     assert f"{scaling['largest_fleet']:,} robots" in summary
     # captions, a print stylesheet, and text that says what the plot shows
     assert "<figcaption>Figure 1. " in page and "<figcaption>Figure 2. " in page and "@media print" in page
     lo, hi = resub["ns_per_packet_10hz"], resub["ns_per_packet_2000hz"]
     assert f"from {lo:.0f} to {hi:.0f} ns" in page and "stays flat" not in page
     # progress with what each part is expected to take
-    assert re.search(r"\[2/4\] scaling: about \d+ s \(\d+ s so far, about \d+ s to go\)", run.stdout)
+    assert re.search(r"\[2/5\] scaling: about \d+ s \(\d+ s so far, about \d+ s to go\)", run.stdout)
     # Fig. 13a-b: memory grows with arms x TPs an arm, by what a row holds; the XDP program's rows map
     # (where the object loads) by exactly its 208-byte row
     res = result["figures"]["resources"]
@@ -110,6 +110,9 @@ def test_the_paper_bench_writes_a_page_with_its_numbers(tmp_path) -> None:
     ep = result["figures"]["episodes"]
     assert ep["t_upd_ms_1600"] > ep["t_upd_ms_1"] > 0 and ep["t_upd_us_per_tp"] > 0
     assert ep["checked_arms"] == min(int(ep["arms_1s_10tps"]), 1000) and ep["checked_s"] > 0
+    # Fig. 11's baseline: the data plane's law and the host PID on the same offline arm and motions
+    pid = result["figures"]["pid"]
+    assert 0 < pid["dataplane_mm_median"] <= pid["dataplane_mm_max"] < 1.0 and pid["pid_mm_max"] > 0
 
 
 def test_benches_write_their_own_section_of_the_results_page(tmp_path) -> None:

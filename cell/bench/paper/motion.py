@@ -106,9 +106,9 @@ def accuracy(quick: bool, out: Path, log: Log) -> list[Section]:
             ("start shift, shared start time", "-", f"{r.sync_shift_ms_shared:.2f} ms"),
         ],
         save(fig, out, "sync.png"),
-        f"{len(s['shift_ms']['switch'])} repetitions of the switch-entry and merged starts (the paper: 20; "
+        f"{len(s.shift_ms['switch'])} repetitions of the switch-entry and merged starts (the paper: 20; "
         "the full run: 20); the largest shift in the table.",
-        {k: v for k, v in r.items() if k.startswith("sync_shift_ms_")},
+        {k: v for k, v in r.figures().items() if k.startswith("sync_shift_ms_")},
         caption="How far apart two robots begin to move (ground truth), per way of starting them together.",
         headline=(
             "0 merged; up to 8 ms apart",
@@ -167,7 +167,7 @@ def pid(quick: bool, out: Path, log: Log) -> list[Section]:
     ax.set_xlabel("tool path error at TPs (mm)")
     ax.set_ylabel("fraction of TPs")
     ax.legend(fontsize=7)
-    dp, host = r.dataplane, r.pid
+    dp, host = r["dataplane"], r["pid"]
     log(f"offline loop: data plane max {dp.max():.3f} mm, host PID max {host.max():.3f} mm")
     return [
         Section(
