@@ -30,6 +30,7 @@ from cell.robot.node import (
     ANNOUNCE_S,
     Publisher,
     RobotsNode,
+    announcement,
     announcements,
     build_emulated_controllers,
     build_groups,
@@ -94,7 +95,7 @@ async def run(ctx: ServiceContext) -> None:
 
         def announcer(g: RobotGroup, row: int) -> Handler:
             def announce(_req: robot_pb2.AnnounceRequest) -> robot_pb2.RobotAnnounce:
-                return announcements(g, ctx.config.dataplane.listen)[row]
+                return announcement(g, row, ctx.config.dataplane.listen)
 
             return announce
 

@@ -200,8 +200,14 @@ class RobotGroup:
 
     def addresses(self) -> list[str]:
         """Each robot's address (the same for all with a shared socket)."""
-        names = [f"{h}:{p}" for h, p, *_ in (s.getsockname() for s in self.socks)]
-        return names * self.n if self.shared and names else names
+        return [self.address(row) for row in range(self.n)]
+
+    def address(self, row: int) -> str:
+        """Robot `row`'s address, host:port ("" before its socket is open)."""
+        if not self.socks:
+            return ""
+        h, p, *_ = self.socks[0 if self.shared else row].getsockname()
+        return f"{h}:{p}"
 
     def close(self) -> None:
         if hasattr(self, "poller"):

@@ -75,27 +75,30 @@ def build_emulated_controllers(config: CellConfig) -> list[RobotGroup]:
 
 
 def announcements(group: RobotGroup, dataplane: str) -> list[robot_pb2.RobotAnnounce]:
+    return [announcement(group, row, dataplane) for row in range(group.n)]
+
+
+def announcement(group: RobotGroup, row: int, dataplane: str) -> robot_pb2.RobotAnnounce:
+    """One robot's (a fleet's robot answers its own `announce` without building its 200 fellows')."""
     lim = group.arm.limits
+    r = group.robots[row]
     origin = group.origin_ns + (time.time_ns() - time.monotonic_ns()) if group.origin_ns else 0
-    return [
-        robot_pb2.RobotAnnounce(
-            robot_id=r.id,
-            name=r.name,
-            model=r.model,
-            backend=r.backend,
-            joints=group.dof,
-            q_min=lim.q_min,
-            q_max=lim.q_max,
-            v_max=lim.v_max,
-            a_max=lim.a_max,
-            udp_address=addr,
-            status_hz=r.status_hz,
-            command_hz=r.command_hz,
-            dataplane=dataplane,
-            window_origin_ns=origin,
-        )
-        for r, addr in zip(group.robots, group.addresses(), strict=True)
-    ]
+    return robot_pb2.RobotAnnounce(
+        robot_id=r.id,
+        name=r.name,
+        model=r.model,
+        backend=r.backend,
+        joints=group.dof,
+        q_min=lim.q_min,
+        q_max=lim.q_max,
+        v_max=lim.v_max,
+        a_max=lim.a_max,
+        udp_address=group.address(row),
+        status_hz=r.status_hz,
+        command_hz=r.command_hz,
+        dataplane=dataplane,
+        window_origin_ns=origin,
+    )
 
 
 class Publisher:

@@ -227,3 +227,19 @@ def test_mujoco_group_follows_commands(plant) -> None:
     assert status[0].velocity == pytest.approx(0.5, rel=0.01)
     assert status[5].velocity == pytest.approx(-0.5, rel=0.01)
     assert abs(status[2].velocity) < 0.005
+
+
+def test_each_robot_announces_itself_where_it_lives(plant) -> None:
+    """A robot's own announcement (what it answers to `announce`) is its row of the group's: its
+    id and name, and the socket it sends from (the group's one, in a fleet)."""
+    from cell.robot.node import announcement, announcements
+
+    _, make = plant
+    g = make(n=3)
+    every = announcements(g, "127.0.0.1:50000")
+    for row in range(3):
+        one = announcement(g, row, "127.0.0.1:50000")
+        assert one.robot_id == 10 + row and one.name == f"t{row}"
+        host, port = g.socks[0 if g.shared else row].getsockname()[:2]
+        assert one.udp_address == f"{host}:{port}"
+        assert one.SerializeToString() == every[row].SerializeToString()
