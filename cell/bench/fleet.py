@@ -242,7 +242,10 @@ async def measure(
             await asyncio.sleep(rng.uniform(0.0, 1.0))  # staggered starts
             here = np.tile(Q0, len(entity))
             while time.monotonic() < deadline - 1.0:
-                goal = here + rng.uniform(-0.5, 0.5, here.size)
+                # (a walk kept within 1.2 rad of the start: unbounded, some arms walked into a joint
+                # limit over a long run, and stood short of goals they could not reach)
+                start = np.tile(Q0, len(entity))
+                goal = np.clip(here + rng.uniform(-0.5, 0.5, here.size), start - 1.2, start + 1.2)
                 try:
                     await ctl.move_joints(entity[0], goal, speed=float(rng.uniform(0.4, 0.9)))
                 except (MotionStopped, NotAtGoal):
