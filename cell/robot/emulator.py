@@ -200,9 +200,9 @@ class RobotGroup:
 
     def addresses(self) -> list[str]:
         """Each robot's address (the same for all with a shared socket)."""
-        return [self.address(row) for row in range(self.n)]
+        return [self.robot_address(row) for row in range(self.n)]
 
-    def address(self, row: int) -> str:
+    def robot_address(self, row: int) -> str:
         """Robot `row`'s address, host:port ("" before its socket is open)."""
         if not self.socks:
             return ""

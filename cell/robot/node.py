@@ -93,7 +93,7 @@ def announcement(group: RobotGroup, row: int, dataplane: str) -> robot_pb2.Robot
         q_max=lim.q_max,
         v_max=lim.v_max,
         a_max=lim.a_max,
-        udp_address=group.address(row),
+        udp_address=group.robot_address(row),
         status_hz=r.status_hz,
         command_hz=r.command_hz,
         dataplane=dataplane,
