@@ -29,7 +29,7 @@ import numpy as np
 
 from cell.bench.registry import Bench, Figures, register
 from cell.snp.modular import CycleConfig
-from cell.snp.spacewire import FAILOVER_CYCLES, failover_ms
+from cell.snp.spacewire import FAILOVER_CYCLES, HOP_NS, cd_cycle_us, failover_ms
 
 WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settles meanwhile
 MODULE0 = 101
@@ -339,6 +339,7 @@ def run(
         vdc = measure_tracking()
     return (vdc.figures() if vdc is not None else {}) | {
         "path_failover_ms": failover_ms(),
+        **{f"cd_cycle_us_{w}": cd_cycle_us(w, slaves) for w in ("master", "neighbour", "local")},
         "vdc": [dataclasses.asdict(row) for row in vdc.rows] if vdc is not None else [],
         "slaves": slaves,
         "seconds": seconds,
@@ -433,7 +434,11 @@ def format_result(r: dict[str, Any]) -> str:
         + [
             f"  routed network, single redundancy (two routers): a permanently failed path left for the "
             f"other {r['path_failover_ms']:.1f} ms after the failure ({FAILOVER_CYCLES} cycles missed in a "
-            "row, each guessed, no retry: the slides' FDIR)"
+            "row, each guessed, no retry: the slides' FDIR)",
+            f"  [C,D] by the master / along the modules' chain / by each module alone: the routed network "
+            f"adds {r['cd_cycle_us_master']:.0f} / {r['cd_cycle_us_neighbour']:.0f} / "
+            f"{r['cd_cycle_us_local']:.0f} us to a cycle ({HOP_NS / 1e3:g} us a hop; the slides: [A,B,C,D] "
+            "within 50 us)",
         ]
         + ([_tracking_text(r["vdc"])] if r.get("vdc") else [])
     )

@@ -313,3 +313,28 @@ def failover_ms(fail_at_cycle: int = 10, cycles: int = 40, cycle_ns: int = 1_000
 def routed_reply(request: Header, reply: bytes) -> bytes:
     """A reply's packet on a routed network: the request's return address leads it back."""
     return bytes(request.return_address) + reply
+
+
+def cd_cycle_us(where: str, modules: int = 6) -> float:
+    """One VDC cycle's critical path on the demonstrator's network (ring(), every message a real
+    delivery through R1), for where [C, D] is computed (cell.modular.vdc's WHERE_*): the master's
+    (A, B, C and D in turn: D needs every C), the modules' along the chain (A, B, then each module's
+    force to its inner neighbour, from the tip in), or each module's alone (A, B; its neighbour's
+    force of the cycle before).  Computing time is left out: what the network adds."""
+    names = [f"m{k + 1}" for k in range(modules)]
+    net, _ = ring(names)
+
+    def one_way(src: str, dst_port_on_r1: int) -> int:
+        got = net.send(src, 1, bytes([dst_port_on_r1]) + b"x")
+        return max(d.ns for d in got)
+
+    to_master = max(one_way(m, 1) for m in names)  # A (or C): the slowest module's
+    to_module = max(one_way("master", 2 + k) for k in range(modules))  # B (or D)
+    ns = to_master + to_module
+    if where == "master":
+        ns += to_master + to_module
+    elif where == "neighbour":
+        ns += sum(one_way(names[k], 2 + k - 1) for k in range(modules - 1, 0, -1))
+    elif where != "local":
+        raise ValueError(f"where: master, neighbour or local (got {where!r})")
+    return ns / 1e3

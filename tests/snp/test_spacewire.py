@@ -13,6 +13,7 @@ from cell.snp.spacewire import (
     Packet,
     Redundant,
     Router,
+    cd_cycle_us,
     explore,
     failover_ms,
     parse_identity,
@@ -87,3 +88,13 @@ def test_a_failed_path_is_left_for_the_other_after_the_fdir_bound() -> None:
     assert not way.answered(True) and way.missed == 0
     ms = failover_ms()
     assert FAILOVER_CYCLES <= ms < FAILOVER_CYCLES + 1
+
+
+def test_where_cd_is_computed_sets_what_the_network_adds_to_a_cycle() -> None:
+    """Every message of the demonstrator crosses two hops (node, router, node): the master's [C, D]
+    takes four messages in turn, the chain two and then one a module from the tip in, each module
+    alone two (its neighbour's force is the cycle before's)."""
+    two = 2 * HOP_NS / 1e3
+    assert cd_cycle_us("master") == 4 * two
+    assert cd_cycle_us("neighbour", 6) == (2 + 5) * two and cd_cycle_us("neighbour", 3) == (2 + 2) * two
+    assert cd_cycle_us("local") == 2 * two
