@@ -30,13 +30,12 @@ from typing import Any
 import numpy as np
 
 from cell.bench import pin
+from cell.bench.background import FRAMES, HEADERS
 
-FRAMES = (64, 1280)
 RATES_KPPS = (0, 50, 100, 200)  # ordinary frames offered, thousands a second
 QUICK_RATES_KPPS = (0, 50, 100)
 PROBE_ROBOTS = 10
 SINK_PORT = 7001
-HEADERS = 46  # UDP + IPv4 + Ethernet + FCS: frame bytes a datagram's payload does not count
 PAPER = {
     "p50_64": "0.6-1.3 us (64 B)",
     "p50_1280": "toward 2 us (1,280 B)",

@@ -240,11 +240,11 @@ async def measure(
         async def drive(entity: list[str], seed: int) -> None:
             rng = np.random.default_rng(seed)
             await asyncio.sleep(rng.uniform(0.0, 1.0))  # staggered starts
-            here = np.tile(Q0, len(entity))
+            start = np.tile(Q0, len(entity))
+            here = start
             while time.monotonic() < deadline - 1.0:
                 # (a walk kept within 1.2 rad of the start: unbounded, some arms walked into a joint
                 # limit over a long run, and stood short of goals they could not reach)
-                start = np.tile(Q0, len(entity))
                 goal = np.clip(here + rng.uniform(-0.5, 0.5, here.size), start - 1.2, start + 1.2)
                 try:
                     await ctl.move_joints(entity[0], goal, speed=float(rng.uniform(0.4, 0.9)))

@@ -89,6 +89,14 @@ class LoopTrace:
     held: np.ndarray
     periods: np.ndarray  # (n + 1,) int
 
+    @classmethod
+    def empty(cls, sections: int, dof: int, periods: np.ndarray | None = None) -> LoopTrace:
+        """A trace to fill (periods: given, or zeros to fill too)."""
+        rows = sections + 1
+        if periods is None:
+            periods = np.zeros(rows, np.int64)
+        return cls(np.empty((rows, dof)), np.empty((rows, dof)), np.empty((rows, dof)), periods)
+
 
 @dataclass(frozen=True)
 class LoopModel:
@@ -250,12 +258,7 @@ class LoopModel:
         steps = np.diff(np.asarray(t_end, np.float64), prepend=0.0) / self.status_s
         ns = np.maximum(1, np.rint(steps)).astype(np.int64)  # (round half to even, as round())
         out = np.empty((sections, dof))
-        trace = LoopTrace(
-            np.empty((sections + 1, dof)),
-            np.empty((sections + 1, dof)),
-            np.empty((sections + 1, dof)),
-            np.concatenate([[0], np.cumsum(ns)]).astype(np.int64),
-        )
+        trace = LoopTrace.empty(sections, dof, np.concatenate([[0], np.cumsum(ns)]).astype(np.int64))
         ok = lib.loop_fit(
             sections, dof, targets.ctypes.data, ns.ctypes.data, q.ctypes.data, v.ctypes.data,
             held.ctypes.data, int(tick0), int(self.window), *self._per_joint[1], float(self.status_s),
@@ -282,12 +285,7 @@ class LoopModel:
         held = v.copy() if held0 is None else np.asarray(held0, np.float64)
         tick, t0 = tick0, 0.0
         out = np.empty((len(t_end), dof))
-        trace = LoopTrace(
-            np.empty((len(t_end) + 1, dof)),
-            np.empty((len(t_end) + 1, dof)),
-            np.empty((len(t_end) + 1, dof)),
-            np.zeros(len(t_end) + 1, np.int64),
-        )
+        trace = LoopTrace.empty(len(t_end), dof)
         trace.q[0], trace.v[0], trace.held[0] = q, v, held
         span = 4.0 * self.v_max + 1.0
         for k in range(len(t_end)):

@@ -150,7 +150,7 @@ def track_vdc(
             if where[i] == WHERE_MASTER:
                 tau_r[i] = last_d[i].tau_r if lost(i, "D") else d_master[i].tau_r
                 last_d[i] = D(tau_r[i])
-                f_now[i] = c[i].f_star + (x[i + 1].T @ f_now[i + 1] if i + 1 < n_mod else 0.0)
+                f_now[i] = master.forces[i]
                 continue
             if i + 1 < n_mod:
                 fresh = f_now[i + 1] if where[i] != WHERE_LOCAL else last_f[i + 1]

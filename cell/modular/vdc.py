@@ -78,6 +78,7 @@ class Master:
     bodies: tuple[Body, ...]
     gains: Gains = field(default_factory=Gains)
     transforms: list[np.ndarray] = field(default_factory=list)  # this cycle's ^iX_{i-1}
+    forces: list[np.ndarray] = field(default_factory=list)  # this cycle's F_r,i, from backward()
 
     def forward(self, a: list[A], q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray) -> list[B]:
         """B for every module from their A and the reference (position, velocity, acceleration)."""
@@ -104,13 +105,11 @@ class Master:
     def backward(self, c: list[C]) -> list[D]:
         """D for every module: each body's required force plus what it carries for the bodies out to
         the tip, projected on its joint."""
-        f_out = np.zeros(6)
-        taus = [0.0] * len(c)
+        self.forces = [np.zeros(6)] * len(c)
         for i in range(len(c) - 1, -1, -1):
-            f = c[i].f_star + (self.transforms[i + 1].T @ f_out if i + 1 < len(c) else 0.0)
-            taus[i] = float(AXIS @ f)
-            f_out = f
-        return [D(t) for t in taus]
+            outboard = carried_force(self.transforms[i + 1], self.forces[i + 1]) if i + 1 < len(c) else 0.0
+            self.forces[i] = c[i].f_star + outboard
+        return [D(float(AXIS @ f)) for f in self.forces]
 
 
 def carried_force(x_next: np.ndarray, f_next: np.ndarray) -> np.ndarray:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -303,11 +304,20 @@ def resources(quick: bool, out: Path, log: Log) -> list[Section]:
 ID0 = 1_000_000  # the parked TPs' first id
 
 
-async def _t_upd(sizes: tuple[int, ...], robots: int, reps: int, check: list[tuple[float, int]]) -> dict:
+def _t_upd_fit(t: dict[int, float]) -> tuple[float, float]:
+    """t_upd(n) = fixed + per_tp n, fitted (ms, ms a TP); the fixed part no less than the least seen."""
+    per_tp, fixed = np.polyfit(np.array(list(t), float), np.array(list(t.values())), 1)
+    return max(fixed, min(t.values())), per_tp
+
+
+async def _t_upd(
+    sizes: tuple[int, ...], robots: int, reps: int, arms_to_check: Callable[[dict[int, float]], int]
+) -> tuple[dict[int, float], tuple[float, int, float]]:
     """t_upd through a live data plane service, as a controller sees it (request to reply over the
-    bus): for each size n, one update inserting n TPs and removing the n loaded before; then for
-    each (episode s, arms) in `check`, arms updates of one episode each (10 TPs/s) sent at once,
-    and how long the data plane took to apply them all."""
+    bus): for each size n, one update inserting n TPs and removing the n loaded before (ms, median
+    of reps).  Then, on the same service, the check: arms_to_check(those t_upd) updates of one 1 s
+    episode each (10 TPs) sent at once, and how long the data plane took to apply them all
+    (episode s, arms, s)."""
     from cell.bench.cellproc import running_cell
     from cell.bench.fleet import dealt
     from cell.bus import Bus
@@ -316,7 +326,7 @@ async def _t_upd(sizes: tuple[int, ...], robots: int, reps: int, check: list[tup
     ids = np.arange(1, robots + 1)
     rob = [{"id": int(r), "name": f"e{r}", "skill_port": 20000 + int(r), "socket": "shared"} for r in ids]
     overrides = {"robots": rob, "services": {"run": ["bus", "dataplane"]}}
-    out: dict[str, Any] = {"t_upd_ms": {}, "checks": []}
+    t_upd: dict[int, float] = {}
     async with running_cell(overrides, quiet=True) as config, Bus.connect(config.bus, "bench-tupd") as bus:
         dp = DataplaneClient(bus, timeout=30.0)
         first = 0
@@ -332,17 +342,15 @@ async def _t_upd(sizes: tuple[int, ...], robots: int, reps: int, check: list[tup
             old = dealt(ids, first, n, ID0)
             await dp.update(remove=old.keys)
             first += n
-            out["t_upd_ms"][n] = float(np.median(times))
-        for episode_s, arms in check:
-            n = max(1, round(10 * episode_s))
-            batches = [dealt(ids[r : r + 1], first + r * n, n, ID0) for r in range(arms)]
-            t0 = time.perf_counter()
-            await asyncio.gather(*(dp.update(insert=b) for b in batches))
-            spent = time.perf_counter() - t0
-            await asyncio.gather(*(dp.update(remove=b.keys) for b in batches))
-            first += arms * n
-            out["checks"].append((episode_s, arms, spent))
-    return out
+            t_upd[n] = float(np.median(times))
+        episode_s, arms = 1.0, min(arms_to_check(t_upd), robots)
+        n = max(1, round(10 * episode_s))
+        batches = [dealt(ids[r : r + 1], first + r * n, n, ID0) for r in range(arms)]
+        t0 = time.perf_counter()
+        await asyncio.gather(*(dp.update(insert=b) for b in batches))
+        spent = time.perf_counter() - t0
+        await asyncio.gather(*(dp.update(remove=b.keys) for b in batches))
+    return t_upd, (episode_s, arms, spent)
 
 
 def episodes(quick: bool, out: Path, log: Log) -> list[Section]:
@@ -352,25 +360,25 @@ def episodes(quick: bool, out: Path, log: Log) -> list[Section]:
 
     cap = load_config(None).dataplane.capacity
     sizes = (1, 10, 100, 400, 1600) if quick else (1, 10, 100, 400, 1600, 6400)
-    first = asyncio.run(_t_upd(sizes, 1000, 3 if quick else 7, []))
-    t = first["t_upd_ms"]
-    for n, ms in t.items():
-        log(f"  t_upd, {n:,} TPs in and {n:,} out: {ms:.2f} ms")
-    n_arr = np.array(list(t), float)
-    c, t0 = np.polyfit(n_arr, np.array(list(t.values())), 1)  # ms a TP, ms an update
-    t0 = max(t0, min(t.values()))
 
-    def arms_max(ep: np.ndarray, rate: float) -> np.ndarray:
+    def arms_fed(t: dict[int, float], ep: np.ndarray, rate: float) -> np.ndarray:
         """One update an episode for each arm, applied one after another: arms x t_upd(n) <= t_ep; and
         3 episodes of each arm in the tables."""
+        fixed, per_tp = _t_upd_fit(t)
         n = rate * ep
-        return np.minimum(ep * 1e3 / (t0 + c * n), cap / (3 * n))
+        return np.minimum(ep * 1e3 / (fixed + per_tp * n), cap / (3 * n))
 
-    # the curve checked: the derived number of arms at 1 s episodes and 10 TPs/s, their updates sent
-    # at once to the service; the data plane must apply them all within the episode
-    want = int(arms_max(np.array([1.0]), 10)[0])
-    check = asyncio.run(_t_upd((), 1000, 1, [(1.0, min(want, 1000))]))["checks"][0]
+    # the curve checked on the same service: the derived number of arms at 1 s episodes and 10 TPs/s,
+    # their updates sent at once; the data plane must apply them all within the episode
+    t, check = asyncio.run(
+        _t_upd(sizes, 1000, 3 if quick else 7, lambda t: int(arms_fed(t, np.array([1.0]), 10)[0]))
+    )
+    for n, ms in t.items():
+        log(f"  t_upd, {n:,} TPs in and {n:,} out: {ms:.2f} ms")
     log(f"  check: {check[1]} arms' 1 s episodes (10 TPs each) applied in {check[2]:.2f} s")
+    n_arr = np.array(list(t), float)
+    t0, c = _t_upd_fit(t)  # ms an update, ms a TP
+
     ep = np.logspace(-1, 1, 40)
     plt = plt_()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.2))
@@ -383,13 +391,13 @@ def episodes(quick: bool, out: Path, log: Log) -> list[Section]:
     a1.set_ylabel("t_upd (ms)")
     a1.legend(fontsize=7)
     for rate, style in ((10, "-"), (43, "--")):
-        a2.loglog(ep, arms_max(ep, rate), style, label=f"{rate} TPs/s")
+        a2.loglog(ep, arms_fed(t, ep, rate), style, label=f"{rate} TPs/s")
     a2.plot([check[0]], [check[1]], "k*", ms=8, label=f"checked: {check[1]} arms in {check[2]:.2f} s")
     a2.plot([1.0], [500], "rX", label="paper: 500 arms, 1 s, 10 TPs/s")
     a2.set_xlabel("episode length t_ep (s)")
     a2.set_ylabel("arms kept fed")
     a2.legend(fontsize=7)
-    at = {(e, r): float(arms_max(np.array([e]), r)[0]) for e in (1.0, 10.0) for r in (10, 43)}
+    at = {(e, r): float(arms_fed(t, np.array([e]), r)[0]) for e in (1.0, 10.0) for r in (10, 43)}
     t16 = t.get(1600, t0 + c * 1600)
     return [
         Section(
