@@ -439,12 +439,15 @@ class DataPlane:
         t = self.tables
         brief = req is not None and req.robots_only
         mono = time.monotonic_ns()
+        # (the two clocks read back to back: counting the loaded TPs between them put that time, and
+        # any preemption there, into the offset controllers place their starts on the tick grid by)
+        realtime_offset_ns = time.time_ns() - mono
         st = dataplane_pb2.DataplaneState(
             now_ns=mono,
             loaded=t.loaded,
             capacity=t.capacity,
             boot_id=self.boot_id,
-            realtime_offset_ns=time.time_ns() - mono,
+            realtime_offset_ns=realtime_offset_ns,
         )
         if not brief:
             st.counters.update(self.counters())
