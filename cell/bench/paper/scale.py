@@ -461,16 +461,20 @@ def x86(quick: bool, out: Path, log: Log) -> list[Section]:
     big = planes[-1]
     per_core_dp = big.robots / big.cpu_cores if big.cpu_cores > 0 else float("nan")
     plt = plt_()
-    fig, ax = plt.subplots(figsize=(6, 3))
-    trials = sorted((t for t in found.trials if not t.limit), key=lambda t: t.robots)
-    ax.plot(
-        [t.robots for t in trials], [100 * t.on_time_fraction for t in trials], "o-", label="a driver per arm"
-    )
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    # each fleet size once: its best trial (the search counts a size when one of its two trials passes)
+    best: dict[int, float] = {}
+    for t in found.trials:
+        if not t.limit:
+            best[t.robots] = max(best.get(t.robots, 0.0), 100 * t.on_time_fraction)
+    sizes = sorted(best)
+    ax.plot(sizes, [best[n] for n in sizes], "o-", label="a driver per arm")
     ax.plot(
         [t.robots for t in planes], [100 * t.on_time_fraction for t in planes], "s-", label="the data plane"
     )
     ax.axhline(99, color="k", lw=0.8)
     ax.axvline(45 / 12, color="tab:red", lw=0.8)
+    ax.set_ylim(0, 105)
     ax.text(45 / 12, 50, " paper: 45 arms\n on 12 cores", color="tab:red", fontsize=7)
     ax.set_xscale("log")
     ax.set_xlabel("arms at 500 Hz, on one core")
