@@ -19,6 +19,7 @@ This is identity, not security: the token travels in clear on the loopback or th
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import secrets
@@ -142,6 +143,10 @@ class Guard:
         except zmq.ZMQError:
             pass  # (the context is going)
         finally:
+            # unbound first: a close lets go of an inproc name only when ZeroMQ's reaper gets to it, and
+            # the next forwarder of this process (a restart, a test) binds the name again at once
+            with contextlib.suppress(zmq.ZMQError):
+                self._sock.unbind(ZAP_ENDPOINT)
             self._sock.close(linger=0)
 
     def counters(self) -> dict[str, float]:

@@ -18,7 +18,7 @@ from cell.vision.camera import Camera, CameraSpec
 from cell.vision.frames import Frame, FrameBuffer
 from cell.vision.optics import ThinLens, expose, psf_sigma
 from cell.vision.target import target_image
-from tests.conftest import cell_env
+from tests.conftest import cell_env, cell_overrides, write_config
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 
@@ -115,8 +115,10 @@ def test_the_camera_sees_the_card_sharpest_at_its_focus_distance() -> None:
 @pytest.mark.slow
 def test_the_focus_calibration_finds_the_focus_plane_on_a_whole_cell(tmp_path) -> None:
     rrd = tmp_path / "focus.rrd"
-    config = tmp_path / "rec.toml"
-    config.write_text(f'[recorder]\nmode = "save"\npath = "{rrd}"\n')
+    # free ports: the default config's fixed bus port may still be held by a cell an earlier test stopped
+    data = cell_overrides()
+    data["recorder"] = {"mode": "save", "path": str(rrd)}
+    config = write_config(tmp_path / "rec.toml", data)
     proc = subprocess.run(
         [
             sys.executable,
