@@ -397,6 +397,25 @@ class VisionConfig:
             raise err("axis", "must not be the zero vector")
 
 
+def _where(v: Any) -> str | None:
+    if not isinstance(v, list) or len(v) != 6 or not all(w in ("master", "neighbour", "local") for w in v):
+        return f'must list 6 of "master", "neighbour", "local", one per module (got {v!r})'
+    return None
+
+
+@dataclass(frozen=True)
+class ModularConfig:
+    """The modular robot (service `modular`, seed 002): six joint modules under VDC (docs/modular.md)."""
+
+    q0: list[float] = field(metadata={"check": _joint_vector})
+    where: list[str] = field(metadata={"check": _where})  # who computes each module's [C, D]
+    loss: float = _check(lambda v: None if 0 <= v <= 0.5 else f"must be in [0, 0.5] (got {v})")
+    speed_rad_s: float = _check(_positive)  # joint moves' default peak speed
+    suspect_cycles: int = _check(_positive)
+    lost_cycles: int = _check(_positive)
+    publish_hz: float = _check(lambda v: None if 0 < v <= 500 else f"must be in (0, 500] (got {v})")
+
+
 @dataclass(frozen=True)
 class RlinkConfig:
     """The cell's Responsive Link: where its nodes listen, their addresses, the beacon."""
@@ -533,6 +552,7 @@ class CellConfig:
     snp: SnpConfig
     rlink: RlinkConfig
     vision: VisionConfig
+    modular: ModularConfig
     ur: URConfig
     robot_defaults: RobotDefaults
     robots: list[RobotConfig]

@@ -29,6 +29,7 @@ from google.protobuf.message import Message
 from cell.bus import Bus
 from cell.config import CellConfig
 from cell.launcher import child_cell
+from cell.modular.client import ModularClient
 from cell.rlink.client import EventClient
 from cell.skills.client import RobotClient
 from cell.trajectory.model import Trajectory
@@ -47,6 +48,7 @@ class Cell:
     ) -> None:
         self.config, self.bus, self.robots, self.link = config, bus, robots, link
         self.vision = VisionClient(bus)  # the camera service: `await cell.vision.request()`
+        self.modular = ModularClient(bus)  # the modular robot: `await cell.modular.move(...)`
 
     def _link(self) -> EventClient:
         if self.link is None:
@@ -71,6 +73,9 @@ class Cell:
         try:
             return self.robots[name]
         except KeyError:
+            if not self.robots:
+                why = "this cell runs no skill servers (service `skills`)"
+                raise KeyError(f"no robot {name!r}: {why}") from None
             raise KeyError(f"no robot {name!r} in this cell (robots: {', '.join(self.robots)})") from None
 
     async def request(
@@ -248,7 +253,8 @@ async def run_script(
         bus = await stack.enter_async_context(Bus.connect(config.bus, f"run-{os.getpid()}"))
         robots: dict[str, RobotClient] = {}
         host = config.skills.host
-        for r in config.robots:
+        skills = "skills" in config.services.run or any("skills" in h.run for h in config.hosts.values())
+        for r in config.robots if skills else ():  # (a cell without skill servers: no robot clients)
             client = RobotClient(r.name, host, r.skill_port, bus)
             try:
                 await client.connect(timeout=10.0)

@@ -76,6 +76,7 @@ BUILTIN: dict[str, str] = {
     "recorder": "cell.services.recorder",
     "rlink": "cell.services.rlink",
     "vision": "cell.services.vision",
+    "modular": "cell.services.modular",
 }
 
 

@@ -20,6 +20,18 @@ def arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def modular_modules(st) -> list[str]:
+    """The modular robot's modules and their states, from its service's counters ("j3 unplugged")."""
+    from cell.modular.robot import STATES, ModularRobot
+
+    counters = {k: v for s in st.services if s.name == "modular" for k, v in s.last.counters.items()}
+    return [
+        f"{name} {STATES[int(counters[key])]}"
+        for name in ModularRobot.NAMES
+        if (key := f"modular.{name}.state") in counters
+    ]
+
+
 def run(args: argparse.Namespace) -> int:
     from google.protobuf import json_format
 
@@ -44,6 +56,9 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         print(format_status(st))
+        modules = modular_modules(st)
+        if modules:
+            print(f"\nMODULAR ROBOT ({'  '.join(modules)})")
         if config.ur.interfaces and any(s.name.split("@")[0] == "robots" for s in st.services):
             ur = config.ur
             ports = f"RTDE {ur.rtde_port}, dashboard {ur.dashboard_port}, URScript {ur.primary_port}"

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field, replace
+from time import perf_counter_ns
 
 import numpy as np
 
@@ -83,69 +84,101 @@ def _record(arm: ModularArm, ref: Reference, name: str) -> Tracking:
     return Tracking(name, ref.t, np.empty((n, 6)), ref.q, np.empty((n, 3)), ref.tool)
 
 
-def track_vdc(
-    ref: Reference,
-    faults: Faults = Faults(),
-    where: tuple[str, ...] = (WHERE_MASTER,) * 6,
-    gains: Gains | None = None,
-    believed: float = 1.0,
-) -> Tracking:
-    """VDC over the four messages, [C, D] computed where `where` says per module; believed: the
-    modules' own mass properties as this share of the arm's (1: exact; gains.adapt > 0 adapts
-    them as the arm moves)."""
-    arm = ModularArm(ref.q[0])
-    gains = gains or Gains()
-    rng = np.random.default_rng(faults.seed)
-    master = Master(arm.bodies, gains)
-    modules = [Module(replace(b, inertia=b.inertia * believed), gains) for b in arm.bodies]
-    run = _record(arm, ref, "vdc")
-    n_mod = arm.dof
-    last_a = [A(float(q), 0.0) for q in ref.q[0]]
-    last_b: list[B | None] = [None] * n_mod
-    last_c = [C(np.zeros(6)) for _ in range(n_mod)]
-    last_d = [D(0.0) for _ in range(n_mod)]
-    last_f = [np.zeros(6) for _ in range(n_mod)]  # each body's F_r of the cycle before
-    tau = np.zeros(n_mod)
+class VdcArm:
+    """The MuJoCo arm under VDC over the four messages, one 1 ms cycle at a time (`cycle`): the
+    closed loop of `track_vdc` and of the `modular` service.
 
-    def lost(module: int, kind: str) -> bool:
-        late = kind in ("A", "C") and module == faults.late_module and rng.random() < faults.late_share
-        gone = late or (faults.loss > 0 and rng.random() < faults.loss)
+    A module in `unplugged` is off the network: every message of its own is guessed (counted as
+    any loss is) and its motor holds its joint on its brake (a stiff joint-local PD about where it
+    was unplugged), as a module without its master does."""
+
+    BRAKE_KP, BRAKE_KD = 3000.0, 60.0  # N m/rad, N m s/rad (within each motor's limit)
+
+    def __init__(
+        self,
+        q0: np.ndarray,
+        faults: Faults = Faults(),
+        where: tuple[str, ...] = (WHERE_MASTER,) * 6,
+        gains: Gains | None = None,
+        believed: float = 1.0,
+    ) -> None:
+        self.arm = arm = ModularArm(q0)
+        self.faults, self.where = faults, where
+        gains = gains or Gains()
+        self.rng = np.random.default_rng(faults.seed)
+        self.master = Master(arm.bodies, gains)
+        self.modules = [Module(replace(b, inertia=b.inertia * believed), gains) for b in arm.bodies]
+        n = self.dof = arm.dof
+        self.guessed: Counter = Counter()  # per message kind
+        self.guessed_by = np.zeros(n, dtype=np.int64)  # per module
+        self.messages = 0
+        self.phase_ns = np.zeros(4)  # the last cycle's A, B, C, D arithmetic (D: with the torques)
+        self.a_lost = np.zeros(n, dtype=bool)  # this cycle's: whose A the master guessed
+        self.unplugged: dict[int, float] = {}  # module -> the joint position its brake holds
+        self.last_a = [A(float(q), 0.0) for q in q0]
+        self.last_b: list[B | None] = [None] * n
+        self.last_c = [C(np.zeros(6)) for _ in range(n)]
+        self.last_d = [D(0.0) for _ in range(n)]
+        self.last_f = [np.zeros(6) for _ in range(n)]  # each body's F_r of the cycle before
+        self.tau = np.zeros(n)
+        self.limit = np.array([b.torque_max for b in arm.bodies])
+
+    def lost(self, module: int, kind: str) -> bool:
+        f = self.faults
+        late = kind in ("A", "C") and module == f.late_module and self.rng.random() < f.late_share
+        gone = late or (f.loss > 0 and self.rng.random() < f.loss) or module in self.unplugged
         if gone:
-            run.guessed[kind] += 1
+            self.guessed[kind] += 1
+            self.guessed_by[module] += 1
         return gone
 
-    for k in range(len(ref.t)):
+    def unplug(self, module: int) -> None:
+        self.unplugged[module] = float(self.arm.data.qpos[module])
+
+    def plug(self, module: int) -> None:
+        self.unplugged.pop(module, None)
+
+    def cycle(self, q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray) -> None:
+        """One cycle toward the reference (q_d, qd_d, qdd_d): A, B, C, D, and the arm stepped to the
+        next cycle's start (its torques act one MuJoCo step after the cycle starts)."""
+        arm, n_mod, lost, where = self.arm, self.dof, self.lost, self.where
+        master, modules = self.master, self.modules
+        t_a = perf_counter_ns()
         q, qd = arm.q, arm.qd
-        run.q[k], run.tool[k] = q, arm.tool_position()
         # A: every module's joint, or the master's guess of it
         a = []
         for i in range(n_mod):
-            if lost(i, "A"):
-                p = last_a[i]
+            self.a_lost[i] = gone = lost(i, "A")
+            if gone:
+                p = self.last_a[i]
                 a.append(A(p.q + p.qd * CYCLE_S, p.qd))
             else:
                 a.append(A(float(q[i]), float(qd[i])))
-        last_a = a
+        self.last_a = a
+        t_b = perf_counter_ns()
         # B: the forward recursion, or each module's extrapolation of its last
-        b_sent = master.forward(a, ref.q[k], ref.qd[k], ref.qdd[k])
+        b_sent = master.forward(a, q_d, qd_d, qdd_d)
         b = []
         for i in range(n_mod):
-            prev = last_b[i]
+            prev = self.last_b[i]
             if prev is not None and lost(i, "B"):
                 b.append(B(prev.qd_r + prev.qdd_r * CYCLE_S, prev.qdd_r, prev.v_r + prev.a_r * CYCLE_S,
                            prev.a_r, prev.v))  # fmt: skip
             else:
                 b.append(b_sent[i])
-        last_b = b
+        self.last_b = b
+        t_c = perf_counter_ns()
         # C: each body's required net force (the master's copy, or its last)
         c = [modules[i].net_force(b[i], CYCLE_S) for i in range(n_mod)]
-        c_master = [last_c[i] if lost(i, "C") else c[i] for i in range(n_mod)]
-        last_c = c_master
+        c_master = [self.last_c[i] if lost(i, "C") else c[i] for i in range(n_mod)]
+        self.last_c = c_master
+        t_d = perf_counter_ns()
         # [C, D] from the tip in: by the master, or by the module with its neighbour's force
         d_master = master.backward(c_master)
         x = master.transforms
         f_now: list[np.ndarray] = [np.zeros(6)] * n_mod
         tau_r = np.empty(n_mod)
+        last_d, last_f = self.last_d, self.last_f
         for i in range(n_mod - 1, -1, -1):
             if where[i] == WHERE_MASTER:
                 tau_r[i] = last_d[i].tau_r if lost(i, "D") else d_master[i].tau_r
@@ -159,12 +192,34 @@ def track_vdc(
             else:
                 carried = np.zeros(6)
             f_now[i], tau_r[i] = modules[i].force_with(c[i], carried)
-        last_f = f_now
-        run.messages += 4 * n_mod
+        self.last_f = f_now
+        self.messages += 4 * n_mod
         new = np.array([modules[i].torque(tau_r[i], b[i], float(qd[i])) for i in range(n_mod)])
-        arm.step(tau, DELAY_STEPS)
-        tau = new
-        arm.step(tau, round(CYCLE_S / arm.model.opt.timestep) - DELAY_STEPS)
+        for i, hold in self.unplugged.items():  # (its brake, not the network's torque)
+            brake = self.BRAKE_KP * (hold - q[i]) - self.BRAKE_KD * qd[i]
+            new[i] = float(np.clip(brake, -self.limit[i], self.limit[i]))
+        self.phase_ns[:] = (t_b - t_a, t_c - t_b, t_d - t_c, perf_counter_ns() - t_d)
+        arm.step(self.tau, DELAY_STEPS)
+        self.tau = new
+        arm.step(self.tau, round(CYCLE_S / arm.model.opt.timestep) - DELAY_STEPS)
+
+
+def track_vdc(
+    ref: Reference,
+    faults: Faults = Faults(),
+    where: tuple[str, ...] = (WHERE_MASTER,) * 6,
+    gains: Gains | None = None,
+    believed: float = 1.0,
+) -> Tracking:
+    """VDC over the four messages, [C, D] computed where `where` says per module; believed: the
+    modules' own mass properties as this share of the arm's (1: exact; gains.adapt > 0 adapts
+    them as the arm moves)."""
+    vdc = VdcArm(ref.q[0], faults, where, gains, believed)
+    run = _record(vdc.arm, ref, "vdc")
+    for k in range(len(ref.t)):
+        run.q[k], run.tool[k] = vdc.arm.q, vdc.arm.tool_position()
+        vdc.cycle(ref.q[k], ref.qd[k], ref.qdd[k])
+    run.guessed, run.messages = vdc.guessed, vdc.messages
     return run
 
 

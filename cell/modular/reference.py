@@ -118,3 +118,22 @@ def circle(radius: float = 0.1, speed: float = 0.5) -> Reference:
     p0, rot = arm_model("ur5e").fk(Q_HOME)
     pos, vel, acc = _circle(p0, radius, speed)
     return _to_joints("circle", pos, vel, acc, rot)
+
+
+def joint_move(q0: np.ndarray, q1: np.ndarray, speed: float) -> Reference:
+    """From q0 to q1 in joint space, every joint on one minimum-jerk scaling whose fastest joint
+    peaks at `speed` rad/s (at least 50 ms): the modular robot's own moves (no IK on the way)."""
+    d = np.asarray(q1, float) - np.asarray(q0, float)
+    duration = max(1.875 * float(np.abs(d).max()) / speed, 0.05)
+    s = np.arange(round(duration / CYCLE_S) + 1) * CYCLE_S / duration
+    p, r, ra = _min_jerk(np.minimum(s, 1.0))
+    q = q0 + p[:, None] * d
+    arm = ModularArm()
+    return Reference(
+        "move",
+        s * duration,
+        q,
+        r[:, None] * d / duration,
+        ra[:, None] * d / duration**2,
+        np.array([arm.tool_position(qk) for qk in q]),
+    )

@@ -38,7 +38,7 @@ from cell.robot.arm import arm_model
 from cell.robot.node import output_name
 from cell.service import ServiceContext
 from cell.snp.state import realtime_offset_ns
-from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2, skills_pb2, vision_pb2
+from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, modular_pb2, robot_pb2, skills_pb2, vision_pb2
 from cell.vision.acquisition import camera_spec
 
 log = logging.getLogger("cell.service.recorder")
@@ -80,6 +80,7 @@ class Recorder:
         self.lanes = ["vision", *(r.name for r in cfg.robots)]  # the Gantt chart's rows, top down
         self.bars: deque[tuple[float, float, int, str]] = deque(maxlen=GANTT_BARS)
         self.bars_dirty = False
+        self.modular_placed = False
         self.outputs_seen: dict[str, int] = {}  # robot -> the digital outputs ever on (drawn since)
 
     def seconds(self, t_mono_ns: int) -> float:
@@ -284,6 +285,32 @@ class Recorder:
         else:
             self.rec.log("vision/log", rr.TextLog(f"vision {m.id}: {m.reason}", level="WARN"))
 
+    # --- the modular robot (seed 002) -----------------------------------------------------------------
+
+    def modular(self, m: modular_pb2.ModularState) -> None:
+        """The arm as a line through its joints to the tool, beside the cell's robots; the tool's error
+        against its reference, each cycle's A-D arithmetic and each module's guesses as plots."""
+        self.at(m.t_ns)
+        rec = self.rec
+        if not self.modular_placed:
+            beside = base_position(-1, len(self.ctx.config.robots))  # (one place before the first robot)
+            rec.log("modular", rr.Transform3D(translation=beside), static=True)
+            self.modular_placed = True
+        frames = np.asarray(m.frames).reshape(-1, 3)
+        colours = [(60, 190, 90) if s == "running" else (230, 80, 60) for s in m.states]
+        rec.log("modular/arm", rr.LineStrips3D([frames], colors=[(90, 160, 230)], radii=0.025))
+        rec.log(
+            "modular/arm/modules",
+            rr.Points3D(frames[:-1], radii=0.045, colors=colours,
+                        labels=[f"j{i + 1} {s}" for i, s in enumerate(m.states)]),
+        )  # fmt: skip
+        rec.log("modular/tool_ref", rr.Points3D([m.tool_ref], radii=0.012, colors=[(240, 200, 40)]))
+        rec.log("modular/tool_error_mm", rr.Scalars(m.tool_error_mm))
+        for phase, us in zip("ABCD", m.phase_us, strict=False):
+            rec.log(f"modular/cycle_us/{phase}", rr.Scalars(us))
+        for i, g in enumerate(m.guessed):
+            rec.log(f"modular/guessed/j{i + 1}", rr.Scalars(float(g)))
+
     def request(self, tr: skills_pb2.RequestTrace) -> None:
         """One request as a bar from its sending to its answer, on its lane (seconds since the start)."""
         lane = self.lanes.index(tr.robot) if tr.robot in self.lanes else len(self.lanes)
@@ -344,6 +371,7 @@ async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
         "events": await bus.subscribe(*EVENT_TOPICS),
         "health": await bus.subscribe("health/"),
         "vision": await bus.subscribe("vision/image", "vision/measurement"),
+        "modular": await bus.subscribe("modular/state"),
         "requests": await bus.subscribe(
             "run/vision/request", *(f"run/{rb.name}/request" for rb in ctx.config.robots)
         ),
@@ -409,6 +437,7 @@ async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
             tg.create_task(each(subs["events"], on_event))
             tg.create_task(each(subs["health"], on_health))
             tg.create_task(each(subs["vision"], on_vision))
+            tg.create_task(each(subs["modular"], lambda env: r.modular(env.decode(modular_pb2.ModularState))))
             tg.create_task(each(subs["requests"], lambda env: r.request(env.decode(skills_pb2.RequestTrace))))
             tg.create_task(flush_series())
             ready()
