@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import time
 from functools import cache
 
 import numpy as np
@@ -18,6 +17,7 @@ from cell.controller.plan import MotionLimits
 from cell.controller.schedule import Grid, Segment, Track, grid_start, phase_at
 from cell.robot.arm import ArmModel, arm_model
 from cell.robot.kinematics import Kinematics
+from cell.timer import realtime_offset
 from cell.v1 import robot_pb2
 
 log = logging.getLogger("cell.controller")
@@ -165,7 +165,7 @@ class RobotBook:
         over the bus is up to half a round trip off: a start a fraction of a period off the grid)."""
         rt = self.link.realtime_offset_ns
         if rt is None:
-            rt = (time.time_ns() - time.monotonic_ns()) - self.link.offset_ns
+            rt = realtime_offset() - self.link.offset_ns
         return grid_start(self.grids.get(robot), earliest_ns, rt)
 
     def phase_at(self, seg: Segment, t_ns: int) -> int:

@@ -46,6 +46,7 @@ from cell.rlink.leaf import LeafNode
 from cell.rlink.station import Order
 from cell.robot import datagram, models, udp
 from cell.robot.datagram import SCALE, Kind
+from cell.timer import realtime_offset
 from cell.v1 import dataplane_pb2
 
 log = logging.getLogger("cell.dataplane")
@@ -439,15 +440,16 @@ class DataPlane:
         t = self.tables
         brief = req is not None and req.robots_only
         mono = time.monotonic_ns()
-        # (the two clocks read back to back: counting the loaded TPs between them put that time, and
-        # any preemption there, into the offset controllers place their starts on the tick grid by)
-        realtime_offset_ns = time.time_ns() - mono
+        # (the process's one offset, the narrowest of many bracketed reads: a pair of reads here was
+        # off by whatever ran between them, and the robots' process, above this one on its core,
+        # can: that error went into the offset controllers place their starts on the tick grid by,
+        # a start 0.2-0.9 of a period off the robots' grid in fresh-clone runs)
         st = dataplane_pb2.DataplaneState(
             now_ns=mono,
             loaded=t.loaded,
             capacity=t.capacity,
             boot_id=self.boot_id,
-            realtime_offset_ns=realtime_offset_ns,
+            realtime_offset_ns=realtime_offset(),
         )
         if not brief:
             st.counters.update(self.counters())

@@ -20,6 +20,7 @@ from cell.rlink.packet import EventType, Kind
 from cell.rlink.station import Order
 from cell.robot.drive import HOLD_ESTOP, HOLD_UR
 from cell.robot.emulator import RobotGroup
+from cell.timer import realtime_offset
 from cell.v1 import robot_pb2
 
 ANNOUNCE_S = 2.0
@@ -82,7 +83,7 @@ def announcement(group: RobotGroup, row: int, dataplane: str) -> robot_pb2.Robot
     """One robot's (a fleet's robot answers its own `announce` without building its 200 fellows')."""
     lim = group.arm.limits
     r = group.robots[row]
-    origin = group.origin_ns + (time.time_ns() - time.monotonic_ns()) if group.origin_ns else 0
+    origin = group.origin_ns + realtime_offset() if group.origin_ns else 0  # (the process's one offset)
     return robot_pb2.RobotAnnounce(
         robot_id=r.id,
         name=r.name,
