@@ -25,10 +25,9 @@ import numpy as np
 from cell.bus import Bus, BusError, RemoteError
 from cell.config import CellConfig
 from cell.controller.link import Link
-from cell.controller.plan import Motion, MotionLimits, PlanError
+from cell.controller.plan import Motion, PlanError
 from cell.controller.robots import RobotBook
 from cell.controller.schedule import (
-    STOP_MARGIN_NS,
     TIDY_NS,
     Alternate,
     Goal,
@@ -37,7 +36,6 @@ from cell.controller.schedule import (
     MotionStopped,
     NotAtGoal,
     Segment,
-    StopPlan,
     Switch,
     Track,
     beside,
@@ -45,23 +43,24 @@ from cell.controller.schedule import (
     episode_update,
     episode_wake,
     hold_batch,
+    moved_on,
     stands_at,
     status_of,
-    stop_limits,
-    stop_plan,
     tidy_ns,
     tp_batch,
+    window_ns,
 )
+from cell.controller.stopping import Stopping
 from cell.controller.tps import cut
 from cell.dataplane.client import DataplaneClient
 from cell.dataplane.tables import TPBatch
-from cell.v1 import controller_pb2, dataplane_pb2
+from cell.v1 import dataplane_pb2
 
 log = logging.getLogger("cell.controller")
 CONFIRM_S = 1.5  # how long a motion asked for waits on the data plane to confirm a stop the controller holds
 
 
-class Engine(RobotBook):
+class Engine(Stopping, RobotBook):
     def __init__(self, bus: Bus, config: CellConfig, service: str = "dataplane") -> None:
         self.dp = DataplaneClient(bus, service)
         super().__init__(bus, config, Link(self.dp))
@@ -72,6 +71,7 @@ class Engine(RobotBook):
         self.tracks: dict[int, Track] = {}
         self.plan_ns = 100_000_000  # how long planning a re-plan takes (measured, pessimistic)
         self.late_starts = 0  # motions whose first TPs were in place only after their start time
+        self.start_shifts = 0  # starts moved on by whole windows while their update waited its turn
         self.stop_plan_ns = 5_000_000  # how long planning a stop takes (measured, pessimistic)
         self.late_stops = 0  # stops in place after the command window they were planned for began
         self.not_at_goal = 0  # motions that ended with the robot read elsewhere (answered failed)
@@ -266,25 +266,16 @@ class Engine(RobotBook):
         # update's way to the data plane (planning first would eat it on a busy host: a late start)
         await self.link.state([t.robot for t, *_ in planned])  # a fresh clock and round trip (its robots')
         start, at, tick0 = self.grid_start(lead_id, self.link.now() + self.lead_ns + 2 * self.link.rtt_ns)
-        first: list[TPBatch] = []
-        registers, remove, segments = [], [], []
-        for track, motion, sections, (hold_id, *ids) in planned:
-            q0 = motion.sample(np.array([0.0]))[0][0]
-            # (a robot whose grid is not known beside the lead's: started with it, phase unknown to the fit)
-            off, phase = (
-                near[track.robot] if near[track.robot] is not None and tick0 is not None else (0, None)
-            )
-            seg = Segment(start + off, motion, sections, ids, phase, track.robot)
-            first.append(hold_batch(track, hold_id, ids[0], q0))
-            first.append(tp_batch(track, seg, 0, min(self.episode, len(ids))))
-            registers.append((track.robot, hold_id, at + off))
-            remove += [(track.robot, i) for i in track.loaded]
-            segments.append((track, seg, hold_id))
-        for track, _, _ in segments:
+        for track, *_ in planned:
             self.check_running(track)
         try:
             async with self.loading:
-                reply = await self.dp.update(insert=concat(first), remove=remove, registers=registers)
+                # (the lock may have been waited for: a fleet launching hundreds of motions queues
+                # here, and a start set before the wait would be in place seconds late.  Moved on by
+                # whole command windows, it keeps its window phase: the TPs fitted for it hold)
+                start, at = self.still_ahead(lead_id, start, at)
+                segments, update = self.first_episodes(planned, near, start, at, tick0)
+                reply = await self.dp.update(**update)
                 for track, _, _ in segments:
                     track.loads += 1
         except RemoteError as exc:
@@ -325,6 +316,35 @@ class Engine(RobotBook):
         end = max(seg.end_ns for _, seg, _ in segments)
         q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in segments])
         return MotionResult(start, end, q_end), [t for t, _, _ in segments]
+
+    def still_ahead(self, lead: int, start: int, at: int) -> tuple[int, int]:
+        """(start, register time) as `launch` set them, or moved on if its update can no longer reach
+        the data plane before them (schedule.moved_on, on the lead's grid)."""
+        earliest = self.link.now() + 2 * self.link.rtt_ns + self.lead_ns // 4
+        moved = moved_on(start, at, earliest, window_ns(self.grids.get(lead)))
+        self.start_shifts += moved != (start, at)
+        return moved
+
+    def first_episodes(
+        self, planned: list, near: dict, start: int, at: int, tick0: int | None
+    ) -> tuple[list[tuple[Track, Segment, int]], dict]:
+        """The launch's segments and its one atomic update: each robot's hold (its register set to
+        `at`, beside the lead's), its first episode, the TPs it had loaded removed."""
+        first: list[TPBatch] = []
+        registers, remove, segments = [], [], []
+        for track, motion, sections, (hold_id, *ids) in planned:
+            q0 = motion.sample(np.array([0.0]))[0][0]
+            # (a robot whose grid is not known beside the lead's: started with it, phase unknown to the fit)
+            off, phase = (
+                near[track.robot] if near[track.robot] is not None and tick0 is not None else (0, None)
+            )
+            seg = Segment(start + off, motion, sections, ids, phase, track.robot)
+            first.append(hold_batch(track, hold_id, ids[0], q0))
+            first.append(tp_batch(track, seg, 0, min(self.episode, len(ids))))
+            registers.append((track.robot, hold_id, at + off))
+            remove += [(track.robot, i) for i in track.loaded]
+            segments.append((track, seg, hold_id))
+        return segments, {"insert": concat(first), "remove": remove, "registers": registers}
 
     async def finish(self, tracks: list[Track], result: MotionResult) -> MotionResult:
         """Until the tracks' motions have ended; MotionStopped if one was stopped or re-planned."""
@@ -433,143 +453,6 @@ class Engine(RobotBook):
         track.inflight.add(done)
         done.add_done_callback(track.inflight.discard)
         return await asyncio.shield(done)
-
-    async def _halt(self, track: Track) -> None:
-        """Stop streaming the track's motion; wait for its updates in flight."""
-        if track.moving:
-            track.task.cancel()  # type: ignore[union-attr]
-            with contextlib.suppress(asyncio.CancelledError):
-                await track.task  # type: ignore[misc]
-        if track.inflight:
-            await asyncio.gather(*track.inflight, return_exceptions=True)
-
-    def publish_plan(self, track: Track, seg: Segment) -> None:
-        """The segment's plan on plan/<robot>, one message per robot of the track."""
-        s = seg.sections
-        t = np.concatenate([[seg.start_ns], seg.start_ns + np.rint(s.t_end * 1e9).astype(np.int64)])
-        q0, v0 = seg.motion.sample(np.array([0.0]))
-        q = np.vstack([q0, s.q])
-        v = np.vstack([v0, s.q_plan_v])
-        col = 0
-        for rid in track.robots:
-            n = self.arm_of(rid).dof
-            cols = slice(col, col + n)
-            col += n
-            robot = self.robots.get(rid)
-            if robot is None:
-                continue
-            msg = controller_pb2.Plan(
-                robot_id=rid,
-                joints=n,
-                t_ns=t.tolist(),
-                positions=q[:, cols].ravel().tolist(),
-                velocities=v[:, cols].ravel().tolist(),
-            )
-            self.bus.publish(f"plan/{robot.name}", msg)
-
-    # --- stops and losses ------------------------------------------------------------------------
-
-    async def stop(
-        self, robots: list[int | str] | None = None, flush: bool = False
-    ) -> dict[int, MotionResult]:
-        """Protective stop: the robots decelerate within their limits from where they are, taking
-        effect at the data plane's next packet after this update (within one command window).  With
-        flush, every TP of these robots goes first, also those this controller did not load."""
-        if robots is None:
-            tracks = list(self.tracks.values())
-        else:
-            tracks = list({id(t): t for t in map(self.track, robots)}.values())
-        for t in tracks:
-            await self._halt(t)
-        st = await self.link.state(
-            sorted({r for t in tracks for r in t.robots}) if robots is not None else ()
-        )
-        by_id = {r.robot_id: r for r in st.robots}
-        stops = self._plan_stops(tracks, by_id)
-        batches, registers, remove, results, modelled = [], [], [], {}, {}
-        for t, stop in stops:
-            seg = stop.segment
-            batches.append(stop.batch)
-            registers.append(stop.register)
-            remove += [(t.robot, i) for i in t.loaded]
-            t.loaded, t.segment, t.q_hold = [int(i) for i in stop.batch.id], seg, seg.sections.q[-1].copy()
-            t.stop_reason, t.epoch = t.stop_reason or "the robot was stopped", t.epoch + 1
-            self.publish_plan(t, seg)
-            results[t.robot] = MotionResult(seg.start_ns, seg.end_ns, seg.sections.q[-1].copy())
-            modelled[t.robot] = stop.modelled
-        flushed = sorted({r for t in tracks for r in t.robots}) if flush else []
-        if flushed:
-            remove = []
-        if batches or flushed:
-            insert = concat(batches) if batches else ()
-            async with self.loading:
-                reply = await self.dp.update(insert=insert, remove=remove, registers=registers, flush=flushed)
-                for t in tracks:
-                    t.loads += 1
-            for rid, r in results.items():
-                if not modelled[rid]:
-                    r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
-                    continue
-                if reply.now_ns > self._last_status_ns(self.track(rid), self.track(rid).segment):
-                    self.late_stops += 1  # it brakes a window later than its plan
-                    log.warning(
-                        "stop of robot %s in place %.1f ms into the window it was planned for",
-                        rid,
-                        (reply.now_ns - r.start_ns) / 1e6,
-                    )
-                r.start_ns = max(r.start_ns, reply.now_ns)
-            for t in tracks:
-                t.loaded_ns = reply.now_ns
-        return results
-
-    def _plan_stops(
-        self, tracks: list[Track], by_id: dict[int, dataplane_pb2.RobotPlaneState]
-    ) -> list[tuple[Track, StopPlan]]:
-        """The tracks' stops, planned for when the update reaches the data plane: after the planning
-        (measured) and half a round trip.  A stop planned from the loop model must be in place
-        before the last status of its first window; planning that overran it is done again for
-        the next window (a stop a window late would brake a window after its plan)."""
-        todo = [(t, s) for t in tracks if (s := status_of(t, by_id)) is not None]
-        todo = [(t, s) for t, s in todo if not any(r in self.stopped for r in t.robots)]
-        stops: list[tuple[Track, StopPlan]] = []
-        for _attempt in range(3):
-            t0 = time.perf_counter_ns()
-            now = self.link.now()
-            apply_ns = now + self.stop_plan_ns * len(todo) + self.link.rtt_ns // 2 + STOP_MARGIN_NS
-            stops = [
-                (t, stop_plan(t, s, now, apply_ns, self.stop_limits(t), self.gain, self.loop(t)))
-                for t, s in todo
-            ]
-            took = (time.perf_counter_ns() - t0) // max(1, len(todo))
-            self.stop_plan_ns = max(took, int(0.7 * self.stop_plan_ns + 0.3 * took))
-            arrive = self.link.now() + self.link.rtt_ns // 2 + STOP_MARGIN_NS
-            if all(not p.modelled or arrive <= self._last_status_ns(t, p.segment) for t, p in stops):
-                break
-        return stops
-
-    def _last_status_ns(self, track: Track, seg: Segment) -> int:
-        """When the last status of the window a segment starts in is due."""
-        loop = self.loop(track)
-        return seg.start_ns + round((loop.window - 1) * loop.status_s * 1e9)
-
-    def stop_limits(self, track: Track) -> MotionLimits:
-        """A stop brakes with the drives' full deceleration, reached at once (they limit no jerk)."""
-        return stop_limits(track.limits, np.concatenate([self.arm_of(r).limits.a_max for r in track.robots]))
-
-    def lose(self, tracks: list[Track], reason: str) -> None:
-        """The tables no longer hold these tracks' TPs: end their motions (MotionStopped(reason) to
-        whoever waits), forget what was loaded, and plan the next motion from the measured state."""
-        hit = [t for t in tracks if t.moving or t.loaded]
-        for t in hit:
-            t.stop_reason = reason
-            t.generation += 1
-            t.epoch += 1
-            if t.moving:
-                t.task.cancel()  # type: ignore[union-attr]
-            t.loaded, t.segment, t.q_hold = [], None, None
-        if hit:
-            self.lost.append((time.monotonic(), reason))
-            log.warning("%s (robots %s)", reason, sorted(r for t in hit for r in t.robots))
 
 
 def _raise_failure(failure: BaseException | None) -> None:

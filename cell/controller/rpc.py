@@ -31,6 +31,7 @@ class ControllerCounters(Counters):
     alternates_taken: int = 0  # armed alternates taken on an event from the bus
     alternates_refused: int = 0
     late_starts: int = 0  # motions whose first point was due before it reached the data plane
+    start_shifts: int = 0  # starts moved on by whole windows: their update waited for another's
     late_stops: int = 0  # stops in place after the command window they were planned from began
     not_at_goal: int = 0  # motions that ran to their end with the robot read elsewhere (failed)
     stopped_on_link: int = 0  # robots stopped over the Responsive Link now (a gauge)
@@ -53,6 +54,7 @@ class ControllerService:
             len(ctl.stopped),
             len(ctl.lost),
         )
+        c.start_shifts = ctl.start_shifts
         return c.as_dict()
 
     def _robot(self, name: str) -> int:

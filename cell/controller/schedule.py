@@ -351,6 +351,16 @@ def window_ns(grid: Grid | None) -> int:
     return WINDOW_NS if grid is None else grid[1] * grid[2]
 
 
+def moved_on(start: int, at: int, earliest: int, window: int) -> tuple[int, int]:
+    """A start (and its register time) moved on by whole command windows until the register is at or
+    after `earliest`: its window phase, which the TPs were fitted for, is kept.  (A launch that waited
+    for the data plane behind others: without it, the motion would be in place after its start.)"""
+    if at >= earliest:
+        return start, at
+    shift = -(-(earliest - at) // window) * window
+    return start + shift, at + shift
+
+
 # --- re-planning ------------------------------------------------------------------------------------
 
 

@@ -20,6 +20,7 @@ from cell.controller.schedule import (
     episode_wake,
     grid_start,
     hold_batch,
+    moved_on,
     predict_at,
     status_of,
     stop_limits,
@@ -81,6 +82,22 @@ def test_a_start_is_on_the_robots_tick_grid_its_register_a_quarter_period_early(
     assert at == start - period // 4 and at >= earliest - period // 4
     assert start - (period * w) < earliest + period // 4 <= start  # the first window that fits
     assert grid_start(None, earliest, offset) == (earliest, earliest, None)
+
+
+@pytest.mark.parametrize("waited_ms", [0, 1, 8, 57, 3_400])
+def test_a_start_whose_update_waited_is_moved_on_by_whole_windows(waited_ms: int) -> None:
+    """A launch that waited behind others' updates (a fleet launching hundreds of motions) moves its
+    start on the lead's grid, window phase kept (its TPs were fitted for it): in place before it, not
+    seconds after it."""
+    period, w, offset = 2_000_000, 4, 5_000
+    window = period * w
+    start, at, _ = grid_start((1_000_000_000, period, w), 1_234_567_890, offset)
+    earliest = at + waited_ms * 1_000_000
+    new_start, new_at = moved_on(start, at, earliest, window)
+    assert new_start - new_at == start - at and (new_start - start) % window == 0
+    assert earliest <= new_at < earliest + window  # the first window it can reach, no later
+    assert (new_start == start) == (waited_ms == 0)  # moved only if its time had passed
+    assert moved_on(start, at, at - 1, window) == (start, at)  # in time: unchanged
 
 
 @pytest.mark.parametrize("shift", [0, 30_000, 999_999, 1_000_000, 1_000_001, 5_300_000, -7_100_000])
