@@ -23,10 +23,7 @@ import numpy as np
 from cell.bus import RemoteError
 from cell.controller import prepared, supervision
 from cell.controller.engine import Engine
-from cell.controller.plan import ChainedMotion, Motion, PlanError, SampledMotion, plan_joint, plan_linear
-from cell.controller.schedule import (
-    STOP_JERK,
-    SWITCH_MARGIN_NS,
+from cell.controller.motion import (
     Armed,
     FollowResult,
     Goal,
@@ -39,6 +36,11 @@ from cell.controller.schedule import (
     Segment,
     Switch,
     Track,
+)
+from cell.controller.plan import ChainedMotion, Motion, PlanError, SampledMotion, plan_joint, plan_linear
+from cell.controller.schedule import (
+    STOP_JERK,
+    SWITCH_MARGIN_NS,
     branch_point,
     predict_state,
     stands_at,

@@ -25,10 +25,7 @@ import numpy as np
 from cell.bus import Bus, BusError, RemoteError
 from cell.config import CellConfig
 from cell.controller.link import Link
-from cell.controller.plan import Motion, PlanError
-from cell.controller.robots import RobotBook
-from cell.controller.schedule import (
-    TIDY_NS,
+from cell.controller.motion import (
     Alternate,
     Goal,
     LoopRun,
@@ -38,6 +35,11 @@ from cell.controller.schedule import (
     Segment,
     Switch,
     Track,
+)
+from cell.controller.plan import Motion, PlanError
+from cell.controller.robots import RobotBook
+from cell.controller.schedule import (
+    TIDY_NS,
     beside,
     concat,
     episode_update,

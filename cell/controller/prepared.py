@@ -27,9 +27,7 @@ import asyncio
 import numpy as np
 
 from cell.controller.engine import Engine
-from cell.controller.plan import PlanError, plan_joint, plan_loop
-from cell.controller.schedule import (
-    SWITCH_MARGIN_NS,
+from cell.controller.motion import (
     Alternate,
     Armed,
     LoopRun,
@@ -37,6 +35,10 @@ from cell.controller.schedule import (
     MotionStopped,
     Segment,
     Switch,
+)
+from cell.controller.plan import PlanError, plan_joint, plan_loop
+from cell.controller.schedule import (
+    SWITCH_MARGIN_NS,
     concat,
     hold_batch,
     modelled_at,

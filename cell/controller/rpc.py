@@ -13,8 +13,11 @@ import numpy as np
 
 from cell.bus import BusError, RemoteError, RpcFault
 from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
+from cell.controller.motion import (
+    FollowResult,
+    NotAtGoal,
+)
 from cell.controller.plan import PlanError
-from cell.controller.schedule import FollowResult, NotAtGoal
 from cell.counters import Counters
 from cell.robot.kinematics import Unreachable
 from cell.robot.pose import from_adept, to_adept

@@ -16,13 +16,15 @@ import numpy as np
 from cell.bus import Bus
 from cell.controller.link import Link
 from cell.controller.loop import LoopModel
+from cell.controller.motion import (
+    MotionResult,
+    Segment,
+    Track,
+)
 from cell.controller.plan import MotionLimits
 from cell.controller.schedule import (
     STOP_MARGIN_NS,
-    MotionResult,
-    Segment,
     StopPlan,
-    Track,
     concat,
     status_of,
     stop_limits,

@@ -13,10 +13,12 @@ import pytest
 
 from cell.bench.loopsim import PERIOD_NS, WINDOW, Loop
 from cell.controller.loop import trackable_accel
-from cell.controller.plan import plan_joint
-from cell.controller.schedule import (
+from cell.controller.motion import (
     Segment,
     Track,
+)
+from cell.controller.plan import plan_joint
+from cell.controller.schedule import (
     predict_at,
     predict_state,
     stop_limits,

@@ -6,12 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.controller.plan import MotionLimits, plan_joint
-from cell.controller.schedule import (
+from cell.controller.motion import (
     HOLD_S,
-    STALE_STATUS_NS,
     Segment,
     Track,
+)
+from cell.controller.plan import MotionLimits, plan_joint
+from cell.controller.schedule import (
+    STALE_STATUS_NS,
     beside,
     branch_point,
     concat,
