@@ -17,6 +17,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from time import perf_counter_ns
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -35,6 +36,7 @@ from cell.modular.vdc import (
     carried_force,
 )
 
+M = TypeVar("M", A, B, C, D)  # one of the four messages
 DELAY_STEPS = 1  # MuJoCo steps from a cycle's start to its torques acting (0.25 ms)
 
 
@@ -47,6 +49,37 @@ class Faults:
     late_module: int | None = None
     late_share: float = 0.0
     seed: int = 1
+
+
+class Link(Protocol):
+    """How the four messages cross between modules and master: what the receiver gets (None: lost on
+    the way).  `InMemory` hands them over as they are; cell.modular.wire.SnpLink carries them as
+    SnP-MrT packets over UDP sockets."""
+
+    def new_cycle(self) -> None: ...
+    def a(self, i: int, a: A) -> A | None: ...
+    def b(self, i: int, b: B) -> B | None: ...
+    def c(self, i: int, c: C) -> C | None: ...
+    def d(self, i: int, d: D) -> D | None: ...
+
+
+class InMemory:
+    """The messages as they are (the figures' default: the loss is the Faults')."""
+
+    def new_cycle(self) -> None:
+        pass
+
+    def a(self, i: int, a: A) -> A:
+        return a
+
+    def b(self, i: int, b: B) -> B:
+        return b
+
+    def c(self, i: int, c: C) -> C:
+        return c
+
+    def d(self, i: int, d: D) -> D:
+        return d
 
 
 @dataclass
@@ -101,8 +134,10 @@ class VdcArm:
         where: tuple[str, ...] = (WHERE_MASTER,) * 6,
         gains: Gains | None = None,
         believed: float = 1.0,
+        link: Link | None = None,
     ) -> None:
         self.arm = arm = ModularArm(q0)
+        self.link = link or InMemory()
         self.faults, self.where = faults, where
         gains = gains or Gains()
         self.rng = np.random.default_rng(faults.seed)
@@ -128,9 +163,22 @@ class VdcArm:
         late = kind in ("A", "C") and module == f.late_module and self.rng.random() < f.late_share
         gone = late or (f.loss > 0 and self.rng.random() < f.loss) or module in self.unplugged
         if gone:
-            self.guessed[kind] += 1
-            self.guessed_by[module] += 1
+            self.count_guess(module, kind)
         return gone
+
+    def count_guess(self, module: int, kind: str) -> None:
+        self.guessed[kind] += 1
+        self.guessed_by[module] += 1
+
+    def via(self, module: int, kind: str, message, send):
+        """The message as its receiver gets it through the link; None if lost (by the faults, or by
+        the link on the way), counted as a guess."""
+        if self.lost(module, kind):
+            return None
+        got = send(module, message)
+        if got is None:
+            self.count_guess(module, kind)
+        return got
 
     def unplug(self, module: int) -> None:
         self.unplugged[module] = float(self.arm.data.qpos[module])
@@ -144,16 +192,19 @@ class VdcArm:
         arm, n_mod, lost, where = self.arm, self.dof, self.lost, self.where
         master, modules = self.master, self.modules
         t_a = perf_counter_ns()
+        link = self.link
+        link.new_cycle()
         q, qd = arm.q, arm.qd
         # A: every module's joint, or the master's guess of it
         a = []
         for i in range(n_mod):
-            self.a_lost[i] = gone = lost(i, "A")
-            if gone:
+            got = self.via(i, "A", A(float(q[i]), float(qd[i])), link.a)
+            self.a_lost[i] = got is None
+            if got is None:
                 p = self.last_a[i]
                 a.append(A(p.q + p.qd * CYCLE_S, p.qd))
             else:
-                a.append(A(float(q[i]), float(qd[i])))
+                a.append(got)
         self.last_a = a
         t_b = perf_counter_ns()
         # B: the forward recursion, or each module's extrapolation of its last
@@ -161,16 +212,19 @@ class VdcArm:
         b = []
         for i in range(n_mod):
             prev = self.last_b[i]
-            if prev is not None and lost(i, "B"):
+            got = link.b(i, b_sent[i]) if prev is None else self.via(i, "B", b_sent[i], link.b)
+            if got is None and prev is not None:
                 b.append(B(prev.qd_r + prev.qdd_r * CYCLE_S, prev.qdd_r, prev.v_r + prev.a_r * CYCLE_S,
                            prev.a_r, prev.v))  # fmt: skip
             else:
-                b.append(b_sent[i])
+                b.append(got if got is not None else b_sent[i])
         self.last_b = b
         t_c = perf_counter_ns()
         # C: each body's required net force (the master's copy, or its last)
         c = [modules[i].net_force(b[i], CYCLE_S) for i in range(n_mod)]
-        c_master = [self.last_c[i] if lost(i, "C") else c[i] for i in range(n_mod)]
+        c_master = [
+            self.last_c[i] if (got := self.via(i, "C", c[i], link.c)) is None else got for i in range(n_mod)
+        ]
         self.last_c = c_master
         t_d = perf_counter_ns()
         # [C, D] from the tip in: by the master, or by the module with its neighbour's force
@@ -181,7 +235,8 @@ class VdcArm:
         last_d, last_f = self.last_d, self.last_f
         for i in range(n_mod - 1, -1, -1):
             if where[i] == WHERE_MASTER:
-                tau_r[i] = last_d[i].tau_r if lost(i, "D") else d_master[i].tau_r
+                got = self.via(i, "D", d_master[i], link.d)
+                tau_r[i] = last_d[i].tau_r if got is None else got.tau_r
                 last_d[i] = D(tau_r[i])
                 f_now[i] = master.forces[i]
                 continue
@@ -210,11 +265,12 @@ def track_vdc(
     where: tuple[str, ...] = (WHERE_MASTER,) * 6,
     gains: Gains | None = None,
     believed: float = 1.0,
+    link: Link | None = None,
 ) -> Tracking:
     """VDC over the four messages, [C, D] computed where `where` says per module; believed: the
     modules' own mass properties as this share of the arm's (1: exact; gains.adapt > 0 adapts
-    them as the arm moves)."""
-    vdc = VdcArm(ref.q[0], faults, where, gains, believed)
+    them as the arm moves); link: how the messages cross (default: in memory)."""
+    vdc = VdcArm(ref.q[0], faults, where, gains, believed, link)
     run = _record(vdc.arm, ref, "vdc")
     for k in range(len(ref.t)):
         run.q[k], run.tool[k] = vdc.arm.q, vdc.arm.tool_position()
