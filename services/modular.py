@@ -54,12 +54,12 @@ async def run(ctx: ServiceContext) -> None:
 
     async def move(req: pb.ModularMoveRequest) -> pb.ModularMoveReply:
         try:
-            m = robot.move(
+            robot.move(
                 joints=list(req.joints), tool=list(req.tool), path=req.path, speed=req.speed or c.speed_rad_s
             )
         except MotionRefused as exc:
             raise RpcFault("refused", str(exc)) from None
-        del m  # (the robot holds it; its end comes from the clock's loop)
+        # (the robot holds the motion; its end comes from the clock's loop below)
         waiting.append(asyncio.get_running_loop().create_future())
         e = await waiting[-1]
         if e.failed:

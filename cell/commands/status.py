@@ -22,9 +22,11 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 def modular_modules(st) -> list[str]:
     """The modular robot's modules and their states, from its service's counters ("j3 unplugged")."""
-    from cell.modular.robot import STATES, ModularRobot
-
     counters = {k: v for s in st.services if s.name == "modular" for k, v in s.last.counters.items()}
+    if not counters:
+        return []
+    from cell.modular.robot import STATES, ModularRobot  # (MuJoCo and all: only for a modular robot)
+
     return [
         f"{name} {STATES[int(counters[key])]}"
         for name in ModularRobot.NAMES
