@@ -17,6 +17,7 @@ import numpy as np
 
 from cell.bus import RpcFault
 from cell.modular.robot import Ended, ModularRobot, MotionRefused
+from cell.modular.wire import SnpLink
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import modular_pb2 as pb
 
@@ -43,10 +44,14 @@ def status(robot: ModularRobot, late: int) -> pb.ModularStatus:
 
 async def run(ctx: ServiceContext) -> None:
     c = ctx.config.modular
+    link = SnpLink() if c.transport == "snp" else None
     robot = ModularRobot(
         np.array(c.q0), loss=c.loss, where=tuple(c.where),
-        suspect_cycles=c.suspect_cycles, lost_cycles=c.lost_cycles,
+        suspect_cycles=c.suspect_cycles, lost_cycles=c.lost_cycles, link=link,
     )  # fmt: skip
+    if link is not None:
+        ctx.log.info("modular robot: its messages as SnP-MrT packets, master on udp %s:%d",
+                     *link.master.getsockname())  # fmt: skip
     for path in ("pick-and-place", "circle"):  # (their IK before the cycles start, not in one)
         await asyncio.to_thread(robot.named, path)
     waiting: list[asyncio.Future[Ended]] = []  # the motion under way's requester (one at a time)
@@ -107,32 +112,39 @@ async def run(ctx: ServiceContext) -> None:
         )  # fmt: skip
 
     ctx.ready()
-    t0 = time.monotonic_ns()
-    done = 0
-    next_report = 0
-    while True:
-        now = time.monotonic_ns()
-        due = (now - t0) // CYCLE_NS + 1
-        if due - done > CATCH_UP:  # stalled: the arm's time falls behind the clock's
-            late += due - done - CATCH_UP
-            t0 += (due - done - CATCH_UP) * CYCLE_NS
-            due = done + CATCH_UP
-        late += max(0, due - done - 1)  # (every cycle but the newest ran after its time)
-        while done < due:
-            ended = robot.cycle()
-            done += 1
-            if ended is not None:
-                for fut in waiting:
-                    if not fut.done():  # (its requester may have gone)
-                        fut.set_result(ended)
-                waiting.clear()
-            if done % every == 0:
-                publish()
-        if now >= next_report:
-            ctx.counters.update(robot.counters())
-            ctx.counters["modular.late_cycles"] = late
-            next_report = now + int(ctx.config.services.heartbeat_s / 2 * 1e9)
-        await asyncio.sleep(max(0, t0 + done * CYCLE_NS - time.monotonic_ns()) / 1e9)
+    try:
+        t0 = time.monotonic_ns()
+        done = 0
+        next_report = 0
+        while True:
+            now = time.monotonic_ns()
+            due = (now - t0) // CYCLE_NS + 1
+            if due - done > CATCH_UP:  # stalled: the arm's time falls behind the clock's
+                late += due - done - CATCH_UP
+                t0 += (due - done - CATCH_UP) * CYCLE_NS
+                due = done + CATCH_UP
+            late += max(0, due - done - 1)  # (every cycle but the newest ran after its time)
+            while done < due:
+                ended = robot.cycle()
+                done += 1
+                if ended is not None:
+                    for fut in waiting:
+                        if not fut.done():  # (its requester may have gone)
+                            fut.set_result(ended)
+                    waiting.clear()
+                if done % every == 0:
+                    publish()
+            if now >= next_report:
+                ctx.counters.update(robot.counters())
+                ctx.counters["modular.late_cycles"] = late
+                if link is not None:
+                    ctx.counters.update(link.report())
+                next_report = now + int(ctx.config.services.heartbeat_s / 2 * 1e9)
+            await asyncio.sleep(max(0, t0 + done * CYCLE_NS - time.monotonic_ns()) / 1e9)
+
+    finally:
+        if link is not None:
+            link.close()
 
 
 SERVICE = ServiceSpec(

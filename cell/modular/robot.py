@@ -20,7 +20,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from cell.modular.loop import Faults, VdcArm
+from cell.modular.loop import Faults, Link, VdcArm
 from cell.modular.reference import Q_HOME, Reference, circle, joint_move, pick_and_place
 from cell.modular.vdc import WHERE_MASTER
 from cell.robot.arm import arm_model
@@ -82,8 +82,9 @@ class ModularRobot:
         suspect_cycles: int = 3,
         lost_cycles: int = 20,
         seed: int = 1,
+        link: Link | None = None,
     ) -> None:
-        self.vdc = VdcArm(np.asarray(q0, float), Faults(loss=loss, seed=seed), where)
+        self.vdc = VdcArm(np.asarray(q0, float), Faults(loss=loss, seed=seed), where, link=link)
         self.where = where
         self.suspect_cycles, self.lost_cycles = suspect_cycles, lost_cycles
         self.silent = np.zeros(6, dtype=np.int64)  # cycles in a row without the module's A

@@ -17,8 +17,10 @@ shape, or answers another query, is counted and taken as lost (the loop then gue
 
 from __future__ import annotations
 
+import itertools
 import socket
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,7 +58,8 @@ class LinkCounters:
     datagrams: int = 0
     bytes: int = 0
     refused: int = 0  # datagrams that did not decode as the message wanted (taken as lost)
-    transit_ns: list[int] = field(default_factory=list)  # per cycle: its 24 messages, encode to decode
+    # per cycle: its 24 messages, encode to decode (the last 200,000 cycles: a service runs for days)
+    transit_ns: deque[int] = field(default_factory=lambda: deque(maxlen=200_000))
 
 
 class SnpLink:
@@ -77,6 +80,17 @@ class SnpLink:
         self._asked = [0] * modules  # each module's query in flight
         self._cycle_ns = 0
         self._t = 0  # the cycle's timestamp (ns, cycle count x 1 ms)
+
+    def report(self) -> dict[str, float]:
+        """For a service's heartbeat: the packets so far, those refused (and guessed), and the p99 of
+        what a cycle's 24 messages took over the last 1,000 cycles."""
+        c = self.counters
+        recent = list(itertools.islice(reversed(c.transit_ns), 1000)) or [0]
+        return {
+            "modular.datagrams": c.datagrams,
+            "modular.refused": c.refused,
+            "modular.exchange_us_p99": float(np.percentile(recent, 99)) / 1e3,
+        }
 
     def close(self) -> None:
         for s in (self.master, *self.modules):

@@ -15,7 +15,9 @@ from tests.conftest import run_cell
 async def test_a_task_script_moves_it_and_the_cli_unplugs_and_plugs_a_module(start_cell, tmp_path) -> None:
     rrd = tmp_path / "modular.rrd"
     cell = await start_cell(
-        run=["bus", "modular", "recorder"], sections={"recorder": {"mode": "save", "path": str(rrd)}}
+        run=["bus", "modular", "recorder"],
+        # (its messages as SnP-MrT packets between UDP sockets, not handed over in memory)
+        sections={"recorder": {"mode": "save", "path": str(rrd)}, "modular": {"transport": "snp"}},
     )
     cfg = str(cell.path)
     script = tmp_path / "move.py"
@@ -46,6 +48,10 @@ async def test_a_task_script_moves_it_and_the_cli_unplugs_and_plugs_a_module(sta
     assert refused.returncode == 2 and "refused: module j2 unplugged" in refused.stderr, refused.stderr
     status = await asyncio.to_thread(run_cell, "status", "--config", cfg)
     assert "MODULAR ROBOT (j1 running  j2 unplugged  j3 running" in status.stdout, status.stdout
+    st = json.loads((await asyncio.to_thread(run_cell, "status", "--json", "--config", cfg)).stdout)
+    counters = next(s["last"]["counters"] for s in st["services"] if s["name"] == "modular")
+    # every cycle's 24 messages went as packets (by the script's status; j2's 4 a cycle stop once pulled)
+    assert counters["modular.datagrams"] >= 24 * (got["cycles"] - 100) and counters["modular.refused"] == 0
     bad = await asyncio.to_thread(run_cell, "modular", "plug", "j7", "--config", cfg)
     assert bad.returncode == 2 and "no module 'j7'" in bad.stderr
     out = await asyncio.to_thread(run_cell, "modular", "plug", "j2", "--config", cfg)
