@@ -10,7 +10,9 @@ telemetry on dataplane/counters once a second.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 
+from cell.bus import BusError
 from cell.dataplane.plane import DataPlane, PlaneNode, XdpDataPlane
 from cell.dataplane.tables import NO_ROW
 from cell.service import ServiceContext, ServiceSpec
@@ -46,6 +48,19 @@ async def run(ctx: ServiceContext) -> None:
                     events.add_robot(msg.robot_id)
                     ctx.log.info("robot %s (id %d) joined", msg.name, msg.robot_id)
 
+        async def held() -> None:
+            """Robots the Responsive Link's hub holds stopped (an e-stop this process, restarted, did not
+            see): REG_stop set again.  No hub answering (a fresh start): nothing is held."""
+            hosts = (ctx.config.services.run, *(h.run for h in ctx.config.hosts.values()))
+            if not any("rlink" in run for run in hosts):
+                return
+            with contextlib.suppress(BusError, TimeoutError):
+                reply = await bus.request("rlink", "held", robot_pb2.HeldRequest(), robot_pb2.HeldReply)
+                if reply.robot_ids:
+                    events.restore(list(reply.robot_ids), list(reply.emergency))
+                    ctx.log.warning("robots %s are held stopped by the Responsive Link: REG_stop set again",
+                                    list(reply.robot_ids))  # fmt: skip
+
         async def telemetry() -> None:
             while True:
                 await asyncio.sleep(ctx.config.services.heartbeat_s / 2)  # (twice a heartbeat)
@@ -61,6 +76,7 @@ async def run(ctx: ServiceContext) -> None:
             tg.create_task(events.run(), name="events")
             tg.create_task(control(), name="control")
             tg.create_task(telemetry(), name="telemetry")
+            tg.create_task(held(), name="held")
     finally:
         plane.close()
         events.close()

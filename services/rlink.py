@@ -15,11 +15,13 @@ import asyncio
 
 from cell.rlink.hub import Hub
 from cell.service import ServiceContext, ServiceSpec
+from cell.v1 import robot_pb2
 
 
 async def run(ctx: ServiceContext) -> None:
     hub = Hub(ctx.config, ctx.bus)
     try:
+        await ctx.bus.serve("rlink", {"held": (robot_pb2.HeldRequest, hub.held_reply)})
         async with asyncio.TaskGroup() as tg:
             tg.create_task(hub.link.run(), name="rlink")
             tg.create_task(hub.beacon(), name="beacon")

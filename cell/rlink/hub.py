@@ -43,6 +43,9 @@ class Hub:
         node = Node(self.address, topo.table("hub"))
         self.link = NodeLink(node, topo.links("hub"), self.on_event, host=topo.host)
         self.stopped: dict[int, str] = {}  # robot -> why, as the robots report it
+        # robot -> e-stop (True) or stop: ordered through the hub, not yet released by a resume (a node
+        # that restarts, the data plane's, asks for it: rlink.held)
+        self.held: dict[int, bool] = {}
         self.counters = HubCounters()
 
     def close(self) -> None:
@@ -56,6 +59,11 @@ class Hub:
             if p.type in (EventType.ESTOP, EventType.STOP, EventType.RESUME, EventType.START):
                 self.counters.orders += 1
                 named = events.decode_set(p.payload).ids(self.names.keys())
+                for rid in named:
+                    if p.type == EventType.RESUME:
+                        self.held.pop(rid, None)
+                    elif p.type in _ORDERS:  # (an e-stop outranks a stop)
+                        self.held[rid] = self.held.get(rid, False) or p.type == EventType.ESTOP
                 if p.type in _ORDERS:
                     for rid in named:
                         self._tell(rid, _ORDERS[EventType(p.type)], f"{EventType(p.type).name} ordered")
@@ -75,6 +83,10 @@ class Hub:
                     self._tell(rep.robot, _STATES[rep.state], text)
         except EventError:
             self.counters.bad_events += 1
+
+    def held_reply(self, _req: robot_pb2.HeldRequest | None = None) -> robot_pb2.HeldReply:
+        ids = sorted(self.held)
+        return robot_pb2.HeldReply(robot_ids=ids, emergency=[self.held[r] for r in ids])
 
     def _tell(self, robot: int, kind: int, text: str) -> None:
         name = self.names.get(robot)

@@ -13,6 +13,7 @@ import time
 
 from cell.config import CellConfig
 from cell.rlink.cellnet import Topology
+from cell.rlink.events import Reason
 from cell.rlink.link import NodeLink, link_counters
 from cell.rlink.node import Node
 from cell.rlink.packet import Packet
@@ -32,6 +33,15 @@ class LeafNode:
 
     def close(self) -> None:
         self.link.close()
+
+    def restore(self, robots: list[int], emergency: list[bool]) -> None:
+        """Robots the hub holds stopped (rlink.held) while this node was away (a restart): stopped here
+        too, as the orders it missed would have, until a resume names them."""
+        for rid, em in zip(robots, emergency, strict=True):
+            if rid in self.station.robots and rid not in self.station.stopped:
+                reason = Reason.ESTOP if em else Reason.STOP
+                self.station.stopped[rid] = reason
+                self.apply(Order(True, [rid], reason, em))
 
     def on_event(self, p: Packet) -> None:
         order = self.station.on_event(p, time.monotonic_ns())

@@ -138,3 +138,15 @@ class SilenceReply(_message.Message):
     UNTIL_NS_FIELD_NUMBER: _ClassVar[int]
     until_ns: int
     def __init__(self, until_ns: _Optional[int] = ...) -> None: ...
+
+class HeldRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class HeldReply(_message.Message):
+    __slots__ = ("robot_ids", "emergency")
+    ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    EMERGENCY_FIELD_NUMBER: _ClassVar[int]
+    robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    emergency: _containers.RepeatedScalarFieldContainer[bool]
+    def __init__(self, robot_ids: _Optional[_Iterable[int]] = ..., emergency: _Optional[_Iterable[bool]] = ...) -> None: ...

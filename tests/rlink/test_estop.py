@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
+import os
+import signal
 import time
 
 import numpy as np
 import pytest
 
-from cell.bus import Bus
+from cell.bus import Bus, BusError
+from cell.dataplane.client import DataplaneClient
 from cell.launcher import fetch_status
 from cell.rlink.client import EventClient
 from cell.skills.protocol import Done, Error
@@ -165,3 +169,29 @@ async def test_a_stop_that_comes_late_behind_a_newer_release_is_not_obeyed(cell)
         moved, arrived = await r1.replies(2, timeout=20)
         assert isinstance(moved, Done) and isinstance(arrived, Done), (moved, arrived)
     r1.close()
+
+
+async def test_a_data_plane_restarted_during_an_estop_holds_the_robot_stopped_until_resume(cell) -> None:
+    """The data plane's process dies while r1 is e-stopped: the new one asks the hub what it holds
+    (rlink.held) and sets r1's REG_stop again, r2 untouched; the resume then releases it as usual."""
+    config = cell.config
+    async with EventClient(config) as link, Bus.connect(config.bus, "test") as bus:
+        dp = DataplaneClient(bus)
+        await link.estop(["r1"])
+        before = await dp.state([1, 2], robots_only=True)
+        assert [r.stopped for r in before.robots] == [True, False]
+        pid = next(s.last.pid for s in (await fetch_status(config)).services if s.name == "dataplane")
+        os.kill(pid, signal.SIGKILL)
+        deadline, after = time.monotonic() + 20, None
+        while time.monotonic() < deadline:  # a new data plane (another boot id) with r1 held
+            with contextlib.suppress(BusError, TimeoutError):
+                st = await dp.state([1, 2], robots_only=True, timeout=0.5)
+                if st.boot_id != before.boot_id and st.robots and st.robots[0].stopped:
+                    after = st
+                    break
+            await asyncio.sleep(0.05)
+        assert after is not None, "the restarted data plane did not hold r1 stopped"
+        assert [r.stopped for r in after.robots] == [True, False]
+        await link.resume(["r1"])
+        released = await dp.state([1, 2], robots_only=True)
+        assert [r.stopped for r in released.robots] == [False, False]
