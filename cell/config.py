@@ -618,6 +618,10 @@ class CellConfig:
                 "dataplane and rlink must run on one host (the data plane's link node binds [rlink] host)",
             )
 
+    def runs(self, service: str) -> bool:
+        """Whether the cell runs `service`: on this host, or on any of its [hosts]."""
+        return service in self.services.run or any(service in h.run for h in self.hosts.values())
+
     def here(self) -> HostConfig | None:
         """This host, in a cell of several (None: the cell has one)."""
         return self.hosts.get(self.cell.host)

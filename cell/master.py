@@ -253,8 +253,7 @@ async def run_script(
         bus = await stack.enter_async_context(Bus.connect(config.bus, f"run-{os.getpid()}"))
         robots: dict[str, RobotClient] = {}
         host = config.skills.host
-        skills = "skills" in config.services.run or any("skills" in h.run for h in config.hosts.values())
-        for r in config.robots if skills else ():  # (a cell without skill servers: no robot clients)
+        for r in config.robots if config.runs("skills") else ():  # (no skill servers: no robot clients)
             client = RobotClient(r.name, host, r.skill_port, bus)
             try:
                 await client.connect(timeout=10.0)

@@ -51,8 +51,7 @@ async def run(ctx: ServiceContext) -> None:
         async def held() -> None:
             """Robots the Responsive Link's hub holds stopped (an e-stop this process, restarted, did not
             see): REG_stop set again.  No hub answering (a fresh start): nothing is held."""
-            hosts = (ctx.config.services.run, *(h.run for h in ctx.config.hosts.values()))
-            if not any("rlink" in run for run in hosts):
+            if not ctx.config.runs("rlink"):
                 return
             with contextlib.suppress(BusError, TimeoutError):
                 reply = await bus.request("rlink", "held", robot_pb2.HeldRequest(), robot_pb2.HeldReply)

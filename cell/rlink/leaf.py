@@ -13,7 +13,6 @@ import time
 
 from cell.config import CellConfig
 from cell.rlink.cellnet import Topology
-from cell.rlink.events import Reason
 from cell.rlink.link import NodeLink, link_counters
 from cell.rlink.node import Node
 from cell.rlink.packet import Packet
@@ -37,11 +36,10 @@ class LeafNode:
     def restore(self, robots: list[int], emergency: list[bool]) -> None:
         """Robots the hub holds stopped (rlink.held) while this node was away (a restart): stopped here
         too, as the orders it missed would have, until a resume names them."""
-        for rid, em in zip(robots, emergency, strict=True):
-            if rid in self.station.robots and rid not in self.station.stopped:
-                reason = Reason.ESTOP if em else Reason.STOP
-                self.station.stopped[rid] = reason
-                self.apply(Order(True, [rid], reason, em))
+        for em in (True, False):
+            mine = [r for r, e in zip(robots, emergency, strict=True) if e == em and r in self.station.robots]
+            if mine:
+                self.apply(self.station.stop(mine, em))
 
     def on_event(self, p: Packet) -> None:
         order = self.station.on_event(p, time.monotonic_ns())

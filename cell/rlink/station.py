@@ -74,14 +74,19 @@ class Station:
                 c.estops += 1
             else:
                 c.stops += 1
-            reason = Reason.ESTOP if emergency else Reason.STOP
-            for r in named:
-                # an e-stop outranks a stop; a commanded stop outranks the watchdog's
-                if self.stopped.get(r) != Reason.ESTOP:
-                    self.stopped[r] = reason
-            return Order(True, named, reason, emergency, p.src, token)
+            return self.stop(named, emergency, p.src, token)
         c.resumes += 1
         return self._resume(named, Reason.RESUME, p, token)
+
+    def stop(self, robots: list[int], emergency: bool, requester: int = 0, token: int = 0) -> Order:
+        """The order for an e-stop or stop of these robots (from an event, or the hub's account of the
+        ones this node missed: LeafNode.restore), held until a resume names them."""
+        reason = Reason.ESTOP if emergency else Reason.STOP
+        for r in robots:
+            # an e-stop outranks a stop; a commanded stop outranks the watchdog's
+            if self.stopped.get(r) != Reason.ESTOP:
+                self.stopped[r] = reason
+        return Order(True, robots, reason, emergency, requester, token)
 
     def _resume(self, robots: list[int], reason: Reason, p: Packet, token: int = 0) -> Order:
         for r in robots:
