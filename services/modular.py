@@ -16,12 +16,12 @@ import time
 import numpy as np
 
 from cell.bus import RpcFault
+from cell.modular.reference import CYCLE_NS
 from cell.modular.robot import Ended, ModularRobot, MotionRefused
 from cell.modular.wire import SnpLink
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import modular_pb2 as pb
 
-CYCLE_NS = 1_000_000
 CATCH_UP = 50  # cycles run in one wake-up at most (a longer stall: the arm's time falls behind)
 
 
@@ -33,7 +33,7 @@ def status(robot: ModularRobot, late: int) -> pb.ModularStatus:
         ],
         cycles=robot.cycles,
         late_cycles=late,
-        cycle_us_mean=robot.cycle_ns_sum / max(robot.cycles, 1) / 1e3,
+        cycle_us_mean=robot.cycle_us_mean,
         cycle_us_max=robot.cycle_ns_max / 1e3,
         q=robot.vdc.arm.q.tolist(),
         tool=robot.vdc.arm.tool_position().tolist(),
@@ -45,6 +45,15 @@ def status(robot: ModularRobot, late: int) -> pb.ModularStatus:
 async def run(ctx: ServiceContext) -> None:
     c = ctx.config.modular
     link = SnpLink() if c.transport == "snp" else None
+    try:
+        await _run(ctx, link)
+    finally:
+        if link is not None:
+            link.close()
+
+
+async def _run(ctx: ServiceContext, link: SnpLink | None) -> None:
+    c = ctx.config.modular
     robot = ModularRobot(
         np.array(c.q0), loss=c.loss, where=tuple(c.where),
         suspect_cycles=c.suspect_cycles, lost_cycles=c.lost_cycles, link=link,
@@ -112,39 +121,34 @@ async def run(ctx: ServiceContext) -> None:
         )  # fmt: skip
 
     ctx.ready()
-    try:
-        t0 = time.monotonic_ns()
-        done = 0
-        next_report = 0
-        while True:
-            now = time.monotonic_ns()
-            due = (now - t0) // CYCLE_NS + 1
-            if due - done > CATCH_UP:  # stalled: the arm's time falls behind the clock's
-                late += due - done - CATCH_UP
-                t0 += (due - done - CATCH_UP) * CYCLE_NS
-                due = done + CATCH_UP
-            late += max(0, due - done - 1)  # (every cycle but the newest ran after its time)
-            while done < due:
-                ended = robot.cycle()
-                done += 1
-                if ended is not None:
-                    for fut in waiting:
-                        if not fut.done():  # (its requester may have gone)
-                            fut.set_result(ended)
-                    waiting.clear()
-                if done % every == 0:
-                    publish()
-            if now >= next_report:
-                ctx.counters.update(robot.counters())
-                ctx.counters["modular.late_cycles"] = late
-                if link is not None:
-                    ctx.counters.update(link.report())
-                next_report = now + int(ctx.config.services.heartbeat_s / 2 * 1e9)
-            await asyncio.sleep(max(0, t0 + done * CYCLE_NS - time.monotonic_ns()) / 1e9)
-
-    finally:
-        if link is not None:
-            link.close()
+    t0 = time.monotonic_ns()
+    done = 0
+    next_report = 0
+    while True:
+        now = time.monotonic_ns()
+        due = (now - t0) // CYCLE_NS + 1
+        if due - done > CATCH_UP:  # stalled: the arm's time falls behind the clock's
+            late += due - done - CATCH_UP
+            t0 += (due - done - CATCH_UP) * CYCLE_NS
+            due = done + CATCH_UP
+        late += max(0, due - done - 1)  # (every cycle but the newest ran after its time)
+        while done < due:
+            ended = robot.cycle()
+            done += 1
+            if ended is not None:
+                for fut in waiting:
+                    if not fut.done():  # (its requester may have gone)
+                        fut.set_result(ended)
+                waiting.clear()
+            if done % every == 0:
+                publish()
+        if now >= next_report:
+            ctx.counters.update(robot.counters())
+            ctx.counters["modular.late_cycles"] = late
+            if link is not None:
+                ctx.counters.update(link.report())
+            next_report = now + int(ctx.config.services.heartbeat_s / 2 * 1e9)
+        await asyncio.sleep(max(0, t0 + done * CYCLE_NS - time.monotonic_ns()) / 1e9)
 
 
 SERVICE = ServiceSpec(

@@ -341,7 +341,6 @@ def run(
         "path_failover_ms": failover_ms(),
         **{f"cd_cycle_us_{w}": cd_cycle_us(w, slaves) for w in ("master", "neighbour", "local")},
         "vdc": [dataclasses.asdict(row) for row in vdc.rows] if vdc is not None else [],
-        "vdc_carried": dataclasses.asdict(vdc.carried) if vdc is not None and vdc.carried else None,
         "slaves": slaves,
         "seconds": seconds,
         "modules": "c" if native else "python",
@@ -384,10 +383,10 @@ def _ms(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.3f} ms"
 
 
-def _tracking_text(rows: list[dict[str, Any]], carried: dict[str, Any] | None) -> str:
-    from cell.modular.experiment import Carried, Row, VdcFigures, format_figures
+def _tracking_text(rows: list[dict[str, Any]], figures: dict[str, Any]) -> str:
+    from cell.modular.experiment import Row, VdcFigures, carried_of, format_figures
 
-    return format_figures(VdcFigures([Row(**row) for row in rows], Carried(**carried) if carried else None))
+    return format_figures(VdcFigures([Row(**row) for row in rows], carried_of(figures)))
 
 
 def format_result(r: dict[str, Any]) -> str:
@@ -441,7 +440,7 @@ def format_result(r: dict[str, Any]) -> str:
             f"{r['cd_cycle_us_local']:.0f} us to a cycle ({HOP_NS / 1e3:g} us a hop; the slides: [A,B,C,D] "
             "within 50 us)",
         ]
-        + ([_tracking_text(r["vdc"], r.get("vdc_carried"))] if r.get("vdc") else [])
+        + ([_tracking_text(r["vdc"], r)] if r.get("vdc") else [])
     )
 
 

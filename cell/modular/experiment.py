@@ -6,7 +6,7 @@ by the modules alone; against the centralised computed-torque controller on the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
@@ -47,7 +47,7 @@ class Row:
 
 
 @dataclass(frozen=True)
-class Carried:
+class Carried:  # (in the figures as vdc_snp_<field>)
     """The four messages as SnP-MrT packets over loopback UDP (cell.modular.wire.SnpLink): what one
     cycle's 24 messages took, encode to decode, and what they were."""
 
@@ -85,13 +85,20 @@ class VdcFigures:
                 {
                     "vdc_snp_tool_error_mm_max": self.worst("vdc", "no loss", OVER_SNP),
                     "vdc_snp_tool_error_mm_max_loss1": self.worst("vdc", "1% loss", OVER_SNP),
-                    "vdc_snp_exchange_us_p50": self.carried.exchange_us_p50,
-                    "vdc_snp_exchange_us_p99": self.carried.exchange_us_p99,
+                    **{f"vdc_snp_{k}": v for k, v in asdict(self.carried).items()},
                 }
                 if self.carried is not None
                 else {}
             ),
         }
+
+
+def carried_of(figures: dict[str, object]) -> Carried | None:
+    """The Carried figures back from a figures dict (vdc_snp_<field>), if it has them."""
+    names = [f.name for f in fields(Carried)]
+    if not all(f"vdc_snp_{n}" in figures for n in names):
+        return None
+    return Carried(**{n: figures[f"vdc_snp_{n}"] for n in names})  # type: ignore[arg-type]
 
 
 def _row(ref: Reference, run: Tracking, case: str, where: str) -> Row:

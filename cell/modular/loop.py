@@ -15,6 +15,7 @@ replaced by a guess from physical continuity (data obsolescence), and counted:
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from time import perf_counter_ns
 from typing import Protocol, TypeVar
@@ -170,7 +171,7 @@ class VdcArm:
         self.guessed[kind] += 1
         self.guessed_by[module] += 1
 
-    def via(self, module: int, kind: str, message, send):
+    def via(self, module: int, kind: str, message: M, send: Callable[[int, M], M | None]) -> M | None:
         """The message as its receiver gets it through the link; None if lost (by the faults, or by
         the link on the way), counted as a guess."""
         if self.lost(module, kind):

@@ -21,7 +21,8 @@ from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics
 
 Q_HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
-CYCLE_S = 0.001  # the control cycle (the slides' 1 ms [A,B,C,D] cycle)
+CYCLE_NS = 1_000_000  # the control cycle (the slides' 1 ms [A,B,C,D] cycle)
+CYCLE_S = CYCLE_NS / 1e9
 
 
 @dataclass(frozen=True)

@@ -235,11 +235,16 @@ class ModularRobot:
         elif not gone and self.stopped and all(s is ModuleState.RUNNING for s in self.states):
             self.stopped = ""  # every module back: motions are taken again (from where it holds)
 
+    @property
+    def cycle_us_mean(self) -> float:
+        """What a cycle took on average: the VDC arithmetic, its messages and the arm's step."""
+        return self.cycle_ns_sum / max(self.cycles, 1) / 1e3
+
     def counters(self) -> dict[str, float]:
         """For the service's heartbeat (`cell status` reads the modules from them)."""
         out: dict[str, float] = {
             "modular.cycles": self.cycles,
-            "modular.cycle_us_mean": self.cycle_ns_sum / max(self.cycles, 1) / 1e3,
+            "modular.cycle_us_mean": self.cycle_us_mean,
             "modular.cycle_us_max": self.cycle_ns_max / 1e3,
         }
         for name, state, guessed in zip(self.NAMES, self.states, self.vdc.guessed_by, strict=True):

@@ -6,13 +6,14 @@ Each module's cycle is two time-bounded queries, as the slides have it:
 - [C, D]: inputs its body's required net force/moment F*_r (C, six values), wanting its joint's
   torque tau_r (D).
 Values travel as SnP-MrT items (id, 32-bit float, timestamp): the arithmetic on either side is in
-64 bits, the wire rounds to 32.  Item ids are the cell's (robot, quantity, joint) with quantities of
-the modular robot's own (B_BASE + k for B's k-th value, F_BASE + k for F*'s).
+64 bits, the wire rounds to 32.  Item ids are the SnP cycle's (cell.snp.modular.item: its robot,
+a quantity, the joint), with quantities of the modular robot's own for B and F*.
 
 `SnpLink` is a `cell.modular.loop.Link`: each message is encoded, sent from its sender's socket to
 its receiver's (one per module and one for the master, on loopback), received and decoded there,
 and what came out is what the other side uses.  A datagram that does not decode as the wanted
-shape, or answers another query, is counted and taken as lost (the loop then guesses).
+shape, answers another query, belongs to a cycle before or never comes is counted and taken as
+lost (the loop then guesses).
 """
 
 from __future__ import annotations
@@ -25,23 +26,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cell.modular.reference import CYCLE_NS
 from cell.modular.vdc import A, B, C, D
-from cell.snp.packet import Pid, item_id, query_shape, reply_shape
+from cell.snp.modular import TORQUE, item
+from cell.snp.packet import Pid, Quantity, query_shape, reply_shape
 
-ROBOT = 1  # the modular robot's robot id in item ids
-POSITION, VELOCITY = 1, 2  # (the cell's quantities)
-TORQUE = 5
-B_BASE, F_BASE = 16, 48  # B's 20 values: 16..35; F*'s six: 48..53
+B_BASE, F_BASE = 16, 48  # the modular robot's own quantities: B's 20 values 16..35, F*'s 48..53
 A_QUERY, B_REPLY = query_shape(2, 20), reply_shape(20)
 C_QUERY, D_REPLY = query_shape(6, 1), reply_shape(1)
-BUDGET_NS = 1_000_000  # a query's deadline: within the 1 ms cycle
 
 
-def _ids(joint: int) -> tuple[list[int], list[int], list[int]]:
-    a = [item_id(ROBOT, POSITION, joint), item_id(ROBOT, VELOCITY, joint)]
-    b = [item_id(ROBOT, B_BASE + k, joint) for k in range(20)]
-    f = [item_id(ROBOT, F_BASE + k, joint) for k in range(6)]
-    return a, b, f
+def _ids(joint: int) -> tuple[list[int], list[int], list[int], int]:
+    """Joint's item ids (the SnP cycle's robot, cell.snp.modular.item): A's, B's, F*'s, and tau_r's."""
+    a = [item(Quantity.POSITION, joint), item(Quantity.VELOCITY, joint)]
+    b = [item(B_BASE + k, joint) for k in range(20)]
+    f = [item(F_BASE + k, joint) for k in range(6)]
+    return a, b, f, item(TORQUE, joint)
 
 
 def b_values(b: B) -> list[float]:
@@ -74,6 +74,7 @@ class SnpLink:
 
         self.master = sock()
         self.modules = [sock() for _ in range(modules)]
+        self._addr = {s: s.getsockname() for s in (self.master, *self.modules)}
         self.ids = [_ids(j) for j in range(modules)]
         self.counters = LinkCounters()
         self._qid = 0
@@ -97,9 +98,13 @@ class SnpLink:
             s.close()
 
     def _carry(self, src: socket.socket, dst: socket.socket, data: bytes) -> bytes:
+        """The datagram as `dst` reads it (b"": none came: taken as lost, like one that fails to decode)."""
         t0 = time.perf_counter_ns()
-        src.sendto(data, dst.getsockname())
-        got = dst.recv(2048)
+        src.sendto(data, self._addr[dst])
+        try:
+            got = dst.recv(2048)
+        except TimeoutError:
+            got = b""
         self._cycle_ns += time.perf_counter_ns() - t0
         self.counters.datagrams += 1
         self.counters.bytes += len(data)
@@ -109,22 +114,22 @@ class SnpLink:
         if self._cycle_ns:
             self.counters.transit_ns.append(self._cycle_ns)
         self._cycle_ns = 0
-        self._t += 1_000_000
+        self._t += CYCLE_NS
 
     def a(self, i: int, a: A) -> A | None:
-        (pos, vel), b_ids, _ = self.ids[i]
+        (pos, vel), b_ids, _, _ = self.ids[i]
         self._qid = self._asked[i] = (self._qid + 1) & 0xFFFFFFFF
         t = self._t
-        q = A_QUERY.pack(0, Pid.MRT, i + 1, 0, self._qid, t + BUDGET_NS,
+        q = A_QUERY.pack(0, Pid.MRT, i + 1, 0, self._qid, t + CYCLE_NS,
                          (pos, a.q, t, vel, a.qd, t), tuple(x for k in b_ids for x in (k, t)))  # fmt: skip
         f = A_QUERY.parse(self._carry(self.modules[i], self.master, q))
-        if f is None or f[11] != pos or f[14] != vel:
+        if f is None or f[11] != pos or f[14] != vel or f[13] != t:  # (t: not a late one of a cycle before)
             self.counters.refused += 1
             return None
         return A(f[12], f[15])
 
     def b(self, i: int, b: B) -> B | None:
-        _, b_ids, _ = self.ids[i]
+        _, b_ids, _, _ = self.ids[i]
         items = tuple(x for k, v in zip(b_ids, b_values(b), strict=True) for x in (k, v, self._t))
         r = B_REPLY.pack(0, Pid.MRT, 0, i + 1, self._asked[i], items)
         f = B_REPLY.parse(self._carry(self.master, self.modules[i], r))
@@ -134,22 +139,22 @@ class SnpLink:
         return b_of(f[11::3][:20])
 
     def c(self, i: int, c: C) -> C | None:
-        _, _, f_ids = self.ids[i]
+        _, _, f_ids, tau = self.ids[i]
         self._qid = self._asked[i] = (self._qid + 1) & 0xFFFFFFFF
         t = self._t
         inputs = tuple(x for k, v in zip(f_ids, c.f_star, strict=True) for x in (k, float(v), t))
-        q = C_QUERY.pack(0, Pid.MRT, i + 1, 0, self._qid, t + BUDGET_NS, inputs,
-                         (item_id(ROBOT, TORQUE, i), t))  # fmt: skip
+        q = C_QUERY.pack(0, Pid.MRT, i + 1, 0, self._qid, t + CYCLE_NS, inputs, (tau, t))
         f = C_QUERY.parse(self._carry(self.modules[i], self.master, q))
-        if f is None or f[11:29:3] != tuple(f_ids):
+        if f is None or f[11:29:3] != tuple(f_ids) or f[13] != t:
             self.counters.refused += 1
             return None
         return C(np.array(f[12:30:3], dtype=np.float64))
 
     def d(self, i: int, d: D) -> D | None:
-        r = D_REPLY.pack(0, Pid.MRT, 0, i + 1, self._asked[i], (item_id(ROBOT, TORQUE, i), d.tau_r, self._t))
+        tau = self.ids[i][3]
+        r = D_REPLY.pack(0, Pid.MRT, 0, i + 1, self._asked[i], (tau, d.tau_r, self._t))
         f = D_REPLY.parse(self._carry(self.master, self.modules[i], r))
-        if f is None or f[8] != self._asked[i] or f[10] != item_id(ROBOT, TORQUE, i):
+        if f is None or f[8] != self._asked[i] or f[10] != tau:
             self.counters.refused += 1
             return None
         return D(f[11])
