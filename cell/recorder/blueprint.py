@@ -24,12 +24,24 @@ def robot_joints(robot: str) -> rrb.Vertical:
     )
 
 
-def cell_blueprint(robots: Sequence[str], camera: bool = True) -> rrb.Blueprint:
-    """The cell's view: `robots` by name; camera: the vision service runs (its image has a place)."""
+def modular_robot() -> rrb.Vertical:
+    """The modular robot's cycle: the tool against its reference, each cycle's A, B, C, D, guesses."""
+    return rrb.Vertical(
+        rrb.TimeSeriesView(
+            origin="modular", contents=["modular/tool_error_mm"], name="modular: tool error (mm)"
+        ),
+        rrb.TimeSeriesView(origin="modular/cycle_us", name="modular: A, B, C, D a cycle (us)"),
+        rrb.TimeSeriesView(origin="modular/guessed", name="modular: messages guessed, per module"),
+        name="modular",
+    )
+
+
+def cell_blueprint(robots: Sequence[str], camera: bool = True, modular: bool = False) -> rrb.Blueprint:
+    """The cell's view: `robots` by name; camera: the vision service runs (its image has a place);
+    modular: the modular robot runs (drawn beside the arms, its cycle in a tab of its own)."""
+    tabs = [*(robot_joints(r) for r in robots), *([modular_robot()] if modular else [])]
     side: list[rrb.Container | rrb.View] = [
-        rrb.Tabs(*(robot_joints(r) for r in robots), name="joints")
-        if robots
-        else rrb.Vertical(name="joints"),
+        rrb.Tabs(*tabs, name="joints") if tabs else rrb.Vertical(name="joints"),
         rrb.TimeSeriesView(
             origin="dataplane",
             contents=["dataplane/batch_p50_us", "dataplane/batch_p99_us"],
@@ -40,7 +52,9 @@ def cell_blueprint(robots: Sequence[str], camera: bool = True) -> rrb.Blueprint:
         side.append(rrb.Spatial2DView(origin="vision/camera", name="camera"))
     side.append(rrb.TextLogView(origin="events", name="events"))
     cell = rrb.Horizontal(
-        rrb.Spatial3DView(origin="/", contents=["robots/**"], name="cell"),
+        rrb.Spatial3DView(
+            origin="/", contents=["robots/**", *(["modular/**"] if modular else [])], name="cell"
+        ),
         rrb.Vertical(*side, row_shares=[3, 1, 2, 2][: len(side)]),
         column_shares=[3, 2],
         name="cell",

@@ -359,7 +359,8 @@ async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
     cfg = ctx.config.recorder
     rec = open_recording(cfg.mode, cfg.path, ctx.config.cell.name)
     camera = "vision" in ctx.config.services.run
-    rec.send_blueprint(cell_blueprint([r.name for r in ctx.config.robots], camera))
+    modular = "modular" in ctx.config.services.run
+    rec.send_blueprint(cell_blueprint([r.name for r in ctx.config.robots], camera, modular))
     r = Recorder(ctx, rec)
     r.start()
     bus = ctx.bus

@@ -71,3 +71,17 @@ async def test_a_task_script_moves_it_and_the_cli_unplugs_and_plugs_a_module(sta
     assert rows.get("/modular/arm", 0) > 100  # the arm drawn at publish_hz through the run
     assert rows.get("/modular/tool_error_mm", 0) > 100 and rows.get("/modular/cycle_us/C", 0) > 100
     assert rows.get("/modular/guessed/j2", 0) > 0
+
+
+def test_the_live_view_draws_the_modular_robot_only_where_it_runs() -> None:
+    """Rerun draws only what a view of the blueprint holds: the arm in the cell's 3D view and its cycle
+    in a tab of its own when the service runs (its entities were logged, but drawn nowhere, before)."""
+    from cell.recorder.blueprint import cell_blueprint
+
+    def views(modular: bool) -> tuple[list[str], list[str]]:
+        cell = cell_blueprint(["r1"], camera=False, modular=modular).root_container.contents[0]
+        space, side = cell.contents
+        return list(space.contents), [tab.name for tab in side.contents[0].contents]
+
+    assert views(True) == (["robots/**", "modular/**"], ["r1", "modular"])
+    assert views(False) == (["robots/**"], ["r1"])
