@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 
 from cell.bench.registry import Bench, Figures, register
+from cell.modular.cycle import tool_error_mm
+from cell.modular.reference import Reference
 from cell.snp.modular import CycleConfig
 from cell.snp.spacewire import FAILOVER_CYCLES, HOP_NS, cd_cycle_us, failover_ms
 
@@ -66,14 +68,22 @@ def _master(
     done: Any,
     port_q: Any,
     out: Any,
+    reference: Reference | None = None,
 ) -> None:
-    """Runs until the modules are done (done.value), or for `seconds` at most."""
+    """Runs until the modules are done (done.value), or for `seconds` at most; reference: the
+    modular arm's path, tracked by VDC in the cycle (cell.modular.cycle)."""
+    from cell.modular.cycle import VdcMaster
     from cell.snp.modular import Master
     from cell.snp.runner import open_udp, serve_master
 
     _place(0)
     sock = open_udp(timestamps=True)
-    master = Master([("127.0.0.1", p) for p in ports], config, time.monotonic_ns)
+    ports_at = [("127.0.0.1", p) for p in ports]
+    master = (
+        Master(ports_at, config, time.monotonic_ns)
+        if reference is None
+        else VdcMaster(ports_at, config, time.monotonic_ns, reference)
+    )
     port_q.put(sock.getsockname()[1])
     until = time.monotonic() + seconds
     cpu0, wall0 = time.process_time(), time.monotonic()
@@ -91,19 +101,29 @@ def _master(
             "events": list(master.events),
             "lost_on_link": link.lost,
             "cpu": cpu,
+            "start_ns": master.vdc.start_ns if isinstance(master, VdcMaster) else None,
         }
     )
 
 
 def _modules(
-    slots: list[dict], seconds: float, loss: float, grid: tuple[int, int], native: bool, done: Any, out: Any
+    slots: list[dict],
+    seconds: float,
+    loss: float,
+    grid: tuple[int, int],
+    native: bool,
+    done: Any,
+    out: Any,
+    reference: Reference | None = None,
 ) -> None:
+    from cell.modular.cycle import Plant
     from cell.snp.runner import Slot, run_modules
 
     _place(1)
+    plant = Plant(reference.q[0]) if reference is not None else None
     cpu0, wall0 = time.process_time(), time.monotonic()
     # (the host's clock is the master's: the clock samples go in its management slot)
-    ran = run_modules([Slot(**s) for s in slots], seconds, loss, sample_grid=grid, native=native)
+    ran = run_modules([Slot(**s) for s in slots], seconds, loss, sample_grid=grid, native=native, plant=plant)
     done.value = 1  # (the master stops too: its FDIR would count the cycles after as guessed)
     cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
     res = []
@@ -129,7 +149,8 @@ def _modules(
                 "rmap": m.rmap_init.counters.as_dict() if m.rmap_init else {},
             }
         )
-    out.put((res, cpu))
+    records = plant.records if plant is not None else []
+    out.put((res, cpu, records))
 
 
 def _chain(n: int, transport: str, rng: random.Random, **extra: Any) -> list[dict]:
@@ -155,10 +176,12 @@ def trial(
     config: CycleConfig | None = None,
     native: bool = False,
     native_master: bool | None = None,
+    reference: Reference | None = None,
 ) -> dict[str, Any]:
     """One run of a master and the slots' modules on the config's schedule (default: SLOT_NS
-    slots); native: their cycles in C, and the master's unless native_master says otherwise.
-    Every module's record and the master's."""
+    slots); native: their cycles in C, and the master's unless native_master says otherwise;
+    reference: the modules drive the modular arm along it by VDC (cell.modular.cycle), the tool's
+    error against it in "tool_error_mm".  Every module's record and the master's."""
     native_master = native if native_master is None else native_master
     config = config or CycleConfig(slot_ns=SLOT_NS)
     ports = _free_ports(len({s["module_id"] for s in slots}))
@@ -172,19 +195,24 @@ def trial(
     done = ctx.RawValue("b", 0)  # the modules' run is over (read by the master's loop: no lock)
     master = ctx.Process(
         target=_master,
-        args=(ports, seconds + 30, loss, config, native_master, done, port_q, out_m),
+        args=(ports, seconds + 30, loss, config, native_master, done, port_q, out_m, reference),
         daemon=True,
     )
     master.start()
     port_q.get(timeout=30)
     grid = config.management_grid
-    mods = ctx.Process(target=_modules, args=(slots, seconds, loss, grid, native, done, out_s), daemon=True)
+    mods = ctx.Process(
+        target=_modules, args=(slots, seconds, loss, grid, native, done, out_s, reference), daemon=True
+    )
     mods.start()
-    modules, cpu = out_s.get(timeout=seconds + 60)
+    modules, cpu, records = out_s.get(timeout=seconds + 60)
     m = out_m.get(timeout=30)
     for p in (mods, master):
         p.join(10)
-    return {"modules": modules, "master": m, "modules_cpu": cpu}
+    out = {"modules": modules, "master": m, "modules_cpu": cpu}
+    if reference is not None:
+        out["tool_error_mm"] = tool_error_mm(records, reference, m["start_ns"])
+    return out
 
 
 def cycle_figures(r: dict[str, Any]) -> dict[str, Any]:

@@ -82,24 +82,13 @@ class Master:
 
     def forward(self, a: list[A], q_d: np.ndarray, qd_d: np.ndarray, qdd_d: np.ndarray) -> list[B]:
         """B for every module from their A and the reference (position, velocity, acceleration)."""
-        lam = self.gains.lam
-        v_prev, vr_prev = np.zeros(6), np.zeros(6)
-        ar_prev = np.concatenate([np.zeros(3), -GRAVITY])  # gravity as the base's upward acceleration
+        carry = BASE
         self.transforms = []
         out = []
         for i, body in enumerate(self.bodies):
-            q, qd = a[i].q, a[i].qd
-            qd_r = qd_d[i] + lam * (q_d[i] - q)
-            qdd_r = qdd_d[i] + lam * (qd_d[i] - qd)
-            x = body.transform(q)
+            b, x, carry = forward_step(body, self.gains.lam, a[i], q_d[i], qd_d[i], qdd_d[i], carry)
             self.transforms.append(x)
-            v = x @ v_prev + AXIS * qd
-            carried = x @ vr_prev
-            v_r = carried + AXIS * qd_r
-            # d/dt of X V_r,i-1 + z qd_r: X's rate is -(z qd) x X
-            a_r = x @ ar_prev + AXIS * qdd_r + crm(carried) @ (AXIS * qd)
-            out.append(B(qd_r, qdd_r, v_r, a_r, v))
-            v_prev, vr_prev, ar_prev = v, v_r, a_r
+            out.append(b)
         return out
 
     def backward(self, c: list[C]) -> list[D]:
@@ -110,6 +99,36 @@ class Master:
             outboard = carried_force(self.transforms[i + 1], self.forces[i + 1]) if i + 1 < len(c) else 0.0
             self.forces[i] = c[i].f_star + outboard
         return [D(float(AXIS @ f)) for f in self.forces]
+
+
+@dataclass(frozen=True)
+class Carry:
+    """What the forward recursion carries from a body to the next out, in the body's frame: its
+    velocity, required velocity and required acceleration."""
+
+    v: np.ndarray
+    v_r: np.ndarray
+    a_r: np.ndarray
+
+
+BASE = Carry(np.zeros(6), np.zeros(6), np.concatenate([np.zeros(3), -GRAVITY]))  # (gravity: the base's
+# upward acceleration)
+
+
+def forward_step(
+    body: Body, lam: float, a: A, q_d: float, qd_d: float, qdd_d: float, parent: Carry
+) -> tuple[B, np.ndarray, Carry]:
+    """One body of the forward recursion: its B, its transform ^iX_{i-1} and what it carries on."""
+    q, qd = a.q, a.qd
+    qd_r = qd_d + lam * (q_d - q)
+    qdd_r = qdd_d + lam * (qd_d - qd)
+    x = body.transform(q)
+    v = x @ parent.v + AXIS * qd
+    carried = x @ parent.v_r
+    v_r = carried + AXIS * qd_r
+    # d/dt of X V_r,i-1 + z qd_r: X's rate is -(z qd) x X
+    a_r = x @ parent.a_r + AXIS * qdd_r + crm(carried) @ (AXIS * qd)
+    return B(qd_r, qdd_r, v_r, a_r, v), x, Carry(v, v_r, a_r)
 
 
 def carried_force(x_next: np.ndarray, f_next: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ lost (the loop then guesses).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import socket
 import time
@@ -36,11 +37,12 @@ A_QUERY, B_REPLY = query_shape(2, 20), reply_shape(20)
 C_QUERY, D_REPLY = query_shape(6, 1), reply_shape(1)
 
 
-def _ids(joint: int) -> tuple[list[int], list[int], list[int], int]:
+@functools.cache
+def ids_of(joint: int) -> tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...], int]:
     """Joint's item ids (the SnP cycle's robot, cell.snp.modular.item): A's, B's, F*'s, and tau_r's."""
-    a = [item(Quantity.POSITION, joint), item(Quantity.VELOCITY, joint)]
-    b = [item(B_BASE + k, joint) for k in range(20)]
-    f = [item(F_BASE + k, joint) for k in range(6)]
+    a = (item(Quantity.POSITION, joint), item(Quantity.VELOCITY, joint))
+    b = tuple(item(B_BASE + k, joint) for k in range(20))
+    f = tuple(item(F_BASE + k, joint) for k in range(6))
     return a, b, f, item(TORQUE, joint)
 
 
@@ -75,7 +77,7 @@ class SnpLink:
         self.master = sock()
         self.modules = [sock() for _ in range(modules)]
         self._addr = {s: s.getsockname() for s in (self.master, *self.modules)}
-        self.ids = [_ids(j) for j in range(modules)]
+        self.ids = [ids_of(j) for j in range(modules)]
         self.counters = LinkCounters()
         self._qid = 0
         self._asked = [0] * modules  # each module's query in flight
@@ -133,7 +135,7 @@ class SnpLink:
         items = tuple(x for k, v in zip(b_ids, b_values(b), strict=True) for x in (k, v, self._t))
         r = B_REPLY.pack(0, Pid.MRT, 0, i + 1, self._asked[i], items)
         f = B_REPLY.parse(self._carry(self.master, self.modules[i], r))
-        if f is None or f[8] != self._asked[i] or f[10::3][:20] != tuple(b_ids):
+        if f is None or f[8] != self._asked[i] or f[10::3][:20] != b_ids:
             self.counters.refused += 1
             return None
         return b_of(f[11::3][:20])
@@ -145,7 +147,7 @@ class SnpLink:
         inputs = tuple(x for k, v in zip(f_ids, c.f_star, strict=True) for x in (k, float(v), t))
         q = C_QUERY.pack(0, Pid.MRT, i + 1, 0, self._qid, t + CYCLE_NS, inputs, (tau, t))
         f = C_QUERY.parse(self._carry(self.modules[i], self.master, q))
-        if f is None or f[11:29:3] != tuple(f_ids) or f[13] != t:
+        if f is None or f[11:29:3] != f_ids or f[13] != t:
             self.counters.refused += 1
             return None
         return C(np.array(f[12:30:3], dtype=np.float64))

@@ -19,6 +19,36 @@
 #define MAX_MODULES 64
 
 enum { STAGE_DONE = 0, STAGE_AB = 1, STAGE_CD = 2 };
+enum { VDC_A_SIZE = 308, VDC_B_SIZE = 344, VDC_C_SIZE = 144 };
+
+/* The modular arm in MuJoCo (cell.modular.cycle.Plant), stepped here in real time: the arrays are
+ * the Python Plant's (numpy) and MuJoCo's own, mj_step MuJoCo's; cell/snp/native.py's PlantState
+ * mirrors it. */
+typedef void (*mj_step_t)(const void *model, void *data);
+typedef struct {
+    int64_t dof, dt_ns, period_ns, cap;
+    const void *model;
+    void *data;
+    mj_step_t step;
+    double *qpos, *qvel, *ctrl;     /* mjData's */
+    const double *tool;             /* the tool site's position in mjData */
+    int64_t *clock;                 /* t (host ns the arm is at), the next record's time, records made */
+    double *tau, *hold, *limit;     /* per joint: the torque set, where its brake holds it, its limit */
+    int64_t *driven;                /* per joint: 1 if its module sets its torque (else: its brake) */
+    int64_t *rec_t;                 /* records: host ns, */
+    double *rec_tool;               /* and the tool's position */
+    double kp, kd;                  /* the brake */
+} plant_t;
+
+/* A module's VDC (cell.modular.cycle.VdcModule, cell.modular.vdc.Module); native.py's VdcModuleState. */
+typedef struct {
+    int64_t joint, b_ids[20], f_ids[6];
+    double inertia[36], k[6];       /* its body's spatial inertia; velocity feedback gains */
+    double joint_gain, armature, damping, torque_max;
+    double b[20], tau_r, qd;        /* its last B (qd_r, qdd_r, V_r, dV_r, V), last tau_r, qd at T1 */
+    int64_t have_b, fresh;
+    plant_t *plant;
+} vdc_module_t;
 
 /* One module; cell/snp/native.py's ModuleState mirrors it field for field (all 64-bit). */
 typedef struct {
@@ -31,6 +61,7 @@ typedef struct {
     int64_t servo_anchor, servo_base; /* its servo: raw -> master */
     double servo_rate;
     double loss; /* the share of sent datagrams the link drops */
+    vdc_module_t *vdc; /* NULL: the toy joint's A and C; else VDC's on the plant */
     /* the cycle (Python seeds pos, vel, next_start, qid when it sets active) */
     double pos, vel, v_des, torque;
     int64_t next_start, scheduled, start, deadline, qid, stage, missed_now;
@@ -59,43 +90,133 @@ static void send_master(module_t *m, const uint8_t *p, size_t n) {
 
 /* --- the cycle (JointModule._start, _second, _answered, _expired, _finish) -------------------- */
 
-/* A (2 inputs, 1 wanted) or C (1 input, 1 wanted): QueryShape.pack with no return address. */
+/* A or C: QueryShape.pack with no return address; n_out wanted items, all stamped wanted_at. */
 static void query(module_t *m, int n_in, const int64_t *ids_in, const double *values, int64_t stamp,
-                  int64_t wanted, int64_t wanted_at) {
-    uint8_t p[A_SIZE];
-    size_t size = n_in == 2 ? A_SIZE : C_SIZE;
+                  int n_out, const int64_t *wanted, int64_t wanted_at) {
+    uint8_t p[VDC_A_SIZE];
+    size_t size = 31 + 16 * (size_t)n_in + 4 + 12 * (size_t)n_out + 1;
     m->qid = (m->qid + 1) & 0xFFFFFFFF;
     head(p, 0, PID_MRT, m->source_process, 0, QUERY);
     put32(p + 15, (uint32_t)m->qid), put64(p + 19, (uint64_t)m->deadline), put32(p + 27, (uint32_t)n_in);
     uint8_t *q = p + 31;
     for (int i = 0; i < n_in; i++, q += 16)
         put32(q, (uint32_t)ids_in[i]), putf(q + 4, values[i]), put64(q + 8, (uint64_t)stamp);
-    put32(q, 1), put32(q + 4, (uint32_t)wanted), put64(q + 8, (uint64_t)wanted_at);
+    put32(q, (uint32_t)n_out), q += 4;
+    for (int i = 0; i < n_out; i++, q += 12) put32(q, (uint32_t)wanted[i]), put64(q + 4, (uint64_t)wanted_at);
     seal(p, size);
     send_master(m, p, size);
+}
+
+/* --- the plant and VDC's module (Plant.advance, VdcModule, vdc.Module.net_force and torque) ---- */
+
+/* Step the arm up to host time now (Plant.advance); exported for the tests' twin of Python's. */
+void snp_plant_advance(plant_t *pl, int64_t now) {
+    while (pl->clock[0] + pl->dt_ns <= now) {
+        for (int j = 0; j < pl->dof; j++) {
+            double tau = pl->tau[j];
+            if (!pl->driven[j]) {
+                tau = pl->kp * (pl->hold[j] - pl->qpos[j]) - pl->kd * pl->qvel[j];
+                tau = tau > pl->limit[j] ? pl->limit[j] : (tau < -pl->limit[j] ? -pl->limit[j] : tau);
+            }
+            pl->ctrl[j] = tau;
+        }
+        pl->step(pl->model, pl->data);
+        pl->clock[0] += pl->dt_ns;
+        if (pl->clock[0] >= pl->clock[1]) {
+            int64_t n = pl->clock[2];
+            if (n < pl->cap) {
+                pl->rec_t[n] = pl->clock[0];
+                memcpy(pl->rec_tool + 3 * n, pl->tool, 3 * sizeof(double));
+                pl->clock[2] = n + 1;
+            }
+            pl->clock[1] += pl->period_ns;
+        }
+    }
+}
+
+static void cross3(const double *a, const double *b, double *out) {
+    out[0] = a[1] * b[2] - a[2] * b[1], out[1] = a[2] * b[0] - a[0] * b[2], out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static void inertia_times(const double *in, const double *v, double *out) {
+    for (int i = 0; i < 6; i++) {
+        out[i] = 0;
+        for (int k = 0; k < 6; k++) out[i] += in[6 * i + k] * v[k];
+    }
+}
+
+/* F*_r = I dV_r + V x* I V_r + K (V_r - V), V x* f = [w x n + v x f; w x f] */
+static void net_force(const vdc_module_t *v, double *f) {
+    const double *vr = v->b + 2, *ar = v->b + 8, *vv = v->b + 14;
+    double ia[6], iv[6], c1[3], c2[3], c3[3];
+    inertia_times(v->inertia, ar, ia);
+    inertia_times(v->inertia, vr, iv);
+    cross3(vv, iv, c1);
+    cross3(vv + 3, iv + 3, c2);
+    cross3(vv, iv + 3, c3);
+    for (int k = 0; k < 3; k++) f[k] = ia[k] + c1[k] + c2[k], f[3 + k] = ia[3 + k] + c3[k];
+    for (int k = 0; k < 6; k++) f[k] += v->k[k] * (vr[k] - vv[k]);
+}
+
+static double motor_torque(const vdc_module_t *v) {
+    double tau = v->tau_r + v->armature * v->b[1] + v->damping * v->b[0] + v->joint_gain * (v->b[0] - v->qd);
+    return tau > v->torque_max ? v->torque_max : (tau < -v->torque_max ? -v->torque_max : tau);
 }
 
 static void start(module_t *m, int64_t scheduled, int64_t now) {
     m->scheduled = scheduled, m->start = now, m->stage = STAGE_AB, m->missed_now = 0;
     m->deadline = scheduled + m->budget_ns / 2;
+    vdc_module_t *v = m->vdc;
+    if (v != NULL) { /* A: its joint on the plant now */
+        snp_plant_advance(v->plant, host_now());
+        double values[2] = {v->plant->qpos[v->joint], v->plant->qvel[v->joint]};
+        v->qd = values[1], v->fresh = 0;
+        query(m, 2, m->ids, values, now, 20, v->b_ids, now);
+        return;
+    }
     int64_t ids[2] = {m->ids[0], m->ids[1]};
     double values[2] = {m->pos, m->vel};
-    query(m, 2, ids, values, now, m->ids[2], now + m->period_ns);
-}
-
-static void second(module_t *m) { /* [C, D]: the desired force from the velocity error */
-    double force = 5.0 * (m->v_des - m->vel);
-    m->deadline = m->scheduled + m->budget_ns;
-    m->stage = STAGE_CD;
-    query(m, 1, &m->ids[3], &force, m->start, m->ids[4], m->start + m->period_ns);
+    query(m, 2, ids, values, now, 1, &m->ids[2], now + m->period_ns);
 }
 
 static void finish(module_t *m, int64_t now) {
     m->stage = STAGE_DONE;
     int64_t *r = m->records[m->n_records < RECORDS ? m->n_records++ : RECORDS - 1];
     r[0] = m->scheduled, r[1] = m->start, r[2] = now, r[3] = m->missed_now;
+    vdc_module_t *v = m->vdc;
+    if (v != NULL) { /* its motor: the chain's share and its own */
+        if (v->have_b) {
+            snp_plant_advance(v->plant, host_now());
+            v->plant->tau[v->joint] = motor_torque(v), v->plant->driven[v->joint] = 1;
+        }
+        return;
+    }
     m->vel += (m->v_des - m->vel) * 0.5; /* the joint: a fast drive after the desired velocity */
     m->pos += m->vel * (double)m->period_ns / 1e9;
+}
+
+static void second(module_t *m, int64_t now) { /* [C, D] */
+    m->deadline = m->scheduled + m->budget_ns;
+    vdc_module_t *v = m->vdc;
+    if (v == NULL) { /* the desired force from the velocity error */
+        double force = 5.0 * (m->v_des - m->vel);
+        m->stage = STAGE_CD;
+        query(m, 1, &m->ids[3], &force, m->start, 1, &m->ids[4], m->start + m->period_ns);
+        return;
+    }
+    if (!v->have_b) { /* none yet: its joint stays on the brake */
+        finish(m, now);
+        return;
+    }
+    if (!v->fresh) { /* this cycle's B did not come: its last, carried on */
+        double dt = (double)m->period_ns / 1e9;
+        v->b[0] += v->b[1] * dt;
+        for (int k = 0; k < 6; k++) v->b[2 + k] += v->b[8 + k] * dt;
+    }
+    double f[6];
+    net_force(v, f);
+    m->stage = STAGE_CD;
+    query(m, 6, v->f_ids, f, m->start, 1, &m->ids[4], m->start);
 }
 
 static void miss(module_t *m) {
@@ -111,9 +232,10 @@ static void answered(module_t *m, int have, double value, int64_t now) { /* have
         miss(m);
     if (m->stage == STAGE_AB) {
         if (have) m->v_des = value;
-        second(m);
+        second(m, now);
     } else {
         if (have) m->torque = value;
+        if (have && m->vdc != NULL) m->vdc->tau_r = value;
         finish(m, now);
     }
 }
@@ -121,7 +243,7 @@ static void answered(module_t *m, int have, double value, int64_t now) { /* have
 static void expired(module_t *m, int64_t now) { /* no answer by the deadline: guess, go on */
     miss(m);
     if (m->stage == STAGE_AB)
-        second(m);
+        second(m, now);
     else
         finish(m, now);
 }
@@ -147,9 +269,21 @@ static void timers(module_t *m, int64_t host) { /* JointModule.poll */
 
 /* B or D (a reply of one item) or a denial of the query in flight: 1 if it was, else 0. */
 static int fast_path(module_t *m, const uint8_t *p, ssize_t n, int64_t host) {
-    if (n != ANSWER_SIZE && n != DENIAL_SIZE) return 0;
+    int b = m->vdc != NULL && n == VDC_B_SIZE;
+    if (n != ANSWER_SIZE && n != DENIAL_SIZE && !b) return 0;
     if (p[1] != PID_MRT || p[2] != 0 || p[12] != 0 || p[13] != 0) return 0;
     if (!crcs_ok(p, (size_t)n)) return 0;
+    if (b) { /* VDC's B: its 20 values, if it answers the [A, B] in flight */
+        if (p[14] != REPLY || get32(p + 19) != 20 || get32(p + 23) != (uint32_t)m->vdc->b_ids[0]) return 0;
+        if (m->stage != STAGE_AB || get32(p + 15) != (uint32_t)m->qid) {
+            m->late++;
+            return 1;
+        }
+        for (int k = 0; k < 20; k++) m->vdc->b[k] = getf(p + 27 + 16 * k);
+        m->vdc->have_b = m->vdc->fresh = 1;
+        answered(m, 1, 0.0, master_of(m, host));
+        return 1;
+    }
     int answer = n == ANSWER_SIZE && p[14] == REPLY && get32(p + 19) == 1;
     if (!answer && !(n == DENIAL_SIZE && p[14] == DENIAL)) return 0;
     if (m->stage == STAGE_DONE || get32(p + 15) != (uint32_t)m->qid) {

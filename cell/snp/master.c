@@ -18,6 +18,7 @@
 #include "wire.h"
 
 #define MAX_JOINTS 16 /* ArmModel's default size */
+#define VDC_JOINTS 6  /* the modular arm's (cell.modular.cycle) */
 #define QUEUE 64      /* admitted queries waiting for their turn */
 #define EVENTS 32
 
@@ -36,12 +37,28 @@ typedef struct {
     int64_t deadline, seq, joint, is_a, qid, dest, pid, src, dst, t, ip, port;
 } pending_t;
 
+/* VDC's master (cell.modular.cycle.VdcModel): the modular arm's bodies, its reference, each body's
+ * last F*_r and the forward recursion's steps; cell/snp/native.py's VdcState mirrors it. */
+typedef struct {
+    int64_t n_ref, ref_dt_ns, start_ns, settle_ns; /* the reference: n_ref points ref_dt_ns apart */
+    double lam;
+    const double *q_ref, *qd_ref, *qdd_ref; /* (n_ref, VDC_JOINTS), row-major */
+    int64_t b_ids[VDC_JOINTS][20], f_ids[VDC_JOINTS][6];
+    double body_pos[VDC_JOINTS][3], body_rot[VDC_JOINTS][9]; /* Body.pos, Body.rot (row-major) */
+    double f_star[VDC_JOINTS][6];
+    int64_t seq[VDC_JOINTS]; /* A's taken per joint */
+    /* the recursion's step per body: made in cycle key_cycle from the A's key_seq (VdcModel._chain) */
+    int64_t key_cycle[VDC_JOINTS], key_seq[VDC_JOINTS][VDC_JOINTS];
+    double b[VDC_JOINTS][20], rot[VDC_JOINTS][9], carry[VDC_JOINTS][18]; /* its B, R, (v, v_r, a_r) */
+} vdc_t;
+
 /* The master; cell/snp/native.py's MasterState mirrors it field for field (all 64-bit). */
 typedef struct {
     /* set by Python */
     int64_t fd, period_ns, phase_ns, budget_ns, t0, suspect_cycles, lost_ns, floor_ns;
     double gain, margin, loss;
     int64_t service_ns; /* the running estimate of a query's service time (make and send) */
+    vdc_t *vdc;         /* NULL: the toy arm model's A and C; else VDC's (cell.modular.wire's shapes) */
     joint_t joints[MAX_JOINTS];
     /* counted since Python last took them */
     int64_t queries, replies, denied, late, guessed, sent, lost, errors, n_events;
@@ -82,6 +99,116 @@ static double torque(const master_t *m, int joint, int64_t t_ns) {
     return 0.8 * m->joints[joint].force + 2.0 * load;
 }
 
+/* --- VDC (cell.modular.vdc.forward_step, cell.modular.cycle.VdcModel.b, tau_r) ------------------ */
+
+enum { VDC_A_SIZE = 308, VDC_B_SIZE = 344, VDC_C_SIZE = 144 };
+
+static void cross(const double *a, const double *b, double *out) {
+    double o0 = a[1] * b[2] - a[2] * b[1], o1 = a[2] * b[0] - a[0] * b[2], o2 = a[0] * b[1] - a[1] * b[0];
+    out[0] = o0, out[1] = o1, out[2] = o2;
+}
+
+static void mat_t_vec(const double *r, const double *v, double *out) { /* R^T v */
+    for (int i = 0; i < 3; i++) out[i] = r[i] * v[0] + r[3 + i] * v[1] + r[6 + i] * v[2];
+}
+
+static void mat_vec(const double *r, const double *v, double *out) { /* R v */
+    for (int i = 0; i < 3; i++) out[i] = r[3 * i] * v[0] + r[3 * i + 1] * v[1] + r[3 * i + 2] * v[2];
+}
+
+/* ^iX_{i-1} m, X of a child at p turned R: [R^T w; R^T (v - p x w)] */
+static void motion_x(const double *r, const double *p, const double *m, double *out) {
+    double pw[3], d[3];
+    cross(p, m, pw);
+    for (int i = 0; i < 3; i++) d[i] = m[3 + i] - pw[i];
+    mat_t_vec(r, m, out);
+    mat_t_vec(r, d, out + 3);
+}
+
+/* ^{i+1}X_i^T f: [R n + p x (R f); R f] */
+static void force_xt(const double *r, const double *p, const double *f, double *out) {
+    double rf[3], pr[3];
+    mat_vec(r, f + 3, rf);
+    cross(p, rf, pr);
+    mat_vec(r, f, out);
+    for (int i = 0; i < 3; i++) out[i] += pr[i], out[3 + i] = rf[i];
+}
+
+static void desired(vdc_t *v, const master_t *m, int j, int64_t t, double *qd3) {
+    if (v->start_ns == 0) { /* the reference starts once every joint is in the cycle */
+        int all = 1;
+        for (int i = 0; i < VDC_JOINTS; i++) all &= live(&m->joints[i]);
+        if (all) v->start_ns = t + v->settle_ns;
+    }
+    int64_t k = v->start_ns == 0 ? 0 : floor_div(t - v->start_ns, v->ref_dt_ns);
+    k = k < 0 ? 0 : (k > v->n_ref - 1 ? v->n_ref - 1 : k);
+    qd3[0] = v->q_ref[k * VDC_JOINTS + j], qd3[1] = v->qd_ref[k * VDC_JOINTS + j];
+    qd3[2] = v->qdd_ref[k * VDC_JOINTS + j];
+}
+
+/* One body of the forward recursion from the carry of the body below (v, v_r, a_r: 18 values). */
+static void forward_step(vdc_t *v, const master_t *m, int i, int64_t t, const double *parent) {
+    const joint_t *jt = &m->joints[i];
+    double q = guess(jt, t), qd = jt->vel, ref[3];
+    desired(v, m, i, t, ref);
+    double qd_r = ref[1] + v->lam * (ref[0] - q), qdd_r = ref[2] + v->lam * (ref[1] - qd);
+    double c = cos(q), s = sin(q), *r = v->rot[i]; /* R = rot rz(q) */
+    const double *r0 = v->body_rot[i], *p = v->body_pos[i];
+    for (int k = 0; k < 3; k++) {
+        r[3 * k] = r0[3 * k] * c + r0[3 * k + 1] * s;
+        r[3 * k + 1] = -r0[3 * k] * s + r0[3 * k + 1] * c;
+        r[3 * k + 2] = r0[3 * k + 2];
+    }
+    double *out = v->carry[i], *vv = out, *vr = out + 6, *ar = out + 12, carried[6], mw[3] = {0, 0, qd};
+    motion_x(r, p, parent, vv);
+    vv[2] += qd;
+    motion_x(r, p, parent + 6, carried);
+    memcpy(vr, carried, sizeof carried);
+    vr[2] += qd_r;
+    motion_x(r, p, parent + 12, ar);
+    ar[2] += qdd_r;
+    double cw[3], cv[3]; /* crm(carried) (z qd) = [w x m_w; v x m_w] */
+    cross(carried, mw, cw);
+    cross(carried + 3, mw, cv);
+    for (int k = 0; k < 3; k++) ar[k] += cw[k], ar[3 + k] += cv[k];
+    double *b = v->b[i];
+    b[0] = qd_r, b[1] = qdd_r;
+    memcpy(b + 2, vr, 6 * sizeof(double)), memcpy(b + 8, ar, 6 * sizeof(double));
+    memcpy(b + 14, vv, 6 * sizeof(double));
+}
+
+static int step_current(const vdc_t *v, int i, int64_t cycle) {
+    if (v->key_cycle[i] != cycle) return 0;
+    for (int k = 0; k <= i; k++)
+        if (v->key_seq[i][k] != v->seq[k]) return 0;
+    return 1;
+}
+
+/* Joint j's B at t: the steps below j made this cycle from the same A's kept, the rest made anew. */
+static const double *vdc_b(vdc_t *v, const master_t *m, int j, int64_t t) {
+    int64_t cycle = floor_div(t + m->period_ns / 2, m->period_ns);
+    int start = j;
+    while (start > 0 && !step_current(v, start - 1, cycle)) start--;
+    static const double base[18] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 9.81};
+    for (int i = start; i <= j; i++) {
+        forward_step(v, m, i, t, i == 0 ? base : v->carry[i - 1]);
+        v->key_cycle[i] = cycle;
+        for (int k = 0; k <= i; k++) v->key_seq[i][k] = v->seq[k];
+    }
+    return v->b[j];
+}
+
+/* Joint j's D: its body's F*_r plus what the bodies out to the tip need of it, projected on z. */
+static double vdc_tau_r(const vdc_t *v, int j) {
+    double f[6], g[6];
+    memcpy(f, v->f_star[VDC_JOINTS - 1], sizeof f);
+    for (int i = VDC_JOINTS - 2; i >= j; i--) {
+        force_xt(v->rot[i + 1], v->body_pos[i + 1], f, g);
+        for (int k = 0; k < 6; k++) f[k] = v->f_star[i][k] + g[k];
+    }
+    return f[2];
+}
+
 /* --- admitting, queueing and serving (Handler.admit, enqueue, serve) -------------------------- */
 
 static void send_to(master_t *m, const uint8_t *p, size_t n, int64_t ip, int64_t port) {
@@ -113,14 +240,28 @@ static void serve(master_t *m) {
             deny(m, q);
             continue;
         }
-        double value = q->is_a ? command(m, (int)q->joint, q->t) : torque(m, (int)q->joint, q->t);
-        uint8_t p[ANSWER_SIZE];
+        uint8_t p[VDC_B_SIZE];
+        size_t size = ANSWER_SIZE;
         head(p, q->dest, q->pid, q->src, q->dst, REPLY);
-        put32(p + 15, (uint32_t)q->qid), put32(p + 19, 1);
-        put32(p + 23, (uint32_t)m->joints[q->joint].ids[q->is_a ? 2 : 4]), putf(p + 27, value);
-        put64(p + 31, (uint64_t)q->t);
-        seal(p, sizeof p);
-        send_to(m, p, sizeof p, q->ip, q->port);
+        put32(p + 15, (uint32_t)q->qid);
+        if (m->vdc != NULL && q->is_a) { /* B: the forward recursion's 20 values */
+            const double *b = vdc_b(m->vdc, m, (int)q->joint, q->t);
+            put32(p + 19, 20);
+            for (int k = 0; k < 20; k++) {
+                uint8_t *at = p + 23 + 16 * k;
+                put32(at, (uint32_t)m->vdc->b_ids[q->joint][k]), putf(at + 4, b[k]), put64(at + 8, (uint64_t)q->t);
+            }
+            size = VDC_B_SIZE;
+        } else {
+            double value = m->vdc != NULL ? vdc_tau_r(m->vdc, (int)q->joint)
+                           : q->is_a     ? command(m, (int)q->joint, q->t)
+                                         : torque(m, (int)q->joint, q->t);
+            put32(p + 19, 1);
+            put32(p + 23, (uint32_t)m->joints[q->joint].ids[q->is_a ? 2 : 4]), putf(p + 27, value);
+            put64(p + 31, (uint64_t)q->t);
+        }
+        seal(p, size);
+        send_to(m, p, size, q->ip, q->port);
         int64_t t1 = host_now();
         int64_t est = (int64_t)(0.9 * (double)m->service_ns + 0.1 * (double)(t1 - t0) * m->margin);
         m->service_ns = est > m->floor_ns ? est : m->floor_ns;
@@ -131,20 +272,38 @@ static void serve(master_t *m) {
 }
 
 /* An included module's A or C (Master._cycle_query): 1 if it was one (taken), else 0. */
+/* VDC's A or C (cell.modular.cycle.VdcMaster._cycle_query's checks): 1 if its items are joint j's */
+static int vdc_items(const master_t *m, const uint8_t *p, int j, int is_a) {
+    const joint_t *jt = &m->joints[j];
+    const vdc_t *v = m->vdc;
+    if (j >= VDC_JOINTS) return 0;
+    if (is_a)
+        return get32(p + 27) == 2 && get32(p + 63) == 20 && get32(p + 31) == (uint32_t)jt->ids[0] &&
+               get32(p + 47) == (uint32_t)jt->ids[1] && get32(p + 67) == (uint32_t)v->b_ids[j][0];
+    if (get32(p + 27) != 6 || get32(p + 127) != 1 || get32(p + 131) != (uint32_t)jt->ids[4]) return 0;
+    for (int k = 0; k < 6; k++)
+        if (get32(p + 31 + 16 * k) != (uint32_t)v->f_ids[j][k]) return 0;
+    return 1;
+}
+
 static int fast_path(master_t *m, const uint8_t *p, ssize_t n, int64_t ip, int64_t port, int64_t at) {
-    if (n != A_SIZE && n != C_SIZE) return 0;
+    int64_t a_size = m->vdc != NULL ? VDC_A_SIZE : A_SIZE, c_size = m->vdc != NULL ? VDC_C_SIZE : C_SIZE;
+    if (n != a_size && n != c_size) return 0;
     int j = 0;
     while (j < MAX_JOINTS && !(live(&m->joints[j]) && m->joints[j].ip == ip && m->joints[j].port == port)) j++;
     if (j == MAX_JOINTS) return 0;
     joint_t *jt = &m->joints[j];
-    int is_a = n == A_SIZE;
+    int is_a = n == a_size;
     /* QueryShape.parse: no return address, the query type, both CRCs, the counts; then its items */
     if (p[2] || p[13] || p[14] != QUERY || !crcs_ok(p, (size_t)n) || p[1] != PID_MRT) return 0;
-    if (is_a && (get32(p + 27) != 2 || get32(p + 63) != 1 || get32(p + 31) != (uint32_t)jt->ids[0] ||
-                 get32(p + 47) != (uint32_t)jt->ids[1] || get32(p + 67) != (uint32_t)jt->ids[2]))
+    if (m->vdc != NULL && !vdc_items(m, p, j, is_a)) return 0;
+    if (m->vdc == NULL && is_a &&
+        (get32(p + 27) != 2 || get32(p + 63) != 1 || get32(p + 31) != (uint32_t)jt->ids[0] ||
+         get32(p + 47) != (uint32_t)jt->ids[1] || get32(p + 67) != (uint32_t)jt->ids[2]))
         return 0;
-    if (!is_a && (get32(p + 27) != 1 || get32(p + 47) != 1 || get32(p + 31) != (uint32_t)jt->ids[3] ||
-                  get32(p + 51) != (uint32_t)jt->ids[4]))
+    if (m->vdc == NULL && !is_a &&
+        (get32(p + 27) != 1 || get32(p + 47) != 1 || get32(p + 31) != (uint32_t)jt->ids[3] ||
+         get32(p + 51) != (uint32_t)jt->ids[4]))
         return 0;
     jt->heard_ns = at, jt->silent_cycles = 0; /* (Master.receive: heard from) */
     if (jt->state == NODE_SUSPECT) {
@@ -153,7 +312,7 @@ static int fast_path(master_t *m, const uint8_t *p, ssize_t n, int64_t ip, int64
     }
     pending_t q = {.deadline = (int64_t)get64(p + 19), .seq = m->seq++, .joint = j, .is_a = is_a,
                    .qid = get32(p + 15), .dest = p[0], .pid = p[1], .src = get32(p + 7), .dst = get32(p + 3),
-                   .t = (int64_t)get64(p + (is_a ? 71 : 55)), .ip = ip, .port = port};
+                   .t = (int64_t)get64(p + (m->vdc != NULL ? 39 : is_a ? 71 : 55)), .ip = ip, .port = port};
     if (is_a) jt->a_cycle = floor_div(at - jt->phase_ns + m->period_ns / 4, m->period_ns);
     m->queries++;
     if (at + m->service_ns * (1 + m->n_pending) > q.deadline || m->n_pending == QUEUE) {
@@ -162,8 +321,11 @@ static int fast_path(master_t *m, const uint8_t *p, ssize_t n, int64_t ip, int64
     }
     if (is_a)
         jt->pos = getf(p + 35), jt->at = (int64_t)get64(p + 39), jt->vel = getf(p + 51);
-    else
+    else if (m->vdc == NULL)
         jt->force = getf(p + 35);
+    else
+        for (int k = 0; k < 6; k++) m->vdc->f_star[j][k] = getf(p + 35 + 16 * k);
+    if (is_a && m->vdc != NULL) m->vdc->seq[j]++;
     enqueue(m, &q);
     return 1;
 }

@@ -243,7 +243,12 @@ class MasterCounters(Counters):
 
 
 class Master:
-    """The master node (see the module docstring); `receive` and `poll` return (datagram, addr)."""
+    """The master node (see the module docstring); `receive` and `poll` return (datagram, addr).
+
+    A master of other cycle messages (cell.modular.cycle: VDC's) gives its model and its own
+    `_cycle_query` for the sizes in CYCLE_SIZES."""
+
+    CYCLE_SIZES = frozenset((_A.size, _C.size))  # the datagrams _cycle_query is tried on
 
     def __init__(
         self,
@@ -255,10 +260,11 @@ class Master:
         suspect_cycles: int = 3,
         lost_ns: int = 50_000_000,
         max_joints: int = 16,
+        model: ArmModel | None = None,
     ) -> None:
         self.ports, self.config, self.clock = list(ports), config, clock
         self.explore_ns, self.suspect_cycles, self.lost_ns = explore_ns, suspect_cycles, lost_ns
-        self.model = ArmModel(max_joints, config.gain, clock())
+        self.model = model or ArmModel(max_joints, config.gain, clock())
         self.handler = Handler(self.model, clock, service_ns=30_000, margin=1.25, floor_ns=10_000)
         self.beacon_schedule = BeaconSchedule(grid=config.management_grid)
         self.nodes: dict[Any, Node] = {}  # by address
@@ -286,7 +292,7 @@ class Master:
             if node.state == NodeState.SUSPECT:
                 node.state = NodeState.INCLUDED
                 self.events.append((now, "back", node.info.module_id, node.joint))
-            if (len(data) == _A.size or len(data) == _C.size) and node.joint >= 0:
+            if len(data) in self.CYCLE_SIZES and node.joint >= 0:
                 out = self._cycle_query(data, addr, node, now)
                 if out is not None:
                     return out
@@ -568,7 +574,10 @@ class JointModule:
     """A joint module (slave); `receive(data, raw)` and `poll(raw)` return datagrams for the master.
 
     raw is the module's own clock (`cell.snp.tsp.Oscillator`); everything it schedules is on the
-    master's time through its servo."""
+    master's time through its servo.  A module of other cycle messages (cell.modular.cycle: VDC's)
+    gives the reply shapes it takes (ANSWERS) and its own _start, _second, took_b, took_d, _finish."""
+
+    ANSWERS = {Stage.AB: _ANSWER, Stage.CD: _ANSWER}  # the shape each exchange's answer comes in
 
     def __init__(
         self,
@@ -622,9 +631,10 @@ class JointModule:
     def receive(self, data: bytes, raw: int) -> list[bytes]:
         self._raw = raw
         cy = self.cycle
-        f = _ANSWER.parse(data) if cy is not None and len(data) == _ANSWER.size else None
+        shape = self.ANSWERS.get(cy.stage) if cy is not None else None
+        f = shape.parse(data) if shape is not None and len(data) == shape.size else None
         if f is not None and f[1] == Pid.MRT and f[8] == cy.qid:  # type: ignore[union-attr]
-            return self._answered(f[11], raw)  # (the fast path: B or D, by its shape)
+            return self._answered(f[11::3], raw)  # (the fast path: B or D, by its shape)
         if rmap.is_rmap(data):
             return self._rmap(data, raw)
         try:
@@ -663,7 +673,7 @@ class JointModule:
             return self._exchanged(body.t1, body.t2, body.t3, raw)
         if isinstance(body, Reply | Denied) and self.cycle is not None and body.query_id == self.cycle.qid:
             return self._answered(
-                body.items[0].value if isinstance(body, Reply) and body.items else None, raw
+                tuple(i.value for i in body.items) if isinstance(body, Reply) and body.items else None, raw
             )
         return []
 
@@ -823,24 +833,30 @@ class JointModule:
         cy.qid = qid
         return shape.pack(0, Pid.MRT, self.source_process, 0, qid, cy.deadline, inputs, wanted)
 
-    def _answered(self, value: float | None, raw: int) -> list[bytes]:
-        """The answer to the cycle's query in flight came: its value, or None (denied)."""
+    def _answered(self, values: tuple | None, raw: int) -> list[bytes]:
+        """The answer to the cycle's query in flight came: its items' values, or None (denied)."""
         cy = self.cycle
         assert cy is not None
         now = self.servo.now(raw)
         if cy.stage == Stage.AB:
-            if value is None:
+            if values is None:
                 self._miss(cy, Stage.AB)
             else:
-                self.v_des = value
+                self.took_b(values)
             return self._second(cy)
         if cy.stage == Stage.CD:
-            if value is None:
+            if values is None:
                 self._miss(cy, Stage.CD)
             else:
-                self.torque = value
+                self.took_d(values)
             self._finish(cy, now)
         return []
+
+    def took_b(self, values: tuple) -> None:
+        self.v_des = values[0]
+
+    def took_d(self, values: tuple) -> None:
+        self.torque = values[0]
 
     def _second(self, cy: Cycle) -> list[bytes]:
         """[C, D] (or the C write): the desired force from the velocity error."""

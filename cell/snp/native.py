@@ -31,6 +31,40 @@ RUN_UNTIL, RUN_HANDED, RUN_RECORDS_FULL, RUN_EVENT = 0, 1, 2, 3
 _I, _D = ctypes.c_int64, ctypes.c_double
 
 
+class PlantState(ctypes.Structure):
+    """plant_t of cycle.c: a cell.modular.cycle.Plant stepped in C."""
+
+    _fields_ = [
+        *((name, _I) for name in ("dof", "dt_ns", "period_ns", "cap")),
+        *((name, ctypes.c_void_p) for name in ("model", "data", "step", "qpos", "qvel", "ctrl", "tool")),
+        *(
+            (name, ctypes.c_void_p)
+            for name in ("clock", "tau", "hold", "limit", "driven", "rec_t", "rec_tool")
+        ),
+        ("kp", _D),
+        ("kd", _D),
+    ]
+
+
+class VdcModuleState(ctypes.Structure):
+    """vdc_module_t of cycle.c: a cell.modular.cycle.VdcModule's cycle in C."""
+
+    _fields_ = [
+        ("joint", _I),
+        ("b_ids", _I * 20),
+        ("f_ids", _I * 6),
+        ("inertia", _D * 36),
+        ("k", _D * 6),
+        *((name, _D) for name in ("joint_gain", "armature", "damping", "torque_max")),
+        ("b", _D * 20),
+        ("tau_r", _D),
+        ("qd", _D),
+        ("have_b", _I),
+        ("fresh", _I),
+        ("plant", ctypes.POINTER(PlantState)),
+    ]
+
+
 class ModuleState(ctypes.Structure):
     """module_t of cycle.c, field for field."""
 
@@ -43,6 +77,7 @@ class ModuleState(ctypes.Structure):
         ("servo_base", _I),
         ("servo_rate", _D),
         ("loss", _D),
+        ("vdc", ctypes.POINTER(VdcModuleState)),
         *((name, _D) for name in ("pos", "vel", "v_des", "torque")),
         *((name, _I) for name in ("next_start", "scheduled", "start", "deadline", "qid", "stage")),
         *((name, _I) for name in ("missed_now", "missed_ab", "missed_cd", "overruns", "sent", "lost")),
@@ -68,6 +103,30 @@ _NODE_STATE = {NodeState.INCLUDED: NODE_INCLUDED, NodeState.SUSPECT: NODE_SUSPEC
 _EVENT = {1: "silent", 2: "back", 3: "lost"}
 
 
+VDC_JOINTS = 6
+
+
+class VdcState(ctypes.Structure):
+    """vdc_t of master.c: VDC's master (cell.modular.cycle.VdcModel) in C."""
+
+    _fields_ = [
+        *((name, _I) for name in ("n_ref", "ref_dt_ns", "start_ns", "settle_ns")),
+        ("lam", _D),
+        *((name, ctypes.c_void_p) for name in ("q_ref", "qd_ref", "qdd_ref")),
+        ("b_ids", (_I * 20) * VDC_JOINTS),
+        ("f_ids", (_I * 6) * VDC_JOINTS),
+        ("body_pos", (_D * 3) * VDC_JOINTS),
+        ("body_rot", (_D * 9) * VDC_JOINTS),
+        ("f_star", (_D * 6) * VDC_JOINTS),
+        ("seq", _I * VDC_JOINTS),
+        ("key_cycle", _I * VDC_JOINTS),
+        ("key_seq", (_I * VDC_JOINTS) * VDC_JOINTS),
+        ("b", (_D * 20) * VDC_JOINTS),
+        ("rot", (_D * 9) * VDC_JOINTS),
+        ("carry", (_D * 18) * VDC_JOINTS),
+    ]
+
+
 class MasterState(ctypes.Structure):
     """master_t of master.c, field for field."""
 
@@ -76,6 +135,7 @@ class MasterState(ctypes.Structure):
         *((name, _I) for name in ("lost_ns", "floor_ns")),
         *((name, _D) for name in ("gain", "margin", "loss")),
         ("service_ns", _I),
+        ("vdc", ctypes.POINTER(VdcState)),
         ("joints", JointEntry * MAX_JOINTS),
         *((name, _I) for name in ("queries", "replies", "denied", "late", "guessed", "sent", "lost")),
         *((name, _I) for name in ("errors", "n_events")),
@@ -110,6 +170,7 @@ def library() -> ctypes.CDLL:
         ctypes.POINTER(ctypes.POINTER(ModuleState)), ctypes.c_int, _I, _I, _I, _I,
         ctypes.c_char_p, _I, ctypes.POINTER(Handed),
     ]  # fmt: skip
+    lib.snp_plant_advance.argtypes, lib.snp_plant_advance.restype = [ctypes.POINTER(PlantState), _I], None
     lib.snp_master_init.argtypes, lib.snp_master_init.restype = [ctypes.c_uint64], ctypes.c_int
     lib.snp_master_run.restype = ctypes.c_int
     lib.snp_master_run.argtypes = [
@@ -146,6 +207,46 @@ class NativeCycles:
         self._states: dict[int, ModuleState] = {}  # by fd
         self._run_key: tuple[int, ...] = ()
         self._run_arr: Any = None
+        self.plant: PlantState | None = None  # the modular arm the modules drive (VdcModule's)
+        self._vdc: dict[int, VdcModuleState] = {}  # by fd
+
+    def drive(self, plant: Any) -> None:
+        """Step a cell.modular.cycle.Plant in C, through its arrays and MuJoCo's own mj_step."""
+        import mujoco
+
+        lib = ctypes.CDLL(next(Path(mujoco.__file__).parent.glob("libmujoco.so*")).as_posix())
+        arm = plant.arm
+        d = arm.data
+        self._plant_ref = plant  # (its arrays must outlive the runs)
+        self.plant = PlantState(
+            dof=arm.dof, dt_ns=plant.dt_ns, period_ns=plant.period_ns, cap=len(plant.rec_t),
+            model=arm.model._address, data=d._address, step=ctypes.cast(lib.mj_step, ctypes.c_void_p).value,
+            qpos=d.qpos.ctypes.data, qvel=d.qvel.ctypes.data, ctrl=d.ctrl.ctypes.data,
+            tool=d.site_xpos.ctypes.data + 24 * arm.tool, clock=plant.time.ctypes.data,
+            tau=plant.tau.ctypes.data, hold=plant.hold.ctypes.data, limit=plant.limit.ctypes.data,
+            driven=plant.driven.ctypes.data, rec_t=plant.rec_t.ctypes.data,
+            rec_tool=plant.rec_tool.ctypes.data, kp=plant.brake[0], kd=plant.brake[1],
+        )  # fmt: skip
+
+    def _vdc_module(self, m: Any) -> VdcModuleState:
+        """A VdcModule's VDC in C: its body's inertia and gains, its item ids, the plant."""
+        from cell.modular.wire import b_values, ids_of
+
+        if self.plant is None:
+            raise ValueError("a VDC module's cycle in C needs its plant (drive(plant) first)")
+        body, g = m.plant.arm.bodies[m.joint], m.gains
+        mass = body.inertia[5, 5]
+        _, b_ids, f_ids, _ = ids_of(m.joint)
+        v = VdcModuleState(
+            joint=m.joint, joint_gain=g.joint * body.torque_max / 150.0, armature=body.armature,
+            damping=body.damping, torque_max=body.torque_max, plant=ctypes.pointer(self.plant),
+        )  # fmt: skip
+        v.b_ids[:], v.f_ids[:], v.inertia[:] = b_ids, f_ids, body.inertia.ravel()
+        v.k[:] = (*[g.body_rot * mass] * 3, *[g.body_lin * mass] * 3)
+        if m.b is not None:
+            v.b[:], v.have_b = b_values(m.b), 1
+        v.tau_r = m.tau_r
+        return v
 
     def attach(self, fd: int, osc: Any, loss: float = 0.0) -> ModuleState:
         st = ModuleState(fd=fd, osc_origin=osc.origin, osc_offset=osc.offset_ns, osc_drift=osc.drift)
@@ -159,10 +260,10 @@ class NativeCycles:
 
     def detach(self, fd: int) -> None:
         self._states.pop(fd, None)
+        self._vdc.pop(fd, None)
         self._run_key = ()  # (a new socket may get its number)
 
-    @staticmethod
-    def push(st: ModuleState, m: JointModule, master: Any) -> None:
+    def push(self, st: ModuleState, m: JointModule, master: Any) -> None:
         """What the Python module decided since the last run: its servo, its configuration and,
         once it runs with transport snp, the cycle handed to C (where it then stays)."""
         s = m.servo
@@ -177,6 +278,11 @@ class NativeCycles:
         st.period_ns, st.phase_ns, st.budget_ns = c.period_ns, c.phase_ns, c.budget_ns
         st.pos, st.vel, st.v_des, st.torque = m.pos, m.vel, m.v_des, m.torque
         st.next_start, st.qid, st.stage = m.next_start, m._qid, 0
+        from cell.modular.cycle import VdcModule
+
+        if isinstance(m, VdcModule):
+            self._vdc[st.fd] = v = self._vdc_module(m)
+            st.vdc = ctypes.pointer(v)
         st.active = 1
 
     @staticmethod
@@ -241,6 +347,37 @@ class NativeMaster:
         self.buf = ctypes.create_string_buffer(2048)
         self.handed = Handed()
         self._node: list[Node | None] = [None] * MAX_JOINTS  # the node each joint entry holds
+        from cell.modular.cycle import VdcModel
+
+        self.vdc = self._vdc_state(master.model) if isinstance(master.model, VdcModel) else None
+        if self.vdc is not None:
+            self.st.vdc = ctypes.pointer(self.vdc)
+
+    def _vdc_state(self, model: Any) -> VdcState:
+        """VDC's master in C, from a cell.modular.cycle.VdcModel (its reference arrays kept alive
+        here: C reads them where numpy holds them)."""
+        from cell.modular.cycle import SETTLE_NS
+        from cell.modular.reference import CYCLE_NS
+        from cell.modular.wire import ids_of
+
+        ref = model.reference
+        self._ref = [np.ascontiguousarray(a, dtype=np.float64) for a in (ref.q, ref.qd, ref.qdd)]
+        v = VdcState(
+            n_ref=len(ref.t),
+            ref_dt_ns=CYCLE_NS,
+            start_ns=model.start_ns or 0,
+            settle_ns=SETTLE_NS,
+            lam=model.gains.lam,
+        )
+        v.q_ref, v.qd_ref, v.qdd_ref = (a.ctypes.data for a in self._ref)
+        for j, body in enumerate(model.bodies):
+            _, b_ids, f_ids, _ = ids_of(j)
+            v.b_ids[j][:], v.f_ids[j][:] = b_ids, f_ids
+            v.body_pos[j][:], v.body_rot[j][:] = body.pos, body.rot.ravel()
+            v.rot[j][:] = model.rot(j).ravel()
+            v.f_star[j][:] = model.f_star[j]
+            v.key_cycle[j] = -1
+        return v
 
     def push(self) -> None:
         """The Python master's view into C: which modules are included (a newly included one with
@@ -267,6 +404,9 @@ class NativeMaster:
         """What C did into the Python master: its model entries and FDIR state, its counters
         (the master's, its handler's and the link's), its events (a lost module excluded)."""
         ms, model, st = self.master, self.master.model, self.st
+        if self.vdc is not None:  # (what the Python model reports: when the reference started)
+            model.start_ns = self.vdc.start_ns or None
+            model.f_star = [np.array(f) for f in self.vdc.f_star]
         for j, n in enumerate(self._node):
             if n is None:
                 continue

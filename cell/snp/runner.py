@@ -298,10 +298,19 @@ class Slot:
     next_sample: int = 0
     wake: int = 0  # when (host monotonic ns) its module has something due next
 
-    def plug(self, t0: int, now: int, loss: float, rmap_timeout_ns: int, rmap_retries: int) -> None:
-        """A new module, its oscillator (off the host's clock from t0), socket and link."""
+    def plug(
+        self, t0: int, now: int, loss: float, rmap_timeout_ns: int, rmap_retries: int, plant: Any = None
+    ) -> None:
+        """A new module, its oscillator (off the host's clock from t0), socket and link; with a plant
+        (cell.modular.cycle.Plant), a module of the modular arm driving its joint by VDC."""
         self.osc = Oscillator(self.offset_ns, self.drift_ppm, t0)
-        self.module = JointModule(self.module_id, self.plugged_to, port=1)  # (its parent's downstream port)
+        if plant is None:
+            # (port 1: its parent's downstream port)
+            self.module = JointModule(self.module_id, self.plugged_to, port=1)
+        else:
+            from cell.modular.cycle import VdcModule
+
+            self.module = VdcModule(self.module_id, self.plugged_to, plant, port=1)
         self.module.use_transport(self.transport, rmap_timeout_ns, rmap_retries)
         self.sock = open_udp("127.0.0.1", self.port, timestamps=True)
         m = self.module
@@ -357,8 +366,10 @@ def run_modules(
     sample_grid: tuple[int, int] | None = None,
     spin: bool = True,
     native: bool = False,
+    plant: Any = None,
 ) -> list[Slot]:
     """Run the slots' modules in this thread for `seconds`, plugging and pulling them on time.
+    plant: the modular arm they drive by VDC (cell.modular.cycle.Plant; None: the toy joints).
     spin: poll without sleeping while a cycle is in flight (only for a loop with a core of its own:
     a thread that spins starves the others of the GIL).  native: the cycles of the modules with
     transport "snp" run in C (cell.snp.native; the others as before), which needs a C compiler.
@@ -366,7 +377,9 @@ def run_modules(
     clock is the master's, its management slot (CycleConfig.management_grid): a sample's trip
     through Python then delays no cycle."""
     if native:
-        return _run_native(slots, seconds, loss, sample_ns=sample_ns, sample_grid=sample_grid, spin=spin)
+        return _run_native(
+            slots, seconds, loss, sample_ns=sample_ns, sample_grid=sample_grid, spin=spin, plant=plant
+        )
     alarm = Alarm()
     ep = select.epoll()
     ep.register(alarm.fd, select.EPOLLIN)
@@ -376,7 +389,7 @@ def run_modules(
     end = t0 + int(seconds * 1e9)
 
     def plug(s: Slot) -> None:
-        s.plug(t0, now, loss, rmap_timeout_ns, rmap_retries)
+        s.plug(t0, now, loss, rmap_timeout_ns, rmap_retries, plant)
         assert s.sock is not None
         by_fd[s.sock.fileno()] = s
         ep.register(s.sock.fileno(), select.EPOLLIN)
@@ -389,6 +402,8 @@ def run_modules(
         live.remove(s)
         s.sock.close()
         s.sock = None
+        if plant is not None and s.module is not None and s.module.joint >= 0:
+            plant.release(s.module.joint)  # (on its brake)
 
     def wake_of(s: Slot) -> int:
         """When (host monotonic ns) its module has something due next: a cycle start, a
@@ -465,10 +480,12 @@ def _run_native(
     sample_ns: int,
     sample_grid: tuple[int, int] | None,
     spin: bool,
+    plant: Any = None,
 ) -> list[Slot]:
-    """run_modules with the cycle in C: one C loop waits on every module's socket and runs the
-    running modules' [A, B] and [C, D]; what it hands back (configuration, SnP-TSP) goes to the
-    Python JointModule, as do plugging, pulling and the clock samples, between its runs.
+    """run_modules with the cycle in C (with a plant: VDC's, the plant stepped in C too): one C
+    loop waits on every module's socket and runs the running modules' [A, B] and [C, D]; what it
+    hands back (configuration, SnP-TSP) goes to the Python JointModule, as do plugging, pulling
+    and the clock samples, between its runs.
 
     Each trip out of C costs what Python does there, and in the management slot a beacon and its
     follow-up make two: only the module that was handed a datagram is pushed to C again (its
@@ -484,6 +501,8 @@ def _run_native(
     cycles = NativeCycles(
         spin_ns=SPIN_NS if spin else 0, lead_ns=LEAD_NS if spin else 0, mono_of_real=realtime_offset()
     )
+    if plant is not None:
+        cycles.drive(plant)
     end = t0 + int(seconds * 1e9)
     clock = time.monotonic_ns
     live: list[Slot] = []
@@ -499,7 +518,7 @@ def _run_native(
         cycles.pull(cycles.state(s.sock.fileno()), s.module, s.link)
 
     def plug(s: Slot) -> None:
-        s.plug(t0, now, loss, 0, 0)
+        s.plug(t0, now, loss, 0, 0, plant)
         assert s.sock is not None and s.osc is not None
         cycles.attach(s.sock.fileno(), s.osc, loss)
         by_fd[s.sock.fileno()] = s
@@ -515,6 +534,8 @@ def _run_native(
         live.remove(s)
         s.sock.close()
         s.sock = None
+        if plant is not None and s.module is not None and s.module.joint >= 0:
+            plant.release(s.module.joint)  # (on its brake)
 
     def events() -> int:
         return _plug_and_pull(slots, t0, end, now, plug, pull)

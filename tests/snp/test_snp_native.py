@@ -52,7 +52,7 @@ class Rig:
         self.thread: threading.Thread | None = None
 
     def start(self, m: JointModule, until: int) -> None:
-        NativeCycles.push(self.state, m, self.master.getsockname())
+        self.cycles.push(self.state, m, self.master.getsockname())
         assert self.state.active
 
         def loop() -> None:

@@ -1,0 +1,292 @@
+"""VDC in the running SnP cycle (seed 002): the master's recursions answering the modules' time-bounded
+queries, and joint modules driving a MuJoCo arm, between processes on the cycle's time grid.
+
+`cell.snp.modular` runs the SnP cycle (exploration, configuration, SnP-TSP clocks, EDF admission,
+FDIR); this module gives it VDC's messages and arithmetic instead of the toy's scalars:
+- `VdcMaster`: a module's [A, B] query (q, qd in; B's 20 values wanted, cell.modular.wire's shapes)
+  is answered with the forward recursion up to its body; its [C, D] query (F*_r in; tau_r wanted)
+  with the backward recursion from the tip in to it.  Both run when the answer is served (earliest
+  deadline first), on what has come in by then: a body's A that has not come this cycle is its last
+  one carried on at its velocity (data obsolescence), an F*_r that has not come is its last.  In the
+  slotted schedule joint j's A comes after those below it, so B's recursion has this cycle's A's;
+  D's takes the outboard bodies' F*_r of this cycle where they have come, of the cycle before where
+  not (the "[C, D] with the neighbour's force of the cycle before" case of cell.modular.loop).
+- `VdcModule`: a joint module whose A is its joint on the `Plant` at T1, whose C is its body's
+  required net force from B (cell.modular.vdc.Module), and whose motor gets the torque from D.  A
+  missing B is its last extrapolated, a missing D its last held (no retry), as in cell.modular.loop.
+- `Plant`: the arm itself, MuJoCo stepped in real time on the host's clock with the torques the
+  modules last set; a joint whose module is not running holds on its brake.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from cell.modular.arm import ModularArm
+from cell.modular.loop import VdcArm
+from cell.modular.reference import CYCLE_NS, Reference
+from cell.modular.vdc import AXIS, BASE, B, Carry, Gains, Module, carried_force, forward_step
+from cell.modular.vdc import A as AMsg
+from cell.modular.wire import A_QUERY, B_REPLY, C_QUERY, D_REPLY, b_of, b_values, ids_of
+from cell.snp.modular import ArmModel, Cycle, CycleConfig, JointModule, Master, Node, Stage
+from cell.snp.packet import Header, Pid
+
+SETTLE_NS = 500_000_000  # from every joint in the cycle to the reference's start: the clocks settle
+
+
+class Plant:
+    """The six-module arm in MuJoCo, in real time: stepped (TIMESTEP a step) up to the clock's now
+    with the torques last set (held between cycles, as a motor drive holds its command); a joint
+    whose module does not drive it holds on its brake.  Records the tool every 1 ms, for
+    `capacity_s` (the rest is not recorded).  Its state is in numpy arrays so that the modules'
+    C cycle (cell/snp/cycle.c) steps the same arm through them."""
+
+    def __init__(
+        self, q0: np.ndarray, clock: Callable[[], int] = time.monotonic_ns, capacity_s: float = 120.0
+    ) -> None:
+        self.arm = arm = ModularArm(q0)
+        n = arm.dof
+        self.clock = clock
+        self.dt_ns, self.period_ns = round(arm.model.opt.timestep * 1e9), CYCLE_NS  # (its records')
+        self.brake = (VdcArm.BRAKE_KP, VdcArm.BRAKE_KD)
+        now = clock()
+        self.time = np.array([now, now, 0], dtype=np.int64)  # t, the next record's time, records made
+        self.tau = np.zeros(n)
+        self.driven = np.zeros(n, dtype=np.int64)
+        self.hold = np.asarray(q0, dtype=np.float64).copy()  # where each brake holds its joint
+        self.limit = np.array([b.torque_max for b in arm.bodies])
+        cap = int(capacity_s * 1e9 / CYCLE_NS)
+        self.rec_t = np.zeros(cap, dtype=np.int64)
+        self.rec_tool = np.zeros((cap, 3))
+
+    @property
+    def records(self) -> list[tuple[int, np.ndarray]]:
+        """(host ns, the tool's position) every 1 ms so far."""
+        n = int(self.time[2])
+        return list(zip(self.rec_t[:n].tolist(), self.rec_tool[:n], strict=True))
+
+    def advance(self) -> None:
+        data, tool, t = self.arm.data, self.arm.tool, self.time
+        now = self.clock()
+        while t[0] + self.dt_ns <= now:
+            tau = self.tau.copy()
+            idle = self.driven == 0
+            if idle.any():
+                brake = self.brake[0] * (self.hold - data.qpos) - self.brake[1] * data.qvel
+                tau[idle] = np.clip(brake, -self.limit, self.limit)[idle]
+            self.arm.step(tau, 1)
+            t[0] += self.dt_ns
+            if t[0] >= t[1]:
+                if t[2] < len(self.rec_t):
+                    self.rec_t[t[2]], self.rec_tool[t[2]] = t[0], data.site_xpos[tool]
+                    t[2] += 1
+                t[1] += self.period_ns
+
+    def joint(self, j: int) -> tuple[float, float]:
+        """Joint j's position and velocity now."""
+        self.advance()
+        d = self.arm.data
+        return float(d.qpos[j]), float(d.qvel[j])
+
+    def drive(self, j: int, tau: float) -> None:
+        self.advance()
+        self.tau[j], self.driven[j] = tau, 1
+
+    def release(self, j: int) -> None:
+        """Its module gone: the joint on its brake where it stands."""
+        self.advance()
+        self.driven[j], self.hold[j] = 0, self.arm.data.qpos[j]
+
+
+class VdcModel(ArmModel):
+    """The master's VDC: the forward recursion (B) and the backward one (D) over the joints' last
+    messages; the reference starts SETTLE_NS after every joint is in the cycle (start_ns)."""
+
+    def __init__(self, reference: Reference, gains: Gains | None = None, period_ns: int = CYCLE_NS) -> None:
+        self.bodies = ModularArm().bodies
+        n = len(self.bodies)
+        super().__init__(n, 0.0, 0)
+        self.reference, self.gains, self.period_ns = reference, gains or Gains(), period_ns  # (the cycle's)
+        self.start_ns: int | None = None
+        self.f_star = [np.zeros(6) for _ in range(n)]
+        self.seq = [0] * n  # A's taken per joint: what a cached step of the recursion was made from
+        # the recursion, per body: (its cycle and the A's it was made from, its B, transform, carry)
+        self._chain: list[tuple[tuple[int, ...], B, np.ndarray, Carry] | None] = [None] * n
+
+    def take_a(self, j: int, q: float, qd: float, t: int) -> None:
+        self.pos[j], self.vel[j], self.at[j] = q, qd, t
+        self.seq[j] += 1
+
+    def desired(self, j: int, t: int) -> tuple[float, float, float]:
+        """The reference's position, velocity and acceleration of joint j at t (its start pose
+        until it starts, its end pose after)."""
+        ref = self.reference
+        if self.start_ns is None and all(self.active):
+            self.start_ns = t + SETTLE_NS
+        k = 0 if self.start_ns is None else int(np.clip((t - self.start_ns) // CYCLE_NS, 0, len(ref.t) - 1))
+        return float(ref.q[k, j]), float(ref.qd[k, j]), float(ref.qdd[k, j])
+
+    def b(self, j: int, t: int) -> B:
+        """Joint j's B at t (its T1): the recursion from the base, each body from its last A carried
+        on to t.  The steps below j made this cycle from the same A's are taken as they are (in the
+        slotted schedule: each body once a cycle)."""
+        cycle = (t + self.period_ns // 2) // self.period_ns
+        start = j  # (the step after the highest one below j made this cycle from the same A's)
+        while start > 0 and ((c := self._chain[start - 1]) is None or c[0] != (cycle, *self.seq[:start])):
+            start -= 1
+        carry = BASE if start == 0 else self._chain[start - 1][3]  # type: ignore[index]
+        lam = self.gains.lam
+        for i in range(start, j + 1):
+            out, x, carry = forward_step(
+                self.bodies[i], lam, AMsg(self.guess(i, t), self.vel[i]), *self.desired(i, t), carry
+            )
+            self._chain[i] = ((cycle, *self.seq[: i + 1]), out, x, carry)
+        return self._chain[j][1]  # type: ignore[index]
+
+    def _transform(self, i: int) -> np.ndarray:
+        """Body i's ^iX_{i-1} as its last B's recursion made it."""
+        c = self._chain[i]
+        return c[2] if c is not None else self.bodies[i].transform(self.pos[i])
+
+    def rot(self, i: int) -> np.ndarray:
+        """Body i's axes in its parent's (R = rot rz(q)) as _transform has them."""
+        return self._transform(i)[:3, :3].T
+
+    def tau_r(self, j: int) -> float:
+        """Joint j's D: its body's F*_r plus what the bodies out to the tip need of it."""
+        n = len(self.bodies)
+        f = self.f_star[n - 1]
+        for i in range(n - 2, j - 1, -1):
+            f = self.f_star[i] + carried_force(self._transform(i + 1), f)
+        return float(AXIS @ f)
+
+
+class VdcMaster(Master):
+    """The SnP master with VDC's cycle messages (cell.modular.wire's shapes) and arithmetic."""
+
+    CYCLE_SIZES = frozenset((A_QUERY.size, C_QUERY.size))
+
+    def __init__(
+        self, ports: list[Any], config: CycleConfig, clock: Any, reference: Reference, **kw: Any
+    ) -> None:
+        super().__init__(ports, config, clock, model=VdcModel(reference, period_ns=config.period_ns), **kw)
+        self.vdc: VdcModel = self.model  # type: ignore[assignment]
+        self.ids = [ids_of(j) for j in range(len(self.vdc.bodies))]
+
+    def _cycle_query(self, data: bytes, addr: Any, node: Node, now: int) -> list[tuple[bytes, Any]] | None:
+        model, h, j = self.vdc, self.handler, node.joint
+        if j >= len(self.ids) or not model.active[j]:
+            return None
+        a_ids, b_ids, f_ids, tau = self.ids[j]
+        is_a = len(data) == A_QUERY.size
+        if is_a:
+            f = A_QUERY.parse(data)  # ..., qid 8, deadline 9, 2, q 11-13, qd 14-16, 20, wanted 18-57
+            if f is None or f[1] != Pid.MRT or f[11] != a_ids[0] or f[14] != a_ids[1] or f[18] != b_ids[0]:
+                return None
+            self._a_cycle[j] = self._cycle_at(node, now)
+        else:
+            f = C_QUERY.parse(data)  # ..., qid 8, deadline 9, 6, F* 11-28, 1, wanted 30-31
+            if f is None or f[1] != Pid.MRT or f[11:29:3] != f_ids or f[30] != tau:
+                return None
+        qid, deadline = f[8], f[9]
+        back = Header(f[0], f[1], b"", f[4], f[3])
+        h.counters.queries += 1
+        if not h.admit(now, deadline):
+            return [h.deny(back, qid, addr)]
+        if is_a:
+            model.take_a(j, f[12], f[15], f[13])
+        else:
+            model.f_star[j] = np.array(f[12:30:3])
+        h.enqueue(deadline, self._vdc_answer, (back, qid, j, f[13], is_a), addr, qid, back)
+        return []
+
+    def _vdc_answer(self, arg: tuple[Header, int, int, int, bool]) -> bytes:
+        back, qid, j, t, is_a = arg
+        _, b_ids, _, tau = self.ids[j]
+        head = (back.destination, back.pid, back.source_process, back.destination_process, qid)
+        if is_a:
+            values = b_values(self.vdc.b(j, t))
+            return B_REPLY.pack(
+                *head, tuple(x for k, v in zip(b_ids, values, strict=True) for x in (k, v, t))
+            )
+        return D_REPLY.pack(*head, (tau, self.vdc.tau_r(j), t))
+
+
+class VdcModule(JointModule):
+    """A joint module of the modular arm: its joint read from and its motor driven on the plant."""
+
+    ANSWERS = {Stage.AB: B_REPLY, Stage.CD: D_REPLY}
+
+    def __init__(self, module_id: int, plugged_to: int, plant: Plant, port: int = 0, **kw: Any) -> None:
+        super().__init__(module_id, plugged_to, port, **kw)
+        self.plant, self.gains = plant, Gains()
+        self.module: Module | None = None  # its body's dynamics, once it knows its joint
+        self.b: B | None = None  # the last B it took
+        self.b_fresh = False  # (this cycle's)
+        self.tau_r = 0.0
+        self.qd = 0.0  # its joint's velocity at this cycle's T1
+
+    def _start(self, scheduled: int, raw: int) -> list[bytes]:
+        c = self.config
+        assert c is not None
+        j = self.joint
+        if self.module is None or self.module.body is not self.plant.arm.bodies[j]:
+            self.module = Module(self.plant.arm.bodies[j], self.gains)
+        t1 = self.servo.now(raw)
+        self.cycle = Cycle(scheduled, t1, Stage.AB, scheduled + c.budget_ns // 2)
+        self.b_fresh = False
+        (pos, vel), b_ids, _, _ = ids_of(j)
+        q, self.qd = self.plant.joint(j)
+        return [
+            self._query(A_QUERY, (pos, q, t1, vel, self.qd, t1), tuple(x for k in b_ids for x in (k, t1)))
+        ]
+
+    def took_b(self, values: tuple) -> None:
+        self.b, self.b_fresh = b_of(values[:20]), True
+
+    def took_d(self, values: tuple) -> None:
+        self.tau_r = values[0]
+
+    def _second(self, cy: Cycle) -> list[bytes]:
+        """[C, D]: its body's required net force from B (its last carried on if this cycle's did not
+        come); none before its first B (its joint stays on the brake)."""
+        c = self.config
+        assert c is not None and self.module is not None
+        cy.deadline = cy.scheduled + c.budget_ns
+        if self.b is None:
+            self._finish(cy, cy.start)
+            return []
+        dt = c.period_ns / 1e9
+        if not self.b_fresh:
+            p = self.b
+            self.b = B(p.qd_r + p.qdd_r * dt, p.qdd_r, p.v_r + p.a_r * dt, p.a_r, p.v)
+        cy.stage = Stage.CD
+        _, _, f_ids, tau = ids_of(self.joint)
+        force = self.module.net_force(self.b, dt).f_star
+        inputs = tuple(x for k, v in zip(f_ids, force, strict=True) for x in (k, float(v), cy.start))
+        return [self._query(C_QUERY, inputs, (tau, cy.start))]
+
+    def _finish(self, cy: Cycle, now: int) -> None:
+        """Its motor gets the torque: the chain's share (D, or the last) and its own."""
+        cy.stage = Stage.DONE
+        self.cycles.append((cy.scheduled, cy.start, now, cy.missed))
+        if self.b is not None and self.module is not None:
+            self.plant.drive(self.joint, self.module.torque(self.tau_r, self.b, self.qd))
+
+
+def tool_error_mm(
+    records: list[tuple[int, np.ndarray]], reference: Reference, start_ns: int | None
+) -> np.ndarray:
+    """The tool's error (mm) against the reference's, each ms a plant recorded (Plant.records) while
+    the reference ran from start_ns (none: it never started)."""
+    if not records or start_ns is None:
+        return np.zeros(0)
+    t = np.array([r[0] for r in records], dtype=np.int64)
+    tool = np.array([r[1] for r in records])
+    k = (t - start_ns) // CYCLE_NS
+    keep = (k >= 0) & (k < len(reference.t))
+    return np.linalg.norm(tool[keep] - reference.tool[k[keep]], axis=1) * 1e3

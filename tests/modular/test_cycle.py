@@ -1,0 +1,219 @@
+"""VDC in the running SnP cycle (cell.modular.cycle, and its C paths in cell/snp/master.c and cycle.c).
+
+The C master must answer as the Python VdcMaster does, the C plant step as the Python Plant, and a
+module must guess what does not come; end to end, a master and six modules in their own
+processes move the MuJoCo arm along a reference over real UDP sockets."""
+
+from __future__ import annotations
+
+import ctypes
+import random
+import time
+
+import numpy as np
+import pytest
+
+from cell.modular.cycle import SETTLE_NS, Plant, VdcMaster, VdcModule
+from cell.modular.reference import CYCLE_NS, Q_HOME, joint_move
+from cell.modular.wire import A_QUERY, B_REPLY, C_QUERY, D_REPLY, b_values, ids_of
+from cell.snp.modular import CycleConfig, NodeState, Stage
+from cell.snp.native import NativeCycles, NativeMaster, available
+from cell.snp.packet import Configure, Configured, ModuleKind, NodeInfo, Pid
+from cell.snp.runner import Link, open_udp
+from cell.timer import realtime_offset
+
+native = pytest.mark.skipif(available() is not None, reason=f"the C cycle does not build: {available()}")
+FAR = 10**18  # a deadline no run reaches
+Q1 = Q_HOME + np.array([0.3, -0.2, 0.25, 0.2, -0.3, 0.4])
+
+
+def move():
+    return joint_move(Q_HOME, Q1, 1.5)
+
+
+def a_query(j: int, qid: int, q: float, qd: float, t: int, deadline: int = FAR) -> bytes:
+    (pos, vel), b_ids, _, _ = ids_of(j)
+    return A_QUERY.pack(0, Pid.MRT, 900 + j, 0, qid, deadline, (pos, q, t, vel, qd, t),
+                        tuple(x for k in b_ids for x in (k, t)))  # fmt: skip
+
+
+def c_query(j: int, qid: int, f_star: list[float], t: int) -> bytes:
+    _, _, f_ids, tau = ids_of(j)
+    inputs = tuple(x for k, v in zip(f_ids, f_star, strict=True) for x in (k, v, t))
+    return C_QUERY.pack(0, Pid.MRT, 900 + j, 0, qid, FAR, inputs, (tau, t))
+
+
+class MasterRig:
+    """A VdcMaster served by NativeMaster on a socket, a twin Python VdcMaster, and six sockets
+    playing the modules (joint j: module j, in a chain)."""
+
+    def __init__(self) -> None:
+        self.sock = open_udp(timestamps=True)
+        self.mods = [open_udp() for _ in range(6)]
+        for s in self.mods:
+            s.setblocking(True)
+            s.settimeout(2.0)
+        self.addrs = [s.getsockname() for s in self.mods]
+        config = CycleConfig(period_ns=100_000_000, budget_ns=80_000_000)  # (no FDIR event in a test)
+        ref = move()
+        self.py, self.c = (VdcMaster(self.addrs, config, time.monotonic_ns, ref) for _ in range(2))
+        now = time.monotonic_ns()
+        for m in (self.py, self.c):
+            for j, addr in enumerate(self.addrs):
+                m._found(NodeInfo(100 + j, ModuleKind.JOINT, 99 + j if j else 0, 1), addr, now)
+            for j, addr in enumerate(self.addrs):
+                m._configured(Configured(j), addr, now)
+            m.vdc.start_ns = now - 300 * CYCLE_NS  # (the reference 0.3 s on: moving)
+        assert all(n.state == NodeState.INCLUDED for n in self.c.nodes.values())
+        self.fast = NativeMaster(
+            self.c, self.sock.fileno(), spin_ns=0, lead_ns=0, mono_of_real=realtime_offset()
+        )
+        self.c.fdir_here = False
+        self.link = Link(self.sock)
+
+    def exchange(self, j: int, data: bytes) -> tuple[bytes, bytes]:
+        """(the C master's answer, the Python twin's) to module j's datagram."""
+        self.mods[j].sendto(data, self.sock.getsockname())
+        self.fast.push()
+        assert self.fast.run(time.monotonic_ns() + 5_000_000) is None
+        self.fast.pull(self.link)
+        got = self.mods[j].recv(2048)
+        out = self.py.receive(data, self.addrs[j], time.monotonic_ns()) + self.py.serve()
+        return got, out[0][0]
+
+    def close(self) -> None:
+        for s in (self.sock, *self.mods):
+            s.close()
+
+
+@pytest.fixture
+def master_rig():
+    r = MasterRig()
+    yield r
+    r.close()
+
+
+def _values(reply: bytes, shape) -> np.ndarray:  # type: ignore[no-untyped-def]
+    f = shape.parse(reply)
+    assert f is not None, reply
+    return np.array(f[11::3][: shape.n])
+
+
+@native
+def test_the_c_master_answers_b_and_d_as_the_python_vdc_master(master_rig: MasterRig) -> None:
+    t = time.monotonic_ns()
+    rng = np.random.default_rng(5)
+    q, qd = Q_HOME + rng.uniform(-0.05, 0.05, 6), rng.uniform(-0.3, 0.3, 6)
+    for j in range(6):  # each joint's A in its slot: B from the recursion over those below
+        c_b, py_b = master_rig.exchange(j, a_query(j, 10 + j, q[j], qd[j], t + 30_000 * j))
+        b_c, b_py = _values(c_b, B_REPLY), _values(py_b, B_REPLY)
+        assert np.allclose(b_c, b_py, rtol=1e-6, atol=1e-6), (j, b_c - b_py)
+        assert abs(b_c).max() > 1.0  # (gravity in dV_r at least: not all zeros)
+    forces = rng.uniform(-20, 20, (6, 6))
+    for j in range(6):
+        c_d, py_d = master_rig.exchange(j, c_query(j, 20 + j, list(forces[j]), t + 30_000 * j))
+        assert np.allclose(_values(c_d, D_REPLY), _values(py_d, D_REPLY), rtol=1e-5, atol=1e-4)
+    # D of the base joint carries every body's force out to the tip: not its own F* alone
+    assert abs(_values(c_d, D_REPLY)[0] - forces[5][2]) < 1e-3  # (the last is the tip's own)
+    assert master_rig.c.vdc.f_star[3] == pytest.approx(forces[3], rel=1e-6)  # pulled back
+    h = master_rig.c.handler.counters
+    assert (h.queries, h.replies) == (12, 12)
+
+
+@native
+def test_a_vdc_query_with_another_joints_items_is_not_taken_as_its_a(master_rig: MasterRig) -> None:
+    t = time.monotonic_ns()
+    forged = a_query(3, 5, 1.0, 0.0, t)  # joint 3's items, from joint 1's module
+    master_rig.mods[1].sendto(forged, master_rig.sock.getsockname())
+    master_rig.fast.push()
+    got = master_rig.fast.run(time.monotonic_ns() + 5_000_000)
+    assert got is not None and got[1] == forged  # handed back to Python: not the fast path's
+    assert master_rig.c.vdc.seq == [0] * 6 and master_rig.c.model.pos[3] == 0.0
+
+
+@native
+def test_the_c_plant_steps_the_arm_as_the_python_plant() -> None:
+    t0 = 10**15
+    py, c = (Plant(Q_HOME, clock=lambda: t0, capacity_s=1.0) for _ in range(2))
+    cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=0)
+    cycles.drive(c)
+    for p in (py, c):  # joints 1 and 2 driven, the others on their brakes
+        p.tau[1], p.tau[2], p.driven[1], p.driven[2] = 40.0, -25.0, 1, 1
+    end = t0 + 20 * CYCLE_NS + 100
+    py.clock = lambda: end
+    py.advance()
+    cycles.lib.snp_plant_advance(ctypes.byref(cycles.plant), end)
+    assert (c.arm.data.qpos == py.arm.data.qpos).all() and (c.arm.data.qvel == py.arm.data.qvel).all()
+    assert (
+        py.time.tolist() == c.time.tolist() == [t0 + 80 * py.dt_ns, t0 + 21 * CYCLE_NS, 21]
+    )  # (the first at its first step)
+    assert (py.rec_tool[:21] == c.rec_tool[:21]).all() and (py.rec_t[:21] == c.rec_t[:21]).all()
+    moved = np.abs(py.arm.data.qpos - Q_HOME)
+    assert moved[1] > 1e-3 and moved[2] > 1e-3  # driven
+    assert moved[[0, 3, 4, 5]].max() < 2e-3  # braked (against gravity)
+
+
+def _module(plant: Plant, joint: int = 2) -> VdcModule:
+    m = VdcModule(101, 0, plant)
+    m.config = Configure(joint, 10_000_000, 0, 8_000_000, (20.0,))
+    m.joint, m.state = joint, "running"
+    m.next_start = 0
+    return m
+
+
+def test_a_module_guesses_a_b_that_does_not_come_and_drives_its_motor_with_d() -> None:
+    plant = Plant(Q_HOME)
+    m = _module(plant)
+    a = m.poll(0)[0]  # its cycle starts at once (the servo reads raw as the master's time)
+    f = A_QUERY.parse(a)
+    assert f is not None and f[11:17:3] == ids_of(2)[0] and f[12] == pytest.approx(Q_HOME[2], abs=1e-3)
+    _, b_ids, _, tau = ids_of(2)
+    values = [0.5, 2.0, *[0.0] * 6, 0.0, 0.0, 0.0, 0.0, 0.0, 9.81, *[0.0] * 6]
+    b = B_REPLY.pack(
+        0, Pid.MRT, 0, 0, f[8], tuple(x for k, v in zip(b_ids, values, strict=True) for x in (k, v, 0))
+    )
+    corrupt = bytearray(b)
+    corrupt[60] ^= 0xFF
+    assert m.receive(bytes(corrupt), 1000) == []  # refused: its CRC (the cycle waits on)
+    c = m.receive(b, 2000)[0]
+    fc = C_QUERY.parse(c)
+    assert fc is not None and fc[30] == tau and np.allclose(b_values(m.b), values, atol=1e-6)  # type: ignore[arg-type]
+    assert fc[12:30:3][5] > 0  # F*_r holds its body up against gravity
+    d = D_REPLY.pack(0, Pid.MRT, 0, 0, fc[8], (tau, 12.5, 0))
+    assert m.receive(d, 3000) == [] and m.cycle is not None and m.cycle.stage == Stage.DONE
+    assert plant.driven[2] == 1 and plant.tau[2] == pytest.approx(m.module.torque(12.5, m.b, m.qd))  # type: ignore[union-attr]
+    # the next cycle's B never comes: at its deadline the last one, carried on, makes C
+    m.next_start = 10_000_000
+    m.poll(10_000_000)
+    c2 = m.poll(10_000_000 + 4_000_001)
+    assert m.missed[Stage.AB] == 1 and len(c2) == 1 and C_QUERY.parse(c2[0]) is not None
+    assert m.b.qd_r == pytest.approx(0.5 + 2.0 * 0.01)  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize(
+    ("in_c", "period_ns"),
+    [
+        pytest.param(True, 1_000_000, marks=native, id="c-1ms"),
+        pytest.param(False, 4_000_000, id="python-4ms"),
+    ],
+)
+def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
+    in_c: bool, period_ns: int
+) -> None:
+    """In C at the slides' 1 ms; in Python at 4 ms (its modules' VDC costs about 0.9 ms a cycle: at
+    1 ms most exchanges miss, which `cell bench snp` shows)."""
+    from cell.bench.snp import SLOT_NS, _chain, cycle_figures, trial
+
+    ref = move()
+    seconds = 1.2 + SETTLE_NS / 1e9 + ref.t[-1]
+    scale = period_ns // 1_000_000
+    config = CycleConfig(period_ns=period_ns, budget_ns=period_ns, slot_ns=SLOT_NS * scale,
+                         management_ns=400_000 * scale)  # fmt: skip
+    r = trial(_chain(6, "snp", random.Random(2)), seconds, native=in_c, reference=ref, config=config)
+    f = cycle_figures(r)
+    err = r["tool_error_mm"]
+    assert len(err) == len(ref.t)  # the whole reference ran, recorded every ms
+    assert f["modules_ran"] == 6 and sorted(m["joint"] for m in r["modules"]) == list(range(6))
+    h = r["master"]["handler"]
+    assert h["replies"] + sum(v for k, v in h.items() if k.startswith("denied.")) == h["queries"]
+    assert err.max() < 2.0 and f["missed_pct"] < 5.0
