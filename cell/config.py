@@ -411,8 +411,9 @@ class ModularConfig:
     where: list[str] = field(metadata={"check": _where})  # who computes each module's [C, D]
     loss: float = _check(lambda v: None if 0 <= v <= 0.5 else f"must be in [0, 0.5] (got {v})")
     # how the four messages cross: "snp" as SnP-MrT packets between UDP sockets on loopback (the
-    # master's and each module's, cell.modular.wire), "memory" handed over as they are
-    transport: Literal["snp", "memory"]
+    # master's and each module's, cell.modular.wire), "memory" handed over as they are, "cycle" the
+    # SnP cycle itself: its master and modules in processes of their own (cell.modular.processes)
+    transport: Literal["snp", "memory", "cycle"]
     speed_rad_s: float = _check(_positive)  # joint moves' default peak speed
     suspect_cycles: int = _check(_positive)
     lost_cycles: int = _check(_positive)

@@ -11,13 +11,15 @@ the counters carry each module's state for `cell status`.
 from __future__ import annotations
 
 import asyncio
+import os
 import time
 
 import numpy as np
 
 from cell.bus import RpcFault
+from cell.modular.processes import CycleRobot
 from cell.modular.reference import CYCLE_NS
-from cell.modular.robot import Ended, ModularRobot, MotionRefused
+from cell.modular.robot import ArmRobot, Ended, ModularRobot, MotionRefused
 from cell.modular.wire import SnpLink
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import modular_pb2 as pb
@@ -25,42 +27,60 @@ from cell.v1 import modular_pb2 as pb
 CATCH_UP = 50  # cycles run in one wake-up at most (a longer stall: the arm's time falls behind)
 
 
-def status(robot: ModularRobot, late: int) -> pb.ModularStatus:
+def status(robot: ArmRobot, late: int) -> pb.ModularStatus:
+    offsets = robot.clock_offsets_us
     return pb.ModularStatus(
         modules=[
-            pb.ModuleStatus(name=n, state=str(s), guessed=int(g), where=w)
-            for n, s, g, w in zip(robot.NAMES, robot.states, robot.vdc.guessed_by, robot.where, strict=True)
+            pb.ModuleStatus(name=n, state=str(s), guessed=int(g), where=w, clock_offset_us=float(o))
+            for n, s, g, w, o in zip(
+                robot.NAMES, robot.states, robot.guessed_by, robot.where, offsets, strict=True
+            )
         ],
         cycles=robot.cycles,
         late_cycles=late,
         cycle_us_mean=robot.cycle_us_mean,
         cycle_us_max=robot.cycle_ns_max / 1e3,
-        q=robot.vdc.arm.q.tolist(),
-        tool=robot.vdc.arm.tool_position().tolist(),
+        q=robot.q.tolist(),
+        tool=robot.tool.tolist(),
         motion=robot.motion.path if robot.motion else "",
         stopped=robot.stopped,
+        transport=robot.transport,
+        period_ms=robot.period_ns / 1e6,
     )
 
 
 async def run(ctx: ServiceContext) -> None:
     c = ctx.config.modular
     link = SnpLink() if c.transport == "snp" else None
+    robot: ArmRobot
+    if c.transport == "cycle":
+        # (two processes of its own; they poll without sleeping through each cycle's exchanges only
+        # where this process may run on two cores: on one, a spinning one keeps the other out)
+        robot = CycleRobot(
+            np.array(c.q0), where=tuple(c.where), suspect_cycles=c.suspect_cycles,
+            lost_cycles=c.lost_cycles, spin=len(os.sched_getaffinity(0)) >= 2,
+        )  # fmt: skip
+        where = "C" if robot.native else "Python"
+        ctx.log.info("modular robot: the SnP cycle's master and modules in processes of their own, "
+                     "%g ms cycles in %s", robot.period_ns / 1e6, where)  # fmt: skip
+    else:
+        robot = ModularRobot(
+            np.array(c.q0), loss=c.loss, where=tuple(c.where),
+            suspect_cycles=c.suspect_cycles, lost_cycles=c.lost_cycles, link=link,
+        )  # fmt: skip
+    if link is not None:
+        ctx.log.info("modular robot: its messages as SnP-MrT packets, master on udp %s:%d",
+                     *link.master.getsockname())  # fmt: skip
     try:
-        await _run(ctx, link)
+        await _run(ctx, robot, link)
     finally:
+        robot.close()
         if link is not None:
             link.close()
 
 
-async def _run(ctx: ServiceContext, link: SnpLink | None) -> None:
+async def _run(ctx: ServiceContext, robot: ArmRobot, link: SnpLink | None) -> None:
     c = ctx.config.modular
-    robot = ModularRobot(
-        np.array(c.q0), loss=c.loss, where=tuple(c.where),
-        suspect_cycles=c.suspect_cycles, lost_cycles=c.lost_cycles, link=link,
-    )  # fmt: skip
-    if link is not None:
-        ctx.log.info("modular robot: its messages as SnP-MrT packets, master on udp %s:%d",
-                     *link.master.getsockname())  # fmt: skip
     for path in ("pick-and-place", "circle"):  # (their IK before the cycles start, not in one)
         await asyncio.to_thread(robot.named, path)
     waiting: list[asyncio.Future[Ended]] = []  # the motion under way's requester (one at a time)
@@ -106,17 +126,17 @@ async def _run(ctx: ServiceContext, link: SnpLink | None) -> None:
     every = max(1, round(1e9 / c.publish_hz / CYCLE_NS))  # cycles between two modular/state
 
     def publish() -> None:
-        vdc = robot.vdc
-        tool = vdc.arm.tool_position()
+        tool = robot.tool
         ctx.bus.publish(
             "modular/state",
             pb.ModularState(
-                t_ns=time.monotonic_ns(), q=vdc.arm.q.tolist(), tool=tool.tolist(),
+                t_ns=time.monotonic_ns(), q=robot.q.tolist(), tool=tool.tolist(),
                 tool_ref=robot.tool_ref.tolist(),
                 tool_error_mm=float(np.linalg.norm(tool - robot.tool_ref)) * 1e3,
-                phase_us=(vdc.phase_ns / 1e3).tolist(), guessed=vdc.guessed_by.tolist(),
+                phase_us=robot.phase_us.tolist(), guessed=robot.guessed_by.tolist(),
                 states=[str(s) for s in robot.states], frames=robot.frames().ravel().tolist(),
-                late_cycles=late,
+                late_cycles=late, clock_offset_us=robot.clock_offsets_us.tolist(),
+                module_cycle_us=robot.module_cycle_us.tolist(),
             ),
         )  # fmt: skip
 

@@ -21,7 +21,6 @@ import argparse
 import dataclasses
 import multiprocessing as mp
 import random
-import socket
 import time
 from typing import Any
 
@@ -31,6 +30,7 @@ from cell.bench.registry import Bench, Figures, register
 from cell.modular.cycle import tool_error_mm
 from cell.modular.reference import Reference
 from cell.snp.modular import CycleConfig
+from cell.snp.runner import free_ports
 from cell.snp.spacewire import FAILOVER_CYCLES, HOP_NS, cd_cycle_us, failover_ms
 
 WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settles meanwhile
@@ -39,17 +39,6 @@ MODULE0 = 101
 # end, and six A's at once queue behind each other (0.7-1.6% missed in three runs at 0 us against
 # 0.06-0.18% at 30 us, which the slides' 0.05 ms a joint allows)
 SLOT_NS = 30_000
-
-
-def _free_ports(n: int) -> list[int]:
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
-    try:
-        for s in socks:
-            s.bind(("127.0.0.1", 0))
-        return [s.getsockname()[1] for s in socks]
-    finally:
-        for s in socks:
-            s.close()
 
 
 def _place(core: int) -> None:
@@ -184,7 +173,7 @@ def trial(
     error against it in "tool_error_mm".  Every module's record and the master's."""
     native_master = native if native_master is None else native_master
     config = config or CycleConfig(slot_ns=SLOT_NS)
-    ports = _free_ports(len({s["module_id"] for s in slots}))
+    ports = free_ports(len({s["module_id"] for s in slots}))
     port_of: dict[int, int] = {}
     for s in slots:  # (a module plugged back comes back on its port)
         if s["module_id"] not in port_of:
@@ -274,6 +263,51 @@ def _robot_cycles(kept: list[np.ndarray], modules: int, period_ns: int = 1_000_0
     return ((last - first) / 1e6)[counts == modules]
 
 
+VDC_CYCLE_KEYS = (
+    "missed_pct",
+    "cycle_ms_p99",
+    "robot_cycle_ms_p99",
+    "tool_error_mm_max",
+    "tool_error_mm_rms",
+)
+VDC_PERIOD_PY_NS = 4_000_000  # the Python cycle's period in the VDC baseline that keeps up
+
+
+def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[str, dict[str, Any]]:
+    """VDC's maths in the cycle between processes (cell.modular.cycle): the six modules drive the
+    MuJoCo arm along the 0.5 m/s pick and place, the master answers with VDC's recursions.  In C
+    at 1 ms ("" key, if it builds), and in Python at 1 ms ("_python") and at VDC_PERIOD_PY_NS
+    ("_python_4ms"): each its cycle's figures and the tool's error over the path."""
+    from cell.modular.cycle import SETTLE_NS
+    from cell.modular.reference import pick_and_place
+
+    ref = pick_and_place(0.5)
+    seconds = 1.2 + SETTLE_NS / 1e9 + float(ref.t[-1])
+    scale = VDC_PERIOD_PY_NS // config.period_ns
+    slow = dataclasses.replace(
+        config,
+        period_ns=VDC_PERIOD_PY_NS,
+        budget_ns=config.budget_ns * scale,
+        slot_ns=config.slot_ns * scale,
+        management_ns=config.management_ns * scale,
+    )
+    runs = {"": (config, True), "_python": (config, False), "_python_4ms": (slow, False)}
+    out = {}
+    for key, (cfg, in_c) in runs.items():
+        if in_c and not native:
+            continue
+        r = trial(_chain(6, "snp", rng), seconds, config=cfg, native=in_c, reference=ref)
+        err = r["tool_error_mm"]
+        out[key] = cycle_figures(r) | {
+            "period_ms": cfg.period_ns / 1e6,
+            "in": "c" if in_c else "python",
+            "tool_error_mm_max": float(err.max()) if len(err) else None,
+            "tool_error_mm_rms": float(np.sqrt(np.mean(err**2))) if len(err) else None,
+            "path_ran_pct": 100.0 * len(err) / len(ref.t),
+        }
+    return out
+
+
 def meets_aim(f: dict[str, Any]) -> bool:
     """The issue's aim for the cycle: p99 within the 1 ms period, under 1% of queries missed."""
     return f["cycle_ms_p99"] <= 1.0 and f["missed_pct"] < 1.0
@@ -360,12 +394,16 @@ def run(
     back = {**pulled, "plug_s": 2.5, "unplug_s": None}
     plugged = trial([*chain, back], 3.5, config=config, native=native)
     plug = plug_figures(plugged, late["module_id"], pulled["module_id"], 1.0, 2.0)
-    vdc = None
+    vdc, in_cycle = None, {}
     if tracking:  # the arm the cycle serves: VDC over the four messages, on the MuJoCo arm
         from cell.modular.experiment import measure as measure_tracking
 
         vdc = measure_tracking()
+        if slaves == 6:  # (the modular arm has six modules)
+            in_cycle = vdc_in_cycle(config, native, rng)
     return (vdc.figures() if vdc is not None else {}) | {
+        **{f"vdc_cycle{k}_{f}": v[f] for k, v in in_cycle.items() for f in VDC_CYCLE_KEYS},
+        "vdc_cycle": in_cycle,
         "path_failover_ms": failover_ms(),
         **{f"cd_cycle_us_{w}": cd_cycle_us(w, slaves) for w in ("master", "neighbour", "local")},
         "vdc": [dataclasses.asdict(row) for row in vdc.rows] if vdc is not None else [],
@@ -469,7 +507,27 @@ def format_result(r: dict[str, Any]) -> str:
             "within 50 us)",
         ]
         + ([_tracking_text(r["vdc"], r)] if r.get("vdc") else [])
+        + _vdc_cycle_text(r.get("vdc_cycle") or {})
     )
+
+
+def _vdc_cycle_text(runs: dict[str, dict[str, Any]]) -> list[str]:
+    if not runs:
+        return []
+    out = [
+        "VDC's maths in the running cycle (master and modules in their own processes, the MuJoCo arm "
+        "stepped in real time by the modules'), the 0.5 m/s pick and place:"
+    ]
+    for f in runs.values():
+        err = f["tool_error_mm_max"]
+        out.append(
+            f"  {f['in']:<6} at {f['period_ms']:g} ms: {f['missed_pct']:.2f}% of exchanges missed, cycle p99 "
+            f"{f['cycle_ms_p99']:.3f} ms (the robot's {_ms(f['robot_cycle_ms_p99'])}); tool error "
+            + (f"max {err:.3f} mm, rms {f['tool_error_mm_rms']:.3f} mm" if err is not None else "n/a")
+            + f" over {f['path_ran_pct']:.0f}% of the path; cores: master {f['master_cpu']:.2f}, modules "
+            f"{f['modules_cpu']:.2f}"
+        )
+    return out
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from cell.commands import Command, config_arg, load, register, seconds
@@ -23,11 +24,17 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def show(st) -> str:
-    lines = [f"{'MODULE':<8}{'STATE':<11}{'GUESSED':>8}  [C, D] BY"]
-    lines += [f"{m.name:<8}{m.state:<11}{m.guessed:>8}  {m.where}" for m in st.modules]
+    cycle = st.transport == "cycle"  # (the SnP cycle's processes: each module has a clock of its own)
+    lines = [f"{'MODULE':<8}{'STATE':<11}{'GUESSED':>8}  [C, D] BY" + ("  CLOCK - MASTER'S" if cycle else "")]
+    lines += [
+        f"{m.name:<8}{m.state:<11}{m.guessed:>8}  {m.where:<9}"
+        + (f"{m.clock_offset_us:>8.2f} us" if cycle and math.isfinite(m.clock_offset_us) else "")
+        for m in st.modules
+    ]
+    what = f"{st.period_ms:g} ms SnP cycles, [A, B, C, D]" if cycle else "cycles, VDC arithmetic"
     lines.append(
-        f"cycles {st.cycles:,} ({st.late_cycles:,} late), VDC arithmetic {st.cycle_us_mean:.0f} us a cycle "
-        f"(max {st.cycle_us_max:.0f}); tool at {', '.join(f'{x * 1e3:.1f}' for x in st.tool)} mm"
+        f"{st.cycles:,} {what} {st.cycle_us_mean:.0f} us a cycle (max {st.cycle_us_max:.0f}; "
+        f"{st.late_cycles:,} late); tool at {', '.join(f'{x * 1e3:.1f}' for x in st.tool)} mm"
     )
     lines.append(f"moving: {st.motion}" if st.motion else f"holding{': ' + st.stopped if st.stopped else ''}")
     return "\n".join(lines)

@@ -41,9 +41,9 @@ SETTLE_NS = 500_000_000  # from every joint in the cycle to the reference's star
 class Plant:
     """The six-module arm in MuJoCo, in real time: stepped (TIMESTEP a step) up to the clock's now
     with the torques last set (held between cycles, as a motor drive holds its command); a joint
-    whose module does not drive it holds on its brake.  Records the tool every 1 ms, for
-    `capacity_s` (the rest is not recorded).  Its state is in numpy arrays so that the modules'
-    C cycle (cell/snp/cycle.c) steps the same arm through them."""
+    whose module does not drive it holds on its brake.  Records the tool every 1 ms, the last
+    `capacity_s` of them in a ring (`since` reads them).  Its state is in numpy arrays so that the
+    modules' C cycle (cell/snp/cycle.c) steps the same arm through them."""
 
     def __init__(
         self, q0: np.ndarray, clock: Callable[[], int] = time.monotonic_ns, capacity_s: float = 120.0
@@ -65,9 +65,14 @@ class Plant:
 
     @property
     def records(self) -> list[tuple[int, np.ndarray]]:
-        """(host ns, the tool's position) every 1 ms so far."""
-        n = int(self.time[2])
-        return list(zip(self.rec_t[:n].tolist(), self.rec_tool[:n], strict=True))
+        """(host ns, the tool's position) every 1 ms, as far back as the ring holds."""
+        return self.since(0)[1]
+
+    def since(self, n: int) -> tuple[int, list[tuple[int, np.ndarray]]]:
+        """The records from the n-th made on (those the ring still holds), and how many are made."""
+        made, cap = int(self.time[2]), len(self.rec_t)
+        idx = [i % cap for i in range(max(n, made - cap), made)]
+        return made, list(zip(self.rec_t[idx].tolist(), self.rec_tool[idx], strict=True))
 
     def advance(self) -> None:
         data, tool, t = self.arm.data, self.arm.tool, self.time
@@ -81,9 +86,9 @@ class Plant:
             self.arm.step(tau, 1)
             t[0] += self.dt_ns
             if t[0] >= t[1]:
-                if t[2] < len(self.rec_t):
-                    self.rec_t[t[2]], self.rec_tool[t[2]] = t[0], data.site_xpos[tool]
-                    t[2] += 1
+                i = t[2] % len(self.rec_t)
+                self.rec_t[i], self.rec_tool[i] = t[0], data.site_xpos[tool]
+                t[2] += 1
                 t[1] += self.period_ns
 
     def joint(self, j: int) -> tuple[float, float]:
@@ -111,11 +116,17 @@ class VdcModel(ArmModel):
         n = len(self.bodies)
         super().__init__(n, 0.0, 0)
         self.reference, self.gains, self.period_ns = reference, gains or Gains(), period_ns  # (the cycle's)
-        self.start_ns: int | None = None
+        self.start_ns: int | None = None  # (None: SETTLE_NS after every joint is in the cycle)
+        self.generation = 0  # references followed (a C master takes the new one)
         self.f_star = [np.zeros(6) for _ in range(n)]
         self.seq = [0] * n  # A's taken per joint: what a cached step of the recursion was made from
         # the recursion, per body: (its cycle and the A's it was made from, its B, transform, carry)
         self._chain: list[tuple[tuple[int, ...], B, np.ndarray, Carry] | None] = [None] * n
+
+    def follow(self, reference: Reference, start_ns: int) -> None:
+        """Track `reference` from master time start_ns (its first point until then, its last after)."""
+        self.reference, self.start_ns = reference, start_ns
+        self.generation += 1
 
     def take_a(self, j: int, q: float, qd: float, t: int) -> None:
         self.pos[j], self.vel[j], self.at[j] = q, qd, t
@@ -140,10 +151,9 @@ class VdcModel(ArmModel):
             start -= 1
         carry = BASE if start == 0 else self._chain[start - 1][3]  # type: ignore[index]
         lam = self.gains.lam
-        for i in range(start, j + 1):
-            out, x, carry = forward_step(
-                self.bodies[i], lam, AMsg(self.guess(i, t), self.vel[i]), *self.desired(i, t), carry
-            )
+        for i in range(start, j + 1):  # (a module gone: its joint on its brake where it was)
+            a = AMsg(self.guess(i, t), self.vel[i]) if self.active[i] else AMsg(self.pos[i], 0.0)
+            out, x, carry = forward_step(self.bodies[i], lam, a, *self.desired(i, t), carry)
             self._chain[i] = ((cycle, *self.seq[: i + 1]), out, x, carry)
         return self._chain[j][1]  # type: ignore[index]
 

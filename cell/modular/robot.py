@@ -21,7 +21,7 @@ from enum import StrEnum
 import numpy as np
 
 from cell.modular.loop import Faults, Link, VdcArm
-from cell.modular.reference import Q_HOME, Reference, circle, joint_move, pick_and_place
+from cell.modular.reference import CYCLE_NS, Q_HOME, Reference, circle, joint_move, pick_and_place
 from cell.modular.vdc import WHERE_MASTER
 from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics, Unreachable
@@ -34,6 +34,7 @@ class ModuleState(StrEnum):
     SUSPECT = "suspect"  # silent some cycles: its messages guessed
     LOST = "lost"  # silent past lost_cycles: the arm stopped
     UNPLUGGED = "unplugged"  # taken off the network (`unplug`)
+    JOINING = "joining"  # found by the master, being configured or syncing its clock (the SnP cycle's)
 
 
 STATES = list(ModuleState)  # (a module's state as a counter: its index here)
@@ -70,34 +71,55 @@ class Ended:
     failed: str
 
 
-class ModularRobot:
-    NAMES = tuple(f"j{i + 1}" for i in range(6))
+class ArmRobot:
+    """What the modular robot's engines share (the `modular` service drives either): its modules'
+    names, the motions it takes and why it refuses one, its counters.  ModularRobot runs the VDC
+    cycles in this process; cell.modular.processes.CycleRobot has them run by the SnP cycle's
+    master and modules in processes of their own."""
 
-    def __init__(
-        self,
-        q0: np.ndarray = Q_HOME,
-        *,
-        loss: float = 0.0,
-        where: tuple[str, ...] = (WHERE_MASTER,) * 6,
-        suspect_cycles: int = 3,
-        lost_cycles: int = 20,
-        seed: int = 1,
-        link: Link | None = None,
-    ) -> None:
-        self.vdc = VdcArm(np.asarray(q0, float), Faults(loss=loss, seed=seed), where, link=link)
+    NAMES = tuple(f"j{i + 1}" for i in range(6))
+    transport = "memory"  # ([modular] transport)
+
+    def __init__(self, where: tuple[str, ...]) -> None:
         self.where = where
-        self.suspect_cycles, self.lost_cycles = suspect_cycles, lost_cycles
-        self.silent = np.zeros(6, dtype=np.int64)  # cycles in a row without the module's A
+        self.period_ns = CYCLE_NS
+        nan = np.full(6, np.nan)
+        self.clock_offsets_us, self.module_cycle_us = nan, nan.copy()  # (the SnP cycle's only)
+        self.tool_ref = np.zeros(3)  # where the reference has the tool now
         self.states = [ModuleState.RUNNING] * 6
-        self.hold = self.vdc.arm.q  # where the arm holds between motions
         self.motion: Motion | None = None
         self.stopped = ""  # why motions are refused ("": taken)
         self.cycles = 0
         self.cycle_ns_sum = 0
         self.cycle_ns_max = 0
-        self.tool_ref = self.vdc.arm.tool_position()
         self._kin = Kinematics(arm_model("ur5e"))
         self._named: dict[str, Reference] = {}
+
+    # -- what the engines give ----------------------------------------------------------------------
+    @property
+    def q(self) -> np.ndarray:
+        raise NotImplementedError
+
+    @property
+    def tool(self) -> np.ndarray:
+        raise NotImplementedError
+
+    @property
+    def guessed_by(self) -> np.ndarray:
+        """Per module, its messages (or exchanges) guessed so far."""
+        raise NotImplementedError
+
+    @property
+    def phase_us(self) -> np.ndarray:
+        """The last cycle's A, B, C, D arithmetic, us (where it runs in this process)."""
+        return np.zeros(0)
+
+    def frames(self) -> np.ndarray:
+        """Each joint's origin and the tool, (7, 3) m: the arm as a line."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Whatever the engine runs besides this process, ended."""
 
     # -- what users ask ---------------------------------------------------------------------------
     def module(self, name: str) -> int:
@@ -113,22 +135,18 @@ class ModularRobot:
             self._named[path] = NAMED[path]()
         return self._named[path]
 
-    def move(
-        self,
-        *,
-        joints: list[float] | None = None,
-        tool: list[float] | None = None,
-        path: str = "",
-        speed: float = 1.0,
-    ) -> Motion:
-        """Start a motion (MotionRefused if the arm is stopped, busy, or the goal is bad)."""
+    def plan(
+        self, joints: list[float] | None, tool: list[float] | None, path: str, speed: float
+    ) -> tuple[str, Reference, Reference | None]:
+        """A motion's name, its joint move from here and the named reference after it (if any);
+        MotionRefused if the arm is stopped, busy, or the goal is bad."""
         if self.stopped:
             raise MotionRefused(self.stopped)
         if self.motion is not None:
             raise MotionRefused(f"the modular robot is moving ({self.motion.path}): one motion at a time")
         if not speed > 0 or not np.isfinite(speed):
             raise MotionRefused(f"speed must be a positive number of rad/s (got {speed})")
-        here = self.vdc.arm.q
+        here = self.q
         then = None
         if path:
             then = self.named(path)
@@ -150,8 +168,76 @@ class ModularRobot:
                 raise MotionRefused(f"the tool position {tuple(p.tolist())} m: {exc}") from None
         else:
             raise MotionRefused("a motion needs joints, a tool position or a path")
-        name = path or ("joints" if joints else "tool")
-        m = Motion(name, joint_move(here, goal, speed), then, guessed_at_start=int(self.vdc.guessed_by.sum()))
+        return path or ("joints" if joints else "tool"), joint_move(here, goal, speed), then
+
+    @property
+    def cycle_us_mean(self) -> float:
+        """What a cycle took on average (ModularRobot: the VDC arithmetic, its messages and the
+        arm's step; CycleRobot: a module's [A, B, C, D] exchange)."""
+        return self.cycle_ns_sum / max(self.cycles, 1) / 1e3
+
+    def counters(self) -> dict[str, float]:
+        """For the service's heartbeat (`cell status` reads the modules from them)."""
+        out: dict[str, float] = {
+            "modular.cycles": self.cycles,
+            "modular.cycle_us_mean": self.cycle_us_mean,
+            "modular.cycle_us_max": self.cycle_ns_max / 1e3,
+        }
+        for name, state, guessed in zip(self.NAMES, self.states, self.guessed_by, strict=True):
+            out[f"modular.{name}.state"] = STATES.index(state)
+            out[f"modular.{name}.guessed"] = int(guessed)
+        return out
+
+
+class ModularRobot(ArmRobot):
+    """The VDC arm (cell.modular.loop.VdcArm) in this process, one cycle() at a time."""
+
+    def __init__(
+        self,
+        q0: np.ndarray = Q_HOME,
+        *,
+        loss: float = 0.0,
+        where: tuple[str, ...] = (WHERE_MASTER,) * 6,
+        suspect_cycles: int = 3,
+        lost_cycles: int = 20,
+        seed: int = 1,
+        link: Link | None = None,
+    ) -> None:
+        super().__init__(where)
+        self.vdc = VdcArm(np.asarray(q0, float), Faults(loss=loss, seed=seed), where, link=link)
+        self.transport = "memory" if link is None else "snp"
+        self.suspect_cycles, self.lost_cycles = suspect_cycles, lost_cycles
+        self.silent = np.zeros(6, dtype=np.int64)  # cycles in a row without the module's A
+        self.hold = self.vdc.arm.q  # where the arm holds between motions
+        self.tool_ref = self.vdc.arm.tool_position()
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.vdc.arm.q
+
+    @property
+    def tool(self) -> np.ndarray:
+        return self.vdc.arm.tool_position()
+
+    @property
+    def guessed_by(self) -> np.ndarray:
+        return self.vdc.guessed_by
+
+    @property
+    def phase_us(self) -> np.ndarray:
+        return self.vdc.phase_ns / 1e3
+
+    def move(
+        self,
+        *,
+        joints: list[float] | None = None,
+        tool: list[float] | None = None,
+        path: str = "",
+        speed: float = 1.0,
+    ) -> Motion:
+        """Start a motion (MotionRefused if the arm is stopped, busy, or the goal is bad)."""
+        name, ref, then = self.plan(joints, tool, path, speed)
+        m = Motion(name, ref, then, guessed_at_start=int(self.vdc.guessed_by.sum()))
         self.motion = m
         return m
 
@@ -235,24 +321,6 @@ class ModularRobot:
         elif not gone and self.stopped and all(s is ModuleState.RUNNING for s in self.states):
             self.stopped = ""  # every module back: motions are taken again (from where it holds)
 
-    @property
-    def cycle_us_mean(self) -> float:
-        """What a cycle took on average: the VDC arithmetic, its messages and the arm's step."""
-        return self.cycle_ns_sum / max(self.cycles, 1) / 1e3
-
-    def counters(self) -> dict[str, float]:
-        """For the service's heartbeat (`cell status` reads the modules from them)."""
-        out: dict[str, float] = {
-            "modular.cycles": self.cycles,
-            "modular.cycle_us_mean": self.cycle_us_mean,
-            "modular.cycle_us_max": self.cycle_ns_max / 1e3,
-        }
-        for name, state, guessed in zip(self.NAMES, self.states, self.vdc.guessed_by, strict=True):
-            out[f"modular.{name}.state"] = STATES.index(state)
-            out[f"modular.{name}.guessed"] = int(guessed)
-        return out
-
     def frames(self) -> np.ndarray:
-        """Each joint's origin and the tool, (7, 3) m: the arm as a line."""
         d = self.vdc.arm.data
         return np.vstack([d.xanchor, self.vdc.arm.tool_position()[None, :]])

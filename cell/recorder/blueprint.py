@@ -25,13 +25,15 @@ def robot_joints(robot: str) -> rrb.Vertical:
 
 
 def modular_robot() -> rrb.Vertical:
-    """The modular robot's cycle: the tool against its reference, each cycle's A, B, C, D, guesses."""
+    """The modular robot's cycle: the tool against its reference, each cycle's A, B, C, D, guesses, and
+    (on the SnP cycle) each module's clock against the master's."""
     return rrb.Vertical(
         rrb.TimeSeriesView(
             origin="modular", contents=["modular/tool_error_mm"], name="modular: tool error (mm)"
         ),
         rrb.TimeSeriesView(origin="modular/cycle_us", name="modular: A, B, C, D a cycle (us)"),
         rrb.TimeSeriesView(origin="modular/guessed", name="modular: messages guessed, per module"),
+        rrb.TimeSeriesView(origin="modular/clock_offset_us", name="modular: module clocks - master's (us)"),
         name="modular",
     )
 

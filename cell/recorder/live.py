@@ -289,7 +289,8 @@ class Recorder:
 
     def modular(self, m: modular_pb2.ModularState) -> None:
         """The arm as a line through its joints to the tool, beside the cell's robots; the tool's error
-        against its reference, each cycle's A-D arithmetic and each module's guesses as plots."""
+        against its reference, each cycle's A-D arithmetic (or, on the SnP cycle, each module's
+        [A, B, C, D] and its clock's offset) and each module's guesses as plots."""
         self.at(m.t_ns)
         rec = self.rec
         if not self.modular_placed:
@@ -310,6 +311,11 @@ class Recorder:
             rec.log(f"modular/cycle_us/{phase}", rr.Scalars(us))
         for i, g in enumerate(m.guessed):
             rec.log(f"modular/guessed/j{i + 1}", rr.Scalars(float(g)))
+        # the SnP cycle's (transport "cycle"): each module's [A, B, C, D] and its clock's offset
+        for what, values in (("cycle_us", m.module_cycle_us), ("clock_offset_us", m.clock_offset_us)):
+            for i, v in enumerate(values):
+                if np.isfinite(v):
+                    rec.log(f"modular/{what}/j{i + 1}", rr.Scalars(v))
 
     def request(self, tr: skills_pb2.RequestTrace) -> None:
         """One request as a bar from its sending to its answer, on its lane (seconds since the start)."""

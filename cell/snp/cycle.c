@@ -123,12 +123,10 @@ void snp_plant_advance(plant_t *pl, int64_t now) {
         pl->step(pl->model, pl->data);
         pl->clock[0] += pl->dt_ns;
         if (pl->clock[0] >= pl->clock[1]) {
-            int64_t n = pl->clock[2];
-            if (n < pl->cap) {
-                pl->rec_t[n] = pl->clock[0];
-                memcpy(pl->rec_tool + 3 * n, pl->tool, 3 * sizeof(double));
-                pl->clock[2] = n + 1;
-            }
+            int64_t n = pl->clock[2], i = n % pl->cap; /* (a ring: the last cap records) */
+            pl->rec_t[i] = pl->clock[0];
+            memcpy(pl->rec_tool + 3 * i, pl->tool, 3 * sizeof(double));
+            pl->clock[2] = n + 1;
             pl->clock[1] += pl->period_ns;
         }
     }
@@ -335,7 +333,9 @@ int snp_cycle_run(module_t **mods, int n, int64_t until, int64_t mono_of_real, i
         }
         if (now >= until) break;
         int64_t wait = 0; /* ns; 0: poll without sleeping */
-        if (!busy && now >= spin_until && wake - lead_ns > now) wait = wake - lead_ns - now;
+        /* (spin_ns 0: never poll without sleeping, not even with a cycle in flight: a process that
+         * shares its core with the master would keep it from answering) */
+        if ((!busy || spin_ns == 0) && now >= spin_until && wake - lead_ns > now) wait = wake - lead_ns - now;
         if (wait) spin_sleep(&spin); else spin_poll(&spin);
         struct timespec ts = {wait / 1000000000, wait % 1000000000};
         int ready = ppoll(fds, (nfds_t)n, &ts, NULL);

@@ -149,7 +149,7 @@ static void desired(vdc_t *v, const master_t *m, int j, int64_t t, double *qd3) 
 /* One body of the forward recursion from the carry of the body below (v, v_r, a_r: 18 values). */
 static void forward_step(vdc_t *v, const master_t *m, int i, int64_t t, const double *parent) {
     const joint_t *jt = &m->joints[i];
-    double q = guess(jt, t), qd = jt->vel, ref[3];
+    double q = live(jt) ? guess(jt, t) : jt->pos, qd = live(jt) ? jt->vel : 0.0, ref[3]; /* (one gone: braked) */
     desired(v, m, i, t, ref);
     double qd_r = ref[1] + v->lam * (ref[0] - q), qdd_r = ref[2] + v->lam * (ref[1] - qd);
     double c = cos(q), s = sin(q), *r = v->rot[i]; /* R = rot rz(q) */
@@ -383,8 +383,22 @@ int snp_master_run(master_t *m, int64_t until, int64_t mono_of_real, int64_t spi
     spin_t spin;
     spin_init(&spin);
     int ret = RUN_UNTIL;
+    int64_t ip, port, at;
+    ssize_t got;
     for (;;) {
+        /* what came in first, then FDIR: after a stall of this process (not the modules' silence)
+         * FDIR would otherwise find every module silent and exclude them all */
+        int any = 0;
+        while ((got = receive((int)m->fd, p, sizeof p, mono_of_real, &ip, &port, &at)) >= 0) {
+            any = 1;
+            if (fast_path(m, p, got, ip, port, at)) continue;
+            serve(m);
+            spin_sleep(&spin);
+            return hand(h, 0, p, got, at, ip, port, buf, cap);
+        }
+        serve(m);
         int64_t now = host_now();
+        if (any) spin_until = now + spin_ns;
         int64_t wake = fdir(m, now);
         if (m->n_events) {
             ret = RUN_EVENT;
@@ -403,20 +417,7 @@ int snp_master_run(master_t *m, int64_t until, int64_t mono_of_real, int64_t spi
             ret = -errno;
             break;
         }
-        if (ready <= 0) {
-            if (wait) spin_until = host_now() + spin_ns + lead_ns; /* woken on time: spin through */
-            continue;
-        }
-        int64_t ip, port, at;
-        ssize_t got;
-        while ((got = receive((int)m->fd, p, sizeof p, mono_of_real, &ip, &port, &at)) >= 0) {
-            spin_until = host_now() + spin_ns;
-            if (fast_path(m, p, got, ip, port, at)) continue;
-            serve(m);
-            spin_sleep(&spin);
-            return hand(h, 0, p, got, at, ip, port, buf, cap);
-        }
-        serve(m);
+        if (ready == 0 && wait) spin_until = host_now() + spin_ns + lead_ns; /* woken on time: spin through */
     }
     spin_sleep(&spin);
     return ret;

@@ -354,22 +354,13 @@ class NativeMaster:
             self.st.vdc = ctypes.pointer(self.vdc)
 
     def _vdc_state(self, model: Any) -> VdcState:
-        """VDC's master in C, from a cell.modular.cycle.VdcModel (its reference arrays kept alive
-        here: C reads them where numpy holds them)."""
+        """VDC's master in C, from a cell.modular.cycle.VdcModel."""
         from cell.modular.cycle import SETTLE_NS
         from cell.modular.reference import CYCLE_NS
         from cell.modular.wire import ids_of
 
-        ref = model.reference
-        self._ref = [np.ascontiguousarray(a, dtype=np.float64) for a in (ref.q, ref.qd, ref.qdd)]
-        v = VdcState(
-            n_ref=len(ref.t),
-            ref_dt_ns=CYCLE_NS,
-            start_ns=model.start_ns or 0,
-            settle_ns=SETTLE_NS,
-            lam=model.gains.lam,
-        )
-        v.q_ref, v.qd_ref, v.qdd_ref = (a.ctypes.data for a in self._ref)
+        v = VdcState(ref_dt_ns=CYCLE_NS, settle_ns=SETTLE_NS, lam=model.gains.lam)
+        self._reference(v, model)
         for j, body in enumerate(model.bodies):
             _, b_ids, f_ids, _ = ids_of(j)
             v.b_ids[j][:], v.f_ids[j][:] = b_ids, f_ids
@@ -379,10 +370,22 @@ class NativeMaster:
             v.key_cycle[j] = -1
         return v
 
+    def _reference(self, v: VdcState, model: Any) -> None:
+        """The reference the VdcModel follows, and its start, into C (its arrays kept alive here:
+        C reads them where numpy holds them)."""
+        ref = model.reference
+        self._ref = [np.ascontiguousarray(a, dtype=np.float64) for a in (ref.q, ref.qd, ref.qdd)]
+        v.n_ref, v.start_ns = len(ref.t), model.start_ns or 0
+        v.q_ref, v.qd_ref, v.qdd_ref = (a.ctypes.data for a in self._ref)
+        self._generation = model.generation
+
     def push(self) -> None:
         """The Python master's view into C: which modules are included (a newly included one with
-        its address, items, slot and model entries), and what Python heard from them."""
+        its address, items, slot and model entries), what Python heard from them, and the
+        reference a VDC master was given to follow since."""
         ms, model, st = self.master, self.master.model, self.st
+        if self.vdc is not None and model.generation != self._generation:
+            self._reference(self.vdc, model)
         held: list[Node | None] = [None] * MAX_JOINTS
         for n in ms.nodes.values():
             if n.state in _NODE_STATE and 0 <= n.joint < MAX_JOINTS:

@@ -61,6 +61,16 @@ def open_udp(host: str = "127.0.0.1", port: int = 0, *, timestamps: bool = False
     return sock
 
 
+def free_ports(n: int, host: str = "127.0.0.1") -> list[int]:
+    """n UDP ports free on host now (bound and let go: a module's own port, as a bench assigns)."""
+    socks = [open_udp(host) for _ in range(n)]
+    try:
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
 def _kernel_tx_stamps(sock: socket.socket) -> bool:
     """Make sock report the kernel's transmit stamps of the sends that ask (False: it cannot)."""
     flags = _TS_SOFTWARE | _TS_OPT_ID | _TS_OPT_TSONLY | _TS_OPT_RX_FILTER
@@ -187,15 +197,18 @@ def serve_master(
     *,
     spin_ns: int = SPIN_NS,
     native: bool = False,
+    stop_every_ns: int = int(COARSE_S * 1e9),
 ) -> Link:
-    """Run the master until stop() is true; returns its link (counters).
+    """Run the master until stop() is true (asked each pass of its loop; in C at least every
+    stop_every_ns, in the management slot: stop may do the caller's own work there); returns its
+    link (counters).
 
     It sleeps (epoll, woken by a datagram or its alarm) until LEAD_NS before the next cycle
     starts or its next timer, then polls without sleeping for as long as the cycle's datagrams
     keep coming (spin_ns after the last one).  native: the cycle's queries and FDIR's watch run
     in C (cell.snp.native.NativeMaster, on the same schedule), the rest here, between its runs."""
     if native:
-        return _serve_master_native(master, sock, stop, loss, spin_ns)
+        return _serve_master_native(master, sock, stop, loss, spin_ns, stop_every_ns)
     link = _master_link(master, sock, loss)
     alarm = Alarm()
     ep = select.epoll()
@@ -245,7 +258,7 @@ def serve_master(
 
 
 def _serve_master_native(
-    master: Master, sock: socket.socket, stop: Callable[[], bool], loss: float, spin_ns: int
+    master: Master, sock: socket.socket, stop: Callable[[], bool], loss: float, spin_ns: int, coarse: int
 ) -> Link:
     from cell.snp.native import RUN_HANDED, NativeMaster
 
@@ -255,7 +268,6 @@ def _serve_master_native(
     fast = NativeMaster(master, sock.fileno(), spin_ns=spin_ns, lead_ns=lead, mono_of_real=mono_of_real)
     fast.st.loss = loss
     master.fdir_here = False
-    coarse = int(COARSE_S * 1e9)  # (how often stop() is asked, at the latest)
     try:
         while not stop():
             due = master.next_due()
@@ -331,8 +343,12 @@ class Slot:
         m, osc = self.module, self.osc
         assert m is not None and osc is not None
         if m.state == ModuleState.RUNNING and now >= self.next_sample:
-            self.next_sample = now + sample_ns if grid is None else on_grid(now + sample_ns, grid)
+            self.next_sample = _next_sample(now, sample_ns, grid)
             self.clock_errors.append(m.servo.now(osc.raw(now)) - now)
+
+
+def _next_sample(now: int, sample_ns: int, grid: tuple[int, int] | None) -> int:
+    return now + sample_ns if grid is None else on_grid(now + sample_ns, grid)
 
 
 def _plug_and_pull(
@@ -367,9 +383,12 @@ def run_modules(
     spin: bool = True,
     native: bool = False,
     plant: Any = None,
+    control: Callable[[int], bool] | None = None,
 ) -> list[Slot]:
     """Run the slots' modules in this thread for `seconds`, plugging and pulling them on time.
     plant: the modular arm they drive by VDC (cell.modular.cycle.Plant; None: the toy joints).
+    control(now): called every sample_ns (on sample_grid), where the caller may plug in slots it
+    appends to `slots` and pull out ones by setting their unplug_s; True ends the run.
     spin: poll without sleeping while a cycle is in flight (only for a loop with a core of its own:
     a thread that spins starves the others of the GIL).  native: the cycles of the modules with
     transport "snp" run in C (cell.snp.native; the others as before), which needs a C compiler.
@@ -378,15 +397,16 @@ def run_modules(
     through Python then delays no cycle."""
     if native:
         return _run_native(
-            slots, seconds, loss, sample_ns=sample_ns, sample_grid=sample_grid, spin=spin, plant=plant
-        )
+            slots, seconds, loss, sample_ns=sample_ns, sample_grid=sample_grid, spin=spin, plant=plant,
+            control=control,
+        )  # fmt: skip
     alarm = Alarm()
     ep = select.epoll()
     ep.register(alarm.fd, select.EPOLLIN)
     by_fd: dict[int, Slot] = {}
     t0 = time.monotonic_ns()
     mono_of_real = realtime_offset()  # (for the kernel's stamps)
-    end = t0 + int(seconds * 1e9)
+    end = t0 + int(min(seconds, 1e9) * 1e9)  # (seconds inf: until control ends it)
 
     def plug(s: Slot) -> None:
         s.plug(t0, now, loss, rmap_timeout_ns, rmap_retries, plant)
@@ -423,12 +443,18 @@ def run_modules(
     live: list[Slot] = []  # the slots plugged in
     now = clock()
     next_event = events()
+    next_control = now if control is not None else end
     rt = Spin()  # (polls at the normal policy: never into the kernel's RT throttling)
     try:
         while now < end:
+            if now >= next_control:
+                if control(now):  # type: ignore[misc]
+                    break
+                next_control = _next_sample(now, sample_ns, sample_grid)
+                next_event = now  # (it may have plugged or pulled)
             if now >= next_event:
                 next_event = events()
-            wake, busy = next_event, False
+            wake, busy = min(next_event, next_control), False
             for s in live:
                 wake = min(wake, s.wake)
                 cy = s.module.cycle  # type: ignore[union-attr]
@@ -481,6 +507,7 @@ def _run_native(
     sample_grid: tuple[int, int] | None,
     spin: bool,
     plant: Any = None,
+    control: Callable[[int], bool] | None = None,
 ) -> list[Slot]:
     """run_modules with the cycle in C (with a plant: VDC's, the plant stepped in C too): one C
     loop waits on every module's socket and runs the running modules' [A, B] and [C, D]; what it
@@ -503,7 +530,7 @@ def _run_native(
     )
     if plant is not None:
         cycles.drive(plant)
-    end = t0 + int(seconds * 1e9)
+    end = t0 + int(min(seconds, 1e9) * 1e9)  # (seconds inf: until control ends it)
     clock = time.monotonic_ns
     live: list[Slot] = []
     by_fd: dict[int, Slot] = {}
@@ -542,11 +569,17 @@ def _run_native(
 
     now = clock()
     next_event = events()
+    next_control = now if control is not None else end
     try:
         while now < end:
+            if now >= next_control:
+                if control(now):  # type: ignore[misc]
+                    break
+                next_control = _next_sample(now, sample_ns, sample_grid)
+                next_event = now  # (it may have plugged or pulled)
             if now >= next_event:
                 next_event = events()
-            until = next_event
+            until = min(next_event, next_control)
             for s in live:
                 if s.module is not None and s.module.state == ModuleState.RUNNING:
                     until = min(until, s.next_sample)

@@ -45,19 +45,21 @@ class ModularStatusRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class ModuleStatus(_message.Message):
-    __slots__ = ("name", "state", "guessed", "where")
+    __slots__ = ("name", "state", "guessed", "where", "clock_offset_us")
     NAME_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     GUESSED_FIELD_NUMBER: _ClassVar[int]
     WHERE_FIELD_NUMBER: _ClassVar[int]
+    CLOCK_OFFSET_US_FIELD_NUMBER: _ClassVar[int]
     name: str
     state: str
     guessed: int
     where: str
-    def __init__(self, name: _Optional[str] = ..., state: _Optional[str] = ..., guessed: _Optional[int] = ..., where: _Optional[str] = ...) -> None: ...
+    clock_offset_us: float
+    def __init__(self, name: _Optional[str] = ..., state: _Optional[str] = ..., guessed: _Optional[int] = ..., where: _Optional[str] = ..., clock_offset_us: _Optional[float] = ...) -> None: ...
 
 class ModularStatus(_message.Message):
-    __slots__ = ("modules", "cycles", "late_cycles", "cycle_us_mean", "cycle_us_max", "q", "tool", "motion", "stopped")
+    __slots__ = ("modules", "cycles", "late_cycles", "cycle_us_mean", "cycle_us_max", "q", "tool", "motion", "stopped", "transport", "period_ms")
     MODULES_FIELD_NUMBER: _ClassVar[int]
     CYCLES_FIELD_NUMBER: _ClassVar[int]
     LATE_CYCLES_FIELD_NUMBER: _ClassVar[int]
@@ -67,6 +69,8 @@ class ModularStatus(_message.Message):
     TOOL_FIELD_NUMBER: _ClassVar[int]
     MOTION_FIELD_NUMBER: _ClassVar[int]
     STOPPED_FIELD_NUMBER: _ClassVar[int]
+    TRANSPORT_FIELD_NUMBER: _ClassVar[int]
+    PERIOD_MS_FIELD_NUMBER: _ClassVar[int]
     modules: _containers.RepeatedCompositeFieldContainer[ModuleStatus]
     cycles: int
     late_cycles: int
@@ -76,10 +80,12 @@ class ModularStatus(_message.Message):
     tool: _containers.RepeatedScalarFieldContainer[float]
     motion: str
     stopped: str
-    def __init__(self, modules: _Optional[_Iterable[_Union[ModuleStatus, _Mapping]]] = ..., cycles: _Optional[int] = ..., late_cycles: _Optional[int] = ..., cycle_us_mean: _Optional[float] = ..., cycle_us_max: _Optional[float] = ..., q: _Optional[_Iterable[float]] = ..., tool: _Optional[_Iterable[float]] = ..., motion: _Optional[str] = ..., stopped: _Optional[str] = ...) -> None: ...
+    transport: str
+    period_ms: float
+    def __init__(self, modules: _Optional[_Iterable[_Union[ModuleStatus, _Mapping]]] = ..., cycles: _Optional[int] = ..., late_cycles: _Optional[int] = ..., cycle_us_mean: _Optional[float] = ..., cycle_us_max: _Optional[float] = ..., q: _Optional[_Iterable[float]] = ..., tool: _Optional[_Iterable[float]] = ..., motion: _Optional[str] = ..., stopped: _Optional[str] = ..., transport: _Optional[str] = ..., period_ms: _Optional[float] = ...) -> None: ...
 
 class ModularState(_message.Message):
-    __slots__ = ("t_ns", "q", "tool", "tool_ref", "tool_error_mm", "phase_us", "guessed", "states", "frames", "late_cycles")
+    __slots__ = ("t_ns", "q", "tool", "tool_ref", "tool_error_mm", "phase_us", "guessed", "states", "frames", "late_cycles", "clock_offset_us", "module_cycle_us")
     T_NS_FIELD_NUMBER: _ClassVar[int]
     Q_FIELD_NUMBER: _ClassVar[int]
     TOOL_FIELD_NUMBER: _ClassVar[int]
@@ -90,6 +96,8 @@ class ModularState(_message.Message):
     STATES_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
     LATE_CYCLES_FIELD_NUMBER: _ClassVar[int]
+    CLOCK_OFFSET_US_FIELD_NUMBER: _ClassVar[int]
+    MODULE_CYCLE_US_FIELD_NUMBER: _ClassVar[int]
     t_ns: int
     q: _containers.RepeatedScalarFieldContainer[float]
     tool: _containers.RepeatedScalarFieldContainer[float]
@@ -100,4 +108,6 @@ class ModularState(_message.Message):
     states: _containers.RepeatedScalarFieldContainer[str]
     frames: _containers.RepeatedScalarFieldContainer[float]
     late_cycles: int
-    def __init__(self, t_ns: _Optional[int] = ..., q: _Optional[_Iterable[float]] = ..., tool: _Optional[_Iterable[float]] = ..., tool_ref: _Optional[_Iterable[float]] = ..., tool_error_mm: _Optional[float] = ..., phase_us: _Optional[_Iterable[float]] = ..., guessed: _Optional[_Iterable[int]] = ..., states: _Optional[_Iterable[str]] = ..., frames: _Optional[_Iterable[float]] = ..., late_cycles: _Optional[int] = ...) -> None: ...
+    clock_offset_us: _containers.RepeatedScalarFieldContainer[float]
+    module_cycle_us: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, t_ns: _Optional[int] = ..., q: _Optional[_Iterable[float]] = ..., tool: _Optional[_Iterable[float]] = ..., tool_ref: _Optional[_Iterable[float]] = ..., tool_error_mm: _Optional[float] = ..., phase_us: _Optional[_Iterable[float]] = ..., guessed: _Optional[_Iterable[int]] = ..., states: _Optional[_Iterable[str]] = ..., frames: _Optional[_Iterable[float]] = ..., late_cycles: _Optional[int] = ..., clock_offset_us: _Optional[_Iterable[float]] = ..., module_cycle_us: _Optional[_Iterable[float]] = ...) -> None: ...

@@ -85,3 +85,61 @@ def test_the_live_view_draws_the_modular_robot_only_where_it_runs() -> None:
 
     assert views(True) == (["robots/**", "modular/**"], ["r1", "modular"])
     assert views(False) == (["robots/**"], ["r1"])
+
+
+async def test_on_the_snp_cycle_its_processes_move_the_arm_and_a_pulled_module_stops_it(
+    start_cell, tmp_path
+) -> None:
+    """[modular] transport "cycle": the SnP cycle's master and six modules in processes of their own,
+    each module with its own clock (off by up to 2 ms, servoed by SnP-TSP), the arm in MuJoCo."""
+    rrd = tmp_path / "cycle.rrd"
+    cell = await start_cell(
+        run=["bus", "modular", "recorder"],
+        sections={"recorder": {"mode": "save", "path": str(rrd)}, "modular": {"transport": "cycle"}},
+    )
+    cfg = str(cell.path)
+    goal = [0.3, -1.3, 1.4, -1.6, -1.4, 0.2]
+    script = tmp_path / "move.py"
+    script.write_text(
+        "import json\n"
+        "async def main(cell):\n"
+        f"    j = await cell.modular.move({goal}, speed=1.0)\n"
+        "    st = await cell.modular.status()\n"
+        "    print(json.dumps({'joints': j.tool_error_mm_max, 'cycles': j.cycles, 'q': list(st.q),\n"
+        "                      'offsets': [m.clock_offset_us for m in st.modules],\n"
+        "                      'transport': st.transport}))\n"
+    )
+    done = await asyncio.to_thread(run_cell, "run", str(script), "--config", cfg, timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    assert got["transport"] == "cycle" and got["joints"] < 5.0 and got["cycles"] > 300
+    assert max(abs(a - b) for a, b in zip(got["q"], goal, strict=True)) < 5e-3
+    assert all(abs(o) < 50.0 for o in got["offsets"]), got["offsets"]  # (started up to 2 ms off)
+    # j3's socket pulled from the network: the master loses it, the arm holds, motions are refused
+    out = await asyncio.to_thread(run_cell, "modular", "unplug", "j3", "--config", cfg)
+    assert out.returncode == 0 and "j3      unplugged" in out.stdout, out.stdout + out.stderr
+    home = ["0", "-1.5708", "1.5708", "-1.5708", "-1.5708", "0"]
+    for _ in range(100):  # (the master's FDIR: silent, then lost after 50 ms; its report every 20 ms)
+        refused = await asyncio.to_thread(run_cell, "modular", "move", "--joints", *home, "--config", cfg)
+        if refused.returncode == 2:
+            break
+    assert refused.returncode == 2 and "module j3 unplugged" in refused.stderr, refused.stderr
+    status = await asyncio.to_thread(run_cell, "status", "--config", cfg)
+    assert "j3 unplugged" in status.stdout, status.stdout
+    # plugged back: found by the master's exploration, configured, its clock synced, included
+    out = await asyncio.to_thread(run_cell, "modular", "plug", "j3", "--config", cfg)
+    assert out.returncode == 0, out.stderr
+    for _ in range(100):
+        moved = await asyncio.to_thread(
+            run_cell, "modular", "move", "--joints", *home, "--speed", "2", "--config", cfg
+        )
+        if moved.returncode != 2:
+            break
+    assert moved.returncode == 0 and moved.stdout.startswith("joints: "), moved.stdout + moved.stderr
+    code, _, _, err = cell.stop()
+    assert code == 0, err[-2000:]
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(rrd).stream():
+        rows[str(chunk.entity_path)] = rows.get(str(chunk.entity_path), 0) + chunk.num_rows
+    assert rows.get("/modular/arm", 0) > 50
+    assert rows.get("/modular/clock_offset_us/j1", 0) > 10 and rows.get("/modular/cycle_us/j6", 0) > 10
