@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from cell.bus import RpcFault
+from cell.modular.messages import state, status
 from cell.modular.processes import CycleRobot
 from cell.modular.reference import CYCLE_NS
 from cell.modular.robot import ArmRobot, Ended, ModularRobot, MotionRefused
@@ -25,28 +26,6 @@ from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import modular_pb2 as pb
 
 CATCH_UP = 50  # cycles run in one wake-up at most (a longer stall: the arm's time falls behind)
-
-
-def status(robot: ArmRobot, late: int) -> pb.ModularStatus:
-    offsets = robot.clock_offsets_us
-    return pb.ModularStatus(
-        modules=[
-            pb.ModuleStatus(name=n, state=str(s), guessed=int(g), where=w, clock_offset_us=float(o))
-            for n, s, g, w, o in zip(
-                robot.NAMES, robot.states, robot.guessed_by, robot.where, offsets, strict=True
-            )
-        ],
-        cycles=robot.cycles,
-        late_cycles=late,
-        cycle_us_mean=robot.cycle_us_mean,
-        cycle_us_max=robot.cycle_ns_max / 1e3,
-        q=robot.q.tolist(),
-        tool=robot.tool.tolist(),
-        motion=robot.motion.path if robot.motion else "",
-        stopped=robot.stopped,
-        transport=robot.transport,
-        period_ms=robot.period_ns / 1e6,
-    )
 
 
 async def run(ctx: ServiceContext) -> None:
@@ -126,19 +105,7 @@ async def _run(ctx: ServiceContext, robot: ArmRobot, link: SnpLink | None) -> No
     every = max(1, round(1e9 / c.publish_hz / CYCLE_NS))  # cycles between two modular/state
 
     def publish() -> None:
-        tool = robot.tool
-        ctx.bus.publish(
-            "modular/state",
-            pb.ModularState(
-                t_ns=time.monotonic_ns(), q=robot.q.tolist(), tool=tool.tolist(),
-                tool_ref=robot.tool_ref.tolist(),
-                tool_error_mm=float(np.linalg.norm(tool - robot.tool_ref)) * 1e3,
-                phase_us=robot.phase_us.tolist(), guessed=robot.guessed_by.tolist(),
-                states=[str(s) for s in robot.states], frames=robot.frames().ravel().tolist(),
-                late_cycles=late, clock_offset_us=robot.clock_offsets_us.tolist(),
-                module_cycle_us=robot.module_cycle_us.tolist(),
-            ),
-        )  # fmt: skip
+        ctx.bus.publish("modular/state", state(robot, late))
 
     ctx.ready()
     t0 = time.monotonic_ns()

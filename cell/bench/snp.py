@@ -22,6 +22,7 @@ import dataclasses
 import multiprocessing as mp
 import random
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -30,11 +31,10 @@ from cell.bench.registry import Bench, Figures, register
 from cell.modular.cycle import tool_error_mm
 from cell.modular.reference import Reference
 from cell.snp.modular import CycleConfig
-from cell.snp.runner import free_ports
+from cell.snp.runner import chain, free_ports
 from cell.snp.spacewire import FAILOVER_CYCLES, HOP_NS, cd_cycle_us, failover_ms
 
 WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settles meanwhile
-MODULE0 = 101
 # joint j's cycle starts j slots into the period: with the modules in C the master is the busy
 # end, and six A's at once queue behind each other (0.7-1.6% missed in three runs at 0 us against
 # 0.06-0.18% at 30 us, which the slides' 0.05 ms a joint allows)
@@ -142,22 +142,6 @@ def _modules(
     out.put((res, cpu, records))
 
 
-def _chain(n: int, transport: str, rng: random.Random, **extra: Any) -> list[dict]:
-    """n modules in a chain on the base plate, each with its own clock error."""
-    return [
-        {
-            "module_id": MODULE0 + i,
-            "plugged_to": 0 if i == 0 else MODULE0 + i - 1,
-            "port": 0,
-            "offset_ns": rng.randint(-2_000_000, 2_000_000),
-            "drift_ppm": rng.uniform(-50, 50),
-            "transport": transport,
-            **extra,
-        }
-        for i in range(n)
-    ]
-
-
 def trial(
     slots: list[dict],
     seconds: float,
@@ -204,7 +188,45 @@ def trial(
     return out
 
 
-def cycle_figures(r: dict[str, Any]) -> dict[str, Any]:
+@dataclass(frozen=True)
+class CycleFigures:
+    """One trial's cycle, after each module's warm-up."""
+
+    cycles: int
+    modules_ran: int  # (of those plugged in: one that never ran had hidden in the totals)
+    cycle_ms_p50: float  # a module's T1 to its last answer
+    cycle_ms_p99: float
+    robot_cycle_ms_p50: float | None  # the first module's T1 to the last's answer, in a period
+    robot_cycle_ms_p99: float | None
+    cycle_ms_max: float
+    start_late_us_p99: float
+    missed_pct: float  # of the exchanges (two a cycle), guessed
+    tsp_offset_us_p50: float
+    tsp_offset_us_max: float
+    tsp_two_step: bool  # the clocks servoed to the kernel's transmit stamps (follow-ups)
+    overruns: int
+    guessed_by_master: int
+    master_cpu: float  # the share of a core each process used (polling without sleeping counts)
+    modules_cpu: float
+
+    @property
+    def meets_aim(self) -> bool:
+        """The issue's aim for the cycle: p99 within the 1 ms period, under 1% of queries missed."""
+        return self.cycle_ms_p99 <= 1.0 and self.missed_pct < 1.0
+
+
+@dataclass(frozen=True)
+class VdcCycleFigures(CycleFigures):
+    """A trial of VDC in the cycle (vdc_in_cycle): its cycle's figures and the tool's."""
+
+    period_ms: float
+    runs_in: str  # "c" or "python"
+    tool_error_mm_max: float | None  # over the path (None: it never started)
+    tool_error_mm_rms: float | None
+    path_ran_pct: float
+
+
+def cycle_figures(r: dict[str, Any], period_ns: int = 1_000_000) -> CycleFigures:
     """Cycle time (T1 to the last answer), misses and clock errors after each module's warm-up."""
     times, late, errs, kept = [], [], [], []
     n = missed = 0
@@ -224,27 +246,25 @@ def cycle_figures(r: dict[str, Any]) -> dict[str, Any]:
     t = np.concatenate(times) if times else np.zeros(1)
     lt = np.concatenate(late) if late else np.zeros(1)
     e = np.concatenate(errs) if errs else np.zeros(1)
-    robot = _robot_cycles(kept, len(r["modules"]))
-    return {
-        "cycles": n,
-        "modules_ran": len(kept),  # (of those plugged in: one that never ran had hidden in the totals)
-        "cycle_ms_p50": float(np.median(t)),
-        "cycle_ms_p99": float(np.percentile(t, 99)),
-        "robot_cycle_ms_p50": float(np.median(robot)) if len(robot) else None,
-        "robot_cycle_ms_p99": float(np.percentile(robot, 99)) if len(robot) else None,
-        "cycle_ms_max": float(t.max()),
-        "start_late_us_p99": float(np.percentile(lt, 99)),
-        "missed_pct": 100.0 * missed / max(1, 2 * n),
-        "tsp_offset_us_p50": float(np.median(e)),
-        "tsp_offset_us_max": float(e.max()),
-        # the clocks servoed to the kernel's transmit stamps (follow-ups), not one-step stamps
-        "tsp_two_step": bool(r["modules"]) and all(m["follow_ups"] > 0 for m in r["modules"]),
-        "overruns": int(sum(m["overruns"] for m in r["modules"])),
-        "guessed_by_master": int(r["master"]["counters"]["guessed"]),
-        # the share of a core each process used (polling without sleeping counts)
-        "master_cpu": r["master"]["cpu"],
-        "modules_cpu": r["modules_cpu"],
-    }
+    robot = _robot_cycles(kept, len(r["modules"]), period_ns)
+    return CycleFigures(
+        cycles=n,
+        modules_ran=len(kept),
+        cycle_ms_p50=float(np.median(t)),
+        cycle_ms_p99=float(np.percentile(t, 99)),
+        robot_cycle_ms_p50=float(np.median(robot)) if len(robot) else None,
+        robot_cycle_ms_p99=float(np.percentile(robot, 99)) if len(robot) else None,
+        cycle_ms_max=float(t.max()),
+        start_late_us_p99=float(np.percentile(lt, 99)),
+        missed_pct=100.0 * missed / max(1, 2 * n),
+        tsp_offset_us_p50=float(np.median(e)),
+        tsp_offset_us_max=float(e.max()),
+        tsp_two_step=bool(r["modules"]) and all(m["follow_ups"] > 0 for m in r["modules"]),
+        overruns=int(sum(m["overruns"] for m in r["modules"])),
+        guessed_by_master=int(r["master"]["counters"]["guessed"]),
+        master_cpu=r["master"]["cpu"],
+        modules_cpu=r["modules_cpu"],
+    )
 
 
 def _robot_cycles(kept: list[np.ndarray], modules: int, period_ns: int = 1_000_000) -> np.ndarray:
@@ -273,7 +293,7 @@ VDC_CYCLE_KEYS = (
 VDC_PERIOD_PY_NS = 4_000_000  # the Python cycle's period in the VDC baseline that keeps up
 
 
-def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[str, dict[str, Any]]:
+def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[str, VdcCycleFigures]:
     """VDC's maths in the cycle between processes (cell.modular.cycle): the six modules drive the
     MuJoCo arm along the 0.5 m/s pick and place, the master answers with VDC's recursions.  In C
     at 1 ms ("" key, if it builds), and in Python at 1 ms ("_python") and at VDC_PERIOD_PY_NS
@@ -296,21 +316,17 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
     for key, (cfg, in_c) in runs.items():
         if in_c and not native:
             continue
-        r = trial(_chain(6, "snp", rng), seconds, config=cfg, native=in_c, reference=ref)
+        r = trial(chain(6, rng, "snp"), seconds, config=cfg, native=in_c, reference=ref)
         err = r["tool_error_mm"]
-        out[key] = cycle_figures(r) | {
-            "period_ms": cfg.period_ns / 1e6,
-            "in": "c" if in_c else "python",
-            "tool_error_mm_max": float(err.max()) if len(err) else None,
-            "tool_error_mm_rms": float(np.sqrt(np.mean(err**2))) if len(err) else None,
-            "path_ran_pct": 100.0 * len(err) / len(ref.t),
-        }
+        out[key] = VdcCycleFigures(
+            **dataclasses.asdict(cycle_figures(r, cfg.period_ns)),
+            period_ms=cfg.period_ns / 1e6,
+            runs_in="c" if in_c else "python",
+            tool_error_mm_max=float(err.max()) if len(err) else None,
+            tool_error_mm_rms=float(np.sqrt(np.mean(err**2))) if len(err) else None,
+            path_ran_pct=100.0 * len(err) / len(ref.t),
+        )
     return out
-
-
-def meets_aim(f: dict[str, Any]) -> bool:
-    """The issue's aim for the cycle: p99 within the 1 ms period, under 1% of queries missed."""
-    return f["cycle_ms_p99"] <= 1.0 and f["missed_pct"] < 1.0
 
 
 def plug_figures(r: dict[str, Any], late_id: int, pulled_id: int, plug_s: float, unplug_s: float) -> dict:
@@ -368,31 +384,31 @@ def run(
     config = CycleConfig(slot_ns=slot_ns)
     if management_ns is not None:
         config = dataclasses.replace(config, management_ns=management_ns)
-    snp = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, config=config, native=native))
-    python = cycle_figures(trial(_chain(slaves, "snp", rng), seconds, config=config)) if native else snp
+    snp = cycle_figures(trial(chain(slaves, rng, "snp"), seconds, config=config, native=native))
+    python = cycle_figures(trial(chain(slaves, rng, "snp"), seconds, config=config)) if native else snp
     py_master = snp
     if native:  # the modules in C, the master in Python
-        mixed = trial(_chain(slaves, "snp", rng), seconds, config=config, native=True, native_master=False)
+        mixed = trial(chain(slaves, rng, "snp"), seconds, config=config, native=True, native_master=False)
         py_master = cycle_figures(mixed)
     # how many modules this machine keeps within the aim: fewer, shorter runs
     scale = {
-        n: cycle_figures(trial(_chain(n, "snp", rng), 2.0, config=config, native=native))
+        n: cycle_figures(trial(chain(n, rng, "snp"), 2.0, config=config, native=native))
         for n in (2, 4)
         if n < slaves
     }
     scale[slaves] = snp
-    within = [n for n, f in scale.items() if meets_aim(f)]
-    rm = cycle_figures(trial(_chain(slaves, "rmap", rng), seconds, config=config))
+    within = [n for n, f in scale.items() if f.meets_aim]
+    rm = cycle_figures(trial(chain(slaves, rng, "rmap"), seconds, config=config))
     short = max(1.0, seconds / 2)
-    snp_loss = cycle_figures(trial(_chain(slaves, "snp", rng), short, loss, config=config))
-    rmap_loss = cycle_figures(trial(_chain(slaves, "rmap", rng), short, loss, config=config))
+    snp_loss = cycle_figures(trial(chain(slaves, rng, "snp"), short, loss, config=config))
+    rmap_loss = cycle_figures(trial(chain(slaves, rng, "rmap"), short, loss, config=config))
     # plug and operate: the last module plugged in at 1 s; the middle one pulled at 2 s, back at 2.5 s
-    chain = _chain(slaves, "snp", rng)
-    late, pulled = chain[-1], chain[slaves // 2]
+    modules = chain(slaves, rng, "snp")
+    late, pulled = modules[-1], modules[slaves // 2]
     late["plug_s"] = 1.0
     pulled["unplug_s"] = 2.0
     back = {**pulled, "plug_s": 2.5, "unplug_s": None}
-    plugged = trial([*chain, back], 3.5, config=config, native=native)
+    plugged = trial([*modules, back], 3.5, config=config, native=native)
     plug = plug_figures(plugged, late["module_id"], pulled["module_id"], 1.0, 2.0)
     vdc, in_cycle = None, {}
     if tracking:  # the arm the cycle serves: VDC over the four messages, on the MuJoCo arm
@@ -402,8 +418,8 @@ def run(
         if slaves == 6:  # (the modular arm has six modules)
             in_cycle = vdc_in_cycle(config, native, rng)
     return (vdc.figures() if vdc is not None else {}) | {
-        **{f"vdc_cycle{k}_{f}": v[f] for k, v in in_cycle.items() for f in VDC_CYCLE_KEYS},
-        "vdc_cycle": in_cycle,
+        **{f"vdc_cycle{k}_{f}": getattr(v, f) for k, v in in_cycle.items() for f in VDC_CYCLE_KEYS},
+        "vdc_cycle": {k: dataclasses.asdict(v) for k, v in in_cycle.items()},
         "path_failover_ms": failover_ms(),
         **{f"cd_cycle_us_{w}": cd_cycle_us(w, slaves) for w in ("master", "neighbour", "local")},
         "vdc": [dataclasses.asdict(row) for row in vdc.rows] if vdc is not None else [],
@@ -412,35 +428,40 @@ def run(
         "modules": "c" if native else "python",
         "master": "c" if native else "python",
         "c_unavailable": why_not,
-        "cycle_ms_p50": snp["cycle_ms_p50"],
-        "cycle_ms_p99": snp["cycle_ms_p99"],
-        "missed_pct": snp["missed_pct"],
-        "python_cycle_ms_p50": python["cycle_ms_p50"],
-        "python_cycle_ms_p99": python["cycle_ms_p99"],
-        "python_missed_pct": python["missed_pct"],
-        "python_master_cycle_ms_p50": py_master["cycle_ms_p50"],
-        "python_master_cycle_ms_p99": py_master["cycle_ms_p99"],
-        "python_master_missed_pct": py_master["missed_pct"],
-        "rmap_cycle_ms_p50": rm["cycle_ms_p50"],
-        "rmap_cycle_ms_p99": rm["cycle_ms_p99"],
-        "rmap_missed_pct": rm["missed_pct"],
-        "tsp_offset_us_max": snp["tsp_offset_us_max"],
-        "robot_cycle_ms_p50": snp["robot_cycle_ms_p50"],
-        "robot_cycle_ms_p99": snp["robot_cycle_ms_p99"],
+        "cycle_ms_p50": snp.cycle_ms_p50,
+        "cycle_ms_p99": snp.cycle_ms_p99,
+        "missed_pct": snp.missed_pct,
+        "python_cycle_ms_p50": python.cycle_ms_p50,
+        "python_cycle_ms_p99": python.cycle_ms_p99,
+        "python_missed_pct": python.missed_pct,
+        "python_master_cycle_ms_p50": py_master.cycle_ms_p50,
+        "python_master_cycle_ms_p99": py_master.cycle_ms_p99,
+        "python_master_missed_pct": py_master.missed_pct,
+        "rmap_cycle_ms_p50": rm.cycle_ms_p50,
+        "rmap_cycle_ms_p99": rm.cycle_ms_p99,
+        "rmap_missed_pct": rm.missed_pct,
+        "tsp_offset_us_max": snp.tsp_offset_us_max,
+        "robot_cycle_ms_p50": snp.robot_cycle_ms_p50,
+        "robot_cycle_ms_p99": snp.robot_cycle_ms_p99,
         "slaves_within_aim": max(within, default=0),
         "slot_us": slot_ns / 1e3,
         "management_us": config.management_ns / 1e3,
         "loss": loss,
         "scale": {
-            str(n): {k: f[k] for k in ("cycle_ms_p50", "cycle_ms_p99", "missed_pct")}
+            str(n): {k: getattr(f, k) for k in ("cycle_ms_p50", "cycle_ms_p99", "missed_pct")}
             for n, f in scale.items()
         },
-        "snp": snp,
-        "python": python,
-        "python_master": py_master,
-        "rmap": rm,
-        "snp_loss": snp_loss,
-        "rmap_loss": rmap_loss,
+        **{
+            name: dataclasses.asdict(f)
+            for name, f in (
+                ("snp", snp),
+                ("python", python),
+                ("python_master", py_master),
+                ("rmap", rm),
+                ("snp_loss", snp_loss),
+                ("rmap_loss", rmap_loss),
+            )
+        },
         "plug": plug,
     }
 
@@ -521,8 +542,8 @@ def _vdc_cycle_text(runs: dict[str, dict[str, Any]]) -> list[str]:
     for f in runs.values():
         err = f["tool_error_mm_max"]
         out.append(
-            f"  {f['in']:<6} at {f['period_ms']:g} ms: {f['missed_pct']:.2f}% of exchanges missed, cycle p99 "
-            f"{f['cycle_ms_p99']:.3f} ms (the robot's {_ms(f['robot_cycle_ms_p99'])}); tool error "
+            f"  {f['runs_in']:<6} at {f['period_ms']:g} ms: {f['missed_pct']:.2f}% of exchanges missed, "
+            f"cycle p99 {f['cycle_ms_p99']:.3f} ms (the robot's {_ms(f['robot_cycle_ms_p99'])}); tool error "
             + (f"max {err:.3f} mm, rms {f['tool_error_mm_rms']:.3f} mm" if err is not None else "n/a")
             + f" over {f['path_ran_pct']:.0f}% of the path; cores: master {f['master_cpu']:.2f}, modules "
             f"{f['modules_cpu']:.2f}"

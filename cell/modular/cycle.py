@@ -280,10 +280,8 @@ class VdcModule(JointModule):
         inputs = tuple(x for k, v in zip(f_ids, force, strict=True) for x in (k, float(v), cy.start))
         return [self._query(C_QUERY, inputs, (tau, cy.start))]
 
-    def _finish(self, cy: Cycle, now: int) -> None:
+    def _drive(self) -> None:
         """Its motor gets the torque: the chain's share (D, or the last) and its own."""
-        cy.stage = Stage.DONE
-        self.cycles.append((cy.scheduled, cy.start, now, cy.missed))
         if self.b is not None and self.module is not None:
             self.plant.drive(self.joint, self.module.torque(self.tau_r, self.b, self.qd))
 

@@ -37,7 +37,7 @@ from cell.modular.reference import CYCLE_NS, Reference
 from cell.modular.robot import ArmRobot, Ended, ModuleState, Motion
 from cell.snp.modular import CycleConfig, NodeState
 from cell.snp.modular import ModuleState as ModuleLife
-from cell.snp.runner import free_ports, open_udp
+from cell.snp.runner import chain, free_ports, open_udp
 
 REPORT_NS = 20_000_000  # each process's report to the service
 LOST_NS_MIN = 50_000_000  # a module silent this long is lost, at the least (cell.snp.modular.Master's)
@@ -166,17 +166,10 @@ def modules_main(
     from cell.snp.runner import Slot, run_modules
 
     config = cycle_config(period)
-    rng = random.Random(seed)
     plant = Plant(np.array(q0))
     spec = {
-        MODULE0 + j: {
-            "module_id": MODULE0 + j,
-            "plugged_to": 0 if j == 0 else MODULE0 + j - 1,
-            "port": ports[j],
-            "offset_ns": rng.randint(-2_000_000, 2_000_000),
-            "drift_ppm": rng.uniform(-50, 50),
-        }
-        for j in range(6)
+        s["module_id"]: s | {"port": p}
+        for s, p in zip(chain(6, random.Random(seed), module0=MODULE0), ports, strict=True)
     }
     slots = [Slot(**s) for s in spec.values()]
     parent, t0, taken, cycles_taken = os.getppid(), time.monotonic_ns(), 0, {}

@@ -575,7 +575,7 @@ class JointModule:
 
     raw is the module's own clock (`cell.snp.tsp.Oscillator`); everything it schedules is on the
     master's time through its servo.  A module of other cycle messages (cell.modular.cycle: VDC's)
-    gives the reply shapes it takes (ANSWERS) and its own _start, _second, took_b, took_d, _finish."""
+    gives the reply shapes it takes (ANSWERS) and its own _start, _second, took_b, took_d, _drive."""
 
     ANSWERS = {Stage.AB: _ANSWER, Stage.CD: _ANSWER}  # the shape each exchange's answer comes in
 
@@ -894,8 +894,13 @@ class JointModule:
     def _finish(self, cy: Cycle, now: int) -> None:
         cy.stage = Stage.DONE
         self.cycles.append((cy.scheduled, cy.start, now, cy.missed))
+        self._drive()
+
+    def _drive(self) -> None:
+        """The cycle's end: the joint driven after what it got (here a fast drive after the desired
+        velocity)."""
         assert self.config is not None
-        self.vel += (self.v_des - self.vel) * 0.5  # the joint: a fast drive after the desired velocity
+        self.vel += (self.v_des - self.vel) * 0.5
         self.pos += self.vel * self.config.period_ns / 1e9
 
     # --- the RMAP baseline --------------------------------------------------------------------

@@ -71,6 +71,23 @@ def free_ports(n: int, host: str = "127.0.0.1") -> list[int]:
             s.close()
 
 
+def chain(n: int, rng: random.Random, transport: str = "snp", module0: int = 101, **extra: Any) -> list[dict]:
+    """n modules in a chain on the base plate (module0 + i plugged to the one before), each with its
+    own clock error (up to 2 ms and 50 ppm off): Slot arguments (port 0: one to be given)."""
+    return [
+        {
+            "module_id": module0 + i,
+            "plugged_to": 0 if i == 0 else module0 + i - 1,
+            "port": 0,
+            "offset_ns": rng.randint(-2_000_000, 2_000_000),
+            "drift_ppm": rng.uniform(-50, 50),
+            "transport": transport,
+            **extra,
+        }
+        for i in range(n)
+    ]
+
+
 def _kernel_tx_stamps(sock: socket.socket) -> bool:
     """Make sock report the kernel's transmit stamps of the sends that ask (False: it cannot)."""
     flags = _TS_SOFTWARE | _TS_OPT_ID | _TS_OPT_TSONLY | _TS_OPT_RX_FILTER

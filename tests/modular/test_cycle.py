@@ -202,18 +202,19 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
 ) -> None:
     """In C at the slides' 1 ms; in Python at 4 ms (its modules' VDC costs about 0.9 ms a cycle: at
     1 ms most exchanges miss, which `cell bench snp` shows)."""
-    from cell.bench.snp import SLOT_NS, _chain, cycle_figures, trial
+    from cell.bench.snp import SLOT_NS, cycle_figures, trial
+    from cell.snp.runner import chain
 
     ref = move()
     seconds = 1.2 + SETTLE_NS / 1e9 + ref.t[-1]
     scale = period_ns // 1_000_000
     config = CycleConfig(period_ns=period_ns, budget_ns=period_ns, slot_ns=SLOT_NS * scale,
                          management_ns=400_000 * scale)  # fmt: skip
-    r = trial(_chain(6, "snp", random.Random(2)), seconds, native=in_c, reference=ref, config=config)
+    r = trial(chain(6, random.Random(2)), seconds, native=in_c, reference=ref, config=config)
     f = cycle_figures(r)
     err = r["tool_error_mm"]
     assert len(err) == len(ref.t)  # the whole reference ran, recorded every ms
-    assert f["modules_ran"] == 6 and sorted(m["joint"] for m in r["modules"]) == list(range(6))
+    assert f.modules_ran == 6 and sorted(m["joint"] for m in r["modules"]) == list(range(6))
     h = r["master"]["handler"]
     assert h["replies"] + sum(v for k, v in h.items() if k.startswith("denied.")) == h["queries"]
-    assert err.max() < 2.0 and f["missed_pct"] < 5.0
+    assert err.max() < 2.0 and f.missed_pct < 5.0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import random
 import struct
 import time
@@ -276,25 +277,26 @@ async def test_the_snp_service_answers_about_a_moving_robot(start_cell) -> None:
 def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) -> None:
     import random
 
-    from cell.bench.snp import _chain, cycle_figures, trial
+    from cell.bench.snp import cycle_figures, trial
     from cell.snp.native import available
+    from cell.snp.runner import chain
 
     if native and available() is not None:
         pytest.skip(f"the C cycle does not build here: {available()}")
-    r = trial(_chain(2, "snp", random.Random(3)), seconds=1.5, native=native)
+    r = trial(chain(2, random.Random(3)), seconds=1.5, native=native)
     f = cycle_figures(r)
     assert {m["module_id"] for m in r["modules"]} == {101, 102}
     assert sorted(m["joint"] for m in r["modules"]) == [0, 1]  # configured by the chain
-    assert f["cycles"] > 500 and f["modules_ran"] == 2 and 0 <= f["missed_pct"] <= 100
+    assert f.cycles > 500 and f.modules_ran == 2 and 0 <= f.missed_pct <= 100
     h = r["master"]["handler"]
     denied = sum(v for k, v in h.items() if k.startswith("denied."))
     ran = sum(len(m["cycles"]) for m in r["modules"])
     assert h["replies"] + denied == h["queries"]  # each answered or denied, none left
     assert h["queries"] >= 2 * ran - 4  # two queries a cycle (a miss is not retried)
-    assert f["tsp_offset_us_max"] < 2000  # the modules started up to 2 ms off
+    assert f.tsp_offset_us_max < 2000  # the modules started up to 2 ms off
     if all(m["two_step_link"] for m in r["modules"]):  # (the kernel gives transmit stamps)
-        assert f["tsp_two_step"] and r["master"]["counters"]["follow_ups"] > 0
-        assert f["tsp_offset_us_max"] < 10  # servoed to the kernel's stamps (one-step: 20-50 us)
+        assert f.tsp_two_step and r["master"]["counters"]["follow_ups"] > 0
+        assert f.tsp_offset_us_max < 10  # servoed to the kernel's stamps (one-step: 20-50 us)
     # the master stopped with the modules (it had run on 0.5 s, guessing and then excluding them;
     # a module may still be excluded mid-run, when this VM stalls a process for 50 ms)
     end = max(int(m["cycles"][-1, 2]) for m in r["modules"])  # (the master's clock is the host's)
@@ -304,15 +306,16 @@ def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) ->
 def test_the_robots_cycle_spans_every_modules_exchanges_in_a_period() -> None:
     import numpy as np
 
-    from cell.bench.snp import _robot_cycles, meets_aim
+    from cell.bench.snp import CycleFigures, _robot_cycles
 
     # (scheduled, T1, end, missed) per cycle of two modules; period 2 lacks module b: not counted
     a = np.array([[1_000_000, 1_000_010, 1_300_000, 0], [2_000_000, 2_000_000, 2_200_000, 0]])
     b = np.array([[1_000_000, 1_000_050, 1_500_000, 0], [3_000_000, 3_000_000, 3_100_000, 0]])
     assert _robot_cycles([a, b], 2).tolist() == [(1_500_000 - 1_000_010) / 1e6]
-    assert meets_aim({"cycle_ms_p99": 0.9, "missed_pct": 0.5})
-    assert not meets_aim({"cycle_ms_p99": 1.1, "missed_pct": 0.5})
-    assert not meets_aim({"cycle_ms_p99": 0.9, "missed_pct": 1.0})
+    f = CycleFigures(10, 2, 0.1, 0.9, 0.2, 0.9, 1.0, 5.0, 0.5, 0.1, 0.5, True, 0, 0, 0.4, 0.5)
+    assert f.meets_aim
+    assert not dataclasses.replace(f, cycle_ms_p99=1.1).meets_aim
+    assert not dataclasses.replace(f, missed_pct=1.0).meets_aim
 
 
 def test_the_cycles_packet_shapes_are_the_full_codecs_bytes_and_refuse_anything_else() -> None:
