@@ -24,7 +24,6 @@ import random
 import shutil
 import tempfile
 import time
-from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,7 +35,6 @@ from cell.modular.cycle import Plant, VdcMaster
 from cell.modular.reference import CYCLE_NS, Reference
 from cell.modular.robot import ArmRobot, Ended, ModuleState, Motion
 from cell.snp.modular import CycleConfig, NodeState
-from cell.snp.modular import ModuleState as ModuleLife
 from cell.snp.runner import chain, free_ports, open_udp
 
 REPORT_NS = 20_000_000  # each process's report to the service
@@ -197,10 +195,9 @@ def modules_main(
             recent = m.cycles[cycles_taken.get(id(s), 0) :]
             cycles_taken[id(s)] = done
             modules.append({
-                "module_id": s.module_id, "joint": m.joint, "running": m.state == ModuleLife.RUNNING,
+                "module_id": s.module_id,
                 "clock_offset_us": s.clock_errors[-1] / 1e3 if s.clock_errors else None,
-                "missed": sum(m.missed.values()), "cycles": done,
-                "cycle_ns": [c[2] - c[1] for c in recent], "late": sum(1 for c in recent if c[3]),
+                "missed": sum(m.missed.values()), "cycles": done, "cycle_ns": [c[2] - c[1] for c in recent],
             })  # fmt: skip
         d = plant.arm.data
         conn.send(("modules", {"q": d.qpos.tolist(), "records": records, "modules": modules}))
@@ -208,7 +205,7 @@ def modules_main(
 
     run_modules(
         slots, float("inf"), native=native, plant=plant, control=control, sample_ns=REPORT_NS,
-        sample_grid=config.management_grid, spin=False,
+        sample_grid=config.management_grid, spin=spin,
     )  # fmt: skip
 
 
@@ -260,7 +257,6 @@ class CycleRobot(ArmRobot):
         self._guessed = np.zeros(6, dtype=np.int64)
         self.unplugged: set[int] = set()
         self.master_report: dict[str, Any] = {}
-        self._recent_cycles: deque[int] = deque(maxlen=6000)
         self._running: _Running | None = None
         self._generation = 0
         self._last_tool_t = 0
@@ -323,9 +319,9 @@ class CycleRobot(ArmRobot):
         self.motion = m = Motion(name, whole, guessed_at_start=int(self._guessed.sum()))
         self._generation += 1
         self._running = _Running(m, whole, self._generation)
-        path = os.path.join(self._files, f"reference-{self._generation}.npy")
-        save(whole, path)
-        self._send(0, "follow", path, self._generation)
+        file = os.path.join(self._files, f"reference-{self._generation}.npy")
+        save(whole, file)
+        self._send(0, "follow", file, self._generation)
         with contextlib.suppress(OSError):  # (the master has left the one before the last)
             os.unlink(os.path.join(self._files, f"reference-{self._generation - 2}.npy"))
         return m

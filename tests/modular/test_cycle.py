@@ -218,3 +218,68 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     h = r["master"]["handler"]
     assert h["replies"] + sum(v for k, v in h.items() if k.startswith("denied.")) == h["queries"]
     assert err.max() < 2.0 and f.missed_pct < 5.0
+
+
+@native
+def test_the_c_module_asks_with_its_joint_answers_b_with_its_force_and_drives_its_motor_with_d() -> None:
+    """A VDC module's cycle in C (cell/snp/cycle.c) against the Python VdcModule's arithmetic; a test
+    socket plays the master."""
+    import socket
+    import threading
+
+    from cell.modular.vdc import Gains, Module
+    from cell.snp.tsp import Oscillator
+
+    period, joint = 50_000_000, 2
+    plant = Plant(Q_HOME)
+    master = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    master.bind(("127.0.0.1", 0))
+    master.settimeout(2.0)
+    sock = open_udp(timestamps=True)
+    cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=realtime_offset())
+    cycles.drive(plant)
+    st = cycles.attach(sock.fileno(), Oscillator(0, 0.0, 0))
+    m = _module(plant, joint)
+    m.config = Configure(joint, period, 0, period * 4 // 5, (20.0,))
+    m.next_start = (time.monotonic_ns() // period + 1) * period
+    cycles.push(st, m, master.getsockname())
+    assert st.active and st.vdc
+    loop = threading.Thread(
+        target=cycles.run, args=([sock.fileno()], m.next_start + period * 9 // 10), daemon=True
+    )
+    loop.start()
+    try:
+        a = A_QUERY.parse(master.recv(2048))
+        assert a is not None and a[11:17:3] == ids_of(joint)[0] and a[18] == ids_of(joint)[1][0]
+        # its joint as the plant has it (stepped to the A's time in C, untouched until B comes)
+        assert a[12] == pytest.approx(plant.arm.data.qpos[joint], abs=1e-6)
+        assert a[15] == pytest.approx(plant.arm.data.qvel[joint], abs=1e-6)
+        _, b_ids, f_ids, tau = ids_of(joint)
+        values = [0.4, -1.5, 0.1, 0.2, 0.3, 0.05, -0.02, 0.01, 0.5, -0.4, 0.3, 0.2, 1.0, 9.81, *[0.07] * 6]
+        b = B_REPLY.pack(
+            0,
+            Pid.MRT,
+            0,
+            0,
+            a[8],
+            tuple(x for k, v in zip(b_ids, values, strict=True) for x in (k, v, a[13])),
+        )
+        sock_addr = sock.getsockname()
+        master.sendto(b, sock_addr)
+        c = C_QUERY.parse(master.recv(2048))
+        assert c is not None and c[11:29:3] == f_ids and c[30] == tau
+        got_b = B_REPLY.parse(b)
+        twin = Module(plant.arm.bodies[joint], Gains())
+        from cell.modular.wire import b_of
+
+        want = twin.net_force(b_of(got_b[11::3][:20])).f_star  # type: ignore[index]
+        assert np.allclose(c[12:30:3], want, rtol=1e-6, atol=1e-5)
+        master.sendto(D_REPLY.pack(0, Pid.MRT, 0, 0, c[8], (tau, 7.5, a[13])), sock_addr)
+        loop.join(5)
+        assert not loop.is_alive()
+        torque = twin.torque(7.5, b_of(got_b[11::3][:20]), a[15])  # type: ignore[index]
+        assert plant.driven[joint] == 1 and plant.tau[joint] == pytest.approx(torque, rel=1e-6)
+        assert st.missed_ab == st.missed_cd == 0
+    finally:
+        master.close()
+        sock.close()
