@@ -188,7 +188,7 @@ class VdcMaster(Master):
         self.ids = [ids_of(j) for j in range(len(self.vdc.bodies))]
 
     def _cycle_query(self, data: bytes, addr: Any, node: Node, now: int) -> list[tuple[bytes, Any]] | None:
-        model, h, j = self.vdc, self.handler, node.joint
+        model, j = self.vdc, node.joint
         if j >= len(self.ids) or not model.active[j]:
             return None
         a_ids, b_ids, f_ids, tau = self.ids[j]
@@ -202,17 +202,14 @@ class VdcMaster(Master):
             f = C_QUERY.parse(data)  # ..., qid 8, deadline 9, 6, F* 11-28, 1, wanted 30-31
             if f is None or f[1] != Pid.MRT or f[11:29:3] != f_ids or f[30] != tau:
                 return None
-        qid, deadline = f[8], f[9]
-        back = Header(f[0], f[1], b"", f[4], f[3])
-        h.counters.queries += 1
-        if not h.admit(now, deadline):
-            return [h.deny(back, qid, addr)]
-        if is_a:
-            model.take_a(j, f[12], f[15], f[13])
-        else:
-            model.f_star[j] = np.array(f[12:30:3])
-        h.enqueue(deadline, self._vdc_answer, (back, qid, j, f[13], is_a), addr, qid, back)
-        return []
+
+        def take() -> None:
+            if is_a:
+                model.take_a(j, f[12], f[15], f[13])
+            else:
+                model.f_star[j] = np.array(f[12:30:3])
+
+        return self._queue(f, addr, now, take, self._vdc_answer, (j, f[13], is_a))
 
     def _vdc_answer(self, arg: tuple[Header, int, int, int, bool]) -> bytes:
         back, qid, j, t, is_a = arg

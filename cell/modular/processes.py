@@ -82,8 +82,18 @@ def cycle_config(period: int) -> CycleConfig:
     )
 
 
-def _orphaned(parent: int) -> bool:
-    return os.getppid() != parent
+def _orders(conn: Any, parent: int) -> list[tuple] | None:
+    """What the service asked since; None: stop (it asked, or it is gone: a process whose parent
+    died ends with it)."""
+    if os.getppid() != parent:
+        return None
+    out = []
+    while conn.poll():
+        msg = conn.recv()
+        if msg[0] == "stop":
+            return None
+        out.append(msg)
+    return out
 
 
 # --- the master's process ---------------------------------------------------------------------------
@@ -118,12 +128,10 @@ def master_main(
         if now < nxt:
             return False
         nxt = now + REPORT_NS
-        if _orphaned(parent):
+        orders = _orders(conn, parent)
+        if orders is None:
             return True
-        while conn.poll():
-            what, *arg = conn.recv()
-            if what == "stop":
-                return True
+        for what, *arg in orders:
             if what == "follow":  # (the reference's file, the service's number for it)
                 master.vdc.follow(load(arg[0]), now + LEAD_NS)
                 following = arg[1]
@@ -174,12 +182,10 @@ def modules_main(
 
     def control(now: int) -> bool:
         nonlocal taken
-        if _orphaned(parent):
+        orders = _orders(conn, parent)
+        if orders is None:
             return True
-        while conn.poll():
-            what, *arg = conn.recv()
-            if what == "stop":
-                return True
+        for what, *arg in orders:
             live = [s for s in slots if s.sock is not None and s.module_id == arg[0]]
             if what == "unplug" and live:
                 live[0].unplug_s = (now - t0) / 1e9

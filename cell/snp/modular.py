@@ -320,7 +320,7 @@ class Master:
         """The fast path for a module's A or C: parsed by its shape, its inputs taken, queued with
         the handler (admitted or denied as any query); None if it is anything else (the full
         decoder and handler then deal with it)."""
-        model, h, j = self.model, self.handler, node.joint
+        model, j = self.model, node.joint
         if not model.active[j]:
             return None
         ids = _IDS[j]
@@ -336,16 +336,28 @@ class Master:
             if f is None or f[1] != Pid.MRT or f[11] != ids[3] or f[15] != ids[4]:
                 return None
             wanted, t_out, value = ids[4], f[16], model.torque
+
+        def take() -> None:
+            if is_a:
+                model.pos[j], model.at[j], model.vel[j] = f[12], f[13], f[15]
+            else:
+                model.force[j] = f[12]
+
+        return self._queue(f, addr, now, take, self._answer, (wanted, value, j, t_out))
+
+    def _queue(
+        self, f: tuple, addr: Any, now: int, take: Callable[[], None], answer: Callable, arg: tuple
+    ) -> list:
+        """A cycle's query parsed by its shape (f: QueryShape's fields), admitted or denied as any
+        query; admitted, its inputs taken (take()) and answer((back, qid, *arg)) queued."""
+        h = self.handler
         qid, deadline = f[8], f[9]
         back = Header(f[0], f[1], b"", f[4], f[3])
         h.counters.queries += 1
         if not h.admit(now, deadline):
             return [h.deny(back, qid, addr)]
-        if is_a:
-            model.pos[j], model.at[j], model.vel[j] = f[12], f[13], f[15]
-        else:
-            model.force[j] = f[12]
-        h.enqueue(deadline, self._answer, (back, qid, wanted, value, j, t_out), addr, qid, back)
+        take()
+        h.enqueue(deadline, answer, (back, qid, *arg), addr, qid, back)
         return []
 
     @staticmethod
