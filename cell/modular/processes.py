@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 
 from cell.modular.arm import ModularArm
-from cell.modular.cycle import Plant, VdcMaster
+from cell.modular.cycle import Plant, VdcMaster, tool_error_mm
 from cell.modular.reference import CYCLE_NS, Reference
 from cell.modular.robot import ArmRobot, Ended, ModuleState, Motion
 from cell.snp.modular import CycleConfig, NodeState
@@ -389,16 +389,17 @@ class CycleRobot(ArmRobot):
                 self.cycles = max(self.cycles, m["cycles"])
                 self.cycle_ns_sum += int(np.sum(m["cycle_ns"])) // 6
                 self.cycle_ns_max = max(self.cycle_ns_max, int(np.max(m["cycle_ns"])))
-        run = self._running
-        for t, tool in r["records"]:
-            self._last_tool_t = t
-            if run is None or run.start_ns is None or t < run.start_ns:
-                continue
-            k = (t - run.start_ns) // CYCLE_NS
-            if k < len(run.ref.t):
-                self.tool_ref = run.ref.tool[k]
-                run.motion.errors_mm.append(float(np.linalg.norm(tool - run.ref.tool[k])) * 1e3)
-                run.k = k + 1
+        run, records = self._running, r["records"]
+        if not records:
+            return
+        self._last_tool_t = records[-1][0]
+        if run is not None and run.start_ns is not None:  # (the tool every ms of the motion)
+            errors = tool_error_mm(records, run.ref, run.start_ns)
+            run.motion.errors_mm += errors.tolist()
+            run.k += len(errors)
+            k = (self._last_tool_t - run.start_ns) // CYCLE_NS
+            if k >= 0:
+                self.tool_ref = run.ref.tool[min(k, len(run.ref.t) - 1)]
 
     def _progress(self) -> Ended | None:
         run = self._running

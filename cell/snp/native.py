@@ -211,7 +211,8 @@ class NativeCycles:
         self._vdc: dict[int, VdcModuleState] = {}  # by fd
 
     def drive(self, plant: Any) -> None:
-        """Step a cell.modular.cycle.Plant in C, through its arrays and MuJoCo's own mj_step."""
+        """Step a cell.modular.cycle.Plant in C, through its arrays and MuJoCo's own mj_step (its
+        model and data by the Python bindings' `_address`: the C structs they wrap)."""
         import mujoco
 
         lib = ctypes.CDLL(next(Path(mujoco.__file__).parent.glob("libmujoco.so*")).as_posix())
@@ -235,6 +236,8 @@ class NativeCycles:
         if self.plant is None:
             raise ValueError("a VDC module's cycle in C needs its plant (drive(plant) first)")
         body, g = m.plant.arm.bodies[m.joint], m.gains
+        if g.adapt > 0:  # (cell.modular.vdc.Module's adaptation of its inertia: not in cycle.c)
+            raise ValueError("VDC's parameter adaptation runs in the Python modules only")
         mass = body.inertia[5, 5]
         _, b_ids, f_ids, _ = ids_of(m.joint)
         v = VdcModuleState(
