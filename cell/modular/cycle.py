@@ -36,6 +36,7 @@ from cell.snp.modular import ArmModel, Cycle, CycleConfig, JointModule, Master, 
 from cell.snp.packet import Header, Pid
 
 SETTLE_NS = 500_000_000  # from every joint in the cycle to the reference's start: the clocks settle
+SAFE_AFTER = 3  # cycles in a row with a guess in them: a module's joint on its brake (VdcModule._drive)
 
 
 class Plant:
@@ -236,6 +237,8 @@ class VdcModule(JointModule):
         self.b_fresh = False  # (this cycle's)
         self.tau_r = 0.0
         self.qd = 0.0  # its joint's velocity at this cycle's T1
+        self.missed_run = 0  # cycles in a row with a guessed exchange
+        self.braked = 0  # times it went on its brake for them
 
     def _start(self, scheduled: int, raw: int) -> list[bytes]:
         c = self.config
@@ -277,9 +280,17 @@ class VdcModule(JointModule):
         inputs = tuple(x for k, v in zip(f_ids, force, strict=True) for x in (k, float(v), cy.start))
         return [self._query(C_QUERY, inputs, (tau, cy.start))]
 
-    def _drive(self) -> None:
-        """Its motor gets the torque: the chain's share (D, or the last) and its own."""
-        if self.b is not None and self.module is not None:
+    def _drive(self, cy: Cycle) -> None:
+        """Its motor gets the torque: the chain's share (D, or the last) and its own.  After
+        SAFE_AFTER cycles in a row with a guess in them its joint goes on its brake where it stands,
+        until a whole cycle comes (fail safe: guesses carried on that long had driven a starved arm
+        unstable)."""
+        self.missed_run = self.missed_run + 1 if cy.missed else 0
+        if self.missed_run >= SAFE_AFTER:
+            if self.plant.driven[self.joint]:
+                self.plant.release(self.joint)
+                self.braked += 1
+        elif self.b is not None and self.module is not None:
             self.plant.drive(self.joint, self.module.torque(self.tau_r, self.b, self.qd))
 
 

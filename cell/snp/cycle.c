@@ -47,6 +47,7 @@ typedef struct {
     double joint_gain, armature, damping, torque_max;
     double b[20], tau_r, qd;        /* its last B (qd_r, qdd_r, V_r, dV_r, V), last tau_r, qd at T1 */
     int64_t have_b, fresh;
+    int64_t safe_after, missed_run, braked; /* VdcModule._drive's fail safe */
     plant_t *plant;
 } vdc_module_t;
 
@@ -182,10 +183,18 @@ static void finish(module_t *m, int64_t now) {
     int64_t *r = m->records[m->n_records < RECORDS ? m->n_records++ : RECORDS - 1];
     r[0] = m->scheduled, r[1] = m->start, r[2] = now, r[3] = m->missed_now;
     vdc_module_t *v = m->vdc;
-    if (v != NULL) { /* its motor: the chain's share and its own */
-        if (v->have_b) {
-            snp_plant_advance(v->plant, host_now());
-            v->plant->tau[v->joint] = motor_torque(v), v->plant->driven[v->joint] = 1;
+    if (v != NULL) { /* its motor: the chain's share and its own; on its brake after guesses in a row */
+        plant_t *pl = v->plant;
+        v->missed_run = m->missed_now ? v->missed_run + 1 : 0;
+        if (v->missed_run >= v->safe_after) {
+            if (pl->driven[v->joint]) {
+                snp_plant_advance(pl, host_now());
+                pl->driven[v->joint] = 0, pl->hold[v->joint] = pl->qpos[v->joint];
+                v->braked++;
+            }
+        } else if (v->have_b) {
+            snp_plant_advance(pl, host_now());
+            pl->tau[v->joint] = motor_torque(v), pl->driven[v->joint] = 1;
         }
         return;
     }

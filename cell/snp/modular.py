@@ -906,9 +906,9 @@ class JointModule:
     def _finish(self, cy: Cycle, now: int) -> None:
         cy.stage = Stage.DONE
         self.cycles.append((cy.scheduled, cy.start, now, cy.missed))
-        self._drive()
+        self._drive(cy)
 
-    def _drive(self) -> None:
+    def _drive(self, cy: Cycle) -> None:
         """The cycle's end: the joint driven after what it got (here a fast drive after the desired
         velocity)."""
         assert self.config is not None

@@ -61,6 +61,7 @@ class VdcModuleState(ctypes.Structure):
         ("qd", _D),
         ("have_b", _I),
         ("fresh", _I),
+        *((name, _I) for name in ("safe_after", "missed_run", "braked")),
         ("plant", ctypes.POINTER(PlantState)),
     ]
 
@@ -231,6 +232,7 @@ class NativeCycles:
 
     def _vdc_module(self, m: Any) -> VdcModuleState:
         """A VdcModule's VDC in C: its body's inertia and gains, its item ids, the plant."""
+        from cell.modular.cycle import SAFE_AFTER
         from cell.modular.wire import b_values, ids_of
 
         if self.plant is None:
@@ -248,7 +250,7 @@ class NativeCycles:
         v.k[:] = (*[g.body_rot * mass] * 3, *[g.body_lin * mass] * 3)
         if m.b is not None:
             v.b[:], v.have_b = b_values(m.b), 1
-        v.tau_r = m.tau_r
+        v.tau_r, v.safe_after, v.missed_run, v.braked = m.tau_r, SAFE_AFTER, m.missed_run, m.braked
         return v
 
     def attach(self, fd: int, osc: Any, loss: float = 0.0) -> ModuleState:
@@ -288,11 +290,13 @@ class NativeCycles:
             st.vdc = ctypes.pointer(v)
         st.active = 1
 
-    @staticmethod
-    def pull(st: ModuleState, m: JointModule, link: Any) -> None:
+    def pull(self, st: ModuleState, m: JointModule, link: Any) -> None:
         """The C loop's records and counters into the module and its link (then zeroed in C)."""
         if not st.active:
             return
+        v = self._vdc.get(st.fd)
+        if v is not None:  # (a VdcModule's fail safe, as C has it)
+            m.missed_run, m.braked = v.missed_run, v.braked  # type: ignore[attr-defined]
         n = st.n_records
         if n:  # (one copy of the block: element by element, 256 records of six modules took 4 ms)
             recs = np.frombuffer(st.records, np.int64, 4 * n).reshape(n, 4)

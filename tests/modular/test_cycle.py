@@ -190,6 +190,38 @@ def test_a_module_guesses_a_b_that_does_not_come_and_drives_its_motor_with_d() -
     assert m.b.qd_r == pytest.approx(0.5 + 2.0 * 0.01)  # type: ignore[union-attr]
 
 
+def _whole_cycle(m: VdcModule, t: int, tau_r: float = 1.0) -> None:
+    """One cycle of m from t, every exchange answered."""
+    _, b_ids, _, tau = ids_of(m.joint)
+    m.next_start = t
+    a = A_QUERY.parse(m.poll(t)[0])
+    values = [0.1, 0.0, *[0.0] * 11, 9.81, *[0.0] * 6]
+    b = B_REPLY.pack(
+        0, Pid.MRT, 0, 0, a[8], tuple(x for k, v in zip(b_ids, values, strict=True) for x in (k, v, t))
+    )  # type: ignore[index]
+    c = C_QUERY.parse(m.receive(b, t + 1000)[0])
+    assert m.receive(D_REPLY.pack(0, Pid.MRT, 0, 0, c[8], (tau, tau_r, t)), t + 2000) == []  # type: ignore[index]
+
+
+def test_a_module_whose_exchanges_keep_missing_brakes_its_joint_until_a_whole_cycle_comes() -> None:
+    from cell.modular.cycle import SAFE_AFTER
+
+    plant = Plant(Q_HOME)
+    m = _module(plant)
+    period, budget = m.config.period_ns, m.config.budget_ns  # type: ignore[union-attr]
+    _whole_cycle(m, 0)
+    assert plant.driven[2] == 1 and m.missed_run == 0
+    for k in range(1, SAFE_AFTER + 1):  # nothing answers: each exchange guessed at its deadline
+        t = k * period
+        m.next_start = t
+        assert len(m.poll(t)) == 1 and len(m.poll(t + budget // 2)) == 1  # A; then C on a guessed B
+        m.poll(t + budget)  # D guessed: the cycle ends
+        assert plant.driven[2] == (1 if k < SAFE_AFTER else 0), k
+    assert m.braked == 1 and plant.hold[2] == plant.arm.data.qpos[2]  # on its brake where it stood
+    _whole_cycle(m, (SAFE_AFTER + 1) * period, tau_r=2.0)
+    assert plant.driven[2] == 1 and m.missed_run == 0 and plant.tau[2] != 0.0  # driven again
+
+
 @pytest.mark.parametrize(
     ("in_c", "period_ns"),
     [
@@ -231,6 +263,7 @@ def test_the_c_module_asks_with_its_joint_answers_b_with_its_force_and_drives_it
     from cell.snp.tsp import Oscillator
 
     period, joint = 50_000_000, 2
+    silent_cycles = 3  # after the first: then it goes on its brake (SAFE_AFTER)
     plant = Plant(Q_HOME)
     master = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     master.bind(("127.0.0.1", 0))
@@ -244,9 +277,8 @@ def test_the_c_module_asks_with_its_joint_answers_b_with_its_force_and_drives_it
     m.next_start = (time.monotonic_ns() // period + 1) * period
     cycles.push(st, m, master.getsockname())
     assert st.active and st.vdc
-    loop = threading.Thread(
-        target=cycles.run, args=([sock.fileno()], m.next_start + period * 9 // 10), daemon=True
-    )
+    until = m.next_start + period * (9 + 10 * silent_cycles) // 10
+    loop = threading.Thread(target=cycles.run, args=([sock.fileno()], until), daemon=True)
     loop.start()
     try:
         a = A_QUERY.parse(master.recv(2048))
@@ -275,11 +307,14 @@ def test_the_c_module_asks_with_its_joint_answers_b_with_its_force_and_drives_it
         want = twin.net_force(b_of(got_b[11::3][:20])).f_star  # type: ignore[index]
         assert np.allclose(c[12:30:3], want, rtol=1e-6, atol=1e-5)
         master.sendto(D_REPLY.pack(0, Pid.MRT, 0, 0, c[8], (tau, 7.5, a[13])), sock_addr)
-        loop.join(5)
-        assert not loop.is_alive()
+        master.recv(2048)  # the next cycle's A: the first of those left unanswered
         torque = twin.torque(7.5, b_of(got_b[11::3][:20]), a[15])  # type: ignore[index]
         assert plant.driven[joint] == 1 and plant.tau[joint] == pytest.approx(torque, rel=1e-6)
-        assert st.missed_ab == st.missed_cd == 0
+        loop.join(5)
+        assert not loop.is_alive()
+        cycles.pull(st, m, Link(sock))
+        assert m.missed == {"ab": silent_cycles, "cd": silent_cycles} and m.braked == 1
+        assert plant.driven[joint] == 0  # on its brake: guesses in a row (VdcModule._drive's fail safe)
     finally:
         master.close()
         sock.close()

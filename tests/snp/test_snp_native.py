@@ -113,7 +113,7 @@ def test_the_c_cycle_sends_the_python_modules_bytes_and_ends_in_its_state(rig: R
     rig.thread.join(5)  # type: ignore[union-attr]
     seen = JointModule(MODULE, 0, 1)  # what the C loop hands back
     link = Link(rig.sock)
-    NativeCycles.pull(rig.state, seen, link)
+    rig.cycles.pull(rig.state, seen, link)
     assert (seen.pos, seen.vel, seen.v_des, seen.torque) == (twin.pos, twin.vel, twin.v_des, twin.torque)
     assert seen.torque == -3.25 and seen.missed == {"ab": 0, "cd": 0} == twin.missed
     (rec,) = seen.cycles
