@@ -138,7 +138,7 @@ def test_a_denial_moves_on_at_once_and_an_unanswered_query_is_guessed_at_its_dea
     rig.thread.join(5)  # type: ignore[union-attr]
     assert rig.state.late == 1
     seen = JointModule(MODULE, 0, 1)
-    NativeCycles.pull(rig.state, seen, Link(rig.sock))
+    rig.cycles.pull(rig.state, seen, Link(rig.sock))
     (rec,) = seen.cycles
     assert rec[3] == 2 and seen.missed == {"ab": 1, "cd": 1}
     assert rec[2] - rec[0] >= BUDGET  # ended at the [C, D] deadline
