@@ -129,6 +129,8 @@ async def _run(ctx: ServiceContext, robot: ArmRobot, link: SnpLink | None) -> No
                 waiting.clear()
             if done % every == 0:
                 publish()
+        if robot.failed:  # (its motion's requester told above: the supervisor restarts the service)
+            raise RuntimeError(f"the modular robot: {robot.failed}")
         if now >= next_report:
             ctx.counters.update(robot.counters())
             ctx.counters["modular.late_cycles"] = late

@@ -272,7 +272,6 @@ class CycleRobot(ArmRobot):
         self._running: _Running | None = None
         self._generation = 0
         self._last_tool_t = 0
-        self._dead = ""  # which of its processes ended (for good: the arm is stopped)
         self._files = tempfile.mkdtemp(
             prefix="cell-modular-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None
         )
@@ -359,8 +358,8 @@ class CycleRobot(ArmRobot):
                 while conn.poll():
                     what, report = conn.recv()
                     (self._master if what == "master" else self._modules)(report)
-            if not self._dead and not self._procs[i].is_alive():
-                self._dead = self.stopped = f"the cycle's {('master', 'modules')[i]} process ended"
+            if not self.failed and not self._procs[i].is_alive():
+                self.failed = self.stopped = f"the cycle's {('master', 'modules')[i]} process ended"
         return self._progress()
 
     def _master(self, r: dict[str, Any]) -> None:
@@ -380,7 +379,7 @@ class CycleRobot(ArmRobot):
         if gone and not self.stopped:
             self.stopped = f"module {', '.join(gone)}: the arm holds where it stood until it is back"
             self._send(0, "hold")
-        elif self.stopped and not self._dead and all(s is ModuleState.RUNNING for s in self.states):
+        elif self.stopped and not self.failed and all(s is ModuleState.RUNNING for s in self.states):
             self.stopped = ""  # every module in the cycle: motions are taken (from where it holds)
 
     def _modules(self, r: dict[str, Any]) -> None:

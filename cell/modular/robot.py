@@ -89,6 +89,7 @@ class ArmRobot:
         self.states = [ModuleState.RUNNING] * 6
         self.motion: Motion | None = None
         self.stopped = ""  # why motions are refused ("": taken)
+        self.failed = ""  # why the engine cannot go on ("": it can; the service then fails, to be restarted)
         self.cycles = 0
         self.cycle_ns_sum = 0
         self.cycle_ns_max = 0

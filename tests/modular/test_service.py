@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import signal
 import time
 
 from rerun.chunk import RrdReader
@@ -119,6 +121,7 @@ async def test_on_the_snp_cycle_its_processes_move_the_arm_and_a_pulled_module_s
     out = await asyncio.to_thread(run_cell, "modular", "unplug", "j3", "--config", cfg)
     assert out.returncode == 0 and "j3      unplugged" in out.stdout, out.stdout + out.stderr
     home = ["0", "-1.5708", "1.5708", "-1.5708", "-1.5708", "0"]
+    goal_args = [str(x) for x in goal]
     for _ in range(100):  # (the master's FDIR: silent, then lost after 50 ms; its report every 20 ms)
         refused = await asyncio.to_thread(run_cell, "modular", "move", "--joints", *home, "--config", cfg)
         if refused.returncode == 2:
@@ -136,10 +139,55 @@ async def test_on_the_snp_cycle_its_processes_move_the_arm_and_a_pulled_module_s
         if moved.returncode != 2:
             break
     assert moved.returncode == 0 and moved.stdout.startswith("joints: "), moved.stdout + moved.stderr
+    # the cycle's master process killed: the service fails saying so, is restarted, and moves again
+    st = json.loads((await asyncio.to_thread(run_cell, "status", "--json", "--config", cfg)).stdout)
+    service_pid = next(s["last"]["pid"] for s in st["services"] if s["name"] == "modular")
+    children = [p for p in _children(service_pid) if b"spawn_main" in _cmdline(p)]
+    assert len(children) == 2, children  # (the master's process, then the modules')
+    os.kill(children[0], signal.SIGKILL)
+    for _ in range(100):  # (restarted after its backoff, [services] backoff_initial_s)
+        st = json.loads((await asyncio.to_thread(run_cell, "status", "--json", "--config", cfg)).stdout)
+        last = next(s["last"] for s in st["services"] if s["name"] == "modular")
+        if last.get("restarts", 0) >= 1 and last.get("state") == "SERVICE_STATE_RUNNING":
+            break
+        await asyncio.sleep(0.1)
+    assert last.get("restarts", 0) >= 1 and "the cycle's master process ended" in last["last_error"], last
+    for _ in range(100):  # (refused while its new modules join the cycle)
+        moved = await asyncio.to_thread(
+            run_cell, "modular", "move", "--joints", *goal_args, "--speed", "2", "--config", cfg
+        )
+        if moved.returncode != 2:
+            break
+    assert moved.returncode == 0, moved.stdout + moved.stderr
+    assert not any(p in children for p in _children(last["pid"]))  # (its new processes)
     code, _, _, err = cell.stop()
     assert code == 0, err[-2000:]
+    assert not [p for p in children[1:] if _cmdline(p)]  # the old modules' process ended
     rows: dict[str, int] = {}
     for chunk in RrdReader(rrd).stream():
         rows[str(chunk.entity_path)] = rows.get(str(chunk.entity_path), 0) + chunk.num_rows
     assert rows.get("/modular/arm", 0) > 50
     assert rows.get("/modular/clock_offset_us/j1", 0) > 10 and rows.get("/modular/cycle_us/j6", 0) > 10
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is pid (from /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat", "rb") as f:
+                    stat = f.read()
+            except OSError:
+                continue
+            if int(stat.rsplit(b")", 1)[1].split()[1]) == pid:
+                out.append(int(entry))
+    return sorted(out)
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read()
+    except OSError:
+        return b""
