@@ -40,9 +40,7 @@ from cell.bench.robots import late_statuses
 from cell.bus import Bus
 from cell.config import load_config
 from cell.controller.controller import Controller, MotionStopped, Segment
-from cell.controller.motion import (
-    NotAtGoal,
-)
+from cell.controller.motion import NotAtGoal
 from cell.dataplane.tables import TPBatch
 from cell.launcher import fetch_status
 from cell.robot.arm import arm_model

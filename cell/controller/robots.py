@@ -13,16 +13,9 @@ from cell.bus import Bus, BusError, Subscription
 from cell.config import CellConfig
 from cell.controller.link import Link
 from cell.controller.loop import LoopModel, trackable_accel
-from cell.controller.motion import (
-    Segment,
-    Track,
-)
+from cell.controller.motion import Segment, Track
 from cell.controller.plan import MotionLimits
-from cell.controller.schedule import (
-    Grid,
-    grid_start,
-    phase_at,
-)
+from cell.controller.schedule import Grid, grid_start, phase_at
 from cell.robot.arm import ArmModel, arm_model
 from cell.robot.kinematics import Kinematics
 from cell.timer import realtime_offset

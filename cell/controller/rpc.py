@@ -13,10 +13,7 @@ import numpy as np
 
 from cell.bus import BusError, RemoteError, RpcFault
 from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
-from cell.controller.motion import (
-    FollowResult,
-    NotAtGoal,
-)
+from cell.controller.motion import FollowResult, NotAtGoal
 from cell.controller.plan import PlanError
 from cell.counters import Counters
 from cell.robot.kinematics import Unreachable

@@ -16,11 +16,7 @@ import numpy as np
 from cell.bus import Bus
 from cell.controller.link import Link
 from cell.controller.loop import LoopModel
-from cell.controller.motion import (
-    MotionResult,
-    Segment,
-    Track,
-)
+from cell.controller.motion import MotionResult, Segment, Track
 from cell.controller.plan import MotionLimits
 from cell.controller.schedule import (
     STOP_MARGIN_NS,

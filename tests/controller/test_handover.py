@@ -13,10 +13,7 @@ import pytest
 
 from cell.bench.loopsim import PERIOD_NS, WINDOW, Loop
 from cell.controller.loop import trackable_accel
-from cell.controller.motion import (
-    Segment,
-    Track,
-)
+from cell.controller.motion import Segment, Track
 from cell.controller.plan import plan_joint
 from cell.controller.schedule import (
     predict_at,

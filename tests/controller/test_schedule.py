@@ -6,11 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.controller.motion import (
-    HOLD_S,
-    Segment,
-    Track,
-)
+from cell.controller.motion import HOLD_S, Segment, Track
 from cell.controller.plan import MotionLimits, plan_joint
 from cell.controller.schedule import (
     STALE_STATUS_NS,
