@@ -23,16 +23,17 @@ import multiprocessing as mp
 import random
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cell.bench.registry import Bench, Figures, register
-from cell.modular.cycle import tool_error_mm
-from cell.modular.reference import Reference
 from cell.snp.modular import CycleConfig
 from cell.snp.runner import chain, free_ports
 from cell.snp.spacewire import FAILOVER_CYCLES, HOP_NS, cd_cycle_us, failover_ms
+
+if TYPE_CHECKING:  # (the modular arm's modules, MuJoCo's: imported where a trial drives it)
+    from cell.modular.reference import Reference
 
 WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settles meanwhile
 # joint j's cycle starts j slots into the period: with the modules in C the master is the busy
@@ -184,6 +185,8 @@ def trial(
         p.join(10)
     out = {"modules": modules, "master": m, "modules_cpu": cpu}
     if reference is not None:
+        from cell.modular.cycle import tool_error_mm
+
         out["tool_error_mm"] = tool_error_mm(records, reference, m["start_ns"])
     return out
 
