@@ -272,6 +272,16 @@ static void serve(master_t *m) {
 }
 
 /* An included module's A or C (Master._cycle_query): 1 if it was one (taken), else 0. */
+/* The A or C of the toy arm model (Master._cycle_query's checks): 1 if its items are joint j's */
+static int toy_items(const master_t *m, const uint8_t *p, int j, int is_a) {
+    const joint_t *jt = &m->joints[j];
+    if (is_a)
+        return get32(p + 27) == 2 && get32(p + 63) == 1 && get32(p + 31) == (uint32_t)jt->ids[0] &&
+               get32(p + 47) == (uint32_t)jt->ids[1] && get32(p + 67) == (uint32_t)jt->ids[2];
+    return get32(p + 27) == 1 && get32(p + 47) == 1 && get32(p + 31) == (uint32_t)jt->ids[3] &&
+           get32(p + 51) == (uint32_t)jt->ids[4];
+}
+
 /* VDC's A or C (cell.modular.cycle.VdcMaster._cycle_query's checks): 1 if its items are joint j's */
 static int vdc_items(const master_t *m, const uint8_t *p, int j, int is_a) {
     const joint_t *jt = &m->joints[j];
@@ -296,15 +306,7 @@ static int fast_path(master_t *m, const uint8_t *p, ssize_t n, int64_t ip, int64
     int is_a = n == a_size;
     /* QueryShape.parse: no return address, the query type, both CRCs, the counts; then its items */
     if (p[2] || p[13] || p[14] != QUERY || !crcs_ok(p, (size_t)n) || p[1] != PID_MRT) return 0;
-    if (m->vdc != NULL && !vdc_items(m, p, j, is_a)) return 0;
-    if (m->vdc == NULL && is_a &&
-        (get32(p + 27) != 2 || get32(p + 63) != 1 || get32(p + 31) != (uint32_t)jt->ids[0] ||
-         get32(p + 47) != (uint32_t)jt->ids[1] || get32(p + 67) != (uint32_t)jt->ids[2]))
-        return 0;
-    if (m->vdc == NULL && !is_a &&
-        (get32(p + 27) != 1 || get32(p + 47) != 1 || get32(p + 31) != (uint32_t)jt->ids[3] ||
-         get32(p + 51) != (uint32_t)jt->ids[4]))
-        return 0;
+    if (!(m->vdc != NULL ? vdc_items : toy_items)(m, p, j, is_a)) return 0;
     jt->heard_ns = at, jt->silent_cycles = 0; /* (Master.receive: heard from) */
     if (jt->state == NODE_SUSPECT) {
         jt->state = NODE_INCLUDED;
