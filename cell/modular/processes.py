@@ -354,12 +354,13 @@ class CycleRobot(ArmRobot):
     def cycle(self) -> Ended | None:
         """Take what the processes reported; the motion that ended since, if one did."""
         for i, conn in enumerate(self._conns):
-            with contextlib.suppress(EOFError, OSError):
+            try:
                 while conn.poll():
                     what, report = conn.recv()
                     (self._master if what == "master" else self._modules)(report)
-            if not self.failed and not self._procs[i].is_alive():
-                self.failed = self.stopped = f"the cycle's {('master', 'modules')[i]} process ended"
+            except (EOFError, OSError):  # (its end of the pipe closed: the process ended)
+                if not self.failed:
+                    self.failed = self.stopped = f"the cycle's {('master', 'modules')[i]} process ended"
         return self._progress()
 
     def _master(self, r: dict[str, Any]) -> None:
