@@ -419,6 +419,14 @@ class ModularConfig:
     lost_cycles: int = _check(_positive)
     publish_hz: float = _check(lambda v: None if 0 < v <= 500 else f"must be in (0, 500] (got {v})")
 
+    def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        if self.transport == "cycle" and "neighbour" in self.where:
+            raise err(
+                "where",
+                'on transport "cycle" a module\'s [C, D] is by "master" or "local" (a neighbour\'s chain '
+                'runs on the in-process transports, "snp" and "memory")',
+            )
+
 
 @dataclass(frozen=True)
 class RlinkConfig:

@@ -126,6 +126,7 @@ def _modules(
             {
                 "module_id": s.module_id,
                 "joint": m.joint,
+                "exchanges": 1 if getattr(m, "local", False) else 2,  # a cycle's (local [C, D]: one)
                 "plugged_at": s.plugged_at,
                 "unplug_s": s.unplug_s,
                 "cycles": cycles,
@@ -203,7 +204,7 @@ class CycleFigures:
     robot_cycle_ms_p99: float | None
     cycle_ms_max: float
     start_late_us_p99: float
-    missed_pct: float  # of the exchanges (two a cycle), guessed
+    missed_pct: float  # of the exchanges (two a cycle; one for a module computing its [C, D]), guessed
     tsp_offset_us_p50: float
     tsp_offset_us_max: float
     tsp_two_step: bool  # the clocks servoed to the kernel's transmit stamps (follow-ups)
@@ -224,6 +225,7 @@ class VdcCycleFigures(CycleFigures):
 
     period_ms: float
     runs_in: str  # "c" or "python"
+    cd: str  # who computes the modules' [C, D]: "master" or "local" (each module its own)
     tool_error_mm_max: float | None  # over the path (None: it never started)
     tool_error_mm_rms: float | None
     path_ran_pct: float
@@ -232,7 +234,7 @@ class VdcCycleFigures(CycleFigures):
 def cycle_figures(r: dict[str, Any], period_ns: int = 1_000_000) -> CycleFigures:
     """Cycle time (T1 to the last answer), misses and clock errors after each module's warm-up."""
     times, late, errs, kept = [], [], [], []
-    n = missed = 0
+    n = missed = exchanges = 0
     for mod in r["modules"]:
         c = mod["cycles"]
         if not len(c):
@@ -243,6 +245,7 @@ def cycle_figures(r: dict[str, Any], period_ns: int = 1_000_000) -> CycleFigures
         times.append((c[:, 2] - c[:, 1]) / 1e6)
         late.append((c[:, 1] - c[:, 0]) / 1e3)
         n += len(c)
+        exchanges += len(c) * mod.get("exchanges", 2)
         missed += int(c[:, 3].sum())
         e = mod["clock_errors"]
         errs.append(np.abs(e[len(e) // 4 :]) / 1e3)  # after the servo's first quarter
@@ -259,7 +262,7 @@ def cycle_figures(r: dict[str, Any], period_ns: int = 1_000_000) -> CycleFigures
         robot_cycle_ms_p99=float(np.percentile(robot, 99)) if len(robot) else None,
         cycle_ms_max=float(t.max()),
         start_late_us_p99=float(np.percentile(lt, 99)),
-        missed_pct=100.0 * missed / max(1, 2 * n),
+        missed_pct=100.0 * missed / max(1, exchanges),
         tsp_offset_us_p50=float(np.median(e)),
         tsp_offset_us_max=float(e.max()),
         tsp_two_step=bool(r["modules"]) and all(m["follow_ups"] > 0 for m in r["modules"]),
@@ -300,7 +303,9 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
     """VDC's maths in the cycle between processes (cell.modular.cycle): the six modules drive the
     MuJoCo arm along the 0.5 m/s pick and place, the master answers with VDC's recursions.  In C
     at 1 ms ("" key, if it builds), and in Python at 1 ms ("_python") and at VDC_PERIOD_PY_NS
-    ("_python_4ms"): each its cycle's figures and the tool's error over the path."""
+    ("_python_4ms"), with the master computing every [C, D]; and with each module computing its own
+    ("_local": one exchange a cycle), in C and in Python at 1 ms.  Each its cycle's figures and the
+    tool's error over the path."""
     from cell.modular.cycle import SETTLE_NS
     from cell.modular.reference import pick_and_place
 
@@ -314,17 +319,24 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
         slot_ns=config.slot_ns * scale,
         management_ns=config.management_ns * scale,
     )
-    runs = {"": (config, True), "_python": (config, False), "_python_4ms": (slow, False)}
+    runs = {
+        "": (config, True, "master"),
+        "_python": (config, False, "master"),
+        "_python_4ms": (slow, False, "master"),
+        "_local": (config, True, "local"),
+        "_python_local": (config, False, "local"),
+    }
     out = {}
-    for key, (cfg, in_c) in runs.items():
+    for key, (cfg, in_c, cd) in runs.items():
         if in_c and not native:
             continue
-        r = trial(chain(6, rng, "snp"), seconds, config=cfg, native=in_c, reference=ref)
+        r = trial(chain(6, rng, "snp", cd=cd), seconds, config=cfg, native=in_c, reference=ref)
         err = r["tool_error_mm"]
         out[key] = VdcCycleFigures(
             **dataclasses.asdict(cycle_figures(r, cfg.period_ns)),
             period_ms=cfg.period_ns / 1e6,
             runs_in="c" if in_c else "python",
+            cd=cd,
             tool_error_mm_max=float(err.max()) if len(err) else None,
             tool_error_mm_rms=float(np.sqrt(np.mean(err**2))) if len(err) else None,
             path_ran_pct=100.0 * len(err) / len(ref.t),
@@ -545,7 +557,9 @@ def _vdc_cycle_text(runs: dict[str, dict[str, Any]]) -> list[str]:
     for f in runs.values():
         err = f["tool_error_mm_max"]
         out.append(
-            f"  {f['runs_in']:<6} at {f['period_ms']:g} ms: {f['missed_pct']:.2f}% of exchanges missed, "
+            f"  {f['runs_in']:<6} at {f['period_ms']:g} ms, [C, D] by "
+            + ("each module: " if f["cd"] == "local" else "the master: ")
+            + f"{f['missed_pct']:.2f}% of exchanges missed, "
             f"cycle p99 {f['cycle_ms_p99']:.3f} ms (the robot's {_ms(f['robot_cycle_ms_p99'])}); tool error "
             + (f"max {err:.3f} mm, rms {f['tool_error_mm_rms']:.3f} mm" if err is not None else "n/a")
             + f" over {f['path_ran_pct']:.0f}% of the path; cores: master {f['master_cpu']:.2f}, modules "

@@ -31,7 +31,18 @@ from cell.modular.loop import VdcArm
 from cell.modular.reference import CYCLE_NS, Reference
 from cell.modular.vdc import AXIS, BASE, B, Carry, Gains, Module, carried_force, forward_step
 from cell.modular.vdc import A as AMsg
-from cell.modular.wire import A_QUERY, B_REPLY, C_QUERY, D_REPLY, b_of, b_values, ids_of
+from cell.modular.wire import (
+    A_LOCAL_QUERY,
+    A_QUERY,
+    B_LOCAL_REPLY,
+    B_REPLY,
+    C_QUERY,
+    D_REPLY,
+    b_of,
+    b_values,
+    ids_of,
+    outboard_ids,
+)
 from cell.snp.modular import ArmModel, Cycle, CycleConfig, JointModule, Master, Node, Stage
 from cell.snp.packet import Header, Pid
 
@@ -167,19 +178,28 @@ class VdcModel(ArmModel):
         """Body i's axes in its parent's (R = rot rz(q)) as _transform has them."""
         return self._transform(i)[:3, :3].T
 
+    def outboard(self, j: int) -> np.ndarray:
+        """G: what the bodies out from j to the tip need of body j, in j's frame (their F*_r as
+        last taken, carried in)."""
+        n = len(self.bodies)
+        if j == n - 1:
+            return np.zeros(6)
+        f = self.f_star[n - 1]
+        for i in range(n - 2, j, -1):
+            f = self.f_star[i] + carried_force(self._transform(i + 1), f)
+        return carried_force(self._transform(j + 1), f)
+
     def tau_r(self, j: int) -> float:
         """Joint j's D: its body's F*_r plus what the bodies out to the tip need of it."""
-        n = len(self.bodies)
-        f = self.f_star[n - 1]
-        for i in range(n - 2, j - 1, -1):
-            f = self.f_star[i] + carried_force(self._transform(i + 1), f)
-        return float(AXIS @ f)
+        return float(AXIS @ (self.f_star[j] + self.outboard(j)))
 
 
 class VdcMaster(Master):
-    """The SnP master with VDC's cycle messages (cell.modular.wire's shapes) and arithmetic."""
+    """The SnP master with VDC's cycle messages (cell.modular.wire's shapes) and arithmetic.  A
+    module's [A, B] in the local shape (A_LOCAL_QUERY: it computes its own [C, D]) brings its last
+    F*_r and is answered with B and G (VdcModel.outboard); its placement is the module's choice."""
 
-    CYCLE_SIZES = frozenset((A_QUERY.size, C_QUERY.size))
+    CYCLE_SIZES = frozenset((A_QUERY.size, C_QUERY.size, A_LOCAL_QUERY.size))
 
     def __init__(
         self, ports: list[Any], config: CycleConfig, clock: Any, reference: Reference, **kw: Any
@@ -187,54 +207,70 @@ class VdcMaster(Master):
         super().__init__(ports, config, clock, model=VdcModel(reference, period_ns=config.period_ns), **kw)
         self.vdc: VdcModel = self.model  # type: ignore[assignment]
         self.ids = [ids_of(j) for j in range(len(self.vdc.bodies))]
+        self.g_ids = [outboard_ids(j) for j in range(len(self.vdc.bodies))]
 
     def _cycle_query(self, data: bytes, addr: Any, node: Node, now: int) -> list[tuple[bytes, Any]] | None:
         model, j = self.vdc, node.joint
         if j >= len(self.ids) or not model.active[j]:
             return None
         a_ids, b_ids, f_ids, tau = self.ids[j]
-        is_a = len(data) == A_QUERY.size
-        if is_a:
-            f = A_QUERY.parse(data)  # ..., qid 8, deadline 9, 2, q 11-13, qd 14-16, 20, wanted 18-57
-            if f is None or f[1] != Pid.MRT or f[11] != a_ids[0] or f[14] != a_ids[1] or f[18] != b_ids[0]:
-                return None
-            self._a_cycle[j] = self._cycle_at(node, now)
-        else:
+        kind = {A_QUERY.size: "a", C_QUERY.size: "c", A_LOCAL_QUERY.size: "local"}[len(data)]
+        if kind == "c":
             f = C_QUERY.parse(data)  # ..., qid 8, deadline 9, 6, F* 11-28, 1, wanted 30-31
             if f is None or f[1] != Pid.MRT or f[11:29:3] != f_ids or f[30] != tau:
                 return None
+        else:  # ..., qid 8, deadline 9, n, q 11-13, qd 14-16, [F* 17-34,] m, wanted B's (and G's)
+            f = (A_QUERY if kind == "a" else A_LOCAL_QUERY).parse(data)
+            if f is None or f[1] != Pid.MRT or f[11] != a_ids[0] or f[14] != a_ids[1]:
+                return None
+            if kind == "local" and (f[17:35:3] != f_ids or f[36] != b_ids[0] or f[76] != self.g_ids[j][0]):
+                return None
+            if kind == "a" and f[18] != b_ids[0]:
+                return None
+            self._a_cycle[j] = self._cycle_at(node, now)
 
         def take() -> None:
-            if is_a:
+            if kind != "c":
                 model.take_a(j, f[12], f[15], f[13])
-            else:
-                model.f_star[j] = np.array(f[12:30:3])
+            if kind != "a":
+                model.f_star[j] = np.array(f[12:30:3] if kind == "c" else f[18:36:3])
 
-        return self._queue(f, addr, now, take, self._vdc_answer, (j, f[13], is_a))
+        return self._queue(f, addr, now, take, self._vdc_answer, (j, f[13], kind))
 
-    def _vdc_answer(self, arg: tuple[Header, int, int, int, bool]) -> bytes:
-        back, qid, j, t, is_a = arg
+    def _vdc_answer(self, arg: tuple[Header, int, int, int, str]) -> bytes:
+        back, qid, j, t, kind = arg
         _, b_ids, _, tau = self.ids[j]
         head = (back.destination, back.pid, back.source_process, back.destination_process, qid)
-        if is_a:
-            values = b_values(self.vdc.b(j, t))
-            return B_REPLY.pack(
-                *head, tuple(x for k, v in zip(b_ids, values, strict=True) for x in (k, v, t))
+        if kind == "c":
+            return D_REPLY.pack(*head, (tau, self.vdc.tau_r(j), t))
+        values = b_values(self.vdc.b(j, t))
+        if kind == "local":
+            ids, values = b_ids + self.g_ids[j], [*values, *self.vdc.outboard(j)]
+            return B_LOCAL_REPLY.pack(
+                *head, tuple(x for k, v in zip(ids, values, strict=True) for x in (k, v, t))
             )
-        return D_REPLY.pack(*head, (tau, self.vdc.tau_r(j), t))
+        return B_REPLY.pack(*head, tuple(x for k, v in zip(b_ids, values, strict=True) for x in (k, v, t)))
 
 
 class VdcModule(JointModule):
-    """A joint module of the modular arm: its joint read from and its motor driven on the plant."""
+    """A joint module of the modular arm: its joint read from and its motor driven on the plant.
 
-    ANSWERS = {Stage.AB: B_REPLY, Stage.CD: D_REPLY}
+    `local`: it computes its own [C, D] (the slides' "locally"): its cycle is one query, [A, B]
+    with its last F*_r beside A, answered with B and G (what the bodies outboard of it need of its
+    body); its D is its F*_r plus G projected on its axis, G being the outboard F*_r of the cycle
+    before.  Else the master computes D from the C it sends (a second query)."""
 
-    def __init__(self, module_id: int, plugged_to: int, plant: Plant, port: int = 0, **kw: Any) -> None:
+    def __init__(
+        self, module_id: int, plugged_to: int, plant: Plant, port: int = 0, *, local: bool = False, **kw: Any
+    ) -> None:
         super().__init__(module_id, plugged_to, port, **kw)
-        self.plant, self.gains = plant, Gains()
+        self.plant, self.gains, self.local = plant, Gains(), local
+        self.ANSWERS = {Stage.AB: B_LOCAL_REPLY if local else B_REPLY, Stage.CD: D_REPLY}
         self.module: Module | None = None  # its body's dynamics, once it knows its joint
         self.b: B | None = None  # the last B it took
         self.b_fresh = False  # (this cycle's)
+        self.g = np.zeros(6)  # local: the last G it took
+        self.f_star = np.zeros(6)  # local: its last F*_r (sent with the next A)
         self.tau_r = 0.0
         self.qd = 0.0  # its joint's velocity at this cycle's T1
         self.missed_run = 0  # cycles in a row with a guessed exchange
@@ -249,21 +285,28 @@ class VdcModule(JointModule):
         t1 = self.servo.now(raw)
         self.cycle = Cycle(scheduled, t1, Stage.AB, scheduled + c.budget_ns // 2)
         self.b_fresh = False
-        (pos, vel), b_ids, _, _ = ids_of(j)
+        (pos, vel), b_ids, f_ids, _ = ids_of(j)
         q, self.qd = self.plant.joint(j)
-        return [
-            self._query(A_QUERY, (pos, q, t1, vel, self.qd, t1), tuple(x for k in b_ids for x in (k, t1)))
-        ]
+        a = (pos, q, t1, vel, self.qd, t1)
+        if self.local:
+            self.cycle.deadline = scheduled + c.budget_ns  # (its one exchange)
+            f = tuple(x for k, v in zip(f_ids, self.f_star, strict=True) for x in (k, float(v), t1))
+            wanted = tuple(x for k in (*b_ids, *outboard_ids(j)) for x in (k, t1))
+            return [self._query(A_LOCAL_QUERY, a + f, wanted)]
+        return [self._query(A_QUERY, a, tuple(x for k in b_ids for x in (k, t1)))]
 
     def took_b(self, values: tuple) -> None:
         self.b, self.b_fresh = b_of(values[:20]), True
+        if self.local:
+            self.g = np.array(values[20:26])
 
     def took_d(self, values: tuple) -> None:
         self.tau_r = values[0]
 
     def _second(self, cy: Cycle) -> list[bytes]:
         """[C, D]: its body's required net force from B (its last carried on if this cycle's did not
-        come); none before its first B (its joint stays on the brake)."""
+        come); none before its first B (its joint stays on the brake).  Local: D from it and G here,
+        and the cycle ends."""
         c = self.config
         assert c is not None and self.module is not None
         cy.deadline = cy.scheduled + c.budget_ns
@@ -274,9 +317,13 @@ class VdcModule(JointModule):
         if not self.b_fresh:
             p = self.b
             self.b = B(p.qd_r + p.qdd_r * dt, p.qdd_r, p.v_r + p.a_r * dt, p.a_r, p.v)
+        force = self.module.net_force(self.b, dt).f_star
+        if self.local:
+            self.f_star, self.tau_r = force, float(AXIS @ (force + self.g))
+            self._finish(cy, self.servo.now(self._raw))
+            return []
         cy.stage = Stage.CD
         _, _, f_ids, tau = ids_of(self.joint)
-        force = self.module.net_force(self.b, dt).f_star
         inputs = tuple(x for k, v in zip(f_ids, force, strict=True) for x in (k, float(v), cy.start))
         return [self._query(C_QUERY, inputs, (tau, cy.start))]
 

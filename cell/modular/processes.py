@@ -172,7 +172,14 @@ def master_main(
 
 
 def modules_main(
-    conn: Any, ports: list[int], native: bool, period: int, spin: bool, q0: list[float], seed: int = 1
+    conn: Any,
+    ports: list[int],
+    native: bool,
+    period: int,
+    spin: bool,
+    q0: list[float],
+    where: tuple[str, ...],
+    seed: int = 1,
 ) -> None:
     from cell.snp.runner import Slot, run_modules
 
@@ -180,8 +187,8 @@ def modules_main(
     config = cycle_config(period)
     plant = Plant(np.array(q0))
     spec = {
-        s["module_id"]: s | {"port": p}
-        for s, p in zip(chain(6, random.Random(seed), module0=MODULE0), ports, strict=True)
+        s["module_id"]: s | {"port": p, "cd": cd}  # (cd: "master" or "local", VdcModule.local)
+        for s, p, cd in zip(chain(6, random.Random(seed), module0=MODULE0), ports, where, strict=True)
     }
     slots = [Slot(**s) for s in spec.values()]
     parent, t0, taken, cycles_taken = os.getppid(), time.monotonic_ns(), 0, {}
@@ -284,7 +291,7 @@ class CycleRobot(ArmRobot):
         lost_ns = max(lost_cycles * self.period_ns, LOST_NS_MIN)
         for target, args in (
             (master_main, (ports, self.native, self.period_ns, spin, list(q0), suspect_cycles, lost_ns)),
-            (modules_main, (ports, self.native, self.period_ns, spin, list(q0))),
+            (modules_main, (ports, self.native, self.period_ns, spin, list(q0), tuple(where))),
         ):
             here, there = ctx.Pipe()
             p = ctx.Process(target=target, args=(there, *args), daemon=True)

@@ -5,6 +5,9 @@ Each module's cycle is two time-bounded queries, as the slides have it:
   B (qd_r, qdd_r, and its body's V_r, dV_r and V, six each); the master's reply carries them;
 - [C, D]: inputs its body's required net force/moment F*_r (C, six values), wanting its joint's
   torque tau_r (D).
+A module that computes its [C, D] itself ("local") makes its cycle one query: [A, B] with its last
+F*_r beside A (A_LOCAL_QUERY), wanting B and the force the bodies outboard of it need of it, carried
+into its body's frame (G, six values: B_LOCAL_REPLY); it computes C and D from them.
 Values travel as SnP-MrT items (id, 32-bit float, timestamp): the arithmetic on either side is in
 64 bits, the wire rounds to 32.  Item ids are the SnP cycle's (cell.snp.modular.item: its robot,
 a quantity, the joint), with quantities of the modular robot's own for B and F*.
@@ -32,9 +35,11 @@ from cell.modular.vdc import A, B, C, D
 from cell.snp.modular import TORQUE, item
 from cell.snp.packet import Pid, Quantity, query_shape, reply_shape
 
-B_BASE, F_BASE = 16, 48  # the modular robot's own quantities: B's 20 values 16..35, F*'s 48..53
+B_BASE, F_BASE, G_BASE = 16, 48, 56  # the modular robot's own quantities: B's 20 values 16..35,
+# F*'s 48..53, the outboard bodies' force carried in 56..61
 A_QUERY, B_REPLY = query_shape(2, 20), reply_shape(20)
 C_QUERY, D_REPLY = query_shape(6, 1), reply_shape(1)
+A_LOCAL_QUERY, B_LOCAL_REPLY = query_shape(8, 26), reply_shape(26)
 
 
 @functools.cache
@@ -44,6 +49,12 @@ def ids_of(joint: int) -> tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...
     b = tuple(item(B_BASE + k, joint) for k in range(20))
     f = tuple(item(F_BASE + k, joint) for k in range(6))
     return a, b, f, item(TORQUE, joint)
+
+
+@functools.cache
+def outboard_ids(joint: int) -> tuple[int, ...]:
+    """Joint's G item ids: the force its outboard bodies need of its body (a local [C, D]'s)."""
+    return tuple(item(G_BASE + k, joint) for k in range(6))
 
 
 def b_values(b: B) -> list[float]:

@@ -19,7 +19,6 @@
 #define MAX_MODULES 64
 
 enum { STAGE_DONE = 0, STAGE_AB = 1, STAGE_CD = 2 };
-enum { VDC_A_SIZE = 308, VDC_B_SIZE = 344, VDC_C_SIZE = 144 };
 
 /* The modular arm in MuJoCo (cell.modular.cycle.Plant), stepped here in real time: the arrays are
  * the Python Plant's (numpy) and MuJoCo's own, mj_step MuJoCo's; cell/snp/native.py's PlantState
@@ -48,6 +47,8 @@ typedef struct {
     double b[20], tau_r, qd;        /* its last B (qd_r, qdd_r, V_r, dV_r, V), last tau_r, qd at T1 */
     int64_t have_b, fresh;
     int64_t safe_after, missed_run, braked; /* VdcModule._drive's fail safe */
+    int64_t local, g_ids[6];        /* local: it computes its own [C, D] (VdcModule.local) from */
+    double g[6], f_star[6];         /* the last G it took; its last F*_r, sent with its next A */
     plant_t *plant;
 } vdc_module_t;
 
@@ -94,7 +95,7 @@ static void send_master(module_t *m, const uint8_t *p, size_t n) {
 /* A or C: QueryShape.pack with no return address; n_out wanted items, all stamped wanted_at. */
 static void query(module_t *m, int n_in, const int64_t *ids_in, const double *values, int64_t stamp,
                   int n_out, const int64_t *wanted, int64_t wanted_at) {
-    uint8_t p[VDC_A_SIZE];
+    uint8_t p[VDC_AL_SIZE];
     size_t size = 31 + 16 * (size_t)n_in + 4 + 12 * (size_t)n_out + 1;
     m->qid = (m->qid + 1) & 0xFFFFFFFF;
     head(p, 0, PID_MRT, m->source_process, 0, QUERY);
@@ -166,11 +167,19 @@ static void start(module_t *m, int64_t scheduled, int64_t now) {
     m->scheduled = scheduled, m->start = now, m->stage = STAGE_AB, m->missed_now = 0;
     m->deadline = scheduled + m->budget_ns / 2;
     vdc_module_t *v = m->vdc;
-    if (v != NULL) { /* A: its joint on the plant now */
+    if (v != NULL) { /* A: its joint on the plant now (local: and its last F*; B and G wanted) */
         snp_plant_advance(v->plant, host_now());
-        double values[2] = {v->plant->qpos[v->joint], v->plant->qvel[v->joint]};
+        double values[8] = {v->plant->qpos[v->joint], v->plant->qvel[v->joint]};
         v->qd = values[1], v->fresh = 0;
-        query(m, 2, m->ids, values, now, 20, v->b_ids, now);
+        if (!v->local) {
+            query(m, 2, m->ids, values, now, 20, v->b_ids, now);
+            return;
+        }
+        int64_t ids[8] = {m->ids[0], m->ids[1]}, wanted[26];
+        for (int k = 0; k < 6; k++) ids[2 + k] = v->f_ids[k], values[2 + k] = v->f_star[k];
+        memcpy(wanted, v->b_ids, sizeof v->b_ids), memcpy(wanted + 20, v->g_ids, sizeof v->g_ids);
+        m->deadline = scheduled + m->budget_ns; /* (its one exchange) */
+        query(m, 8, ids, values, now, 26, wanted, now);
         return;
     }
     int64_t ids[2] = {m->ids[0], m->ids[1]};
@@ -222,6 +231,12 @@ static void second(module_t *m, int64_t now) { /* [C, D] */
     }
     double f[6];
     net_force(v, f);
+    if (v->local) { /* D here: F*_r and G on its axis; the cycle ends */
+        memcpy(v->f_star, f, sizeof f);
+        v->tau_r = f[2] + v->g[2];
+        finish(m, now);
+        return;
+    }
     m->stage = STAGE_CD;
     query(m, 6, v->f_ids, f, m->start, 1, &m->ids[4], m->start);
 }
@@ -276,18 +291,22 @@ static void timers(module_t *m, int64_t host) { /* JointModule.poll */
 
 /* B or D (a reply of one item) or a denial of the query in flight: 1 if it was, else 0. */
 static int fast_path(module_t *m, const uint8_t *p, ssize_t n, int64_t host) {
-    int b = m->vdc != NULL && n == VDC_B_SIZE;
+    vdc_module_t *v = m->vdc;
+    int b = v != NULL && n == (v->local ? VDC_BL_SIZE : VDC_B_SIZE);
     if (n != ANSWER_SIZE && n != DENIAL_SIZE && !b) return 0;
     if (p[1] != PID_MRT || p[2] != 0 || p[12] != 0 || p[13] != 0) return 0;
     if (!crcs_ok(p, (size_t)n)) return 0;
-    if (b) { /* VDC's B: its 20 values, if it answers the [A, B] in flight */
-        if (p[14] != REPLY || get32(p + 19) != 20 || get32(p + 23) != (uint32_t)m->vdc->b_ids[0]) return 0;
+    if (b) { /* VDC's B (and G, local): its 20 (26) values, if it answers the [A, B] in flight */
+        uint32_t items = v->local ? 26 : 20;
+        if (p[14] != REPLY || get32(p + 19) != items || get32(p + 23) != (uint32_t)v->b_ids[0]) return 0;
+        if (v->local && get32(p + 23 + 16 * 20) != (uint32_t)v->g_ids[0]) return 0;
         if (m->stage != STAGE_AB || get32(p + 15) != (uint32_t)m->qid) {
             m->late++;
             return 1;
         }
-        for (int k = 0; k < 20; k++) m->vdc->b[k] = getf(p + 27 + 16 * k);
-        m->vdc->have_b = m->vdc->fresh = 1;
+        for (int k = 0; k < 20; k++) v->b[k] = getf(p + 27 + 16 * k);
+        for (int k = 0; k < 6 && v->local; k++) v->g[k] = getf(p + 27 + 16 * (20 + k));
+        v->have_b = v->fresh = 1;
         answered(m, 1, 0.0, master_of(m, host));
         return 1;
     }

@@ -34,7 +34,7 @@ typedef struct {
 } joint_t;
 
 typedef struct {
-    int64_t deadline, seq, joint, is_a, qid, dest, pid, src, dst, t, ip, port;
+    int64_t deadline, seq, joint, is_a, qid, dest, pid, src, dst, t, ip, port, local;
 } pending_t;
 
 /* VDC's master (cell.modular.cycle.VdcModel): the modular arm's bodies, its reference, each body's
@@ -50,6 +50,7 @@ typedef struct {
     /* the recursion's step per body: made in cycle key_cycle from the A's key_seq (VdcModel._chain) */
     int64_t key_cycle[VDC_JOINTS], key_seq[VDC_JOINTS][VDC_JOINTS];
     double b[VDC_JOINTS][20], rot[VDC_JOINTS][9], carry[VDC_JOINTS][18]; /* its B, R, (v, v_r, a_r) */
+    int64_t g_ids[VDC_JOINTS][6]; /* G's, for a module that computes its own [C, D] */
 } vdc_t;
 
 /* The master; cell/snp/native.py's MasterState mirrors it field for field (all 64-bit). */
@@ -101,7 +102,6 @@ static double torque(const master_t *m, int joint, int64_t t_ns) {
 
 /* --- VDC (cell.modular.vdc.forward_step, cell.modular.cycle.VdcModel.b, tau_r) ------------------ */
 
-enum { VDC_A_SIZE = 308, VDC_B_SIZE = 344, VDC_C_SIZE = 144 };
 
 static void cross(const double *a, const double *b, double *out) {
     double o0 = a[1] * b[2] - a[2] * b[1], o1 = a[2] * b[0] - a[0] * b[2], o2 = a[0] * b[1] - a[1] * b[0];
@@ -198,15 +198,24 @@ static const double *vdc_b(vdc_t *v, const master_t *m, int j, int64_t t) {
     return v->b[j];
 }
 
-/* Joint j's D: its body's F*_r plus what the bodies out to the tip need of it, projected on z. */
-static double vdc_tau_r(const vdc_t *v, int j) {
-    double f[6], g[6];
+/* G (VdcModel.outboard): what the bodies out from j to the tip need of body j, in j's frame. */
+static void vdc_outboard(const vdc_t *v, int j, double *g) {
+    double f[6];
+    memset(g, 0, 6 * sizeof *g);
+    if (j == VDC_JOINTS - 1) return;
     memcpy(f, v->f_star[VDC_JOINTS - 1], sizeof f);
-    for (int i = VDC_JOINTS - 2; i >= j; i--) {
+    for (int i = VDC_JOINTS - 2; i > j; i--) {
         force_xt(v->rot[i + 1], v->body_pos[i + 1], f, g);
         for (int k = 0; k < 6; k++) f[k] = v->f_star[i][k] + g[k];
     }
-    return f[2];
+    force_xt(v->rot[j + 1], v->body_pos[j + 1], f, g);
+}
+
+/* Joint j's D: its body's F*_r plus what the bodies out to the tip need of it, projected on z. */
+static double vdc_tau_r(const vdc_t *v, int j) {
+    double g[6];
+    vdc_outboard(v, j, g);
+    return v->f_star[j][2] + g[2];
 }
 
 /* --- admitting, queueing and serving (Handler.admit, enqueue, serve) -------------------------- */
@@ -240,18 +249,23 @@ static void serve(master_t *m) {
             deny(m, q);
             continue;
         }
-        uint8_t p[VDC_B_SIZE];
+        uint8_t p[VDC_BL_SIZE];
         size_t size = ANSWER_SIZE;
         head(p, q->dest, q->pid, q->src, q->dst, REPLY);
         put32(p + 15, (uint32_t)q->qid);
-        if (m->vdc != NULL && q->is_a) { /* B: the forward recursion's 20 values */
-            const double *b = vdc_b(m->vdc, m, (int)q->joint, q->t);
-            put32(p + 19, 20);
-            for (int k = 0; k < 20; k++) {
+        if (m->vdc != NULL && q->is_a) { /* B: the forward recursion's 20 values (local: and G's 6) */
+            const vdc_t *v = m->vdc;
+            double values[26];
+            memcpy(values, vdc_b(m->vdc, m, (int)q->joint, q->t), 20 * sizeof(double));
+            if (q->local) vdc_outboard(v, (int)q->joint, values + 20);
+            int n = q->local ? 26 : 20;
+            put32(p + 19, (uint32_t)n);
+            for (int k = 0; k < n; k++) {
                 uint8_t *at = p + 23 + 16 * k;
-                put32(at, (uint32_t)m->vdc->b_ids[q->joint][k]), putf(at + 4, b[k]), put64(at + 8, (uint64_t)q->t);
+                int64_t id = k < 20 ? v->b_ids[q->joint][k] : v->g_ids[q->joint][k - 20];
+                put32(at, (uint32_t)id), putf(at + 4, values[k]), put64(at + 8, (uint64_t)q->t);
             }
-            size = VDC_B_SIZE;
+            size = q->local ? VDC_BL_SIZE : VDC_B_SIZE;
         } else {
             double value = m->vdc != NULL ? vdc_tau_r(m->vdc, (int)q->joint)
                            : q->is_a     ? command(m, (int)q->joint, q->t)
@@ -282,11 +296,21 @@ static int toy_items(const master_t *m, const uint8_t *p, int j, int is_a) {
            get32(p + 51) == (uint32_t)jt->ids[4];
 }
 
-/* VDC's A or C (cell.modular.cycle.VdcMaster._cycle_query's checks): 1 if its items are joint j's */
+/* VDC's A (is_a 1; 2: a local [C, D]'s, with F*) or C (cell.modular.cycle.VdcMaster._cycle_query's
+ * checks): 1 if its items are joint j's */
 static int vdc_items(const master_t *m, const uint8_t *p, int j, int is_a) {
     const joint_t *jt = &m->joints[j];
     const vdc_t *v = m->vdc;
     if (j >= VDC_JOINTS) return 0;
+    if (is_a == 2) {
+        if (get32(p + 27) != 8 || get32(p + 159) != 26 || get32(p + 31) != (uint32_t)jt->ids[0] ||
+            get32(p + 47) != (uint32_t)jt->ids[1] || get32(p + 163) != (uint32_t)v->b_ids[j][0] ||
+            get32(p + 403) != (uint32_t)v->g_ids[j][0])
+            return 0;
+        for (int k = 0; k < 6; k++)
+            if (get32(p + 63 + 16 * k) != (uint32_t)v->f_ids[j][k]) return 0;
+        return 1;
+    }
     if (is_a)
         return get32(p + 27) == 2 && get32(p + 63) == 20 && get32(p + 31) == (uint32_t)jt->ids[0] &&
                get32(p + 47) == (uint32_t)jt->ids[1] && get32(p + 67) == (uint32_t)v->b_ids[j][0];
@@ -298,15 +322,16 @@ static int vdc_items(const master_t *m, const uint8_t *p, int j, int is_a) {
 
 static int fast_path(master_t *m, const uint8_t *p, ssize_t n, int64_t ip, int64_t port, int64_t at) {
     int64_t a_size = m->vdc != NULL ? VDC_A_SIZE : A_SIZE, c_size = m->vdc != NULL ? VDC_C_SIZE : C_SIZE;
-    if (n != a_size && n != c_size) return 0;
+    int local = m->vdc != NULL && n == VDC_AL_SIZE; /* a module computing its own [C, D] */
+    if (n != a_size && n != c_size && !local) return 0;
     int j = 0;
     while (j < MAX_JOINTS && !(live(&m->joints[j]) && m->joints[j].ip == ip && m->joints[j].port == port)) j++;
     if (j == MAX_JOINTS) return 0;
     joint_t *jt = &m->joints[j];
-    int is_a = n == a_size;
+    int is_a = n == a_size || local;
     /* QueryShape.parse: no return address, the query type, both CRCs, the counts; then its items */
     if (p[2] || p[13] || p[14] != QUERY || !crcs_ok(p, (size_t)n) || p[1] != PID_MRT) return 0;
-    if (!(m->vdc != NULL ? vdc_items : toy_items)(m, p, j, is_a)) return 0;
+    if (!(m->vdc != NULL ? vdc_items : toy_items)(m, p, j, is_a + local)) return 0;
     jt->heard_ns = at, jt->silent_cycles = 0; /* (Master.receive: heard from) */
     if (jt->state == NODE_SUSPECT) {
         jt->state = NODE_INCLUDED;
@@ -314,7 +339,8 @@ static int fast_path(master_t *m, const uint8_t *p, ssize_t n, int64_t ip, int64
     }
     pending_t q = {.deadline = (int64_t)get64(p + 19), .seq = m->seq++, .joint = j, .is_a = is_a,
                    .qid = get32(p + 15), .dest = p[0], .pid = p[1], .src = get32(p + 7), .dst = get32(p + 3),
-                   .t = (int64_t)get64(p + (m->vdc != NULL ? 39 : is_a ? 71 : 55)), .ip = ip, .port = port};
+                   .t = (int64_t)get64(p + (m->vdc != NULL ? 39 : is_a ? 71 : 55)), .ip = ip, .port = port,
+                   .local = local};
     if (is_a) jt->a_cycle = floor_div(at - jt->phase_ns + m->period_ns / 4, m->period_ns);
     m->queries++;
     if (at + m->service_ns * (1 + m->n_pending) > q.deadline || m->n_pending == QUEUE) {
@@ -328,6 +354,7 @@ static int fast_path(master_t *m, const uint8_t *p, ssize_t n, int64_t ip, int64
     else
         for (int k = 0; k < 6; k++) m->vdc->f_star[j][k] = getf(p + 35 + 16 * k);
     if (is_a && m->vdc != NULL) m->vdc->seq[j]++;
+    for (int k = 0; k < 6 && local; k++) m->vdc->f_star[j][k] = getf(p + 67 + 16 * k);
     enqueue(m, &q);
     return 1;
 }

@@ -62,6 +62,10 @@ class VdcModuleState(ctypes.Structure):
         ("have_b", _I),
         ("fresh", _I),
         *((name, _I) for name in ("safe_after", "missed_run", "braked")),
+        ("local", _I),
+        ("g_ids", _I * 6),
+        ("g", _D * 6),
+        ("f_star", _D * 6),
         ("plant", ctypes.POINTER(PlantState)),
     ]
 
@@ -125,6 +129,7 @@ class VdcState(ctypes.Structure):
         ("b", (_D * 20) * VDC_JOINTS),
         ("rot", (_D * 9) * VDC_JOINTS),
         ("carry", (_D * 18) * VDC_JOINTS),
+        ("g_ids", (_I * 6) * VDC_JOINTS),
     ]
 
 
@@ -143,7 +148,7 @@ class MasterState(ctypes.Structure):
         ("events", (_I * 3) * EVENTS),
         ("n_pending", _I),
         ("seq", _I),
-        ("pending", (_I * 12) * QUEUE),
+        ("pending", (_I * 13) * QUEUE),
     ]
 
 
@@ -233,7 +238,7 @@ class NativeCycles:
     def _vdc_module(self, m: Any) -> VdcModuleState:
         """A VdcModule's VDC in C: its body's inertia and gains, its item ids, the plant."""
         from cell.modular.cycle import SAFE_AFTER
-        from cell.modular.wire import b_values, ids_of
+        from cell.modular.wire import b_values, ids_of, outboard_ids
 
         if self.plant is None:
             raise ValueError("a VDC module's cycle in C needs its plant (drive(plant) first)")
@@ -247,6 +252,7 @@ class NativeCycles:
             damping=body.damping, torque_max=body.torque_max, plant=ctypes.pointer(self.plant),
         )  # fmt: skip
         v.b_ids[:], v.f_ids[:], v.inertia[:] = b_ids, f_ids, body.inertia.ravel()
+        v.local, v.g_ids[:], v.g[:], v.f_star[:] = m.local, outboard_ids(m.joint), m.g, m.f_star
         v.k[:] = (*[g.body_rot * mass] * 3, *[g.body_lin * mass] * 3)
         if m.b is not None:
             v.b[:], v.have_b = b_values(m.b), 1
@@ -364,13 +370,13 @@ class NativeMaster:
         """VDC's master in C, from a cell.modular.cycle.VdcModel."""
         from cell.modular.cycle import SETTLE_NS
         from cell.modular.reference import CYCLE_NS
-        from cell.modular.wire import ids_of
+        from cell.modular.wire import ids_of, outboard_ids
 
         v = VdcState(ref_dt_ns=CYCLE_NS, settle_ns=SETTLE_NS, lam=model.gains.lam)
         self._reference(v, model)
         for j, body in enumerate(model.bodies):
             _, b_ids, f_ids, _ = ids_of(j)
-            v.b_ids[j][:], v.f_ids[j][:] = b_ids, f_ids
+            v.b_ids[j][:], v.f_ids[j][:], v.g_ids[j][:] = b_ids, f_ids, outboard_ids(j)
             v.body_pos[j][:], v.body_rot[j][:] = body.pos, body.rot.ravel()
             v.rot[j][:] = model.rot(j).ravel()
             v.f_star[j][:] = model.f_star[j]

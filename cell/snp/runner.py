@@ -317,6 +317,7 @@ class Slot:
     offset_ns: int = 0  # its oscillator against the master's clock
     drift_ppm: float = 0.0
     transport: str = "snp"
+    cd: str = "master"  # a modular arm's module: who computes its [C, D] ("master" or "local")
     module: JointModule | None = None
     osc: Oscillator | None = None
     sock: socket.socket | None = None
@@ -339,7 +340,7 @@ class Slot:
         else:
             from cell.modular.cycle import VdcModule
 
-            self.module = VdcModule(self.module_id, self.plugged_to, plant, port=1)
+            self.module = VdcModule(self.module_id, self.plugged_to, plant, port=1, local=self.cd == "local")
         self.module.use_transport(self.transport, rmap_timeout_ns, rmap_retries)
         self.sock = open_udp("127.0.0.1", self.port, timestamps=True)
         m = self.module

@@ -19,6 +19,9 @@
 /* The cycle's packets (cell.snp.packet.QueryShape / ReplyShape with no return address): A asks
  * for one item from two inputs, C from one; the answer carries one item; a denial its reason. */
 enum { A_SIZE = 80, C_SIZE = 64, ANSWER_SIZE = 40, DENIAL_SIZE = 22 };
+/* VDC's (cell.modular.wire): A (2 in, B's 20 wanted) and B; C (F*'s 6 in, tau_r wanted); a local
+ * [C, D]'s A (q, qd and its last F*, B's 20 and G's 6 wanted) and its B */
+enum { VDC_A_SIZE = 308, VDC_B_SIZE = 344, VDC_C_SIZE = 144, VDC_AL_SIZE = 476, VDC_BL_SIZE = 440 };
 enum { PID_MRT = 0xF0, QUERY = 1, REPLY = 2, DENIAL = 3 };
 enum { DEADLINE_CANNOT_BE_MET = 1 };
 enum { RUN_UNTIL = 0, RUN_HANDED = 1, RUN_RECORDS_FULL = 2, RUN_EVENT = 3 };

@@ -15,7 +15,17 @@ import pytest
 
 from cell.modular.cycle import SETTLE_NS, Plant, VdcMaster, VdcModule
 from cell.modular.reference import CYCLE_NS, Q_HOME, joint_move
-from cell.modular.wire import A_QUERY, B_REPLY, C_QUERY, D_REPLY, b_values, ids_of
+from cell.modular.wire import (
+    A_LOCAL_QUERY,
+    A_QUERY,
+    B_LOCAL_REPLY,
+    B_REPLY,
+    C_QUERY,
+    D_REPLY,
+    b_values,
+    ids_of,
+    outboard_ids,
+)
 from cell.snp.modular import CycleConfig, NodeState, Stage
 from cell.snp.native import NativeCycles, NativeMaster, available
 from cell.snp.packet import Configure, Configured, ModuleKind, NodeInfo, Pid
@@ -35,6 +45,14 @@ def a_query(j: int, qid: int, q: float, qd: float, t: int, deadline: int = FAR) 
     (pos, vel), b_ids, _, _ = ids_of(j)
     return A_QUERY.pack(0, Pid.MRT, 900 + j, 0, qid, deadline, (pos, q, t, vel, qd, t),
                         tuple(x for k in b_ids for x in (k, t)))  # fmt: skip
+
+
+def local_a_query(j: int, qid: int, q: float, qd: float, f_star: list[float], t: int) -> bytes:
+    """A module computing its own [C, D]: A with its last F*, B and G wanted."""
+    (pos, vel), b_ids, f_ids, _ = ids_of(j)
+    f = tuple(x for k, v in zip(f_ids, f_star, strict=True) for x in (k, v, t))
+    wanted = tuple(x for k in (*b_ids, *outboard_ids(j)) for x in (k, t))
+    return A_LOCAL_QUERY.pack(0, Pid.MRT, 900 + j, 0, qid, FAR, (pos, q, t, vel, qd, t, *f), wanted)
 
 
 def c_query(j: int, qid: int, f_star: list[float], t: int) -> bytes:
@@ -121,6 +139,33 @@ def test_the_c_master_answers_b_and_d_as_the_python_vdc_master(master_rig: Maste
 
 
 @native
+def test_a_local_modules_b_and_g_from_the_c_master_match_the_python_vdc_master(master_rig: MasterRig) -> None:
+    """Every module computing its own [C, D]: one query each, its last F* in, B and G out; its D
+    (F* + G on its axis) is the master's own D from the same forces."""
+    t = time.monotonic_ns()
+    rng = np.random.default_rng(7)
+    q, qd, forces = (
+        Q_HOME + rng.uniform(-0.05, 0.05, 6),
+        rng.uniform(-0.3, 0.3, 6),
+        rng.uniform(-20, 20, (6, 6)),
+    )
+    g = np.zeros((6, 6))
+    for j in reversed(range(6)):  # (tip first: each G then carries this round's outboard forces)
+        c_r, py_r = master_rig.exchange(
+            j, local_a_query(j, 40 + j, q[j], qd[j], list(forces[j]), t + 30_000 * j)
+        )
+        v_c, v_py = _values(c_r, B_LOCAL_REPLY), _values(py_r, B_LOCAL_REPLY)
+        assert B_LOCAL_REPLY.parse(c_r)[10::3][20:26] == outboard_ids(j)  # type: ignore[index]
+        assert np.allclose(v_c, v_py, rtol=1e-5, atol=1e-4), (j, v_c - v_py)
+        g[j] = v_c[20:26]
+    assert not g[5].any() and abs(g[0]).max() > 1.0  # the tip carries nothing; the base, the arm
+    model = master_rig.py.vdc  # (its f_star: the forces as the wire rounded them)
+    for j in range(6):
+        assert float(model.f_star[j][2] + g[j][2]) == pytest.approx(model.tau_r(j), rel=1e-4, abs=1e-3)
+    assert master_rig.c.vdc.f_star[2] == pytest.approx(forces[2], rel=1e-6)  # taken from the A
+
+
+@native
 def test_a_vdc_query_with_another_joints_items_is_not_taken_as_its_a(master_rig: MasterRig) -> None:
     t = time.monotonic_ns()
     forged = a_query(3, 5, 1.0, 0.0, t)  # joint 3's items, from joint 1's module
@@ -190,6 +235,27 @@ def test_a_module_guesses_a_b_that_does_not_come_and_drives_its_motor_with_d() -
     assert m.b.qd_r == pytest.approx(0.5 + 2.0 * 0.01)  # type: ignore[union-attr]
 
 
+def test_a_local_module_computes_its_own_d_in_one_exchange_and_sends_its_force_with_the_next_a() -> None:
+    plant = Plant(Q_HOME)
+    m = _module(plant)
+    m.local = True
+    m.ANSWERS = {Stage.AB: B_LOCAL_REPLY, Stage.CD: D_REPLY}
+    f = A_LOCAL_QUERY.parse(m.poll(0)[0])
+    assert f is not None and f[18:36:3] == (0.0,) * 6  # no force yet
+    _, b_ids, _, _ = ids_of(2)
+    values = [0.5, 2.0, *[0.0] * 11, 9.81, *[0.0] * 6, 1.0, -2.0, 3.0, 4.0, 5.0, -30.0]  # B, then G
+    reply = B_LOCAL_REPLY.pack(0, Pid.MRT, 0, 0, f[8], tuple(
+        x for k, v in zip(b_ids + outboard_ids(2), values, strict=True) for x in (k, v, 0)))  # fmt: skip
+    assert m.receive(reply, 2000) == []  # no [C, D] to the master
+    assert m.cycle is not None and m.cycle.stage == Stage.DONE and m.missed[Stage.AB] == 0
+    want = m.module.net_force(m.b, 0.01).f_star  # type: ignore[union-attr, arg-type]
+    assert m.tau_r == pytest.approx(want[2] + 3.0) and want[5] > 0  # F* + G on its axis
+    assert plant.driven[2] == 1 and plant.tau[2] == pytest.approx(m.module.torque(m.tau_r, m.b, m.qd))  # type: ignore[union-attr]
+    m.next_start = 10_000_000
+    f2 = A_LOCAL_QUERY.parse(m.poll(10_000_000)[0])
+    assert f2 is not None and np.allclose(f2[18:36:3], want, rtol=1e-6, atol=1e-5)  # its F* goes with A
+
+
 def _whole_cycle(m: VdcModule, t: int, tau_r: float = 1.0) -> None:
     """One cycle of m from t, every exchange answered."""
     _, b_ids, _, tau = ids_of(m.joint)
@@ -223,17 +289,19 @@ def test_a_module_whose_exchanges_keep_missing_brakes_its_joint_until_a_whole_cy
 
 
 @pytest.mark.parametrize(
-    ("in_c", "period_ns"),
+    ("in_c", "period_ns", "cd"),
     [
-        pytest.param(True, 1_000_000, marks=native, id="c-1ms"),
-        pytest.param(False, 4_000_000, id="python-4ms"),
+        pytest.param(True, 1_000_000, ["master"] * 6, marks=native, id="c-1ms"),
+        pytest.param(True, 1_000_000, ["master"] * 3 + ["local"] * 3, marks=native, id="c-1ms-mixed"),
+        pytest.param(False, 4_000_000, ["local"] * 6, id="python-4ms-local"),
     ],
 )
 def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
-    in_c: bool, period_ns: int
+    in_c: bool, period_ns: int, cd: list[str]
 ) -> None:
     """In C at the slides' 1 ms; in Python at 4 ms (its modules' VDC costs about 0.9 ms a cycle: at
-    1 ms most exchanges miss, which `cell bench snp` shows)."""
+    1 ms most exchanges miss, which `cell bench snp` shows).  Each module's [C, D] by the master or
+    by itself (cd, base to tip)."""
     from cell.bench.snp import SLOT_NS, cycle_figures, trial
     from cell.snp.runner import chain
 
@@ -242,13 +310,17 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     scale = period_ns // 1_000_000
     config = CycleConfig(period_ns=period_ns, budget_ns=period_ns, slot_ns=SLOT_NS * scale,
                          management_ns=400_000 * scale)  # fmt: skip
-    r = trial(chain(6, random.Random(2)), seconds, native=in_c, reference=ref, config=config)
+    slots = [{**s, "cd": where} for s, where in zip(chain(6, random.Random(2)), cd, strict=True)]
+    r = trial(slots, seconds, native=in_c, reference=ref, config=config)
     f = cycle_figures(r)
     err = r["tool_error_mm"]
     assert len(err) == len(ref.t)  # the whole reference ran, recorded every ms
     assert f.modules_ran == 6 and sorted(m["joint"] for m in r["modules"]) == list(range(6))
     h = r["master"]["handler"]
     assert h["replies"] + sum(v for k, v in h.items() if k.startswith("denied.")) == h["queries"]
+    # a module computing its own [C, D] asks once a cycle, the master's twice
+    asked = sum(len(m["cycles"]) * (1 if cd[m["joint"]] == "local" else 2) for m in r["modules"])
+    assert asked <= h["queries"] <= asked + 12, (asked, h["queries"])
     assert err.max() < 2.0 and f.missed_pct < 5.0
 
 

@@ -93,11 +93,16 @@ async def test_on_the_snp_cycle_its_processes_move_the_arm_and_a_pulled_module_s
     start_cell, tmp_path
 ) -> None:
     """[modular] transport "cycle": the SnP cycle's master and six modules in processes of their own,
-    each module with its own clock (off by up to 2 ms, servoed by SnP-TSP), the arm in MuJoCo."""
+    each module with its own clock (off by up to 2 ms, servoed by SnP-TSP), the arm in MuJoCo; the
+    outer three compute their own [C, D]."""
     rrd = tmp_path / "cycle.rrd"
+    where = ["master"] * 3 + ["local"] * 3
     cell = await start_cell(
         run=["bus", "modular", "recorder"],
-        sections={"recorder": {"mode": "save", "path": str(rrd)}, "modular": {"transport": "cycle"}},
+        sections={
+            "recorder": {"mode": "save", "path": str(rrd)},
+            "modular": {"transport": "cycle", "where": where},
+        },
     )
     cfg = str(cell.path)
     goal = [0.3, -1.3, 1.4, -1.6, -1.4, 0.2]
@@ -109,12 +114,14 @@ async def test_on_the_snp_cycle_its_processes_move_the_arm_and_a_pulled_module_s
         "    st = await cell.modular.status()\n"
         "    print(json.dumps({'joints': j.tool_error_mm_max, 'cycles': j.cycles, 'q': list(st.q),\n"
         "                      'offsets': [m.clock_offset_us for m in st.modules],\n"
+        "                      'where': [m.where for m in st.modules],\n"
         "                      'transport': st.transport}))\n"
     )
     done = await asyncio.to_thread(run_cell, "run", str(script), "--config", cfg, timeout=60)
     assert done.returncode == 0, done.stderr[-2000:]
     got = json.loads(done.stdout.strip().splitlines()[-1])
     assert got["transport"] == "cycle" and got["joints"] < 5.0 and got["cycles"] > 300
+    assert got["where"] == where
     assert max(abs(a - b) for a, b in zip(got["q"], goal, strict=True)) < 5e-3
     assert all(abs(o) < 50.0 for o in got["offsets"]), got["offsets"]  # (started up to 2 ms off)
     # j3's socket pulled from the network: the master loses it, the arm holds, motions are refused
