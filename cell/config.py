@@ -410,6 +410,7 @@ class ModularConfig:
     q0: list[float] = field(metadata={"check": _joint_vector})
     where: list[str] = field(metadata={"check": _where})  # who computes each module's [C, D]
     loss: float = _check(lambda v: None if 0 <= v <= 0.5 else f"must be in [0, 0.5] (got {v})")
+    adapt: float = _check(lambda v: None if v >= 0 else f"must be >= 0 (got {v})")  # VDC's adaptation gain
     # how the four messages cross: "snp" as SnP-MrT packets between UDP sockets on loopback (the
     # master's and each module's, cell.modular.wire), "memory" handed over as they are, "cycle" the
     # SnP cycle itself: its master and modules in processes of their own (cell.modular.processes)

@@ -36,7 +36,7 @@ async def run(ctx: ServiceContext) -> None:
         # (two processes of its own; they poll without sleeping through each cycle's exchanges only
         # where this process may run on two cores: on one, a spinning one keeps the other out)
         robot = CycleRobot(
-            np.array(c.q0), where=tuple(c.where), suspect_cycles=c.suspect_cycles,
+            np.array(c.q0), where=tuple(c.where), adapt=c.adapt, suspect_cycles=c.suspect_cycles,
             lost_cycles=c.lost_cycles, spin=len(os.sched_getaffinity(0)) >= 2,
         )  # fmt: skip
         where = "C" if robot.native else "Python"
@@ -44,7 +44,7 @@ async def run(ctx: ServiceContext) -> None:
                      "%g ms cycles in %s", robot.period_ns / 1e6, where)  # fmt: skip
     else:
         robot = ModularRobot(
-            np.array(c.q0), loss=c.loss, where=tuple(c.where),
+            np.array(c.q0), loss=c.loss, where=tuple(c.where), adapt=c.adapt,
             suspect_cycles=c.suspect_cycles, lost_cycles=c.lost_cycles, link=link,
         )  # fmt: skip
     if link is not None:

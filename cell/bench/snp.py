@@ -226,6 +226,8 @@ class VdcCycleFigures(CycleFigures):
     period_ms: float
     runs_in: str  # "c" or "python"
     cd: str  # who computes the modules' [C, D]: "master" or "local" (each module its own)
+    believed: float  # the share of their bodies' inertia the modules start from
+    adapt: float  # their adaptation gain (0: none)
     tool_error_mm_max: float | None  # over the path (None: it never started)
     tool_error_mm_rms: float | None
     path_ran_pct: float
@@ -297,6 +299,7 @@ VDC_CYCLE_KEYS = (
     "tool_error_mm_rms",
 )
 VDC_PERIOD_PY_NS = 4_000_000  # the Python cycle's period in the VDC baseline that keeps up
+MASS_RUNS = ("_mass_error", "_adapted")  # (the modules' inertia BELIEVED of the truth; adapted)
 
 
 def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[str, VdcCycleFigures]:
@@ -304,9 +307,11 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
     MuJoCo arm along the 0.5 m/s pick and place, the master answers with VDC's recursions.  In C
     at 1 ms ("" key, if it builds), and in Python at 1 ms ("_python") and at VDC_PERIOD_PY_NS
     ("_python_4ms"), with the master computing every [C, D]; and with each module computing its own
-    ("_local": one exchange a cycle), in C and in Python at 1 ms.  Each its cycle's figures and the
-    tool's error over the path."""
+    ("_local": one exchange a cycle), in C and in Python at 1 ms; and in C with the modules' mass
+    properties BELIEVED of the truth, without ("_mass_error") and with ("_adapted") their adaptation.
+    Each its cycle's figures and the tool's error over the path."""
     from cell.modular.cycle import SETTLE_NS
+    from cell.modular.experiment import ADAPT, BELIEVED
     from cell.modular.reference import pick_and_place
 
     ref = pick_and_place(0.5)
@@ -325,18 +330,25 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
         "_python_4ms": (slow, False, "master"),
         "_local": (config, True, "local"),
         "_python_local": (config, False, "local"),
+        "_mass_error": (config, True, "master"),
+        "_adapted": (config, True, "master"),
     }
     out = {}
     for key, (cfg, in_c, cd) in runs.items():
         if in_c and not native:
             continue
-        r = trial(chain(6, rng, "snp", cd=cd), seconds, config=cfg, native=in_c, reference=ref)
+        wrong = (
+            {"believed": BELIEVED, "adapt": ADAPT if key == "_adapted" else 0.0} if key in MASS_RUNS else {}
+        )
+        r = trial(chain(6, rng, "snp", cd=cd, **wrong), seconds, config=cfg, native=in_c, reference=ref)
         err = r["tool_error_mm"]
         out[key] = VdcCycleFigures(
             **dataclasses.asdict(cycle_figures(r, cfg.period_ns)),
             period_ms=cfg.period_ns / 1e6,
             runs_in="c" if in_c else "python",
             cd=cd,
+            believed=wrong.get("believed", 1.0),
+            adapt=wrong.get("adapt", 0.0),
             tool_error_mm_max=float(err.max()) if len(err) else None,
             tool_error_mm_rms=float(np.sqrt(np.mean(err**2))) if len(err) else None,
             path_ran_pct=100.0 * len(err) / len(ref.t),
@@ -558,7 +570,10 @@ def _vdc_cycle_text(runs: dict[str, dict[str, Any]]) -> list[str]:
         err = f["tool_error_mm_max"]
         out.append(
             f"  {f['runs_in']:<6} at {f['period_ms']:g} ms, [C, D] by "
-            + ("each module: " if f["cd"] == "local" else "the master: ")
+            + ("each module" if f["cd"] == "local" else "the master")
+            + (f", inertia {f['believed']:.0%} of the truth" if f["believed"] != 1.0 else "")
+            + (f", adapted (gain {f['adapt']:g})" if f["adapt"] else "")
+            + ": "
             + f"{f['missed_pct']:.2f}% of exchanges missed, "
             f"cycle p99 {f['cycle_ms_p99']:.3f} ms (the robot's {_ms(f['robot_cycle_ms_p99'])}); tool error "
             + (f"max {err:.3f} mm, rms {f['tool_error_mm_rms']:.3f} mm" if err is not None else "n/a")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -261,12 +262,24 @@ class VdcModule(JointModule):
     before.  Else the master computes D from the C it sends (a second query)."""
 
     def __init__(
-        self, module_id: int, plugged_to: int, plant: Plant, port: int = 0, *, local: bool = False, **kw: Any
+        self,
+        module_id: int,
+        plugged_to: int,
+        plant: Plant,
+        port: int = 0,
+        *,
+        local: bool = False,
+        gains: Gains | None = None,
+        believed: float = 1.0,
+        **kw: Any,
     ) -> None:
+        """gains: VDC's (Gains.adapt > 0: its body's inertial parameters adapted as it runs);
+        believed: what it takes its body's inertia to be, as a share of the true one."""
         super().__init__(module_id, plugged_to, port, **kw)
-        self.plant, self.gains, self.local = plant, Gains(), local
+        self.plant, self.gains, self.local, self.believed = plant, gains or Gains(), local, believed
         self.ANSWERS = {Stage.AB: B_LOCAL_REPLY if local else B_REPLY, Stage.CD: D_REPLY}
-        self.module: Module | None = None  # its body's dynamics, once it knows its joint
+        self.module: Module | None = None  # its body's dynamics, once it knows its joint (dynamics())
+        self._module_joint = -1
         self.b: B | None = None  # the last B it took
         self.b_fresh = False  # (this cycle's)
         self.g = np.zeros(6)  # local: the last G it took
@@ -280,8 +293,7 @@ class VdcModule(JointModule):
         c = self.config
         assert c is not None
         j = self.joint
-        if self.module is None or self.module.body is not self.plant.arm.bodies[j]:
-            self.module = Module(self.plant.arm.bodies[j], self.gains)
+        self.dynamics()
         t1 = self.servo.now(raw)
         self.cycle = Cycle(scheduled, t1, Stage.AB, scheduled + c.budget_ns // 2)
         self.b_fresh = False
@@ -294,6 +306,15 @@ class VdcModule(JointModule):
             wanted = tuple(x for k in (*b_ids, *outboard_ids(j)) for x in (k, t1))
             return [self._query(A_LOCAL_QUERY, a + f, wanted)]
         return [self._query(A_QUERY, a, tuple(x for k in b_ids for x in (k, t1)))]
+
+    def dynamics(self) -> Module:
+        """Its body's dynamics (its inertia as it believes it, adapted as it runs), made anew only
+        when its joint changes."""
+        body = self.plant.arm.bodies[self.joint]
+        if self.module is None or self._module_joint != self.joint:
+            self.module = Module(replace(body, inertia=body.inertia * self.believed), self.gains)
+            self._module_joint = self.joint
+        return self.module
 
     def took_b(self, values: tuple) -> None:
         self.b, self.b_fresh = b_of(values[:20]), True

@@ -179,6 +179,7 @@ def modules_main(
     spin: bool,
     q0: list[float],
     where: tuple[str, ...],
+    adapt: float,
     seed: int = 1,
 ) -> None:
     from cell.snp.runner import Slot, run_modules
@@ -187,7 +188,7 @@ def modules_main(
     config = cycle_config(period)
     plant = Plant(np.array(q0))
     spec = {
-        s["module_id"]: s | {"port": p, "cd": cd}  # (cd: "master" or "local", VdcModule.local)
+        s["module_id"]: s | {"port": p, "cd": cd, "adapt": adapt}  # (cd: "master" or "local")
         for s, p, cd in zip(chain(6, random.Random(seed), module0=MODULE0), ports, where, strict=True)
     }
     slots = [Slot(**s) for s in spec.values()]
@@ -252,6 +253,7 @@ class CycleRobot(ArmRobot):
         q0: np.ndarray,
         *,
         where: tuple[str, ...],
+        adapt: float = 0.0,
         suspect_cycles: int = 3,
         lost_cycles: int = 20,
         native: bool | None = None,
@@ -291,7 +293,7 @@ class CycleRobot(ArmRobot):
         lost_ns = max(lost_cycles * self.period_ns, LOST_NS_MIN)
         for target, args in (
             (master_main, (ports, self.native, self.period_ns, spin, list(q0), suspect_cycles, lost_ns)),
-            (modules_main, (ports, self.native, self.period_ns, spin, list(q0), tuple(where))),
+            (modules_main, (ports, self.native, self.period_ns, spin, list(q0), tuple(where), adapt)),
         ):
             here, there = ctx.Pipe()
             p = ctx.Process(target=target, args=(there, *args), daemon=True)

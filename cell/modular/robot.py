@@ -22,7 +22,7 @@ import numpy as np
 
 from cell.modular.loop import Faults, Link, VdcArm
 from cell.modular.reference import CYCLE_NS, Q_HOME, Reference, circle, joint_move, pick_and_place
-from cell.modular.vdc import WHERE_MASTER
+from cell.modular.vdc import WHERE_MASTER, Gains
 from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics, Unreachable
 
@@ -203,9 +203,12 @@ class ModularRobot(ArmRobot):
         lost_cycles: int = 20,
         seed: int = 1,
         link: Link | None = None,
+        adapt: float = 0.0,
     ) -> None:
+        """adapt: each module's inertial parameters adapted with this gain (Gains.adapt)."""
         super().__init__(where)
-        self.vdc = VdcArm(np.asarray(q0, float), Faults(loss=loss, seed=seed), where, link=link)
+        faults = Faults(loss=loss, seed=seed)
+        self.vdc = VdcArm(np.asarray(q0, float), faults, where, Gains(adapt=adapt), link=link)
         self.transport = "memory" if link is None else "snp"
         self.suspect_cycles, self.lost_cycles = suspect_cycles, lost_cycles
         self.silent = np.zeros(6, dtype=np.int64)  # cycles in a row without the module's A

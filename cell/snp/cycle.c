@@ -49,6 +49,7 @@ typedef struct {
     int64_t safe_after, missed_run, braked; /* VdcModule._drive's fail safe */
     int64_t local, g_ids[6];        /* local: it computes its own [C, D] (VdcModule.local) from */
     double g[6], f_star[6];         /* the last G it took; its last F*_r, sent with its next A */
+    double adapt, theta[10], bound[10], mass0; /* the inertial parameters' adaptation (vdc.Module) */
     plant_t *plant;
 } vdc_module_t;
 
@@ -145,17 +146,57 @@ static void inertia_times(const double *in, const double *v, double *out) {
     }
 }
 
-/* F*_r = I dV_r + V x* I V_r + K (V_r - V), V x* f = [w x n + v x f; w x f] */
-static void net_force(const vdc_module_t *v, double *f) {
-    const double *vr = v->b + 2, *ar = v->b + 8, *vv = v->b + 14;
+/* I dV_r + V x* I V_r, V x* f = [w x n + v x f; w x f]: a body's dynamics of inertia I */
+static void dynamics(const double *inertia, const double *b, double *f) {
+    const double *vr = b + 2, *ar = b + 8, *vv = b + 14;
     double ia[6], iv[6], c1[3], c2[3], c3[3];
-    inertia_times(v->inertia, ar, ia);
-    inertia_times(v->inertia, vr, iv);
+    inertia_times(inertia, ar, ia);
+    inertia_times(inertia, vr, iv);
     cross3(vv, iv, c1);
     cross3(vv + 3, iv + 3, c2);
     cross3(vv, iv + 3, c3);
     for (int k = 0; k < 3; k++) f[k] = ia[k] + c1[k] + c2[k], f[3 + k] = ia[3 + k] + c3[k];
-    for (int k = 0; k < 6; k++) f[k] += v->k[k] * (vr[k] - vv[k]);
+}
+
+/* The 6x6 spatial inertia of ten inertial parameters (vdc.inertia_of): [m, m c, xx yy zz xy xz yz] */
+static void inertia_of(const double *th, double *out) {
+    const double rot[9] = {th[4], th[7], th[8], th[7], th[5], th[9], th[8], th[9], th[6]};
+    const double *mc = th + 1;
+    const double sk[9] = {0, -mc[2], mc[1], mc[2], 0, -mc[0], -mc[1], mc[0], 0}; /* skew(mc) */
+    memset(out, 0, 36 * sizeof *out);
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++) {
+            out[6 * r + c] = rot[3 * r + c];
+            out[6 * r + 3 + c] = sk[3 * r + c];
+            out[6 * (3 + r) + c] = sk[3 * c + r];
+        }
+    for (int k = 3; k < 6; k++) out[7 * k] = th[0];
+}
+
+/* F*_r = I dV_r + V x* I V_r + K (V_r - V); with adaptation, I from theta, then theta moved on by
+ * dt of theta' = adapt Y^T (V_r - V) within its bounds (vdc.Module.net_force).  Exported for the
+ * tests' twin of Python's. */
+void snp_vdc_net_force(vdc_module_t *v, double dt, double *f) {
+    const double *vr = v->b + 2, *vv = v->b + 14;
+    double inertia[36], e[6];
+    if (v->adapt > 0) inertia_of(v->theta, inertia);
+    dynamics(v->adapt > 0 ? inertia : v->inertia, v->b, f);
+    for (int k = 0; k < 6; k++) e[k] = vr[k] - vv[k], f[k] += v->k[k] * e[k];
+    if (!(v->adapt > 0 && dt > 0)) return;
+    double step[10];
+    for (int p = 0; p < 10; p++) { /* Y's column p: the dynamics of the unit parameter p */
+        double unit[10] = {0}, y[6];
+        unit[p] = 1.0;
+        inertia_of(unit, inertia);
+        dynamics(inertia, v->b, y);
+        step[p] = 0;
+        for (int k = 0; k < 6; k++) step[p] += y[k] * e[k];
+    }
+    for (int p = 0; p < 10; p++) {
+        double t = v->theta[p] + v->adapt * dt * step[p];
+        v->theta[p] = t > v->bound[p] ? v->bound[p] : (t < -v->bound[p] ? -v->bound[p] : t);
+    }
+    if (v->theta[0] < 0.25 * v->mass0) v->theta[0] = 0.25 * v->mass0;
 }
 
 static double motor_torque(const vdc_module_t *v) {
@@ -230,7 +271,7 @@ static void second(module_t *m, int64_t now) { /* [C, D] */
         for (int k = 0; k < 6; k++) v->b[2 + k] += v->b[8 + k] * dt;
     }
     double f[6];
-    net_force(v, f);
+    snp_vdc_net_force(v, (double)m->period_ns / 1e9, f);
     if (v->local) { /* D here: F*_r and G on its axis; the cycle ends */
         memcpy(v->f_star, f, sizeof f);
         v->tau_r = f[2] + v->g[2];

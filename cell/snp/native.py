@@ -66,6 +66,10 @@ class VdcModuleState(ctypes.Structure):
         ("g_ids", _I * 6),
         ("g", _D * 6),
         ("f_star", _D * 6),
+        ("adapt", _D),
+        ("theta", _D * 10),
+        ("bound", _D * 10),
+        ("mass0", _D),
         ("plant", ctypes.POINTER(PlantState)),
     ]
 
@@ -242,9 +246,8 @@ class NativeCycles:
 
         if self.plant is None:
             raise ValueError("a VDC module's cycle in C needs its plant (drive(plant) first)")
-        body, g = m.plant.arm.bodies[m.joint], m.gains
-        if g.adapt > 0:  # (cell.modular.vdc.Module's adaptation of its inertia: not in cycle.c)
-            raise ValueError("VDC's parameter adaptation runs in the Python modules only")
+        module, g = m.dynamics(), m.gains
+        body = module.body  # (its inertia as the module believes it)
         mass = body.inertia[5, 5]
         _, b_ids, f_ids, _ = ids_of(m.joint)
         v = VdcModuleState(
@@ -253,6 +256,7 @@ class NativeCycles:
         )  # fmt: skip
         v.b_ids[:], v.f_ids[:], v.inertia[:] = b_ids, f_ids, body.inertia.ravel()
         v.local, v.g_ids[:], v.g[:], v.f_star[:] = m.local, outboard_ids(m.joint), m.g, m.f_star
+        v.adapt, v.theta[:], v.bound[:], v.mass0 = g.adapt, module.theta, module._bound, module._mass0
         v.k[:] = (*[g.body_rot * mass] * 3, *[g.body_lin * mass] * 3)
         if m.b is not None:
             v.b[:], v.have_b = b_values(m.b), 1
@@ -301,8 +305,9 @@ class NativeCycles:
         if not st.active:
             return
         v = self._vdc.get(st.fd)
-        if v is not None:  # (a VdcModule's fail safe, as C has it)
+        if v is not None:  # (a VdcModule's fail safe and its adapted parameters, as C has them)
             m.missed_run, m.braked = v.missed_run, v.braked  # type: ignore[attr-defined]
+            m.module.theta = np.array(v.theta)  # type: ignore[attr-defined]
         n = st.n_records
         if n:  # (one copy of the block: element by element, 256 records of six modules took 4 ms)
             recs = np.frombuffer(st.records, np.int64, 4 * n).reshape(n, 4)

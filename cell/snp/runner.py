@@ -317,7 +317,9 @@ class Slot:
     offset_ns: int = 0  # its oscillator against the master's clock
     drift_ppm: float = 0.0
     transport: str = "snp"
-    cd: str = "master"  # a modular arm's module: who computes its [C, D] ("master" or "local")
+    cd: str = "master"  # a modular arm's module: who computes its [C, D] ("master" or "local"),
+    adapt: float = 0.0  # its inertial parameters' adaptation gain (0: none),
+    believed: float = 1.0  # and the share of its body's true inertia it starts from
     module: JointModule | None = None
     osc: Oscillator | None = None
     sock: socket.socket | None = None
@@ -339,8 +341,12 @@ class Slot:
             self.module = JointModule(self.module_id, self.plugged_to, port=1)
         else:
             from cell.modular.cycle import VdcModule
+            from cell.modular.vdc import Gains
 
-            self.module = VdcModule(self.module_id, self.plugged_to, plant, port=1, local=self.cd == "local")
+            self.module = VdcModule(
+                self.module_id, self.plugged_to, plant, port=1, local=self.cd == "local",
+                gains=Gains(adapt=self.adapt), believed=self.believed,
+            )  # fmt: skip
         self.module.use_transport(self.transport, rmap_timeout_ns, rmap_retries)
         self.sock = open_udp("127.0.0.1", self.port, timestamps=True)
         m = self.module

@@ -22,6 +22,7 @@ from cell.modular.wire import (
     B_REPLY,
     C_QUERY,
     D_REPLY,
+    b_of,
     b_values,
     ids_of,
     outboard_ids,
@@ -198,6 +199,36 @@ def test_the_c_plant_steps_the_arm_as_the_python_plant() -> None:
     assert moved[[0, 3, 4, 5]].max() < 2e-3  # braked (against gravity)
 
 
+@native
+def test_the_c_modules_adaptation_of_its_inertia_steps_as_the_python_modules() -> None:
+    """VDC's parameter adaptation in cell/snp/cycle.c against cell.modular.vdc.Module's, a body 40 %
+    light, over 50 cycles of a moving B: the same force and the same parameters, step by step."""
+    from cell.modular.vdc import Gains
+
+    plant = Plant(Q_HOME)
+    cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=0)
+    cycles.drive(plant)
+    py, c = (VdcModule(101, 0, plant, gains=Gains(adapt=100.0), believed=0.6) for _ in range(2))
+    for m in (py, c):
+        m.joint = 2
+    state = cycles._vdc_module(c)
+    rng = np.random.default_rng(3)
+    f = np.zeros(6)
+    start = py.dynamics().theta.copy()
+    for _ in range(50):
+        b = rng.uniform(-1, 1, 20)
+        b[13] += 9.81  # (gravity in dV_r: what the missing mass shows in)
+        want = py.dynamics().net_force(b_of(b), 0.001).f_star
+        state.b[:] = b
+        cycles.lib.snp_vdc_net_force(
+            ctypes.byref(state), ctypes.c_double(0.001), f.ctypes.data_as(ctypes.c_void_p)
+        )
+        assert np.allclose(f, want, rtol=1e-9, atol=1e-9)
+    theta = np.array(state.theta)
+    assert np.allclose(theta, py.dynamics().theta, rtol=1e-9, atol=1e-12)
+    assert np.abs(theta - start).max() > 0.1  # (it moved: the twins agree on a change)
+
+
 def _module(plant: Plant, joint: int = 2) -> VdcModule:
     m = VdcModule(101, 0, plant)
     m.config = Configure(joint, 10_000_000, 0, 8_000_000, (20.0,))
@@ -289,19 +320,28 @@ def test_a_module_whose_exchanges_keep_missing_brakes_its_joint_until_a_whole_cy
 
 
 @pytest.mark.parametrize(
-    ("in_c", "period_ns", "cd"),
+    ("in_c", "period_ns", "cd", "wrong"),
     [
-        pytest.param(True, 1_000_000, ["master"] * 6, marks=native, id="c-1ms"),
-        pytest.param(True, 1_000_000, ["master"] * 3 + ["local"] * 3, marks=native, id="c-1ms-mixed"),
-        pytest.param(False, 4_000_000, ["local"] * 6, id="python-4ms-local"),
+        pytest.param(True, 1_000_000, ["master"] * 6, {}, marks=native, id="c-1ms"),
+        pytest.param(True, 1_000_000, ["master"] * 3 + ["local"] * 3, {}, marks=native, id="c-1ms-mixed"),
+        # (40 % light and not adapted: 3.4 mm off on the pick and place, `cell bench snp`)
+        pytest.param(
+            True,
+            1_000_000,
+            ["master"] * 6,
+            {"believed": 0.6, "adapt": 100.0},
+            marks=native,
+            id="c-1ms-40pct-light-adapted",
+        ),
+        pytest.param(False, 4_000_000, ["local"] * 6, {}, id="python-4ms-local"),
     ],
 )
 def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
-    in_c: bool, period_ns: int, cd: list[str]
+    in_c: bool, period_ns: int, cd: list[str], wrong: dict
 ) -> None:
     """In C at the slides' 1 ms; in Python at 4 ms (its modules' VDC costs about 0.9 ms a cycle: at
-    1 ms most exchanges miss, which `cell bench snp` shows).  Each module's [C, D] by the master or
-    by itself (cd, base to tip)."""
+    1 ms it may miss, which `cell bench snp` shows).  Each module's [C, D] by the master or by itself
+    (cd, base to tip); the modules' inertia wrong and adapted as they run (wrong)."""
     from cell.bench.snp import SLOT_NS, cycle_figures, trial
     from cell.snp.runner import chain
 
@@ -310,7 +350,7 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     scale = period_ns // 1_000_000
     config = CycleConfig(period_ns=period_ns, budget_ns=period_ns, slot_ns=SLOT_NS * scale,
                          management_ns=400_000 * scale)  # fmt: skip
-    slots = [{**s, "cd": where} for s, where in zip(chain(6, random.Random(2)), cd, strict=True)]
+    slots = [{**s, "cd": where, **wrong} for s, where in zip(chain(6, random.Random(2)), cd, strict=True)]
     r = trial(slots, seconds, native=in_c, reference=ref, config=config)
     f = cycle_figures(r)
     err = r["tool_error_mm"]
@@ -320,7 +360,8 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     assert h["replies"] + sum(v for k, v in h.items() if k.startswith("denied.")) == h["queries"]
     # a module computing its own [C, D] asks once a cycle, the master's twice
     asked = sum(len(m["cycles"]) * (1 if cd[m["joint"]] == "local" else 2) for m in r["modules"])
-    assert asked <= h["queries"] <= asked + 12, (asked, h["queries"])
+    assert abs(h["queries"] - asked) <= 12, (asked, h["queries"])  # (cycles at the edges: a first
+    # one ended without its [C, D] before any B came, a last one's query sent as the run ended)
     assert err.max() < 2.0 and f.missed_pct < 5.0
 
 

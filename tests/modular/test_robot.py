@@ -90,3 +90,16 @@ def test_lost_messages_are_guessed_and_the_arm_keeps_to_its_path() -> None:
     assert e.failed == "" and e.guessed > 100  # 1 % of 24 messages a cycle over 2.4 s
     assert e.tool_error_mm_max < 5.0  # the issue's aim at 1 % loss
     assert all(s is ModuleState.RUNNING for s in robot.states)  # isolated losses: nobody suspect at the end
+
+
+def test_with_adaptation_its_modules_move_their_inertial_parameters_as_it_moves() -> None:
+    """[modular] adapt: each module's parameters adapted as the arm runs; without, they stay."""
+    moved = []
+    for adapt in (0.0, 100.0):
+        robot = ModularRobot(adapt=adapt)
+        start = [m.theta.copy() for m in robot.vdc.modules]
+        robot.move(joints=(robot.vdc.arm.q + 0.3).tolist(), speed=1.0)
+        e = run_to_end(robot)
+        assert e.failed == "" and e.tool_error_mm_max < 2.0
+        moved.append(max(np.abs(m.theta - s).max() for m, s in zip(robot.vdc.modules, start, strict=True)))
+    assert moved[0] == 0.0 and moved[1] > 1e-3, moved
