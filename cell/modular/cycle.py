@@ -200,7 +200,8 @@ class VdcMaster(Master):
     module's [A, B] in the local shape (A_LOCAL_QUERY: it computes its own [C, D]) brings its last
     F*_r and is answered with B and G (VdcModel.outboard); its placement is the module's choice."""
 
-    CYCLE_SIZES = frozenset((A_QUERY.size, C_QUERY.size, A_LOCAL_QUERY.size))
+    KINDS = {A_QUERY.size: "a", C_QUERY.size: "c", A_LOCAL_QUERY.size: "local"}  # a cycle query's, by size
+    CYCLE_SIZES = frozenset(KINDS)
 
     def __init__(
         self, ports: list[Any], config: CycleConfig, clock: Any, reference: Reference, **kw: Any
@@ -215,7 +216,7 @@ class VdcMaster(Master):
         if j >= len(self.ids) or not model.active[j]:
             return None
         a_ids, b_ids, f_ids, tau = self.ids[j]
-        kind = {A_QUERY.size: "a", C_QUERY.size: "c", A_LOCAL_QUERY.size: "local"}[len(data)]
+        kind = self.KINDS[len(data)]
         if kind == "c":
             f = C_QUERY.parse(data)  # ..., qid 8, deadline 9, 6, F* 11-28, 1, wanted 30-31
             if f is None or f[1] != Pid.MRT or f[11:29:3] != f_ids or f[30] != tau:

@@ -175,8 +175,8 @@ class Module:
         m0 = float(self.theta[0])
         # how far each parameter may move: 4x its start, and at least what a body this heavy could
         # have (its mass 10 cm off the axis, 1 dm^2 of it in inertia)
-        self._bound = 4.0 * np.abs(self.theta) + m0 * np.array([1.0, *[0.1] * 3, *[0.01] * 6])
-        self._mass0 = m0
+        self.bound = 4.0 * np.abs(self.theta) + m0 * np.array([1.0, *[0.1] * 3, *[0.01] * 6])
+        self.mass0 = m0
 
     def net_force(self, b: B, dt: float = 0.0) -> C:
         """F*_r = I dV_r + V x* I V_r + K (V_r - V): the body's dynamics (gravity included through
@@ -189,8 +189,8 @@ class Module:
         if self.gains.adapt > 0 and dt > 0:
             y = _BASIS @ b.a_r + np.einsum("ij,kjl,l->ki", crf(b.v), _BASIS, b.v_r)  # (10, 6): Y^T
             step = self.gains.adapt * dt * (y @ (b.v_r - b.v))
-            self.theta = np.clip(self.theta + step, -self._bound, self._bound)
-            self.theta[0] = max(self.theta[0], 0.25 * self._mass0)
+            self.theta = np.clip(self.theta + step, -self.bound, self.bound)
+            self.theta[0] = max(self.theta[0], 0.25 * self.mass0)
         return C(f)
 
     def torque(self, tau_r: float, b: B, qd: float) -> float:

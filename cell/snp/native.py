@@ -256,7 +256,7 @@ class NativeCycles:
         )  # fmt: skip
         v.b_ids[:], v.f_ids[:], v.inertia[:] = b_ids, f_ids, body.inertia.ravel()
         v.local, v.g_ids[:], v.g[:], v.f_star[:] = m.local, outboard_ids(m.joint), m.g, m.f_star
-        v.adapt, v.theta[:], v.bound[:], v.mass0 = g.adapt, module.theta, module._bound, module._mass0
+        v.adapt, v.theta[:], v.bound[:], v.mass0 = g.adapt, module.theta, module.bound, module.mass0
         v.k[:] = (*[g.body_rot * mass] * 3, *[g.body_lin * mass] * 3)
         if m.b is not None:
             v.b[:], v.have_b = b_values(m.b), 1
