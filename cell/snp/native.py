@@ -305,9 +305,13 @@ class NativeCycles:
         if not st.active:
             return
         v = self._vdc.get(st.fd)
-        if v is not None:  # (a VdcModule's fail safe and its adapted parameters, as C has them)
-            m.missed_run, m.braked = v.missed_run, v.braked  # type: ignore[attr-defined]
-            m.module.theta = np.array(v.theta)  # type: ignore[attr-defined]
+        if v is not None:  # (a VdcModule's state as C has it: its cycle goes on in Python from there)
+            from cell.modular.wire import b_of
+
+            vm: Any = m
+            vm.missed_run, vm.braked, vm.tau_r = v.missed_run, v.braked, v.tau_r
+            vm.b = b_of(v.b) if v.have_b else None
+            vm.g, vm.f_star, vm.module.theta = np.array(v.g), np.array(v.f_star), np.array(v.theta)
         n = st.n_records
         if n:  # (one copy of the block: element by element, 256 records of six modules took 4 ms)
             recs = np.frombuffer(st.records, np.int64, 4 * n).reshape(n, 4)

@@ -29,7 +29,7 @@ from cell.modular.wire import (
 )
 from cell.snp.modular import CycleConfig, NodeState, Stage
 from cell.snp.native import NativeCycles, NativeMaster, available
-from cell.snp.packet import Configure, Configured, ModuleKind, NodeInfo, Pid
+from cell.snp.packet import Configure, Configured, Denial, Denied, ModuleKind, NodeInfo, Pid, decode
 from cell.snp.runner import Link, open_udp
 from cell.timer import realtime_offset
 
@@ -167,14 +167,27 @@ def test_a_local_modules_b_and_g_from_the_c_master_match_the_python_vdc_master(m
 
 
 @native
-def test_a_vdc_query_with_another_joints_items_is_not_taken_as_its_a(master_rig: MasterRig) -> None:
+@pytest.mark.parametrize("local", [False, True], ids=["a", "local-a"])
+def test_a_vdc_query_with_another_joints_items_is_not_taken_as_its_a(
+    master_rig: MasterRig, local: bool
+) -> None:
     t = time.monotonic_ns()
-    forged = a_query(3, 5, 1.0, 0.0, t)  # joint 3's items, from joint 1's module
+    # joint 3's items, from joint 1's module
+    forged = local_a_query(3, 5, 1.0, 0.0, [9.0] * 6, t) if local else a_query(3, 5, 1.0, 0.0, t)
     master_rig.mods[1].sendto(forged, master_rig.sock.getsockname())
     master_rig.fast.push()
     got = master_rig.fast.run(time.monotonic_ns() + 5_000_000)
     assert got is not None and got[1] == forged  # handed back to Python: not the fast path's
     assert master_rig.c.vdc.seq == [0] * 6 and master_rig.c.model.pos[3] == 0.0
+    assert not master_rig.c.vdc.f_star[3].any()  # (nor its force)
+    # and Python's master, handed it, does not take it: it denies it, saying why
+    out = master_rig.c.receive(got[1], master_rig.addrs[1], time.monotonic_ns()) + master_rig.c.serve()
+    assert len(out) == 1 and out[0][1] == master_rig.addrs[1]
+    denied = decode(out[0][0]).body
+    assert isinstance(denied, Denied) and denied.query_id == 5, denied
+    # (joint 3's items are not joint 1's to give: its F* not one to take from it, B not one to give it)
+    assert denied.explanation == (Denial.UNKNOWN_INPUT_ITEM if local else Denial.UNKNOWN_OUTPUT_ITEM)
+    assert master_rig.c.vdc.seq == [0] * 6 and not master_rig.c.vdc.f_star[3].any()
 
 
 @native
