@@ -421,11 +421,12 @@ class ModularConfig:
     publish_hz: float = _check(lambda v: None if 0 < v <= 500 else f"must be in (0, 500] (got {v})")
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
-        if self.transport == "cycle" and "neighbour" in self.where:
+        chain = self.where[self.where.index("neighbour") :] if "neighbour" in self.where else []
+        if self.transport == "cycle" and any(w != "neighbour" for w in chain):
             raise err(
                 "where",
-                'on transport "cycle" a module\'s [C, D] is by "master" or "local" (a neighbour\'s chain '
-                'runs on the in-process transports, "snp" and "memory")',
+                'on transport "cycle" the modules whose [C, D] is by "neighbour" must run out to the tip '
+                "(each takes its outboard neighbour's force, the tip none)",
             )
 
 

@@ -126,7 +126,7 @@ def _modules(
             {
                 "module_id": s.module_id,
                 "joint": m.joint,
-                "exchanges": 1 if getattr(m, "local", False) else 2,  # a cycle's (local [C, D]: one)
+                "exchanges": 1 if getattr(m, "cd", "") == "local" else 2,  # a cycle's (local [C, D]: one)
                 "plugged_at": s.plugged_at,
                 "unplug_s": s.unplug_s,
                 "cycles": cycles,
@@ -204,7 +204,7 @@ class CycleFigures:
     robot_cycle_ms_p99: float | None
     cycle_ms_max: float
     start_late_us_p99: float
-    missed_pct: float  # of the exchanges (two a cycle; one for a module computing its [C, D]), guessed
+    missed_pct: float  # of the exchanges (two a cycle; one for a "local" [C, D]), guessed
     tsp_offset_us_p50: float
     tsp_offset_us_max: float
     tsp_two_step: bool  # the clocks servoed to the kernel's transmit stamps (follow-ups)
@@ -225,7 +225,7 @@ class VdcCycleFigures(CycleFigures):
 
     period_ms: float
     runs_in: str  # "c" or "python"
-    cd: str  # who computes the modules' [C, D]: "master" or "local" (each module its own)
+    cd: str  # who computes the modules' [C, D]: "master", "local" or "neighbour" (cell.modular.cycle)
     believed: float  # the share of their bodies' inertia the modules start from
     adapt: float  # their adaptation gain (0: none)
     tool_error_mm_max: float | None  # over the path (None: it never started)
@@ -307,7 +307,8 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
     MuJoCo arm along the 0.5 m/s pick and place, the master answers with VDC's recursions.  In C
     at 1 ms ("" key, if it builds), and in Python at 1 ms ("_python") and at VDC_PERIOD_PY_NS
     ("_python_4ms"), with the master computing every [C, D]; and with each module computing its own
-    ("_local": one exchange a cycle), in C and in Python at 1 ms; and in C with the modules' mass
+    ("_local": one exchange a cycle), in C and in Python at 1 ms, and with the neighbour's force of
+    this cycle passed in from the tip ("_neighbour", in C); and in C with the modules' mass
     properties BELIEVED of the truth, without ("_mass_error") and with ("_adapted") their adaptation.
     Each its cycle's figures and the tool's error over the path."""
     from cell.modular.cycle import SETTLE_NS
@@ -330,6 +331,7 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
         "_python_4ms": (slow, False, "master"),
         "_local": (config, True, "local"),
         "_python_local": (config, False, "local"),
+        "_neighbour": (config, True, "neighbour"),
         "_mass_error": (config, True, "master"),
         "_adapted": (config, True, "master"),
     }
@@ -570,7 +572,7 @@ def _vdc_cycle_text(runs: dict[str, dict[str, Any]]) -> list[str]:
         err = f["tool_error_mm_max"]
         out.append(
             f"  {f['runs_in']:<6} at {f['period_ms']:g} ms, [C, D] by "
-            + ("each module" if f["cd"] == "local" else "the master")
+            + {"local": "each module", "neighbour": "each module, the neighbour's"}.get(f["cd"], "the master")
             + (f", inertia {f['believed']:.0%} of the truth" if f["believed"] != 1.0 else "")
             + (f", adapted (gain {f['adapt']:g})" if f["adapt"] else "")
             + ": "

@@ -39,6 +39,7 @@ from cell.modular.wire import (
     B_REPLY,
     C_QUERY,
     D_REPLY,
+    G_PASS,
     b_of,
     b_values,
     ids_of,
@@ -257,10 +258,15 @@ class VdcMaster(Master):
 class VdcModule(JointModule):
     """A joint module of the modular arm: its joint read from and its motor driven on the plant.
 
-    `local`: it computes its own [C, D] (the slides' "locally"): its cycle is one query, [A, B]
-    with its last F*_r beside A, answered with B and G (what the bodies outboard of it need of its
-    body); its D is its F*_r plus G projected on its axis, G being the outboard F*_r of the cycle
-    before.  Else the master computes D from the C it sends (a second query)."""
+    cd, who computes its [C, D]:
+    - "master": the master, from the C it sends (a second query);
+    - "local" (the slides' "locally"): its cycle is one query, [A, B] with its last F*_r beside A,
+      answered with B and G (what the bodies outboard of it need of its body, from their F*_r of
+      the cycle before); its D is its F*_r plus G projected on its axis;
+    - "neighbour": the same query, then it waits for G of this cycle from its outboard neighbour
+      (G_PASS; the master's G its guess if it has not come by the deadline) and passes its own
+      force, carried into its inboard neighbour's frame, on to that one (`to_inboard`): the chain
+      from the tip in, one message a module."""
 
     def __init__(
         self,
@@ -269,7 +275,7 @@ class VdcModule(JointModule):
         plant: Plant,
         port: int = 0,
         *,
-        local: bool = False,
+        cd: str = "master",
         gains: Gains | None = None,
         believed: float = 1.0,
         **kw: Any,
@@ -277,8 +283,14 @@ class VdcModule(JointModule):
         """gains: VDC's (Gains.adapt > 0: its body's inertial parameters adapted as it runs);
         believed: what it takes its body's inertia to be, as a share of the true one."""
         super().__init__(module_id, plugged_to, port, **kw)
-        self.plant, self.gains, self.local, self.believed = plant, gains or Gains(), local, believed
-        self.ANSWERS = {Stage.AB: B_LOCAL_REPLY if local else B_REPLY, Stage.CD: D_REPLY}
+        if cd not in ("master", "local", "neighbour"):
+            raise ValueError(f'cd: "master", "local" or "neighbour" (got {cd!r})')
+        self.plant, self.gains, self.cd, self.believed = plant, gains or Gains(), cd, believed
+        self.local = cd != "master"  # (it asks the local way: one query, its F*_r in, B and G out)
+        self.ANSWERS = {Stage.AB: B_LOCAL_REPLY if self.local else B_REPLY, Stage.CD: D_REPLY}
+        if cd == "neighbour":
+            self.ANSWERS[Stage.CD] = G_PASS
+        self.to_inboard: list[bytes] = []  # neighbour: its force for its inboard neighbour, to send
         self.module: Module | None = None  # its body's dynamics, once it knows its joint (dynamics())
         self._module_joint = -1
         self.b: B | None = None  # the last B it took
@@ -286,7 +298,7 @@ class VdcModule(JointModule):
         self.g = np.zeros(6)  # local: the last G it took
         self.f_star = np.zeros(6)  # local: its last F*_r (sent with the next A)
         self.tau_r = 0.0
-        self.qd = 0.0  # its joint's velocity at this cycle's T1
+        self.q = self.qd = 0.0  # its joint's position and velocity at this cycle's T1
         self.missed_run = 0  # cycles in a row with a guessed exchange
         self.braked = 0  # times it went on its brake for them
 
@@ -299,8 +311,8 @@ class VdcModule(JointModule):
         self.cycle = Cycle(scheduled, t1, Stage.AB, scheduled + c.budget_ns // 2)
         self.b_fresh = False
         (pos, vel), b_ids, f_ids, _ = ids_of(j)
-        q, self.qd = self.plant.joint(j)
-        a = (pos, q, t1, vel, self.qd, t1)
+        self.q, self.qd = self.plant.joint(j)
+        a = (pos, self.q, t1, vel, self.qd, t1)
         if self.local:
             self.cycle.deadline = scheduled + c.budget_ns  # (its one exchange)
             f = tuple(x for k, v in zip(f_ids, self.f_star, strict=True) for x in (k, float(v), t1))
@@ -322,8 +334,36 @@ class VdcModule(JointModule):
         if self.local:
             self.g = np.array(values[20:26])
 
+    def receive(self, data: bytes, raw: int) -> list[bytes]:
+        cy = self.cycle
+        if self.cd == "neighbour" and cy is not None and cy.stage == Stage.CD and len(data) == G_PASS.size:
+            f = G_PASS.parse(data)  # (its outboard neighbour's G for this cycle, or nothing for it)
+            if f is None or f[8] != cy.qid or f[10::3][:6] != outboard_ids(self.joint):
+                return []
+        return super().receive(data, raw)
+
     def took_d(self, values: tuple) -> None:
-        self.tau_r = values[0]
+        if self.cd == "neighbour":  # (its outboard neighbour's G of this cycle)
+            self.g = np.array(values[:6])
+        else:
+            self.tau_r = values[0]
+
+    def _cycle_no(self, cy: Cycle) -> int:
+        assert self.config is not None
+        return (cy.scheduled // self.config.period_ns) & 0xFFFFFFFF
+
+    def _pass_in(self, cy: Cycle) -> None:
+        """neighbour: D from F*_r and G (the neighbour's, or the master's guess), and its force
+        carried into its inboard neighbour's frame, for that one (none from the base's)."""
+        f = self.f_star + self.g
+        self.tau_r = float(AXIS @ f)
+        j = self.joint
+        if j == 0:
+            return
+        carried = carried_force(self.plant.arm.bodies[j].transform(self.q), f)
+        ids, t = outboard_ids(j - 1), self._cycle_no(cy) * self.config.period_ns  # type: ignore[union-attr]
+        items = tuple(x for k, v in zip(ids, carried, strict=True) for x in (k, float(v), t))
+        self.to_inboard.append(G_PASS.pack(0, Pid.MRT, self.source_process, 0, self._cycle_no(cy), items))
 
     def _second(self, cy: Cycle) -> list[bytes]:
         """[C, D]: its body's required net force from B (its last carried on if this cycle's did not
@@ -340,6 +380,10 @@ class VdcModule(JointModule):
             p = self.b
             self.b = B(p.qd_r + p.qdd_r * dt, p.qdd_r, p.v_r + p.a_r * dt, p.a_r, p.v)
         force = self.module.net_force(self.b, dt).f_star
+        if self.cd == "neighbour" and self.joint < self.plant.arm.dof - 1:  # (the tip's G is 0)
+            self.f_star = force
+            cy.stage, cy.qid = Stage.CD, self._cycle_no(cy)  # (G_PASS's query id: the cycle's number)
+            return []
         if self.local:
             self.f_star, self.tau_r = force, float(AXIS @ (force + self.g))
             self._finish(cy, self.servo.now(self._raw))
@@ -354,6 +398,8 @@ class VdcModule(JointModule):
         SAFE_AFTER cycles in a row with a guess in them its joint goes on its brake where it stands,
         until a whole cycle comes (fail safe: guesses carried on that long had driven a starved arm
         unstable)."""
+        if self.cd == "neighbour" and self.b is not None:
+            self._pass_in(cy)
         self.missed_run = self.missed_run + 1 if cy.missed else 0
         if self.missed_run >= SAFE_AFTER:
             if self.plant.driven[self.joint]:

@@ -7,7 +7,10 @@ Each module's cycle is two time-bounded queries, as the slides have it:
   torque tau_r (D).
 A module that computes its [C, D] itself ("local") makes its cycle one query: [A, B] with its last
 F*_r beside A (A_LOCAL_QUERY), wanting B and the force the bodies outboard of it need of it, carried
-into its body's frame (G, six values: B_LOCAL_REPLY); it computes C and D from them.
+into its body's frame (G, six values: B_LOCAL_REPLY); it computes C and D from them.  One that
+takes G from its outboard neighbour ("neighbour") asks the same, then waits for that G of this
+cycle (G_PASS, its items the G ids of its joint, its query id the cycle's number), the master's G
+being the guess if it does not come, and passes its own on inwards.
 Values travel as SnP-MrT items (id, 32-bit float, timestamp): the arithmetic on either side is in
 64 bits, the wire rounds to 32.  Item ids are the SnP cycle's (cell.snp.modular.item: its robot,
 a quantity, the joint), with quantities of the modular robot's own for B and F*.
@@ -40,6 +43,7 @@ B_BASE, F_BASE, G_BASE = 16, 48, 56  # the modular robot's own quantities: B's 2
 A_QUERY, B_REPLY = query_shape(2, 20), reply_shape(20)
 C_QUERY, D_REPLY = query_shape(6, 1), reply_shape(1)
 A_LOCAL_QUERY, B_LOCAL_REPLY = query_shape(8, 26), reply_shape(26)
+G_PASS = reply_shape(6)  # "neighbour": a module's force to its inboard neighbour, G of that one's joint
 
 
 @functools.cache

@@ -50,6 +50,10 @@ typedef struct {
     int64_t local, g_ids[6];        /* local: it computes its own [C, D] (VdcModule.local) from */
     double g[6], f_star[6];         /* the last G it took; its last F*_r, sent with its next A */
     double adapt, theta[10], bound[10], mass0; /* the inertial parameters' adaptation (vdc.Module) */
+    /* neighbour: G from its outboard neighbour, its own force passed to its inboard one at nb (its
+     * G ids: g_in_ids), carried by its body's ^iX_{i-1}(q) (body_rot, body_pos; q at T1) */
+    int64_t neighbour, tip, nb_ip, nb_port, g_in_ids[6];
+    double body_pos[3], body_rot[9], q;
     plant_t *plant;
 } vdc_module_t;
 
@@ -135,10 +139,6 @@ void snp_plant_advance(plant_t *pl, int64_t now) {
     }
 }
 
-static void cross3(const double *a, const double *b, double *out) {
-    out[0] = a[1] * b[2] - a[2] * b[1], out[1] = a[2] * b[0] - a[0] * b[2], out[2] = a[0] * b[1] - a[1] * b[0];
-}
-
 static void inertia_times(const double *in, const double *v, double *out) {
     for (int i = 0; i < 6; i++) {
         out[i] = 0;
@@ -152,9 +152,9 @@ static void dynamics(const double *inertia, const double *b, double *f) {
     double ia[6], iv[6], c1[3], c2[3], c3[3];
     inertia_times(inertia, ar, ia);
     inertia_times(inertia, vr, iv);
-    cross3(vv, iv, c1);
-    cross3(vv + 3, iv + 3, c2);
-    cross3(vv, iv + 3, c3);
+    cross(vv, iv, c1);
+    cross(vv + 3, iv + 3, c2);
+    cross(vv, iv + 3, c3);
     for (int k = 0; k < 3; k++) f[k] = ia[k] + c1[k] + c2[k], f[3 + k] = ia[3 + k] + c3[k];
 }
 
@@ -211,7 +211,7 @@ static void start(module_t *m, int64_t scheduled, int64_t now) {
     if (v != NULL) { /* A: its joint on the plant now (local: and its last F*; B and G wanted) */
         snp_plant_advance(v->plant, host_now());
         double values[8] = {v->plant->qpos[v->joint], v->plant->qvel[v->joint]};
-        v->qd = values[1], v->fresh = 0;
+        v->q = values[0], v->qd = values[1], v->fresh = 0;
         if (!v->local) {
             query(m, 2, m->ids, values, now, 20, v->b_ids, now);
             return;
@@ -228,6 +228,29 @@ static void start(module_t *m, int64_t scheduled, int64_t now) {
     query(m, 2, ids, values, now, 1, &m->ids[2], now + m->period_ns);
 }
 
+static int64_t cycle_no(const module_t *m) { return (m->scheduled / m->period_ns) & 0xFFFFFFFF; }
+
+/* neighbour (VdcModule._pass_in): D from F*_r and G, and its force carried into its inboard
+ * neighbour's frame, sent there (none from the base's) */
+static void pass_in(module_t *m) {
+    vdc_module_t *v = m->vdc;
+    double f[6], r[9], out[6];
+    for (int k = 0; k < 6; k++) f[k] = v->f_star[k] + v->g[k];
+    v->tau_r = f[2];
+    if (v->joint == 0 || !v->nb_port) return;
+    turned(v->body_rot, v->q, r);
+    force_xt(r, v->body_pos, f, out);
+    uint8_t p[VDC_G_SIZE];
+    head(p, 0, PID_MRT, m->source_process, 0, REPLY);
+    put32(p + 15, (uint32_t)cycle_no(m)), put32(p + 19, 6);
+    for (int k = 0; k < 6; k++) {
+        uint8_t *at = p + 23 + 16 * k;
+        put32(at, (uint32_t)v->g_in_ids[k]), putf(at + 4, out[k]), put64(at + 8, (uint64_t)(cycle_no(m) * m->period_ns));
+    }
+    seal(p, sizeof p);
+    send_lossy((int)m->fd, p, sizeof p, v->nb_ip, v->nb_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+}
+
 static void finish(module_t *m, int64_t now) {
     m->stage = STAGE_DONE;
     int64_t *r = m->records[m->n_records < RECORDS ? m->n_records++ : RECORDS - 1];
@@ -235,6 +258,7 @@ static void finish(module_t *m, int64_t now) {
     vdc_module_t *v = m->vdc;
     if (v != NULL) { /* its motor: the chain's share and its own; on its brake after guesses in a row */
         plant_t *pl = v->plant;
+        if (v->neighbour && v->have_b) pass_in(m);
         v->missed_run = m->missed_now ? v->missed_run + 1 : 0;
         if (v->missed_run >= v->safe_after) {
             if (pl->driven[v->joint]) {
@@ -272,6 +296,11 @@ static void second(module_t *m, int64_t now) { /* [C, D] */
     }
     double f[6];
     snp_vdc_net_force(v, (double)m->period_ns / 1e9, f);
+    if (v->neighbour && !v->tip) { /* G of this cycle from its outboard neighbour: wait for it */
+        memcpy(v->f_star, f, sizeof f);
+        m->stage = STAGE_CD, m->qid = cycle_no(m);
+        return;
+    }
     if (v->local) { /* D here: F*_r and G on its axis; the cycle ends */
         memcpy(v->f_star, f, sizeof f);
         v->tau_r = f[2] + v->g[2];
@@ -333,6 +362,17 @@ static void timers(module_t *m, int64_t host) { /* JointModule.poll */
 /* B or D (a reply of one item) or a denial of the query in flight: 1 if it was, else 0. */
 static int fast_path(module_t *m, const uint8_t *p, ssize_t n, int64_t host) {
     vdc_module_t *v = m->vdc;
+    if (v != NULL && v->neighbour && n == VDC_G_SIZE) { /* its outboard neighbour's G */
+        if (p[1] != PID_MRT || p[2] || p[12] || p[13] || p[14] != REPLY || !crcs_ok(p, (size_t)n)) return 0;
+        if (get32(p + 19) != 6 || get32(p + 23) != (uint32_t)v->g_ids[0]) return 0;
+        if (m->stage != STAGE_CD || get32(p + 15) != (uint32_t)m->qid) {
+            m->late++;
+            return 1;
+        }
+        for (int k = 0; k < 6; k++) v->g[k] = getf(p + 27 + 16 * k);
+        finish(m, master_of(m, host));
+        return 1;
+    }
     int b = v != NULL && n == (v->local ? VDC_BL_SIZE : VDC_B_SIZE);
     if (n != ANSWER_SIZE && n != DENIAL_SIZE && !b) return 0;
     if (p[1] != PID_MRT || p[2] != 0 || p[12] != 0 || p[13] != 0) return 0;

@@ -103,17 +103,8 @@ static double torque(const master_t *m, int joint, int64_t t_ns) {
 /* --- VDC (cell.modular.vdc.forward_step, cell.modular.cycle.VdcModel.b, tau_r) ------------------ */
 
 
-static void cross(const double *a, const double *b, double *out) {
-    double o0 = a[1] * b[2] - a[2] * b[1], o1 = a[2] * b[0] - a[0] * b[2], o2 = a[0] * b[1] - a[1] * b[0];
-    out[0] = o0, out[1] = o1, out[2] = o2;
-}
-
 static void mat_t_vec(const double *r, const double *v, double *out) { /* R^T v */
     for (int i = 0; i < 3; i++) out[i] = r[i] * v[0] + r[3 + i] * v[1] + r[6 + i] * v[2];
-}
-
-static void mat_vec(const double *r, const double *v, double *out) { /* R v */
-    for (int i = 0; i < 3; i++) out[i] = r[3 * i] * v[0] + r[3 * i + 1] * v[1] + r[3 * i + 2] * v[2];
 }
 
 /* ^iX_{i-1} m, X of a child at p turned R: [R^T w; R^T (v - p x w)] */
@@ -123,15 +114,6 @@ static void motion_x(const double *r, const double *p, const double *m, double *
     for (int i = 0; i < 3; i++) d[i] = m[3 + i] - pw[i];
     mat_t_vec(r, m, out);
     mat_t_vec(r, d, out + 3);
-}
-
-/* ^{i+1}X_i^T f: [R n + p x (R f); R f] */
-static void force_xt(const double *r, const double *p, const double *f, double *out) {
-    double rf[3], pr[3];
-    mat_vec(r, f + 3, rf);
-    cross(p, rf, pr);
-    mat_vec(r, f, out);
-    for (int i = 0; i < 3; i++) out[i] += pr[i], out[3 + i] = rf[i];
 }
 
 static void desired(vdc_t *v, const master_t *m, int j, int64_t t, double *qd3) {
@@ -152,13 +134,9 @@ static void forward_step(vdc_t *v, const master_t *m, int i, int64_t t, const do
     double q = live(jt) ? guess(jt, t) : jt->pos, qd = live(jt) ? jt->vel : 0.0, ref[3]; /* (one gone: braked) */
     desired(v, m, i, t, ref);
     double qd_r = ref[1] + v->lam * (ref[0] - q), qdd_r = ref[2] + v->lam * (ref[1] - qd);
-    double c = cos(q), s = sin(q), *r = v->rot[i]; /* R = rot rz(q) */
-    const double *r0 = v->body_rot[i], *p = v->body_pos[i];
-    for (int k = 0; k < 3; k++) {
-        r[3 * k] = r0[3 * k] * c + r0[3 * k + 1] * s;
-        r[3 * k + 1] = -r0[3 * k] * s + r0[3 * k + 1] * c;
-        r[3 * k + 2] = r0[3 * k + 2];
-    }
+    double *r = v->rot[i];
+    const double *p = v->body_pos[i];
+    turned(v->body_rot[i], q, r); /* R = rot rz(q) */
     double *out = v->carry[i], *vv = out, *vr = out + 6, *ar = out + 12, carried[6], mw[3] = {0, 0, qd};
     motion_x(r, p, parent, vv);
     vv[2] += qd;

@@ -70,6 +70,11 @@ class VdcModuleState(ctypes.Structure):
         ("theta", _D * 10),
         ("bound", _D * 10),
         ("mass0", _D),
+        *((name, _I) for name in ("neighbour", "tip", "nb_ip", "nb_port")),
+        ("g_in_ids", _I * 6),
+        ("body_pos", _D * 3),
+        ("body_rot", _D * 9),
+        ("q", _D),
         ("plant", ctypes.POINTER(PlantState)),
     ]
 
@@ -239,8 +244,9 @@ class NativeCycles:
             rec_tool=plant.rec_tool.ctypes.data, kp=plant.brake[0], kd=plant.brake[1],
         )  # fmt: skip
 
-    def _vdc_module(self, m: Any) -> VdcModuleState:
-        """A VdcModule's VDC in C: its body's inertia and gains, its item ids, the plant."""
+    def _vdc_module(self, m: Any, inboard: Any = None) -> VdcModuleState:
+        """A VdcModule's VDC in C: its body's inertia and gains, its item ids, the plant, who
+        computes its [C, D] (a neighbour: where its inboard one is)."""
         from cell.modular.cycle import SAFE_AFTER
         from cell.modular.wire import b_values, ids_of, outboard_ids
 
@@ -257,6 +263,10 @@ class NativeCycles:
         v.b_ids[:], v.f_ids[:], v.inertia[:] = b_ids, f_ids, body.inertia.ravel()
         v.local, v.g_ids[:], v.g[:], v.f_star[:] = m.local, outboard_ids(m.joint), m.g, m.f_star
         v.adapt, v.theta[:], v.bound[:], v.mass0 = g.adapt, module.theta, module.bound, module.mass0
+        v.neighbour, v.tip, v.q = m.cd == "neighbour", m.joint == m.plant.arm.dof - 1, m.q
+        v.body_pos[:], v.body_rot[:] = body.pos, body.rot.ravel()
+        if inboard is not None and m.joint > 0:
+            v.nb_ip, v.nb_port, v.g_in_ids[:] = _ip(inboard[0]), inboard[1], outboard_ids(m.joint - 1)
         v.k[:] = (*[g.body_rot * mass] * 3, *[g.body_lin * mass] * 3)
         if m.b is not None:
             v.b[:], v.have_b = b_values(m.b), 1
@@ -278,9 +288,10 @@ class NativeCycles:
         self._vdc.pop(fd, None)
         self._run_key = ()  # (a new socket may get its number)
 
-    def push(self, st: ModuleState, m: JointModule, master: Any) -> None:
+    def push(self, st: ModuleState, m: JointModule, master: Any, inboard: Any = None) -> None:
         """What the Python module decided since the last run: its servo, its configuration and,
-        once it runs with transport snp, the cycle handed to C (where it then stays)."""
+        once it runs with transport snp, the cycle handed to C (where it then stays).  inboard: the
+        address of the module it is plugged to (a "neighbour" [C, D] passes its force there)."""
         s = m.servo
         st.servo_anchor, st.servo_base, st.servo_rate = s.anchor_raw, s.base, s.rate
         if st.active or m.state != ModuleLife.RUNNING or m.transport != "snp" or master is None:
@@ -296,7 +307,7 @@ class NativeCycles:
         from cell.modular.cycle import VdcModule
 
         if isinstance(m, VdcModule):
-            self._vdc[st.fd] = v = self._vdc_module(m)
+            self._vdc[st.fd] = v = self._vdc_module(m, inboard)
             st.vdc = ctypes.pointer(v)
         st.active = 1
 

@@ -317,7 +317,7 @@ class Slot:
     offset_ns: int = 0  # its oscillator against the master's clock
     drift_ppm: float = 0.0
     transport: str = "snp"
-    cd: str = "master"  # a modular arm's module: who computes its [C, D] ("master" or "local"),
+    cd: str = "master"  # a modular arm's module: who computes its [C, D] ("master", "local", "neighbour"),
     adapt: float = 0.0  # its inertial parameters' adaptation gain (0: none),
     believed: float = 1.0  # and the share of its body's true inertia it starts from
     module: JointModule | None = None
@@ -325,6 +325,7 @@ class Slot:
     sock: socket.socket | None = None
     link: Link | None = None
     master: Any = None  # the master's address, learnt from its first datagram
+    inboard: Any = None  # its inboard neighbour's address (a "neighbour" [C, D] passes its force there)
     clock_errors: list[int] = field(default_factory=list)  # servoed clock - master's, ns
     plugged_at: int = 0
     next_sample: int = 0
@@ -344,7 +345,7 @@ class Slot:
             from cell.modular.vdc import Gains
 
             self.module = VdcModule(
-                self.module_id, self.plugged_to, plant, port=1, local=self.cd == "local",
+                self.module_id, self.plugged_to, plant, port=1, cd=self.cd,
                 gains=Gains(adapt=self.adapt), believed=self.believed,
             )  # fmt: skip
         self.module.use_transport(self.transport, rmap_timeout_ns, rmap_retries)
@@ -357,9 +358,21 @@ class Slot:
         """A datagram that came in at `at` (host ns) to the module; what it answers, sent back."""
         m, osc, link = self.module, self.osc, self.link
         assert m is not None and osc is not None and link is not None
-        self.master = addr
+        if self.master is None:  # (after that, a datagram may be its outboard neighbour's)
+            self.master = addr
         for out in m.receive(data, osc.raw(at)):
             link.send(out, addr)
+        self.pass_in()
+
+    def pass_in(self) -> None:
+        """What its module has for its inboard neighbour ("neighbour" [C, D]), sent there."""
+        out = getattr(self.module, "to_inboard", None)
+        if out:
+            assert self.link is not None
+            for data in out:
+                if self.inboard is not None:
+                    self.link.send(data, self.inboard)
+            out.clear()
 
     def sample(self, now: int, sample_ns: int, grid: tuple[int, int] | None = None) -> None:
         """Its servoed clock's error against the host's, every sample_ns once it runs (on grid's
@@ -369,6 +382,14 @@ class Slot:
         if m.state == ModuleState.RUNNING and now >= self.next_sample:
             self.next_sample = _next_sample(now, sample_ns, grid)
             self.clock_errors.append(m.servo.now(osc.raw(now)) - now)
+
+
+def _inboard(s: Slot, slots: list[Slot]) -> tuple[str, int] | None:
+    """Where a "neighbour" [C, D] passes its force: the module it is plugged to, if that one takes
+    it (computes its [C, D] with its neighbour's too); None on the base, or for any other."""
+    return next(
+        (("127.0.0.1", o.port) for o in slots if o.module_id == s.plugged_to and o.cd == "neighbour"), None
+    )
 
 
 def _next_sample(now: int, sample_ns: int, grid: tuple[int, int] | None) -> int:
@@ -434,6 +455,7 @@ def run_modules(
 
     def plug(s: Slot) -> None:
         s.plug(t0, now, loss, rmap_timeout_ns, rmap_retries, plant)
+        s.inboard = _inboard(s, slots)
         assert s.sock is not None
         by_fd[s.sock.fileno()] = s
         ep.register(s.sock.fileno(), select.EPOLLIN)
@@ -506,6 +528,7 @@ def run_modules(
                     assert m is not None and osc is not None and link is not None
                     for out in m.poll(osc.raw(now)):
                         link.send(out, s.master)
+                    s.pass_in()
                     s.sample(now, sample_ns, sample_grid)
                     s.wake = wake_of(s)
             now = clock()
@@ -561,7 +584,7 @@ def _run_native(
 
     def push(s: Slot) -> None:
         assert s.sock is not None and s.module is not None
-        cycles.push(cycles.state(s.sock.fileno()), s.module, s.master)
+        cycles.push(cycles.state(s.sock.fileno()), s.module, s.master, s.inboard)
 
     def take(s: Slot) -> None:
         """Its C records and counters into its JointModule and link."""
@@ -570,6 +593,7 @@ def _run_native(
 
     def plug(s: Slot) -> None:
         s.plug(t0, now, loss, 0, 0, plant)
+        s.inboard = _inboard(s, slots)
         assert s.sock is not None and s.osc is not None
         cycles.attach(s.sock.fileno(), s.osc, loss)
         by_fd[s.sock.fileno()] = s

@@ -22,6 +22,7 @@ enum { A_SIZE = 80, C_SIZE = 64, ANSWER_SIZE = 40, DENIAL_SIZE = 22 };
 /* VDC's (cell.modular.wire): A (2 in, B's 20 wanted) and B; C (F*'s 6 in, tau_r wanted); a local
  * [C, D]'s A (q, qd and its last F*, B's 20 and G's 6 wanted) and its B */
 enum { VDC_A_SIZE = 308, VDC_B_SIZE = 344, VDC_C_SIZE = 144, VDC_AL_SIZE = 476, VDC_BL_SIZE = 440 };
+enum { VDC_G_SIZE = 120 }; /* a "neighbour" [C, D]'s force passed inwards (wire.G_PASS): 6 items */
 enum { PID_MRT = 0xF0, QUERY = 1, REPLY = 2, DENIAL = 3 };
 enum { DEADLINE_CANNOT_BE_MET = 1 };
 enum { RUN_UNTIL = 0, RUN_HANDED = 1, RUN_RECORDS_FULL = 2, RUN_EVENT = 3 };
@@ -183,6 +184,36 @@ static inline int hand(handed_t *h, int64_t index, const uint8_t *p, ssize_t got
     h->index = index, h->len = got, h->at = at, h->ip = ip, h->port = port;
     memcpy(buf, p, (size_t)(got < cap ? got : cap));
     return RUN_HANDED;
+}
+
+/* --- VDC's spatial algebra (cell.modular.arm), shared by master.c and cycle.c --------------- */
+
+static inline void cross(const double *a, const double *b, double *out) {
+    double o0 = a[1] * b[2] - a[2] * b[1], o1 = a[2] * b[0] - a[0] * b[2], o2 = a[0] * b[1] - a[1] * b[0];
+    out[0] = o0, out[1] = o1, out[2] = o2;
+}
+
+static inline void mat_vec(const double *r, const double *v, double *out) { /* R v */
+    for (int i = 0; i < 3; i++) out[i] = r[3 * i] * v[0] + r[3 * i + 1] * v[1] + r[3 * i + 2] * v[2];
+}
+
+/* ^{i+1}X_i^T f: [R n + p x (R f); R f] */
+static inline void force_xt(const double *r, const double *p, const double *f, double *out) {
+    double rf[3], pr[3];
+    mat_vec(r, f + 3, rf);
+    cross(p, rf, pr);
+    mat_vec(r, f, out);
+    for (int i = 0; i < 3; i++) out[i] += pr[i], out[3 + i] = rf[i];
+}
+
+/* A body's R = rot rz(q) (Body.transform's), row-major, from its fixed rot */
+static inline void turned(const double *r0, double q, double *r) {
+    double c = cos(q), s = sin(q);
+    for (int k = 0; k < 3; k++) {
+        r[3 * k] = r0[3 * k] * c + r0[3 * k + 1] * s;
+        r[3 * k + 1] = -r0[3 * k] * s + r0[3 * k + 1] * c;
+        r[3 * k + 2] = r0[3 * k + 2];
+    }
 }
 
 #endif

@@ -242,8 +242,8 @@ def test_the_c_modules_adaptation_of_its_inertia_steps_as_the_python_modules() -
     assert np.abs(theta - start).max() > 0.1  # (it moved: the twins agree on a change)
 
 
-def _module(plant: Plant, joint: int = 2) -> VdcModule:
-    m = VdcModule(101, 0, plant)
+def _module(plant: Plant, joint: int = 2, cd: str = "master") -> VdcModule:
+    m = VdcModule(101, 0, plant, cd=cd)
     m.config = Configure(joint, 10_000_000, 0, 8_000_000, (20.0,))
     m.joint, m.state = joint, "running"
     m.next_start = 0
@@ -281,9 +281,7 @@ def test_a_module_guesses_a_b_that_does_not_come_and_drives_its_motor_with_d() -
 
 def test_a_local_module_computes_its_own_d_in_one_exchange_and_sends_its_force_with_the_next_a() -> None:
     plant = Plant(Q_HOME)
-    m = _module(plant)
-    m.local = True
-    m.ANSWERS = {Stage.AB: B_LOCAL_REPLY, Stage.CD: D_REPLY}
+    m = _module(plant, cd="local")
     f = A_LOCAL_QUERY.parse(m.poll(0)[0])
     assert f is not None and f[18:36:3] == (0.0,) * 6  # no force yet
     _, b_ids, _, _ = ids_of(2)
@@ -298,6 +296,59 @@ def test_a_local_module_computes_its_own_d_in_one_exchange_and_sends_its_force_w
     m.next_start = 10_000_000
     f2 = A_LOCAL_QUERY.parse(m.poll(10_000_000)[0])
     assert f2 is not None and np.allclose(f2[18:36:3], want, rtol=1e-6, atol=1e-5)  # its F* goes with A
+
+
+def _b_and_g(joint: int, qid: int, g: list[float]) -> bytes:
+    _, b_ids, _, _ = ids_of(joint)
+    values = [0.5, 2.0, *[0.0] * 11, 9.81, *[0.0] * 6, *g]
+    return B_LOCAL_REPLY.pack(0, Pid.MRT, 0, 0, qid, tuple(
+        x for k, v in zip(b_ids + outboard_ids(joint), values, strict=True) for x in (k, v, 0)))  # fmt: skip
+
+
+def test_a_neighbour_module_waits_for_its_outboard_neighbours_force_and_passes_its_own_inwards() -> None:
+    from cell.modular.vdc import carried_force
+    from cell.modular.wire import G_PASS
+
+    plant = Plant(Q_HOME)
+    m = _module(plant, joint=2, cd="neighbour")
+    f = A_LOCAL_QUERY.parse(m.poll(0)[0])  # (the local query: its F* to the master, B and G back)
+    assert f is not None
+    assert m.receive(_b_and_g(2, f[8], [0.0, 0.0, 7.0, 0.0, 0.0, 0.0]), 1000) == []  # the master's G
+    assert m.cycle is not None and m.cycle.stage == Stage.CD and m.cycle.qid == 0  # waits: cycle 0
+
+    def g_pass(joint: int, cycle: int, g: list[float]) -> bytes:
+        return G_PASS.pack(
+            0,
+            Pid.MRT,
+            104,
+            0,
+            cycle,
+            tuple(x for k, v in zip(outboard_ids(joint), g, strict=True) for x in (k, v, 0)),
+        )
+
+    nb = [1.0, -2.0, 3.0, 4.0, 5.0, -30.0]
+    assert m.receive(g_pass(3, 0, nb), 2000) == [] and m.cycle.stage == Stage.CD  # another joint's G
+    assert m.receive(g_pass(2, 7, nb), 2000) == [] and m.cycle.stage == Stage.CD  # another cycle's
+    assert m.to_inboard == []
+    assert m.receive(g_pass(2, 0, nb), 3000) == [] and m.cycle.stage == Stage.DONE
+    force = m.f_star + np.array(nb, dtype=np.float32)
+    assert (
+        m.tau_r == pytest.approx(force[2]) and m.missed[Stage.CD] == 0
+    )  # the neighbour's G, not the master's
+    assert plant.driven[2] == 1
+    # its own force, carried into joint 1's frame by its body at q (T1), passed to joint 1's module
+    (sent,) = m.to_inboard
+    p = G_PASS.parse(sent)
+    assert p is not None and p[8] == 0 and p[10::3][:6] == outboard_ids(1)
+    want = carried_force(plant.arm.bodies[2].transform(m.q), force)
+    assert np.allclose(p[11::3][:6], want, rtol=1e-5, atol=1e-4)
+    # the next cycle's G never comes: at its deadline the master's G stands in (counted)
+    m.to_inboard.clear()
+    m.next_start = 10_000_000
+    f = A_LOCAL_QUERY.parse(m.poll(10_000_000)[0])
+    m.receive(_b_and_g(2, f[8], [0.0, 0.0, 7.0, 0.0, 0.0, 0.0]), 10_001_000)  # type: ignore[index]
+    assert m.poll(10_000_000 + 8_000_001) == [] and m.cycle.stage == Stage.DONE and m.missed[Stage.CD] == 1
+    assert m.tau_r == pytest.approx(m.f_star[2] + 7.0) and len(m.to_inboard) == 1
 
 
 def _whole_cycle(m: VdcModule, t: int, tau_r: float = 1.0) -> None:
@@ -337,6 +388,9 @@ def test_a_module_whose_exchanges_keep_missing_brakes_its_joint_until_a_whole_cy
     [
         pytest.param(True, 1_000_000, ["master"] * 6, {}, marks=native, id="c-1ms"),
         pytest.param(True, 1_000_000, ["master"] * 3 + ["local"] * 3, {}, marks=native, id="c-1ms-mixed"),
+        pytest.param(
+            True, 1_000_000, ["local"] * 2 + ["neighbour"] * 4, {}, marks=native, id="c-1ms-neighbour"
+        ),
         # (40 % light and not adapted: 3.4 mm off on the pick and place, `cell bench snp`)
         pytest.param(
             True,
@@ -371,8 +425,8 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     assert f.modules_ran == 6 and sorted(m["joint"] for m in r["modules"]) == list(range(6))
     h = r["master"]["handler"]
     assert h["replies"] + sum(v for k, v in h.items() if k.startswith("denied.")) == h["queries"]
-    # a module computing its own [C, D] asks once a cycle, the master's twice
-    asked = sum(len(m["cycles"]) * (1 if cd[m["joint"]] == "local" else 2) for m in r["modules"])
+    # a module computing its own [C, D] asks the master once a cycle, the master's twice
+    asked = sum(len(m["cycles"]) * (1 if cd[m["joint"]] != "master" else 2) for m in r["modules"])
     assert abs(h["queries"] - asked) <= 12, (asked, h["queries"])  # (cycles at the edges: a first
     # one ended without its [C, D] before any B came, a last one's query sent as the run ended)
     assert err.max() < 2.0 and f.missed_pct < 5.0

@@ -94,9 +94,9 @@ async def test_on_the_snp_cycle_its_processes_move_the_arm_and_a_pulled_module_s
 ) -> None:
     """[modular] transport "cycle": the SnP cycle's master and six modules in processes of their own,
     each module with its own clock (off by up to 2 ms, servoed by SnP-TSP), the arm in MuJoCo; the
-    outer three compute their own [C, D]."""
+    modules compute their [C, D] by the master, locally, and with their neighbour's force (out to the tip)."""
     rrd = tmp_path / "cycle.rrd"
-    where = ["master"] * 3 + ["local"] * 3
+    where = ["master", "master", "local", "neighbour", "neighbour", "neighbour"]
     cell = await start_cell(
         run=["bus", "modular", "recorder"],
         sections={
