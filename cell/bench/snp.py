@@ -40,6 +40,7 @@ WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settl
 # end, and six A's at once queue behind each other (0.7-1.6% missed in three runs at 0 us against
 # 0.06-0.18% at 30 us, which the slides' 0.05 ms a joint allows)
 SLOT_NS = 30_000
+ROUTER_PRIORITY = 85  # the routers' process: over the master's and modules' 80 (_place), as a switch's
 
 
 def _place(core: int) -> None:
@@ -59,25 +60,33 @@ def _master(
     port_q: Any,
     out: Any,
     reference: Reference | None = None,
+    routes_q: Any = None,
 ) -> None:
     """Runs until the modules are done (done.value), or for `seconds` at most; reference: the
-    modular arm's path, tracked by VDC in the cycle (cell.modular.cycle)."""
+    modular arm's path, tracked by VDC in the cycle (cell.modular.cycle); routes_q: over the routed
+    network (cell.snp.routed), its two links come on it after its port goes out."""
     from cell.modular.cycle import VdcMaster
     from cell.snp.modular import Master
     from cell.snp.runner import open_udp, serve_master
 
     _place(0)
     sock = open_udp(timestamps=True)
-    ports_at = [("127.0.0.1", p) for p in ports]
+    ports_at: list[Any] = [("127.0.0.1", p) for p in ports]
+    if routes_q is not None:  # (each module's address: its return address, its port on the routers)
+        from cell.snp.routed import module_port
+
+        ports_at = [(module_port(k),) for k in range(len(ports))]
     master = (
         Master(ports_at, config, time.monotonic_ns)
         if reference is None
         else VdcMaster(ports_at, config, time.monotonic_ns, reference)
     )
     port_q.put(sock.getsockname()[1])
+    routes = routes_q.get(timeout=30) if routes_q is not None else None
     until = time.monotonic() + seconds
     cpu0, wall0 = time.process_time(), time.monotonic()
-    link = serve_master(master, sock, lambda: done.value or time.monotonic() > until, loss, native=native)
+    stop = lambda: done.value or time.monotonic() > until  # noqa: E731
+    link = serve_master(master, sock, stop, loss, native=native, routes=routes)
     cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
     sock.close()
     out.put(
@@ -90,6 +99,7 @@ def _master(
             },
             "events": list(master.events),
             "lost_on_link": link.lost,
+            "refused_on_link": getattr(link, "refused", 0),
             "cpu": cpu,
             "start_ns": master.vdc.start_ns if isinstance(master, VdcMaster) else None,
         }
@@ -137,11 +147,25 @@ def _modules(
                 "unfollowed": m.unfollowed,  # beacons left out, their follow-up lost
                 "two_step_link": bool(s.link and s.link.two_step),
                 "lost_on_link": s.link.lost if s.link else 0,
+                "failovers": getattr(s.link, "failovers", 0),  # (over routers: to the other one)
                 "rmap": m.rmap_init.counters.as_dict() if m.rmap_init else {},
             }
         )
     records = plant.records if plant is not None else []
     out.put((res, cpu, records))
+
+
+def _routers(ctx: Any, master_port: int, module_ports: list[int], seconds: float) -> tuple[Any, list]:
+    """The routers' process (cell.snp.routed.routers_main) joined to the master and the modules:
+    (its pipe, each router's port addresses)."""
+    from cell.snp.routed import routers_main
+
+    here, there = ctx.Pipe()
+    peers = [("127.0.0.1", master_port), *(("127.0.0.1", p) for p in module_ports)]
+    until = time.monotonic() + seconds + 40
+    ctx.Process(target=routers_main, args=(there, peers, until, ROUTER_PRIORITY), daemon=True).start()
+    there.close()
+    return here, here.recv()
 
 
 def trial(
@@ -152,11 +176,15 @@ def trial(
     native: bool = False,
     native_master: bool | None = None,
     reference: Reference | None = None,
+    routed: bool = False,
+    cut: tuple[float, int] | None = None,
 ) -> dict[str, Any]:
     """One run of a master and the slots' modules on the config's schedule (default: SLOT_NS
     slots); native: their cycles in C, and the master's unless native_master says otherwise;
     reference: the modules drive the modular arm along it by VDC (cell.modular.cycle), the tool's
-    error against it in "tool_error_mm".  Every module's record and the master's."""
+    error against it in "tool_error_mm".  routed: every datagram through the two routers of
+    cell.snp.routed (in Python), cut: (s, k) the link between R1 and module k cut s into the run
+    (at "cut_ns", host time).  Every module's record and the master's (and the routers')."""
     native_master = native if native_master is None else native_master
     config = config or CycleConfig(slot_ns=SLOT_NS)
     ports = free_ports(len({s["module_id"] for s in slots}))
@@ -167,24 +195,41 @@ def trial(
         s["port"] = port_of[s["module_id"]]
     ctx = mp.get_context("spawn")
     port_q, out_m, out_s = ctx.Queue(), ctx.Queue(), ctx.Queue()
+    routes_q = ctx.Queue() if routed else None
     done = ctx.RawValue("b", 0)  # the modules' run is over (read by the master's loop: no lock)
     master = ctx.Process(
         target=_master,
-        args=(ports, seconds + 30, loss, config, native_master, done, port_q, out_m, reference),
+        args=(ports, seconds + 30, loss, config, native_master, done, port_q, out_m, reference, routes_q),
         daemon=True,
     )
     master.start()
-    port_q.get(timeout=30)
+    master_port = port_q.get(timeout=30)
+    net = _routers(ctx, master_port, sorted(port_of.values(), key=ports.index), seconds) if routed else None
+    if net is not None:
+        _, by_router = net
+        routes_q.put((by_router[0][0], by_router[1][0]))  # type: ignore[union-attr]
+        for s in slots:
+            k = ports.index(s["port"])
+            s["routes"], s["route_port"] = (by_router[0][1 + k], by_router[1][1 + k]), 2 + k
     grid = config.management_grid
     mods = ctx.Process(
         target=_modules, args=(slots, seconds, loss, grid, native, done, out_s, reference), daemon=True
     )
     mods.start()
+    cut_ns = None
+    if net is not None and cut is not None:
+        time.sleep(cut[0])  # (the trial's own clock: what it measures is against cut_ns)
+        cut_ns = time.monotonic_ns()
+        net[0].send(("cut", 0, 2 + cut[1]))
+        net[0].recv()  # (done)
     modules, cpu, records = out_s.get(timeout=seconds + 60)
     m = out_m.get(timeout=30)
     for p in (mods, master):
         p.join(10)
-    out = {"modules": modules, "master": m, "modules_cpu": cpu}
+    out = {"modules": modules, "master": m, "modules_cpu": cpu, "cut_ns": cut_ns}
+    if net is not None:
+        net[0].send(("stop", 0, 0))
+        out["routers"] = net[0].recv() if net[0].poll(10) else {}
     if reference is not None:
         from cell.modular.cycle import tool_error_mm
 
@@ -231,6 +276,8 @@ class VdcCycleFigures(CycleFigures):
     tool_error_mm_max: float | None  # over the path (None: it never started)
     tool_error_mm_rms: float | None
     path_ran_pct: float
+    routed: bool = False  # over the two routers of cell.snp.routed
+    failover_ms: float | None = None  # routed: from a module's link cut to its first whole cycle
 
 
 def cycle_figures(r: dict[str, Any], period_ns: int = 1_000_000) -> CycleFigures:
@@ -300,6 +347,7 @@ VDC_CYCLE_KEYS = (
 )
 VDC_PERIOD_PY_NS = 4_000_000  # the Python cycle's period in the VDC baseline that keeps up
 MASS_RUNS = ("_mass_error", "_adapted")  # (the modules' inertia BELIEVED of the truth; adapted)
+CUT_MODULE = 3  # the routed run's module whose link to R1 is cut
 
 
 def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[str, VdcCycleFigures]:
@@ -309,7 +357,9 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
     ("_python_4ms"), with the master computing every [C, D]; and with each module computing its own
     ("_local": one exchange a cycle), in C and in Python at 1 ms, and with the neighbour's force of
     this cycle passed in from the tip ("_neighbour", in C); and in C with the modules' mass
-    properties BELIEVED of the truth, without ("_mass_error") and with ("_adapted") their adaptation.
+    properties BELIEVED of the truth, without ("_mass_error") and with ("_adapted") their adaptation;
+    and over the two routers of cell.snp.routed in Python at VDC_PERIOD_PY_NS ("_python_routed"),
+    the link between R1 and module 4 cut halfway along the path (its failover: `failover_ms`).
     Each its cycle's figures and the tool's error over the path."""
     from cell.modular.cycle import SETTLE_NS
     from cell.modular.experiment import ADAPT, BELIEVED
@@ -334,7 +384,9 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
         "_neighbour": (config, True, "neighbour"),
         "_mass_error": (config, True, "master"),
         "_adapted": (config, True, "master"),
+        "_python_routed": (slow, False, "master"),
     }
+    cut = (1.2 + SETTLE_NS / 1e9 + float(ref.t[-1]) / 2, CUT_MODULE)
     out = {}
     for key, (cfg, in_c, cd) in runs.items():
         if in_c and not native:
@@ -342,7 +394,9 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
         wrong = (
             {"believed": BELIEVED, "adapt": ADAPT if key == "_adapted" else 0.0} if key in MASS_RUNS else {}
         )
-        r = trial(chain(6, rng, "snp", cd=cd, **wrong), seconds, config=cfg, native=in_c, reference=ref)
+        net = {"routed": True, "cut": cut} if key == "_python_routed" else {}
+        slots = chain(6, rng, "snp", cd=cd, **wrong)
+        r = trial(slots, seconds, config=cfg, native=in_c, reference=ref, **net)  # type: ignore[arg-type]
         err = r["tool_error_mm"]
         out[key] = VdcCycleFigures(
             **dataclasses.asdict(cycle_figures(r, cfg.period_ns)),
@@ -354,8 +408,21 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
             tool_error_mm_max=float(err.max()) if len(err) else None,
             tool_error_mm_rms=float(np.sqrt(np.mean(err**2))) if len(err) else None,
             path_ran_pct=100.0 * len(err) / len(ref.t),
+            routed=bool(net),
+            failover_ms=failover_in_cycle_ms(r, slots[CUT_MODULE]["module_id"]) if net else None,
         )
     return out
+
+
+def failover_in_cycle_ms(r: dict[str, Any], module_id: int) -> float | None:
+    """From the cut of a module's link to its first whole cycle after (None: none came)."""
+    cut = r.get("cut_ns")
+    mod = next((m for m in r["modules"] if m["module_id"] == module_id), None)
+    if cut is None or mod is None:
+        return None
+    c = mod["cycles"]
+    after = c[(c[:, 0] > cut) & (c[:, 3] == 0)]
+    return float(after[0, 2] - cut) / 1e6 if len(after) else None
 
 
 def plug_figures(r: dict[str, Any], late_id: int, pulled_id: int, plug_s: float, unplug_s: float) -> dict:
@@ -450,6 +517,10 @@ def run(
         **{f"vdc_cycle{k}_{f}": getattr(v, f) for k, v in in_cycle.items() for f in VDC_CYCLE_KEYS},
         "vdc_cycle": {k: dataclasses.asdict(v) for k, v in in_cycle.items()},
         "path_failover_ms": failover_ms(),
+        # (the same in the running cycle over routers: a cut link to the module's first whole cycle)
+        "cycle_path_failover_ms": in_cycle["_python_routed"].failover_ms
+        if "_python_routed" in in_cycle
+        else None,
         **{f"cd_cycle_us_{w}": cd_cycle_us(w, slaves) for w in ("master", "neighbour", "local")},
         "vdc": [dataclasses.asdict(row) for row in vdc.rows] if vdc is not None else [],
         "slaves": slaves,
@@ -574,12 +645,19 @@ def _vdc_cycle_text(runs: dict[str, dict[str, Any]]) -> list[str]:
             f"  {f['runs_in']:<6} at {f['period_ms']:g} ms, [C, D] by "
             + {"local": "each module", "neighbour": "each module, the neighbour's"}.get(f["cd"], "the master")
             + (f", inertia {f['believed']:.0%} of the truth" if f["believed"] != 1.0 else "")
+            + (", over two routers" if f.get("routed") else "")
             + (f", adapted (gain {f['adapt']:g})" if f["adapt"] else "")
             + ": "
             + f"{f['missed_pct']:.2f}% of exchanges missed, "
             f"cycle p99 {f['cycle_ms_p99']:.3f} ms (the robot's {_ms(f['robot_cycle_ms_p99'])}); tool error "
             + (f"max {err:.3f} mm, rms {f['tool_error_mm_rms']:.3f} mm" if err is not None else "n/a")
-            + f" over {f['path_ran_pct']:.0f}% of the path; cores: master {f['master_cpu']:.2f}, modules "
+            + f" over {f['path_ran_pct']:.0f}% of the path"
+            + (
+                f"; a link cut, {_ms(f.get('failover_ms'))} to its first whole cycle"
+                if f.get("routed")
+                else ""
+            )
+            + f"; cores: master {f['master_cpu']:.2f}, modules "
             f"{f['modules_cpu']:.2f}"
         )
     return out

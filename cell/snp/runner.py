@@ -134,11 +134,12 @@ class Link:
         if timed:
             data = stamp_departure(data, self.clock(time.monotonic_ns()))  # type: ignore[misc]
         two_step = timed and self.two_step
+        wire, to = self._wire(data, addr)
         try:
             if two_step:
-                self.sock.sendmsg([data], _TX_STAMP, 0, addr)
+                self.sock.sendmsg([wire], _TX_STAMP, 0, to)
             else:
-                self.sock.sendto(data, addr)
+                self.sock.sendto(wire, to)
             self.sent += 1
         except OSError:  # a full buffer, or the peer's port gone (ICMP): the link loses it
             self.errors += 1
@@ -150,6 +151,14 @@ class Link:
                 return
             for more in self.departed(data, self.clock(t)):  # type: ignore[misc]
                 self.send(more, addr)
+
+    def _wire(self, data: bytes, addr: Any) -> tuple[bytes, Any]:
+        """What goes on the wire for data to addr, and where (a routed link: cell.snp.routed)."""
+        return data, addr
+
+    def received(self, data: bytes, addr: Any) -> tuple[bytes, Any] | None:
+        """A datagram off the wire as its node takes it: (packet, sender); None: dropped."""
+        return data, addr
 
     def _tx_stamp(self) -> int | None:
         """The kernel's transmit stamp of the last send (CLOCK_MONOTONIC ns), from the error queue
@@ -197,10 +206,24 @@ def _send_timers(master: Master, link: Link) -> None:
         link.send(data, addr)
 
 
-def _master_link(master: Master, sock: socket.socket, loss: float) -> Link:
+def _master_link(
+    master: Master, sock: socket.socket, loss: float, routes: tuple[Any, Any] | None = None
+) -> Link:
     """The master's link: here the master's clock is the host's CLOCK_MONOTONIC (its datagrams'
-    kernel stamps are taken as its times), so its time packets are stamped with the host's."""
-    link = Link(sock, loss, seed=1, clock=lambda host_ns: host_ns, departed=master.departed)
+    kernel stamps are taken as its times), so its time packets are stamped with the host's.
+    routes: its links to the two routers (cell.snp.routed.RoutedLink)."""
+    kw: dict[str, Any] = {
+        "loss": loss,
+        "seed": 1,
+        "clock": lambda host_ns: host_ns,
+        "departed": master.departed,
+    }
+    if routes is not None:
+        from cell.snp.routed import MASTER_PORT, RoutedLink
+
+        link: Link = RoutedLink(sock, routes, (MASTER_PORT,), **kw)
+    else:
+        link = Link(sock, **kw)
     if link.two_step:  # its beacons' times are the kernel's: that is the precision it offers
         master.beacon_schedule.precision_ns = min(master.beacon_schedule.precision_ns, TWO_STEP_PRECISION_NS)
     return link
@@ -215,6 +238,7 @@ def serve_master(
     spin_ns: int = SPIN_NS,
     native: bool = False,
     stop_every_ns: int = int(COARSE_S * 1e9),
+    routes: tuple[Any, Any] | None = None,
 ) -> Link:
     """Run the master until stop() is true (asked each pass of its loop; in C at least every
     stop_every_ns, in the management slot: stop may do the caller's own work there); returns its
@@ -223,10 +247,11 @@ def serve_master(
     It sleeps (epoll, woken by a datagram or its alarm) until LEAD_NS before the next cycle
     starts or its next timer, then polls without sleeping for as long as the cycle's datagrams
     keep coming (spin_ns after the last one).  native: the cycle's queries and FDIR's watch run
-    in C (cell.snp.native.NativeMaster, on the same schedule), the rest here, between its runs."""
-    if native:
+    in C (cell.snp.native.NativeMaster, on the same schedule), the rest here, between its runs.
+    routes: its links to the two routers of a routed network (cell.snp.routed; in Python only)."""
+    if native and routes is None:
         return _serve_master_native(master, sock, stop, loss, spin_ns, stop_every_ns)
-    link = _master_link(master, sock, loss)
+    link = _master_link(master, sock, loss, routes)
     alarm = Alarm()
     ep = select.epoll()
     ep.register(sock.fileno(), select.EPOLLIN)
@@ -257,7 +282,8 @@ def serve_master(
             out: list[tuple[bytes, Any]] = []
             if readable:
                 for data, addr, at in drain(sock, mono_of_real):
-                    out += master.receive(data, addr, at)
+                    if (got := link.received(data, addr)) is not None:
+                        out += master.receive(*got, at)
                 spin_until = clock() + spin_ns
             out += master.serve()
             for data, addr in out:
@@ -326,6 +352,8 @@ class Slot:
     link: Link | None = None
     master: Any = None  # the master's address, learnt from its first datagram
     inboard: Any = None  # its inboard neighbour's address (a "neighbour" [C, D] passes its force there)
+    routes: Any = None  # over a routed network: its links to the two routers (cell.snp.routed)
+    route_port: int = 0  # ... and its port on them (its return address)
     clock_errors: list[int] = field(default_factory=list)  # servoed clock - master's, ns
     plugged_at: int = 0
     next_sample: int = 0
@@ -351,13 +379,30 @@ class Slot:
         self.module.use_transport(self.transport, rmap_timeout_ns, rmap_retries)
         self.sock = open_udp("127.0.0.1", self.port, timestamps=True)
         m = self.module
-        self.link = Link(self.sock, loss, seed=self.module_id, clock=self.osc.raw, departed=m.departed)
+        kw: dict[str, Any] = {
+            "loss": loss,
+            "seed": self.module_id,
+            "clock": self.osc.raw,
+            "departed": m.departed,
+        }
+        if self.routes is not None:
+            from cell.snp.routed import FAILOVER_SENDS, RoutedLink
+
+            self.link = RoutedLink(
+                self.sock, self.routes, (self.route_port,), failover_after=FAILOVER_SENDS, **kw
+            )
+        else:
+            self.link = Link(self.sock, **kw)
         self.plugged_at = self.wake = now
 
     def deliver(self, data: bytes, addr: Any, at: int) -> None:
         """A datagram that came in at `at` (host ns) to the module; what it answers, sent back."""
         m, osc, link = self.module, self.osc, self.link
         assert m is not None and osc is not None and link is not None
+        got = link.received(data, addr)
+        if got is None:
+            return
+        data, addr = got
         if self.master is None:  # (after that, a datagram may be its outboard neighbour's)
             self.master = addr
         for out in m.receive(data, osc.raw(at)):
@@ -571,6 +616,10 @@ def _run_native(
 
     if any(s.transport != "snp" for s in slots):
         raise ValueError("the C cycle runs transport snp only (the RMAP baseline runs in Python)")
+    if any(s.routes is not None for s in slots):
+        raise ValueError(
+            "the cycle over routers runs in Python (the C cycle's sockets reach their peers directly)"
+        )
     t0 = time.monotonic_ns()
     cycles = NativeCycles(
         spin_ns=SPIN_NS if spin else 0, lead_ns=LEAD_NS if spin else 0, mono_of_real=realtime_offset()

@@ -1,0 +1,176 @@
+"""The running SnP cycle over the routed network of seed 002 (cell.snp.spacewire): two routers
+with single redundancy between the master and the modules, each node's datagrams routed by path
+address, every packet's return address routing its answer.
+
+On the wire (UDP on loopback: one socket per router port, each joined to one node's socket, the
+link):
+- a node sends `path + packet`, the packet carrying the node's own return address (the path from a
+  router back to it) in its SnP header; the router deletes the path byte it routes by
+  (spacewire.Router: path addressing) and sends the rest out of that port;
+- the receiving node takes the return address out of the header (its CRC made anew) and knows the
+  sender by it: the master knows module k as its return address (2 + k,) whichever router it came
+  through (both number their ports alike: spacewire.ring), and answers along it through the router
+  it last heard that module on.
+
+So the master's and modules' sans-IO cores and their packet shapes stay as they are: the link
+(`RoutedLink`) does the routing, as a SpaceWire node's network interface does.  A module that
+hears nothing back for `failover_after` sends in a row moves to the other router (a permanent
+failure of its path: spacewire.Redundant's rule, no retry).  `routers_main` runs both routers in a
+process of their own.
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+import time
+from typing import Any
+
+from cell.snp.packet import crc8
+from cell.snp.runner import Link
+from cell.snp.spacewire import FAILOVER_CYCLES, End, Packet, Router
+
+MASTER_PORT = 1  # on both routers: the master's link; module k's is port 2 + k
+ROUTERS = 2
+
+
+def module_port(k: int) -> int:
+    return 2 + k
+
+
+def with_return(data: bytes, ret: bytes) -> bytes:
+    """The packet with `ret` as its return address (it had none), its header CRC made anew."""
+    if len(data) < 12 or data[2]:
+        return data
+    head = data[:2] + bytes([len(ret)]) + ret + data[3:11]
+    return head + bytes([crc8(head)]) + data[12:]
+
+
+def without_return(data: bytes) -> tuple[bytes, tuple[int, ...]] | None:
+    """(the packet with no return address, its header CRC made anew; the return address), or None
+    for a datagram whose header does not hold together (dropped by the caller, counted)."""
+    if len(data) < 12:
+        return None
+    n = data[2]
+    end = 3 + n + 8
+    if len(data) < end + 2 or crc8(data[:end]) != data[end]:
+        return None
+    head = data[:2] + b"\x00" + data[3 + n : end]
+    return head + bytes([crc8(head)]) + data[end + 1 :], tuple(data[3 : 3 + n])
+
+
+class RoutedLink(Link):
+    """A node's link over the two routers (see the module docstring).  `links`: the router ports
+    this node's socket is joined to, R1's then R2's; `own`: its return address; `failover_after`:
+    sends in a row with nothing heard before it moves to the other router (None: it answers each
+    peer through the router it last heard that peer on, as the master does)."""
+
+    def __init__(
+        self,
+        sock: socket.socket,
+        links: tuple[Any, Any],
+        own: tuple[int, ...],
+        *,
+        failover_after: int | None = None,
+        **kw: Any,
+    ) -> None:
+        super().__init__(sock, **kw)
+        self.links, self.own, self.failover_after = links, bytes(own), failover_after
+        self.active = 0  # the router it sends through (a module's)
+        self.via: dict[tuple[int, ...], Any] = {}  # a peer's router, as last heard (the master's)
+        self.unheard = 0  # sends since it last heard anything
+        self.failovers = 0
+        self.refused = 0  # datagrams from outside its links, or whose header does not hold
+
+    def received(self, data: bytes, addr: Any) -> tuple[bytes, Any] | None:
+        if addr not in self.links:
+            self.refused += 1
+            return None
+        got = without_return(data)
+        if got is None or not got[1]:
+            self.refused += 1
+            return None
+        packet, ret = got
+        self.via[ret] = addr
+        self.unheard = 0
+        return packet, ret
+
+    def _wire(self, data: bytes, addr: Any) -> tuple[bytes, Any]:
+        if self.failover_after is not None:
+            self.unheard += 1
+            if self.unheard > self.failover_after:
+                self.active, self.unheard = 1 - self.active, 0
+                self.failovers += 1
+            router = self.links[self.active]
+        else:
+            router = self.via.get(addr, self.links[0])
+        return bytes(addr) + with_return(data, self.own), router
+
+
+def routers_main(conn: Any, peers: list[Any], until_s: float, rt_priority: int = 0) -> None:
+    """Both routers until until_s (monotonic seconds) or the pipe says stop: port 1 of each joined
+    to peers[0] (the master), port 2 + k to peers[1 + k] (module k).  Sends back each router's port
+    addresses ([R1's, R2's], per port from 1), then takes ("cut", router, port) orders: that link
+    down (what comes in or would go out on it is lost; the order sent back once done), or
+    ("stop", ...): its counters go back.
+    rt_priority: its SCHED_FIFO priority where allowed, over the nodes' (a router forwards as the
+    packets come: under nodes that poll without sleeping at real-time priority, one at the normal
+    policy would never run while they wait on it)."""
+    if rt_priority:
+        from cell.sched import place
+
+        place([], rt_priority, -10)
+    routers, socks, where = [], {}, {}
+    for r in range(ROUTERS):
+        router = Router(r + 1, len(peers))
+        routers.append(router)
+        for port in range(1, len(peers) + 1):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", 0))
+            s.setblocking(False)
+            socks[r, port] = s
+            where[s.fileno()] = (r, port)
+    conn.send([[socks[r, p].getsockname() for p in range(1, len(peers) + 1)] for r in range(ROUTERS)])
+    ep = select.epoll()
+    for s in socks.values():
+        ep.register(s.fileno(), select.EPOLLIN)
+    ep.register(conn.fileno(), select.EPOLLIN)
+    dropped = 0
+    try:
+        while time.monotonic() < until_s:
+            for fd, _ in ep.poll(0.05):
+                if fd == conn.fileno():
+                    if not conn.poll():
+                        continue
+                    try:
+                        what, r, port = conn.recv()
+                    except EOFError:
+                        return
+                    if what == "stop":
+                        return
+                    if what == "cut":
+                        routers[r].up.discard(port)
+                        conn.send(("cut", r, port))  # (done: what comes after meets it cut)
+                    continue
+                r, port = where[fd]
+                s, router = socks[r, port], routers[r]
+                while True:
+                    try:
+                        data, addr = s.recvfrom(2048)
+                    except BlockingIOError:
+                        break
+                    if port not in router.up or addr != peers[port - 1]:
+                        dropped += 1  # (a link down, or a datagram from outside the link)
+                        continue
+                    for out_port, pkt in router.route(Packet(data, End.EOP)):
+                        if out_port != 0:  # (the configuration port: the master finds its modules
+                            # by their ports here, not by exploring the routers)
+                            socks[r, out_port].sendto(pkt.data, peers[out_port - 1])
+    finally:
+        conn.send({"dropped": dropped, **{f"R{r.id}": r.counters.as_dict() for r in routers}})
+        for s in socks.values():
+            s.close()
+        ep.close()
+
+
+FAILOVER_SENDS = 2 * FAILOVER_CYCLES  # a module's sends with nothing heard (two queries a cycle)

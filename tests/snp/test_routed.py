@@ -1,0 +1,117 @@
+"""The running SnP cycle over the two routers (cell.snp.routed): return addresses put in and taken
+out byte by byte, the routers' process over real sockets (paths, junk, a link cut), and the
+modular arm's cycle through it with a link cut halfway along its path."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import random
+import socket
+import time
+
+import pytest
+
+from cell.snp.packet import Header, Pid, Query, decode, encode
+from cell.snp.routed import FAILOVER_SENDS, RoutedLink, routers_main, with_return, without_return
+
+
+def _packet() -> bytes:
+    return encode(Header(0, Pid.MRT, b"", 104, 0), Query(7, 123_456))
+
+
+def test_a_return_address_goes_in_and_comes_out_byte_by_byte() -> None:
+    plain = _packet()
+    routed = with_return(plain, bytes([5]))
+    assert len(routed) == len(plain) + 1 and routed[2:4] == b"\x01\x05"
+    pkt = decode(routed)  # (a whole packet: both CRCs hold, the return address read as such)
+    assert pkt.header.return_address == b"\x05" and pkt.body == decode(plain).body
+    assert without_return(routed) == (plain, (5,))
+    assert with_return(routed, b"\x09") == routed  # (one already there stays)
+    bad = bytearray(routed)
+    bad[4] ^= 0x40  # (its source process: the header CRC no longer holds)
+    assert without_return(bytes(bad)) is None and without_return(b"\x00" * 5) is None
+
+
+def test_a_module_link_moves_to_the_other_router_after_sends_unheard_and_refuses_strangers() -> None:
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(4)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(2.0)
+        node, r1, r2, stranger = socks
+        link = RoutedLink(node, (r1.getsockname(), r2.getsockname()), (3,), failover_after=FAILOVER_SENDS)
+        for _ in range(FAILOVER_SENDS):
+            link.send(_packet(), (1,))
+            got = r1.recv(2048)
+        assert got[0] == 1 and without_return(got[1:]) == (_packet(), (3,))  # the path, then its return
+        link.send(_packet(), (1,))  # nothing heard back: now over R2
+        assert r2.recv(2048)[0] == 1 and link.failovers == 1 and link.active == 1
+        answer = with_return(_packet(), b"\x01")
+        assert link.received(answer, stranger.getsockname()) is None and link.refused == 1
+        assert link.received(answer, r2.getsockname()) == (_packet(), (1,)) and link.unheard == 0
+    finally:
+        for s in socks:
+            s.close()
+
+
+def test_the_routers_forward_by_path_drop_junk_and_a_cut_link_counting_each() -> None:
+    nodes = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(3)]
+    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    ctx = mp.get_context("spawn")
+    here, there = ctx.Pipe()
+    try:
+        for s in (*nodes, stranger):
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(2.0)
+        peers = [s.getsockname() for s in nodes]  # the master on port 1, two modules on 2 and 3
+        proc = ctx.Process(target=routers_main, args=(there, peers, time.monotonic() + 30), daemon=True)
+        proc.start()
+        r1, r2 = here.recv()
+        nodes[0].sendto(b"\x03" + _packet(), r1[0])  # master -> R1 port 3 -> module 2
+        assert nodes[2].recv(2048) == _packet()  # (the path byte deleted)
+        nodes[1].sendto(b"\x01" + _packet(), r2[1])  # module 1 -> R2 -> master
+        assert nodes[0].recv(2048) == _packet()
+        stranger.sendto(b"\x01" + _packet(), r1[1])  # not on the link: dropped
+        nodes[0].sendto(b"\x09" + _packet(), r1[0])  # a port R1 does not have
+        here.send(("cut", 0, 3))
+        assert here.recv() == ("cut", 0, 3)  # (done before what follows)
+        nodes[0].sendto(b"\x03" + _packet(), r1[0])  # out of the cut port: lost
+        nodes[2].sendto(b"\x01" + _packet(), r1[2])  # in at it: lost
+        nodes[0].sendto(b"\x03" + _packet(), r2[0])  # the other router's way still goes
+        assert nodes[2].recv(2048) == _packet()
+        here.send(("stop", 0, 0))
+        assert here.poll(10)
+        counts = here.recv()
+        assert counts["dropped"] == 2  # the stranger's, and what came in on the cut link
+        assert counts["R1"]["dropped.bad_port"] == 1 and counts["R1"]["dropped.link_down"] == 1
+        assert counts["R1"]["forwarded"] == 1 and counts["R2"]["forwarded"] == 2
+        proc.join(10)
+    finally:
+        for s in (*nodes, stranger):
+            s.close()
+
+
+@pytest.mark.slow
+def test_the_arms_cycle_runs_over_the_routers_and_fails_over_a_cut_link() -> None:
+    """The master and six modules (Python, 4 ms) over the two routers, the MuJoCo arm on a joint
+    move; module 4's link to R1 cut halfway: it goes over R2 after FAILOVER_CYCLES missed."""
+    from cell.bench.snp import SLOT_NS, cycle_figures, failover_in_cycle_ms, trial
+    from cell.modular.cycle import SETTLE_NS
+    from cell.modular.reference import Q_HOME, joint_move
+    from cell.snp.modular import CycleConfig
+    from cell.snp.runner import chain
+    from cell.snp.spacewire import FAILOVER_CYCLES
+
+    ref = joint_move(Q_HOME, Q_HOME + 0.3, 1.5)
+    seconds = 1.2 + SETTLE_NS / 1e9 + ref.t[-1]
+    period = 4_000_000
+    config = CycleConfig(period_ns=period, budget_ns=period, slot_ns=SLOT_NS * 4, management_ns=1_600_000)
+    slots = chain(6, random.Random(2))
+    r = trial(slots, seconds, config=config, reference=ref, routed=True, cut=(seconds / 2, 3))
+    f = cycle_figures(r, period)
+    assert f.modules_ran == 6 and f.tsp_offset_us_max < 200.0  # (clocks synced through the routers)
+    assert [m["failovers"] for m in r["modules"]] == [0, 0, 0, 1, 0, 0]
+    assert r["routers"]["R1"]["dropped.link_down"] >= 1 and r["routers"]["R2"]["forwarded"] > 100
+    took = failover_in_cycle_ms(r, slots[3]["module_id"])
+    assert took is not None and took <= (FAILOVER_CYCLES + 2) * period / 1e6, took
+    assert r["tool_error_mm"].max() < 5.0 and len(r["tool_error_mm"]) == len(ref.t)
