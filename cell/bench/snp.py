@@ -206,11 +206,13 @@ def trial(
     master_port = port_q.get(timeout=30)
     net = _routers(ctx, master_port, sorted(port_of.values(), key=ports.index), seconds) if routed else None
     if net is not None:
+        from cell.snp.routed import module_port
+
         _, by_router = net
         routes_q.put((by_router[0][0], by_router[1][0]))  # type: ignore[union-attr]
         for s in slots:
             k = ports.index(s["port"])
-            s["routes"], s["route_port"] = (by_router[0][1 + k], by_router[1][1 + k]), 2 + k
+            s["routes"], s["route_port"] = (by_router[0][1 + k], by_router[1][1 + k]), module_port(k)
     grid = config.management_grid
     mods = ctx.Process(
         target=_modules, args=(slots, seconds, loss, grid, native, done, out_s, reference), daemon=True
@@ -220,7 +222,7 @@ def trial(
     if net is not None and cut is not None:
         time.sleep(cut[0])  # (the trial's own clock: what it measures is against cut_ns)
         cut_ns = time.monotonic_ns()
-        net[0].send(("cut", 0, 2 + cut[1]))
+        net[0].send(("cut", 0, module_port(cut[1])))
         net[0].recv()  # (done)
     modules, cpu, records = out_s.get(timeout=seconds + 60)
     m = out_m.get(timeout=30)

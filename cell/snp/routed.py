@@ -32,6 +32,7 @@ from cell.snp.spacewire import FAILOVER_CYCLES, End, Packet, Router
 
 MASTER_PORT = 1  # on both routers: the master's link; module k's is port 2 + k
 ROUTERS = 2
+FAILOVER_SENDS = 2 * FAILOVER_CYCLES  # a module's sends with nothing heard (two queries a cycle)
 
 
 def module_port(k: int) -> int:
@@ -171,6 +172,3 @@ def routers_main(conn: Any, peers: list[Any], until_s: float, rt_priority: int =
         for s in socks.values():
             s.close()
         ep.close()
-
-
-FAILOVER_SENDS = 2 * FAILOVER_CYCLES  # a module's sends with nothing heard (two queries a cycle)
