@@ -85,7 +85,10 @@ def _master(
     routes = routes_q.get(timeout=30) if routes_q is not None else None
     until = time.monotonic() + seconds
     cpu0, wall0 = time.process_time(), time.monotonic()
-    stop = lambda: done.value or time.monotonic() > until  # noqa: E731
+
+    def stop() -> bool:
+        return bool(done.value) or time.monotonic() > until
+
     link = serve_master(master, sock, stop, loss, native=native, routes=routes)
     cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
     sock.close()
