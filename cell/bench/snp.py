@@ -40,7 +40,10 @@ WARMUP_S = 0.5  # of a module's cycles after it started running: its servo settl
 # end, and six A's at once queue behind each other (0.7-1.6% missed in three runs at 0 us against
 # 0.06-0.18% at 30 us, which the slides' 0.05 ms a joint allows)
 SLOT_NS = 30_000
-ROUTER_PRIORITY = 85  # the routers' process: over the master's and modules' 80 (_place), as a switch's
+# the routers' process: over the master's and modules' 80 (_place), as a switch's, on the master's
+# core (whose work an exchange is short; on the modules' core, behind their polling, 20 % of the last
+# slot's exchanges missed, against 0.3 % here)
+ROUTER_PRIORITY, ROUTER_CPUS = 85, [0]
 
 
 def _place(core: int) -> None:
@@ -150,7 +153,8 @@ def _modules(
                 "unfollowed": m.unfollowed,  # beacons left out, their follow-up lost
                 "two_step_link": bool(s.link and s.link.two_step),
                 "lost_on_link": s.link.lost if s.link else 0,
-                "failovers": getattr(s.link, "failovers", 0),  # (over routers: to the other one)
+                "failovers": getattr(s.link, "failovers", 0),  # (over routers: to the other one,
+                "router": getattr(s.link, "active", None),  # and the one it ended on: 0 R1, 1 R2)
                 "rmap": m.rmap_init.counters.as_dict() if m.rmap_init else {},
             }
         )
@@ -166,7 +170,8 @@ def _routers(ctx: Any, master_port: int, module_ports: list[int], seconds: float
     here, there = ctx.Pipe()
     peers = [("127.0.0.1", master_port), *(("127.0.0.1", p) for p in module_ports)]
     until = time.monotonic() + seconds + 40
-    ctx.Process(target=routers_main, args=(there, peers, until, ROUTER_PRIORITY), daemon=True).start()
+    args = (there, peers, until, ROUTER_PRIORITY, None, ROUTER_CPUS)
+    ctx.Process(target=routers_main, args=args, daemon=True).start()
     there.close()
     return here, here.recv()
 
@@ -352,7 +357,8 @@ VDC_CYCLE_KEYS = (
 )
 VDC_PERIOD_PY_NS = 4_000_000  # the Python cycle's period in the VDC baseline that keeps up
 MASS_RUNS = ("_mass_error", "_adapted")  # (the modules' inertia BELIEVED of the truth; adapted)
-CUT_MODULE = 3  # the routed run's module whose link to R1 is cut
+CUT_MODULE = 3  # the routed runs' module whose link to R1 is cut
+ROUTED_RUNS = ("_routed", "_python_routed")
 
 
 def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[str, VdcCycleFigures]:
@@ -363,8 +369,9 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
     ("_local": one exchange a cycle), in C and in Python at 1 ms, and with the neighbour's force of
     this cycle passed in from the tip ("_neighbour", in C); and in C with the modules' mass
     properties BELIEVED of the truth, without ("_mass_error") and with ("_adapted") their adaptation;
-    and over the two routers of cell.snp.routed in Python at VDC_PERIOD_PY_NS ("_python_routed"),
-    the link between R1 and module 4 cut halfway along the path (its failover: `failover_ms`).
+    and over the two routers of cell.snp.routed in C at 1 ms ("_routed") and in Python at
+    VDC_PERIOD_PY_NS ("_python_routed"), the link between R1 and module 4 cut halfway along the
+    path (its failover: `failover_ms`).
     Each its cycle's figures and the tool's error over the path."""
     from cell.modular.cycle import SETTLE_NS
     from cell.modular.experiment import ADAPT, BELIEVED
@@ -389,6 +396,7 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
         "_neighbour": (config, True, "neighbour"),
         "_mass_error": (config, True, "master"),
         "_adapted": (config, True, "master"),
+        "_routed": (config, True, "master"),
         "_python_routed": (slow, False, "master"),
     }
     cut = (1.2 + SETTLE_NS / 1e9 + float(ref.t[-1]) / 2, CUT_MODULE)
@@ -399,7 +407,7 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
         wrong = (
             {"believed": BELIEVED, "adapt": ADAPT if key == "_adapted" else 0.0} if key in MASS_RUNS else {}
         )
-        net = {"routed": True, "cut": cut} if key == "_python_routed" else {}
+        net = {"routed": True, "cut": cut} if key in ROUTED_RUNS else {}
         slots = chain(6, rng, "snp", cd=cd, **wrong)
         r = trial(slots, seconds, config=cfg, native=in_c, reference=ref, **net)  # type: ignore[arg-type]
         err = r["tool_error_mm"]
@@ -523,9 +531,7 @@ def run(
         "vdc_cycle": {k: dataclasses.asdict(v) for k, v in in_cycle.items()},
         "path_failover_ms": failover_ms(),
         # (the same in the running cycle over routers: a cut link to the module's first whole cycle)
-        "cycle_path_failover_ms": in_cycle["_python_routed"].failover_ms
-        if "_python_routed" in in_cycle
-        else None,
+        "cycle_path_failover_ms": next((in_cycle[k].failover_ms for k in ROUTED_RUNS if k in in_cycle), None),
         **{f"cd_cycle_us_{w}": cd_cycle_us(w, slaves) for w in ("master", "neighbour", "local")},
         "vdc": [dataclasses.asdict(row) for row in vdc.rows] if vdc is not None else [],
         "slaves": slaves,

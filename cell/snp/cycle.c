@@ -75,6 +75,7 @@ typedef struct {
     /* counted since Python last took them */
     int64_t missed_ab, missed_cd, overruns, sent, lost, errors, late, n_records;
     int64_t records[RECORDS][4]; /* scheduled, T1, end (master ns), exchanges guessed */
+    route_t route; /* over the two routers (route.on), its link's state */
 } module_t;
 
 /* --- clocks: host CLOCK_MONOTONIC -> the module's raw oscillator -> the master's time --------- */
@@ -92,7 +93,10 @@ static int64_t host_of(const module_t *m, int64_t master) {
 static uint64_t rng_state = 0x9E3779B97F4A7C15ull; /* the links' losses */
 
 static void send_master(module_t *m, const uint8_t *p, size_t n) {
-    send_lossy((int)m->fd, p, n, m->master_ip, m->master_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+    if (m->route.on) /* (the master: master_port is its path on the routers) */
+        route_send(&m->route, (int)m->fd, p, n, m->master_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+    else
+        send_lossy((int)m->fd, p, n, m->master_ip, m->master_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
 }
 
 /* --- the cycle (JointModule._start, _second, _answered, _expired, _finish) -------------------- */
@@ -248,7 +252,10 @@ static void pass_in(module_t *m) {
         put32(at, (uint32_t)v->g_in_ids[k]), putf(at + 4, out[k]), put64(at + 8, (uint64_t)(cycle_no(m) * m->period_ns));
     }
     seal(p, sizeof p);
-    send_lossy((int)m->fd, p, sizeof p, v->nb_ip, v->nb_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+    if (m->route.on) /* (nb_port: its inboard neighbour's path on the routers) */
+        route_send(&m->route, (int)m->fd, p, sizeof p, v->nb_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+    else
+        send_lossy((int)m->fd, p, sizeof p, v->nb_ip, v->nb_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
 }
 
 static void finish(module_t *m, int64_t now) {
@@ -420,7 +427,7 @@ int snp_cycle_run(module_t **mods, int n, int64_t until, int64_t mono_of_real, i
     if (n > MAX_MODULES) return -E2BIG;
     for (int i = 0; i < n; i++) fds[i].fd = (int)mods[i]->fd, fds[i].events = POLLIN;
     int64_t spin_until = 0;
-    uint8_t p[2048];
+    uint8_t p[2048], q[2048];
     spin_t spin;
     spin_init(&spin);
     int ret = RUN_UNTIL;
@@ -460,7 +467,14 @@ int snp_cycle_run(module_t **mods, int n, int64_t until, int64_t mono_of_real, i
             ssize_t got;
             while ((got = receive((int)m->fd, p, sizeof p, mono_of_real, &ip, &port, &at)) >= 0) {
                 spin_until = host_now() + spin_ns;
-                if (m->active && fast_path(m, p, got, at)) continue;
+                const uint8_t *d = p;
+                ssize_t len = got;
+                if (m->route.on) { /* (its return address out; the datagram as it came to Python) */
+                    int64_t from;
+                    if ((len = route_in(&m->route, p, got, ip, port, q, &from)) < 0) continue;
+                    d = q;
+                }
+                if (m->active && fast_path(m, d, len, at)) continue;
                 spin_sleep(&spin);
                 return hand(h, i, p, got, at, ip, port, buf, cap);
             }

@@ -66,6 +66,7 @@ typedef struct {
     int64_t events[EVENTS][3]; /* t, EVENT_*, joint */
     int64_t n_pending, seq;
     pending_t pending[QUEUE]; /* by deadline, then arrival */
+    route_t route; /* over the two routers (route.on): a module's address is (0, its return address) */
 } master_t;
 
 static uint64_t rng_state = 0xD1B54A32D192ED03ull; /* the link's losses */
@@ -199,7 +200,10 @@ static double vdc_tau_r(const vdc_t *v, int j) {
 /* --- admitting, queueing and serving (Handler.admit, enqueue, serve) -------------------------- */
 
 static void send_to(master_t *m, const uint8_t *p, size_t n, int64_t ip, int64_t port) {
-    send_lossy((int)m->fd, p, n, ip, port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+    if (m->route.on && ip == 0)
+        route_send(&m->route, (int)m->fd, p, n, port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+    else
+        send_lossy((int)m->fd, p, n, ip, port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
 }
 
 static void deny(master_t *m, const pending_t *q) {
@@ -387,6 +391,7 @@ int snp_master_run(master_t *m, int64_t until, int64_t mono_of_real, int64_t spi
     struct pollfd pfd = {.fd = (int)m->fd, .events = POLLIN};
     int64_t spin_until = 0;
     uint8_t p[2048];
+    uint8_t q[2048];
     spin_t spin;
     spin_init(&spin);
     int ret = RUN_UNTIL;
@@ -398,7 +403,13 @@ int snp_master_run(master_t *m, int64_t until, int64_t mono_of_real, int64_t spi
         int any = 0;
         while ((got = receive((int)m->fd, p, sizeof p, mono_of_real, &ip, &port, &at)) >= 0) {
             any = 1;
-            if (fast_path(m, p, got, ip, port, at)) continue;
+            if (m->route.on) { /* a module is (0, its return address); the datagram as it came to Python */
+                int64_t from;
+                ssize_t len = route_in(&m->route, p, got, ip, port, q, &from);
+                if (len < 0 || fast_path(m, q, len, 0, from, at)) continue;
+            } else if (fast_path(m, p, got, ip, port, at)) {
+                continue;
+            }
             serve(m);
             spin_sleep(&spin);
             return hand(h, 0, p, got, at, ip, port, buf, cap);

@@ -24,7 +24,7 @@ from cell.snp.modular import _IDS, JointModule, Master, Node, NodeState
 from cell.snp.modular import ModuleState as ModuleLife  # (ModuleState here: the C mirror)
 
 HERE = Path(__file__).parent
-SOURCES = (HERE / "cycle.c", HERE / "master.c")  # one library; both include wire.h
+SOURCES = (HERE / "cycle.c", HERE / "master.c", HERE / "router.c")  # one library; all include wire.h
 HEADERS = (HERE / "wire.h",)
 RECORDS = 256
 RUN_UNTIL, RUN_HANDED, RUN_RECORDS_FULL, RUN_EVENT = 0, 1, 2, 3
@@ -43,6 +43,62 @@ class PlantState(ctypes.Structure):
         ),
         ("kp", _D),
         ("kd", _D),
+    ]
+
+
+class RouteState(ctypes.Structure):
+    """route_t of wire.h: a node's link over the two routers in C (cell.snp.routed.RoutedLink)."""
+
+    _fields_ = [
+        ("on", _I),
+        ("own", _I),
+        ("ip", _I * 2),
+        ("port", _I * 2),
+        *((name, _I) for name in ("active", "unheard", "failover_after", "failovers", "refused")),
+        ("via", _I * 256),
+    ]
+
+    def take(self, link: Any) -> None:
+        """The Python link's state into C (a RoutedLink: on; else off): before each C run, as
+        `give` after it, so that each side goes on from what the other did."""
+        from cell.snp.routed import RoutedLink
+
+        if not isinstance(link, RoutedLink):
+            self.on = 0
+            return
+        self.on, self.own = 1, link.own[0]
+        for i, (host, port) in enumerate(link.links):
+            self.ip[i], self.port[i] = _ip(host), port
+        self.active, self.unheard, self.failover_after = link.active, link.unheard, link.failover_after or 0
+        if not self.failover_after:  # (the master's: where it last heard each module)
+            for ret, addr in link.via.items():
+                self.via[ret[0]] = link.links.index(addr)
+
+    def give(self, link: Any) -> None:
+        """C's state of the link back into the Python link (its counters added)."""
+        if not self.on:
+            return
+        link.active, link.unheard = self.active, self.unheard
+        link.failovers, link.refused = link.failovers + self.failovers, link.refused + self.refused
+        self.failovers = self.refused = 0
+        if not self.failover_after:  # (R1, index 0: where an address not heard yet goes, on either side)
+            link.via.update({(k,): link.links[v] for k, v in enumerate(self.via) if v or (k,) in link.via})
+
+
+ROUTER_PORTS, ROUTERS = 31, 2
+
+
+class RoutersState(ctypes.Structure):
+    """routers_t of router.c: the two routers of cell.snp.routed in C."""
+
+    _fields_ = [
+        ("n_ports", _I),
+        ("fd", (_I * ROUTER_PORTS) * ROUTERS),
+        ("peer_ip", _I * ROUTER_PORTS),
+        ("peer_port", _I * ROUTER_PORTS),
+        ("up", (_I * ROUTER_PORTS) * ROUTERS),
+        *((name, _I * ROUTERS) for name in ("forwarded", "config", "bad_port", "link_down", "no_route")),
+        ("dropped", _I),
     ]
 
 
@@ -97,6 +153,7 @@ class ModuleState(ctypes.Structure):
         *((name, _I) for name in ("missed_now", "missed_ab", "missed_cd", "overruns", "sent", "lost")),
         *((name, _I) for name in ("errors", "late", "n_records")),
         ("records", (_I * 4) * RECORDS),
+        ("route", RouteState),
     ]
 
 
@@ -158,6 +215,7 @@ class MasterState(ctypes.Structure):
         ("n_pending", _I),
         ("seq", _I),
         ("pending", (_I * 13) * QUEUE),
+        ("route", RouteState),
     ]
 
 
@@ -168,6 +226,11 @@ class Handed(ctypes.Structure):
 def _ip(host: str) -> int:
     """An IPv4 address as the C side holds it (host order)."""
     return int.from_bytes(socket.inet_aton(host), "big")
+
+
+def _c_addr(addr: Any) -> tuple[int, int]:
+    """A node's address as the C side holds it: (ip, port), or over routers (0, its return address)."""
+    return (0, addr[0]) if len(addr) == 1 else (_ip(addr[0]), addr[1])
 
 
 def _sender(h: Handed) -> tuple[str, int]:
@@ -191,7 +254,16 @@ def library() -> ctypes.CDLL:
     lib.snp_master_run.argtypes = [
         ctypes.POINTER(MasterState), _I, _I, _I, _I, ctypes.c_char_p, _I, ctypes.POINTER(Handed),
     ]  # fmt: skip
-    for init, mirror in ((lib.snp_cycle_init, ModuleState), (lib.snp_master_init, MasterState)):
+    lib.snp_routers_run.argtypes, lib.snp_routers_run.restype = (
+        [ctypes.POINTER(RoutersState), _I, _I],
+        ctypes.c_int,
+    )
+    lib.snp_routers_size.argtypes, lib.snp_routers_size.restype = [], ctypes.c_int
+    for init, mirror in (
+        (lib.snp_cycle_init, ModuleState),
+        (lib.snp_master_init, MasterState),
+        (lambda _: lib.snp_routers_size(), RoutersState),
+    ):
         size = init(0)
         if size != ctypes.sizeof(mirror):
             raise NativeUnavailable(f"{mirror.__name__} is {ctypes.sizeof(mirror)} bytes, {size} in C")
@@ -266,7 +338,7 @@ class NativeCycles:
         v.neighbour, v.tip, v.q = m.cd == "neighbour", m.joint == m.plant.arm.dof - 1, m.q
         v.body_pos[:], v.body_rot[:] = body.pos, body.rot.ravel()
         if inboard is not None and m.joint > 0:
-            v.nb_ip, v.nb_port, v.g_in_ids[:] = _ip(inboard[0]), inboard[1], outboard_ids(m.joint - 1)
+            (v.nb_ip, v.nb_port), v.g_in_ids[:] = _c_addr(inboard), outboard_ids(m.joint - 1)
         v.k[:] = (*[g.body_rot * mass] * 3, *[g.body_lin * mass] * 3)
         if m.b is not None:
             v.b[:], v.have_b = b_values(m.b), 1
@@ -291,15 +363,16 @@ class NativeCycles:
     def push(self, st: ModuleState, m: JointModule, master: Any, inboard: Any = None) -> None:
         """What the Python module decided since the last run: its servo, its configuration and,
         once it runs with transport snp, the cycle handed to C (where it then stays).  inboard: the
-        address of the module it is plugged to (a "neighbour" [C, D] passes its force there)."""
+        address of the module it is plugged to (a "neighbour" [C, D] passes its force there); over
+        routers, addresses are return addresses (cell.snp.routed)."""
         s = m.servo
         st.servo_anchor, st.servo_base, st.servo_rate = s.anchor_raw, s.base, s.rate
         if st.active or m.state != ModuleLife.RUNNING or m.transport != "snp" or master is None:
             return
         c = m.config
         assert c is not None
-        ip = _ip(master[0])
-        st.master_ip, st.master_port, st.source_process = ip, master[1], m.source_process
+        st.master_ip, st.master_port = _c_addr(master)
+        st.source_process = m.source_process
         st.ids[:] = _IDS[m.joint]
         st.period_ns, st.phase_ns, st.budget_ns = c.period_ns, c.phase_ns, c.budget_ns
         st.pos, st.vel, st.v_des, st.torque = m.pos, m.vel, m.v_des, m.torque
@@ -429,8 +502,7 @@ class NativeMaster:
                 e.state = NODE_OFF
                 continue
             if self._node[j] is not n or e.state not in (NODE_INCLUDED, NODE_SUSPECT):  # new to C
-                host, port = n.addr
-                e.ip, e.port, e.phase_ns, e.ids[:] = _ip(host), port, n.phase_ns, _IDS[j]
+                (e.ip, e.port), e.phase_ns, e.ids[:] = _c_addr(n.addr), n.phase_ns, _IDS[j]
                 e.pos, e.vel, e.force, e.at = model.pos[j], model.vel[j], model.force[j], model.at[j]
             e.state, e.heard_ns, e.silent_cycles = _NODE_STATE[n.state], n.heard_ns, n.silent_cycles
             e.checked, e.a_cycle = n.checked, ms._a_cycle.get(j, -1)

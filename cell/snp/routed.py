@@ -108,7 +108,14 @@ class RoutedLink(Link):
         return bytes(addr) + with_return(data, self.own), router
 
 
-def routers_main(conn: Any, peers: list[Any], until_s: float, rt_priority: int = 0) -> None:
+def routers_main(
+    conn: Any,
+    peers: list[Any],
+    until_s: float,
+    rt_priority: int = 0,
+    native: bool | None = None,
+    cpus: list[int] | None = None,
+) -> None:
     """Both routers until until_s (monotonic seconds) or the pipe says stop: port 1 of each joined
     to peers[0] (the master), port 2 + k to peers[1 + k] (module k).  Sends back each router's port
     addresses ([R1's, R2's], per port from 1), then takes ("cut", router, port) orders: that link
@@ -116,22 +123,50 @@ def routers_main(conn: Any, peers: list[Any], until_s: float, rt_priority: int =
     ("stop", ...): its counters go back.
     rt_priority: its SCHED_FIFO priority where allowed, over the nodes' (a router forwards as the
     packets come: under nodes that poll without sleeping at real-time priority, one at the normal
-    policy would never run while they wait on it)."""
+    policy would never run while they wait on it); cpus: where it runs (None: anywhere).  native:
+    the routing in C (cell/snp/router.c; None: where it builds), else spacewire.Router in Python."""
     if rt_priority:
         from cell.sched import place
 
-        place([], rt_priority, -10)
-    routers, socks, where = [], {}, {}
+        place(cpus or [], rt_priority, -10)
+    if native is None:
+        from cell.snp.native import available
+
+        native = available() is None
+    routers = [Router(r + 1, len(peers)) for r in range(ROUTERS)]
+    socks = {}
     for r in range(ROUTERS):
-        router = Router(r + 1, len(peers))
-        routers.append(router)
         for port in range(1, len(peers) + 1):
             s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             s.bind(("127.0.0.1", 0))
             s.setblocking(False)
             socks[r, port] = s
-            where[s.fileno()] = (r, port)
     conn.send([[socks[r, p].getsockname() for p in range(1, len(peers) + 1)] for r in range(ROUTERS)])
+    counts: dict[str, Any] = {}
+    try:
+        run = _route_in_c if native else _route_in_python
+        counts = run(conn, peers, socks, routers, until_s)
+    finally:
+        conn.send(counts)
+        for s in socks.values():
+            s.close()
+
+
+def _order(conn: Any, routers: list[Router]) -> tuple[int, int] | None:
+    """The caller's order: a link cut (router index, port: done on the Routers), or None to stop."""
+    try:
+        what, r, port = conn.recv()
+    except EOFError:
+        return None
+    if what != "cut":
+        return None
+    routers[r].up.discard(port)
+    conn.send(("cut", r, port))  # (done: what comes after meets it cut)
+    return r, port
+
+
+def _route_in_python(conn: Any, peers: list[Any], socks: dict, routers: list[Router], until_s: float) -> dict:
+    where = {s.fileno(): key for key, s in socks.items()}
     ep = select.epoll()
     for s in socks.values():
         ep.register(s.fileno(), select.EPOLLIN)
@@ -141,17 +176,8 @@ def routers_main(conn: Any, peers: list[Any], until_s: float, rt_priority: int =
         while time.monotonic() < until_s:
             for fd, _ in ep.poll(0.05):
                 if fd == conn.fileno():
-                    if not conn.poll():
-                        continue
-                    try:
-                        what, r, port = conn.recv()
-                    except EOFError:
-                        return
-                    if what == "stop":
-                        return
-                    if what == "cut":
-                        routers[r].up.discard(port)
-                        conn.send(("cut", r, port))  # (done: what comes after meets it cut)
+                    if conn.poll() and _order(conn, routers) is None:
+                        return _counts(dropped, routers)
                     continue
                 r, port = where[fd]
                 s, router = socks[r, port], routers[r]
@@ -168,7 +194,37 @@ def routers_main(conn: Any, peers: list[Any], until_s: float, rt_priority: int =
                             # by their ports here, not by exploring the routers)
                             socks[r, out_port].sendto(pkt.data, peers[out_port - 1])
     finally:
-        conn.send({"dropped": dropped, **{f"R{r.id}": r.counters.as_dict() for r in routers}})
-        for s in socks.values():
-            s.close()
         ep.close()
+    return _counts(dropped, routers)
+
+
+def _route_in_c(conn: Any, peers: list[Any], socks: dict, routers: list[Router], until_s: float) -> dict:
+    import ctypes
+
+    from cell.snp.native import RoutersState, _ip, library
+
+    lib = library()
+    st = RoutersState(n_ports=len(peers))
+    for (r, port), s in socks.items():
+        st.fd[r][port - 1], st.up[r][port - 1] = s.fileno(), 1
+    for i, (host, port) in enumerate(peers):
+        st.peer_ip[i], st.peer_port[i] = _ip(host), port
+    until_ns = int(until_s * 1e9)
+    while lib.snp_routers_run(ctypes.byref(st), until_ns, conn.fileno()) == 1:
+        if (cut := _order(conn, routers)) is None:
+            break
+        st.up[cut[0]][cut[1] - 1] = 0
+    for k, router in enumerate(routers):  # (C's counts, under spacewire.RouterCounters' names)
+        c = router.counters
+        c.forwarded, c.config = st.forwarded[k], st.config[k]
+        for name, n in (
+            ("bad_port", st.bad_port[k]),
+            ("link_down", st.link_down[k]),
+            ("no_route", st.no_route[k]),
+        ):
+            c.dropped[name] = n
+    return _counts(st.dropped, routers)
+
+
+def _counts(dropped: int, routers: list[Router]) -> dict:
+    return {"dropped": dropped, **{f"R{r.id}": r.counters.as_dict() for r in routers}}

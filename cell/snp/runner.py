@@ -249,8 +249,8 @@ def serve_master(
     keep coming (spin_ns after the last one).  native: the cycle's queries and FDIR's watch run
     in C (cell.snp.native.NativeMaster, on the same schedule), the rest here, between its runs.
     routes: its links to the two routers of a routed network (cell.snp.routed; in Python only)."""
-    if native and routes is None:
-        return _serve_master_native(master, sock, stop, loss, spin_ns, stop_every_ns)
+    if native:
+        return _serve_master_native(master, sock, stop, loss, spin_ns, stop_every_ns, routes)
     link = _master_link(master, sock, loss, routes)
     alarm = Alarm()
     ep = select.epoll()
@@ -301,11 +301,17 @@ def serve_master(
 
 
 def _serve_master_native(
-    master: Master, sock: socket.socket, stop: Callable[[], bool], loss: float, spin_ns: int, coarse: int
+    master: Master,
+    sock: socket.socket,
+    stop: Callable[[], bool],
+    loss: float,
+    spin_ns: int,
+    coarse: int,
+    routes: tuple[Any, Any] | None = None,
 ) -> Link:
     from cell.snp.native import RUN_HANDED, NativeMaster
 
-    link = _master_link(master, sock, loss)
+    link = _master_link(master, sock, loss, routes)
     clock = time.monotonic_ns
     lead, mono_of_real = LEAD_NS if spin_ns else 0, realtime_offset()
     fast = NativeMaster(master, sock.fileno(), spin_ns=spin_ns, lead_ns=lead, mono_of_real=mono_of_real)
@@ -315,12 +321,15 @@ def _serve_master_native(
         while not stop():
             due = master.next_due()
             fast.push()
+            fast.st.route.take(link)  # (over routers: which router each module was last heard on)
             got = fast.run(min(due, master.in_management_slot(clock() + coarse)))
             fast.pull(link)
+            fast.st.route.give(link)
             out: list[tuple[bytes, Any]] = []
             if got is not None and got[0] == RUN_HANDED:
                 _, data, at, addr = got
-                out += master.receive(data, addr, at)
+                if (taken := link.received(data, addr)) is not None:
+                    out += master.receive(*taken, at)
             out += master.serve()  # (queries of other shapes, through the handler)
             for data, addr in out:
                 link.send(data, addr)
@@ -429,12 +438,15 @@ class Slot:
             self.clock_errors.append(m.servo.now(osc.raw(now)) - now)
 
 
-def _inboard(s: Slot, slots: list[Slot]) -> tuple[str, int] | None:
+def _inboard(s: Slot, slots: list[Slot]) -> tuple | None:
     """Where a "neighbour" [C, D] passes its force: the module it is plugged to, if that one takes
     it (computes its [C, D] with its neighbour's too); None on the base, or for any other."""
-    return next(
-        (("127.0.0.1", o.port) for o in slots if o.module_id == s.plugged_to and o.cd == "neighbour"), None
-    )
+    for o in slots:
+        if o.module_id == s.plugged_to and o.cd == "neighbour":
+            return (
+                (o.route_port,) if o.routes is not None else ("127.0.0.1", o.port)
+            )  # (over routers: its path)
+    return None
 
 
 def _next_sample(now: int, sample_ns: int, grid: tuple[int, int] | None) -> int:
@@ -616,10 +628,6 @@ def _run_native(
 
     if any(s.transport != "snp" for s in slots):
         raise ValueError("the C cycle runs transport snp only (the RMAP baseline runs in Python)")
-    if any(s.routes is not None for s in slots):
-        raise ValueError(
-            "the cycle over routers runs in Python (the C cycle's sockets reach their peers directly)"
-        )
     t0 = time.monotonic_ns()
     cycles = NativeCycles(
         spin_ns=SPIN_NS if spin else 0, lead_ns=LEAD_NS if spin else 0, mono_of_real=realtime_offset()
@@ -680,7 +688,11 @@ def _run_native(
             for s in live:
                 if s.module is not None and s.module.state == ModuleState.RUNNING:
                     until = min(until, s.next_sample)
+            for s in live:  # (over routers: the link's state, Python's and C's in turn)
+                cycles.state(s.sock.fileno()).route.take(s.link)  # type: ignore[union-attr]
             got = cycles.run([s.sock.fileno() for s in live], until)  # type: ignore[union-attr]
+            for s in live:
+                cycles.state(s.sock.fileno()).route.give(s.link)  # type: ignore[union-attr]
             if got is not None and got[0] == RUN_HANDED:
                 _, fd, data, at, addr = got
                 s = by_fd[fd]

@@ -186,6 +186,62 @@ static inline int hand(handed_t *h, int64_t index, const uint8_t *p, ssize_t got
     return RUN_HANDED;
 }
 
+/* --- a node's link over the two routers (cell.snp.routed.RoutedLink) ------------------------- */
+
+/* native.py's RouteState mirrors it.  A node sends `path + packet` with its own return address in
+ * the packet's header, to the router port its socket is joined to; it takes the return address out
+ * of what comes in (the sender's name from then on).  A module moves to the other router after
+ * failover_after sends unheard; the master answers each return address through the router it
+ * last heard it on. */
+typedef struct {
+    int64_t on, own;                        /* on 0: direct links; own: its return address (1 byte) */
+    int64_t ip[2], port[2];                 /* the router ports its socket is joined to (R1, R2) */
+    int64_t active, unheard, failover_after, failovers, refused;
+    int64_t via[256];                       /* per return address: the router last heard it on */
+} route_t;
+
+/* path + p with own as its return address (p has none): its size (n + 2), and the router to send to */
+static inline size_t route_out(route_t *r, const uint8_t *p, size_t n, int64_t path, uint8_t *out, int *link) {
+    if (r->failover_after) {
+        if (++r->unheard > r->failover_after) r->active = 1 - r->active, r->unheard = 0, r->failovers++;
+        *link = (int)r->active;
+    } else {
+        *link = (int)r->via[path & 0xFF];
+    }
+    out[0] = (uint8_t)path, out[1] = p[0], out[2] = p[1], out[3] = 1, out[4] = (uint8_t)r->own;
+    memcpy(out + 5, p + 3, 8);
+    out[13] = crc8(out + 1, 12);
+    memcpy(out + 14, p + 12, n - 12);
+    return n + 2;
+}
+
+/* p (n bytes from ip:port) into q without its return address (one byte, *ret), the header CRC
+ * made anew: its size, or -1 if it is not from one of the links or its header does not hold */
+static inline ssize_t route_in(route_t *r, const uint8_t *p, ssize_t n, int64_t ip, int64_t port, uint8_t *q,
+                               int64_t *ret) {
+    int link = r->ip[0] == ip && r->port[0] == port ? 0 : r->ip[1] == ip && r->port[1] == port ? 1 : -1;
+    if (link < 0 || n < 16 || p[2] != 1 || crc8(p, 12) != p[12]) {
+        r->refused++;
+        return -1;
+    }
+    *ret = p[3];
+    memcpy(q, p, 2), q[2] = 0;
+    memcpy(q + 3, p + 4, 8);
+    q[11] = crc8(q, 11);
+    memcpy(q + 12, p + 13, (size_t)n - 13);
+    r->via[*ret] = link, r->unheard = 0;
+    return n - 1;
+}
+
+static inline void route_send(route_t *r, int fd, const uint8_t *p, size_t n, int64_t path, double loss,
+                              uint64_t *rng, int64_t *sent, int64_t *lost, int64_t *errors) {
+    uint8_t out[2048];
+    int link;
+    if (n + 2 > sizeof out) return;
+    size_t size = route_out(r, p, n, path, out, &link);
+    send_lossy(fd, out, size, r->ip[link], r->port[link], loss, rng, sent, lost, errors);
+}
+
 /* --- VDC's spatial algebra (cell.modular.arm), shared by master.c and cycle.c --------------- */
 
 static inline void cross(const double *a, const double *b, double *out) {
