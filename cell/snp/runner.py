@@ -321,10 +321,12 @@ def _serve_master_native(
         while not stop():
             due = master.next_due()
             fast.push()
-            fast.st.route.take(link)  # (over routers: which router each module was last heard on)
+            if routes is not None:  # (over routers: which router each module was last heard on)
+                fast.st.route.take(link)
             got = fast.run(min(due, master.in_management_slot(clock() + coarse)))
             fast.pull(link)
-            fast.st.route.give(link)
+            if routes is not None:
+                fast.st.route.give(link)
             out: list[tuple[bytes, Any]] = []
             if got is not None and got[0] == RUN_HANDED:
                 _, data, at, addr = got
@@ -688,10 +690,11 @@ def _run_native(
             for s in live:
                 if s.module is not None and s.module.state == ModuleState.RUNNING:
                     until = min(until, s.next_sample)
-            for s in live:  # (over routers: the link's state, Python's and C's in turn)
+            routed = [s for s in live if s.routes is not None]
+            for s in routed:  # (over routers: the link's state, Python's and C's in turn)
                 cycles.state(s.sock.fileno()).route.take(s.link)  # type: ignore[union-attr]
             got = cycles.run([s.sock.fileno() for s in live], until)  # type: ignore[union-attr]
-            for s in live:
+            for s in routed:
                 cycles.state(s.sock.fileno()).route.give(s.link)  # type: ignore[union-attr]
             if got is not None and got[0] == RUN_HANDED:
                 _, fd, data, at, addr = got
