@@ -415,12 +415,17 @@ class ModularConfig:
     # master's and each module's, cell.modular.wire), "memory" handed over as they are, "cycle" the
     # SnP cycle itself: its master and modules in processes of their own (cell.modular.processes)
     transport: Literal["snp", "memory", "cycle"]
+    # "cycle"'s datagrams: straight between the nodes' sockets, or through the two routers of
+    # cell.snp.routed (every packet routed by path address, its return address naming its sender)
+    network: Literal["direct", "routed"]
     speed_rad_s: float = _check(_positive)  # joint moves' default peak speed
     suspect_cycles: int = _check(_positive)
     lost_cycles: int = _check(_positive)
     publish_hz: float = _check(lambda v: None if 0 < v <= 500 else f"must be in (0, 500] (got {v})")
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
+        if self.network == "routed" and self.transport != "cycle":
+            raise err("network", 'the routers carry transport "cycle" (the SnP cycle\'s own processes)')
         chain = self.where[self.where.index("neighbour") :] if "neighbour" in self.where else []
         if self.transport == "cycle" and any(w != "neighbour" for w in chain):
             raise err(

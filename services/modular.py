@@ -37,11 +37,11 @@ async def run(ctx: ServiceContext) -> None:
         # where this process may run on two cores: on one, a spinning one keeps the other out)
         robot = CycleRobot(
             np.array(c.q0), where=tuple(c.where), adapt=c.adapt, suspect_cycles=c.suspect_cycles,
-            lost_cycles=c.lost_cycles, spin=len(os.sched_getaffinity(0)) >= 2,
+            lost_cycles=c.lost_cycles, spin=len(os.sched_getaffinity(0)) >= 2, routed=c.network == "routed",
         )  # fmt: skip
         where = "C" if robot.native else "Python"
         ctx.log.info("modular robot: the SnP cycle's master and modules in processes of their own, "
-                     "%g ms cycles in %s", robot.period_ns / 1e6, where)  # fmt: skip
+                     "%g ms cycles in %s, %s links", robot.period_ns / 1e6, where, c.network)  # fmt: skip
     else:
         robot = ModularRobot(
             np.array(c.q0), loss=c.loss, where=tuple(c.where), adapt=c.adapt,

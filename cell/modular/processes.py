@@ -112,16 +112,20 @@ def master_main(
     q0: list[float],
     suspect: int,
     lost_ns: int,
+    net: tuple[int, Any] | None = None,
 ) -> None:
+    """net: over the routers, (its own port, its two links): its modules known by their return
+    addresses (cell.snp.routed)."""
+    from cell.snp.routed import module_port
     from cell.snp.runner import SPIN_NS, serve_master
 
     place([], RT_PRIORITY, -5)
     config = cycle_config(period)
-    sock = open_udp(timestamps=True)
+    sock = open_udp(port=net[0] if net else 0, timestamps=True)
+    where: list[Any] = [(module_port(k),) for k in range(6)] if net else [("127.0.0.1", p) for p in ports]
     master = VdcMaster(
-        [("127.0.0.1", p) for p in ports], config, time.monotonic_ns, hold(np.array(q0)),
-        suspect_cycles=suspect, lost_ns=lost_ns,
-    )  # fmt: skip
+        where, config, time.monotonic_ns, hold(np.array(q0)), suspect_cycles=suspect, lost_ns=lost_ns
+    )
     master.vdc.start_ns = 0  # (holding from the start: no settling wait)
     parent, nxt = os.getppid(), 0
 
@@ -161,8 +165,9 @@ def master_main(
         return False
 
     try:
+        spin_ns, routes = SPIN_NS if spin else 0, net[1] if net else None
         serve_master(
-            master, sock, between, spin_ns=SPIN_NS if spin else 0, native=native, stop_every_ns=REPORT_NS // 2
+            master, sock, between, spin_ns=spin_ns, native=native, stop_every_ns=REPORT_NS // 2, routes=routes
         )
     finally:
         sock.close()
@@ -180,6 +185,7 @@ def modules_main(
     q0: list[float],
     where: tuple[str, ...],
     adapt: float,
+    routes: list[Any] | None = None,
     seed: int = 1,
 ) -> None:
     from cell.snp.runner import Slot, run_modules
@@ -191,6 +197,11 @@ def modules_main(
         s["module_id"]: s | {"port": p, "cd": cd, "adapt": adapt}  # (cd: "master" or "local")
         for s, p, cd in zip(chain(6, random.Random(seed), module0=MODULE0), ports, where, strict=True)
     }
+    if routes is not None:  # (over the routers: module k's links and its port on them)
+        from cell.snp.routed import module_port
+
+        for k, s in enumerate(spec.values()):
+            s["routes"], s["route_port"] = routes[k], module_port(k)
     slots = [Slot(**s) for s in spec.values()]
     parent, t0, taken, cycles_taken = os.getppid(), time.monotonic_ns(), 0, {}
 
@@ -259,11 +270,13 @@ class CycleRobot(ArmRobot):
         native: bool | None = None,
         period_ns: int | None = None,
         spin: bool = True,
+        routed: bool = False,
     ) -> None:
         """native: the cycle's hot paths in C (None: if they build here); period_ns: the cycle's
         (None: 1 ms in C, PYTHON_PERIOD_NS in Python); spin: the processes poll without sleeping
         through each cycle's exchanges (about half a core each at 1 ms; without, each datagram
-        waits for a wake-up and more exchanges miss)."""
+        waits for a wake-up and more exchanges miss); routed: every datagram through the two
+        routers of cell.snp.routed, in a third process."""
         from cell.snp.native import available
 
         super().__init__(where)
@@ -291,9 +304,13 @@ class CycleRobot(ArmRobot):
         # (the master's FDIR counts time; a module syncing its clock is silent for up to its
         # beacons' period between time packets: never under the master's own default)
         lost_ns = max(lost_cycles * self.period_ns, LOST_NS_MIN)
+        self._routers: tuple[Any, Any] | None = None
+        net, links = None, None
+        if routed:
+            net, links = self._start_routers(ctx, ports)
         for target, args in (
-            (master_main, (ports, self.native, self.period_ns, spin, list(q0), suspect_cycles, lost_ns)),
-            (modules_main, (ports, self.native, self.period_ns, spin, list(q0), tuple(where), adapt)),
+            (master_main, (ports, self.native, self.period_ns, spin, list(q0), suspect_cycles, lost_ns, net)),
+            (modules_main, (ports, self.native, self.period_ns, spin, list(q0), tuple(where), adapt, links)),
         ):
             here, there = ctx.Pipe()
             p = ctx.Process(target=target, args=(there, *args), daemon=True)
@@ -301,6 +318,26 @@ class CycleRobot(ArmRobot):
             there.close()
             self._conns.append(here)
             self._procs.append(p)
+
+    def _start_routers(self, ctx: Any, ports: list[int]) -> tuple[tuple[int, Any], list[Any]]:
+        """The routers' process (cell.snp.routed), over the cycle's two (as a switch: on their core,
+        at a priority over theirs): (the master's port and links, each module's links)."""
+        from cell.snp.routed import routers_main
+
+        master_port = free_ports(1)[0]
+        peers = [("127.0.0.1", master_port), *(("127.0.0.1", p) for p in ports)]
+        here, there = ctx.Pipe()
+        p = ctx.Process(
+            target=routers_main, args=(there, peers, time.monotonic() + 1e9, RT_PRIORITY + 5), daemon=True
+        )
+        p.start()
+        there.close()
+        if not here.poll(30):
+            raise RuntimeError("the routers' process did not start")
+        by_router = here.recv()
+        self._routers = (p, here)
+        links = [(by_router[0][1 + k], by_router[1][1 + k]) for k in range(6)]
+        return (master_port, (by_router[0][0], by_router[1][0])), links
 
     # -- ArmRobot's ---------------------------------------------------------------------------------
     @property
@@ -370,6 +407,9 @@ class CycleRobot(ArmRobot):
             except (EOFError, OSError):  # (its end of the pipe closed: the process ended)
                 if not self.failed:
                     self.failed = self.stopped = f"the cycle's {('master', 'modules')[i]} process ended"
+        if self._routers is not None and self._routers[1].poll() and not self.failed:  # (it says
+            # nothing until it ends)
+            self.failed = self.stopped = "the cycle's routers process ended"
         return self._progress()
 
     def _master(self, r: dict[str, Any]) -> None:
@@ -445,6 +485,14 @@ class CycleRobot(ArmRobot):
                 p.join(1.0)
         for c in self._conns:
             c.close()
+        if self._routers is not None:
+            p, conn = self._routers
+            with contextlib.suppress(OSError, BrokenPipeError):
+                conn.send(("stop", 0, 0))
+            p.join(1.0)
+            if p.is_alive():
+                p.kill()
+            conn.close()
         shutil.rmtree(self._files, ignore_errors=True)
 
 

@@ -177,6 +177,47 @@ async def test_on_the_snp_cycle_its_processes_move_the_arm_and_a_pulled_module_s
     assert rows.get("/modular/clock_offset_us/j1", 0) > 10 and rows.get("/modular/cycle_us/j6", 0) > 10
 
 
+async def test_over_the_routers_a_task_script_moves_it_and_a_pulled_module_comes_back(
+    start_cell, tmp_path
+) -> None:
+    """[modular] network "routed": the cycle's datagrams through the two routers' process (a third
+    process of the service), each module known by its return address; unplugged and plugged back,
+    a module is found again through them."""
+    cell = await start_cell(
+        run=["bus", "modular"], sections={"modular": {"transport": "cycle", "network": "routed"}}
+    )
+    cfg = str(cell.path)
+    st = json.loads((await asyncio.to_thread(run_cell, "status", "--json", "--config", cfg)).stdout)
+    pid = next(s["last"]["pid"] for s in st["services"] if s["name"] == "modular")
+    assert len([c for c in _children(pid) if b"spawn_main" in _cmdline(c)]) == 3  # master, modules, routers
+    goal = ["0.3", "-1.3", "1.4", "-1.6", "-1.4", "0.2"]
+    for _ in range(100):  # (refused while the modules join the cycle)
+        moved = await asyncio.to_thread(
+            run_cell, "modular", "move", "--joints", *goal, "--speed", "2", "--config", cfg
+        )
+        if moved.returncode != 2:
+            break
+    assert moved.returncode == 0 and moved.stdout.startswith("joints: "), moved.stdout + moved.stderr
+    out = await asyncio.to_thread(run_cell, "modular", "unplug", "j2", "--config", cfg)
+    assert out.returncode == 0, out.stderr
+    for _ in range(100):
+        refused = await asyncio.to_thread(run_cell, "modular", "move", "--joints", *goal, "--config", cfg)
+        if refused.returncode == 2:
+            break
+    assert refused.returncode == 2 and "module j2 unplugged" in refused.stderr, refused.stderr
+    assert (await asyncio.to_thread(run_cell, "modular", "plug", "j2", "--config", cfg)).returncode == 0
+    home = ["0", "-1.5708", "1.5708", "-1.5708", "-1.5708", "0"]
+    for _ in range(100):
+        moved = await asyncio.to_thread(
+            run_cell, "modular", "move", "--joints", *home, "--speed", "2", "--config", cfg
+        )
+        if moved.returncode != 2:
+            break
+    assert moved.returncode == 0, moved.stdout + moved.stderr
+    code, _, _, err = cell.stop()
+    assert code == 0, err[-2000:]
+
+
 def _children(pid: int) -> list[int]:
     """The processes whose parent is pid (from /proc)."""
     out = []

@@ -238,6 +238,9 @@ def test_a_neighbours_cd_on_the_running_cycle_must_run_out_to_the_tip() -> None:
     assert info.value.key == "modular.where" and "must run out to the tip" in info.value.problem
     ok = ["master", "local", "master", "neighbour", "neighbour", "neighbour"]
     assert load_config(overrides={"modular": {"transport": "cycle", "where": ok}}).modular.where == ok
+    with pytest.raises(ConfigError) as info:  # (the routers carry the SnP cycle's own processes)
+        load_config(overrides={"modular": {"transport": "memory", "network": "routed"}})
+    assert info.value.key == "modular.network" and 'transport "cycle"' in info.value.problem
     # (in process, VdcArm takes any mix)
     assert load_config(overrides={"modular": {"where": ["neighbour"] + ["local"] * 5}}).modular.where[0]
 
