@@ -214,6 +214,16 @@ async def test_over_the_routers_a_task_script_moves_it_and_a_pulled_module_comes
         if moved.returncode != 2:
             break
     assert moved.returncode == 0, moved.stdout + moved.stderr
+    # the routers' process killed: the service fails saying so, and is restarted with a new network
+    routers = min(c for c in _children(pid) if b"spawn_main" in _cmdline(c))  # (started first)
+    os.kill(routers, signal.SIGKILL)
+    for _ in range(100):
+        st = json.loads((await asyncio.to_thread(run_cell, "status", "--json", "--config", cfg)).stdout)
+        last = next(s["last"] for s in st["services"] if s["name"] == "modular")
+        if last.get("restarts", 0) >= 1 and last.get("state") == "SERVICE_STATE_RUNNING":
+            break
+        await asyncio.sleep(0.1)
+    assert last.get("restarts", 0) >= 1 and "the cycle's routers process ended" in last["last_error"], last
     code, _, _, err = cell.stop()
     assert code == 0, err[-2000:]
 
