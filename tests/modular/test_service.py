@@ -152,12 +152,7 @@ async def test_on_the_snp_cycle_its_processes_move_the_arm_and_a_pulled_module_s
     children = [p for p in _children(service_pid) if b"spawn_main" in _cmdline(p)]
     assert len(children) == 2, children  # (the master's process, then the modules')
     os.kill(children[0], signal.SIGKILL)
-    for _ in range(100):  # (restarted after its backoff, [services] backoff_initial_s)
-        st = json.loads((await asyncio.to_thread(run_cell, "status", "--json", "--config", cfg)).stdout)
-        last = next(s["last"] for s in st["services"] if s["name"] == "modular")
-        if last.get("restarts", 0) >= 1 and last.get("state") == "SERVICE_STATE_RUNNING":
-            break
-        await asyncio.sleep(0.1)
+    last = await _restarted(cfg)
     assert last.get("restarts", 0) >= 1 and "the cycle's master process ended" in last["last_error"], last
     for _ in range(100):  # (refused while its new modules join the cycle)
         moved = await asyncio.to_thread(
@@ -217,15 +212,22 @@ async def test_over_the_routers_a_task_script_moves_it_and_a_pulled_module_comes
     # the routers' process killed: the service fails saying so, and is restarted with a new network
     routers = min(c for c in _children(pid) if b"spawn_main" in _cmdline(c))  # (started first)
     os.kill(routers, signal.SIGKILL)
+    last = await _restarted(cfg)
+    assert last.get("restarts", 0) >= 1 and "the cycle's routers process ended" in last["last_error"], last
+    code, _, _, err = cell.stop()
+    assert code == 0, err[-2000:]
+
+
+async def _restarted(cfg: str) -> dict:
+    """The modular service's last status once it has been restarted and runs again (after its
+    backoff, [services] backoff_initial_s), or as it stands after 100 looks."""
     for _ in range(100):
         st = json.loads((await asyncio.to_thread(run_cell, "status", "--json", "--config", cfg)).stdout)
         last = next(s["last"] for s in st["services"] if s["name"] == "modular")
         if last.get("restarts", 0) >= 1 and last.get("state") == "SERVICE_STATE_RUNNING":
             break
         await asyncio.sleep(0.1)
-    assert last.get("restarts", 0) >= 1 and "the cycle's routers process ended" in last["last_error"], last
-    code, _, _, err = cell.stop()
-    assert code == 0, err[-2000:]
+    return last
 
 
 def _children(pid: int) -> list[int]:
