@@ -162,20 +162,6 @@ def _modules(
     out.put((res, cpu, records))
 
 
-def _routers(ctx: Any, master_port: int, module_ports: list[int], seconds: float) -> tuple[Any, list]:
-    """The routers' process (cell.snp.routed.routers_main) joined to the master and the modules:
-    (its pipe, each router's port addresses)."""
-    from cell.snp.routed import routers_main
-
-    here, there = ctx.Pipe()
-    peers = [("127.0.0.1", master_port), *(("127.0.0.1", p) for p in module_ports)]
-    until = time.monotonic() + seconds + 40
-    args = (there, peers, until, ROUTER_PRIORITY, None, ROUTER_CPUS)
-    ctx.Process(target=routers_main, args=args, daemon=True).start()
-    there.close()
-    return here, here.recv()
-
-
 def trial(
     slots: list[dict],
     seconds: float,
@@ -212,15 +198,16 @@ def trial(
     )
     master.start()
     master_port = port_q.get(timeout=30)
-    net = _routers(ctx, master_port, sorted(port_of.values(), key=ports.index), seconds) if routed else None
-    if net is not None:
-        from cell.snp.routed import module_port
+    net = None
+    if routed:
+        from cell.snp.routed import module_port, start_routers
 
-        _, by_router = net
-        routes_q.put((by_router[0][0], by_router[1][0]))  # type: ignore[union-attr]
+        until = time.monotonic() + seconds + 40
+        net = start_routers(ctx, master_port, ports, until, ROUTER_PRIORITY, ROUTER_CPUS)
+        routes_q.put(net.master)  # type: ignore[union-attr]
         for s in slots:
             k = ports.index(s["port"])
-            s["routes"], s["route_port"] = (by_router[0][1 + k], by_router[1][1 + k]), module_port(k)
+            s["routes"], s["route_port"] = net.modules[k], module_port(k)
     grid = config.management_grid
     mods = ctx.Process(
         target=_modules, args=(slots, seconds, loss, grid, native, done, out_s, reference), daemon=True
@@ -230,16 +217,14 @@ def trial(
     if net is not None and cut is not None:
         time.sleep(cut[0])  # (the trial's own clock: what it measures is against cut_ns)
         cut_ns = time.monotonic_ns()
-        net[0].send(("cut", 0, module_port(cut[1])))
-        net[0].recv()  # (done)
+        net.cut(0, module_port(cut[1]))
     modules, cpu, records = out_s.get(timeout=seconds + 60)
     m = out_m.get(timeout=30)
     for p in (mods, master):
         p.join(10)
     out = {"modules": modules, "master": m, "modules_cpu": cpu, "cut_ns": cut_ns}
     if net is not None:
-        net[0].send(("stop", 0, 0))
-        out["routers"] = net[0].recv() if net[0].poll(10) else {}
+        out["routers"] = net.stop()
     if reference is not None:
         from cell.modular.cycle import tool_error_mm
 

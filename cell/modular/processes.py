@@ -36,6 +36,7 @@ from cell.modular.reference import CYCLE_NS, Reference
 from cell.modular.robot import ArmRobot, Ended, ModuleState, Motion
 from cell.sched import place
 from cell.snp.modular import CycleConfig, NodeState
+from cell.snp.routed import Routers, module_port, start_routers
 from cell.snp.runner import chain, free_ports, open_udp
 
 REPORT_NS = 20_000_000  # each process's report to the service
@@ -116,7 +117,6 @@ def master_main(
 ) -> None:
     """net: over the routers, (its own port, its two links): its modules known by their return
     addresses (cell.snp.routed)."""
-    from cell.snp.routed import module_port
     from cell.snp.runner import SPIN_NS, serve_master
 
     place([], RT_PRIORITY, -5)
@@ -198,8 +198,6 @@ def modules_main(
         for s, p, cd in zip(chain(6, random.Random(seed), module0=MODULE0), ports, where, strict=True)
     }
     if routes is not None:  # (over the routers: module k's links and its port on them)
-        from cell.snp.routed import module_port
-
         for k, s in enumerate(spec.values()):
             s["routes"], s["route_port"] = routes[k], module_port(k)
     slots = [Slot(**s) for s in spec.values()]
@@ -304,7 +302,7 @@ class CycleRobot(ArmRobot):
         # (the master's FDIR counts time; a module syncing its clock is silent for up to its
         # beacons' period between time packets: never under the master's own default)
         lost_ns = max(lost_cycles * self.period_ns, LOST_NS_MIN)
-        self._routers: tuple[Any, Any] | None = None
+        self._routers: Routers | None = None
         net, links = None, None
         if routed:
             net, links = self._start_routers(ctx, ports)
@@ -322,22 +320,9 @@ class CycleRobot(ArmRobot):
     def _start_routers(self, ctx: Any, ports: list[int]) -> tuple[tuple[int, Any], list[Any]]:
         """The routers' process (cell.snp.routed), over the cycle's two (as a switch: on their core,
         at a priority over theirs): (the master's port and links, each module's links)."""
-        from cell.snp.routed import routers_main
-
         master_port = free_ports(1)[0]
-        peers = [("127.0.0.1", master_port), *(("127.0.0.1", p) for p in ports)]
-        here, there = ctx.Pipe()
-        p = ctx.Process(
-            target=routers_main, args=(there, peers, time.monotonic() + 1e9, RT_PRIORITY + 5), daemon=True
-        )
-        p.start()
-        there.close()
-        if not here.poll(30):
-            raise RuntimeError("the routers' process did not start")
-        by_router = here.recv()
-        self._routers = (p, here)
-        links = [(by_router[0][1 + k], by_router[1][1 + k]) for k in range(6)]
-        return (master_port, (by_router[0][0], by_router[1][0])), links
+        self._routers = net = start_routers(ctx, master_port, ports, time.monotonic() + 1e9, RT_PRIORITY + 5)
+        return (master_port, net.master), net.modules
 
     # -- ArmRobot's ---------------------------------------------------------------------------------
     @property
@@ -407,8 +392,7 @@ class CycleRobot(ArmRobot):
             except (EOFError, OSError):  # (its end of the pipe closed: the process ended)
                 if not self.failed:
                     self.failed = self.stopped = f"the cycle's {('master', 'modules')[i]} process ended"
-        if self._routers is not None and self._routers[1].poll() and not self.failed:  # (it says
-            # nothing until it ends)
+        if self._routers is not None and self._routers.ended() and not self.failed:
             self.failed = self.stopped = "the cycle's routers process ended"
         return self._progress()
 
@@ -486,13 +470,7 @@ class CycleRobot(ArmRobot):
         for c in self._conns:
             c.close()
         if self._routers is not None:
-            p, conn = self._routers
-            with contextlib.suppress(OSError, BrokenPipeError):
-                conn.send(("stop", 0, 0))
-            p.join(1.0)
-            if p.is_alive():
-                p.kill()
-            conn.close()
+            self._routers.stop()
         shutil.rmtree(self._files, ignore_errors=True)
 
 

@@ -21,9 +21,11 @@ process of their own.
 
 from __future__ import annotations
 
+import contextlib
 import select
 import socket
 import time
+from dataclasses import dataclass
 from typing import Any
 
 from cell.snp.packet import crc8
@@ -106,6 +108,63 @@ class RoutedLink(Link):
         else:
             router = self.via.get(addr, self.links[0])
         return bytes(addr) + with_return(data, self.own), router
+
+
+@dataclass
+class Routers:
+    """The routers' process as its starter holds it (`start_routers`): the links of the master
+    (R1's port, R2's) and of each module k, the orders a link cut and its end."""
+
+    process: Any
+    conn: Any
+    master: tuple[Any, Any]
+    modules: list[tuple[Any, Any]]
+
+    def cut(self, router: int, port: int) -> None:
+        """That link down, once the routers say it is."""
+        self.conn.send(("cut", router, port))
+        self.conn.recv()
+
+    def ended(self) -> bool:
+        """The process ended (it says nothing on its pipe until then)."""
+        return self.conn.poll()
+
+    def stop(self) -> dict:
+        """End it: its counters (empty if it had ended already); killed if it does not end."""
+        counts: dict = {}
+        with contextlib.suppress(OSError, EOFError):
+            self.conn.send(("stop", 0, 0))
+            if self.conn.poll(10):
+                counts = self.conn.recv()
+        self.process.join(1.0)
+        if self.process.is_alive():
+            self.process.kill()
+            self.process.join(1.0)
+        self.conn.close()
+        return counts
+
+
+def start_routers(
+    ctx: Any,
+    master_port: int,
+    module_ports: list[int],
+    until_s: float,
+    rt_priority: int = 0,
+    cpus: list[int] | None = None,
+) -> Routers:
+    """routers_main in a process of ctx's, joined to the master's and the modules' ports on
+    127.0.0.1 (module k's is its port 2 + k)."""
+    peers = [("127.0.0.1", master_port), *(("127.0.0.1", p) for p in module_ports)]
+    here, there = ctx.Pipe()
+    process = ctx.Process(
+        target=routers_main, args=(there, peers, until_s, rt_priority, None, cpus), daemon=True
+    )
+    process.start()
+    there.close()
+    if not here.poll(30):
+        raise RuntimeError("the routers' process did not start")
+    r1, r2 = here.recv()
+    return Routers(process, here, (r1[0], r2[0]), [(r1[1 + k], r2[1 + k]) for k in range(len(module_ports))])
 
 
 def routers_main(
