@@ -248,7 +248,7 @@ def serve_master(
     starts or its next timer, then polls without sleeping for as long as the cycle's datagrams
     keep coming (spin_ns after the last one).  native: the cycle's queries and FDIR's watch run
     in C (cell.snp.native.NativeMaster, on the same schedule), the rest here, between its runs.
-    routes: its links to the two routers of a routed network (cell.snp.routed; in Python only)."""
+    routes: its links to the two routers of a routed network (cell.snp.routed; in C as in Python)."""
     if native:
         return _serve_master_native(master, sock, stop, loss, spin_ns, stop_every_ns, routes)
     link = _master_link(master, sock, loss, routes)
