@@ -14,24 +14,12 @@ from pathlib import Path
 import pytest
 import tomli_w
 
-from cell.bench.cellproc import free_udp_block
 from cell.bus import Forwarder
 from cell.config import BusConfig, CellConfig, load_config
+from cell.ports import free_block, free_port
 from cell.rlink.cellnet import PORTS
 
 ROOT = Path(__file__).resolve().parent.parent
-_used: set[int] = set()
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A port nothing listens on now (never the same twice in one test run)."""
-    while True:
-        with socket.socket(socket.AF_INET, kind) as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        if port not in _used:
-            _used.add(port)
-            return port
 
 
 def cell_overrides(robots: list[dict] | None = None, **services: object) -> dict:
@@ -45,7 +33,7 @@ def cell_overrides(robots: list[dict] | None = None, **services: object) -> dict
         "bus": {"pub": f"tcp://127.0.0.1:{free_port()}", "sub": f"tcp://127.0.0.1:{free_port()}"},
         "dataplane": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
         "snp": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
-        "rlink": {"port": free_udp_block(PORTS, _used)},
+        "rlink": {"port": free_block(PORTS)},
         "robots": robots,
         "services": {"heartbeat_s": 0.2, **services},
     }

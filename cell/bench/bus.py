@@ -20,7 +20,6 @@ import argparse
 import asyncio
 import multiprocessing as mp
 import queue
-import socket
 import statistics
 import time
 from dataclasses import dataclass, replace
@@ -32,6 +31,7 @@ from cell import aio
 from cell.bench.registry import Bench, Figures, register
 from cell.bus import Bus, Forwarder, identity
 from cell.config import BusConfig, load_config
+from cell.ports import free_port
 from cell.v1 import bus_pb2
 
 PAYLOAD = bytes(range(64))
@@ -40,9 +40,7 @@ IDLE_S = 2.0  # a receiver that hears nothing this long reports what it has
 
 
 def _endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    return f"tcp://127.0.0.1:{free_port()}"
 
 
 @dataclass(frozen=True)

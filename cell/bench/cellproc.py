@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import random
 import socket
 import tempfile
 from collections.abc import AsyncIterator
@@ -16,37 +15,8 @@ import tomli_w
 
 from cell.config import CellConfig, load_config
 from cell.launcher import child_cell
+from cell.ports import free_block, free_port
 from cell.rlink.cellnet import PORTS
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def free_udp_block(n: int, taken: set[int] | None = None) -> int:
-    """The first of n consecutive UDP ports nothing is bound to now (e.g. for [rlink] port)."""
-    taken = taken if taken is not None else set()
-    rng = random.Random()
-    for _ in range(200):
-        base = rng.randrange(20000, 60000 - n)
-        if any(p in taken for p in range(base, base + n)):
-            continue
-        socks = []
-        try:
-            for p in range(base, base + n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", p))
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-        taken.update(range(base, base + n))
-        return base
-    raise RuntimeError(f"no {n} consecutive free UDP ports")
 
 
 def default_robots() -> list[dict[str, Any]]:
@@ -67,7 +37,7 @@ async def running_cell(overrides: dict[str, Any], quiet: bool = False) -> AsyncI
         "bus": {"pub": f"tcp://127.0.0.1:{free_port()}", "sub": f"tcp://127.0.0.1:{free_port()}"},
         "dataplane": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
         "snp": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
-        "rlink": {"port": free_udp_block(PORTS)},
+        "rlink": {"port": free_block(PORTS)},
         **overrides,
     }
     with tempfile.TemporaryDirectory() as tmp:

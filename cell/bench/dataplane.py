@@ -37,6 +37,7 @@ from cell import aio
 from cell.bench import pin, pinned
 from cell.bench.driver import NaiveDriver
 from cell.bench.registry import Bench, Figures, log, register
+from cell.ports import free_port
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
 from cell.sched import process_cpu_seconds
@@ -83,10 +84,8 @@ def _loaded_plane(robots: int, net: Any, updates: bool) -> Any:
 
     rob = [{"id": r, "name": f"b{r}", "skill_port": 20000 + r} for r in range(1, robots + 1)]
     if net is None:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
-        cfg = load_config(overrides={"robots": rob, "dataplane": {"listen": f"127.0.0.1:{port}"}})
+        listen = f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"
+        cfg = load_config(overrides={"robots": rob, "dataplane": {"listen": listen}})
         plane = DataPlane(cfg)
     else:
         plane = XdpDataPlane(load_config(overrides={"robots": rob, "dataplane": xdp_dataplane(net)}))

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from cell import aio, sched
-from cell.bench.cellproc import free_port, free_udp_block
+from cell.ports import free_block, free_port
 from cell.rlink import events
 from cell.rlink.cellnet import BROADCAST, PORTS
 from cell.rlink.packet import EventType, Kind
@@ -199,7 +199,7 @@ def _measure(cfg_args: tuple, n: int, out: Any) -> None:
 def run(trials: int = 200, robots: int = FLOOD_ROBOTS) -> dict[str, Any]:
     """E-stop latency over `trials`, the data plane loaded with `robots` x 6 joints at 500 Hz."""
     ctx = mp.get_context("spawn")
-    rlink_port, dp_port = free_udp_block(PORTS), free_port(socket.SOCK_DGRAM)
+    rlink_port, dp_port = free_block(PORTS), free_port(socket.SOCK_DGRAM)
     out_p, out_f, out_m = ctx.Queue(), ctx.Queue(), ctx.Queue()
     stop_p, stop_f, flowing = ctx.Event(), ctx.Event(), ctx.Event()
     plane = ctx.Process(target=_plane, args=(robots, rlink_port, dp_port, out_p, stop_p), daemon=True)

@@ -25,8 +25,8 @@ import numpy as np
 
 from cell import aio, sched
 from cell.bench import estop
-from cell.bench.cellproc import free_port
 from cell.bench.registry import Bench, Figures, register
+from cell.ports import free_port
 from cell.rlink.link import LinkPorts, NodeLink
 from cell.rlink.node import Node
 from cell.rlink.packet import DATA_PAYLOAD, EVENT_PAYLOAD, EventType, Kind, Packet, encode

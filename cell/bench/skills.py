@@ -44,9 +44,10 @@ from typing import Any
 
 import numpy as np
 
-from cell.bench.cellproc import free_port, running_cell
+from cell.bench.cellproc import running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
+from cell.ports import free_port
 from cell.skills.client import RobotClient, SetSpeed
 from cell.v1 import controller_pb2
 from cell.vision import focus

@@ -28,8 +28,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from cell.bench.registry import Bench, Figures, register
+from cell.ports import free_ports
 from cell.snp.modular import CycleConfig
-from cell.snp.runner import chain, free_ports
+from cell.snp.runner import chain
 from cell.snp.spacewire import FAILOVER_CYCLES, HOP_NS, cd_cycle_us, failover_ms
 
 if TYPE_CHECKING:  # (the modular arm's modules, MuJoCo's: imported where a trial drives it)

@@ -30,11 +30,12 @@ from typing import Any
 import numpy as np
 
 from cell.bench.accuracy import Q0, tool_errors_mm
-from cell.bench.cellproc import free_port, robots_heard, running_cell
+from cell.bench.cellproc import robots_heard, running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.controller.controller import Controller
 from cell.launcher import fetch_status
+from cell.ports import free_port
 from cell.robot.kinematics import Kinematics
 from cell.robot.truth import Truth
 from cell.ur import rtde

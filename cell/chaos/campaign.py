@@ -33,12 +33,13 @@ from typing import Any
 
 import numpy as np
 
-from cell.bench.cellproc import default_robots, free_port, ok_services, running_cell
+from cell.bench.cellproc import default_robots, ok_services, running_cell
 from cell.bus import Bus, BusError
 from cell.bus.delay import DelayLink
 from cell.chaos.faults import PROMISES, Action, Fault, catalogue
 from cell.config import CellConfig, load_config
 from cell.launcher import fetch_status
+from cell.ports import free_port
 from cell.rlink.client import EventClient
 from cell.robot import models
 from cell.skills.client import ConnectionLost, MoveJoints, RobotClient, SetSpeed, SkillError

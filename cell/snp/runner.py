@@ -61,16 +61,6 @@ def open_udp(host: str = "127.0.0.1", port: int = 0, *, timestamps: bool = False
     return sock
 
 
-def free_ports(n: int, host: str = "127.0.0.1") -> list[int]:
-    """n UDP ports free on host now (bound and let go: a module's own port, as a bench assigns)."""
-    socks = [open_udp(host) for _ in range(n)]
-    try:
-        return [s.getsockname()[1] for s in socks]
-    finally:
-        for s in socks:
-            s.close()
-
-
 def chain(n: int, rng: random.Random, transport: str = "snp", module0: int = 101, **extra: Any) -> list[dict]:
     """n modules in a chain on the base plate (module0 + i plugged to the one before), each with its
     own clock error (up to 2 ms and 50 ppm off): Slot arguments (port 0: one to be given)."""

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from cell import aio, sched
-from cell.bench.cellproc import free_port
+from cell.ports import free_port
 from cell.rlink.client import KEEPALIVE_S
 from cell.rlink.link import LinkPorts, NodeLink, link_counters
 from cell.rlink.node import Node

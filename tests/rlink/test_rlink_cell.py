@@ -10,8 +10,8 @@ import time
 import numpy as np
 import pytest
 
-from cell.bench.cellproc import free_port, free_udp_block
 from cell.config import load_config
+from cell.ports import free_block, free_port
 from cell.rlink import events
 from cell.rlink.cellnet import BROADCAST, PORTS, Topology
 from cell.rlink.client import EventClient
@@ -153,7 +153,7 @@ def plane():
         overrides={
             "robots": rob,
             "dataplane": {"listen": f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
-            "rlink": {"port": free_udp_block(PORTS)},
+            "rlink": {"port": free_block(PORTS)},
         }
     )
     p = DataPlane(cfg)
@@ -262,7 +262,7 @@ async def test_clients_of_the_host_interface_reach_the_nodes_and_hear_their_repo
     from cell.rlink.link import NodeLink
     from cell.rlink.node import Node
 
-    cfg = load_config(overrides={"rlink": {"port": free_udp_block(PORTS), "beacon_hz": 0.0}})
+    cfg = load_config(overrides={"rlink": {"port": free_block(PORTS), "beacon_hz": 0.0}})
     topo = Topology(cfg.rlink)
     hub = Hub(cfg)
     seen: list[Packet] = []
