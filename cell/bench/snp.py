@@ -68,7 +68,8 @@ def _master(
 ) -> None:
     """Runs until the modules are done (done.value), or for `seconds` at most; reference: the
     modular arm's path, tracked by VDC in the cycle (cell.modular.cycle); routes_q: over the routed
-    network (cell.snp.routed), its two links come on it after its port goes out."""
+    network (cell.snp.routed), its two links come on it after its port goes out, and it explores
+    the network through them for its modules' paths."""
     from cell.modular.cycle import VdcMaster
     from cell.snp.modular import Master
     from cell.snp.runner import open_udp, serve_master
@@ -76,17 +77,18 @@ def _master(
     _place(0)
     sock = open_udp(timestamps=True)
     ports_at: list[Any] = [("127.0.0.1", p) for p in ports]
-    if routes_q is not None:  # (each module's address: its return address, its port on the routers)
-        from cell.snp.routed import module_port
+    port_q.put(sock.getsockname()[1])
+    routes = None
+    if routes_q is not None:  # (each module's address: its return address, the path to it)
+        from cell.snp.routed import explore_routers
 
-        ports_at = [(module_port(k),) for k in range(len(ports))]
+        routes = explore_routers(sock, routes_q.get(timeout=30))
+        ports_at = list(routes.ends)
     master = (
         Master(ports_at, config, time.monotonic_ns)
         if reference is None
         else VdcMaster(ports_at, config, time.monotonic_ns, reference)
     )
-    port_q.put(sock.getsockname()[1])
-    routes = routes_q.get(timeout=30) if routes_q is not None else None
     until = time.monotonic() + seconds
     cpu0, wall0 = time.process_time(), time.monotonic()
 
@@ -107,6 +109,7 @@ def _master(
             "events": list(master.events),
             "lost_on_link": link.lost,
             "refused_on_link": getattr(link, "refused", 0),
+            "explored": None if routes is None else [list(p) for p in routes.ends],
             "cpu": cpu,
             "start_ns": master.vdc.start_ns if isinstance(master, VdcMaster) else None,
         }
@@ -178,7 +181,8 @@ def trial(
     slots); native: their cycles in C, and the master's unless native_master says otherwise;
     reference: the modules drive the modular arm along it by VDC (cell.modular.cycle), the tool's
     error against it in "tool_error_mm".  routed: every datagram through the two routers of
-    cell.snp.routed (in Python), cut: (s, k) the link between R1 and module k cut s into the run
+    cell.snp.routed (in C with native, else in Python), the master exploring them for its modules;
+    cut: (s, k) the link between R1 and module k cut s into the run
     (at "cut_ns", host time).  Every module's record and the master's (and the routers')."""
     native_master = native if native_master is None else native_master
     config = config or CycleConfig(slot_ns=SLOT_NS)
@@ -204,7 +208,7 @@ def trial(
         from cell.snp.routed import module_port, start_routers
 
         until = time.monotonic() + seconds + 40
-        net = start_routers(ctx, master_port, ports, until, ROUTER_PRIORITY, ROUTER_CPUS)
+        net = start_routers(ctx, master_port, ports, until, ROUTER_PRIORITY, ROUTER_CPUS, native=native)
         routes_q.put(net.master)  # type: ignore[union-attr]
         for s in slots:
             k = ports.index(s["port"])

@@ -37,7 +37,7 @@ from cell.modular.robot import ArmRobot, Ended, ModuleState, Motion
 from cell.ports import free_ports
 from cell.sched import place
 from cell.snp.modular import CycleConfig, NodeState
-from cell.snp.routed import Routers, module_port, start_routers
+from cell.snp.routed import Routers, explore_routers, module_port, start_routers
 from cell.snp.runner import chain, open_udp
 
 REPORT_NS = 20_000_000  # each process's report to the service
@@ -116,14 +116,15 @@ def master_main(
     lost_ns: int,
     net: tuple[int, Any] | None = None,
 ) -> None:
-    """net: over the routers, (its own port, its two links): its modules known by their return
-    addresses (cell.snp.routed)."""
+    """net: over the routers, (its own port, its two links): it explores the network through them
+    and knows its modules by the paths to them, their return addresses (cell.snp.routed)."""
     from cell.snp.runner import SPIN_NS, serve_master
 
     place([], RT_PRIORITY, -5)
     config = cycle_config(period)
     sock = open_udp(port=net[0] if net else 0, timestamps=True)
-    where: list[Any] = [(module_port(k),) for k in range(6)] if net else [("127.0.0.1", p) for p in ports]
+    routes = explore_routers(sock, net[1]) if net else None
+    where: list[Any] = list(routes.ends) if routes else [("127.0.0.1", p) for p in ports]
     master = VdcMaster(
         where, config, time.monotonic_ns, hold(np.array(q0)), suspect_cycles=suspect, lost_ns=lost_ns
     )
@@ -166,7 +167,7 @@ def master_main(
         return False
 
     try:
-        spin_ns, routes = SPIN_NS if spin else 0, net[1] if net else None
+        spin_ns = SPIN_NS if spin else 0
         serve_master(
             master, sock, between, spin_ns=spin_ns, native=native, stop_every_ns=REPORT_NS // 2, routes=routes
         )

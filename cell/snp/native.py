@@ -97,7 +97,10 @@ class RoutersState(ctypes.Structure):
         ("peer_ip", _I * ROUTER_PORTS),
         ("peer_port", _I * ROUTER_PORTS),
         ("up", (_I * ROUTER_PORTS) * ROUTERS),
-        *((name, _I * ROUTERS) for name in ("forwarded", "config", "bad_port", "link_down", "no_route")),
+        *(
+            (name, _I * ROUTERS)
+            for name in ("forwarded", "config", "bad_port", "link_down", "no_route", "bad_config")
+        ),
         ("dropped", _I),
     ]
 

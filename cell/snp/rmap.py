@@ -1,4 +1,5 @@
-"""RMAP write commands with acknowledgement (ECSS-E-ST-50-52C), sans IO: the slides' baseline.
+"""RMAP (ECSS-E-ST-50-52C), sans IO: acknowledged writes, the slides' baseline, and reads, as the
+master reads a router's configuration port to find the network (cell.snp.spacewire.Explorer).
 
 The SpW-SnP-MR slides weigh their time-bounded queries against carrying the modular robot's
 A, B, C and D messages as acknowledged RMAP writes with a fixed timeout and a retry: two
@@ -12,7 +13,9 @@ Layouts (one packet per datagram, no SpaceWire path address):
   (0/4/8/12 bytes), initiator logical address, transaction id u16, extended address u8,
   address u32, data length u24, header CRC, data, data CRC;
 - write reply: initiator logical address, protocol id, instruction, status, target logical
-  address, transaction id u16, header CRC.
+  address, transaction id u16, header CRC;
+- read command: a write command's header (its write bit clear), no data;
+- read reply: a write reply's fields, a reserved byte, data length u24, header CRC, data, data CRC.
 """
 
 from __future__ import annotations
@@ -77,14 +80,50 @@ class WriteReply:
 
 
 def encode_write(w: Write) -> bytes:
-    if len(w.reply_address) % 4 or len(w.reply_address) > 12:
+    instr = _COMMAND | _WRITE | _INCREMENT | (_VERIFY if w.verify else 0) | (_REPLY if w.acknowledged else 0)
+    tail = _CMD_TAIL.pack(w.initiator, w.transaction, w.extended, w.address)
+    head = _command_head(w.target, instr, w.key, w.reply_address, tail, len(w.data))
+    return head + w.data + bytes([crc8(w.data)])
+
+
+@dataclass(frozen=True)
+class Read:
+    target: int
+    initiator: int
+    transaction: int
+    address: int
+    length: int  # bytes wanted
+    key: int = 0
+    extended: int = 0
+    reply_address: bytes = b""
+
+
+@dataclass(frozen=True)
+class ReadReply:
+    initiator: int
+    target: int
+    transaction: int
+    data: bytes
+    status: int = Status.SUCCESS
+
+
+def _command_head(target: int, instr: int, key: int, reply_address: bytes, tail: bytes, length: int) -> bytes:
+    if len(reply_address) % 4 or len(reply_address) > 12:
         raise ValueError("the reply address is 0, 4, 8 or 12 bytes")
-    instr = _COMMAND | _WRITE | _INCREMENT | (len(w.reply_address) // 4)
-    instr |= (_VERIFY if w.verify else 0) | (_REPLY if w.acknowledged else 0)
-    head = bytes([w.target, PROTOCOL_ID, instr, w.key]) + w.reply_address
-    head += _CMD_TAIL.pack(w.initiator, w.transaction, w.extended, w.address)
-    head += len(w.data).to_bytes(3, "big")
-    return head + bytes([crc8(head)]) + w.data + bytes([crc8(w.data)])
+    head = bytes([target, PROTOCOL_ID, instr | len(reply_address) // 4, key]) + reply_address + tail
+    head += length.to_bytes(3, "big")
+    return head + bytes([crc8(head)])
+
+
+def encode_read(r: Read) -> bytes:
+    tail = _CMD_TAIL.pack(r.initiator, r.transaction, r.extended, r.address)
+    return _command_head(r.target, _COMMAND | _REPLY | _INCREMENT, r.key, r.reply_address, tail, r.length)
+
+
+def encode_read_reply(r: ReadReply) -> bytes:
+    head = _REPLY_BODY.pack(r.initiator, PROTOCOL_ID, _REPLY | _INCREMENT, r.status, r.target, r.transaction)
+    head += b"\x00" + len(r.data).to_bytes(3, "big")
+    return head + bytes([crc8(head)]) + r.data + bytes([crc8(r.data)])
 
 
 def encode_reply(r: WriteReply) -> bytes:
@@ -97,21 +136,14 @@ def is_rmap(datagram: bytes) -> bool:
     return len(datagram) >= _REPLY_BODY.size + 1 and datagram[1] == PROTOCOL_ID
 
 
-def decode(datagram: bytes) -> Write | WriteReply:
-    """A write command or a write reply; RmapError for anything else."""
+def decode(datagram: bytes) -> Write | WriteReply | Read | ReadReply:
+    """A write or read command, or its reply; RmapError for anything else."""
     buf = bytes(datagram)
     if len(buf) < 8 or buf[1] != PROTOCOL_ID:
         raise RmapError("not an RMAP packet")
     instr = buf[2]
-    if instr & 0xC0 == 0:  # a reply
-        if len(buf) != _REPLY_BODY.size + 1:
-            raise RmapError(f"a write reply is {_REPLY_BODY.size + 1} bytes, not {len(buf)}")
-        if crc8(buf[:-1]) != buf[-1]:
-            raise RmapError("reply header CRC mismatch")
-        initiator, _, instruction, status, target, tid = _REPLY_BODY.unpack_from(buf)
-        if not instruction & _WRITE:
-            raise RmapError("only write replies are taken here")
-        return WriteReply(initiator, target, tid, status, instruction)
+    if instr & 0xC0 == 0:
+        return _decode_reply(buf)
     if instr & 0xC0 != _COMMAND:
         raise RmapError(f"packet type {instr >> 6} is reserved")
     n_reply = 4 * (instr & 0x03)
@@ -120,10 +152,15 @@ def decode(datagram: bytes) -> Write | WriteReply:
         raise RmapError("header cut short")
     if crc8(buf[:head_len]) != buf[head_len]:
         raise RmapError("header CRC mismatch")
-    if not instr & _WRITE:
-        raise RmapError("only writes are implemented here", Status.NOT_AUTHORISED)
     initiator, tid, extended, address = _CMD_TAIL.unpack_from(buf, 4 + n_reply)
     length = int.from_bytes(buf[head_len - 3 : head_len], "big")
+    reply_address = buf[4 : 4 + n_reply]
+    if not instr & _WRITE:
+        if len(buf) != head_len + 1:
+            raise RmapError(f"a read command is {head_len + 1} bytes, not {len(buf)}")
+        if not instr & _REPLY:
+            raise RmapError("a read asks for its reply", Status.UNUSED_TYPE)
+        return Read(buf[0], initiator, tid, address, length, buf[3], extended, reply_address)
     data = buf[head_len + 1 : -1]
     if len(data) < length:
         raise RmapError(f"{len(data)} data bytes of {length}", Status.EARLY_EOP)
@@ -131,11 +168,28 @@ def decode(datagram: bytes) -> Write | WriteReply:
         raise RmapError(f"{len(data)} data bytes, {length} announced", Status.TOO_MUCH_DATA)
     w = Write(
         buf[0], initiator, tid, address, data, buf[3], extended,
-        bool(instr & _VERIFY), bool(instr & _REPLY), buf[4 : 4 + n_reply],
+        bool(instr & _VERIFY), bool(instr & _REPLY), reply_address,
     )  # fmt: skip
     if crc8(data) != buf[-1]:
         raise _DataCrc(w)
     return w
+
+
+def _decode_reply(buf: bytes) -> WriteReply | ReadReply:
+    initiator, _, instruction, status, target, tid = _REPLY_BODY.unpack_from(buf)
+    if instruction & _WRITE:
+        if len(buf) != _REPLY_BODY.size + 1:
+            raise RmapError(f"a write reply is {_REPLY_BODY.size + 1} bytes, not {len(buf)}")
+        if crc8(buf[:-1]) != buf[-1]:
+            raise RmapError("reply header CRC mismatch")
+        return WriteReply(initiator, target, tid, status, instruction)
+    head_len = _REPLY_BODY.size + 4
+    if len(buf) < head_len + 2 or crc8(buf[:head_len]) != buf[head_len]:
+        raise RmapError("read reply header cut short or CRC mismatch")
+    data = buf[head_len + 1 : -1]
+    if len(data) != int.from_bytes(buf[head_len - 3 : head_len], "big") or crc8(data) != buf[-1]:
+        raise RmapError("read reply data cut short or CRC mismatch")
+    return ReadReply(initiator, target, tid, data, status)
 
 
 class _DataCrc(RmapError):

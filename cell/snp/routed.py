@@ -12,6 +12,11 @@ link):
   through (both number their ports alike: spacewire.ring), and answers along it through the router
   it last heard that module on.
 
+Before its cycle starts the master finds the network through each of its links
+(`explore_routers`: spacewire.Explorer, RMAP reads of the routers' configuration ports): the port it
+is on, and the paths to the nodes beyond, which it then explores for modules (NODE_INFO_QUERY, as
+on a network of its own ports).  Nothing is declared to it but its two links.
+
 So the master's and modules' sans-IO cores and their packet shapes stay as they are: the link
 (`RoutedLink`) does the routing, as a SpaceWire node's network interface does.  A module that
 hears nothing back for `failover_after` sends in a row moves to the other router (a permanent
@@ -30,7 +35,7 @@ from typing import Any
 
 from cell.snp.packet import crc8
 from cell.snp.runner import Link
-from cell.snp.spacewire import FAILOVER_CYCLES, End, Packet, Router
+from cell.snp.spacewire import FAILOVER_CYCLES, End, Explorer, Packet, Router, RouterInfo
 
 MASTER_PORT = 1  # on both routers: the master's link; module k's is port 2 + k
 ROUTERS = 2
@@ -110,6 +115,49 @@ class RoutedLink(Link):
         return bytes(addr) + with_return(data, self.own), router
 
 
+@dataclass(frozen=True)
+class Explored:
+    """What the master found through its links to the two routers."""
+
+    links: tuple[Any, Any]  # its links' addresses, R1's then R2's
+    routers: tuple[RouterInfo, RouterInfo]
+    ends: tuple[tuple[int, ...], ...]  # the paths to the nodes beyond them, through either
+
+    @property
+    def own(self) -> tuple[int, ...]:
+        """Its return address: the port it is on (the routers number their ports alike)."""
+        return (self.routers[0].return_port,)
+
+
+def explore_routers(sock: socket.socket, links: tuple[Any, Any], round_s: float = 0.05) -> Explored:
+    """An Explorer through each link, its probes sent from sock; a round ends when each probe is
+    answered or round_s has passed (a probe to a node is never answered: each round that reaches
+    nodes takes round_s).  What else comes in meanwhile is dropped.  RuntimeError if no router
+    answers on a link, or the two reach the master by different ports."""
+    found = []
+    for link in links:
+        ex = Explorer()
+        while not ex.done:
+            for probe in ex.probes():
+                sock.sendto(probe, link)
+            end = time.monotonic() + round_s
+            while ex.pending and (left := end - time.monotonic()) > 0:
+                if select.select([sock], [], [], left)[0]:
+                    with contextlib.suppress(BlockingIOError):
+                        data, addr = sock.recvfrom(2048)
+                        if addr == link:
+                            ex.answer(data)
+            ex.timeout()
+        if () not in ex.routers:
+            raise RuntimeError(f"no router answered the master's exploration on its link {link}")
+        found.append(ex)
+    r1, r2 = (ex.routers[()] for ex in found)
+    if r1.return_port != r2.return_port:
+        raise RuntimeError(f"the routers reach the master by ports {r1.return_port} and {r2.return_port}")
+    ends = sorted({path for ex in found for path in ex.ends})
+    return Explored(links, (r1, r2), tuple(ends))
+
+
 @dataclass
 class Routers:
     """The routers' process as its starter holds it (`start_routers`): the links of the master
@@ -151,13 +199,14 @@ def start_routers(
     until_s: float,
     rt_priority: int = 0,
     cpus: list[int] | None = None,
+    native: bool | None = None,
 ) -> Routers:
     """routers_main in a process of ctx's, joined to the master's and the modules' ports on
-    127.0.0.1 (module k's is its port 2 + k)."""
+    127.0.0.1 (module k's is its port 2 + k); native as routers_main's."""
     peers = [("127.0.0.1", master_port), *(("127.0.0.1", p) for p in module_ports)]
     here, there = ctx.Pipe()
     process = ctx.Process(
-        target=routers_main, args=(there, peers, until_s, rt_priority, None, cpus), daemon=True
+        target=routers_main, args=(there, peers, until_s, rt_priority, native, cpus), daemon=True
     )
     process.start()
     there.close()
@@ -249,9 +298,9 @@ def _route_in_python(conn: Any, peers: list[Any], socks: dict, routers: list[Rou
                         dropped += 1  # (a link down, or a datagram from outside the link)
                         continue
                     for out_port, pkt in router.route(Packet(data, End.EOP)):
-                        if out_port != 0:  # (the configuration port: the master finds its modules
-                            # by their ports here, not by exploring the routers)
-                            socks[r, out_port].sendto(pkt.data, peers[out_port - 1])
+                        sends = router.configure(pkt.data, port) if out_port == 0 else [(out_port, pkt)]
+                        for p, out in sends:  # (the configuration port answers by configure)
+                            socks[r, p].sendto(out.data, peers[p - 1])
     finally:
         ep.close()
     return _counts(dropped, routers)
@@ -280,6 +329,7 @@ def _route_in_c(conn: Any, peers: list[Any], socks: dict, routers: list[Router],
             ("bad_port", st.bad_port[k]),
             ("link_down", st.link_down[k]),
             ("no_route", st.no_route[k]),
+            ("bad_config", st.bad_config[k]),
         ):
             c.dropped[name] = n
     return _counts(st.dropped, routers)

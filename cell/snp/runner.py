@@ -18,13 +18,16 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cell.sched import Spin
 from cell.snp.modular import JointModule, Master, ModuleState, Stage
 from cell.snp.packet import stamp_departure, time_packet
 from cell.snp.tsp import Oscillator, on_grid
 from cell.timer import Alarm, realtime_offset
+
+if TYPE_CHECKING:  # (routed imports runner: its Link)
+    from cell.snp.routed import Explored
 
 COARSE_S = 0.05  # epoll's own timeout: the alarm is what wakes a loop on time
 # Waking from epoll costs 20-55 us of CPU and as much of latency on this machine kind (a VM), as
@@ -196,12 +199,10 @@ def _send_timers(master: Master, link: Link) -> None:
         link.send(data, addr)
 
 
-def _master_link(
-    master: Master, sock: socket.socket, loss: float, routes: tuple[Any, Any] | None = None
-) -> Link:
+def _master_link(master: Master, sock: socket.socket, loss: float, routes: Explored | None = None) -> Link:
     """The master's link: here the master's clock is the host's CLOCK_MONOTONIC (its datagrams'
     kernel stamps are taken as its times), so its time packets are stamped with the host's.
-    routes: its links to the two routers (cell.snp.routed.RoutedLink)."""
+    routes: the routed network it found (cell.snp.routed.RoutedLink over its two links)."""
     kw: dict[str, Any] = {
         "loss": loss,
         "seed": 1,
@@ -209,9 +210,9 @@ def _master_link(
         "departed": master.departed,
     }
     if routes is not None:
-        from cell.snp.routed import MASTER_PORT, RoutedLink
+        from cell.snp.routed import RoutedLink
 
-        link: Link = RoutedLink(sock, routes, (MASTER_PORT,), **kw)
+        link: Link = RoutedLink(sock, routes.links, routes.own, **kw)
     else:
         link = Link(sock, **kw)
     if link.two_step:  # its beacons' times are the kernel's: that is the precision it offers
@@ -228,7 +229,7 @@ def serve_master(
     spin_ns: int = SPIN_NS,
     native: bool = False,
     stop_every_ns: int = int(COARSE_S * 1e9),
-    routes: tuple[Any, Any] | None = None,
+    routes: Explored | None = None,
 ) -> Link:
     """Run the master until stop() is true (asked each pass of its loop; in C at least every
     stop_every_ns, in the management slot: stop may do the caller's own work there); returns its
@@ -238,7 +239,8 @@ def serve_master(
     starts or its next timer, then polls without sleeping for as long as the cycle's datagrams
     keep coming (spin_ns after the last one).  native: the cycle's queries and FDIR's watch run
     in C (cell.snp.native.NativeMaster, on the same schedule), the rest here, between its runs.
-    routes: its links to the two routers of a routed network (cell.snp.routed; in C as in Python)."""
+    routes: the routed network it found, its links to the two routers (cell.snp.routed's
+    explore_routers; in C as in Python)."""
     if native:
         return _serve_master_native(master, sock, stop, loss, spin_ns, stop_every_ns, routes)
     link = _master_link(master, sock, loss, routes)
@@ -297,7 +299,7 @@ def _serve_master_native(
     loss: float,
     spin_ns: int,
     coarse: int,
-    routes: tuple[Any, Any] | None = None,
+    routes: Explored | None = None,
 ) -> Link:
     from cell.snp.native import RUN_HANDED, NativeMaster
 

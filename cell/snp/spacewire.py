@@ -1,7 +1,10 @@
 """A SpaceWire-style routed network, sans IO: what seed 002's modular robot assumes under SnP-MrT.
 
 Addressing as ECSS-E-ST-50-12C's routers do it, on a packet's leading byte:
-- 0: the router's own configuration port (here: it answers who it is and which ports are up);
+- 0: the router's own configuration port: it answers an RMAP read of its identity (who it is, its
+  ports, which are up, and the port the read came in by: SpaceWire-PnP's "return port") out of the
+  port the read came in by, then along the read's reply address, so that an explorer that does not
+  know yet which port of a router it reached it by still hears it (`Explorer`);
 - 1..31: path addressing: the router sends the packet out of that port, the byte deleted;
 - 32..254: logical addressing: the routing table names the port(s), the byte kept; with several,
   the first whose link is up (group adaptive routing: a network-layer redundancy);
@@ -12,8 +15,9 @@ router's packet timeout spilled it: here a packet that has crossed MAX_HOPS rout
 counted as a loop.  Nothing a peer sends makes a router raise: every drop is counted by reason.
 
 `Network` joins routers and end nodes with links that go down and up, delivers a packet hop by
-hop (each hop HOP_NS), and `explore()` finds the topology from one node by path addresses alone,
-as the master does at start.  `Redundant` keeps two different paths to a destination and moves to
+hop (each hop HOP_NS); `Explorer` finds the topology from one node by path addresses alone, as
+the running master does through the routers (cell.snp.routed.explore_routers), and `explore()` runs
+it on a `Network`.  `Redundant` keeps two different paths to a destination and moves to
 the other after FAILOVER_CYCLES cycles in a row without an answer over the first (the slides' FDIR:
 no retry; a miss is guessed, a run of misses is a permanent failure).
 """
@@ -26,6 +30,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum, StrEnum
 
 from cell.counters import Counters, tally
+from cell.snp import rmap
 from cell.snp.packet import Header, Pid, Query, Reply, decode, encode
 
 CONFIG_PORT = 0
@@ -34,6 +39,8 @@ RESERVED = 255
 MAX_HOPS = 16
 HOP_NS = 2_000  # a router's forwarding plus a link's transfer of a short packet (100 Mbit/s)
 FAILOVER_CYCLES = 3  # answers missed in a row over a path before it counts as failed
+IDENTITY_ADDR, IDENTITY_LEN = 0, 8  # a router's identity in its configuration port's memory (RMAP)
+ROUTER_LA = 0xFE  # the logical address a configuration port answers to (SpaceWire's default)
 
 
 class End(IntEnum):
@@ -49,6 +56,7 @@ class Drop(StrEnum):
     LINK_DOWN = "link_down"  # the port's link (every port of the group) is down
     NO_ROUTE = "no_route"  # a logical address the routing table does not hold
     RESERVED = "reserved"
+    BAD_CONFIG = "bad_config"  # at the configuration port: not an RMAP read of the identity
 
 
 @dataclass(frozen=True)
@@ -91,8 +99,7 @@ class Router:
         if pkt.hops >= MAX_HOPS:
             return self._drop(Drop.LOOP)
         first = pkt.data[0]
-        if first == CONFIG_PORT:
-            self.counters.config += 1
+        if first == CONFIG_PORT:  # (answered by configure(), which counts it)
             return [(CONFIG_PORT, Packet(pkt.data[1:], pkt.end, pkt.hops + 1))]
         if first <= MAX_PATH_PORT:
             if first > self.ports:
@@ -112,18 +119,47 @@ class Router:
                 return [(port, Packet(pkt.data, pkt.end, pkt.hops + 1))]
         return self._drop(Drop.LINK_DOWN)
 
-    def identity(self) -> bytes:
-        """What the configuration port answers: b"R", its id, its port count, a bit per port up."""
+    def identity(self, return_port: int) -> bytes:
+        """What the configuration port answers: b"R", its id, its port count, the port the read came
+        in by, a bit per port up."""
         mask = sum(1 << p for p in self.up)
-        return b"R" + bytes([self.id & 0xFF, self.ports]) + mask.to_bytes(4, "big")
+        return b"R" + bytes([self.id & 0xFF, self.ports, return_port]) + mask.to_bytes(4, "big")
+
+    def configure(self, data: bytes, in_port: int) -> list[tuple[int, Packet]]:
+        """A packet at the configuration port (its path spent) that came in by in_port: an RMAP read
+        of the identity is answered out of in_port, its reply address leading on from the router
+        there (see the module docstring); anything else is dropped, counted."""
+        try:
+            cmd = rmap.decode(data)
+        except rmap.RmapError:
+            return self._drop(Drop.BAD_CONFIG)
+        if not isinstance(cmd, rmap.Read) or (cmd.extended, cmd.address, cmd.length) != (
+            0,
+            IDENTITY_ADDR,
+            IDENTITY_LEN,
+        ):
+            return self._drop(Drop.BAD_CONFIG)
+        self.counters.config += 1
+        reply = rmap.ReadReply(cmd.initiator, cmd.target, cmd.transaction, self.identity(in_port))
+        return [(in_port, Packet(cmd.reply_address.lstrip(b"\x00") + rmap.encode_read_reply(reply)))]
 
 
-def parse_identity(data: bytes) -> tuple[int, int, set[int]] | None:
-    """(router id, ports, ports up) from a router's identity; None for anything else."""
-    if len(data) != 7 or data[:1] != b"R":
+@dataclass(frozen=True)
+class RouterInfo:
+    """A router's identity as its configuration port gives it."""
+
+    id: int
+    ports: int
+    return_port: int  # the port the read came in by: the way back to the asker
+    up: frozenset[int]
+
+
+def parse_identity(data: bytes) -> RouterInfo | None:
+    """A router's identity; None for anything else."""
+    if len(data) != IDENTITY_LEN or data[:1] != b"R":
         return None
-    mask = int.from_bytes(data[3:7], "big")
-    return data[1], data[2], {p for p in range(1, data[2] + 1) if mask >> p & 1}
+    mask = int.from_bytes(data[4:8], "big")
+    return RouterInfo(data[1], data[2], data[3], frozenset(p for p in range(1, data[2] + 1) if mask >> p & 1))
 
 
 @dataclass
@@ -177,7 +213,7 @@ class Network:
 
     def send(self, node: str, port: int, data: bytes) -> list[Delivery]:
         """A node sends data out of one of its ports: where it arrived (a router's configuration
-        port answers at once, back along the packet's return path given as its tail: see explore)."""
+        port's answer included: Router.configure)."""
         out: list[Delivery] = []
         queue: deque[tuple[tuple[str, int], Packet, int]] = deque([((node, port), Packet(data), 0)])
         while queue:
@@ -196,42 +232,99 @@ class Network:
             for out_port, fwd in router.route(pkt):
                 if out_port == CONFIG_PORT:
                     out.append(Delivery(name, CONFIG_PORT, fwd, ns))
+                    queue += [((name, p), answer, ns) for p, answer in router.configure(fwd.data, in_port)]
                 else:
                     queue.append(((name, out_port), fwd, ns))
         return out
 
 
-def explore(net: Network, node: str, port: int = 1, max_depth: int = 8) -> dict[tuple[int, ...], str]:
-    """The topology as `node` finds it through its port, by path addresses alone: every path (the
-    router ports from its own) to what answers there, a router's configuration port or a node.
-    Breadth first; a router met again by another path is not explored twice.  (Each answer is
-    read where it is given: its way back is the same hops, reversed.)"""
-    found: dict[tuple[int, ...], str] = {}
-    seen: set[int] = set()
-    frontier: list[tuple[int, ...]] = [()]
-    for _ in range(max_depth):
-        nxt: list[tuple[int, ...]] = []
-        for path in frontier:
-            here = net.send(node, port, bytes(path) + bytes([CONFIG_PORT]))
-            answer = next((d for d in here if d.port == CONFIG_PORT), None)
-            if answer is not None:  # a router at the end of the path: note it, go through its ports
-                router = net.routers[answer.node]
-                ident = parse_identity(router.identity())
-                assert ident is not None
-                rid, _, up = ident
-                found[path] = f"router {rid}"
-                if rid in seen:
-                    continue
-                seen.add(rid)
-                nxt += [(*path, p) for p in sorted(up)]
+class Explorer:
+    """The network beyond one of a node's ports, found by path addresses alone (sans IO), breadth
+    first: each round reads the identity at the configuration port of whatever is at the end of
+    each path (`probes`), takes the answers (`answer`) and, its time up (`timeout`), goes through
+    the ports up of each router found, but the one it was reached by, a router met again by another
+    path not twice.  A probe's reply address is the way back from the router before its path's
+    last hop: the routers' return ports, innermost first.  A path no router answered at ends at a
+    node (`ends`; a node does not take a router's configuration read: it drops it)."""
+
+    def __init__(self, initiator: int = 0xFE, max_depth: int = 8) -> None:
+        self.initiator, self.max_depth = initiator, max_depth
+        self.routers: dict[tuple[int, ...], RouterInfo] = {}
+        self.ends: list[tuple[int, ...]] = []
+        self.stray = 0  # answers that were no probe's of this round
+        self._round: list[tuple[int, ...]] = [()]
+        self._asked: dict[int, tuple[int, ...]] = {}  # transaction id: its path, this round
+        self._ids: set[int] = set()
+        self._tid = 0
+        self._depth = 0
+
+    @property
+    def done(self) -> bool:
+        return not self._round
+
+    @property
+    def pending(self) -> int:
+        """This round's probes not answered yet."""
+        return len(self._asked)
+
+    def probes(self) -> list[bytes]:
+        """This round's packets, each from the node's port: path, configuration port, RMAP read."""
+        out = []
+        for path in self._round:
+            self._tid = (self._tid + 1) & 0xFFFF
+            self._asked[self._tid] = path
+            back = bytes(self.routers[path[:k]].return_port for k in range(len(path) - 1, -1, -1))
+            read = rmap.Read(
+                ROUTER_LA, self.initiator, self._tid, IDENTITY_ADDR, IDENTITY_LEN,
+                reply_address=back.rjust(-(-len(back) // 4) * 4, b"\x00"),
+            )  # fmt: skip
+            out.append(bytes(path) + bytes([CONFIG_PORT]) + rmap.encode_read(read))
+        return out
+
+    def answer(self, data: bytes) -> bool:
+        """A datagram that came back to the node: True if it answered a probe of this round."""
+        try:
+            reply = rmap.decode(data)
+        except rmap.RmapError:
+            reply = None
+        path = self._asked.pop(reply.transaction, None) if isinstance(reply, rmap.ReadReply) else None
+        info = parse_identity(reply.data) if path is not None and reply is not None else None
+        if path is None or info is None:
+            self.stray += 1
+            return False
+        self.routers[path] = info
+        return True
+
+    def timeout(self) -> None:
+        """This round is over: what went unanswered ends at a node; the next round is set."""
+        self.ends += [p for p in self._asked.values() if p]
+        answered = [p for p in self._round if p in self.routers]
+        self._asked.clear()
+        self._depth += 1
+        self._round = []
+        for path in answered:
+            info = self.routers[path]
+            if info.id in self._ids or self._depth >= self.max_depth:
                 continue
-            hit = next((d for d in here if d.port != CONFIG_PORT), None)
-            if hit is not None and hit.node != node:  # a node: the packet (its config byte) reached it
-                found[path] = f"node {hit.node}"
-        frontier = nxt
-        if not frontier:
-            break
-    return found
+            self._ids.add(info.id)
+            self._round += [(*path, p) for p in sorted(info.up - {info.return_port})]
+
+
+def explore(net: Network, node: str, port: int = 1, max_depth: int = 8) -> dict[tuple[int, ...], str]:
+    """Explorer on a Network from `node`'s port: every path to what is there, "router N" or
+    "node NAME" (the node a probe reached, as the network delivered it)."""
+    ex = Explorer(max_depth=max_depth)
+    reached: dict[tuple[int, ...], str] = {}
+    while not ex.done:
+        for probe in ex.probes():
+            for d in net.send(node, port, probe):
+                if d.node == node:
+                    ex.answer(d.packet.data)
+                elif d.port != CONFIG_PORT:
+                    reached[tuple(probe[: probe.index(CONFIG_PORT)])] = f"node {d.node}"
+        ex.timeout()
+    found = {path: f"router {info.id}" for path, info in ex.routers.items()}
+    return found | {path: reached.get(path, "nothing") for path in ex.ends}
 
 
 Route = tuple[int, bytes]  # a node's port, and the path address bytes from there

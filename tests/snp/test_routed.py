@@ -11,9 +11,20 @@ import time
 
 import pytest
 
+from cell.snp import rmap
 from cell.snp.native import available
 from cell.snp.packet import Header, Pid, Query, decode, encode
-from cell.snp.routed import FAILOVER_SENDS, RoutedLink, routers_main, with_return, without_return
+from cell.snp.routed import (
+    FAILOVER_SENDS,
+    RoutedLink,
+    explore_routers,
+    module_port,
+    routers_main,
+    start_routers,
+    with_return,
+    without_return,
+)
+from cell.snp.spacewire import IDENTITY_ADDR, IDENTITY_LEN, ROUTER_LA, Router, RouterInfo
 
 native_only = pytest.mark.skipif(available() is not None, reason=f"the C cycle does not build: {available()}")
 
@@ -81,6 +92,16 @@ def test_the_routers_forward_by_path_drop_junk_and_a_cut_link_counting_each(nati
         assert nodes[0].recv(2048) == _packet()
         stranger.sendto(b"\x01" + _packet(), r1[1])  # not on the link: dropped
         nodes[0].sendto(b"\x09" + _packet(), r1[0])  # a port R1 does not have
+        # the configuration port: an identity read answered as spacewire.Router answers it, byte
+        # for byte (out of the port it came in by, its reply address in front); junk counted
+        for node, at, back in ((0, r1[0], b""), (1, r2[1], b"\x00\x00\x00\x07")):
+            read = rmap.encode_read(
+                rmap.Read(ROUTER_LA, 0x42, 5, IDENTITY_ADDR, IDENTITY_LEN, reply_address=back)
+            )
+            nodes[node].sendto(b"\x00" + read, at)
+            router = Router(1 + (at == r2[1]), 3)
+            assert nodes[node].recv(2048) == router.configure(read, 1 + node)[0][1].data
+        nodes[0].sendto(b"\x00junk", r1[0])
         here.send(("cut", 0, 3))
         assert here.recv() == ("cut", 0, 3)  # (done before what follows)
         nodes[0].sendto(b"\x03" + _packet(), r1[0])  # out of the cut port: lost
@@ -93,10 +114,45 @@ def test_the_routers_forward_by_path_drop_junk_and_a_cut_link_counting_each(nati
         assert counts["dropped"] == 2  # the stranger's, and what came in on the cut link
         assert counts["R1"]["dropped.bad_port"] == 1 and counts["R1"]["dropped.link_down"] == 1
         assert counts["R1"]["forwarded"] == 1 and counts["R2"]["forwarded"] == 2
+        assert counts["R1"]["config"] == 1 and counts["R2"]["config"] == 1
+        assert counts["R1"]["dropped.bad_config"] == 1
         proc.join(10)
     finally:
         for s in (*nodes, stranger):
             s.close()
+
+
+@pytest.mark.parametrize(
+    "native", [pytest.param(True, marks=native_only, id="c"), pytest.param(False, id="python")]
+)
+def test_the_master_finds_its_port_and_its_modules_by_exploring_the_running_routers(native: bool) -> None:
+    """Nothing declared but its two links: it learns the port it is on and the ports up beyond, a
+    link cut before it looks missing from that router's and found through the other's."""
+    from cell.ports import free_ports
+
+    master = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    modules = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(3)]
+    for s, port in zip((master, *modules), free_ports(4), strict=True):
+        s.bind(("127.0.0.1", port))
+    modules[2].settimeout(2.0)
+    ports = [s.getsockname()[1] for s in modules]
+    ctx = mp.get_context("spawn")
+    routers = start_routers(ctx, master.getsockname()[1], ports, time.monotonic() + 30, native=native)
+    try:
+        routers.cut(0, module_port(1))
+        found = explore_routers(master, routers.master)
+        assert found.own == (1,) and found.ends == ((2,), (3,), (4,))
+        assert found.routers == (
+            RouterInfo(1, 4, 1, frozenset({1, 2, 4})),
+            RouterInfo(2, 4, 1, frozenset({1, 2, 3, 4})),
+        )
+        # a probe that reached a module is nothing it takes: a router's configuration read
+        assert modules[2].recv(2048)[:2] == bytes([0, ROUTER_LA])
+    finally:
+        counts = routers.stop()
+        for s in (master, *modules):
+            s.close()
+    assert counts["R1"]["config"] == 1 and counts["R2"]["config"] == 1 and counts["dropped"] == 0
 
 
 @pytest.mark.slow
@@ -109,8 +165,8 @@ def test_the_routers_forward_by_path_drop_junk_and_a_cut_link_counting_each(nati
 )
 def test_the_arms_cycle_runs_over_the_routers_and_fails_over_a_cut_link(in_c: bool, period: int) -> None:
     """The master and six modules over the two routers (the cycle and the routers in C, or all in
-    Python), the MuJoCo arm on a joint move; module 4's link to R1 cut halfway: it goes over R2
-    after FAILOVER_CYCLES missed."""
+    Python), the master given nothing but its links; the MuJoCo arm on a joint move; module 4's
+    link to R1 cut halfway: it goes over R2 after FAILOVER_CYCLES missed."""
     from cell.bench.snp import SLOT_NS, cycle_figures, failover_in_cycle_ms, trial
     from cell.modular.cycle import SETTLE_NS
     from cell.modular.reference import Q_HOME, joint_move
@@ -128,6 +184,9 @@ def test_the_arms_cycle_runs_over_the_routers_and_fails_over_a_cut_link(in_c: bo
     r = trial(slots, seconds, config=config, native=in_c, reference=ref, routed=True, cut=(seconds / 2, 3))
     f = cycle_figures(r, period)
     assert f.modules_ran == 6 and f.tsp_offset_us_max < 200.0  # (clocks synced through the routers)
+    # the master found its modules' paths by exploring the routers, each router answering it once
+    assert r["master"]["explored"] == [[2 + k] for k in range(6)]
+    assert r["routers"]["R1"]["config"] == 1 and r["routers"]["R2"]["config"] == 1
     # the cut module ended on R2 (at 1 ms a stall of the master's core now and then moves every
     # module over together: counted, not a fault of the path)
     cut_module = next(m for m in r["modules"] if m["module_id"] == slots[3]["module_id"])

@@ -110,6 +110,28 @@ def test_rmap_write_command_layout_and_reply() -> None:
     assert r.status == rmap.Status.SUCCESS and reply[:4] == bytes([0x20, 0x01, 0x3C, 0x00])
 
 
+def test_rmap_read_command_and_reply_layout_byte_by_byte() -> None:
+    read = rmap.Read(0xFE, 0x42, 0x0109, 0x00000000, 8, reply_address=b"\x00\x00\x05\x01")
+    raw = rmap.encode_read(read)
+    # target, pid, instruction (command, read, reply, increment, one word of reply address), key,
+    # reply address, initiator, transaction id, extended address, address, data length; no data
+    head = bytes([0xFE, 0x01, 0x4D, 0x00, 0, 0, 5, 1, 0x42, 0x01, 0x09, 0x00, 0, 0, 0, 0, 0, 0, 8])
+    assert raw == head + bytes([crc8(head)]) and rmap.decode(raw) == read
+    data = b"R\x01\x03\x01\x00\x00\x00\x0e"
+    reply = rmap.encode_read_reply(rmap.ReadReply(0x42, 0xFE, 0x0109, data))
+    # initiator, pid, instruction (reply, read, increment), status, target, transaction id, reserved,
+    # data length, header CRC, data, data CRC
+    head = bytes([0x42, 0x01, 0x0C, 0x00, 0xFE, 0x01, 0x09, 0x00, 0, 0, 8])
+    assert reply == head + bytes([crc8(head)]) + data + bytes([crc8(data)])
+    assert rmap.decode(reply) == rmap.ReadReply(0x42, 0xFE, 0x0109, data)
+    for bad in (raw + b"\x00", raw[:-1] + bytes([raw[-1] ^ 1]), reply[:-1], reply[:-1] + b"\x00"):
+        with pytest.raises(rmap.RmapError):
+            rmap.decode(bad)
+    # a target of writes takes no read: dropped, counted
+    target = rmap.Target(0xFE, lambda a, d: None)
+    assert target.receive(raw) is None and target.counters.dropped == 1
+
+
 def test_rmap_target_answers_bad_writes_with_a_status_and_drops_bad_headers() -> None:
     target = rmap.Target(0xFE, lambda a, d: None)
     raw = bytearray(rmap.encode_write(rmap.Write(0xFE, 0x20, 1, 0x10, b"abcd")))

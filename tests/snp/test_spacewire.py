@@ -3,16 +3,25 @@ does with bad packets and loops, replies routed by their return address, explora
 
 from __future__ import annotations
 
-from cell.snp.packet import DEFAULT_LA, Header, Pid, Query, Reply, decode, encode
+from hypothesis import given
+from hypothesis import strategies as st
+
+from cell.snp import rmap
+from cell.snp.packet import DEFAULT_LA, Header, Pid, Query, Reply, crc8, decode, encode
 from cell.snp.spacewire import (
     FAILOVER_CYCLES,
     HOP_NS,
+    IDENTITY_ADDR,
+    IDENTITY_LEN,
+    ROUTER_LA,
     End,
+    Explorer,
     Network,
     Node,
     Packet,
     Redundant,
     Router,
+    RouterInfo,
     cd_cycle_us,
     explore,
     failover_ms,
@@ -30,10 +39,31 @@ def test_a_router_forwards_by_path_and_by_logical_address_byte_by_byte() -> None
     assert r.route(Packet(b"\x40abc")) == [(3, Packet(b"\x40abc", End.EOP, 1))]
     r.up.discard(3)
     assert r.route(Packet(b"\x40abc")) == [(4, Packet(b"\x40abc", End.EOP, 1))]
-    # the configuration port answers who the router is and which ports are up
-    assert r.route(Packet(b"\x00")) == [(0, Packet(b"", End.EOP, 1))]
-    assert parse_identity(r.identity()) == (7, 4, {1, 2, 4})
-    assert r.counters.forwarded == 3 and r.counters.config == 1
+    # the configuration port: what follows the 0 goes to it (Router.configure answers)
+    assert r.route(Packet(b"\x00abc")) == [(0, Packet(b"abc", End.EOP, 1))]
+    assert parse_identity(r.identity(2)) == RouterInfo(7, 4, 2, frozenset({1, 2, 4}))
+    assert r.counters.forwarded == 3
+
+
+def _identity_read(tid: int, back: bytes = b"", address: int = IDENTITY_ADDR) -> bytes:
+    padded = back.rjust(-(-len(back) // 4) * 4, b"\x00")
+    return rmap.encode_read(rmap.Read(ROUTER_LA, 0x42, tid, address, IDENTITY_LEN, reply_address=padded))
+
+
+def test_the_configuration_port_answers_an_identity_read_by_the_way_it_came_then_its_reply_address() -> None:
+    r = Router(7, 4)
+    r.up.discard(3)
+    [(port, pkt)] = r.configure(_identity_read(9, b"\x05\x01"), 2)
+    # out of the port the read came in by, its reply address (leading zeros dropped) in front
+    assert port == 2 and pkt.data[:2] == b"\x05\x01"
+    ident = b"R\x07\x04\x02" + (1 << 1 | 1 << 2 | 1 << 4).to_bytes(4, "big")  # id, ports, came by, up
+    head = bytes([0x42, 0x01, 0x0C, 0x00, ROUTER_LA, 0, 9, 0, 0, 0, 8])
+    assert pkt.data[2:] == head + bytes([crc8(head)]) + ident + bytes([crc8(ident)])
+    # anything else at the configuration port: dropped, counted
+    write = rmap.encode_write(rmap.Write(ROUTER_LA, 0x42, 1, IDENTITY_ADDR, b"x" * 8))
+    for bad in (b"", b"junk", write, _identity_read(10, address=4), _identity_read(11)[:-1]):
+        assert r.configure(bad, 1) == []
+    assert r.counters.config == 1 and r.counters.dropped["bad_config"] == 5
 
 
 def test_bad_packets_and_loops_are_dropped_and_counted_never_raised() -> None:
@@ -73,12 +103,51 @@ def test_a_reply_finds_its_way_back_by_the_return_address() -> None:
     assert [d.node for d in home] == ["master"] and decode(home[0].packet.data).body == Reply(3)
 
 
+_reads = st.tuples(st.integers(0, 0xFFFF), st.integers(0, 40), st.integers(0, 255)).map(
+    lambda a: (lambda raw: raw[: a[1]] + bytes([a[2]]) + raw[a[1] + 1 :])(_identity_read(a[0], b"\x02"))
+)  # (an identity read with one byte set to anything)
+
+
+@given(st.binary(max_size=48) | _reads, st.integers(1, 4))
+def test_nothing_at_a_configuration_port_or_back_at_an_explorer_raises(data: bytes, port: int) -> None:
+    r = Router(3, 4)
+    out = r.configure(data, port)
+    assert out == [] or [p for p, _ in out] == [port]  # (answered by the way it came, or dropped)
+    assert r.counters.config + r.counters.dropped["bad_config"] == 1
+    ex = Explorer()
+    ex.probes()
+    ex.answer(data)
+    assert ex.stray + len(ex.routers) == 1
+
+
 def test_the_master_finds_the_topology_by_path_addresses() -> None:
     net, _ = ring(["m1", "m2", "m3"])
     for port, router in ((1, "router 1"), (2, "router 2")):
         assert explore(net, "master", port) == {(): router, (2,): "node m1", (3,): "node m2", (4,): "node m3"}
     net.set_link(("R1", 3), False)  # m2's link to R1 down: not found through R1, still through R2
     assert (3,) not in explore(net, "master", 1) and explore(net, "master", 2)[(3,)] == "node m2"
+
+
+def test_exploration_goes_router_by_router_its_answers_routed_back_by_the_return_ports() -> None:
+    """Two routers in a row and a loop between them: the second router answers by the port it was
+    reached by, then back through the first by the reply address the explorer built from what the
+    first said; a router met again by the loop is noted, not explored twice."""
+    net = Network()
+    r1, r2 = net.add_router("R1", Router(1, 4)), net.add_router("R2", Router(2, 3))
+    for name in ("master", "a", "b"):
+        net.add_node(Node(name))
+    net.link(("master", 1), ("R1", 1))
+    net.link(("R1", 2), ("R2", 3))
+    net.link(("R1", 3), ("b", 1))
+    net.link(("R2", 1), ("a", 1))
+    net.link(("R2", 2), ("R1", 4))
+    assert explore(net, "master") == {
+        (): "router 1", (2,): "router 2", (3,): "node b", (4,): "router 2",
+        (2, 1): "node a", (2, 2): "router 1",
+    }  # fmt: skip
+    # each router answered once a path reached it; the probes that reached nodes went no further
+    assert r1.counters.config == 2 and r2.counters.config == 2
+    assert [len(inbox) for inbox in (net.nodes["a"].inbox, net.nodes["b"].inbox)] == [1, 1]
 
 
 def test_a_failed_path_is_left_for_the_other_after_the_fdir_bound() -> None:
