@@ -41,6 +41,7 @@ HOP_NS = 2_000  # a router's forwarding plus a link's transfer of a short packet
 FAILOVER_CYCLES = 3  # answers missed in a row over a path before it counts as failed
 IDENTITY_ADDR, IDENTITY_LEN = 0, 8  # a router's identity in its configuration port's memory (RMAP)
 ROUTER_LA = 0xFE  # the logical address a configuration port answers to (SpaceWire's default)
+_IDENTITY = (0, IDENTITY_ADDR, IDENTITY_LEN)  # a read of it: (extended address, address, length)
 
 
 class End(IntEnum):
@@ -133,11 +134,7 @@ class Router:
             cmd = rmap.decode(data)
         except rmap.RmapError:
             return self._drop(Drop.BAD_CONFIG)
-        if not isinstance(cmd, rmap.Read) or (cmd.extended, cmd.address, cmd.length) != (
-            0,
-            IDENTITY_ADDR,
-            IDENTITY_LEN,
-        ):
+        if not isinstance(cmd, rmap.Read) or (cmd.extended, cmd.address, cmd.length) != _IDENTITY:
             return self._drop(Drop.BAD_CONFIG)
         self.counters.config += 1
         reply = rmap.ReadReply(cmd.initiator, cmd.target, cmd.transaction, self.identity(in_port))
