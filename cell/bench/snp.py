@@ -152,6 +152,8 @@ def _modules(
                 "cycles": cycles,
                 "missed": dict(m.missed),
                 "overruns": m.overruns,
+                "late": m.late,
+                "refused": getattr(m, "refused", 0),
                 "clock_errors": np.array(s.clock_errors, np.int64),
                 "follow_ups": m.follow_ups,  # beacons and responses taken two-step
                 "unfollowed": m.unfollowed,  # beacons left out, their follow-up lost

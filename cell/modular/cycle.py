@@ -266,7 +266,9 @@ class VdcModule(JointModule):
     - "neighbour": the same query, then it waits for G of this cycle from its outboard neighbour
       (G_PASS; the master's G its guess if it has not come by the deadline) and passes its own
       force, carried into its inboard neighbour's frame, on to that one (`to_inboard`): the chain
-      from the tip in, one message a module."""
+      from the tip in, one message a module.  A G of this cycle that comes before B (its
+      neighbour ahead of it) is kept for when it waits; one of another cycle is counted late, one
+      with another joint's items refused."""
 
     def __init__(
         self,
@@ -291,6 +293,8 @@ class VdcModule(JointModule):
         if cd == "neighbour":
             self.ANSWERS[Stage.CD] = G_PASS
         self.to_inboard: list[bytes] = []  # neighbour: its force for its inboard neighbour, to send
+        self.g_early: tuple[int, tuple] | None = None  # neighbour: (cycle, G) come before it waited
+        self.refused = 0  # neighbour: G_PASSes with another joint's items
         self.module: Module | None = None  # its body's dynamics, once it knows its joint (dynamics())
         self._module_joint = -1
         self.b: B | None = None  # the last B it took
@@ -336,10 +340,16 @@ class VdcModule(JointModule):
 
     def receive(self, data: bytes, raw: int) -> list[bytes]:
         cy = self.cycle
-        if self.cd == "neighbour" and cy is not None and cy.stage == Stage.CD and len(data) == G_PASS.size:
-            f = G_PASS.parse(data)  # (its outboard neighbour's G for this cycle, or nothing for it)
-            if f is None or f[8] != cy.qid or f[10::3][:6] != outboard_ids(self.joint):
-                return []
+        if self.cd == "neighbour" and len(data) == G_PASS.size and (f := G_PASS.parse(data)) is not None:
+            if f[10::3][:6] != outboard_ids(self.joint):
+                self.refused += 1
+            elif cy is not None and cy.stage == Stage.CD and f[8] == cy.qid:
+                return super().receive(data, raw)
+            elif cy is not None and cy.stage == Stage.AB and f[8] == self._cycle_no(cy):
+                self.g_early = (f[8], f[11::3][:6])  # (its neighbour ahead of it: kept until it waits)
+            else:
+                self.late += 1
+            return []
         return super().receive(data, raw)
 
     def took_d(self, values: tuple) -> None:
@@ -383,7 +393,8 @@ class VdcModule(JointModule):
         if self.cd == "neighbour" and self.joint < self.plant.arm.dof - 1:  # (the tip's G is 0)
             self.f_star = force
             cy.stage, cy.qid = Stage.CD, self._cycle_no(cy)  # (G_PASS's query id: the cycle's number)
-            return []
+            early, self.g_early = self.g_early, None
+            return self._answered(early[1], self._raw) if early is not None and early[0] == cy.qid else []
         if self.local:
             self.f_star, self.tau_r = force, float(AXIS @ (force + self.g))
             self._finish(cy, self.servo.now(self._raw))

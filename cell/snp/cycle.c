@@ -54,6 +54,10 @@ typedef struct {
      * G ids: g_in_ids), carried by its body's ^iX_{i-1}(q) (body_rot, body_pos; q at T1) */
     int64_t neighbour, tip, nb_ip, nb_port, g_in_ids[6];
     double body_pos[3], body_rot[9], q;
+    /* neighbour: a G of this cycle come before B (its neighbour ahead of it), kept until it waits:
+     * its cycle's number + 1 (0: none), its values */
+    int64_t g_early_at;
+    double g_early[6];
     plant_t *plant;
 } vdc_module_t;
 
@@ -306,6 +310,11 @@ static void second(module_t *m, int64_t now) { /* [C, D] */
     if (v->neighbour && !v->tip) { /* G of this cycle from its outboard neighbour: wait for it */
         memcpy(v->f_star, f, sizeof f);
         m->stage = STAGE_CD, m->qid = cycle_no(m);
+        if (v->g_early_at == m->qid + 1) { /* it came already */
+            memcpy(v->g, v->g_early, sizeof v->g);
+            v->g_early_at = 0;
+            finish(m, now);
+        }
         return;
     }
     if (v->local) { /* D here: F*_r and G on its axis; the cycle ends */
@@ -372,7 +381,13 @@ static int fast_path(module_t *m, const uint8_t *p, ssize_t n, int64_t host) {
     if (v != NULL && v->neighbour && n == VDC_G_SIZE) { /* its outboard neighbour's G */
         if (p[1] != PID_MRT || p[2] || p[12] || p[13] || p[14] != REPLY || !crcs_ok(p, (size_t)n)) return 0;
         if (get32(p + 19) != 6 || get32(p + 23) != (uint32_t)v->g_ids[0]) return 0;
-        if (m->stage != STAGE_CD || get32(p + 15) != (uint32_t)m->qid) {
+        uint32_t cycle = get32(p + 15);
+        if (m->stage == STAGE_AB && cycle == (uint32_t)cycle_no(m)) { /* before B: kept until it waits */
+            for (int k = 0; k < 6; k++) v->g_early[k] = getf(p + 27 + 16 * k);
+            v->g_early_at = (int64_t)cycle + 1;
+            return 1;
+        }
+        if (m->stage != STAGE_CD || cycle != (uint32_t)m->qid) {
             m->late++;
             return 1;
         }

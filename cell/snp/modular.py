@@ -626,6 +626,7 @@ class JointModule:
         self.cycles: list[tuple[int, int, int, int]] = []
         self.missed = {Stage.AB: 0, Stage.CD: 0}
         self.overruns = 0  # cycles skipped because the last one was still running
+        self.late = 0  # answers that came after their exchange was guessed (or to no query of its)
         self.pos = self.vel = 0.0
         self.v_des = self.torque = 0.0
         self._qid = 0
@@ -683,10 +684,11 @@ class JointModule:
                 self._response = (body, raw)
                 return []
             return self._exchanged(body.t1, body.t2, body.t3, raw)
-        if isinstance(body, Reply | Denied) and self.cycle is not None and body.query_id == self.cycle.qid:
-            return self._answered(
-                tuple(i.value for i in body.items) if isinstance(body, Reply) and body.items else None, raw
-            )
+        if isinstance(body, Reply | Denied):
+            if cy is not None and cy.stage != Stage.DONE and body.query_id == cy.qid:
+                items = body.items if isinstance(body, Reply) else ()
+                return self._answered(tuple(i.value for i in items) or None, raw)
+            self.late += 1
         return []
 
     # --- SnP-TSP -------------------------------------------------------------------------------

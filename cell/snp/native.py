@@ -134,6 +134,8 @@ class VdcModuleState(ctypes.Structure):
         ("body_pos", _D * 3),
         ("body_rot", _D * 9),
         ("q", _D),
+        ("g_early_at", _I),
+        ("g_early", _D * 6),
         ("plant", ctypes.POINTER(PlantState)),
     ]
 
@@ -396,7 +398,7 @@ class NativeCycles:
             from cell.modular.wire import b_of
 
             vm: Any = m
-            vm.missed_run, vm.braked, vm.tau_r = v.missed_run, v.braked, v.tau_r
+            vm.missed_run, vm.braked, vm.tau_r, vm.q, vm.qd = v.missed_run, v.braked, v.tau_r, v.q, v.qd
             vm.b = b_of(v.b) if v.have_b else None
             vm.g, vm.f_star, vm.module.theta = np.array(v.g), np.array(v.f_star), np.array(v.theta)
         n = st.n_records
@@ -406,9 +408,10 @@ class NativeCycles:
         m.missed["ab"] += st.missed_ab
         m.missed["cd"] += st.missed_cd
         m.overruns += st.overruns
+        m.late += st.late
         m.pos, m.vel, m.v_des, m.torque, m._qid = st.pos, st.vel, st.v_des, st.torque, st.qid
         link.sent, link.lost, link.errors = link.sent + st.sent, link.lost + st.lost, link.errors + st.errors
-        for name in ("n_records", "missed_ab", "missed_cd", "overruns", "sent", "lost", "errors"):
+        for name in ("n_records", "missed_ab", "missed_cd", "overruns", "sent", "lost", "errors", "late"):
             setattr(st, name, 0)
 
     def run(self, fds: list[int], until: int) -> tuple[int, int, bytes, int, tuple[str, int]] | None:

@@ -329,7 +329,7 @@ def test_a_neighbour_module_waits_for_its_outboard_neighbours_force_and_passes_i
     nb = [1.0, -2.0, 3.0, 4.0, 5.0, -30.0]
     assert m.receive(g_pass(3, 0, nb), 2000) == [] and m.cycle.stage == Stage.CD  # another joint's G
     assert m.receive(g_pass(2, 7, nb), 2000) == [] and m.cycle.stage == Stage.CD  # another cycle's
-    assert m.to_inboard == []
+    assert m.to_inboard == [] and (m.refused, m.late) == (1, 1)  # (each counted)
     assert m.receive(g_pass(2, 0, nb), 3000) == [] and m.cycle.stage == Stage.DONE
     force = m.f_star + np.array(nb, dtype=np.float32)
     assert (
@@ -349,6 +349,15 @@ def test_a_neighbour_module_waits_for_its_outboard_neighbours_force_and_passes_i
     m.receive(_b_and_g(2, f[8], [0.0, 0.0, 7.0, 0.0, 0.0, 0.0]), 10_001_000)  # type: ignore[index]
     assert m.poll(10_000_000 + 8_000_001) == [] and m.cycle.stage == Stage.DONE and m.missed[Stage.CD] == 1
     assert m.tau_r == pytest.approx(m.f_star[2] + 7.0) and len(m.to_inboard) == 1
+    # the next cycle's G comes before its B (its neighbour ahead of it): kept, and taken as it waits
+    m.to_inboard.clear()
+    m.next_start = 20_000_000
+    f = A_LOCAL_QUERY.parse(m.poll(20_000_000)[0])
+    early = [0.5, 0.5, -4.0, 0.0, 0.0, 1.0]
+    assert m.receive(g_pass(2, 2, early), 20_000_500) == [] and m.cycle.stage == Stage.AB
+    m.receive(_b_and_g(2, f[8], [0.0, 0.0, 7.0, 0.0, 0.0, 0.0]), 20_001_000)  # type: ignore[index]
+    assert m.cycle.stage == Stage.DONE and m.missed[Stage.CD] == 1  # (no wait: still the one before's)
+    assert m.tau_r == pytest.approx(m.f_star[2] - 4.0) and len(m.to_inboard) == 1 and m.late == 1
 
 
 def _whole_cycle(m: VdcModule, t: int, tau_r: float = 1.0) -> None:
@@ -498,3 +507,63 @@ def test_the_c_module_asks_with_its_joint_answers_b_with_its_force_and_drives_it
     finally:
         master.close()
         sock.close()
+
+
+@native
+def test_the_c_neighbour_module_keeps_a_g_come_before_its_b_and_passes_its_force_in_as_b_comes() -> None:
+    """Its outboard neighbour ahead of it: this cycle's G comes before B.  C keeps it, ends the
+    cycle as B comes (no wait for the deadline) and passes its force inwards, carried into the
+    inboard module's frame, as VdcModule._pass_in does; a G of another cycle is counted late."""
+    import socket
+    import threading
+
+    from cell.modular.vdc import carried_force
+    from cell.modular.wire import G_PASS
+    from cell.snp.tsp import Oscillator
+
+    period, joint = 50_000_000, 2
+    plant = Plant(Q_HOME)
+    master, inboard = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    for s in (master, inboard):
+        s.bind(("127.0.0.1", 0))
+        s.settimeout(2.0)
+    sock = open_udp(timestamps=True)
+    cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=realtime_offset())
+    cycles.drive(plant)
+    st = cycles.attach(sock.fileno(), Oscillator(0, 0.0, 0))
+    m = _module(plant, joint, cd="neighbour")
+    m.config = Configure(joint, period, 0, period * 4 // 5, (20.0,))
+    m.next_start = (time.monotonic_ns() // period + 1) * period
+    cycle = m.next_start // period
+    cycles.push(st, m, master.getsockname(), inboard.getsockname())
+    assert st.active and st.vdc
+
+    def g_pass(no: int, g: list[float]) -> bytes:
+        items = tuple(x for k, v in zip(outboard_ids(joint), g, strict=True) for x in (k, v, 0))
+        return G_PASS.pack(0, Pid.MRT, 104, 0, no & 0xFFFFFFFF, items)
+
+    until = m.next_start + period // 2
+    loop = threading.Thread(target=cycles.run, args=([sock.fileno()], until), daemon=True)
+    loop.start()
+    try:
+        a = A_LOCAL_QUERY.parse(master.recv(2048))
+        assert a is not None
+        early = [0.5, 0.5, -4.0, 0.25, 0.0, 1.0]
+        master.sendto(g_pass(cycle + 5, early), sock.getsockname())  # another cycle's: late
+        master.sendto(g_pass(cycle, early), sock.getsockname())  # this cycle's, before B: kept
+        # (one socket to one socket on loopback: they are read in the order sent)
+        master.sendto(_b_and_g(joint, a[8], [0.0, 0.0, 7.0, 0.0, 0.0, 0.0]), sock.getsockname())
+        passed = G_PASS.parse(inboard.recv(2048))
+        loop.join(5)
+        assert not loop.is_alive()
+        cycles.pull(st, m, Link(sock))
+    finally:
+        for s in (master, inboard, sock):
+            s.close()
+    assert passed is not None and passed[8] == cycle & 0xFFFFFFFF
+    assert passed[10::3][:6] == outboard_ids(joint - 1)  # (the inboard module's G ids)
+    assert np.allclose(m.g, early) and m.missed == {"ab": 0, "cd": 0} and m.late == 1
+    start, _, end, guessed = m.cycles[0]
+    assert guessed == 0 and end - start < period // 4  # (ended as B came, not at its deadline)
+    want = carried_force(plant.arm.bodies[joint].transform(m.q), m.f_star + np.array(early))
+    assert np.allclose(passed[11::3][:6], want, rtol=1e-5, atol=1e-4)
