@@ -441,6 +441,20 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     assert err.max() < 2.0 and f.missed_pct < 5.0
 
 
+def _c_module(plant: Plant, joint: int, period: int, cd: str = "master") -> tuple:
+    """A VdcModule on its socket whose cycle runs in C (NativeCycles driving the plant): (its
+    socket, the cycles, its C state, the module), configured, not pushed yet."""
+    from cell.snp.tsp import Oscillator
+
+    sock = open_udp(timestamps=True)
+    cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=realtime_offset())
+    cycles.drive(plant)
+    st = cycles.attach(sock.fileno(), Oscillator(0, 0.0, 0))
+    m = _module(plant, joint, cd=cd)
+    m.config = Configure(joint, period, 0, period * 4 // 5, (20.0,))
+    return sock, cycles, st, m
+
+
 @native
 def test_the_c_module_asks_with_its_joint_answers_b_with_its_force_and_drives_its_motor_with_d() -> None:
     """A VDC module's cycle in C (cell/snp/cycle.c) against the Python VdcModule's arithmetic; a test
@@ -449,7 +463,6 @@ def test_the_c_module_asks_with_its_joint_answers_b_with_its_force_and_drives_it
     import threading
 
     from cell.modular.vdc import Gains, Module
-    from cell.snp.tsp import Oscillator
 
     period, joint = 50_000_000, 2
     silent_cycles = 3  # after the first: then it goes on its brake (SAFE_AFTER)
@@ -457,12 +470,7 @@ def test_the_c_module_asks_with_its_joint_answers_b_with_its_force_and_drives_it
     master = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     master.bind(("127.0.0.1", 0))
     master.settimeout(2.0)
-    sock = open_udp(timestamps=True)
-    cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=realtime_offset())
-    cycles.drive(plant)
-    st = cycles.attach(sock.fileno(), Oscillator(0, 0.0, 0))
-    m = _module(plant, joint)
-    m.config = Configure(joint, period, 0, period * 4 // 5, (20.0,))
+    sock, cycles, st, m = _c_module(plant, joint, period)
     m.next_start = (time.monotonic_ns() // period + 1) * period
     cycles.push(st, m, master.getsockname())
     assert st.active and st.vdc
@@ -519,7 +527,6 @@ def test_the_c_neighbour_module_keeps_a_g_come_before_its_b_and_passes_its_force
 
     from cell.modular.vdc import carried_force
     from cell.modular.wire import G_PASS
-    from cell.snp.tsp import Oscillator
 
     period, joint = 50_000_000, 2
     plant = Plant(Q_HOME)
@@ -527,12 +534,7 @@ def test_the_c_neighbour_module_keeps_a_g_come_before_its_b_and_passes_its_force
     for s in (master, inboard):
         s.bind(("127.0.0.1", 0))
         s.settimeout(2.0)
-    sock = open_udp(timestamps=True)
-    cycles = NativeCycles(spin_ns=0, lead_ns=0, mono_of_real=realtime_offset())
-    cycles.drive(plant)
-    st = cycles.attach(sock.fileno(), Oscillator(0, 0.0, 0))
-    m = _module(plant, joint, cd="neighbour")
-    m.config = Configure(joint, period, 0, period * 4 // 5, (20.0,))
+    sock, cycles, st, m = _c_module(plant, joint, period, cd="neighbour")
     m.next_start = (time.monotonic_ns() // period + 1) * period
     cycle = m.next_start // period
     cycles.push(st, m, master.getsockname(), inboard.getsockname())
