@@ -42,7 +42,7 @@ from cell.bus.envelope import (
     frame_topic,
 )
 from cell.config import BusConfig
-from cell.v1 import bus_pb2
+from cell.v1 import bus_pb2, health_pb2
 
 log = logging.getLogger("cell.bus")
 M = TypeVar("M", bound=Message)
@@ -55,6 +55,8 @@ _HANDSHAKE_FAILED = (
     | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
 )
 _REPLY = "_reply/"
+_SERVICE_EVENTS = "events/service/"  # the supervisors' word of a service started, failed, restarting
+_GONE = (health_pb2.ServiceEvent.KIND_FAILED, health_pb2.ServiceEvent.KIND_RESTARTING)
 
 
 class BusError(Exception):
@@ -324,6 +326,7 @@ class Bus:
         self._reply_topic = f"{_REPLY}{self.instance:08x}"
         self._topics: dict[str, bytes] = {}
         self._pending: dict[int, _Waiting] = {}  # correlation -> the request waiting for its reply
+        self._down: dict[str, str] = {}  # service -> why, from its supervisor's events (until it starts)
         self._methods: dict[str, _Method] = {}
         self._syncs: dict[bytes, asyncio.Future[None]] = {}
         self._corr = itertools.count(1)
@@ -370,6 +373,7 @@ class Bus:
             bus._pub.connect(config.pub)
             bus._ctl.subscribe(bus._reply_topic.encode())
             bus._ctl.subscribe(_SYNC + f"{bus.instance:08x}/c".encode())
+            bus._ctl.subscribe(_SERVICE_EVENTS.encode())
             bus._ctl.connect(config.sub)
             # the node owns its reader and handler tasks (no TaskGroup here: it would wrap
             # the caller's own exceptions in ExceptionGroups); they are awaited on the way out
@@ -598,7 +602,8 @@ class Bus:
         reply_type: type[M] | None = None,
         timeout: float | None = None,
     ) -> M | Message:
-        """Ask `service` to run `method`; its reply, or BusTimeout, or RemoteError if it answered an error."""
+        """Ask `service` to run `method`; its reply, or BusTimeout, or RemoteError if it answered an
+        error, or (code service_failed) at once if its supervisor says it failed meanwhile."""
         timeout = self.config.request_timeout_s if timeout is None else timeout
         if not self._ctl_live:  # connected without waiting: a reply could go nowhere until then
             try:
@@ -615,9 +620,9 @@ class Bus:
             async with asyncio.timeout(timeout):
                 env = await fut
         except TimeoutError:
-            raise BusTimeout(
-                f"no reply from {service}.{method} within {timeout:g} s (is service {service!r} running?)"
-            ) from None
+            why = self._down.get(service, "")
+            state = f"service {service!r} is down: {why}" if why else f"is service {service!r} running?"
+            raise BusTimeout(f"no reply from {service}.{method} within {timeout:g} s ({state})") from None
         finally:
             self._pending.pop(corr, None)
         if env.kind == Kind.ERROR:
@@ -679,11 +684,32 @@ class Bus:
             elif env.kind in (Kind.REPLY, Kind.ERROR):
                 fut.set_result(env)
             return
+        if env.topic.startswith(_SERVICE_EVENTS):
+            self._service_event(env)
+            return
         if env.kind != Kind.REQUEST:
             return
         task = asyncio.create_task(self._serve_one(env))
         self._handlers.add(task)
         task.add_done_callback(self._handlers.discard)
+
+    def _service_event(self, env: Envelope) -> None:
+        """A supervisor's word: a service that failed (restarting or not) answers no request waiting
+        on it, so each is answered now (RemoteError service_failed, with the service's error); a
+        request timing out while it is down says so."""
+        try:
+            if env.type_name != health_pb2.ServiceEvent.DESCRIPTOR.full_name:
+                raise EnvelopeError(f"a {env.type_name or 'nothing'} on {env.topic!r}")
+            ev = env.decode(health_pb2.ServiceEvent)
+        except EnvelopeError:
+            self.malformed += 1
+            return
+        if ev.kind in _GONE:
+            if len(self._down) < 256 or ev.service in self._down:  # (a peer's names are not ours to keep)
+                self._down[ev.service] = ev.text
+            self.abandon(ev.service, "service_failed", f"service {ev.service!r} failed: {ev.text}")
+        elif ev.kind == health_pb2.ServiceEvent.KIND_STARTED:
+            self._down.pop(ev.service, None)
 
     async def _serve_one(self, env: Envelope) -> None:
         reply_to = f"{_REPLY}{env.instance:08x}".encode()

@@ -18,7 +18,7 @@ from cell.bus import Bus, BusError, BusTimeout, BusUnavailable, Forwarder, Remot
 from cell.bus.envelope import Encoder
 from cell.bus.node import secure_client, zmq_context
 from cell.config import BusConfig
-from cell.v1 import bus_pb2
+from cell.v1 import bus_pb2, health_pb2
 from tests.conftest import cell_env, free_port
 
 
@@ -329,6 +329,44 @@ async def test_abandon_answers_waiting_requests_at_once(forwarder: BusConfig) ->
             )
         assert not other.done()  # only the dead service's requests
         other.cancel()
+
+
+async def test_a_request_to_a_service_said_failed_by_its_supervisor_is_answered(forwarder: BusConfig) -> None:
+    """A service that dies mid-request under a supervisor: the supervisor's event on the bus answers
+    what waits on it now (not at its timeout, which may be a whole motion long), saying why."""
+    Event = health_pb2.ServiceEvent
+
+    def event(service: str, kind: int, text: str = "") -> Event:
+        return Event(service=service, kind=kind, text=text, restarts=1)
+
+    async with Bus.connect(forwarder, "client") as client, Bus.connect(forwarder, "supervisor") as sup:
+        moving = asyncio.ensure_future(client.request("modular", "move", payload(1), timeout=30))
+        other = asyncio.ensure_future(client.request("vision", "measure", payload(2), timeout=30))
+        await asyncio.sleep(0)  # (the requests are on their way)
+        t0 = time.monotonic()
+        died = "RuntimeError: the cycle's routers process ended; restart 1 in 0.5 s"
+        sup.publish("events/service/modular", event("modular", Event.KIND_RESTARTING, died))
+        with pytest.raises(RemoteError) as info:
+            await moving
+        assert info.value.code == "service_failed" and died in info.value.message
+        assert time.monotonic() - t0 < 5.0 and not other.done()  # (only the failed service's)
+        # junk on the events' topic is counted, nothing else; a request timing out says the service is down
+        sup.publish("events/service/vision", payload(3))
+        sup.publish("events/service/vision", event("vision", Event.KIND_FAILED, "OSError: camera gone"))
+        with pytest.raises(RemoteError, match="camera gone"):
+            await other
+        assert client.malformed == 1
+        with pytest.raises(BusTimeout, match=r"service 'modular' is down: RuntimeError: the cycle's routers"):
+            await client.request("modular", "move", payload(4), timeout=0.3)
+        # back: its start clears it (the next event, from the same publisher, comes after it)
+        sup.publish("events/service/modular", event("modular", Event.KIND_STARTED))
+        waiting = asyncio.ensure_future(client.request("vision", "measure", payload(5), timeout=30))
+        await asyncio.sleep(0)
+        sup.publish("events/service/vision", event("vision", Event.KIND_RESTARTING, "again"))
+        with pytest.raises(RemoteError, match="again"):
+            await waiting
+        with pytest.raises(BusTimeout, match=r"is service 'modular' running\?"):
+            await client.request("modular", "move", payload(6), timeout=0.3)
 
 
 async def test_requests_waiting_when_the_forwarder_dies_are_answered_at_once(bus_config: BusConfig) -> None:
