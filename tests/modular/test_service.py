@@ -146,12 +146,26 @@ async def test_on_the_snp_cycle_its_processes_move_the_arm_and_a_pulled_module_s
         if moved.returncode != 2:
             break
     assert moved.returncode == 0 and moved.stdout.startswith("joints: "), moved.stdout + moved.stderr
-    # the cycle's master process killed: the service fails saying so, is restarted, and moves again
+    # the cycle's master process killed mid-motion: the service fails saying so, the motion's request
+    # is answered at once (its supervisor's event on the bus), not at its 120 s timeout; the service
+    # is restarted, and moves again
+    slow = asyncio.ensure_future(asyncio.to_thread(
+        run_cell, "modular", "move", "--joints", *goal_args, "--speed", "0.05", "--config", cfg
+    ))  # fmt: skip
+    for _ in range(200):
+        shown = await asyncio.to_thread(run_cell, "modular", "status", "--config", cfg)
+        if "moving:" in shown.stdout:
+            break
+    assert "moving:" in shown.stdout, shown.stdout + shown.stderr
     st = json.loads((await asyncio.to_thread(run_cell, "status", "--json", "--config", cfg)).stdout)
     service_pid = next(s["last"]["pid"] for s in st["services"] if s["name"] == "modular")
     children = [p for p in _children(service_pid) if b"spawn_main" in _cmdline(p)]
     assert len(children) == 2, children  # (the master's process, then the modules')
     os.kill(children[0], signal.SIGKILL)
+    t0 = time.monotonic()
+    moving = await slow
+    assert moving.returncode == 1 and "service_failed" in moving.stderr, moving.stdout + moving.stderr
+    assert "the cycle's master process ended" in moving.stderr and time.monotonic() - t0 < 20.0
     last = await _restarted(cfg)
     assert last.get("restarts", 0) >= 1 and "the cycle's master process ended" in last["last_error"], last
     for _ in range(100):  # (refused while its new modules join the cycle)
