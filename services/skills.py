@@ -37,7 +37,7 @@ import time
 from cell.rlink.client import EventClient
 from cell.service import ServiceContext, ServiceSpec
 from cell.skills.server import RobotSkills
-from cell.v1 import health_pb2, robot_pb2
+from cell.v1 import robot_pb2
 
 
 async def run(ctx: ServiceContext) -> None:
@@ -65,25 +65,8 @@ async def run(ctx: ServiceContext) -> None:
                         s.held = m
 
         tg.create_task(follow_truth(), name="skills-truth")
-        controller_events = await ctx.bus.subscribe("events/service/controller")
-
-        async def follow_controller() -> None:
-            """A controller that died or failed will never answer what we asked it: every waiting
-            command is answered `stopped` now (its motions end where the new controller stops them),
-            not with a timeout minutes later."""
-            SE = health_pb2.ServiceEvent
-            async for ev in controller_events.messages(SE):
-                if ev.kind in (SE.KIND_FAILED, SE.KIND_RESTARTING):  # (not STARTED: the new one's own)
-                    why = ev.text or "restarted"
-                    n = ctx.bus.abandon(
-                        "controller", "stopped", f"the controller failed ({why}); motion stopped"
-                    )
-                    if n:
-                        ctx.log.warning(
-                            "controller failed (%s): %d waiting command(s) answered stopped", why, n
-                        )
-
-        tg.create_task(follow_controller(), name="skills-controller")
+        # (a controller that dies mid-motion: what waits on it ends at once on its supervisor's
+        # event, cell.bus.ServiceDown; the server answers those commands `stopped`)
         ctx.ready()
 
         async def report() -> None:

@@ -16,6 +16,7 @@ from cell.bus.node import (
     BusUnavailable,
     RemoteError,
     RpcFault,
+    ServiceDown,
     Subscription,
 )
 
@@ -33,5 +34,6 @@ __all__ = [
     "Kind",
     "RemoteError",
     "RpcFault",
+    "ServiceDown",
     "Subscription",
 ]

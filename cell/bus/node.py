@@ -76,6 +76,15 @@ class BusTimeout(BusError, TimeoutError):
     """A request got no reply in time."""
 
 
+class ServiceDown(BusTimeout):
+    """A request's service failed while it waited (its supervisor said so on the bus): no reply will
+    come.  What it asked may or may not have been done, as with a timeout; only known at once."""
+
+    def __init__(self, service: str, method: str, why: str) -> None:
+        self.service, self.method, self.why = service, method, why
+        super().__init__(f"no reply from {service}.{method}: service {service!r} failed: {why}")
+
+
 class RemoteError(BusError):
     """The serving side answered a request with an error."""
 
@@ -602,8 +611,8 @@ class Bus:
         reply_type: type[M] | None = None,
         timeout: float | None = None,
     ) -> M | Message:
-        """Ask `service` to run `method`; its reply, or BusTimeout, or RemoteError if it answered an
-        error, or (code service_failed) at once if its supervisor says it failed meanwhile."""
+        """Ask `service` to run `method`; its reply, or BusTimeout (ServiceDown, at once, if its
+        supervisor says it failed meanwhile), or RemoteError if it answered an error."""
         timeout = self.config.request_timeout_s if timeout is None else timeout
         if not self._ctl_live:  # connected without waiting: a reply could go nowhere until then
             try:
@@ -619,6 +628,8 @@ class Bus:
             self._send(self._topic(f"rpc/{service}/{method}"), msg, Kind.REQUEST, corr)
             async with asyncio.timeout(timeout):
                 env = await fut
+        except ServiceDown:
+            raise
         except TimeoutError:
             why = self._down.get(service, "")
             state = f"service {service!r} is down: {why}" if why else f"is service {service!r} running?"
@@ -695,8 +706,8 @@ class Bus:
 
     def _service_event(self, env: Envelope) -> None:
         """A supervisor's word: a service that failed (restarting or not) answers no request waiting
-        on it, so each is answered now (RemoteError service_failed, with the service's error); a
-        request timing out while it is down says so."""
+        on it, so each ends now (ServiceDown, with the service's error); a request timing out while
+        it is down says so."""
         try:
             if env.type_name != health_pb2.ServiceEvent.DESCRIPTOR.full_name:
                 raise EnvelopeError(f"a {env.type_name or 'nothing'} on {env.topic!r}")
@@ -707,7 +718,9 @@ class Bus:
         if ev.kind in _GONE:
             if len(self._down) < 256 or ev.service in self._down:  # (a peer's names are not ours to keep)
                 self._down[ev.service] = ev.text
-            self.abandon(ev.service, "service_failed", f"service {ev.service!r} failed: {ev.text}")
+            for w in self._pending.values():
+                if w.service == ev.service and not w.fut.done():
+                    w.fut.set_exception(ServiceDown(w.service, w.method, ev.text))
         elif ev.kind == health_pb2.ServiceEvent.KIND_STARTED:
             self._down.pop(ev.service, None)
 

@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 from google.protobuf.message import Message
 
-from cell.bus import Bus, BusTimeout, RemoteError
+from cell.bus import Bus, BusTimeout, RemoteError, ServiceDown
 from cell.config import CellConfig, RobotConfig
 from cell.counters import Counters
 from cell.rlink.client import EventClient
@@ -236,10 +236,10 @@ class RobotSkills:
         try:
             async with asyncio.timeout(self.config.skills.motion_timeout_s):
                 reply = await execute(job.command, started)
+        except (RemoteError, BusTimeout) as exc:  # (first: a BusTimeout is a TimeoutError too)
+            reply = self._error(job.command.id, exc)
         except TimeoutError:
             reply = Error(job.command.id, ErrorCode.FAILED, "timed out")
-        except (RemoteError, BusTimeout) as exc:
-            reply = self._error(job.command.id, exc)
         except Exception as exc:  # a bug must not take the server down: answer, log, go on
             log.exception("%s: %s failed", self.robot.name, job.command)
             reply = Error(job.command.id, ErrorCode.FAILED, f"{type(exc).__name__}: {exc}")
@@ -268,6 +268,8 @@ class RobotSkills:
         return self._done(cmd, started_ns, await self.here())
 
     def _error(self, cid: str, exc: Exception) -> Error:
+        if isinstance(exc, ServiceDown):  # (its motions end where the new controller stops them)
+            return Error(cid, ErrorCode.STOPPED, f"the controller failed ({exc.why}); motion stopped")
         if isinstance(exc, RemoteError):
             return Error(cid, _CODES.get(exc.code, ErrorCode.FAILED), exc.message)
         return Error(cid, ErrorCode.FAILED, "the controller did not answer in time")

@@ -14,7 +14,17 @@ from dataclasses import replace
 import pytest
 import zmq
 
-from cell.bus import Bus, BusError, BusTimeout, BusUnavailable, Forwarder, RemoteError, RpcFault, node
+from cell.bus import (
+    Bus,
+    BusError,
+    BusTimeout,
+    BusUnavailable,
+    Forwarder,
+    RemoteError,
+    RpcFault,
+    ServiceDown,
+    node,
+)
 from cell.bus.envelope import Encoder
 from cell.bus.node import secure_client, zmq_context
 from cell.config import BusConfig
@@ -346,14 +356,15 @@ async def test_a_request_to_a_service_said_failed_by_its_supervisor_is_answered(
         t0 = time.monotonic()
         died = "RuntimeError: the cycle's routers process ended; restart 1 in 0.5 s"
         sup.publish("events/service/modular", event("modular", Event.KIND_RESTARTING, died))
-        with pytest.raises(RemoteError) as info:
+        with pytest.raises(ServiceDown) as info:  # (a BusTimeout: no reply, done or not; known now)
             await moving
-        assert info.value.code == "service_failed" and died in info.value.message
+        assert (info.value.service, info.value.method, info.value.why) == ("modular", "move", died)
+        assert isinstance(info.value, BusTimeout) and died in str(info.value)
         assert time.monotonic() - t0 < 5.0 and not other.done()  # (only the failed service's)
         # junk on the events' topic is counted, nothing else; a request timing out says the service is down
         sup.publish("events/service/vision", payload(3))
         sup.publish("events/service/vision", event("vision", Event.KIND_FAILED, "OSError: camera gone"))
-        with pytest.raises(RemoteError, match="camera gone"):
+        with pytest.raises(ServiceDown, match="camera gone"):
             await other
         assert client.malformed == 1
         with pytest.raises(BusTimeout, match=r"service 'modular' is down: RuntimeError: the cycle's routers"):
@@ -363,7 +374,7 @@ async def test_a_request_to_a_service_said_failed_by_its_supervisor_is_answered(
         waiting = asyncio.ensure_future(client.request("vision", "measure", payload(5), timeout=30))
         await asyncio.sleep(0)
         sup.publish("events/service/vision", event("vision", Event.KIND_RESTARTING, "again"))
-        with pytest.raises(RemoteError, match="again"):
+        with pytest.raises(ServiceDown, match="again"):
             await waiting
         with pytest.raises(BusTimeout, match=r"is service 'modular' running\?"):
             await client.request("modular", "move", payload(6), timeout=0.3)
