@@ -21,6 +21,7 @@ def test_ports_are_below_the_ephemeral_range_distinct_and_bindable() -> None:
 
 
 def test_a_block_is_consecutive_and_skips_a_port_someone_holds(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ports, "_given", set())  # (not what the run's other tests were given)
     base = ports.free_block(4)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as held:
         held.bind(("127.0.0.1", base + 10))  # in every block of the pool but its last
