@@ -196,7 +196,7 @@ def modules_main(
     config = cycle_config(period)
     plant = Plant(np.array(q0))
     spec = {
-        s["module_id"]: s | {"port": p, "cd": cd, "adapt": adapt}  # (cd: "master" or "local")
+        s["module_id"]: s | {"port": p, "cd": cd, "adapt": adapt}  # (cd: "master", "local" or "neighbour")
         for s, p, cd in zip(chain(6, random.Random(seed), module0=MODULE0), ports, where, strict=True)
     }
     if routes is not None:  # (over the routers: module k's links and its port on them)

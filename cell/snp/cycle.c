@@ -97,10 +97,8 @@ static int64_t host_of(const module_t *m, int64_t master) {
 static uint64_t rng_state = 0x9E3779B97F4A7C15ull; /* the links' losses */
 
 static void send_master(module_t *m, const uint8_t *p, size_t n) {
-    if (m->route.on) /* (the master: master_port is its path on the routers) */
-        route_send(&m->route, (int)m->fd, p, n, m->master_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
-    else
-        send_lossy((int)m->fd, p, n, m->master_ip, m->master_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+    send_via(&m->route, (int)m->fd, p, n, m->master_ip, m->master_port, m->loss, &rng_state, &m->sent, &m->lost,
+             &m->errors);
 }
 
 /* --- the cycle (JointModule._start, _second, _answered, _expired, _finish) -------------------- */
@@ -256,10 +254,8 @@ static void pass_in(module_t *m) {
         put32(at, (uint32_t)v->g_in_ids[k]), putf(at + 4, out[k]), put64(at + 8, (uint64_t)(cycle_no(m) * m->period_ns));
     }
     seal(p, sizeof p);
-    if (m->route.on) /* (nb_port: its inboard neighbour's path on the routers) */
-        route_send(&m->route, (int)m->fd, p, sizeof p, v->nb_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
-    else
-        send_lossy((int)m->fd, p, sizeof p, v->nb_ip, v->nb_port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+    send_via(&m->route, (int)m->fd, p, sizeof p, v->nb_ip, v->nb_port, m->loss, &rng_state, &m->sent, &m->lost,
+             &m->errors);
 }
 
 static void finish(module_t *m, int64_t now) {

@@ -200,10 +200,7 @@ static double vdc_tau_r(const vdc_t *v, int j) {
 /* --- admitting, queueing and serving (Handler.admit, enqueue, serve) -------------------------- */
 
 static void send_to(master_t *m, const uint8_t *p, size_t n, int64_t ip, int64_t port) {
-    if (m->route.on && ip == 0)
-        route_send(&m->route, (int)m->fd, p, n, port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
-    else
-        send_lossy((int)m->fd, p, n, ip, port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
+    send_via(&m->route, (int)m->fd, p, n, ip, port, m->loss, &rng_state, &m->sent, &m->lost, &m->errors);
 }
 
 static void deny(master_t *m, const pending_t *q) {

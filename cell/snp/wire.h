@@ -242,6 +242,16 @@ static inline void route_send(route_t *r, int fd, const uint8_t *p, size_t n, in
     send_lossy(fd, out, size, r->ip[link], r->port[link], loss, rng, sent, lost, errors);
 }
 
+/* p to a node: at ip:port, or over the routers (r->on) to the one whose address is (0, its return
+ * address: native._c_addr) */
+static inline void send_via(route_t *r, int fd, const uint8_t *p, size_t n, int64_t ip, int64_t port, double loss,
+                            uint64_t *rng, int64_t *sent, int64_t *lost, int64_t *errors) {
+    if (r->on && ip == 0)
+        route_send(r, fd, p, n, port, loss, rng, sent, lost, errors);
+    else
+        send_lossy(fd, p, n, ip, port, loss, rng, sent, lost, errors);
+}
+
 /* --- VDC's spatial algebra (cell.modular.arm), shared by master.c and cycle.c --------------- */
 
 static inline void cross(const double *a, const double *b, double *out) {
