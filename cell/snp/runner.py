@@ -436,10 +436,8 @@ def _inboard(s: Slot, slots: list[Slot]) -> tuple | None:
     """Where a "neighbour" [C, D] passes its force: the module it is plugged to, if that one takes
     it (computes its [C, D] with its neighbour's too); None on the base, or for any other."""
     for o in slots:
-        if o.module_id == s.plugged_to and o.cd == "neighbour":
-            return (
-                (o.route_port,) if o.routes is not None else ("127.0.0.1", o.port)
-            )  # (over routers: its path)
+        if o.module_id == s.plugged_to and o.cd == "neighbour":  # (over routers: its path)
+            return (o.route_port,) if o.routes is not None else ("127.0.0.1", o.port)
     return None
 
 
