@@ -479,6 +479,9 @@ class RobotConfig:
     # whole group (robots of one backend, model and rates), all its statuses in one GSO send a tick and
     # the data plane's answers to them in a few: fleets of hundreds of arms in one process
     socket: Literal["own", "shared"]
+    # "native": the group's tick in C (cell/robot/tick.c), no Python per tick; "python": the reference
+    # model it is held to (and the fallback where no C compiler works)
+    tick: Literal["native", "python"]
 
     @property
     def ur_host(self) -> str:
@@ -520,6 +523,7 @@ class RobotDefaults:
     ur_address: str = _check(lambda v: None if v == "" else _host_port(f"{v}:1"))
     ur_emulate: Literal["", "mujoco", "kinematic"]
     socket: Literal["own", "shared"]
+    tick: Literal["native", "python"]
 
 
 @dataclass(frozen=True)

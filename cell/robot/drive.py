@@ -47,9 +47,35 @@ class Drives:
         # robots a URScript program drives (cell.ur): the datagram commands are not theirs (each one is
         # counted in `ignored`), no watchdog runs, and the program sets `target` itself every tick
         self.scripted = np.zeros(robots, bool)
-        self.ignored = 0
-        self.stops = 0  # protective stops so far
-        self.windows = 0
+        # commands ignored (scripted robots'), protective stops and windows so far: an array, so that
+        # the tick in C (cell/robot/tick.c) counts them where Python reads them
+        self.counts = np.zeros(3, np.int64)
+
+    # every array above is updated in place, never rebound: the C tick holds their addresses
+
+    @property
+    def ignored(self) -> int:
+        return int(self.counts[0])
+
+    @ignored.setter
+    def ignored(self, value: int) -> None:
+        self.counts[0] = value
+
+    @property
+    def stops(self) -> int:
+        return int(self.counts[1])
+
+    @stops.setter
+    def stops(self, value: int) -> None:
+        self.counts[1] = value
+
+    @property
+    def windows(self) -> int:
+        return int(self.counts[2])
+
+    @windows.setter
+    def windows(self, value: int) -> None:
+        self.counts[2] = value
 
     def command(self, robot: np.ndarray, joint: np.ndarray, velocity: np.ndarray) -> None:
         """Commands received in this window, in arrival order: the latest per joint wins."""
@@ -111,7 +137,7 @@ class Drives:
         fed = has.all(axis=1)
         stopping = starved & ~self.stopped
         resuming = self.stopped & fed
-        self.stopped = (self.stopped | stopping) & ~resuming
+        self.stopped[:] = (self.stopped | stopping) & ~resuming
         self.stops += int(stopping.sum())
         self.target[self.stopped | self.halted] = 0.0
         has[:] = False

@@ -18,6 +18,7 @@ import select
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,6 +29,9 @@ from cell.robot.arm import ArmModel, arm_model
 from cell.robot.backends import BACKENDS
 from cell.robot.datagram import Kind, Reject
 from cell.timer import PeriodicTimer
+
+if TYPE_CHECKING:
+    from cell.robot.native import NativeTick
 
 _COMMAND = int(Kind.COMMAND)
 MAX_READS = 256  # recvmsg calls per socket per tick
@@ -43,41 +47,50 @@ class Lateness:
 
     def __init__(self) -> None:
         self.counts = np.zeros(self.BINS, np.int64)
-        self.max_us = 0.0
-        self.n = 0
-        self._window = [0, 0.0, 0.0]  # count, sum, max since take_window()
+        # n, max_us, and the window's count, sum and max since take_window(): an array, so that the
+        # tick in C (cell/robot/tick.c) adds to the same histogram Python reads
+        self.stats = np.zeros(5)
+
+    @property
+    def n(self) -> int:
+        return int(self.stats[0])
+
+    @property
+    def max_us(self) -> float:
+        return float(self.stats[1])
 
     def add(self, us: float) -> None:
         self.counts[min(int(us / self.BIN_US), self.BINS - 1) if us > 0 else 0] += 1
-        self.n += 1
-        if us > self.max_us:
-            self.max_us = us
-        w = self._window
-        w[0], w[1], w[2] = w[0] + 1, w[1] + us, max(w[2], us)
+        st = self.stats
+        st[0] += 1
+        st[2] += 1
+        st[3] += us
+        if us > st[1]:
+            st[1] = us
+        if us > st[4]:
+            st[4] = us
 
     def add_all(self, us: np.ndarray) -> None:
         """Many at once (one per datagram of a batch)."""
         if us.size:
             np.add.at(self.counts, np.clip((us / self.BIN_US).astype(np.int64), 0, self.BINS - 1), 1)
-            self.n += int(us.size)
-            top = float(us.max())
-            self.max_us = max(self.max_us, top)
-            w = self._window
-            w[0] += int(us.size)
-            w[1] += float(us.sum())
-            w[2] = max(w[2], top)
+            top, st = float(us.max()), self.stats
+            st[0] += us.size
+            st[1] = max(st[1], top)
+            st[2] += us.size
+            st[3] += float(us.sum())
+            st[4] = max(st[4], top)
 
     def take_window(self) -> tuple[int, float, float]:
         """(count, mean, max) of what add_all() added since the last call: a time series beside the
         whole run's histogram."""
-        n, total, top = self._window
-        self._window = [0, 0.0, 0.0]
+        n, total, top = int(self.stats[2]), float(self.stats[3]), float(self.stats[4])
+        self.stats[2:] = 0.0
         return n, (total / n if n else 0.0), top
 
     def clear(self) -> None:
         self.counts[:] = 0
-        self.max_us, self.n = 0.0, 0
-        self._window = [0, 0.0, 0.0]
+        self.stats[:] = 0.0
 
     def percentile(self, p: float) -> float:
         """The upper edge of the bin holding the p-th percentile (us)."""
@@ -122,17 +135,22 @@ class RobotGroup:
         host: str = "127.0.0.1",
         arm: ArmModel | None = None,
         datagrams: bool = True,
+        tick: str | None = None,
     ) -> None:
         """datagrams=False: robots that neither send status nor take commands (no sockets at all):
-        arms that offer only their UR interfaces, as a real UR does (RobotConfig.ur_emulate)."""
+        arms that offer only their UR interfaces, as a real UR does (RobotConfig.ur_emulate).
+        tick: "native" (C, cell/robot/tick.c) or "python" (the reference model); None: the robots'
+        own `tick` setting.  A native tick that cannot run here falls back to Python, `tick_why` says
+        why."""
         first = robots[0]
         for r in robots:
-            if (r.backend, r.model, r.status_hz, r.command_hz, r.socket) != (
+            if (r.backend, r.model, r.status_hz, r.command_hz, r.socket, r.tick) != (
                 first.backend,
                 first.model,
                 first.status_hz,
                 first.command_hz,
                 first.socket,
+                first.tick,
             ):
                 raise ValueError("a robot group shares backend, model, rates and socket")
         self.robots = robots
@@ -176,7 +194,7 @@ class RobotGroup:
         self.state_time = time.monotonic()
         self.tick_no = -1  # index of the last status period served (period k is due at start + k T)
         self.origin_ns = 0  # CLOCK_MONOTONIC ns period 0 was due at (0: not ticking yet)
-        self.counters = GroupCounters()
+        self._counters = GroupCounters()
         self.sent_rt_ns = 0  # CLOCK_REALTIME the last tick's status left (0: none yet)
         # fault injection (`cell chaos`): a robot silent until this monotonic time sends no status and
         # takes no command, as with its cable pulled; its watchdog goes on running
@@ -189,6 +207,30 @@ class RobotGroup:
         # each robot's digital outputs, as its UR controller has them (cell.ur: set by a program or an
         # RTDE client on an emulated arm, read over RTDE by the daemon); 0 for an arm without
         self.digital_out = np.zeros(self.n, np.uint64)
+        self.native: NativeTick | None = None
+        self.tick_why = ""  # why this group ticks in Python though its robots asked for C
+        if (tick or first.tick) == "native":
+            self.tick_why = self._go_native()
+
+    def _go_native(self) -> str:
+        """Tick in C from now on; "" if so, else why not."""
+        from cell.robot import native  # (ctypes and the build: only for groups that tick in C)
+
+        why = native.supports(self) or native.available()
+        if not why:
+            self.native = native.NativeTick(self)
+        return why
+
+    @property
+    def tick_impl(self) -> str:
+        """Which tick runs: "native" (C) or "python"."""
+        return "native" if self.native is not None else "python"
+
+    @property
+    def counters(self) -> GroupCounters:
+        if self.native is not None:
+            self.native.pull(self._counters)
+        return self._counters
 
     def silence(self, robot_id: int, seconds: float) -> bool:
         """Make one robot stop answering for `seconds`; False if it is not in this group."""
@@ -303,6 +345,13 @@ class RobotGroup:
         deadline, `periods` periods later if ticks were missed (they move for all of it).
         """
         cutoff_ns = time.time_ns()  # (the kernel stamps datagrams in CLOCK_REALTIME)
+        if self.native is not None:
+            self.native.send(deadline)
+            if self.at_deadline is not None:
+                self.at_deadline()
+            stopping, resuming = self.native.after(cutoff_ns, periods)
+            self.state_time = deadline + self.period
+            return stopping, resuming
         self._send(deadline, clock)
         if self.at_deadline is not None:
             self.at_deadline()

@@ -37,7 +37,15 @@ def build_groups(config: CellConfig, publish: Publish | None = None) -> list[Rob
     by_key: dict[tuple, list[RobotConfig]] = defaultdict(list)
     for r in config.local_robots():
         by_key[
-            (r.backend, r.model, r.status_hz, r.command_hz, r.socket, r.id if r.backend == "ur" else 0)
+            (
+                r.backend,
+                r.model,
+                r.status_hz,
+                r.command_hz,
+                r.socket,
+                r.tick,
+                r.id if r.backend == "ur" else 0,
+            )
         ].append(r)
     here = config.here()
     host = here.address if here is not None else parse_host_port(config.dataplane.listen)[0]
@@ -64,7 +72,7 @@ def build_emulated_controllers(config: CellConfig) -> list[RobotGroup]:
     robots = [replace(r, backend=r.ur_emulate, ur_emulate="") for r in config.local_robots() if r.ur_emulate]
     by_key: dict[tuple, list[RobotConfig]] = defaultdict(list)
     for r in robots:
-        by_key[(r.backend, r.model, r.status_hz, r.command_hz)].append(r)
+        by_key[(r.backend, r.model, r.status_hz, r.command_hz, r.tick)].append(r)
     groups: list[RobotGroup] = []
     try:
         groups.extend(RobotGroup(rs, config.dataplane.listen, datagrams=False) for rs in by_key.values())

@@ -16,10 +16,12 @@ from tests.conftest import cell_overrides
 Q0 = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
 
 
-@pytest.fixture(params=["own", "shared"])
+@pytest.fixture(params=[(s, t) for t in ("native", "python") for s in ("own", "shared")], ids="-".join)
 def plant(request):
     """A socket standing in for the data plane, and a factory of robot groups sending to it: robots
-    with a socket each (a real arm's) and with one for the group (a fleet's), the same semantics."""
+    with a socket each (a real arm's) and with one for the group (a fleet's), the same semantics;
+    ticked in C (cell/robot/tick.c) and by the Python model, the same semantics again."""
+    sockets, tick = request.param
     dp = udp.open_socket("127.0.0.1")
     groups: list[RobotGroup] = []
 
@@ -30,7 +32,8 @@ def plant(request):
                 "name": f"t{i}",
                 "skill_port": 3000 + i,
                 "backend": backend,
-                "socket": request.param,
+                "socket": sockets,
+                "tick": tick,
             }
             for i in range(n)
         ]
@@ -38,6 +41,7 @@ def plant(request):
         host, port = dp.getsockname()
         g = RobotGroup(cfg.robots, f"{host}:{port}")
         groups.append(g)
+        assert g.tick_impl == tick, g.tick_why  # (a C tick that does not build is a failure)
         return g
 
     yield dp, make
@@ -116,14 +120,15 @@ def test_an_answer_to_the_status_that_ends_a_window_counts_in_the_next_window(pl
     ticks(g, 4)  # ticks 0-3; tick 4 ends the first window
     command_all(dp, g, 0, [0.1] * 6)  # in time for it
 
-    def answering_clock() -> float:  # called as the status goes out: answer it at once
+    def answer() -> None:  # called as the status has gone out: answer it at once
         if not answered:
             answered.append(True)
             command_all(dp, g, 0, [0.5] * 6)
-        return 0.0
 
     answered: list[bool] = []
-    g.tick(deadline=float("inf"), clock=answering_clock)  # tick 4
+    g.at_deadline = answer
+    g.tick(deadline=float("inf"))  # tick 4
+    g.at_deadline = None
     assert answered and g.counters.commands == 12  # both batches were taken in this tick
     assert g.drives.target[0].tolist() == pytest.approx([0.1] * 6, abs=1e-7)
     ticks(g, 3)  # ticks 5-7: the answer waits for its window
