@@ -10,7 +10,9 @@ from __future__ import annotations
 import copy
 import functools
 import ipaddress
+import os
 import re
+import shutil
 import tomllib
 import types
 from collections.abc import Callable
@@ -293,8 +295,20 @@ class DataplaneConfig:
     batch: int = _check(_positive)
     egress: EgressConfig
     forward: list[ForwardRule]
-    backend: Literal["numpy", "xdp"]
+    backend: Literal["auto", "numpy", "native", "xdp"]
     xdp: XdpConfig
+
+    def chosen(self) -> tuple[str, str]:
+        """The backend that runs, and why: "auto" is the native data plane (C, no Python per packet)
+        where a C compiler is installed and nothing needs the numpy one's forwarding or egress
+        model, else numpy."""
+        if self.backend != "auto":
+            return self.backend, "set in [dataplane] backend"
+        if self.forward or self.egress.rate_mbps > 0:
+            return "numpy", "auto: forwarding rules or an egress model need the numpy data plane"
+        if not (os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")):
+            return "numpy", "auto: no C compiler to build the native data plane (cell/dataplane/native.c)"
+        return "native", "auto: the XDP program's C in user space, no Python per packet"
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         if self.backend == "xdp":
@@ -307,11 +321,12 @@ class DataplaneConfig:
             if x.host_addr == x.switch_addr or ipaddress.IPv4Address(x.switch_addr) not in net:
                 why = f"must be another address in {net} (the host's end is {x.host_addr})"
                 raise err("xdp.switch_addr", why)
+        if self.backend in ("xdp", "native"):  # ("auto" picks numpy for these)
             if self.forward or self.egress.rate_mbps > 0:
-                why = "the XDP backend has no forwarding rules or egress model yet (the numpy one has)"
+                why = f"the {self.backend} backend has no forwarding rules or egress model yet (numpy has)"
                 raise err("backend", why)
             if self.max_entities > XDP_MAX_ENTITIES:
-                why = f"the XDP program holds {XDP_MAX_ENTITIES} (MAX_ENTITIES in dataplane.bpf.c)"
+                why = f"the XDP program's C holds {XDP_MAX_ENTITIES} (MAX_ENTITIES in dataplane.bpf.c)"
                 raise err("max_entities", why)
         for i, f in enumerate(self.forward):
             if f.listen == self.listen or any(o.listen == f.listen for o in self.forward[:i]):

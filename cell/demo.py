@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
 import time
 from typing import Any
 
@@ -85,15 +84,10 @@ def verdict(ok: bool, text: str) -> str:
 
 def backend_why(config: Any) -> str:
     """Why the data plane ran where it did."""
-    if config.dataplane.backend == "xdp":
+    backend, why = config.dataplane.chosen()
+    if backend == "xdp":
         return "in the kernel: XDP, built and run as root"
-    from cell.dataplane.xdp.program import OBJECT
-
-    if os.geteuid() != 0:
-        return "numpy in user space: XDP needs root"
-    if not OBJECT.exists():
-        return "numpy in user space: the XDP object is not built (make bpf needs clang)"
-    return "numpy in user space: the embedded default (--config examples/xdp.toml runs it in the kernel)"
+    return f"{why}; --config examples/xdp.toml runs it in the kernel"
 
 
 def real_time_rows(status: health_pb2.CellStatus, rb: dict[str, float]) -> list[tuple[str, str]]:
@@ -242,6 +236,7 @@ async def main(cell: Any) -> None:
     status = await cell.request("cell", "status", health_pb2.StatusRequest(), health_pb2.CellStatus, 5)
     counters = {s.name: dict(s.last.counters) for s in status.services}
     dp, rb = counters.get("dataplane", {}), counters.get("robots", {})
+    backend = cell.config.dataplane.chosen()[0]
 
     def c(key: str) -> float:
         return dp.get(key, 0.0)
@@ -260,7 +255,7 @@ async def main(cell: Any) -> None:
     drops = f"{c('rejected.length'):.0f}, {c('rejected.kind'):.0f}, {c('rejected.joint'):.0f}"
     rows = [
         ("moves done", f"{moves} (one switched on the fly, one stopped and resumed)"),
-        ("data plane", f"{cell.config.dataplane.backend} ({backend_why(cell.config)})"),
+        ("data plane", f"{backend} ({backend_why(cell.config)})"),
         ("tool path error at TPs, max / median", path_text),
         (
             "stop error (joints at rest vs goal)",
@@ -269,11 +264,11 @@ async def main(cell: Any) -> None:
         ("stop in effect after the request", f"{stop_latency_ms:.1f} ms"),
         (
             ("data plane batch time p50 / p99", f"{c('batch_p50_us'):.0f} / {c('batch_p99_us'):.0f} us")
-            if cell.config.dataplane.backend == "numpy"
-            else (  # the kernel answers each datagram as it comes: no batches to time
-                "data plane (XDP) flips / packet path held",
-                f"{c('xdp.gates'):.0f} / at most {c('xdp.gate_us_max'):.0f} us a flip, "
-                f"{c('xdp.held'):,.0f} statuses answered with their last command meanwhile",
+            if backend == "numpy"
+            else (  # the C packet path answers each burst as it comes: no batches to time
+                f"data plane ({backend}) flips / packet path held",
+                f"{c(f'{backend}.gates'):.0f} / at most {c(f'{backend}.gate_us_max'):.0f} us a flip, "
+                f"{c(f'{backend}.held'):,.0f} statuses answered with their last command meanwhile",
             )
         ),
         ("status packets in / commands out", f"{c('packets_in'):,.0f} / {c('commands_out'):,.0f}"),

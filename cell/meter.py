@@ -126,6 +126,13 @@ def install(loop: asyncio.AbstractEventLoop) -> None:
     loop.set_task_factory(factory)
 
 
+def watch_thread(tid: int) -> None:
+    """From now on HELD watches thread `tid` (the native loop that kept the process's real-time
+    priority, sched.hand_over), still checked as this thread's tasks step."""
+    global HELD
+    HELD = sched.Held(tid)
+
+
 def charge_to(account: Account) -> None:
     """From now on, the current task and every task it starts charge their steps to `account`."""
     ACCOUNT.set(account)

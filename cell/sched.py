@@ -100,9 +100,11 @@ class Held:
     seldom (a busy one that rarely reaches its check) sums many short waits behind other real-time
     threads, which is no hold (a flooded hub once "held" 9.5 s over 28 s of fuzzing)."""
 
-    def __init__(self) -> None:
+    def __init__(self, tid: int = 0) -> None:
+        """tid: another thread of this process to watch (a native loop's), 0: the calling one."""
+        path = f"/proc/self/task/{tid}/schedstat" if tid else "/proc/thread-self/schedstat"
         try:  # (open for the process's life: one pread a check)
-            self._fd = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
+            self._fd = os.open(path, os.O_RDONLY)
         except OSError:  # (not Linux, or no CONFIG_SCHED_INFO)
             self._fd = -1
         self.events = 0  # times held back
@@ -177,19 +179,62 @@ def realtime() -> bool:
     return hasattr(os, "sched_getscheduler") and _policy() in _REALTIME
 
 
+# the thread of this process that keeps its real-time priority (a native per-tick or per-packet
+# loop) once hand_over() moved the rest of it to the normal policy; 0: none
+RT_THREAD = 0
+RT_NICE = -10  # what the rest of a real-time process runs at, after hand_over()
+
+
+def hand_over(tid: int, nice: int = RT_NICE) -> list[str]:
+    """Keep this process's real-time priority for thread `tid` (a native loop: cell/robot/tick.c,
+    cell/dataplane/native.c) alone, and move every other thread (Python's, ZeroMQ's) to the normal
+    policy at `nice`: nothing per bus message or per client runs at real-time priority, and nothing
+    but the native loop can spend the CPU's real-time budget (RT throttling holds every real-time
+    thread of a CPU once they used it up).  Threads started later inherit the normal policy.  Return
+    what could not be done, in words (a process that was not real-time: nothing to hand over)."""
+    global RT_THREAD
+    if not realtime():
+        return []
+    problems: list[str] = []
+    RT_THREAD = tid
+    for t in _threads():
+        if t == tid:
+            continue
+        try:
+            os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, t, nice)
+        except OSError as exc:
+            problems.append(f"thread {t}: normal policy refused ({exc.strerror})")
+    return problems
+
+
 def describe() -> str:
     """How the OS schedules this process now: 'fifo 70, cpu 1', 'nice -5, cpus 0-1', 'normal, cpus 0-1'."""
     if not hasattr(os, "sched_getscheduler"):
         return "unknown"
     policy = _policy()
     name = _POLICY.get(policy, f"policy {policy}")
-    if policy in _REALTIME:
+    rt_thread = _rt_thread_policy()
+    if rt_thread:  # (the real-time loop is native, the rest of the process normal)
+        what = f"{rt_thread} native, rest nice {os.getpriority(os.PRIO_PROCESS, 0)}"
+    elif policy in _REALTIME:
         what = f"{name} {os.sched_getparam(0).sched_priority}"
     else:
         niceness = os.getpriority(os.PRIO_PROCESS, 0)
         what = f"nice {niceness}" if niceness else name
     cpus = sorted(os.sched_getaffinity(0))
     return f"{what}, {'cpu' if len(cpus) == 1 else 'cpus'} {_ranges(cpus)}"
+
+
+def _rt_thread_policy() -> str:
+    """'fifo 70' for the native real-time thread (hand_over), "" if none runs."""
+    if not RT_THREAD:
+        return ""
+    try:
+        policy = os.sched_getscheduler(RT_THREAD) & 0xFF
+        return f"{_POLICY.get(policy, policy)} {os.sched_getparam(RT_THREAD).sched_priority}"
+    except OSError:  # (it ended)
+        return ""
 
 
 def _ranges(cpus: list[int]) -> str:

@@ -1,6 +1,6 @@
 """Service `dataplane`: the in-network velocity controller (NSDI'22) as a data plane.
 
-The packet path is cell.dataplane.plane (numpy, or the XDP program); this
+The packet path is cell.dataplane.plane's (numpy, native C, or the XDP program); this
 service serves its control plane on the bus (service "dataplane", methods
 "update" (TableUpdate, atomic), "merge", "state", "load_constants"), adds
 robots as they announce themselves (announce/robot/<name>) and publishes
@@ -13,14 +13,21 @@ import asyncio
 import contextlib
 
 from cell.bus import BusError
-from cell.dataplane.plane import DataPlane, PlaneNode, XdpDataPlane
+from cell.dataplane.plane import BACKENDS, DataPlane, PlaneNode
 from cell.dataplane.tables import NO_ROW
+from cell.native import NativeUnavailable
 from cell.service import ServiceContext, ServiceSpec
 from cell.v1 import dataplane_pb2, robot_pb2
 
 
 async def run(ctx: ServiceContext) -> None:
-    plane = (XdpDataPlane if ctx.config.dataplane.backend == "xdp" else DataPlane)(ctx.config)
+    backend, why = ctx.config.dataplane.chosen()
+    try:
+        plane = BACKENDS[backend]()(ctx.config)
+    except NativeUnavailable as exc:  # (auto or not, a data plane that cannot be built: say so, run numpy)
+        ctx.log.warning("the %s data plane cannot run here (%s): the numpy one runs instead", backend, exc)
+        backend, why, plane = "numpy", f"{backend} unavailable: {exc}", DataPlane(ctx.config)
+    ctx.log.info("data plane backend: %s (%s)", backend, why)
     try:
         events = PlaneNode(plane, ctx.config)
     except BaseException:

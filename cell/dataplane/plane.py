@@ -23,6 +23,7 @@ import os
 import socket
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -478,23 +479,79 @@ class DataPlane:
         return st
 
 
-class XdpDataPlane(DataPlane):
-    """The packet path as an XDP program in the switch's network namespace (cell/dataplane/xdp):
-    the kernel answers every status; this process is the control plane around it, with the same
-    bus API, Responsive Link stops, sweep and state as the numpy backend, over the program's maps."""
+class MappedDataPlane(DataPlane):
+    """A packet path in C over tables in mapped memory (the XDP program's maps, the native data
+    plane's arrays): this process is the control plane around it, with the same bus API, Responsive
+    Link stops, sweep and state as the numpy backend, writing the memory the packet path reads."""
+
+    program: Any  # XdpProgram or NativeProgram: the maps as numpy arrays, the gate, the counters
+    prefix = ""  # of its own counters ("xdp.", "native.")
+
+    def _program(self, config: CellConfig) -> Any:
+        raise NotImplementedError
 
     def _state(self, config: CellConfig, constants: ControlConstants) -> tuple[Tables, Pipeline, np.ndarray]:
         from cell.dataplane.xdp.backend import XdpPipeline, XdpTables
-        from cell.dataplane.xdp.program import XdpProgram
 
-        dp = config.dataplane
-        self.program = XdpProgram(dp.capacity, dp.n_bits, len(dp.c1))
+        self.program = self._program(config)
         try:
-            tables = XdpTables(self.program, dp.max_joints)
+            tables = XdpTables(self.program, config.dataplane.max_joints)
             return tables, XdpPipeline(tables, constants), self.program.robots["joints"]
         except BaseException:
             self.program.close()
             raise
+
+    async def update(self, req: dataplane_pb2.TableUpdate) -> dataplane_pb2.UpdateReply:
+        """As the numpy backend's; apply_us is how long the packet path was held (the gate closed for
+        the flip), since the slices in between do not stop it."""
+        since = self.program.gates
+        reply = await super().update(req)
+        held = self.program.closed_ns[-(self.program.gates - since) :] if self.program.gates > since else [0]
+        reply.apply_us = max(held) / 1e3
+        return reply
+
+    async def load_constants(self, req: dataplane_pb2.Constants) -> dataplane_pb2.ConstantsReply:
+        from cell.dataplane.xdp.backend import XdpPipeline
+        from cell.dataplane.xdp.libbpf import BpfError
+
+        try:
+            XdpPipeline.check_fits(self.program, ControlConstants(tuple(req.c1), (), req.n_bits, ()))
+        except BpfError as exc:
+            raise RpcFault("bad_request", str(exc)) from None
+        return await super().load_constants(req)
+
+    def counters(self) -> dict[str, float]:
+        out = super().counters()
+        k, user = self.program.counters(), self.pipeline.counters
+        for name in ("holds", "steps", "resubmits", "stalls", "limited"):
+            out[name] = k[name]
+        out["dropped"] = k["dropped"] + user.dropped  # (the control plane drops too: sweeps, stops)
+        out["stop_commands"] = k["stop_commands"] + user.stop_commands
+        refused = ("kind", "joint", "spoofed", "batch")
+        out["packets_in"] = k["packets"] + sum(k[f"rejected.{r}"] for r in refused)
+        out["commands_out"] = k["commands_out"] + self.commands_out
+        out.update({n: k[n] for n in k if n.startswith("rejected.")})
+        p = self.prefix
+        out[f"{p}gates"], out[f"{p}held"], out[f"{p}datagrams"] = (
+            self.program.gates,
+            k["held"],
+            k["datagrams"],
+        )
+        out[f"{p}gate_us_max"] = max(self.program.closed_ns, default=0) / 1e3  # (the recent 4,096)
+        return out
+
+
+class XdpDataPlane(MappedDataPlane):
+    """The packet path as an XDP program in the switch's network namespace (cell/dataplane/xdp):
+    the kernel answers every status."""
+
+    prefix = "xdp."
+
+    def _program(self, config: CellConfig) -> Any:
+        from cell.dataplane.xdp.program import XdpProgram
+
+        dp = config.dataplane
+        return XdpProgram(dp.capacity, dp.n_bits, len(dp.c1))
 
     def _open(self, config: CellConfig) -> None:
         from cell.dataplane.xdp.switch import in_namespace
@@ -504,7 +561,7 @@ class XdpDataPlane(DataPlane):
         g = self.program.globals
         g["listen_addr"] = int.from_bytes(socket.inet_aton(host), "little")  # (network order in memory)
         g["listen_port"] = socket.htons(port)
-        self.robot_addr = _Pins(self.program.robots)
+        self.robot_addr = Pins(self.program.robots)
         self.netns, self.port = x.netns, f"{x.veth}1"
         self.watch = XdpWatch()
 
@@ -619,40 +676,9 @@ class XdpDataPlane(DataPlane):
         found, now = in_namespace(self.netns, self._attached_or_attach)
         self.watch.checked(found, now, self.port, (time.monotonic_ns() - t0) / 1e6)
 
-    async def update(self, req: dataplane_pb2.TableUpdate) -> dataplane_pb2.UpdateReply:
-        """As the numpy backend's; apply_us is how long the kernel's packet path was held (the gate
-        closed for the flip), since the slices in between do not stop it."""
-        since = self.program.gates
-        reply = await super().update(req)
-        held = self.program.closed_ns[-(self.program.gates - since) :] if self.program.gates > since else [0]
-        reply.apply_us = max(held) / 1e3
-        return reply
-
-    async def load_constants(self, req: dataplane_pb2.Constants) -> dataplane_pb2.ConstantsReply:
-        from cell.dataplane.xdp.backend import XdpPipeline
-        from cell.dataplane.xdp.libbpf import BpfError
-
-        try:
-            XdpPipeline.check_fits(self.program, ControlConstants(tuple(req.c1), (), req.n_bits, ()))
-        except BpfError as exc:
-            raise RpcFault("bad_request", str(exc)) from None
-        return await super().load_constants(req)
-
     def counters(self) -> dict[str, float]:
         out = super().counters()
-        k, user = self.program.counters(), self.pipeline.counters
-        for name in ("holds", "steps", "resubmits", "stalls", "limited"):
-            out[name] = k[name]
-        out["dropped"] = k["dropped"] + user.dropped  # (the control plane drops too: sweeps, stops)
-        out["stop_commands"] = k["stop_commands"] + user.stop_commands
-        refused = ("kind", "joint", "spoofed", "batch")
-        out["packets_in"] = k["packets"] + sum(k[f"rejected.{r}"] for r in refused)
-        out["commands_out"] = k["commands_out"] + self.commands_out
-        out.update({n: k[n] for n in k if n.startswith("rejected.")})
-        out["xdp.held"], out["xdp.datagrams"] = k["held"], k["datagrams"]
-        out["xdp.gates"] = self.program.gates
         out.update(self.watch.counters())
-        out["xdp.gate_us_max"] = max(self.program.closed_ns, default=0) / 1e3  # (the recent 4,096)
         return out
 
 
@@ -696,7 +722,7 @@ class XdpWatch:
         }
 
 
-class _Pins:
+class Pins:
     """The robots' pinned senders as the XDP program keeps them (robot -> (host, port))."""
 
     def __init__(self, robots: np.ndarray) -> None:
@@ -707,6 +733,20 @@ class _Pins:
         if not r["pinned"]:
             return None
         return socket.inet_ntoa(int(r["pin_addr"]).to_bytes(4, "little")), socket.ntohs(int(r["pin_port"]))
+
+
+def _native() -> type[DataPlane]:
+    from cell.dataplane.native import NativeDataPlane  # (builds its C on first use)
+
+    return NativeDataPlane
+
+
+# [dataplane] backend -> the DataPlane class that runs it (each looked up when it is used)
+BACKENDS: dict[str, Callable[[], type[DataPlane]]] = {
+    "numpy": lambda: DataPlane,
+    "native": _native,
+    "xdp": lambda: XdpDataPlane,
+}
 
 
 class PlaneNode(LeafNode):

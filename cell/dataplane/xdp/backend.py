@@ -96,7 +96,10 @@ class XdpPipeline(Pipeline):
 
     @staticmethod
     def check_fits(program: XdpProgram, constants: ControlConstants) -> None:
-        """BpfError unless the maps were sized for these constants (sizes are fixed at load)."""
+        """BpfError unless the maps were sized for these constants (an XDP program's sizes are fixed
+        at load; a program that can resize its Transform tables, the native one, fits any n_bits)."""
+        if len(constants.c1) == program.joints and getattr(program, "fit", None) is not None:
+            return
         if constants.n_bits != program.n_bits or len(constants.c1) != program.joints:
             raise BpfError(
                 f"the XDP maps hold Transform tables for n_bits={program.n_bits} and {program.joints} joints"
@@ -107,6 +110,8 @@ class XdpPipeline(Pipeline):
         program = self.program
         self.check_fits(program, built[0])
         with self.t.gated():
+            if getattr(program, "fit", None) is not None:
+                program.fit(built[0].n_bits)
             super().install(built)
             size = program.joints * 2 * program.eps
             for bank, t in enumerate(

@@ -17,7 +17,12 @@
  * with the last command its joint was sent, nothing read from the tables being changed.
  *
  * Loops run through bpf_loop, so the verifier checks each body once, whatever the batch size.
+ *
+ * The same source is the user-space data plane's (backend "native", cell/dataplane/native.c): built
+ * there with CELL_USERSPACE, its maps are memory the control plane allocated and bpf_loop a loop,
+ * and handle() below is all of the packet path but the frame around the records.
  */
+#ifndef CELL_USERSPACE
 #include <linux/bpf.h>
 #include <linux/if_ether.h>
 #include <linux/in.h>
@@ -25,6 +30,7 @@
 #include <linux/udp.h>
 #include <bpf/bpf_endian.h>
 #include <bpf/bpf_helpers.h>
+#endif
 
 #define MAX_JOINTS 12    /* values per TP (an entity's joints); [dataplane] max_joints must not exceed it */
 #define MAX_RECS 64      /* records in one datagram (a GSO batch); more: dropped, counted */
@@ -144,6 +150,7 @@ struct loop {               /* what each bpf_loop body gets (its context must li
 	struct scratch *s;
 };
 
+#ifndef CELL_USERSPACE
 struct {
 	__uint(type, BPF_MAP_TYPE_ARRAY);
 	__uint(map_flags, BPF_F_MMAPABLE);
@@ -220,6 +227,7 @@ struct {
 	__type(key, __u32);
 	__type(value, struct mark);
 } marks SEC(".maps");
+#endif
 
 static __always_inline void count(__u32 which, __u64 n)
 {
@@ -644,6 +652,48 @@ static long held_one(__u32 i, void *ctx)
 	return 0;
 }
 
+/* --- the packet path: n records in s->wire, from saddr:sport (network order), now on the
+ * data plane's clock; each turned into its command in place, or the whole datagram dropped ------- */
+
+#define HANDLED 0
+#define HELD 1   /* the gate was closed: each joint's last command, the tables untouched */
+#define BAD 2    /* a bad record in it (each counted): dropped whole */
+
+static __always_inline int handle(struct globals *g, struct scratch *s, __u32 n, __u32 saddr, __u16 sport,
+				  __s64 now)
+{
+	struct loop lp = {.s = s};
+	__sync_fetch_and_add(&g->inflight, 1);
+	if (g->closed) {  /* the control plane is flipping a batch in */
+		count(C_HELD, n);
+		bpf_loop(n, held_one, &lp, 0);
+		__sync_fetch_and_add(&g->inflight, -1);
+		return HELD;
+	}
+	s->now = g->clock_ns ? g->clock_ns : now;
+	s->n = n;
+	s->saddr = saddr;
+	s->sport = sport;
+	s->bad = 0;
+	s->serial += 1;
+	bpf_loop(n, parse_one, &lp, 0);
+	if (s->bad) {  /* a datagram with a bad record is dropped whole (each bad one counted) */
+		__sync_fetch_and_add(&g->inflight, -1);
+		return BAD;
+	}
+	count(C_PACKETS, n);
+	bpf_loop(2 * n, judge_one, &lp, 0);
+	bpf_loop(n, count_one, &lp, 0);
+	bpf_loop(n, ingress_one, &lp, 0);
+	bpf_loop(n, egress_one, &lp, 0);
+	if (g->stopping)
+		bpf_loop(n, stop_one, &lp, 0);
+	bpf_loop(n, write_one, &lp, 0);
+	__sync_fetch_and_add(&g->inflight, -1);
+	return HANDLED;
+}
+
+#ifndef CELL_USERSPACE
 static __always_inline int answer(struct xdp_md *ctx)
 {
 	/* back where it came from: swap the addresses and ports; no UDP checksum (IPv4 allows it) */
@@ -679,7 +729,6 @@ int velocity_control(struct xdp_md *ctx)
 	struct scratch *s = scratch_get();
 	if (!g || !s)
 		return XDP_PASS;
-	struct loop lp = {.s = s};
 	struct ethhdr *eth = data;
 	if ((void *)(eth + 1) > end || eth->h_proto != bpf_htons(ETH_P_IP))
 		return XDP_PASS;
@@ -713,36 +762,8 @@ int velocity_control(struct xdp_md *ctx)
 		return XDP_DROP;
 	if (bpf_xdp_load_bytes(ctx, off, s->wire, bytes))
 		return XDP_DROP;
-	__sync_fetch_and_add(&g->inflight, 1);
-	if (g->closed) {  /* the control plane is flipping a batch in */
-		count(C_HELD, n);
-		bpf_loop(n, held_one, &lp, 0);
-		__sync_fetch_and_add(&g->inflight, -1);
-		if (bpf_xdp_store_bytes(ctx, off, s->wire, bytes))
-			return XDP_DROP;
-		count(C_COMMANDS_OUT, n);
-		return answer(ctx);
-	}
-	s->now = g->clock_ns ? g->clock_ns : (__s64)bpf_ktime_get_ns();
-	s->n = n;
-	s->saddr = ip->saddr;
-	s->sport = udp->source;
-	s->bad = 0;
-	s->serial += 1;
-	bpf_loop(n, parse_one, &lp, 0);
-	if (s->bad) {  /* a datagram with a bad record is dropped whole (each bad one counted) */
-		__sync_fetch_and_add(&g->inflight, -1);
+	if (handle(g, s, n, ip->saddr, udp->source, bpf_ktime_get_ns()) == BAD)
 		return XDP_DROP;
-	}
-	count(C_PACKETS, n);
-	bpf_loop(2 * n, judge_one, &lp, 0);
-	bpf_loop(n, count_one, &lp, 0);
-	bpf_loop(n, ingress_one, &lp, 0);
-	bpf_loop(n, egress_one, &lp, 0);
-	if (g->stopping)
-		bpf_loop(n, stop_one, &lp, 0);
-	bpf_loop(n, write_one, &lp, 0);
-	__sync_fetch_and_add(&g->inflight, -1);
 	if (bpf_xdp_store_bytes(ctx, off, s->wire, bytes))
 		return XDP_DROP;
 	count(C_COMMANDS_OUT, n);
@@ -788,3 +809,4 @@ int reflect(struct xdp_md *ctx)
 }
 
 char LICENSE[] SEC("license") = "Dual MIT/GPL";
+#endif /* CELL_USERSPACE */
