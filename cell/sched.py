@@ -179,9 +179,9 @@ def realtime() -> bool:
     return hasattr(os, "sched_getscheduler") and _policy() in _REALTIME
 
 
-# the thread of this process that keeps its real-time priority (a native per-tick or per-packet
-# loop) once hand_over() moved the rest of it to the normal policy; 0: none
-RT_THREAD = 0
+# the threads of this process that keep its real-time priority (native per-tick or per-packet
+# loops) once hand_over() moved the rest of it to the normal policy
+RT_THREADS: set[int] = set()
 RT_NICE = -10  # what the rest of a real-time process runs at, after hand_over()
 
 
@@ -192,13 +192,12 @@ def hand_over(tid: int, nice: int = RT_NICE) -> list[str]:
     but the native loop can spend the CPU's real-time budget (RT throttling holds every real-time
     thread of a CPU once they used it up).  Threads started later inherit the normal policy.  Return
     what could not be done, in words (a process that was not real-time: nothing to hand over)."""
-    global RT_THREAD
-    if not realtime():
+    if tid <= 0 or not (realtime() or RT_THREADS):
         return []
     problems: list[str] = []
-    RT_THREAD = tid
+    RT_THREADS.add(tid)
     for t in _threads():
-        if t == tid:
+        if t in RT_THREADS:
             continue
         try:
             os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
@@ -227,14 +226,14 @@ def describe() -> str:
 
 
 def _rt_thread_policy() -> str:
-    """'fifo 70' for the native real-time thread (hand_over), "" if none runs."""
-    if not RT_THREAD:
-        return ""
-    try:
-        policy = os.sched_getscheduler(RT_THREAD) & 0xFF
-        return f"{_POLICY.get(policy, policy)} {os.sched_getparam(RT_THREAD).sched_priority}"
-    except OSError:  # (it ended)
-        return ""
+    """'fifo 70' for the native real-time threads (hand_over), "" if none runs."""
+    for tid in sorted(RT_THREADS):
+        try:
+            policy = os.sched_getscheduler(tid) & 0xFF
+            return f"{_POLICY.get(policy, policy)} {os.sched_getparam(tid).sched_priority}"
+        except OSError:  # (it ended)
+            continue
+    return ""
 
 
 def _ranges(cpus: list[int]) -> str:

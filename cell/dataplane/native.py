@@ -265,10 +265,11 @@ class NativeDataPlane(MappedDataPlane):
         """Serve in C until cancelled; this process's other threads leave the real-time priority."""
         self.server.start()
         try:
-            for problem in sched.hand_over(self.server.state.tid):
+            tid = int(self.server.state.tid)
+            for problem in sched.hand_over(tid):
                 log.warning("%s", problem)
-            if sched.RT_THREAD:
-                meter.watch_thread(sched.RT_THREAD)
+            if tid in sched.RT_THREADS:
+                meter.watch_thread(tid)
             await asyncio.Future()  # (until cancelled)
         finally:
             self.server.stop()

@@ -15,6 +15,8 @@ state) has released it.
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 WATCHDOG_WINDOWS = 3
@@ -50,6 +52,9 @@ class Drives:
         # commands ignored (scripted robots'), protective stops and windows so far: an array, so that
         # the tick in C (cell/robot/tick.c) counts them where Python reads them
         self.counts = np.zeros(3, np.int64)
+        # held while halt(), script() and set_target() change the arrays: a tick in another thread
+        # (cell/robot/tick.c's) never sees half of a change
+        self.lock: contextlib.AbstractContextManager = contextlib.nullcontext()
 
     # every array above is updated in place, never rebound: the C tick holds their addresses
 
@@ -102,18 +107,25 @@ class Drives:
         stand until commanded (their watchdog re-arms with the next command), halted still while
         another holder holds them."""
         bit = np.uint8(by)
-        if on:
-            self.holds[rows] |= bit
-        else:
-            self.holds[rows] &= ~bit
-        self._clear(rows, rearm=not on)
+        with self.lock:
+            if on:
+                self.holds[rows] |= bit
+            else:
+                self.holds[rows] &= ~bit
+            self._clear(rows, rearm=not on)
 
     def script(self, row: int, on: bool) -> None:
         """A URScript program takes the robot over (on) or gives it back to the datagram program: it
         stands where it is until commanded, its watchdog re-armed by the next command."""
-        self.scripted[row] = on
-        self._clear(row, rearm=True)
-        self.stopped[row] = False
+        with self.lock:
+            self.scripted[row] = on
+            self._clear(row, rearm=True)
+            self.stopped[row] = False
+
+    def set_target(self, row: int, velocity: np.ndarray | float) -> None:
+        """What a URScript program drives robot `row` at in this period (cell.ur)."""
+        with self.lock:
+            self.target[row] = velocity
 
     def _clear(self, rows: np.ndarray | int, rearm: bool) -> None:
         """No command executing or pending; with rearm, the watchdog off until the next command."""

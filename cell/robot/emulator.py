@@ -14,6 +14,10 @@ reports, and `cell bench robots` drives groups bare.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import logging
+import os
 import select
 import time
 from collections.abc import Callable
@@ -22,6 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cell import meter, sched
 from cell.config import RobotConfig
 from cell.counters import Counters, tally
 from cell.robot import datagram, udp
@@ -33,6 +38,7 @@ from cell.timer import PeriodicTimer
 if TYPE_CHECKING:
     from cell.robot.native import NativeTick
 
+log = logging.getLogger("cell.robots")
 _COMMAND = int(Kind.COMMAND)
 MAX_READS = 256  # recvmsg calls per socket per tick
 CATCH_UP_WINDOWED_S = 0.25  # a tick catching up more than this steps window by window (see tick())
@@ -105,6 +111,7 @@ class GroupCounters(Counters):
     status_unsent: int = 0  # socket buffer full
     late_sends: int = 0  # left a full status period or more after their deadline
     missed_ticks: int = 0  # status periods that passed with no tick at all (the process was held up)
+    ring_overruns: int = 0  # ticks of C's thread Python read too late to read (over its ring's)
     commands: int = 0
     commands_ignored: int = 0  # for robots a URScript program drives (cell.ur): not theirs to take
     rejected: dict[str, int] = tally(keys=tuple(r.name.lower() for r in Reject))
@@ -207,6 +214,19 @@ class RobotGroup:
         # each robot's digital outputs, as its UR controller has them (cell.ur: set by a program or an
         # RTDE client on an emulated arm, read over RTDE by the daemon); 0 for an arm without
         self.digital_out = np.zeros(self.n, np.uint64)
+        # the state the group's readers (truth, RTDE, the Responsive Link node) read after a tick:
+        # the live arrays while Python ticks, one tick's copy out of C's ring while C ticks in a thread
+        # of its own (run()), so that q, qd, target, velocity and stopped are always of one tick
+        self.q, self.qd = self.backend.q, self.backend.qd
+        self.target, self.velocity, self.stopped = (
+            self.drives.target,
+            self.drives.velocity,
+            self.drives.stopped,
+        )
+        # the C thread wakes Python every wake_every-th tick (and on every stop and resume); `busy`
+        # (the UR interfaces: RTDE clients, a program) asks for every tick while it says True
+        self.wake_every = 1
+        self.busy: Callable[[], bool] | None = None
         self.native: NativeTick | None = None
         self.tick_why = ""  # why this group ticks in Python though its robots asked for C
         if (tick or first.tick) == "native":
@@ -446,7 +466,11 @@ class RobotGroup:
         start_ns: int | None = None,
     ) -> None:
         """Tick forever on absolute deadlines from start_ns (CLOCK_MONOTONIC; None: a period from now);
-        on_tick(group, stopped rows, resumed rows) after each."""
+        on_tick(group, stopped rows, resumed rows) after each.  A native group ticks in C's own thread
+        (run_native); this one calls on_tick as it reads the ticks."""
+        if self.native is not None:
+            await self.run_native(on_tick, start_ns)
+            return
         period_ns = round(self.period * 1e9)
         timer = PeriodicTimer(time.monotonic_ns() + period_ns if start_ns is None else start_ns, period_ns)
         self.origin_ns = timer.start_ns  # period 0's deadline (CLOCK_MONOTONIC): the tick grid
@@ -461,3 +485,77 @@ class RobotGroup:
                     on_tick(self, stopping, resuming)
         finally:
             timer.close()
+
+    async def run_native(
+        self,
+        on_tick: Callable[[RobotGroup, np.ndarray, np.ndarray], None] | None = None,
+        start_ns: int | None = None,
+    ) -> None:
+        """The tick in C's own thread (cell/robot/tick.c), the only thread of the process left at its
+        real-time priority (sched.hand_over); this one reads the ticks out of its ring when woken
+        and runs the hooks (at_deadline, on_tick) on each tick it reads, at the normal policy."""
+        assert self.native is not None
+        native = self.native
+        period_ns = round(self.period * 1e9)
+        self.origin_ns = time.monotonic_ns() + period_ns if start_ns is None else start_ns
+        live = (self.q, self.qd, self.target, self.velocity, self.stopped)
+        self.q, self.qd = self.q.copy(), self.qd.copy()
+        self.target, self.velocity, self.stopped = (
+            self.target.copy(),
+            self.velocity.copy(),
+            self.stopped.copy(),
+        )
+        loop = asyncio.get_running_loop()
+        fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+        woken = asyncio.Event()
+        loop.add_reader(fd, woken.set)
+        try:
+            tid = native.start(self.origin_ns, fd, self._wake_every())
+            for problem in sched.hand_over(tid):
+                log.warning("%s", problem)
+            if tid in sched.RT_THREADS:
+                meter.watch_thread(tid)
+            seen = 0
+            while True:
+                await woken.wait()
+                woken.clear()
+                with contextlib.suppress(BlockingIOError):
+                    os.eventfd_read(fd)
+                seen = self._read_ticks(seen, on_tick)
+                native.state.wake_every = self._wake_every()
+        finally:
+            loop.remove_reader(fd)
+            native.stop()
+            os.close(fd)
+            self.q, self.qd, self.target, self.velocity, self.stopped = live
+
+    def _wake_every(self) -> int:
+        return 1 if self.busy is not None and self.busy() else max(1, self.wake_every)
+
+    def _read_ticks(self, seen: int, on_tick: Callable | None) -> int:
+        """The ticks C wrote since `seen` (up to the ring's last RING), each one that matters read into
+        the group's state and handed to the hooks: with every tick asked for, each one; else those a
+        robot stopped or resumed in, those on the wake grid, and the last.  The new `seen`."""
+        native = self.native
+        assert native is not None
+        head, cap = int(native.state.ring_head), len(native.ring_tick)
+        if head - seen > cap:
+            self._counters.ring_overruns += head - seen - cap
+            seen = head - cap
+        every = int(native.state.wake_every)
+        period_ns = round(self.period * 1e9)
+        for i in range(seen, head):
+            slot = i % cap
+            tick, flags = int(native.ring_tick[slot]), native.ring_flags[slot]
+            if every > 1 and i != head - 1 and tick % every and not flags.any():
+                continue
+            self.tick_no = tick
+            self.state_time = (self.origin_ns + tick * period_ns) / 1e9 + self.period
+            self.q[:], self.qd[:] = native.ring_q[slot], native.ring_qd[slot]
+            self.target[:], self.velocity[:] = native.ring_target[slot], native.ring_velocity[slot]
+            self.stopped[:] = native.ring_stopped[slot]
+            if self.at_deadline is not None:
+                self.at_deadline()
+            if on_tick is not None:
+                on_tick(self, np.flatnonzero(flags & 1), np.flatnonzero(flags & 2))
+        return head

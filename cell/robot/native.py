@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import os
 import socket
 import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -29,6 +31,7 @@ if TYPE_CHECKING:
 HERE = Path(__file__).parent
 SOURCE = HERE / "tick.c"
 VLEN, RX_BYTES = 8, 65536  # tick.c's
+RING = 256  # ticks the ring keeps (0.5 s at 500 Hz): Python may fall that far behind and lose none
 # GroupCounters' integer fields in tick.c's order (C_*); the rejects go to counters.rejected
 COUNTERS = ("status_sent", "status_unsent", "late_sends", "commands")
 REJECTS = ("length", "kind", "robot", "joint")
@@ -62,6 +65,10 @@ class GroupState(ctypes.Structure):
         *((name, _P) for name in ("ids", "row_of_id", "silent_until", "status", "seq", "counters")),
         *((name, _P) for name in ("answers", "answer_stats", "stopping", "resuming")),
         *((name, _P) for name in ("later_v", "later_has", "later_n", "flags", "rx", "tx")),
+        *((name, _I) for name in ("origin_ns", "stop", "running", "tid", "wake_every", "wake_fd", "wakes")),
+        *((name, _I) for name in ("ring_cap", "ring_head")),
+        *((name, _P) for name in ("ring_tick", "ring_q", "ring_qd", "ring_target", "ring_velocity")),
+        *((name, _P) for name in ("ring_stopped", "ring_flags", "lateness", "lateness_stats", "rt")),
     ]
 
 
@@ -73,6 +80,10 @@ def _lib() -> ctypes.CDLL:
     lib.rg_after.argtypes, lib.rg_after.restype = [p, _I, _I], None
     lib.rg_step.argtypes, lib.rg_step.restype = [p, _D], None
     lib.rg_pack.argtypes, lib.rg_pack.restype = [p], None
+    for name in ("rg_start", "rg_init"):
+        getattr(lib, name).argtypes, getattr(lib, name).restype = [p], ctypes.c_int
+    for name in ("rg_stop", "rg_lock", "rg_unlock", "rg_free"):
+        getattr(lib, name).argtypes, getattr(lib, name).restype = [p], None
     return lib
 
 
@@ -172,7 +183,26 @@ class NativeTick:
         st.flags = self._own(np.zeros(n, np.uint8))
         st.rx = self._own(np.zeros(VLEN * RX_BYTES, np.uint8))
         st.tx = self._own(np.zeros(max(size, 1) * datagram.SIZE, np.uint8))
+        # the thread's ring: every tick's state, for Python to read at its own pace
+        st.ring_cap, st.wake_fd = RING, -1
+        self.ring_tick = np.full(RING, -1, np.int64)
+        self.ring_q, self.ring_qd = np.zeros((RING, n, dof)), np.zeros((RING, n, dof))
+        self.ring_target, self.ring_velocity = np.zeros((RING, n, dof)), np.zeros((RING, n, dof))
+        self.ring_stopped, self.ring_flags = np.zeros((RING, n), bool), np.zeros((RING, n), np.uint8)
+        for name in ("ring_tick", "ring_q", "ring_qd", "ring_target", "ring_velocity"):
+            setattr(st, name, _ptr(getattr(self, name)))
+        st.ring_stopped, st.ring_flags = _ptr(self.ring_stopped), _ptr(self.ring_flags)
+        st.lateness, st.lateness_stats = _ptr(c.lateness.counts), _ptr(c.lateness.stats)
         self._ref = ctypes.byref(st)
+        rc = lib.rg_init(self._ref)
+        if rc:
+            raise OSError(rc, f"cannot make the group's lock: {os.strerror(rc)}")
+        self.lock = NativeLock(lib, self._ref)
+        d.lock = self.lock  # (what Python changes of the drives, between two ticks of the thread)
+
+    def __del__(self) -> None:
+        if getattr(self, "state", None) is not None and self.state.rt:
+            self.lib.rg_free(self._ref)  # (stops the thread if it still runs)
 
     def _own(self, a: np.ndarray) -> int:
         a = np.ascontiguousarray(a)
@@ -219,6 +249,26 @@ class NativeTick:
             g.backend.limit_hits = int(self.limit_hits[0])
         return self.stopping[: st.n_stopping].copy(), self.resuming[: st.n_resuming].copy()
 
+    # --- the tick in a thread of its own ----------------------------------------------------------
+
+    def start(self, origin_ns: int, wake_fd: int, wake_every: int) -> int:
+        """Tick in C's own thread from origin_ns (CLOCK_MONOTONIC), writing `wake_fd` (an eventfd) on
+        every `wake_every`-th tick and on each tick a robot stopped or resumed in; its thread id."""
+        st = self.state
+        st.origin_ns, st.wake_fd, st.wake_every = origin_ns, wake_fd, wake_every
+        rc = self.lib.rg_start(self._ref)
+        if rc:
+            raise OSError(rc, f"cannot start the robots' tick thread: {os.strerror(rc)}")
+        deadline = time.monotonic() + 1.0
+        while not st.tid and time.monotonic() < deadline:  # (it runs within microseconds)
+            time.sleep(0.0005)
+        return int(st.tid)
+
+    def stop(self) -> None:
+        self.lib.rg_stop(self._ref)
+        st = self.state
+        self.group.tick_no, self.group.sent_rt_ns = st.tick_no, st.sent_rt_ns
+
     def pull(self, into) -> None:
         """C's counts since the last pull into the group's GroupCounters (a pull at any time is safe:
         C only ever adds)."""
@@ -236,6 +286,20 @@ class NativeTick:
             setattr(into, name, getattr(into, name) + delta[k])
             k += 1
         into.commands_ignored = self.group.drives.ignored
+
+
+class NativeLock:
+    """The group's lock (a priority-inheriting mutex the C tick holds while it runs), as a context
+    manager; a ctypes call releases the GIL while it waits."""
+
+    def __init__(self, lib: ctypes.CDLL, ref: object) -> None:
+        self.lib, self.ref = lib, ref
+
+    def __enter__(self) -> None:
+        self.lib.rg_lock(self.ref)
+
+    def __exit__(self, *exc: object) -> None:
+        self.lib.rg_unlock(self.ref)
 
 
 def _sockaddr(addr: tuple[str, int]) -> bytes:

@@ -124,6 +124,11 @@ class Publisher:
         self.every = max(1, round(group.robots[0].status_hz / hz)) if hz > 0 else 0
         self.names = [r.name for r in group.robots]
         self.outputs = group.digital_out.copy()  # the digital outputs the bus was last told of
+        # a group ticking in C's thread wakes this on the truth's grid (and the Responsive Link
+        # node's look for robots standing still: at 50 Hz at least)
+        group.wake_every = min(
+            self.every or group.robots[0].status_hz, max(1, group.robots[0].status_hz // 50)
+        )
 
     def __call__(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
         if self.node is not None:
@@ -142,7 +147,6 @@ class Publisher:
                 ev = robot_pb2.RobotEvent(robot_id=r.id, name=r.name, kind=kind, text=text, t_ns=now)
                 self.bus.publish(f"events/robot/{r.name}", ev)
         if self.every and group.tick_no % self.every == 0:
-            b = group.backend
             at = round(group.state_time * 1e9)  # CLOCK_MONOTONIC ns of the state, not of publishing
             if group.shared:  # a fleet: every robot in one message
                 answers, mean_us, max_us = group.counters.answers.take_window()
@@ -153,8 +157,8 @@ class Publisher:
                         tick=group.tick_no,
                         joints=group.dof,
                         robot_id=group.ids.tolist(),
-                        q=b.q.ravel().tolist(),
-                        stopped=group.drives.stopped.tolist(),
+                        q=group.q.ravel().tolist(),
+                        stopped=group.stopped.tolist(),
                         answers=answers,
                         answer_us_mean=mean_us,
                         answer_us_max=max_us,
@@ -162,17 +166,17 @@ class Publisher:
                 )
                 return
             for row, name in enumerate(self.names):
-                q = b.q[row]
+                q = group.q[row]
                 self.bus.publish(
                     f"truth/{name}",
                     robot_pb2.RobotTruth(
                         robot_id=int(group.ids[row]),
                         t_ns=at,
                         q=q,
-                        qd=b.qd[row],
+                        qd=group.qd[row],
                         tool_pose=group.arm.tool_pose(q),
-                        target=group.drives.target[row],
-                        stopped=bool(group.drives.stopped[row]),
+                        target=group.target[row],
+                        stopped=bool(group.stopped[row]),
                         tick=group.tick_no,
                         digital_out=int(group.digital_out[row]),
                     ),
@@ -236,7 +240,7 @@ class RobotsNode(LeafNode):
             g, row = self.rows[rid]
             if g is not group:
                 continue
-            if np.abs(g.backend.qd[row]).max() < STILL_RAD_S and not g.drives.velocity[row].any():
+            if np.abs(g.qd[row]).max() < STILL_RAD_S and not g.velocity[row].any():
                 del self.waiting[rid]
                 self.still_ms.append((now - since) / 1e6)
                 del self.still_ms[:-1024]

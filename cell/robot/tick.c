@@ -12,14 +12,20 @@
  *   rg_send   the status packed at the end of the last tick goes out (a GSO send a socket);
  *   rg_after  the commands that came in (recvmmsg, GRO bursts, kernel stamps), the command windows
  *             that ended, the physics stepped to the next deadline, the next status packed.
- * rg_run (below) loops both on absolute deadlines in a thread of its own: the tick with no Python
- * at all, Python reading what it wrote at its own pace.
+ * rg_start (below) loops both on absolute deadlines in a thread of its own: the tick with no Python
+ * at all.  Each tick's state goes into a ring Python reads at its own pace (every tick, or only the
+ * ticks it asks to be woken for: wake_every, and any tick a robot stopped or resumed in), and what
+ * Python changes of the drives (holds, programs' targets) it changes under the group's lock, a
+ * priority-inheriting mutex the tick holds while it runs.
  */
 #define _GNU_SOURCE
 #include <endian.h>
 #include <errno.h>
 #include <math.h>
 #include <netinet/in.h>
+#include <pthread.h>
+#include <stdlib.h>
+#include <unistd.h>
 #include <netinet/udp.h>
 #include <stdint.h>
 #include <string.h>
@@ -99,6 +105,15 @@ typedef struct {
     uint8_t *flags;          /* (n) scratch: bit 0 stopped, bit 1 resumed in this rg_after */
     uint8_t *rx;             /* VLEN x RX_BYTES */
     uint8_t *tx;             /* n x dof x 24: the statuses of robots that are not silent */
+    /* the thread (rg_start): its tick grid, its wake-ups of Python (an eventfd) and the ring */
+    int64_t origin_ns, stop, running, tid, wake_every, wake_fd, wakes;
+    int64_t ring_cap, ring_head; /* ticks written so far; tick i is in slot i % ring_cap */
+    int64_t *ring_tick;          /* (cap) each slot's tick_no */
+    double *ring_q, *ring_qd, *ring_target, *ring_velocity; /* (cap x n x dof) */
+    uint8_t *ring_stopped, *ring_flags;                     /* (cap x n): stopped; bit 0 stopped, 1 resumed now */
+    int64_t *lateness;           /* the ticks' lateness histogram (emulator.Lateness.counts) */
+    double *lateness_stats;
+    void *rt;                    /* (C's own: the mutex and the thread) */
 } group_t;
 
 static double now_mono(void) {
@@ -491,4 +506,120 @@ void rg_send(group_t *g, double deadline) {
         g->counters[C_STATUS_UNSENT] += g->dof - sent;
         if (now_mono() >= late_after) g->counters[C_LATE_SENDS] += sent;
     }
+}
+
+/* --- the tick in a thread of its own ------------------------------------------------------------- */
+
+typedef struct {
+    pthread_mutex_t mutex;
+    pthread_t thread;
+} rt_t;
+
+static int64_t mono_ns(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+static int64_t real_ns(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_REALTIME, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+/* The tick's state into the ring, then published (Python reads ring_head, then the slots below it) */
+static int ring_write(group_t *g) {
+    int64_t slot = g->ring_head % g->ring_cap, size = g->n * g->dof, n = g->n;
+    g->ring_tick[slot] = g->tick_no;
+    memcpy(g->ring_q + slot * size, g->q, (size_t)size * sizeof(double));
+    memcpy(g->ring_qd + slot * size, g->qd, (size_t)size * sizeof(double));
+    memcpy(g->ring_target + slot * size, g->target, (size_t)size * sizeof(double));
+    memcpy(g->ring_velocity + slot * size, g->velocity, (size_t)size * sizeof(double));
+    memcpy(g->ring_stopped + slot * n, g->stopped, (size_t)n);
+    uint8_t *flags = g->ring_flags + slot * n;
+    memset(flags, 0, (size_t)n);
+    for (int64_t k = 0; k < g->n_stopping; k++) flags[g->stopping[k]] |= 1;
+    for (int64_t k = 0; k < g->n_resuming; k++) flags[g->resuming[k]] |= 2;
+    __atomic_store_n(&g->ring_head, g->ring_head + 1, __ATOMIC_RELEASE);
+    return g->n_stopping || g->n_resuming;
+}
+
+static void *run(void *arg) {
+    group_t *g = arg;
+    rt_t *rt = g->rt;
+    __atomic_store_n(&g->tid, (int64_t)gettid(), __ATOMIC_RELEASE);
+    int64_t period_ns = (int64_t)llround(g->period * 1e9), last = -1;
+    int64_t next = g->origin_ns;
+    while (!__atomic_load_n(&g->stop, __ATOMIC_ACQUIRE)) {
+        struct timespec at = {.tv_sec = next / 1000000000, .tv_nsec = next % 1000000000};
+        if (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &at, NULL)) continue; /* (a signal) */
+        int64_t now = mono_ns();
+        if (now < next) continue;
+        int64_t due = (now - g->origin_ns) / period_ns; /* the latest deadline passed */
+        int64_t periods = due - last, deadline_ns = g->origin_ns + due * period_ns;
+        hist_add(g->lateness, g->lateness_stats, (double)(now - deadline_ns) / 1e3, 1);
+        pthread_mutex_lock(&rt->mutex);
+        int64_t cutoff = real_ns(); /* (the kernel stamps datagrams in CLOCK_REALTIME) */
+        rg_send(g, (double)deadline_ns / 1e9);
+        rg_after(g, cutoff, periods);
+        int events = ring_write(g);
+        pthread_mutex_unlock(&rt->mutex);
+        int64_t every = __atomic_load_n(&g->wake_every, __ATOMIC_RELAXED);
+        if (g->wake_fd >= 0 && (events || (every > 0 && g->tick_no % every == 0))) {
+            uint64_t one = 1;
+            if (write((int)g->wake_fd, &one, sizeof one) == sizeof one) g->wakes++;
+        }
+        last = due;
+        next = g->origin_ns + (due + 1) * period_ns;
+    }
+    return NULL;
+}
+
+/* The tick in a thread of its own from origin_ns (CLOCK_MONOTONIC: period 0's deadline), at the
+ * caller's scheduling (inherited); 0, or the errno of what failed */
+int rg_start(group_t *g) {
+    rt_t *rt = g->rt;
+    g->stop = 0;
+    g->tid = 0;
+    int rc = pthread_create(&rt->thread, NULL, run, g);
+    g->running = rc == 0;
+    return rc;
+}
+
+void rg_stop(group_t *g) {
+    if (!g->running) return;
+    rt_t *rt = g->rt;
+    __atomic_store_n(&g->stop, 1, __ATOMIC_RELEASE);
+    pthread_join(rt->thread, NULL);
+    g->running = 0;
+}
+
+/* The group's lock: what Python changes of the drives, it changes between two ticks */
+void rg_lock(group_t *g) { pthread_mutex_lock(&((rt_t *)g->rt)->mutex); }
+void rg_unlock(group_t *g) { pthread_mutex_unlock(&((rt_t *)g->rt)->mutex); }
+
+/* C's own part of a group (the mutex priority-inheriting: a Python thread holding it runs at the
+ * tick's priority until it lets go); 0 or an errno */
+int rg_init(group_t *g) {
+    rt_t *rt = calloc(1, sizeof *rt);
+    if (!rt) return ENOMEM;
+    pthread_mutexattr_t attr;
+    pthread_mutexattr_init(&attr);
+    pthread_mutexattr_setprotocol(&attr, PTHREAD_PRIO_INHERIT);
+    int rc = pthread_mutex_init(&rt->mutex, &attr);
+    pthread_mutexattr_destroy(&attr);
+    if (rc) {
+        free(rt);
+        return rc;
+    }
+    g->rt = rt;
+    return 0;
+}
+
+void rg_free(group_t *g) {
+    if (!g->rt) return;
+    rg_stop(g);
+    pthread_mutex_destroy(&((rt_t *)g->rt)->mutex);
+    free(g->rt);
+    g->rt = NULL;
 }

@@ -167,7 +167,7 @@ class _Arm:
         c = self.ur.counters
         c.scripts_ended += 1
         c.scripts_failed += bool(reason)
-        self.group.drives.target[self.row] = 0.0  # (no program: it stands, the commands still ignored)
+        self.group.drives.set_target(self.row, 0.0)  # (no program: it stands, the commands still ignored)
         st = self.state
         st.program, st.runtime = self.home, RuntimeState.STOPPED
         self.restart_at = time.monotonic() + RESTART_S
@@ -195,7 +195,7 @@ class _Arm:
         if r.ended is not None:
             self.end(r.ended)
         else:
-            self.group.drives.target[self.row] = v
+            self.group.drives.set_target(self.row, v)
 
     def _event(self, kind: int, text: str) -> None:
         log.info("%s: %s", self.robot.name, text)
@@ -219,6 +219,7 @@ class URInterfaces:
         # state at the end of the cycle it describes, never before
         self.due: list[tuple[RtdeProtocol, bytes, int]] = []
         group.at_deadline = self.at_deadline
+        group.busy = self.busy
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -259,7 +260,6 @@ class URInterfaces:
         tick = group.tick_no
         # the controller's clock: s since the tick grid's origin (tick k's state is at k periods)
         t = group.state_time - group.origin_ns / 1e9
-        b = group.backend
         for arm in self.arms:
             group.digital_out[arm.row] = arm.state.digital_out
             if not arm.rtde:
@@ -268,10 +268,14 @@ class URInterfaces:
             if not live:
                 continue
             row = arm.row
-            arm.state.update(b.q[row], b.qd[row], group.drives.target[row], t)
+            arm.state.update(group.q[row], group.qd[row], group.target[row], t)
             for p in live:
                 if due := p.session.due(tick + 1, arm.state):  # (the next tick's state)
                     self.due.append((p, b"".join(due), len(due)))
+
+    def busy(self) -> bool:
+        """Whether it needs every tick (an RTDE client, a program running or due back)."""
+        return any(a.rtde or a.runner is not None or a.restart_at for a in self.arms)
 
     def at_deadline(self) -> None:
         """As a status period starts: the RTDE packages of the state at this deadline go out, then each
@@ -280,13 +284,13 @@ class URInterfaces:
         in this one."""
         self._flush()
         group = self.group
-        b, now = group.backend, time.monotonic()
+        now = time.monotonic()
         for arm in self.arms:
             if arm.runner is not None:
                 if group.drives.halted[arm.row]:  # (an e-stop on the Responsive Link)
                     arm.end("the arm was halted (emergency stop)")
                 else:
-                    arm.step(b.q[arm.row], b.qd[arm.row])
+                    arm.step(group.q[arm.row], group.qd[arm.row])
             elif arm.restart_at and now >= arm.restart_at:
                 arm.restart()
 
