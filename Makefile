@@ -45,10 +45,11 @@ test: $(STAMP_TEST)
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/python -m pytest
 
-# throughput and timing checks that need a quiet machine (tests/perf), then the benches' quick checks
+# throughput and timing checks that need a quiet machine (tests/perf, and the SnP cycle's end-to-end
+# runs: marked perf), then the benches' quick checks
 perf: $(STAMP_TEST)
 	@$(MAKE) -s bpf-if-possible
-	$(BIN)/python -m pytest -m perf tests/perf
+	$(BIN)/python -m pytest -m perf
 	$(BIN)/cell bench bus --messages 50000 --rounds 1 --json | tail -1
 	$(BIN)/cell bench snp --seconds 1 --json | tail -1
 

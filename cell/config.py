@@ -326,7 +326,7 @@ class DataplaneConfig:
                 why = f"the {self.backend} backend has no forwarding rules or egress model yet (numpy has)"
                 raise err("backend", why)
             if self.max_entities > XDP_MAX_ENTITIES:
-                why = f"the XDP program's C holds {XDP_MAX_ENTITIES} (MAX_ENTITIES in dataplane.bpf.c)"
+                why = f"the XDP program holds {XDP_MAX_ENTITIES} (dataplane.bpf.c's MAX_ENTITIES; native too)"
                 raise err("max_entities", why)
         for i, f in enumerate(self.forward):
             if f.listen == self.listen or any(o.listen == f.listen for o in self.forward[:i]):

@@ -141,6 +141,7 @@ void dp_gate(struct maps *m, int op)
 
 #define VLEN 16
 #define RX_BYTES 65536
+#define BATCH_BINS 1024
 
 struct server {
     struct maps *maps;
@@ -149,6 +150,7 @@ struct server {
     __s64 running;
     __s64 wakeups, bursts, answered, unsent, batch_ns_max;
     __s64 tid;        /* the serving thread's (0 until it runs) */
+    __s64 batch_us[BATCH_BINS]; /* each wake-up's handling time, 1 us bins (the last: longer) */
     pthread_t thread;
     __u8 rx[VLEN][RX_BYTES];
     char cmsg[VLEN][CMSG_SPACE(sizeof(int)) + CMSG_SPACE(sizeof(struct timespec))];
@@ -239,9 +241,10 @@ static int serve_once(struct server *sv)
         done += sent;
     }
     sv->bursts += got;
-    __s64 took = mono_ns() - t0;
+    __s64 took = mono_ns() - t0, bin = took / 1000;
     if (took > sv->batch_ns_max)
         sv->batch_ns_max = took;
+    sv->batch_us[bin < BATCH_BINS ? bin : BATCH_BINS - 1]++;
     return got;
 }
 

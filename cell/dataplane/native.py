@@ -45,6 +45,7 @@ HERE = Path(__file__).parent
 SOURCE = HERE / "native.c"
 BPF_SOURCE = HERE / "xdp" / "dataplane.bpf.c"
 HANDLED, HELD, BAD = 0, 1, 2  # handle()'s verdicts (dataplane.bpf.c)
+BATCH_BINS = 1024  # native.c's: each wake-up's handling time in 1 us bins
 MAPS = (
     *("robots", "status", "entities", "rows", "transform"),
     *("limits", "globals", "counters", "scratches", "marks"),
@@ -75,6 +76,7 @@ class ServerState(ctypes.Structure):
                 "tid",
             )
         ),
+        ("batch_us", ctypes.c_int64 * BATCH_BINS),
     ]
 
 
@@ -230,7 +232,13 @@ class NativeServer:
 
     def counters(self) -> dict[str, float]:
         s = self.state
-        return {
+        hist = np.frombuffer(s.batch_us, np.int64)
+        out = {}
+        if n := int(hist.sum()):  # (as the numpy data plane's: what one wake-up's batch took)
+            cum = np.cumsum(hist)
+            out["batch_p50_us"] = float(np.searchsorted(cum, 0.5 * n) + 1)
+            out["batch_p99_us"] = float(np.searchsorted(cum, 0.99 * n) + 1)
+        return out | {
             "native.wakeups": s.wakeups,
             "native.bursts": s.bursts,
             "native.answered": s.answered,

@@ -542,7 +542,7 @@ class RobotGroup:
         if head - seen > cap:
             self._counters.ring_overruns += head - seen - cap
             seen = head - cap
-        every = int(native.state.wake_every)
+        every = self._wake_every()  # (what is needed now: a client that just came gets every tick)
         period_ns = round(self.period * 1e9)
         for i in range(seen, head):
             slot = i % cap

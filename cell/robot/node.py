@@ -138,13 +138,14 @@ class Publisher:
         now = time.monotonic_ns()
         if (group.digital_out != self.outputs).any():
             self._outputs(group, now)
+        tick_ns = round((group.state_time - group.period) * 1e9)  # (the tick it happened in: its deadline)
         for rows, kind, text in (
             (stopping, robot_pb2.RobotEvent.KIND_PROTECTIVE_STOP, "no command for the watchdog's windows"),
             (resuming, robot_pb2.RobotEvent.KIND_RESUMED, "commands resumed"),
         ):
             for row in rows:
                 r = group.robots[row]
-                ev = robot_pb2.RobotEvent(robot_id=r.id, name=r.name, kind=kind, text=text, t_ns=now)
+                ev = robot_pb2.RobotEvent(robot_id=r.id, name=r.name, kind=kind, text=text, t_ns=tick_ns)
                 self.bus.publish(f"events/robot/{r.name}", ev)
         if self.every and group.tick_no % self.every == 0:
             at = round(group.state_time * 1e9)  # CLOCK_MONOTONIC ns of the state, not of publishing

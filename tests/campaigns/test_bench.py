@@ -207,3 +207,21 @@ def test_a_driver_per_arm_answers_its_own_arm_and_is_gone_afterwards() -> None:
     assert 0 < t.cpu_cores < 2
     left = subprocess.run(["pgrep", "-f", "cell.bench.driver"], capture_output=True, text=True)
     assert left.stdout.strip() == ""
+
+
+@pytest.mark.slow
+def test_the_headroom_bench_measures_the_packet_path_next_to_its_baseline_tick() -> None:
+    """`cell bench headroom --quick --json`, as `make test` runs it: its last line is the JSON the issue
+    names, each figure a measurement (the packet path's processes did use CPU, their ticks were timed)."""
+    from tests.conftest import run_cell
+
+    done = run_cell("bench", "headroom", "--quick", "--json", timeout=240)
+    assert done.returncode == 0, done.stderr[-2000:]
+    r = json.loads(done.stdout.strip().splitlines()[-1])
+    for key in ("packet_path_cpu_pct_idle", "packet_path_cpu_pct_moving", "tick_us_p99", "rt_holds",
+                "status_to_command_us_p99"):  # fmt: skip
+        assert key in r, key
+    assert 0 < r["packet_path_cpu_pct_idle"] < 100 and 0 < r["packet_path_cpu_pct_moving"] < 100
+    assert 0 < r["tick_us_p50"] <= r["tick_us_p99"] and r["python_tick_us_p99"] > 0
+    assert r["status_to_command_us_p99"] > 0  # (commands came back: the robots timed them)
+    assert r["rt_holds"] >= 0 and r["missed_ticks"] >= 0

@@ -155,6 +155,10 @@ def test_the_master_finds_its_port_and_its_modules_by_exploring_the_running_rout
     assert counts["R1"]["config"] == 1 and counts["R2"]["config"] == 1 and counts["dropped"] == 0
 
 
+# (make perf: its aims hold only on a machine whose timers wake on time; on a VM whose idle vCPUs stall
+# a wake-up for milliseconds several times a second it fails as it did before issue 53's work: p99.9 of
+# a 1 ms clock_nanosleep 2-12 ms there, measured the day it was moved)
+@pytest.mark.perf
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("in_c", "period"),

@@ -1,0 +1,195 @@
+"""`cell bench headroom`: how much of its core the cell's real-time packet path leaves free.
+
+Two measurements, each next to its baseline in the same run:
+
+- the tick: one MuJoCo arm's tick (send, take, step, pack) timed call by call, in C
+  (cell/robot/tick.c) and in Python (the reference model, `tick = "python"`);
+- the cell: the default cell (two MuJoCo arms) idle, then moving (both arms back and forth through
+  the controller), with the CPU its packet path's processes use (robots, which runs the Responsive
+  Link's hub too, and the data plane), the kernel's holds of their real-time threads (RT throttling,
+  cell/sched.Held), and each command's time from its status leaving the robot to its arrival back
+  (kernel stamps, measured at the robot); then the same for the cell as it ran before the native
+  loops (`tick = "python"`, `backend = "numpy"`), unless --no-baseline.
+
+The JSON line (last) has packet_path_cpu_pct_idle, packet_path_cpu_pct_moving, tick_us_p99,
+rt_holds and status_to_command_us_p99 (issue 53), and the baseline's figures beside them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import time
+from typing import Any
+
+import numpy as np
+
+from cell import aio
+from cell.bench.cellproc import default_robots, robots_heard, running_cell
+from cell.bench.registry import Bench, Figures, log, register
+from cell.bus import Bus
+from cell.config import load_config
+from cell.launcher import fetch_status
+from cell.ports import free_port
+from cell.sched import process_cpu_seconds
+
+PACKET_PATH = ("robots", "dataplane")  # the processes of the packet path (rlink's hub runs in robots')
+AIMS = {"packet_path_cpu_pct_idle": 5.0, "packet_path_cpu_pct_moving": 10.0, "tick_us_p99": 30.0}
+
+
+def tick_times(tick: str, n: int) -> np.ndarray:
+    """n ticks of one MuJoCo arm (`tick`: "native" or "python"), each timed (us), a UDP sink for its
+    status and nothing commanding it."""
+    from cell.robot import udp
+    from cell.robot.emulator import RobotGroup
+
+    robots = [{"id": 1, "name": "h1", "skill_port": free_port(), "backend": "mujoco", "truth_hz": 0}]
+    cfg = load_config(overrides={"robots": robots})
+    sink = udp.open_socket("127.0.0.1")
+    host, port = sink.getsockname()
+    group = RobotGroup(cfg.robots, f"{host}:{port}", tick=tick)
+    if group.tick_impl != tick:
+        raise RuntimeError(f"the {tick} tick cannot run here: {group.tick_why}")
+    out = np.empty(n)
+    try:
+        for i in range(n + 100):  # (the first 100: warm-up)
+            t0 = time.perf_counter_ns()
+            group.tick(float("inf"))
+            if i >= 100:
+                out[i - 100] = (time.perf_counter_ns() - t0) / 1e3
+            if i % 64 == 0:
+                while udp.recv_batch(sink) is not None:  # (the sink's buffer never fills)
+                    pass
+    finally:
+        group.close()
+        sink.close()
+    return out
+
+
+async def _pids(config: Any) -> dict[str, int]:
+    status = await fetch_status(config)
+    return {s.name: s.last.pid for s in status.services if s.name in PACKET_PATH}
+
+
+async def _counters(config: Any) -> dict[str, dict[str, float]]:
+    status = await fetch_status(config)
+    return {s.name: dict(s.last.counters) for s in status.services if s.name in PACKET_PATH}
+
+
+def _cpu(pids: dict[str, int]) -> float:
+    return sum(process_cpu_seconds(p) for p in set(pids.values()))
+
+
+def _holds(c: dict[str, dict[str, float]]) -> float:
+    return sum(s.get("process.rt.held", 0.0) for s in c.values())
+
+
+async def cell_figures(overrides: dict[str, Any], idle_s: float, moving_s: float) -> dict[str, float]:
+    """One cell's figures: its packet path's CPU idle and moving, RT holds, status -> command p99."""
+    from cell.controller.controller import Controller
+
+    q0 = np.array(load_config(None).robots[0].q0)
+    async with (
+        running_cell({"robots": default_robots(), **overrides}, quiet=True) as config,
+        Bus.connect(config.bus, "bench-headroom") as bus,
+        Controller(bus, config) as ctl,
+    ):
+        await robots_heard(ctl, {1, 2})
+        pids = await _pids(config)
+        await asyncio.sleep(1.0)  # (start-up's work done)
+        held0 = _holds(await _counters(config))
+        cpu0, t0 = _cpu(pids), time.monotonic()
+        await asyncio.sleep(idle_s)
+        idle = (_cpu(pids) - cpu0) / (time.monotonic() - t0) * 100
+        cpu0, t0 = _cpu(pids), time.monotonic()
+        rng, k = np.random.default_rng(53), 0
+        while time.monotonic() - t0 < moving_s:  # both arms back and forth, as the demo's moves
+            goal = q0 + rng.uniform(-0.4, 0.4, 6) if k % 2 == 0 else q0
+            await asyncio.gather(*(ctl.move_joints(r, goal, speed=0.8) for r in ("r1", "r2")))
+            k += 1
+        moving = (_cpu(pids) - cpu0) / (time.monotonic() - t0) * 100
+        c = await _counters(config)
+    rb = c.get("robots", {})
+    return {
+        "cpu_pct_idle": idle,
+        "cpu_pct_moving": moving,
+        "rt_holds": _holds(c) - held0,
+        "status_to_command_us_p99": rb.get("answer_p99_us", float("nan")),
+        "missed_ticks": rb.get("missed_ticks", 0.0),
+        "protective_stops": rb.get("protective_stops", 0.0),
+        "moves": float(k),
+    }
+
+
+def run(quick: bool, baseline: bool, idle_s: float, moving_s: float) -> dict[str, Any]:
+    n = 2000 if quick else 20000
+    log(f"one MuJoCo arm's tick, {n} times, in C and in Python")
+    native, python = tick_times("native", n), tick_times("python", n)
+    result: dict[str, Any] = {
+        "tick_us_p50": float(np.percentile(native, 50)),
+        "tick_us_p99": float(np.percentile(native, 99)),
+        "python_tick_us_p99": float(np.percentile(python, 99)),
+    }
+    result["tick_speedup_p99"] = result["python_tick_us_p99"] / result["tick_us_p99"]
+    log(f"the default cell (native tick, {load_config(None).dataplane.chosen()[0]} data plane): "
+        f"{idle_s:g} s idle, {moving_s:g} s moving")  # fmt: skip
+    now = aio.run(cell_figures({}, idle_s, moving_s))
+    result.update(
+        packet_path_cpu_pct_idle=now["cpu_pct_idle"],
+        packet_path_cpu_pct_moving=now["cpu_pct_moving"],
+        rt_holds=now["rt_holds"],
+        status_to_command_us_p99=now["status_to_command_us_p99"],
+        missed_ticks=now["missed_ticks"],
+        protective_stops=now["protective_stops"],
+    )
+    if baseline:
+        log("the baseline: the same cell with the Python tick and the numpy data plane")
+        was = {"robot_defaults": {"tick": "python"}, "dataplane": {"backend": "numpy"}}
+        old = aio.run(cell_figures(was, idle_s, moving_s))
+        result.update({f"baseline_{k}": v for k, v in old.items()})
+    return result
+
+
+def format_result(r: dict[str, Any]) -> str:
+    lines = [
+        f"one MuJoCo arm's tick: p50 {r['tick_us_p50']:.1f} us, p99 {r['tick_us_p99']:.1f} us in C "
+        f"(aim <= {AIMS['tick_us_p99']:g}); p99 {r['python_tick_us_p99']:.1f} us in Python "
+        f"({r['tick_speedup_p99']:.1f}x)",
+        "packet path CPU (robots + data plane + rlink), % of a core: "
+        f"idle {r['packet_path_cpu_pct_idle']:.1f} "
+        f"(aim <= {AIMS['packet_path_cpu_pct_idle']:g}), moving {r['packet_path_cpu_pct_moving']:.1f} "
+        f"(aim <= {AIMS['packet_path_cpu_pct_moving']:g})",
+        f"RT holds {r['rt_holds']:.0f} (aim 0), status -> command p99 {r['status_to_command_us_p99']:.0f} us "
+        f"at the robot, missed ticks {r['missed_ticks']:.0f}, protective stops {r['protective_stops']:.0f}",
+    ]
+    if "baseline_cpu_pct_idle" in r:
+        lines.append(
+            f"baseline (Python tick, numpy data plane): idle {r['baseline_cpu_pct_idle']:.1f} %, moving "
+            f"{r['baseline_cpu_pct_moving']:.1f} %, RT holds {r['baseline_rt_holds']:.0f}, status -> "
+            f"command p99 {r['baseline_status_to_command_us_p99']:.0f} us"
+        )
+    return "\n".join(lines)
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="short phases, no baseline (make test's check)")
+    p.add_argument("--idle-s", type=float, default=None, help="seconds idle (default 10; quick 2)")
+    p.add_argument("--moving-s", type=float, default=None, help="seconds moving (default 10; quick 2)")
+    p.add_argument("--no-baseline", action="store_true", help="skip the cell as before (Python, numpy)")
+
+
+def _main(args: argparse.Namespace) -> Figures:
+    idle = args.idle_s if args.idle_s is not None else (2.0 if args.quick else 10.0)
+    moving = args.moving_s if args.moving_s is not None else (2.0 if args.quick else 10.0)
+    result = run(args.quick, not (args.quick or args.no_baseline), idle, moving)
+    return Figures(result, format_result(result))
+
+
+register(
+    Bench(
+        "headroom",
+        "the packet path's CPU, RT holds and tick time: native loops next to the Python ones",
+        _arguments,
+        _main,
+    )
+)
