@@ -20,6 +20,12 @@ def arguments(p: argparse.ArgumentParser) -> None:
         help="a cell config merged over the default before the campaign's own settings (e.g. "
         "examples/xdp.toml: the data plane in the kernel)",
     )
+    p.add_argument(
+        "--hog",
+        action="store_true",
+        help="a busy process at the normal priority on every core for the whole campaign (a host's "
+        "other work)",
+    )
     json_arg(p)
 
 
@@ -37,9 +43,16 @@ def run(args: argparse.Namespace) -> int:
         except ConfigError as exc:
             print(f"cell chaos: {exc}")
             return 2
-    result = asyncio.run(
-        campaign(args.rounds, args.only, log_fn=lambda line: print(line, flush=True), config_path=args.config)
-    )
+    import contextlib
+
+    from cell.chaos.hog import hog
+
+    with hog() if args.hog else contextlib.nullcontext():
+        result = asyncio.run(
+            campaign(
+                args.rounds, args.only, log_fn=lambda line: print(line, flush=True), config_path=args.config
+            )
+        )
     print(f"{result['held']} of {result['faults']} faults held every promise ({result['rounds']} round(s))")
     if args.json:
         print(json.dumps(result))

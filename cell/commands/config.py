@@ -20,7 +20,10 @@ def run(args: argparse.Namespace) -> int:
     data = config.to_dict()
     for robot, table in zip(config.robots, data.get("robots", []), strict=True):
         table["ur_address"] = robot.ur_host  # (the address it answers on, "" resolved)
-    print(f"# effective configuration: {config.source} over the embedded default\n")
+    print(f"# effective configuration: {config.source} over the embedded default")
+    backend, why = config.dataplane.chosen()
+    ticks = sorted({r.tick for r in config.robots if r.backend != "ur"})
+    print(f"# data plane: {backend} ({why}); robots' tick: {', '.join(ticks) or '-'} (docs/robots.md)\n")
     print(tomli_w.dumps(data), end="")
     return 0
 

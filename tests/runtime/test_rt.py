@@ -146,3 +146,36 @@ def test_many_short_waits_over_a_long_while_are_no_hold(monkeypatch) -> None:
     assert held.check(29_000_000_000) == 0  # 9.5 s of waits over 28 s: not a hold
     assert held.check(29_050_000_000) == 40_000_000  # 40 ms of the last 50: held back
     assert held.events == 1 and held.max_ns == 40_000_000
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2 or not sys.platform.startswith("linux"), reason="2 CPUs, Linux")
+async def test_a_busy_process_on_every_core_reaches_no_arm(start_cell) -> None:
+    """The default cell's packet path (two MuJoCo arms, the native data plane, the Responsive Link)
+    while a process spins at the normal priority on every core for 10 s, as a host's other work
+    would: no protective stop, no RT hold, and every window of both arms answered (counts)."""
+    from cell.chaos.hog import hog
+
+    cell = await start_cell(run=["bus", "dataplane", "robots", "rlink"])
+
+    async def packet_path() -> dict[str, dict[str, float]]:
+        st = await fetch_status(cell.config)
+        return {s.name: dict(s.last.counters) for s in st.services if s.name in ("robots", "dataplane")}
+
+    st = {s.name: s for s in (await fetch_status(cell.config)).services}
+    if not st["robots"].last.sched.startswith("fifo"):
+        pytest.skip(f"the robots' process is not real-time here ({st['robots'].last.sched})")
+    assert "native" in st["robots"].last.sched and "native" in st["dataplane"].last.sched
+    before = await packet_path()
+    with hog(max_s=60):
+        await asyncio.sleep(10)  # (the load's duration: what is measured is counted, not timed)
+        during = await packet_path()
+    rb0, rb1 = before["robots"], during["robots"]
+    assert rb1["protective_stops"] == rb0["protective_stops"]
+    for name in ("robots", "dataplane"):
+        assert during[name]["process.rt.held"] == before[name]["process.rt.held"], name
+    # every status period of both arms was answered by the data plane: commands came for each (six a
+    # status, two arms), all of them in time to keep the watchdog quiet (above)
+    statuses = rb1["status_sent"] - rb0["status_sent"]
+    assert statuses >= 2 * 6 * 500 * 9  # (two arms' 500 Hz status over the 10 s, a second's margin)
+    assert rb1["commands"] - rb0["commands"] >= 0.99 * statuses
+    assert during["dataplane"]["rejected.length"] == before["dataplane"].get("rejected.length", 0)
