@@ -120,6 +120,11 @@ async def run(ctx: ServiceContext) -> None:
         # groups that tick on timers, their grids staggered over the period: each group's tick has the
         # process to itself (on one grid a second group ticked as late as the first took: a UR5e and
         # a UR10e, two groups, had the robots' lateness p99 at 740 us where one group has 170)
+        # the C threads keep the process's real-time priority for themselves only where no group ticks
+        # in Python here (a daemon's tick is its controller's RTDE package: it must stay real-time)
+        in_python = [g for g in [*groups, *hidden] if g.native is None]
+        for g in [*groups, *hidden]:
+            g.hand_over = not in_python
         ticking = [g for g in [*groups, *hidden] if not isinstance(g, Daemon)]
         t0 = time.monotonic_ns() + 2_000_000
         starts = {id(g): t0 + round(k * g.period * 1e9 / len(ticking)) for k, g in enumerate(ticking)}

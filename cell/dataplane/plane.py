@@ -242,8 +242,10 @@ class DataPlane:
             self._sender_ids[addr] = max(self._sender_ids.values(), default=-1) + 1
         self.pin[robot] = self._sender_ids[addr]
 
-    async def sweep(self, period: float = 0.01) -> None:
-        """Drop the trajectories of robots gone quiet (Pipeline.sweep), every `period`, until cancelled."""
+    async def sweep(self, period: float = 0.05) -> None:
+        """Drop the trajectories of robots gone quiet (Pipeline.sweep), every `period`, until cancelled
+        (QUIET_NS is 500 ms: a sweep every 50 ms finds them within a tenth more, at a fifth of the
+        event-loop time of one every 10 ms)."""
         robots = np.flatnonzero(self.pipeline.quiet_ns > 0)
         while True:
             await asyncio.sleep(period)

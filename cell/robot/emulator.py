@@ -227,6 +227,9 @@ class RobotGroup:
         # (the UR interfaces: RTDE clients, a program) asks for every tick while it says True
         self.wake_every = 1
         self.busy: Callable[[], bool] | None = None
+        # whether run_native leaves the process's real-time priority to its C thread alone (False while
+        # the process still ticks a group in Python: a daemon's, whose tick must stay real-time)
+        self.hand_over = True
         self.native: NativeTick | None = None
         self.tick_why = ""  # why this group ticks in Python though its robots asked for C
         if (tick or first.tick) == "native":
@@ -511,7 +514,7 @@ class RobotGroup:
         loop.add_reader(fd, woken.set)
         try:
             tid = native.start(self.origin_ns, fd, self._wake_every())
-            for problem in sched.hand_over(tid):
+            for problem in sched.hand_over(tid) if self.hand_over else ():
                 log.warning("%s", problem)
             if tid in sched.RT_THREADS:
                 meter.watch_thread(tid)

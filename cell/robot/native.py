@@ -80,6 +80,7 @@ def _lib() -> ctypes.CDLL:
     lib.rg_after.argtypes, lib.rg_after.restype = [p, _I, _I], None
     lib.rg_step.argtypes, lib.rg_step.restype = [p, _D], None
     lib.rg_pack.argtypes, lib.rg_pack.restype = [p], None
+    lib.rg_tick_timed.argtypes, lib.rg_tick_timed.restype = [p, _D, _I], _I
     for name in ("rg_start", "rg_init"):
         getattr(lib, name).argtypes, getattr(lib, name).restype = [p], ctypes.c_int
     for name in ("rg_stop", "rg_lock", "rg_unlock", "rg_free"):

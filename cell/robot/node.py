@@ -129,6 +129,10 @@ class Publisher:
         group.wake_every = min(
             self.every or group.robots[0].status_hz, max(1, group.robots[0].status_hz // 50)
         )
+        # ... and on every tick while the node waits for a stopped robot to stand (it reports STILL)
+        others = group.busy
+        if node is not None:
+            group.busy = lambda: bool(node.waiting) or (others is not None and others())
 
     def __call__(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
         if self.node is not None:
@@ -219,6 +223,8 @@ class RobotsNode(LeafNode):
                 if brake:
                     g.drives.halt(np.array([row]))
                 self.waiting.setdefault(rid, (now, order.reason))
+                if g.native is not None:  # (C's thread wakes this on every tick from now on)
+                    g.native.state.wake_every = 1
                 self.report(rid, RobotState.STOPPING, order.reason)
             else:
                 g.drives.halt(np.array([row]), on=False)

@@ -623,3 +623,12 @@ void rg_free(group_t *g) {
     free(g->rt);
     g->rt = NULL;
 }
+
+/* One tick as the thread runs it (send, take, step, pack), its work timed here (ns): the bench's
+ * figure of what a tick costs, without the caller's own */
+int64_t rg_tick_timed(group_t *g, double deadline, int64_t periods) {
+    int64_t t0 = mono_ns(), cutoff = real_ns();
+    rg_send(g, deadline);
+    rg_after(g, cutoff, periods);
+    return mono_ns() - t0;
+}
