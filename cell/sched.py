@@ -214,13 +214,16 @@ RT_THREADS: set[int] = set()
 RT_NICE = -10  # what the rest of a real-time process runs at, after hand_over()
 
 
-def hand_over(tid: int, nice: int = RT_NICE) -> list[str]:
+def hand_over(tid: int, nice: int = RT_NICE, rest_priority: int = 0) -> list[str]:
     """Keep this process's real-time priority for thread `tid` (a native loop: cell/robot/tick.c,
     cell/dataplane/native.c) alone, and move every other thread (Python's, ZeroMQ's) to the normal
     policy at `nice`: nothing per bus message or per client runs at real-time priority, and nothing
     but the native loop can spend the CPU's real-time budget (RT throttling holds every real-time
     thread of a CPU once they used it up).  Threads started later inherit the normal policy.  Return
-    what could not be done, in words (a process that was not real-time: nothing to hand over)."""
+    what could not be done, in words (a process that was not real-time: nothing to hand over).
+    rest_priority > 0: the other threads go to SCHED_FIFO at that priority instead (under every
+    native loop, over every normal process: a control plane that must answer within its deadline
+    whatever the host runs)."""
     if tid <= 0 or not (realtime() or RT_THREADS):
         return []
     problems: list[str] = []
@@ -229,7 +232,10 @@ def hand_over(tid: int, nice: int = RT_NICE) -> list[str]:
         if t in RT_THREADS:
             continue
         try:
-            os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
+            if rest_priority > 0:
+                os.sched_setscheduler(t, os.SCHED_FIFO, os.sched_param(rest_priority))
+            else:
+                os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
             os.setpriority(os.PRIO_PROCESS, t, nice)
         except OSError as exc:
             problems.append(f"thread {t}: normal policy refused ({exc.strerror})")
@@ -243,7 +249,9 @@ def describe() -> str:
     policy = _policy()
     name = _POLICY.get(policy, f"policy {policy}")
     rt_thread = _rt_thread_policy()
-    if rt_thread:  # (the real-time loop is native, the rest of the process normal)
+    if rt_thread and policy in _REALTIME:  # (the loop native, the rest of the process under it)
+        what = f"{rt_thread} native, rest {name} {os.sched_getparam(0).sched_priority}"
+    elif rt_thread:  # (the real-time loop is native, the rest of the process normal)
         what = f"{rt_thread} native, rest nice {os.getpriority(os.PRIO_PROCESS, 0)}"
     elif policy in _REALTIME:
         what = f"{name} {os.sched_getparam(0).sched_priority}"
