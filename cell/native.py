@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 CFLAGS = ("-O2", "-shared", "-fPIC", "-Wall", "-Werror")
@@ -19,6 +20,15 @@ CFLAGS = ("-O2", "-shared", "-fPIC", "-Wall", "-Werror")
 
 class NativeUnavailable(RuntimeError):
     """No C compiler, or the build failed: the message says which."""
+
+
+def unavailable(load: Callable[[], object]) -> str:
+    """ "" if load() builds (or finds) its library, else why not."""
+    try:
+        load()
+    except NativeUnavailable as exc:
+        return str(exc)
+    return ""
 
 
 def cache_dir() -> Path:

@@ -29,7 +29,6 @@ from cell.dataplane.plane import MappedDataPlane, Pins
 from cell.dataplane.xdp.program import (
     COUNTERS,
     ENTITY,
-    GATE_WAIT_S,
     GLOBALS,
     LIMIT,
     MAX_ENTITIES,
@@ -37,8 +36,9 @@ from cell.dataplane.xdp.program import (
     ROBOT,
     ROW,
     STATUS,
+    Gate,
 )
-from cell.native import NativeUnavailable, build
+from cell.native import NativeUnavailable, build, unavailable
 from cell.robot import datagram, udp
 
 HERE = Path(__file__).parent
@@ -107,15 +107,13 @@ def _lib() -> ctypes.CDLL:
 
 def available() -> str:
     """ "" if the native data plane builds here, else why not."""
-    try:
-        _lib()
-    except NativeUnavailable as exc:
-        return str(exc)
-    return ""
+    return unavailable(_lib)
 
 
-class NativeProgram:
+class NativeProgram(Gate):
     """The maps of one native data plane (XdpProgram's interface), and the C that runs over them."""
+
+    gate_error = RuntimeError
 
     def __init__(self, capacity: int, n_bits: int, joints: int) -> None:
         lib = self.lib = _lib()
@@ -148,12 +146,7 @@ class NativeProgram:
         ):
             setattr(self.maps, name, _Map(arr.ctypes.data, n, size))
         self._ref = ctypes.addressof(self.maps)
-        g = self.globals
-        g["n_bits"], g["joints"], g["max_joints"] = n_bits, joints, MAX_JOINTS
-        g["entries_per_sign"], g["bank_size"] = self.eps, joints * 2 * self.eps
-        self.gates = 0  # how often the control plane closed the gate (each a flip)
-        self.closed_ns: list[int] = []  # how long each closing lasted (recent ones)
-        self._closed_at = 0
+        self._init_gate(n_bits, joints, self.eps)
 
     def fit(self, n_bits: int) -> None:
         """Transform tables of `n_bits` (the gate closed: nothing reads them meanwhile): the memory is
@@ -177,24 +170,8 @@ class NativeProgram:
         verdict = self.lib.dp_payload(self._ref, buf, len(payload), addr, socket.htons(src[1]))
         return None if verdict in (-1, BAD) else bytes(buf)[: len(payload)]
 
-    # --- the gate: the control plane's batches appear at once -------------------------------------
-
-    def close_gate(self) -> None:
-        """From now until open_gate(), statuses are answered with each joint's last command and nothing
-        reads the tables; returns once no packet is still being handled."""
-        self.lib.dp_gate(self._ref, 1)
-        self.gates += 1
-        self._closed_at = time.perf_counter_ns()
-        deadline = time.monotonic() + GATE_WAIT_S
-        while self.globals["inflight"]:
-            if time.monotonic() > deadline:
-                self.lib.dp_gate(self._ref, 0)
-                raise RuntimeError(f"a packet stayed in the data plane for {GATE_WAIT_S * 1e3:.0f} ms")
-
-    def open_gate(self) -> None:
-        self.lib.dp_gate(self._ref, 0)
-        self.closed_ns.append(time.perf_counter_ns() - self._closed_at)
-        del self.closed_ns[:-4096]
+    def _gate(self, op: int) -> None:
+        self.lib.dp_gate(self._ref, op)
 
     def counters(self) -> dict[str, int]:
         return dict(zip(COUNTERS, self._counters.tolist(), strict=True))

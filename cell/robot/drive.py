@@ -26,6 +26,19 @@ HOLD_ESTOP = 1  # the Responsive Link's e-stop (cell.robot.node)
 HOLD_UR = 2  # the arm's UR state: powered off, braked, safety-stopped (cell.ur)
 
 
+class _Count:
+    """One of Drives.counts, read and set as an int."""
+
+    def __init__(self, index: int) -> None:
+        self.index = index
+
+    def __get__(self, drives: Drives, owner: type) -> int:
+        return int(drives.counts[self.index])
+
+    def __set__(self, drives: Drives, value: int) -> None:
+        drives.counts[self.index] = value
+
+
 class Drives:
     """`robots` robots of `dof` joints each; arrays are (robots, dof)."""
 
@@ -57,30 +70,9 @@ class Drives:
         self.lock: contextlib.AbstractContextManager = contextlib.nullcontext()
 
     # every array above is updated in place, never rebound: the C tick holds their addresses
-
-    @property
-    def ignored(self) -> int:
-        return int(self.counts[0])
-
-    @ignored.setter
-    def ignored(self, value: int) -> None:
-        self.counts[0] = value
-
-    @property
-    def stops(self) -> int:
-        return int(self.counts[1])
-
-    @stops.setter
-    def stops(self, value: int) -> None:
-        self.counts[1] = value
-
-    @property
-    def windows(self) -> int:
-        return int(self.counts[2])
-
-    @windows.setter
-    def windows(self, value: int) -> None:
-        self.counts[2] = value
+    ignored = _Count(0)
+    stops = _Count(1)
+    windows = _Count(2)
 
     def command(self, robot: np.ndarray, joint: np.ndarray, velocity: np.ndarray) -> None:
         """Commands received in this window, in arrival order: the latest per joint wins."""

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from cell.native import CFLAGS, NativeUnavailable, build
+from cell.native import CFLAGS, build, unavailable
 from cell.robot import datagram
 from cell.robot.backends import KinematicArms, MujocoArms
 
@@ -96,11 +96,7 @@ def _mujoco() -> ctypes.CDLL:
 
 def available() -> str:
     """ "" if the C tick builds here, else why not."""
-    try:
-        _lib()
-    except NativeUnavailable as exc:
-        return str(exc)
-    return ""
+    return unavailable(_lib)
 
 
 def supports(group: RobotGroup) -> str:

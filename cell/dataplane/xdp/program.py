@@ -127,7 +127,75 @@ class Resources:
         return sum(b for _, b in self.maps.values())
 
 
-class XdpProgram:
+class Gate:
+    """The control plane's gate over a packet path in C reading mapped tables (the XDP program's,
+    the native data plane's: globals.closed and globals.inflight, each side's locked add the fence),
+    and what the control plane knows of its flips; a program says how it turns the gate (_gate)."""
+
+    gate_error: type[Exception] = BpfError
+    globals: np.void
+
+    def _init_gate(self, n_bits: int, joints: int, eps: int) -> None:
+        """The constants the packet path reads of the tables, and no flip yet."""
+        g = self.globals
+        g["n_bits"], g["joints"], g["max_joints"] = n_bits, joints, MAX_JOINTS
+        g["entries_per_sign"], g["bank_size"] = eps, joints * 2 * eps
+        self.gates = 0  # how often the control plane closed the gate (each a flip)
+        self.closed_ns: list[int] = []  # how long each closing lasted (recent ones)
+        self._closed_at = 0
+        self._priority: int | None = None  # the thread's own while it holds the gate at the ceiling
+
+    def _gate(self, op: int) -> None:
+        raise NotImplementedError
+
+    def close_gate(self) -> None:
+        """From now until open_gate(), statuses are answered with each joint's last command and
+        nothing reads the tables; returns once no packet is still in the program.
+
+        A real-time control plane holds the gate at a priority ceiling (just under the kernel's
+        own top), so that a higher-priority process on its core (the robots) cannot stretch a
+        flip of tens of microseconds into milliseconds of held statuses (a priority inversion:
+        the packet path waits on the gate's holder)."""
+        self._raise_priority()
+        try:
+            self._gate(1)
+        except BaseException:
+            self._restore_priority()
+            raise
+        self.gates += 1
+        self._closed_at = time.perf_counter_ns()
+        deadline = time.monotonic() + GATE_WAIT_S
+        while self.globals["inflight"]:
+            if time.monotonic() > deadline:
+                self._gate(0)
+                self._restore_priority()
+                raise self.gate_error(f"a packet stayed in the packet path for {GATE_WAIT_S * 1e3:.0f} ms")
+
+    def open_gate(self) -> None:
+        try:
+            self._gate(0)
+            self.closed_ns.append(time.perf_counter_ns() - self._closed_at)
+            del self.closed_ns[:-4096]
+        finally:
+            self._restore_priority()
+
+    def _raise_priority(self) -> None:
+        self._priority = None
+        with contextlib.suppress(OSError, AttributeError):
+            policy = os.sched_getscheduler(0)
+            if policy in (os.SCHED_FIFO, os.SCHED_RR):
+                was = os.sched_getparam(0).sched_priority
+                os.sched_setparam(0, os.sched_param(max(was, os.sched_get_priority_max(policy) - 1)))
+                self._priority = was
+
+    def _restore_priority(self) -> None:
+        if self._priority is not None:
+            with contextlib.suppress(OSError):
+                os.sched_setparam(0, os.sched_param(self._priority))
+            self._priority = None
+
+
+class XdpProgram(Gate):
     """The velocity-control program and its maps; close() unloads it (and detaches it if attached)."""
 
     def __init__(self, capacity: int, n_bits: int, joints: int, obj: Path = OBJECT) -> None:
@@ -161,13 +229,7 @@ class XdpProgram:
         except BaseException:
             self.close()
             raise
-        g = self.globals
-        g["n_bits"], g["joints"], g["max_joints"] = n_bits, joints, MAX_JOINTS
-        g["entries_per_sign"], g["bank_size"] = self.eps, joints * 2 * self.eps
-        self.gates = 0  # how often the control plane closed the gate (each a flip)
-        self.closed_ns: list[int] = []  # how long each closing lasted (recent ones)
-        self._closed_at = 0
-        self._priority: int | None = None  # the thread's own while it holds the gate at the ceiling
+        self._init_gate(n_bits, joints, self.eps)
 
     def resources(self) -> Resources:
         maps = {}
@@ -221,54 +283,6 @@ class XdpProgram:
         if verdict != XDP_TX:
             return None
         return out[14 + 20 + 8 : 14 + 20 + 8 + len(payload)]
-
-    # --- the gate: the control plane's batches appear at once ----------------------------------
-
-    def close_gate(self) -> None:
-        """From now until open_gate(), statuses are answered with each joint's last command and
-        nothing reads the tables; returns once no packet is still in the program.
-
-        A real-time control plane holds the gate at a priority ceiling (just under the kernel's
-        own top), so that a higher-priority process on its core (the robots) cannot stretch a
-        flip of tens of microseconds into milliseconds of held statuses (a priority inversion:
-        the packet path waits on the gate's holder)."""
-        self._raise_priority()
-        try:
-            self._gate(1)
-        except BaseException:
-            self._restore_priority()
-            raise
-        self.gates += 1
-        self._closed_at = time.perf_counter_ns()
-        deadline = time.monotonic() + GATE_WAIT_S
-        while self.globals["inflight"]:
-            if time.monotonic() > deadline:
-                self._gate(0)
-                self._restore_priority()
-                raise BpfError(f"a packet stayed in the XDP program for {GATE_WAIT_S * 1e3:.0f} ms")
-
-    def open_gate(self) -> None:
-        try:
-            self._gate(0)
-            self.closed_ns.append(time.perf_counter_ns() - self._closed_at)
-            del self.closed_ns[:-4096]
-        finally:
-            self._restore_priority()
-
-    def _raise_priority(self) -> None:
-        self._priority = None
-        with contextlib.suppress(OSError, AttributeError):
-            policy = os.sched_getscheduler(0)
-            if policy in (os.SCHED_FIFO, os.SCHED_RR):
-                was = os.sched_getparam(0).sched_priority
-                os.sched_setparam(0, os.sched_param(max(was, os.sched_get_priority_max(policy) - 1)))
-                self._priority = was
-
-    def _restore_priority(self) -> None:
-        if self._priority is not None:
-            with contextlib.suppress(OSError):
-                os.sched_setparam(0, os.sched_param(self._priority))
-            self._priority = None
 
     def _gate(self, op: int) -> None:
         verdict, _ = libbpf.test_run(self.gate_fd, bytes([op]) + bytes(63), 128)
