@@ -67,25 +67,22 @@ class Lateness:
 
     def add(self, us: float) -> None:
         self.counts[min(int(us / self.BIN_US), self.BINS - 1) if us > 0 else 0] += 1
-        st = self.stats
-        st[0] += 1
-        st[2] += 1
-        st[3] += us
-        if us > st[1]:
-            st[1] = us
-        if us > st[4]:
-            st[4] = us
+        self._tally(1, us, us)
 
     def add_all(self, us: np.ndarray) -> None:
         """Many at once (one per datagram of a batch)."""
         if us.size:
             np.add.at(self.counts, np.clip((us / self.BIN_US).astype(np.int64), 0, self.BINS - 1), 1)
-            top, st = float(us.max()), self.stats
-            st[0] += us.size
-            st[1] = max(st[1], top)
-            st[2] += us.size
-            st[3] += float(us.sum())
-            st[4] = max(st[4], top)
+            self._tally(us.size, float(us.sum()), float(us.max()))
+
+    def _tally(self, n: int, total: float, top: float) -> None:
+        """n more (summing to total, the largest top) into the run's and the window's stats."""
+        st = self.stats
+        st[0] += n
+        st[1] = max(st[1], top)
+        st[2] += n
+        st[3] += total
+        st[4] = max(st[4], top)
 
     def take_window(self) -> tuple[int, float, float]:
         """(count, mean, max) of what add_all() added since the last call: a time series beside the
@@ -159,7 +156,7 @@ class RobotGroup:
                 first.socket,
                 first.tick,
             ):
-                raise ValueError("a robot group shares backend, model, rates and socket")
+                raise ValueError("a robot group shares backend, model, rates, socket and tick")
         self.robots = robots
         self.n = len(robots)
         self.arm = arm or arm_model(first.model)
