@@ -49,7 +49,7 @@ _now = time.perf_counter_ns
 # a real-time process's watch on the kernel holding its loop back (RT throttling), checked as a task
 # steps: the first step after a wake sees it (sched.Held; made by install() where the process is
 # real-time)
-HELD: sched.Held | None = None
+HELD: sched.Held | sched.HeldThreads | None = None
 
 
 class _Metered(collections.abc.Coroutine):
@@ -127,10 +127,13 @@ def install(loop: asyncio.AbstractEventLoop) -> None:
 
 
 def watch_thread(tid: int) -> None:
-    """From now on HELD watches thread `tid` (the native loop that kept the process's real-time
-    priority, sched.hand_over), still checked as this thread's tasks step."""
+    """From now on HELD watches thread `tid` too (a native loop that kept the process's real-time
+    priority, sched.hand_over; the first one replaces this thread's watch), still checked as this
+    thread's tasks step."""
     global HELD
-    HELD = sched.Held(tid)
+    if not isinstance(HELD, sched.HeldThreads):
+        HELD = sched.HeldThreads()
+    HELD.add(tid)
 
 
 def charge_to(account: Account) -> None:

@@ -145,6 +145,30 @@ class Held:
         }
 
 
+class HeldThreads:
+    """Held for several threads of this process (each native loop that kept its real-time priority:
+    a robots process may tick more than one group), counted as one."""
+
+    def __init__(self) -> None:
+        self.threads: list[Held] = []
+        self.next_ns = 0
+
+    def add(self, tid: int) -> None:
+        self.threads.append(Held(tid))
+
+    def check(self, now_ns: int) -> int:
+        self.next_ns = now_ns + CHECK_NS
+        return max((h.check(now_ns) for h in self.threads), default=0)
+
+    def counters(self, prefix: str = "rt.") -> dict[str, float]:
+        hs = self.threads
+        return {
+            f"{prefix}held": sum(h.events for h in hs),
+            f"{prefix}held_ms": sum(h.total_ns for h in hs) / 1e6,
+            f"{prefix}held_max_ms": max((h.max_ns for h in hs), default=0) / 1e6,
+        }
+
+
 class Spin:
     """A loop that polls without sleeping (the SnP cycles: a wake from epoll costs as much as the
     work) must never do so at a real-time priority: the kernel's RT throttling would stop it, and
@@ -214,16 +238,13 @@ RT_THREADS: set[int] = set()
 RT_NICE = -10  # what the rest of a real-time process runs at, after hand_over()
 
 
-def hand_over(tid: int, nice: int = RT_NICE, rest_priority: int = 0) -> list[str]:
+def hand_over(tid: int, nice: int = RT_NICE) -> list[str]:
     """Keep this process's real-time priority for thread `tid` (a native loop: cell/robot/tick.c,
     cell/dataplane/native.c) alone, and move every other thread (Python's, ZeroMQ's) to the normal
     policy at `nice`: nothing per bus message or per client runs at real-time priority, and nothing
     but the native loop can spend the CPU's real-time budget (RT throttling holds every real-time
     thread of a CPU once they used it up).  Threads started later inherit the normal policy.  Return
-    what could not be done, in words (a process that was not real-time: nothing to hand over).
-    rest_priority > 0: the other threads go to SCHED_FIFO at that priority instead (under every
-    native loop, over every normal process: a control plane that must answer within its deadline
-    whatever the host runs)."""
+    what could not be done, in words (a process that was not real-time: nothing to hand over)."""
     if tid <= 0 or not (realtime() or RT_THREADS):
         return []
     problems: list[str] = []
@@ -232,14 +253,26 @@ def hand_over(tid: int, nice: int = RT_NICE, rest_priority: int = 0) -> list[str
         if t in RT_THREADS:
             continue
         try:
-            if rest_priority > 0:
-                os.sched_setscheduler(t, os.SCHED_FIFO, os.sched_param(rest_priority))
-            else:
-                os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
+            os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
             os.setpriority(os.PRIO_PROCESS, t, nice)
         except OSError as exc:
             problems.append(f"thread {t}: normal policy refused ({exc.strerror})")
     return problems
+
+
+def step_down(nice: int = RT_NICE) -> list[str]:
+    """Every thread of this real-time process to the normal policy at `nice` (a control plane whose
+    packet path runs in the kernel: the XDP program's): nothing per bus message at real-time
+    priority.  What could not be done, in words; a process that is not real-time stays as it is."""
+    if not realtime():
+        return []
+    try:
+        for t in _threads():
+            os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, t, nice)
+    except OSError as exc:
+        return [f"normal policy refused ({exc.strerror})"]
+    return []
 
 
 def describe() -> str:

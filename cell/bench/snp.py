@@ -18,6 +18,7 @@ the same run.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import multiprocessing as mp
 import random
@@ -697,20 +698,29 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         help="where the cycle's hot paths (the modules' and the master's) run: c (built with cc on first "
         "use), python, or auto (c if it builds)",
     )
+    p.add_argument(
+        "--hog",
+        action="store_true",
+        help="a busy process at the normal priority on every core throughout (a host's other work)",
+    )
 
 
 def _main(args: argparse.Namespace) -> Figures:
+    from cell.chaos.hog import hog
+
     native = {"auto": None, "c": True, "python": False}[args.cycle]
     management_ns = None if args.management_us is None else int(args.management_us * 1000)
-    result = run(
-        args.slaves,
-        args.seconds,
-        args.loss,
-        slot_ns=int(args.slot_us * 1000),
-        native=native,
-        management_ns=management_ns,
-        tracking=args.tracking,
-    )
+    with hog() if args.hog else contextlib.nullcontext():
+        result = run(
+            args.slaves,
+            args.seconds,
+            args.loss,
+            slot_ns=int(args.slot_us * 1000),
+            native=native,
+            management_ns=management_ns,
+            tracking=args.tracking,
+        )
+    result["hog"] = args.hog
     return Figures(result, format_result(result))
 
 

@@ -1,5 +1,5 @@
 """A host's other work, as a load: one busy process per CPU at the normal policy and nice 0 (a
-compiler, a batch job), for `cell chaos --hog`, `cell bench headroom --hog` and the tests that
+compiler, a batch job), for `cell chaos --hog`, `cell bench snp --hog` and the tests that
 show the packet path keeps its ticks under it.  Each process spins until told to stop, and stops by
 itself after `max_s` whatever happens to its parent."""
 

@@ -46,7 +46,6 @@ SOURCE = HERE / "native.c"
 BPF_SOURCE = HERE / "xdp" / "dataplane.bpf.c"
 HANDLED, HELD, BAD = 0, 1, 2  # handle()'s verdicts (dataplane.bpf.c)
 BATCH_BINS = 1024  # native.c's: each wake-up's handling time in 1 us bins
-CONTROL_PRIORITY = 1  # SCHED_FIFO of the data plane's control plane (Python) under its C thread
 MAPS = (
     *("robots", "status", "entities", "rows", "transform"),
     *("limits", "globals", "counters", "scratches", "marks"),
@@ -252,10 +251,9 @@ class NativeDataPlane(MappedDataPlane):
         self.server.start()
         try:
             tid = int(self.server.state.tid)
-            # the control plane under the packet path but over every normal process: it answers the
-            # controller's reads within their deadline (0.5 s: a data plane silent longer has lost its
-            # motions) whatever the host runs, and its work is a few percent of a core
-            for problem in sched.hand_over(tid, rest_priority=CONTROL_PRIORITY):
+            # the control plane at the normal policy (nice -10): nothing per bus message at real-time
+            # priority (the controller asks every 0.1 s and needs one answer in 0.5 s)
+            for problem in sched.hand_over(tid):
                 log.warning("%s", problem)
             if tid in sched.RT_THREADS:
                 meter.watch_thread(tid)

@@ -439,7 +439,11 @@ class DataPlane:
             out["batch_p99_us"] = ns[min(len(ns) - 1, int(len(ns) * 0.99))] / 1e3
         return out
 
-    def state(self, req: dataplane_pb2.StateRequest | None = None) -> dataplane_pb2.DataplaneState:
+    def state(
+        self, req: dataplane_pb2.StateRequest | None = None, robots: bool = True
+    ) -> dataplane_pb2.DataplaneState:
+        """The tables' state (every robot's registers, or those `req` names) and the counters;
+        robots=False: the counters alone (telemetry: a fleet's thousand robots cost a scan each time)."""
         t = self.tables
         brief = req is not None and req.robots_only
         mono = time.monotonic_ns()
@@ -456,6 +460,8 @@ class DataPlane:
         )
         if not brief:
             st.counters.update(self.counters())
+        if not robots:
+            return st
         if req is not None and req.robot_ids:  # (the usual read: a few robots; no scan of all ids)
             known = len(t.robot_entity)
             robots = sorted({r for r in req.robot_ids if 0 <= r < known and t.robot_entity[r] != NO_ROW})
@@ -597,6 +603,8 @@ class XdpDataPlane(MappedDataPlane):
         statuses).  Another program attached in its place is reported, not fought."""
         from cell.dataplane.xdp.switch import namespace_thread
 
+        for problem in sched.step_down():  # (the kernel answers the statuses: nothing here is per tick)
+            log.warning("%s", problem)
         loop = asyncio.get_running_loop()
         passed, look = asyncio.Event(), asyncio.Event()
         netns = namespace_thread(self.netns)

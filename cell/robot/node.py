@@ -13,6 +13,7 @@ from dataclasses import replace
 import numpy as np
 
 from cell.bus import Bus
+from cell.bus.envelope import put_arrays
 from cell.config import CellConfig, RobotConfig, parse_host_port
 from cell.rlink.events import Reason, RobotState, StateReport
 from cell.rlink.leaf import LeafNode
@@ -123,6 +124,7 @@ class Publisher:
         hz = group.robots[0].status_hz if full_rate else group.robots[0].truth_hz
         self.every = max(1, round(group.robots[0].status_hz / hz)) if hz > 0 else 0
         self.names = [r.name for r in group.robots]
+        self.ids = robot_pb2.GroupTruth(robot_id=group.ids.tolist()).SerializeToString()  # (a fleet's)
         self.outputs = group.digital_out.copy()  # the digital outputs the bus was last told of
         # a group ticking in C's thread wakes this on the truth's grid (and the Responsive Link
         # node's look for robots standing still: at 50 Hz at least)
@@ -155,20 +157,17 @@ class Publisher:
             at = round(group.state_time * 1e9)  # CLOCK_MONOTONIC ns of the state, not of publishing
             if group.shared:  # a fleet: every robot in one message
                 answers, mean_us, max_us = group.counters.answers.take_window()
-                self.bus.publish(
-                    f"fleet/{self.names[0]}",
-                    robot_pb2.GroupTruth(
-                        t_ns=at,
-                        tick=group.tick_no,
-                        joints=group.dof,
-                        robot_id=group.ids.tolist(),
-                        q=group.q.ravel().tolist(),
-                        stopped=group.stopped.tolist(),
-                        answers=answers,
-                        answer_us_mean=mean_us,
-                        answer_us_max=max_us,
-                    ),
+                msg = robot_pb2.GroupTruth(
+                    t_ns=at,
+                    tick=group.tick_no,
+                    joints=group.dof,
+                    answers=answers,
+                    answer_us_mean=mean_us,
+                    answer_us_max=max_us,
                 )
+                msg.MergeFromString(self.ids)
+                put_arrays(msg, q=group.q.ravel(), stopped=group.stopped)
+                self.bus.publish(f"fleet/{self.names[0]}", msg)
                 return
             for row, name in enumerate(self.names):
                 q = group.q[row]

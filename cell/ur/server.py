@@ -84,6 +84,16 @@ class _Arm:
         self.restart_at = 0.0  # (monotonic s) when the datagram program comes back; 0: not due
         self.ended = ""  # how the last program ended
 
+    def refresh(self) -> None:
+        """In the interfaces' per-tick set (URInterfaces.active) while it has an RTDE client, a program
+        or a restart due; its digital outputs onto the group's as it leaves (a fleet of a thousand
+        arms with no client costs the ticks nothing)."""
+        if self.rtde or self.runner is not None or self.restart_at:
+            self.ur.active.add(self)
+        elif self in self.ur.active:
+            self.ur.active.discard(self)
+            self.group.digital_out[self.row] = self.state.digital_out
+
     @property
     def datagram_program_runs(self) -> bool:
         st = self.state
@@ -152,6 +162,7 @@ class _Arm:
             self.end(f"replaced by {script.name}")
         self.restart_at = 0.0
         self.runner = runner(script, st)
+        self.refresh()
         self.t_last = self.group.state_time
         st.program, st.runtime = f"{script.name}.script", RuntimeState.PLAYING
         c.scripts_run += 1
@@ -171,12 +182,14 @@ class _Arm:
         st = self.state
         st.program, st.runtime = self.home, RuntimeState.STOPPED
         self.restart_at = time.monotonic() + RESTART_S
+        self.refresh()
         self.ended = f"URScript program {r.name} ended" + (f" ({reason})" if reason else "")
         log.info("%s: %s", self.robot.name, self.ended)
 
     def restart(self) -> None:
         """The datagram program back after a script (if the arm may move and nothing else came)."""
         self.restart_at = 0.0
+        self.refresh()
         st = self.state
         if self.runner is None and st.can_move and st.program == DATAGRAM_PROGRAM:
             st.runtime = RuntimeState.PLAYING
@@ -212,6 +225,7 @@ class URInterfaces:
         self.group = group
         self.publish = publish  # onto the bus (events/robot/<name>), if there is one
         self.arms = [_Arm(self, group, row, r) for row, r in enumerate(group.robots)]
+        self.active: set[_Arm] = set()  # the arms with per-tick work (_Arm.refresh)
         self.counters = URCounters()
         self.servers: list[asyncio.Server] = []
         # the RTDE packages of the next deadline's state, made after this tick (after_tick) and sent
@@ -260,7 +274,7 @@ class URInterfaces:
         tick = group.tick_no
         # the controller's clock: s since the tick grid's origin (tick k's state is at k periods)
         t = group.state_time - group.origin_ns / 1e9
-        for arm in self.arms:
+        for arm in self.active:
             group.digital_out[arm.row] = arm.state.digital_out
             if not arm.rtde:
                 continue
@@ -275,7 +289,7 @@ class URInterfaces:
 
     def busy(self) -> bool:
         """Whether it needs every tick (an RTDE client, a program running or due back)."""
-        return any(a.rtde or a.runner is not None or a.restart_at for a in self.arms)
+        return bool(self.active)
 
     def at_deadline(self) -> None:
         """As a status period starts: the RTDE packages of the state at this deadline go out, then each
@@ -285,7 +299,7 @@ class URInterfaces:
         self._flush()
         group = self.group
         now = time.monotonic()
-        for arm in self.arms:
+        for arm in list(self.active):  # (a program's end or restart changes the set)
             if arm.runner is not None:
                 if group.drives.halted[arm.row]:  # (an e-stop on the Responsive Link)
                     arm.end("the arm was halted (emergency stop)")
@@ -331,6 +345,7 @@ class RtdeProtocol(asyncio.Protocol):
             return
         c.rtde_connections += 1
         self.arm.rtde.add(self)
+        self.arm.refresh()
 
     def data_received(self, data: bytes) -> None:
         s = self.session
@@ -344,6 +359,7 @@ class RtdeProtocol(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.arm.rtde.discard(self)
+        self.arm.refresh()
         self.session.close()
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import random
 import struct
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -18,8 +19,9 @@ from cell.bus.envelope import (
     check_topic,
     decode,
     message_class,
+    put_arrays,
 )
-from cell.v1 import bus_pb2, health_pb2
+from cell.v1 import bus_pb2, health_pb2, robot_pb2
 
 
 def fixed_encoder() -> Encoder:
@@ -191,3 +193,19 @@ def test_encode_decode_round_trip(
         payload,
     )
     assert (env.instance, env.seq, env.sent_ns, env.type_name) == (99, 0, 123, "cell.v1.BenchPayload")
+
+
+def test_arrays_go_into_packed_fields_byte_for_byte_as_lists_do() -> None:
+    """put_arrays writes a fleet's joints through their wire bytes: the message must be the one built
+    from lists, byte for byte, and a field it cannot fill so is refused, not half-filled."""
+    rng = np.random.default_rng(7)
+    q, stopped = rng.normal(size=(300, 6)), rng.random(300) > 0.5
+    ids = np.arange(1, 301, dtype=np.uint32)
+    by_list = robot_pb2.GroupTruth(t_ns=5, joints=6, robot_id=ids.tolist(), q=q.ravel().tolist(),
+                                   stopped=stopped.tolist())  # fmt: skip
+    by_array = robot_pb2.GroupTruth(t_ns=5, joints=6, robot_id=ids.tolist())
+    put_arrays(by_array, q=q.ravel(), stopped=stopped)
+    assert by_array.SerializeToString() == by_list.SerializeToString()
+    with pytest.raises(TypeError, match="robot_id is not a repeated field of fixed width"):
+        put_arrays(by_array, q=q.ravel(), robot_id=ids)
+    assert by_array.SerializeToString() == by_list.SerializeToString()

@@ -148,6 +148,29 @@ def test_many_short_waits_over_a_long_while_are_no_hold(monkeypatch) -> None:
     assert held.events == 1 and held.max_ns == 40_000_000
 
 
+def test_each_native_loop_of_a_process_is_watched_for_holds(monkeypatch) -> None:
+    """A robots process ticks one C thread per group: a hold of any of them is the process's, not only
+    one of the last thread started."""
+    import threading
+
+    from cell import meter, sched
+
+    monkeypatch.setattr(meter, "HELD", None)
+    tid = threading.get_native_id()
+    for _ in range(2):
+        meter.watch_thread(tid)
+    assert isinstance(meter.HELD, sched.HeldThreads)
+    first, second = meter.HELD.threads
+    delays = {first: iter([0, 0, 40_000_000, 40_000_000]), second: iter([0, 0, 0, 20_000_000])}
+    for h in (first, second):
+        monkeypatch.setattr(h, "_read", lambda h=h: next(delays[h]))
+        h._delay = h._read()
+    assert meter.HELD.check(1_000_000_000) == 0  # (a baseline)
+    assert meter.HELD.check(1_050_000_000) == 40_000_000  # the first loop held 40 ms of the last 50
+    assert meter.HELD.check(1_080_000_000) == 20_000_000  # the second, 20 of 30
+    assert meter.HELD.counters("p.") == {"p.held": 2, "p.held_ms": 60.0, "p.held_max_ms": 40.0}
+
+
 @pytest.mark.skipif((os.cpu_count() or 1) < 2 or not sys.platform.startswith("linux"), reason="2 CPUs, Linux")
 async def test_a_busy_process_on_every_core_reaches_no_arm(start_cell) -> None:
     """The default cell's packet path (two MuJoCo arms, the native data plane, the Responsive Link)
