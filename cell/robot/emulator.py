@@ -220,9 +220,11 @@ class RobotGroup:
             self.drives.velocity,
             self.drives.stopped,
         )
-        # the C thread wakes Python every wake_every-th tick (and on every stop and resume); `busy`
-        # (the UR interfaces: RTDE clients, a program) asks for every tick while it says True
+        # the C thread wakes Python every wake_every-th tick (and on every stop and resume), which then
+        # reads each read_every-th tick out of the ring (the truth's grid: several a wake); `busy`
+        # (the UR interfaces: RTDE clients, a program) asks to be woken for every tick while it says True
         self.wake_every = 1
+        self.read_every = 0  # (0: wake_every's)
         self.busy: Callable[[], bool] | None = None
         # whether run_native leaves the process's real-time priority to its C thread alone (False while
         # the process still ticks a group in Python: a daemon's, whose tick must stay real-time)
@@ -532,17 +534,22 @@ class RobotGroup:
     def _wake_every(self) -> int:
         return 1 if self.busy is not None and self.busy() else max(1, self.wake_every)
 
+    def _read_every(self) -> int:
+        if self.busy is not None and self.busy():
+            return 1
+        return max(1, min(self.read_every or self.wake_every, self.wake_every))
+
     def _read_ticks(self, seen: int, on_tick: Callable | None) -> int:
         """The ticks C wrote since `seen` (up to the ring's last RING), each one that matters read into
         the group's state and handed to the hooks: with every tick asked for, each one; else those a
-        robot stopped or resumed in, those on the wake grid, and the last.  The new `seen`."""
+        robot stopped or resumed in, those on the read grid, and the last.  The new `seen`."""
         native = self.native
         assert native is not None
         head, cap = int(native.state.ring_head), len(native.ring_tick)
         if head - seen > cap:
             self._counters.ring_overruns += head - seen - cap
             seen = head - cap
-        every = self._wake_every()  # (what is needed now: a client that just came gets every tick)
+        every = self._read_every()  # (what is needed now: a client that just came gets every tick)
         period_ns = round(self.period * 1e9)
         for i in range(seen, head):
             slot = i % cap

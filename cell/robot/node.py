@@ -26,6 +26,7 @@ from cell.v1 import robot_pb2
 
 ANNOUNCE_S = 2.0
 Publish = Callable[[str, object], None]
+WAKE_HZ = 50  # how often a group ticking in C wakes its Python (besides stops, resumes and clients)
 STILL_RAD_S = 1e-3  # a stopped robot stands still once every joint is slower than this
 
 
@@ -126,11 +127,12 @@ class Publisher:
         self.names = [r.name for r in group.robots]
         self.ids = robot_pb2.GroupTruth(robot_id=group.ids.tolist()).SerializeToString()  # (a fleet's)
         self.outputs = group.digital_out.copy()  # the digital outputs the bus was last told of
-        # a group ticking in C's thread wakes this on the truth's grid (and the Responsive Link
-        # node's look for robots standing still: at 50 Hz at least)
-        group.wake_every = min(
-            self.every or group.robots[0].status_hz, max(1, group.robots[0].status_hz // 50)
-        )
+        # a group ticking in C's thread is read on the truth's grid (and the Responsive Link node's look
+        # for robots standing still: at 50 Hz at least), woken for it at WAKE_HZ: each wake-up costs
+        # more than the messages it sends (two truths of 100 Hz a wake, not one)
+        status_hz = group.robots[0].status_hz
+        group.read_every = min(self.every or status_hz, max(1, status_hz // 50))
+        group.wake_every = max(group.read_every, status_hz // WAKE_HZ)
         # ... and on every tick while the node waits for a stopped robot to stand (it reports STILL)
         others = group.busy
         if node is not None:
