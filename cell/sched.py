@@ -178,8 +178,9 @@ class Spin:
     work) must never do so at a real-time priority: the kernel's RT throttling would stop it, and
     every other real-time thread of its CPU, for the rest of the second.  It sleeps at its real-time
     priority (a wake comes at once) and polls at the normal policy at nice SPIN_NICE (polling is
-    never real-time time, and a host's busy process at nice 0 gets 1 % of the CPU beside it): poll() before a poll without sleeping, sleep() before a sleep or when
-    done.  Two system calls a cycle; nothing at all in a thread that is not real-time."""
+    never real-time time, and a host's busy process at nice 0 gets 1 % of the CPU beside it):
+    poll() before a poll without sleeping, sleep() before a sleep or when done.  Two system calls a
+    cycle; nothing at all in a thread that is not real-time."""
 
     def __init__(self) -> None:
         rt = realtime()

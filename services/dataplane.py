@@ -70,7 +70,7 @@ async def run(ctx: ServiceContext) -> None:
         async def telemetry() -> None:
             while True:
                 await asyncio.sleep(ctx.config.services.heartbeat_s / 2)  # (twice a heartbeat)
-                state = plane.state(robots=False)
+                state = plane.state(with_robots=False)
                 state.counters.update(events.counters())
                 ctx.counters.update(state.counters)
                 bus.publish("dataplane/counters", state)

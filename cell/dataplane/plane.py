@@ -440,10 +440,10 @@ class DataPlane:
         return out
 
     def state(
-        self, req: dataplane_pb2.StateRequest | None = None, robots: bool = True
+        self, req: dataplane_pb2.StateRequest | None = None, with_robots: bool = True
     ) -> dataplane_pb2.DataplaneState:
         """The tables' state (every robot's registers, or those `req` names) and the counters;
-        robots=False: the counters alone (telemetry: a fleet's thousand robots cost a scan each time)."""
+        with_robots=False: the counters alone (telemetry: a fleet's thousand robots cost a scan each time)."""
         t = self.tables
         brief = req is not None and req.robots_only
         mono = time.monotonic_ns()
@@ -460,29 +460,49 @@ class DataPlane:
         )
         if not brief:
             st.counters.update(self.counters())
-        if not robots:
+        if not with_robots:
             return st
         if req is not None and req.robot_ids:  # (the usual read: a few robots; no scan of all ids)
             known = len(t.robot_entity)
             robots = sorted({r for r in req.robot_ids if 0 <= r < known and t.robot_entity[r] != NO_ROW})
         else:
             robots = np.flatnonzero(t.robot_entity != NO_ROW).tolist()
-        for robot in robots:
-            e = int(t.robot_entity[robot])
-            n = int(self.robot_joints[robot])
+        if not robots:
+            return st
+        # (the registers gathered for all the robots at once: a fleet's thousand robots, one at a time
+        # through numpy scalars, took 23 ms a read)
+        stop = self.pipeline.reg_stop
+        stopped_merged = {e for e, members in self.merged.items() if stop[members].any()}  # (stopped()'s)
+        rows = np.asarray(robots, np.int64)
+        ents = t.robot_entity[rows].astype(np.int64)
+        columns = zip(
+            robots,
+            ents.tolist(),
+            self.robot_joints[rows].tolist(),
+            t.reg_next_time[ents].tolist(),
+            (t.status_pos[rows] / SCALE).tolist(),
+            (t.status_vel[rows] / SCALE).tolist(),
+            t.status_ns[rows].tolist(),
+            t.reg_dropped_ns[ents].tolist(),
+            t.reg_stalled[ents].tolist(),
+            t.reg_dropped_why[ents].tolist(),
+            stop[rows].tolist(),
+            strict=True,
+        )
+        for robot, e, n, next_ns, pos, vel, status_ns, dropped_ns, stalled, why, stopped in columns:
             tp = t.current_tp(robot)
             st.robots.add(
                 robot_id=robot,
                 entity=e,
                 tp_id=-1 if tp is None else tp,
-                next_time_ns=int(t.reg_next_time[e]),
-                position=(t.status_pos[robot, :n] / SCALE).tolist(),
-                velocity=(t.status_vel[robot, :n] / SCALE).tolist(),
-                status_ns=int(t.status_ns[robot]),
-                dropped_ns=int(t.reg_dropped_ns[e]),
-                stalled=bool(t.reg_stalled[e]),
-                dropped_why=_DROP_WHY.get(int(t.reg_dropped_why[e]), ""),
-                stopped=self.stopped(robot),
+                next_time_ns=next_ns,
+                position=pos[:n],
+                velocity=vel[:n],
+                status_ns=status_ns,
+                dropped_ns=dropped_ns,
+                stalled=bool(stalled),
+                dropped_why=_DROP_WHY.get(why, ""),
+                stopped=bool(stopped) or e in stopped_merged,
             )
         return st
 

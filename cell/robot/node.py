@@ -25,6 +25,7 @@ from cell.timer import realtime_offset
 from cell.v1 import robot_pb2
 
 ANNOUNCE_S = 2.0
+ANNOUNCE_SLICE = 32  # robots announced at once (services/robots.py spreads the rest over ANNOUNCE_S)
 Publish = Callable[[str, object], None]
 WAKE_HZ = 50  # how often a group ticking in C wakes its Python (besides stops, resumes and clients)
 STILL_RAD_S = 1e-3  # a stopped robot stands still once every joint is slower than this
