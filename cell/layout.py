@@ -32,13 +32,21 @@ class Process:
         if group is None:
             return cls(name, services, [], 0, 0)
         bus = (group.bus_pub, group.bus_sub) if group.bus_pub else None
-        return cls(name, services, list(group.cpus), group.rt_priority, group.nice, bus)
+        # a real-time group's priority is for its native loops (the robots' tick, the data plane's
+        # packet path), which hand the rest of their process to the normal policy: a process of the
+        # group without one (the Responsive Link's hub alone, in the "each" layout) runs as the rest
+        # would, at the group's nice and CPUs, never all its Python at the tick's priority
+        rt = group.rt_priority if NATIVE_LOOPS & set(services) else 0
+        return cls(name, services, list(group.cpus), rt, group.nice, bus)
 
     def config_for(self, config: CellConfig) -> CellConfig:
         """The config this process's services run with (its bus endpoints, if they differ)."""
         if self.bus is None:
             return config
         return replace(config, bus=replace(config.bus, pub=self.bus[0], sub=self.bus[1]))
+
+
+NATIVE_LOOPS = {"robots", "dataplane"}  # the services whose per-tick loop runs in C at real-time priority
 
 
 def _group_of(config: CellConfig) -> dict[str, ProcessGroup]:

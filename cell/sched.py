@@ -246,13 +246,15 @@ RT_THREADS: set[int] = set()
 RT_NICE = -10  # what the rest of a real-time process runs at, after hand_over()
 
 
-def hand_over(tid: int, nice: int = RT_NICE) -> list[str]:
+def hand_over(tid: int, nice: int = RT_NICE, rest_priority: int = 0) -> list[str]:
     """Keep this process's real-time priority for thread `tid` (a native loop: cell/robot/tick.c,
     cell/dataplane/native.c) alone, and move every other thread (Python's, ZeroMQ's) to the normal
     policy at `nice`: nothing per bus message or per client runs at real-time priority, and nothing
     but the native loop can spend the CPU's real-time budget (RT throttling holds every real-time
     thread of a CPU once they used it up).  Threads started later inherit the normal policy.  Return
-    what could not be done, in words (a process that was not real-time: nothing to hand over)."""
+    what could not be done, in words (a process that was not real-time: nothing to hand over).
+    rest_priority > 0: the other threads go to SCHED_FIFO at that priority instead, under the native
+    loops (a process that must still tick something in Python at real-time priority)."""
     if tid <= 0 or not (realtime() or RT_THREADS):
         return []
     problems: list[str] = []
@@ -261,10 +263,17 @@ def hand_over(tid: int, nice: int = RT_NICE) -> list[str]:
         if t in RT_THREADS:
             continue
         try:
-            os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
+            if rest_priority > 0:
+                os.sched_setscheduler(t, os.SCHED_FIFO, os.sched_param(rest_priority))
+            else:
+                os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
             os.setpriority(os.PRIO_PROCESS, t, nice)
         except OSError as exc:
-            problems.append(f"thread {t}: normal policy refused ({exc.strerror})")
+            problems.append(
+                f"thread {t}: SCHED_FIFO {rest_priority} refused ({exc.strerror})"
+                if rest_priority > 0
+                else f"thread {t}: normal policy refused ({exc.strerror})"
+            )
     return problems
 
 

@@ -513,7 +513,9 @@ class Campaign:
             since = e.t_ns
         notes, ok = [], True
         for r in self.robots:
-            before = self.obs.between(r, since - 500_000_000, since)  # (its speed when the stop came)
+            # its speed when the stop came: as last heard (the bus killed, the last truth before the
+            # order may be a second old: a robot braking from speed is no robot at rest)
+            before = self.obs.between(r, since - 500_000_000, since) or self.obs.between(r, 0, since)
             bound = self.estop_bound_ms(r, before[-1][1] if before else 0.0)
             samples = self.obs.between(r, since, t_resume)
             moving = [t for t, qd, _, _ in samples if qd >= REST]

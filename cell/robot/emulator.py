@@ -41,6 +41,9 @@ if TYPE_CHECKING:
 log = logging.getLogger("cell.robots")
 _COMMAND = int(Kind.COMMAND)
 MAX_READS = 256  # recvmsg calls per socket per tick
+# SCHED_FIFO of a robots process's Python while it ticks a group in Python (a UR daemon's): under the
+# native loops (the robots' 70, the data plane's 60), over every normal process
+PYTHON_TICK_PRIORITY = 50
 CATCH_UP_WINDOWED_S = 0.25  # a tick catching up more than this steps window by window (see tick())
 
 
@@ -226,9 +229,10 @@ class RobotGroup:
         self.wake_every = 1
         self.read_every = 0  # (0: wake_every's)
         self.busy: Callable[[], bool] | None = None
-        # whether run_native leaves the process's real-time priority to its C thread alone (False while
-        # the process still ticks a group in Python: a daemon's, whose tick must stay real-time)
-        self.hand_over = True
+        # what run_native leaves the process's other threads at once its C thread runs (sched.hand_over):
+        # 0, the normal policy; while the process still ticks a group in Python (a daemon's, whose tick
+        # must stay real-time), SCHED_FIFO PYTHON_TICK_PRIORITY, under every native loop
+        self.rest_priority = 0
         self.native: NativeTick | None = None
         self.tick_why = ""  # why this group ticks in Python though its robots asked for C
         if (tick or first.tick) == "native":
@@ -513,7 +517,7 @@ class RobotGroup:
         loop.add_reader(fd, woken.set)
         try:
             tid = native.start(self.origin_ns, fd, self._wake_every())
-            for problem in sched.hand_over(tid) if self.hand_over else ():
+            for problem in sched.hand_over(tid, rest_priority=self.rest_priority):
                 log.warning("%s", problem)
             if tid in sched.RT_THREADS:
                 meter.watch_thread(tid)

@@ -40,6 +40,10 @@ def test_single_and_each() -> None:
     assert each["robots"] == (["robots"], 70)  # a service in a group keeps its scheduling
     assert each["controller"] == (["controller"], 0)
     assert list(each) == RUN
+    # ... but for its real-time priority, which is its native loop's: the hub alone runs no such loop
+    hub = load_config(overrides={"services": {"layout": "each", "run": ["bus", "robots", "rlink"]}})
+    rlink = {p.name: p for p in processes(hub)}["rlink"]
+    assert (rlink.rt_priority, rlink.cpus, rlink.nice) == (0, [1], -10)
 
 
 def test_a_group_with_nothing_to_run_starts_no_process() -> None:
