@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import gc
 import os
-import threading
 
 _POLICY = {
     getattr(os, "SCHED_OTHER", 0): "normal",
@@ -170,26 +169,19 @@ class HeldThreads:
         }
 
 
-SPIN_NICE = -20  # what Spin polls at (cell/snp/wire.h's too)
-
-
 class Spin:
     """A loop that polls without sleeping (the SnP cycles: a wake from epoll costs as much as the
     work) must never do so at a real-time priority: the kernel's RT throttling would stop it, and
     every other real-time thread of its CPU, for the rest of the second.  It sleeps at its real-time
-    priority (a wake comes at once) and polls at the normal policy at nice SPIN_NICE (polling is
-    never real-time time, and a host's busy process at nice 0 gets 1 % of the CPU beside it):
-    poll() before a poll without sleeping, sleep() before a sleep or when done.  Two system calls a
-    cycle; nothing at all in a thread that is not real-time."""
+    priority (a wake comes at once) and polls at the normal policy and its nice value (polling is
+    never real-time time): poll() before a poll without sleeping, sleep() before a sleep or when
+    done.  Two system calls a cycle; nothing at all in a thread that is not real-time."""
 
     def __init__(self) -> None:
         rt = realtime()
         self.policy = _policy() if rt else 0  # (the one to go back to)
         self.prio = os.sched_getparam(0).sched_priority if rt else 0
         self.low = False
-        if rt:  # (it polls at the normal policy's highest weight: a host's busy process gets 1 % beside it)
-            with contextlib.suppress(OSError):
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), SPIN_NICE)
 
     def poll(self) -> None:
         if self.prio and not self.low:

@@ -13,7 +13,6 @@
 #include <sched.h>
 #include <stdint.h>
 #include <string.h>
-#include <sys/resource.h>
 #include <sys/socket.h>
 #include <time.h>
 
@@ -37,10 +36,8 @@ typedef struct {
  * A SCHED_FIFO thread that polls through its cycles runs into the kernel's RT throttling (95% of
  * each second of a CPU at most: the rest of that second none of the CPU's real-time threads run,
  * 20-50 ms of silence for every module at once).  The loops sleep at their real-time priority, so
- * that a wake-up comes at once, and poll at the normal policy (at nice SPIN_NICE), so that polling
+ * that a wake-up comes at once, and poll at the normal policy (their nice value), so that polling
  * is never real-time time.  Two system calls a cycle (~1-2 us). */
-#define SPIN_NICE (-20) /* cell.sched.SPIN_NICE */
-
 typedef struct {
     int prio; /* the real-time priority the thread came with (0: none, nothing to do) */
     int policy;
@@ -51,13 +48,7 @@ static inline void spin_init(spin_t *s) {
     struct sched_param sp;
     int policy = sched_getscheduler(0) & 0xff; /* (without SCHED_RESET_ON_FORK) */
     s->prio = 0, s->low = 0, s->policy = policy;
-    if ((policy == SCHED_FIFO || policy == SCHED_RR) && sched_getparam(0, &sp) == 0) {
-        s->prio = sp.sched_priority;
-        /* polling at the normal policy, at its highest weight: a host's busy process at nice 0 gets
-         * 1 % of the CPU beside the poll, not the 10 % it got beside nice -10 (6 % of the six-joint
-         * cycle's exchanges missed under `cell bench snp --hog`) */
-        setpriority(PRIO_PROCESS, 0, SPIN_NICE);
-    }
+    if ((policy == SCHED_FIFO || policy == SCHED_RR) && sched_getparam(0, &sp) == 0) s->prio = sp.sched_priority;
 }
 
 static inline void spin_poll(spin_t *s) { /* about to poll without sleeping */
