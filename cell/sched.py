@@ -269,18 +269,17 @@ def hand_over(tid: int, nice: int = RT_NICE, rest_priority: int = 0) -> list[str
     return problems
 
 
-def step_down(nice: int = RT_NICE) -> list[str]:
-    """Every thread of this real-time process to the normal policy at `nice` (a control plane whose
-    packet path runs in the kernel: the XDP program's): nothing per bus message at real-time
-    priority.  What could not be done, in words; a process that is not real-time stays as it is."""
+def lower_to(priority: int) -> list[str]:
+    """Every thread of this real-time process to SCHED_FIFO `priority` (a control plane whose packet
+    path runs in the kernel, the XDP program's: under every native loop, over every normal process).
+    What could not be done, in words; a process that is not real-time stays as it is."""
     if not realtime():
         return []
     try:
         for t in _threads():
-            os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
-            os.setpriority(os.PRIO_PROCESS, t, nice)
+            os.sched_setscheduler(t, os.SCHED_FIFO, os.sched_param(priority))
     except OSError as exc:
-        return [f"normal policy refused ({exc.strerror})"]
+        return [f"SCHED_FIFO {priority} refused ({exc.strerror})"]
     return []
 
 

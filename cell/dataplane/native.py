@@ -25,7 +25,7 @@ import numpy as np
 from cell import meter, sched
 from cell.config import CellConfig, parse_host_port
 from cell.dataplane.approx import entries_per_sign
-from cell.dataplane.plane import MappedDataPlane, Pins
+from cell.dataplane.plane import CONTROL_PRIORITY, MappedDataPlane, Pins
 from cell.dataplane.xdp.program import (
     COUNTERS,
     ENTITY,
@@ -251,9 +251,8 @@ class NativeDataPlane(MappedDataPlane):
         self.server.start()
         try:
             tid = int(self.server.state.tid)
-            # the control plane at the normal policy (nice -10): nothing per bus message at real-time
-            # priority (the controller asks every 0.1 s and needs one answer in 0.5 s)
-            for problem in sched.hand_over(tid):
+            # the control plane under the packet path, over every normal process (CONTROL_PRIORITY)
+            for problem in sched.hand_over(tid, rest_priority=CONTROL_PRIORITY):
                 log.warning("%s", problem)
             if tid in sched.RT_THREADS:
                 meter.watch_thread(tid)
