@@ -457,9 +457,10 @@ class Bus:
                         asyncio.get_running_loop().call_later(DROP_NEWS_S, self._say_dropped, n, False)
 
     def _say_dropped(self, n: int, quiet: bool) -> None:
-        """Log a dropped bus connection: a warning unless nothing was lost by it and it is expected
-        (a clean stop, where the bus goes as everything goes)."""
-        quiet = (quiet or aio.shutting_down()) and n == 0
+        """Log a dropped bus connection: a warning unless it is expected: nothing was lost by it, or
+        the process is stopping (a clean stop, where the bus goes as everything goes: a controller's
+        watch on the data plane has a read out most of the time, and it goes too)."""
+        quiet = (quiet and n == 0) or aio.shutting_down()
         log.log(
             logging.DEBUG if quiet else logging.WARNING,
             "%s: the bus connection dropped (%d waiting request(s) answered)",
