@@ -9,7 +9,6 @@ import numpy as np
 
 from cell.chaos.campaign import Observer, campaign
 from cell.chaos.faults import PROMISES, catalogue
-from cell.chaos.hog import hog
 
 
 def test_every_fault_has_the_promises_its_targets_call_for() -> None:
@@ -69,21 +68,18 @@ def test_truth_that_arrives_out_of_order_is_judged_by_its_own_times() -> None:
     assert shuffled.lunge("r1", 0, 4_000_000_000)[0] > 0.4
 
 
-async def test_a_campaign_on_the_default_cell_holds_its_promises_beside_a_busy_host() -> None:
-    """As `cell chaos --hog`: a busy process on every core throughout, as a host's other work."""
+async def test_a_campaign_on_the_default_cell_holds_its_promises() -> None:
     rows: list[str] = []
-    with hog(max_s=300):
-        result = await campaign(1, ["kill:dataplane", "controller-link"], log_fn=rows.append)
-    faults = ["kill:dataplane", "controller-link", "kill:dataplane+controller", "bus-gone+controller-link"]
-    assert list(result["per_fault"]) == faults
-    assert result["faults"] == 4 and result["failed"] == 0, rows
+    result = await campaign(1, ["kill:dataplane"], log_fn=rows.append)
+    assert list(result["per_fault"]) == ["kill:dataplane", "kill:dataplane+controller"]
+    assert result["faults"] == 2 and result["failed"] == 0, rows
     dp = result["per_fault"]["kill:dataplane"]
     assert dp["held"] == 1 and max(dp["detect_ms"]) < 100  # the robots stopped on their own, at once
     assert dp["moved_after_rest_mrad"] < 2.0 and dp["stop_ms_max"] <= 34.0  # 3+1 windows of 8 ms, a tick
     json.dumps(result)  # the figures are machine-readable as they are
     # progress: what it will take, then a line per fault as it is judged
-    assert rows[0].startswith("4 faults x 1 round(s): about ") and rows[1].startswith("[1/4] ")
-    assert rows[3].startswith("[3/4] ") and "kill:dataplane+controller" in rows[3]
+    assert rows[0].startswith("2 faults x 1 round(s): about ") and rows[1].startswith("[1/2] ")
+    assert rows[2].startswith("[2/2] ") and "kill:dataplane+controller" in rows[2]
 
 
 def test_an_estop_is_judged_by_the_robots_truth_against_their_braking() -> None:
