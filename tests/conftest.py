@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -20,6 +21,12 @@ from cell.ports import free_block, free_port
 from cell.rlink.cellnet import PORTS
 
 ROOT = Path(__file__).resolve().parent.parent
+
+# every process a test starts inherits this mark, so one that outlives its module is found even
+# after its parent died (an orphan of a killed cell is reparented away from the test run)
+SESSION_MARK = f"CELL_TEST_SESSION={os.getpid()}"
+os.environ["CELL_TEST_SESSION"] = str(os.getpid())
+LEFT_RUNNING_S = 10.0  # what a module's last cell may still take to stop after its test
 
 
 def cell_overrides(robots: list[dict] | None = None, **services: object) -> dict:
@@ -194,3 +201,47 @@ async def start_cell(tmp_path: Path) -> AsyncIterator:
             except subprocess.TimeoutExpired:
                 cell.proc.kill()
                 cell.proc.communicate()
+
+
+def _marked_processes() -> dict[int, str]:
+    """The live processes this test run started (they carry SESSION_MARK): pid -> command line;
+    multiprocessing's resource tracker, which lives as long as the run, left out."""
+    mark = SESSION_MARK.encode() + b"\0"
+    found: dict[int, str] = {}
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/environ", "rb") as f:
+                if mark not in f.read() + b"\0":
+                    continue
+            with open(f"/proc/{entry.name}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+            with open(f"/proc/{entry.name}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    continue  # a zombie: it runs nothing; its parent reaps it
+        except OSError:
+            continue  # (gone meanwhile, or a kernel thread)
+        if "resource_tracker" not in cmd:
+            found[int(entry.name)] = cmd
+    return found
+
+
+@pytest.fixture(autouse=True, scope="module")
+def nothing_left_running() -> Iterator[None]:
+    """No process a module's tests started outlives the module: a leftover cell's real-time threads
+    would take the next module's cores (the SnP cycle tests measured the one before's teardown).
+    The leftovers are killed and named, and the module's last test errs."""
+    before = set(_marked_processes())
+    yield
+    deadline = time.monotonic() + LEFT_RUNNING_S
+    while (left := {p: c for p, c in _marked_processes().items() if p not in before}) and (
+        time.monotonic() < deadline
+    ):
+        time.sleep(0.1)  # (polling a process table: nothing to wait on)
+    for pid in left:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    assert not left, "processes left running by this module's tests: " + "; ".join(
+        f"{p}: {c[:160]}" for p, c in sorted(left.items())
+    )

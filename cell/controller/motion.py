@@ -158,6 +158,7 @@ class Armed:
 
     planned: list[tuple[Track, Segment, int]]  # (track, its motion, its hold TP)
     period_ns: int  # the holds step together every period from their registers' time
+    at_ns: int  # that time (data-plane clock): the holds' steps are at_ns + k period
     armed_ns: int = field(default_factory=time.monotonic_ns)
 
 

@@ -105,47 +105,28 @@ async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.
             track.loads += 1
             track.loaded = [hold_id, *seg.ids[: ctl.episode]]
             track.segment, track.q_hold = None, seg.motion.sample(np.array([0.0]))[0][0]  # held there
-    return Armed(out, period)
-
-
-def _between_steps(ctl: Engine, armed: Armed, late_ns: int) -> int:
-    """When to send fire()'s update (data-plane clock) so that it lands mid-way between the last
-    robot's hold step of one window (late_ns after the lead's) and the lead's next: every robot then
-    leaves its hold at the same step (else one would leave a whole window before the other)."""
-    period, base = armed.period_ns, armed.planned[0][1].start_ns  # (the lead's hold steps: base + k period)
-    way = ctl.link.rtt_ns // 2
-    now = ctl.link.now() + way
-    k = -(-(now - base - late_ns) // period)
-    land = base + k * period + late_ns + (period - late_ns) // 2
-    if land - now < way:  # (too close to call: the next window's gap)
-        land += period
-    return land - way
+    return Armed(out, period, at)
 
 
 async def fire(ctl: Engine, armed: Armed, wait: bool = True) -> MotionResult:
-    """Start armed motions: one update sets every hold's switch entry; they leave their holds at
-    the same hold step, the first after the update is in."""
+    """Start armed motions: one update sets every hold's switch entry and moves every hold's next
+    step to the same step of the lead's hold grid, the cell's lead (lead_s) ahead, as any start.
+    Wherever in a window the update lands, every robot leaves at that step (one on a grid of its own
+    at its first status after it, as armed), not one a window before another.  An update that lands
+    after that step is counted late (late_starts): the robots then leave at their next statuses."""
 
+    window = armed.period_ns
+    earliest = ctl.link.now() + ctl.lead_ns + 2 * ctl.link.rtt_ns
+    k = max(0, -(-(earliest - armed.at_ns) // window))
+    at = armed.at_ns + k * window
     switches = [(track.robot, hold_id, seg.ids[0]) for track, seg, hold_id in armed.planned]
-    # (equal: the holds step at the same times; a robot on a grid of its own leaves at its first
-    # status after that, as armed: its segment was put that much after the lead's)
-    offsets = [seg.start_ns - armed.planned[0][1].start_ns for _, seg, _ in armed.planned]
-    if max(offsets) > 0:  # the switch must not land between the lead's step and another's
-        await ctl.link.sleep_until(_between_steps(ctl, armed, max(offsets)))
+    registers = [(track.robot, hold_id, at) for track, _, hold_id in armed.planned]
     async with ctl.loading:
-        await ctl.dp.update(switches=switches)
-    st = await ctl.link.state([r for track, _, _ in armed.planned for r in track.robots])
-    regs = {r.robot_id: r for r in st.robots}
-    starts = []
-    for track, seg, hold_id in armed.planned:
-        r = regs.get(track.robot)
-        if r is None or r.tp_id == hold_id or r.tp_id not in seg.ids[:-1]:
-            # still on the hold (it leaves at its next step), or our read raced the step
-            start = r.next_time_ns if r is not None and r.tp_id == hold_id else st.now_ns
-        else:
-            start = r.next_time_ns - round(seg.sections.t_end[seg.ids.index(r.tp_id)] * 1e9)
-        starts.append(start)
-    starts = [s + off for s, off in zip(starts, offsets, strict=True)]
+        reply = await ctl.dp.update(switches=switches, registers=registers)
+    starts = [seg.start_ns + k * window for _, seg, _ in armed.planned]
+    if reply.now_ns > at:
+        ctl.late_starts += 1
+        starts = [max(s, reply.now_ns) for s in starts]
     start = min(starts)
     for (track, seg, _), own in zip(armed.planned, starts, strict=True):
         seg.start_ns = own

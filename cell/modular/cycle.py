@@ -389,7 +389,9 @@ class VdcModule(JointModule):
         if not self.b_fresh:
             p = self.b
             self.b = B(p.qd_r + p.qdd_r * dt, p.qdd_r, p.v_r + p.a_r * dt, p.a_r, p.v)
-        force = self.module.net_force(self.b, dt).f_star
+        # (the inertial parameters adapt on a B that came only: a guessed one's V_r runs on while its
+        # V stands, and a stall's error is no measure of them)
+        force = self.module.net_force(self.b, dt if self.b_fresh else 0.0).f_star
         if self.cd == "neighbour" and self.joint < self.plant.arm.dof - 1:  # (the tip's G is 0)
             self.f_star = force
             cy.stage, cy.qid = Stage.CD, self._cycle_no(cy)  # (G_PASS's query id: the cycle's number)

@@ -24,6 +24,7 @@ from cell.bus import Bus, BusTimeout, RemoteError, ServiceDown
 from cell.config import CellConfig, RobotConfig
 from cell.counters import Counters
 from cell.rlink.client import EventClient
+from cell.robot.node import WAKE_HZ
 from cell.robot.pose import to_adept
 from cell.skills.protocol import (
     MOTIONS,
@@ -62,6 +63,7 @@ class ServerCounters(Counters):
     errors: int = 0
     connections: int = 0
     held_pose_acks: int = 0  # acks that reported the broadcast pose (no bus round trip)
+    asked_pose_acks: int = 0  # acks whose pose was asked of the controller (none held fresh enough)
     refused_connections: int = 0  # over max_connections(_per_peer)
     slow_lines: int = 0  # connections closed for a message not ended within line_timeout_s
     paused_reads: int = 0  # times a connection had max_pending unanswered and was not read
@@ -92,11 +94,13 @@ class RobotSkills:
         self.per_peer: dict[str, int] = defaultdict(int)
         # the robot's last state broadcast (truth/<robot>): the tool pose a non-motion ack reports
         self.held: robot_pb2.RobotTruth | None = None  # (converted only when an ack needs it)
-        self.held_max_age_ns = int(2e9 / robot.truth_hz) if robot.truth_hz else 0
+        # fresh: at most two of its deliveries old (a group ticking in C publishes its truths in bursts,
+        # each WAKE_HZ wake-up, not one every truth period)
+        self.held_max_age_ns = int(2e9 / min(robot.truth_hz, WAKE_HZ)) if robot.truth_hz else 0
 
     async def here(self) -> tuple[float, ...]:
-        """The tool pose now: the held one if it is fresh (not older than two broadcast periods: at most
-        one period plus the bus), else the controller's, asked over the bus."""
+        """The tool pose now: the held one if it is fresh (not older than two of its deliveries: at most
+        one plus the bus), else the controller's, asked over the bus."""
         m = self.held
         if m is not None and time.monotonic_ns() - m.t_ns <= self.held_max_age_ns:
             self.counters.held_pose_acks += 1
@@ -105,6 +109,7 @@ class RobotSkills:
             mujoco.mju_quat2Mat(rot, np.array(p[3:7]))
             return to_adept(np.array(p[:3]), rot.reshape(3, 3))
         name = self.robot.name
+        self.counters.asked_pose_acks += 1
         return tuple(
             (await self._ask("pose", controller_pb2.RobotRequest(robot=name), controller_pb2.PoseReply)).pose
         )

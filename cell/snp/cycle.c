@@ -301,8 +301,9 @@ static void second(module_t *m, int64_t now) { /* [C, D] */
         v->b[0] += v->b[1] * dt;
         for (int k = 0; k < 6; k++) v->b[2 + k] += v->b[8 + k] * dt;
     }
-    double f[6];
-    snp_vdc_net_force(v, (double)m->period_ns / 1e9, f);
+    double f[6]; /* (the inertial parameters adapt on a B that came only: a guessed one's V_r runs on
+                  * while its V stands, and a stall's error is no measure of them) */
+    snp_vdc_net_force(v, v->fresh ? (double)m->period_ns / 1e9 : 0.0, f);
     if (v->neighbour && !v->tip) { /* G of this cycle from its outboard neighbour: wait for it */
         memcpy(v->f_star, f, sizeof f);
         m->stage = STAGE_CD, m->qid = cycle_no(m);
