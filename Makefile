@@ -43,6 +43,7 @@ test: $(STAMP_TEST)
 		apt-get install -y -q --no-install-recommends chromium >/dev/null 2>&1; }; }; } || true
 	@$(MAKE) -s bpf-if-possible
 	$(BIN)/ruff check cell services tests examples
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest
 
 # throughput and timing checks that need a quiet machine (tests/perf, and the SnP cycle's end-to-end
@@ -71,6 +72,7 @@ bpf-if-possible:
 lint: $(STAMP_TEST)
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/ruff format --check cell services tests examples
+	$(BIN)/lint-imports
 
 # regenerate the committed protobuf code (tests/bus/test_proto.py fails when it is stale)
 proto: $(STAMP_TEST)

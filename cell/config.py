@@ -86,8 +86,8 @@ def _joint_vector(v: list[float]) -> str | None:
 
 
 def _robot_model(v: str) -> str | None:
-    """A name in the robot-model registry (cell.robot.models: no MuJoCo imported to check it)."""
-    from cell.robot.models import MODELS
+    """A name in the robot-model registry (cell.models: no MuJoCo imported to check it)."""
+    from cell.models import MODELS
 
     return None if v in MODELS else f"unknown robot model {v!r} (known: {', '.join(sorted(MODELS))})"
 
@@ -474,7 +474,7 @@ class RlinkConfig:
 class RobotConfig:
     id: int = _check(lambda v: None if 1 <= v <= 0xFFFF else f"must be 1..65535 (got {v})")
     name: str = _check(_name)
-    model: str = _check(_robot_model)  # a name of cell.robot.models' registry
+    model: str = _check(_robot_model)  # a name of cell.models' registry
     # "ur": not emulated here: a UR controller at ur_address, brought in by the daemon (cell.ur.remote)
     backend: Literal["mujoco", "kinematic", "ur"]
     skill_port: int = _check(_port)
@@ -504,7 +504,7 @@ class RobotConfig:
         return self.ur_address or f"127.0.{1 + self.id // 256}.{self.id % 256}"
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
-        from cell.robot.models import get
+        from cell.models import get
 
         if len(self.q0) != (joints := get(self.model).joints):
             raise err("q0", f"must list {joints} joint values in rad, one per joint of a {self.model}")

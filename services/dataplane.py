@@ -13,7 +13,8 @@ import asyncio
 import contextlib
 
 from cell.bus import BusError
-from cell.dataplane.plane import BACKENDS, DataPlane, PlaneNode
+from cell.dataplane.backends import BACKENDS
+from cell.dataplane.plane import DataPlane, PlaneNode
 from cell.dataplane.tables import NO_ROW
 from cell.native import NativeUnavailable
 from cell.service import ServiceContext, ServiceSpec

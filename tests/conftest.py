@@ -124,8 +124,9 @@ def snp_master_on_loopback(n_ports: int, native: bool = False) -> Iterator[tuple
     threads of the GIL.)"""
     import threading
 
+    from cell.snp.link import open_udp
     from cell.snp.modular import CycleConfig, Master
-    from cell.snp.runner import open_udp, serve_master
+    from cell.snp.runner import serve_master
 
     ports = []
     for _ in range(n_ports):

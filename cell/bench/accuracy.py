@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from cell.bench.cellproc import robots_heard, running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
+from cell.cellproc import robots_heard, running_cell
 from cell.controller.controller import Controller, MotionStopped, Segment
 from cell.ports import free_port as _port
 from cell.robot.datagram import SCALE

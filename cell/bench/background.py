@@ -42,15 +42,14 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from cell.bench.frames import FRAMES, HEADERS
 from cell.bench.registry import Bench, Figures, log, register
 
 ROBOT_ADDR, SWITCH_R, SWITCH_G, GEN_ADDR = "10.77.1.2", "10.77.1.1", "10.77.2.1", "10.77.2.2"
 STATUS_PORT, FORWARD_PORT, SINK_PORT = 50000, 7000, 7001
-HEADERS = 46  # UDP + IPv4 + Ethernet + FCS: frame bytes a datagram's payload does not count
 ROBOT_SHARE = 0.10  # of the load offered to the egress port (the paper's mix)
 LOADS = (0.2, 0.6, 1.0, 1.4, 1.8)  # x the port's rate
 QUICK_LOADS = (0.2, 1.0, 1.8)
-FRAMES = (64, 1280)
 BURST_BYTES = 2560  # the generator's smallest send: two 1,280-byte frames, forty 64-byte ones
 COMMAND_BPS_PER_ROBOT = 6 * 500 * (24 + HEADERS) * 8  # six 24-byte commands at 500 Hz: 1.68 Mbit/s
 

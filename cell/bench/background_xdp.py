@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from cell.bench import pin
-from cell.bench.background import FRAMES, HEADERS
+from cell.bench.frames import FRAMES, HEADERS
 
 RATES_KPPS = (0, 50, 100, 200)  # ordinary frames offered, thousands a second
 QUICK_RATES_KPPS = (0, 50, 100)

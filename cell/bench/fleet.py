@@ -37,10 +37,10 @@ from typing import Any
 import numpy as np
 
 from cell import sched
-from cell.bench.cellproc import robots_heard, running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bench.robots import late_statuses
 from cell.bus import Bus, BusTimeout
+from cell.cellproc import robots_heard, running_cell
 from cell.config import load_config
 from cell.controller.controller import Controller, MotionStopped, Segment
 from cell.controller.motion import NotAtGoal

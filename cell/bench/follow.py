@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from cell.bench.cellproc import running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
+from cell.cellproc import running_cell
 from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.robot.arm import arm_model

@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 
 from cell import aio, sched
-from cell.bench.cellproc import default_robots, robots_heard, running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
+from cell.cellproc import default_robots, robots_heard, running_cell
 from cell.config import load_config
 from cell.launcher import fetch_status
 from cell.ports import free_port

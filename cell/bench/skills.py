@@ -44,9 +44,9 @@ from typing import Any
 
 import numpy as np
 
-from cell.bench.cellproc import running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
+from cell.cellproc import running_cell
 from cell.ports import free_port
 from cell.skills.client import RobotClient, SetSpeed
 from cell.v1 import controller_pb2

@@ -72,8 +72,9 @@ def _master(
     network (cell.snp.routed), its two links come on it after its port goes out, and it explores
     the network through them for its modules' paths."""
     from cell.modular.cycle import VdcMaster
+    from cell.snp.link import open_udp
     from cell.snp.modular import Master
-    from cell.snp.runner import open_udp, serve_master
+    from cell.snp.runner import serve_master
 
     _place(0)
     sock = open_udp(timestamps=True)
@@ -208,7 +209,8 @@ def trial(
     master_port = port_q.get(timeout=30)
     net = None
     if routed:
-        from cell.snp.routed import module_port, start_routers
+        from cell.snp.link import module_port
+        from cell.snp.routed import start_routers
 
         until = time.monotonic() + seconds + 40
         net = start_routers(ctx, master_port, ports, until, ROUTER_PRIORITY, ROUTER_CPUS, native=native)
@@ -706,7 +708,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _main(args: argparse.Namespace) -> Figures:
-    from cell.chaos.hog import hog
+    from cell.hog import hog
 
     native = {"auto": None, "c": True, "python": False}[args.cycle]
     management_ns = None if args.management_us is None else int(args.management_us * 1000)

@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 
 from cell.bench.accuracy import Q0, tool_errors_mm
-from cell.bench.cellproc import robots_heard, running_cell
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
+from cell.cellproc import robots_heard, running_cell
 from cell.controller.controller import Controller
 from cell.launcher import fetch_status
 from cell.ports import free_port

@@ -33,15 +33,15 @@ from typing import Any
 
 import numpy as np
 
-from cell.bench.cellproc import default_robots, ok_services, running_cell
+from cell import models
 from cell.bus import Bus, BusError
 from cell.bus.delay import DelayLink
+from cell.cellproc import default_robots, ok_services, running_cell
 from cell.chaos.faults import PROMISES, Action, Fault, catalogue
 from cell.config import CellConfig, load_config
 from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.rlink.client import EventClient
-from cell.robot import models
 from cell.skills.client import ConnectionLost, MoveJoints, RobotClient, SetSpeed, SkillError
 from cell.v1 import health_pb2, robot_pb2
 

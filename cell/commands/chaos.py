@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
             return 2
     import contextlib
 
-    from cell.chaos.hog import hog
+    from cell.hog import hog
 
     with hog() if args.hog else contextlib.nullcontext():
         result = asyncio.run(

@@ -37,7 +37,7 @@ from cell.controller.motion import (
     Switch,
     Track,
 )
-from cell.controller.plan import ChainedMotion, Motion, PlanError, SampledMotion, plan_joint, plan_linear
+from cell.controller.plan import ChainedMotion, PlanError, SampledMotion, plan_joint, plan_linear
 from cell.controller.schedule import (
     STOP_JERK,
     SWITCH_MARGIN_NS,
@@ -48,6 +48,7 @@ from cell.controller.schedule import (
 )
 from cell.controller.tps import cut
 from cell.trajectory.model import TimedMotion, Trajectory, TrajectoryError
+from cell.trajectory.motion import Motion
 
 AT_START_RAD = 1e-3  # a robot this close to a trajectory's first point follows it from where it stands
 MAX_NAMED = 64  # trajectories kept under names (follow_named) at once

@@ -36,7 +36,7 @@ from cell.controller.motion import (
     Switch,
     Track,
 )
-from cell.controller.plan import Motion, PlanError
+from cell.controller.plan import PlanError
 from cell.controller.robots import RobotBook
 from cell.controller.schedule import (
     TIDY_NS,
@@ -56,6 +56,7 @@ from cell.controller.stopping import Stopping
 from cell.controller.tps import cut
 from cell.dataplane.client import DataplaneClient
 from cell.dataplane.tables import TPBatch
+from cell.trajectory.motion import Motion
 from cell.v1 import dataplane_pb2
 
 log = logging.getLogger("cell.controller")

@@ -10,8 +10,9 @@ from enum import Enum, StrEnum
 
 import numpy as np
 
-from cell.controller.plan import Motion, MotionLimits
+from cell.controller.plan import MotionLimits
 from cell.controller.tps import Sections
+from cell.trajectory.motion import Motion
 
 _ID_SPACE = 2**32  # TP ids (uint32) wrap around
 # a holding TP's section: how often it steps onto itself.  A motion's final hold once took its last

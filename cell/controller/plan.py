@@ -18,6 +18,7 @@ from ruckig import ControlInterface, InputParameter, Result, Ruckig, RuckigError
 
 from cell.robot.kinematics import Kinematics, Unreachable
 from cell.robot.pose import rotation_error, slerp
+from cell.trajectory.motion import Motion
 
 
 class PlanError(ValueError):
@@ -52,17 +53,6 @@ class MotionLimits:
             tool_j_max=self.tool_j_max * s**3,
             tool_w_max=self.tool_w_max * s,
         )
-
-
-class Motion:
-    """A planned motion: positions and velocities at any time from its start (0) to `duration`."""
-
-    duration: float
-    dof: int
-    knots: np.ndarray | None = None  # times its sections should end at (a trajectory's points), if any
-
-    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
 
 
 class RuckigMotion(Motion):

@@ -1,4 +1,4 @@
-"""What the controller knows of its robots: their models (cell.robot.models: limits, kinematics), the
+"""What the controller knows of its robots: their models (cell.models: limits, kinematics), the
 closed loop their TPs drive, and their tick grids (from their announcements)."""
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cell.controller.loop import LoopModel, LoopTrace
-from cell.controller.plan import Motion
+from cell.trajectory.motion import Motion
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from cell import sched
+from cell import models, sched
 from cell.bus import RpcFault
 from cell.config import CellConfig, parse_host_port
 from cell.dataplane.egress import ROBOT, EgressPort
@@ -45,7 +45,7 @@ from cell.dataplane.tables import NO_ROW, Refused, Tables
 from cell.dataplane.wire import decode_keys, decode_tps
 from cell.rlink.leaf import LeafNode
 from cell.rlink.station import Order
-from cell.robot import datagram, models, udp
+from cell.robot import datagram, udp
 from cell.robot.datagram import SCALE, Kind
 from cell.timer import realtime_offset
 from cell.v1 import dataplane_pb2
@@ -771,20 +771,6 @@ class Pins:
         if not r["pinned"]:
             return None
         return socket.inet_ntoa(int(r["pin_addr"]).to_bytes(4, "little")), socket.ntohs(int(r["pin_port"]))
-
-
-def _native() -> type[DataPlane]:
-    from cell.dataplane.native import NativeDataPlane  # (builds its C on first use)
-
-    return NativeDataPlane
-
-
-# [dataplane] backend -> the DataPlane class that runs it (each looked up when it is used)
-BACKENDS: dict[str, Callable[[], type[DataPlane]]] = {
-    "numpy": lambda: DataPlane,
-    "native": _native,
-    "xdp": lambda: XdpDataPlane,
-}
 
 
 class PlaneNode(LeafNode):

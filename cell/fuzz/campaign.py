@@ -33,12 +33,12 @@ import numpy as np
 import zmq
 import zmq.asyncio
 
-from cell.bench.cellproc import default_robots, running_cell
 from cell.bus import Bus, BusTimeout, RemoteError
 from cell.bus.envelope import Encoder, EnvelopeError
 from cell.bus.envelope import Kind as BusKind
 from cell.bus.envelope import decode as decode_frame
 from cell.bus.node import secure_client
+from cell.cellproc import default_robots, running_cell
 from cell.config import CellConfig, ConfigError, config_from_text, load_config, parse_host_port
 from cell.fuzz import strategies
 from cell.fuzz import ur as ur_fuzz

@@ -2,7 +2,7 @@
 in a chain, torque-driven, in MuJoCo; and each module's rigid body as Virtual Decomposition Control
 sees it.
 
-The modules take the UR5e's lengths and masses (cell.robot.models.ur: UR's published DH parameters
+The modules take the UR5e's lengths and masses (cell.models.ur: UR's published DH parameters
 and link masses; 850 mm reach, 5 kg payload): module i is the UR5e's link i with its motor and
 electronics lumped in, its joint a torque motor with the UR5e joint size's reflected rotor inertia
 (armature), viscous friction and torque limit.  MuJoCo simulates it at TIMESTEP; the controllers
@@ -21,7 +21,7 @@ from functools import cache
 import mujoco
 import numpy as np
 
-from cell.robot.models.mjcf import mjcf
+from cell.models.mjcf import mjcf
 
 MODEL = "ur5e"  # the registry model whose geometry and masses the modules take
 TIMESTEP = 0.00025  # s: MuJoCo's step (four a 1 ms control cycle)
@@ -121,7 +121,7 @@ def bodies(model: mujoco.MjModel) -> tuple[Body, ...]:
 
 @cache
 def _xml() -> str:
-    import cell.robot.models.ur  # noqa: F401  (registers the UR models)
+    import cell.models.ur  # noqa: F401  (registers the UR models)
 
     return mjcf(MODEL, torque=True, timestep=TIMESTEP)
 

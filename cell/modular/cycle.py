@@ -20,6 +20,7 @@ FDIR); this module gives it VDC's messages and arithmetic instead of the toy's s
 
 from __future__ import annotations
 
+import ctypes
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -46,6 +47,7 @@ from cell.modular.wire import (
     outboard_ids,
 )
 from cell.snp.modular import ArmModel, Cycle, CycleConfig, JointModule, Master, Node, Stage
+from cell.snp.native import PlantState, VdcModuleState, VdcState, c_addr
 from cell.snp.packet import Header, Pid
 
 SETTLE_NS = 500_000_000  # from every joint in the cycle to the reference's start: the clocks settle
@@ -76,6 +78,14 @@ class Plant:
         cap = int(capacity_s * 1e9 / CYCLE_NS)
         self.rec_t = np.zeros(cap, dtype=np.int64)
         self.rec_tool = np.zeros((cap, 3))
+
+    def module_for(self, slot: Any) -> VdcModule:
+        """The module a runner's slot plugs in to drive its joint of this arm (cell.snp.runner.Slot:
+        its ids, cd, adapt and believed)."""
+        return VdcModule(
+            slot.module_id, slot.plugged_to, self, port=1, cd=slot.cd,
+            gains=Gains(adapt=slot.adapt), believed=slot.believed,
+        )  # fmt: skip
 
     @property
     def records(self) -> list[tuple[int, np.ndarray]]:
@@ -194,6 +204,34 @@ class VdcModel(ArmModel):
     def tau_r(self, j: int) -> float:
         """Joint j's D: its body's F*_r plus what the bodies out to the tip need of it."""
         return float(AXIS @ (self.f_star[j] + self.outboard(j)))
+
+    # --- its C state (cell.snp.native.NativeMaster runs VDC's master in C through these) ---------
+
+    def to_c(self) -> VdcState:
+        """VDC's master in C: each body's items, place and force (the reference: reference_to_c)."""
+        v = VdcState(ref_dt_ns=CYCLE_NS, settle_ns=SETTLE_NS, lam=self.gains.lam)
+        for j, body in enumerate(self.bodies):
+            _, b_ids, f_ids, _ = ids_of(j)
+            v.b_ids[j][:], v.f_ids[j][:], v.g_ids[j][:] = b_ids, f_ids, outboard_ids(j)
+            v.body_pos[j][:], v.body_rot[j][:] = body.pos, body.rot.ravel()
+            v.rot[j][:] = self.rot(j).ravel()
+            v.f_star[j][:] = self.f_star[j]
+            v.key_cycle[j] = -1
+        return v
+
+    def reference_to_c(self, v: VdcState) -> list[np.ndarray]:
+        """The reference it follows, and its start, into C; the arrays C reads (where numpy holds
+        them: the caller keeps them alive)."""
+        ref = self.reference
+        arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in (ref.q, ref.qd, ref.qdd)]
+        v.n_ref, v.start_ns = len(ref.t), self.start_ns or 0
+        v.q_ref, v.qd_ref, v.qdd_ref = (a.ctypes.data for a in arrays)
+        return arrays
+
+    def from_c(self, v: VdcState) -> None:
+        """What C did: when the reference started, and the forces."""
+        self.start_ns = v.start_ns or None
+        self.f_star = [np.array(f) for f in v.f_star]
 
 
 class VdcMaster(Master):
@@ -420,6 +458,38 @@ class VdcModule(JointModule):
                 self.braked += 1
         elif self.b is not None and self.module is not None:
             self.plant.drive(self.joint, self.module.torque(self.tau_r, self.b, self.qd))
+
+    # --- its C state (cell.snp.native.NativeCycles runs its cycle in C through these) ----------
+
+    def to_c(self, plant: PlantState, inboard: Any = None) -> VdcModuleState:
+        """Its VDC in C: its body's inertia and gains, its item ids, the plant, who computes its
+        [C, D] (a neighbour: where its inboard one is)."""
+        module, g = self.dynamics(), self.gains
+        body = module.body  # (its inertia as the module believes it)
+        mass = body.inertia[5, 5]
+        _, b_ids, f_ids, _ = ids_of(self.joint)
+        v = VdcModuleState(
+            joint=self.joint, joint_gain=g.joint * body.torque_max / 150.0, armature=body.armature,
+            damping=body.damping, torque_max=body.torque_max, plant=ctypes.pointer(plant),
+        )  # fmt: skip
+        v.b_ids[:], v.f_ids[:], v.inertia[:] = b_ids, f_ids, body.inertia.ravel()
+        v.local, v.g_ids[:], v.g[:], v.f_star[:] = self.local, outboard_ids(self.joint), self.g, self.f_star
+        v.adapt, v.theta[:], v.bound[:], v.mass0 = g.adapt, module.theta, module.bound, module.mass0
+        v.neighbour, v.tip, v.q = self.cd == "neighbour", self.joint == self.plant.arm.dof - 1, self.q
+        v.body_pos[:], v.body_rot[:] = body.pos, body.rot.ravel()
+        if inboard is not None and self.joint > 0:
+            (v.nb_ip, v.nb_port), v.g_in_ids[:] = c_addr(inboard), outboard_ids(self.joint - 1)
+        v.k[:] = (*[g.body_rot * mass] * 3, *[g.body_lin * mass] * 3)
+        if self.b is not None:
+            v.b[:], v.have_b = b_values(self.b), 1
+        v.tau_r, v.safe_after, v.missed_run, v.braked = self.tau_r, SAFE_AFTER, self.missed_run, self.braked
+        return v
+
+    def from_c(self, v: VdcModuleState) -> None:
+        """Its VDC's state as C has it: its cycle goes on in Python from there."""
+        self.missed_run, self.braked, self.tau_r, self.q, self.qd = v.missed_run, v.braked, v.tau_r, v.q, v.qd
+        self.b = b_of(v.b) if v.have_b else None
+        self.g, self.f_star, self.module.theta = np.array(v.g), np.array(v.f_star), np.array(v.theta)
 
 
 def tool_error_mm(

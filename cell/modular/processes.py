@@ -36,9 +36,10 @@ from cell.modular.reference import CYCLE_NS, Reference
 from cell.modular.robot import ArmRobot, Ended, ModuleState, Motion
 from cell.ports import free_ports
 from cell.sched import place
+from cell.snp.link import module_port, open_udp
 from cell.snp.modular import CycleConfig, NodeState
-from cell.snp.routed import Routers, explore_routers, module_port, start_routers
-from cell.snp.runner import chain, open_udp
+from cell.snp.routed import Routers, explore_routers, start_routers
+from cell.snp.runner import chain
 
 REPORT_NS = 20_000_000  # each process's report to the service
 LOST_NS_MIN = 50_000_000  # a module silent this long is lost, at the least (cell.snp.modular.Master's)

@@ -30,10 +30,10 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from cell.models import get as get_model
 from cell.recorder import base_position, each
 from cell.recorder.cdr import Template
 from cell.recorder.events import EVENT_TOPICS, Event, Events
-from cell.robot.models import get as get_model
 from cell.service import ServiceContext
 from cell.snp.state import realtime_offset_ns
 from cell.v1 import controller_pb2, robot_pb2

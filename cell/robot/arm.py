@@ -1,4 +1,4 @@
-"""An arm model loaded into MuJoCo (from the registry, cell.robot.models): joint limits and forward
+"""An arm model loaded into MuJoCo (from the registry, cell.models): joint limits and forward
 kinematics.
 
 The model is the one source of truth for the arm: the MuJoCo emulator
@@ -13,8 +13,8 @@ from functools import cache
 import mujoco
 import numpy as np
 
-from cell.robot.models import RobotModel, get
-from cell.robot.models.mjcf import mjcf
+from cell.models import RobotModel, get
+from cell.models.mjcf import mjcf
 
 
 @dataclass(frozen=True)

@@ -28,17 +28,31 @@ ANNOUNCE_S = 2.0
 ANNOUNCE_SLICE = 32  # robots announced at once (services/robots.py spreads the rest over ANNOUNCE_S)
 Publish = Callable[[str, object], None]
 WAKE_HZ = 50  # how often a group ticking in C wakes its Python (besides stops, resumes and clients)
+_PROVIDED_BY = {"ur": "cell.ur.remote"}  # the group backends this package knows of, and their home
 STILL_RAD_S = 1e-3  # a stopped robot stands still once every joint is slower than this
 
 
-def build_groups(config: CellConfig, publish: Publish | None = None) -> list[RobotGroup]:
-    """This host's robots, one group per (backend, model, rates, socket), and one per robot of backend "ur"
-    (its daemon, cell.ur.remote, telling the bus through `publish`); they bind this host's address
-    (in a cell of one host: the data plane's)."""
-    from cell.ur.remote import Daemon
+GroupFactory = Callable[[RobotConfig, CellConfig, str, Publish | None], RobotGroup]
+# backends whose robot is a group of its own, provided by a package above this one ("ur": a real UR
+# controller driven by cell.ur.remote's daemon, registered there), as python-can's BACKENDS
+GROUP_BACKENDS: dict[str, GroupFactory] = {}
 
+
+def register_group_backend(name: str, factory: GroupFactory) -> None:
+    """Robots of backend `name` are each a group of their own, built by factory(robot, config, the
+    address they bind, publish)."""
+    GROUP_BACKENDS[name] = factory
+
+
+def build_groups(config: CellConfig, publish: Publish | None = None) -> list[RobotGroup]:
+    """This host's robots, one group per (backend, model, rates, socket), and one per robot of a
+    group backend (GROUP_BACKENDS: "ur", its daemon telling the bus through `publish`); they bind
+    this host's address (in a cell of one host: the data plane's)."""
     by_key: dict[tuple, list[RobotConfig]] = defaultdict(list)
     for r in config.local_robots():
+        if r.backend in _PROVIDED_BY and r.backend not in GROUP_BACKENDS:
+            raise ValueError(f"robot {r.name}: backend {r.backend!r} is not registered "
+                             f"(import {_PROVIDED_BY[r.backend]} first)")  # fmt: skip
         by_key[
             (
                 r.backend,
@@ -47,7 +61,7 @@ def build_groups(config: CellConfig, publish: Publish | None = None) -> list[Rob
                 r.command_hz,
                 r.socket,
                 r.tick,
-                r.id if r.backend == "ur" else 0,
+                r.id if r.backend in GROUP_BACKENDS else 0,
             )
         ].append(r)
     here = config.here()
@@ -55,13 +69,13 @@ def build_groups(config: CellConfig, publish: Publish | None = None) -> list[Rob
     if config.dataplane.backend == "xdp" and here is None:  # the switch's namespace is not ours: its veth
         host = config.dataplane.xdp.host_addr
     groups: list[RobotGroup] = []
-    dataplane = config.dataplane.listen
     try:
         for robots in by_key.values():
-            if robots[0].backend == "ur":
-                groups.append(Daemon(robots[0], dataplane, host, config.ur, publish))
+            factory = GROUP_BACKENDS.get(robots[0].backend)
+            if factory is not None:
+                groups.append(factory(robots[0], config, host, publish))
             else:
-                groups.append(RobotGroup(robots, dataplane, host=host))
+                groups.append(RobotGroup(robots, config.dataplane.listen, host=host))
     except BaseException:
         for g in groups:
             g.close()

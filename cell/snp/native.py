@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from cell.native import NativeUnavailable, build
+from cell.snp.link import RoutedLink
 from cell.snp.modular import _IDS, JointModule, Master, Node, NodeState
 from cell.snp.modular import ModuleState as ModuleLife  # (ModuleState here: the C mirror)
 
@@ -47,7 +48,7 @@ class PlantState(ctypes.Structure):
 
 
 class RouteState(ctypes.Structure):
-    """route_t of wire.h: a node's link over the two routers in C (cell.snp.routed.RoutedLink)."""
+    """route_t of wire.h: a node's link over the two routers in C (cell.snp.link.RoutedLink)."""
 
     _fields_ = [
         ("on", _I),
@@ -61,8 +62,6 @@ class RouteState(ctypes.Structure):
     def take(self, link: Any) -> None:
         """The Python link's state into C (a RoutedLink: on; else off): before each C run, as
         `give` after it, so that each side goes on from what the other did."""
-        from cell.snp.routed import RoutedLink
-
         if not isinstance(link, RoutedLink):
             self.on = 0
             return
@@ -233,7 +232,7 @@ def _ip(host: str) -> int:
     return int.from_bytes(socket.inet_aton(host), "big")
 
 
-def _c_addr(addr: Any) -> tuple[int, int]:
+def c_addr(addr: Any) -> tuple[int, int]:
     """A node's address as the C side holds it: (ip, port), or over routers (0, its return address)."""
     return (0, addr[0]) if len(addr) == 1 else (_ip(addr[0]), addr[1])
 
@@ -321,35 +320,6 @@ class NativeCycles:
             rec_tool=plant.rec_tool.ctypes.data, kp=plant.brake[0], kd=plant.brake[1],
         )  # fmt: skip
 
-    def _vdc_module(self, m: Any, inboard: Any = None) -> VdcModuleState:
-        """A VdcModule's VDC in C: its body's inertia and gains, its item ids, the plant, who
-        computes its [C, D] (a neighbour: where its inboard one is)."""
-        from cell.modular.cycle import SAFE_AFTER
-        from cell.modular.wire import b_values, ids_of, outboard_ids
-
-        if self.plant is None:
-            raise ValueError("a VDC module's cycle in C needs its plant (drive(plant) first)")
-        module, g = m.dynamics(), m.gains
-        body = module.body  # (its inertia as the module believes it)
-        mass = body.inertia[5, 5]
-        _, b_ids, f_ids, _ = ids_of(m.joint)
-        v = VdcModuleState(
-            joint=m.joint, joint_gain=g.joint * body.torque_max / 150.0, armature=body.armature,
-            damping=body.damping, torque_max=body.torque_max, plant=ctypes.pointer(self.plant),
-        )  # fmt: skip
-        v.b_ids[:], v.f_ids[:], v.inertia[:] = b_ids, f_ids, body.inertia.ravel()
-        v.local, v.g_ids[:], v.g[:], v.f_star[:] = m.local, outboard_ids(m.joint), m.g, m.f_star
-        v.adapt, v.theta[:], v.bound[:], v.mass0 = g.adapt, module.theta, module.bound, module.mass0
-        v.neighbour, v.tip, v.q = m.cd == "neighbour", m.joint == m.plant.arm.dof - 1, m.q
-        v.body_pos[:], v.body_rot[:] = body.pos, body.rot.ravel()
-        if inboard is not None and m.joint > 0:
-            (v.nb_ip, v.nb_port), v.g_in_ids[:] = _c_addr(inboard), outboard_ids(m.joint - 1)
-        v.k[:] = (*[g.body_rot * mass] * 3, *[g.body_lin * mass] * 3)
-        if m.b is not None:
-            v.b[:], v.have_b = b_values(m.b), 1
-        v.tau_r, v.safe_after, v.missed_run, v.braked = m.tau_r, SAFE_AFTER, m.missed_run, m.braked
-        return v
-
     def attach(self, fd: int, osc: Any, loss: float = 0.0) -> ModuleState:
         st = ModuleState(fd=fd, osc_origin=osc.origin, osc_offset=osc.offset_ns, osc_drift=osc.drift)
         st.loss = loss
@@ -376,16 +346,17 @@ class NativeCycles:
             return
         c = m.config
         assert c is not None
-        st.master_ip, st.master_port = _c_addr(master)
+        st.master_ip, st.master_port = c_addr(master)
         st.source_process = m.source_process
         st.ids[:] = _IDS[m.joint]
         st.period_ns, st.phase_ns, st.budget_ns = c.period_ns, c.phase_ns, c.budget_ns
         st.pos, st.vel, st.v_des, st.torque = m.pos, m.vel, m.v_des, m.torque
         st.next_start, st.qid, st.stage = m.next_start, m._qid, 0
-        from cell.modular.cycle import VdcModule
-
-        if isinstance(m, VdcModule):
-            self._vdc[st.fd] = v = self._vdc_module(m, inboard)
+        to_c = getattr(m, "to_c", None)  # (a module that runs more in C: the modular arm's VDC)
+        if to_c is not None:
+            if self.plant is None:
+                raise ValueError("a VDC module's cycle in C needs its plant (drive(plant) first)")
+            self._vdc[st.fd] = v = to_c(self.plant, inboard)
             st.vdc = ctypes.pointer(v)
         st.active = 1
 
@@ -394,13 +365,8 @@ class NativeCycles:
         if not st.active:
             return
         v = self._vdc.get(st.fd)
-        if v is not None:  # (a VdcModule's state as C has it: its cycle goes on in Python from there)
-            from cell.modular.wire import b_of
-
-            vm: Any = m
-            vm.missed_run, vm.braked, vm.tau_r, vm.q, vm.qd = v.missed_run, v.braked, v.tau_r, v.q, v.qd
-            vm.b = b_of(v.b) if v.have_b else None
-            vm.g, vm.f_star, vm.module.theta = np.array(v.g), np.array(v.f_star), np.array(v.theta)
+        if v is not None:  # (its VDC's state as C has it: its cycle goes on in Python from there)
+            m.from_c(v)  # type: ignore[attr-defined]  (the module that gave to_c)
         n = st.n_records
         if n:  # (one copy of the block: element by element, 256 records of six modules took 4 ms)
             recs = np.frombuffer(st.records, np.int64, 4 * n).reshape(n, 4)
@@ -459,45 +425,26 @@ class NativeMaster:
         self.buf = ctypes.create_string_buffer(2048)
         self.handed = Handed()
         self._node: list[Node | None] = [None] * MAX_JOINTS  # the node each joint entry holds
-        from cell.modular.cycle import VdcModel
-
-        self.vdc = self._vdc_state(master.model) if isinstance(master.model, VdcModel) else None
+        # a model that runs more in C (the modular arm's VDC: its to_c) gives its state, and the
+        # reference it follows, whose arrays C reads where numpy holds them (kept alive here)
+        to_c = getattr(master.model, "to_c", None)
+        self.vdc: VdcState | None = to_c() if to_c is not None else None
         if self.vdc is not None:
+            self._reference()
             self.st.vdc = ctypes.pointer(self.vdc)
 
-    def _vdc_state(self, model: Any) -> VdcState:
-        """VDC's master in C, from a cell.modular.cycle.VdcModel."""
-        from cell.modular.cycle import SETTLE_NS
-        from cell.modular.reference import CYCLE_NS
-        from cell.modular.wire import ids_of, outboard_ids
-
-        v = VdcState(ref_dt_ns=CYCLE_NS, settle_ns=SETTLE_NS, lam=model.gains.lam)
-        self._reference(v, model)
-        for j, body in enumerate(model.bodies):
-            _, b_ids, f_ids, _ = ids_of(j)
-            v.b_ids[j][:], v.f_ids[j][:], v.g_ids[j][:] = b_ids, f_ids, outboard_ids(j)
-            v.body_pos[j][:], v.body_rot[j][:] = body.pos, body.rot.ravel()
-            v.rot[j][:] = model.rot(j).ravel()
-            v.f_star[j][:] = model.f_star[j]
-            v.key_cycle[j] = -1
-        return v
-
-    def _reference(self, v: VdcState, model: Any) -> None:
-        """The reference the VdcModel follows, and its start, into C (its arrays kept alive here:
-        C reads them where numpy holds them)."""
-        ref = model.reference
-        self._ref = [np.ascontiguousarray(a, dtype=np.float64) for a in (ref.q, ref.qd, ref.qdd)]
-        v.n_ref, v.start_ns = len(ref.t), model.start_ns or 0
-        v.q_ref, v.qd_ref, v.qdd_ref = (a.ctypes.data for a in self._ref)
-        self._generation = model.generation
+    def _reference(self) -> None:
+        model = self.master.model
+        self._ref = model.reference_to_c(self.vdc)  # type: ignore[attr-defined]
+        self._generation = model.generation  # type: ignore[attr-defined]
 
     def push(self) -> None:
         """The Python master's view into C: which modules are included (a newly included one with
         its address, items, slot and model entries), what Python heard from them, and the
         reference a VDC master was given to follow since."""
         ms, model, st = self.master, self.master.model, self.st
-        if self.vdc is not None and model.generation != self._generation:
-            self._reference(self.vdc, model)
+        if self.vdc is not None and model.generation != self._generation:  # type: ignore[attr-defined]
+            self._reference()
         held: list[Node | None] = [None] * MAX_JOINTS
         for n in ms.nodes.values():
             if n.state in _NODE_STATE and 0 <= n.joint < MAX_JOINTS:
@@ -508,7 +455,7 @@ class NativeMaster:
                 e.state = NODE_OFF
                 continue
             if self._node[j] is not n or e.state not in (NODE_INCLUDED, NODE_SUSPECT):  # new to C
-                (e.ip, e.port), e.phase_ns, e.ids[:] = _c_addr(n.addr), n.phase_ns, _IDS[j]
+                (e.ip, e.port), e.phase_ns, e.ids[:] = c_addr(n.addr), n.phase_ns, _IDS[j]
                 e.pos, e.vel, e.force, e.at = model.pos[j], model.vel[j], model.force[j], model.at[j]
             e.state, e.heard_ns, e.silent_cycles = _NODE_STATE[n.state], n.heard_ns, n.silent_cycles
             e.checked, e.a_cycle = n.checked, ms._a_cycle.get(j, -1)
@@ -518,9 +465,8 @@ class NativeMaster:
         """What C did into the Python master: its model entries and FDIR state, its counters
         (the master's, its handler's and the link's), its events (a lost module excluded)."""
         ms, model, st = self.master, self.master.model, self.st
-        if self.vdc is not None:  # (what the Python model reports: when the reference started)
-            model.start_ns = self.vdc.start_ns or None
-            model.f_star = [np.array(f) for f in self.vdc.f_star]
+        if self.vdc is not None:
+            model.from_c(self.vdc)  # type: ignore[attr-defined]  (the model that gave to_c)
         for j, n in enumerate(self._node):
             if n is None:
                 continue

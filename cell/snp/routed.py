@@ -33,86 +33,10 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from cell.snp.packet import crc8
-from cell.snp.runner import Link
-from cell.snp.spacewire import FAILOVER_CYCLES, End, Explorer, Packet, Router, RouterInfo
-
-MASTER_PORT = 1  # on both routers: the master's link; module k's is port 2 + k
-ROUTERS = 2
-FAILOVER_SENDS = 2 * FAILOVER_CYCLES  # a module's sends with nothing heard (two queries a cycle)
-
-
-def module_port(k: int) -> int:
-    return 2 + k
-
-
-def with_return(data: bytes, ret: bytes) -> bytes:
-    """The packet with `ret` as its return address (it had none), its header CRC made anew."""
-    if len(data) < 12 or data[2]:
-        return data
-    head = data[:2] + bytes([len(ret)]) + ret + data[3:11]
-    return head + bytes([crc8(head)]) + data[12:]
-
-
-def without_return(data: bytes) -> tuple[bytes, tuple[int, ...]] | None:
-    """(the packet with no return address, its header CRC made anew; the return address), or None
-    for a datagram whose header does not hold together (dropped by the caller, counted)."""
-    if len(data) < 12:
-        return None
-    n = data[2]
-    end = 3 + n + 8
-    if len(data) < end + 2 or crc8(data[:end]) != data[end]:
-        return None
-    head = data[:2] + b"\x00" + data[3 + n : end]
-    return head + bytes([crc8(head)]) + data[end + 1 :], tuple(data[3 : 3 + n])
-
-
-class RoutedLink(Link):
-    """A node's link over the two routers (see the module docstring).  `links`: the router ports
-    this node's socket is joined to, R1's then R2's; `own`: its return address; `failover_after`:
-    sends in a row with nothing heard before it moves to the other router (None: it answers each
-    peer through the router it last heard that peer on, as the master does)."""
-
-    def __init__(
-        self,
-        sock: socket.socket,
-        links: tuple[Any, Any],
-        own: tuple[int, ...],
-        *,
-        failover_after: int | None = None,
-        **kw: Any,
-    ) -> None:
-        super().__init__(sock, **kw)
-        self.links, self.own, self.failover_after = links, bytes(own), failover_after
-        self.active = 0  # the router it sends through (a module's)
-        self.via: dict[tuple[int, ...], Any] = {}  # a peer's router, as last heard (the master's)
-        self.unheard = 0  # sends since it last heard anything
-        self.failovers = 0
-        self.refused = 0  # datagrams from outside its links, or whose header does not hold
-
-    def received(self, data: bytes, addr: Any) -> tuple[bytes, Any] | None:
-        if addr not in self.links:
-            self.refused += 1
-            return None
-        got = without_return(data)
-        if got is None or not got[1]:
-            self.refused += 1
-            return None
-        packet, ret = got
-        self.via[ret] = addr
-        self.unheard = 0
-        return packet, ret
-
-    def _wire(self, data: bytes, addr: Any) -> tuple[bytes, Any]:
-        if self.failover_after is not None:
-            self.unheard += 1
-            if self.unheard > self.failover_after:
-                self.active, self.unheard = 1 - self.active, 0
-                self.failovers += 1
-            router = self.links[self.active]
-        else:
-            router = self.via.get(addr, self.links[0])
-        return bytes(addr) + with_return(data, self.own), router
+from cell.snp.link import (
+    ROUTERS,
+)
+from cell.snp.spacewire import End, Explorer, Packet, Router, RouterInfo
 
 
 @dataclass(frozen=True)

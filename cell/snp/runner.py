@@ -14,15 +14,14 @@ import contextlib
 import random
 import select
 import socket
-import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from cell.sched import Spin
+from cell.snp.link import FAILOVER_SENDS, Link, RoutedLink, drain, open_udp
 from cell.snp.modular import JointModule, Master, ModuleState, Stage
-from cell.snp.packet import stamp_departure, time_packet
 from cell.snp.tsp import Oscillator, on_grid
 from cell.timer import Alarm, realtime_offset
 
@@ -37,31 +36,9 @@ SPIN_NS = 150_000  # keep polling this long after the last datagram
 LEAD_NS = 60_000  # wake this long before a cycle start or deadline
 
 
-SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
-SO_TIMESTAMPING = getattr(socket, "SO_TIMESTAMPING", 37)
-# SO_TIMESTAMPING flags (linux/net_tstamp.h): software stamps reported, the packet not looped back
-# with its stamp, each stamp numbered, and no receive stamps added to what the socket reads (the
-# loops read SO_TIMESTAMPNS's only); each send asks for its transmit stamp on its own (_TX_STAMP),
-# so that only the SnP-TSP time packets leave one in the error queue
-_TS_TX_SOFTWARE, _TS_SOFTWARE, _TS_OPT_ID = 1 << 1, 1 << 4, 1 << 7
-_TS_OPT_TSONLY, _TS_OPT_RX_FILTER = 1 << 11, 1 << 17
-_TX_STAMP = [(socket.SOL_SOCKET, SO_TIMESTAMPING, struct.pack("=I", _TS_TX_SOFTWARE))]
-_CMSG = socket.CMSG_SPACE(16)
 # the precision a master with two-step stamping offers its subscribers (one-step: BeaconSchedule's
 # 50 us); measured here: the modules' clocks within 0.85 us of the master's over 60 s
 TWO_STEP_PRECISION_NS = 2_000
-_TIMESPEC = struct.Struct("=qq")
-
-
-def open_udp(host: str = "127.0.0.1", port: int = 0, *, timestamps: bool = False) -> socket.socket:
-    """timestamps: the kernel stamps each datagram as it comes in (drain gives it)."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-    if timestamps:
-        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-    sock.bind((host, port))
-    sock.setblocking(False)
-    return sock
 
 
 def chain(n: int, rng: random.Random, transport: str = "snp", module0: int = 101, **extra: Any) -> list[dict]:
@@ -81,115 +58,6 @@ def chain(n: int, rng: random.Random, transport: str = "snp", module0: int = 101
     ]
 
 
-def _kernel_tx_stamps(sock: socket.socket) -> bool:
-    """Make sock report the kernel's transmit stamps of the sends that ask (False: it cannot)."""
-    flags = _TS_SOFTWARE | _TS_OPT_ID | _TS_OPT_TSONLY | _TS_OPT_RX_FILTER
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPING, flags)
-    except OSError:  # (no RX filter before Linux 6.12: what it receives would carry a second stamp)
-        return False
-    return True
-
-
-class Link:
-    """Sends on a socket, dropping `loss` of the datagrams (seeded): a lossy SpaceWire link, and the
-    time-stamping port of its node.
-
-    clock: the sender's clock, from the host's (CLOCK_MONOTONIC ns -> the sender's ns).  An SnP-TSP
-    time packet gets the time it leaves written in (packet.stamp_departure: one-step stamping),
-    read just before the send call.  Where the kernel stamps what the socket sends, the link also
-    asks for that stamp and tells `departed(datagram, t)` when the packet really left, and sends
-    what it returns (packet.follow_up's: two-step stamping, as PTP's two-step clocks).  clock None:
-    sent as dated when made."""
-
-    def __init__(
-        self,
-        sock: socket.socket,
-        loss: float = 0.0,
-        seed: int = 0,
-        clock: Callable[[int], int] | None = None,
-        departed: Callable[[bytes, int], list[bytes]] | None = None,
-    ) -> None:
-        self.sock, self.loss, self.rng = sock, loss, random.Random(seed)
-        self.clock, self.departed = clock, departed
-        self.sent = self.lost = self.errors = 0
-        self.two_step = clock is not None and departed is not None and _kernel_tx_stamps(sock)
-        self.unstamped = 0  # two-step sends whose stamp the kernel did not give at once
-        self.mono_of_real = realtime_offset()
-
-    def send(self, data: bytes, addr: Any) -> None:
-        if addr is None:
-            return
-        if self.loss and self.rng.random() < self.loss:
-            self.lost += 1
-            return
-        timed = self.clock is not None and time_packet(data) is not None
-        if timed:
-            data = stamp_departure(data, self.clock(time.monotonic_ns()))  # type: ignore[misc]
-        two_step = timed and self.two_step
-        wire, to = self._wire(data, addr)
-        try:
-            if two_step:
-                self.sock.sendmsg([wire], _TX_STAMP, 0, to)
-            else:
-                self.sock.sendto(wire, to)
-            self.sent += 1
-        except OSError:  # a full buffer, or the peer's port gone (ICMP): the link loses it
-            self.errors += 1
-            return
-        if two_step:
-            t = self._tx_stamp()
-            if t is None:
-                self.unstamped += 1
-                return
-            for more in self.departed(data, self.clock(t)):  # type: ignore[misc]
-                self.send(more, addr)
-
-    def _wire(self, data: bytes, addr: Any) -> tuple[bytes, Any]:
-        """What goes on the wire for data to addr, and where (a routed link: cell.snp.routed)."""
-        return data, addr
-
-    def received(self, data: bytes, addr: Any) -> tuple[bytes, Any] | None:
-        """A datagram off the wire as its node takes it: (packet, sender); None: dropped."""
-        return data, addr
-
-    def _tx_stamp(self) -> int | None:
-        """The kernel's transmit stamp of the last send (CLOCK_MONOTONIC ns), from the error queue
-        (emptied: a stamp left there would keep a polling loop awake); None if none is there.  On
-        loopback the stamp is queued within the send call; a NIC may give it later (then lost)."""
-        t = None
-        while True:
-            try:
-                _data, anc, _flags, _addr = self.sock.recvmsg(0, 256, socket.MSG_ERRQUEUE)
-            except OSError:  # (BlockingIOError: no more)
-                return t
-            for level, kind, raw in anc:
-                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPING and len(raw) >= 16:
-                    sec, nsec = _TIMESPEC.unpack_from(raw)
-                    t = sec * 1_000_000_000 + nsec - self.mono_of_real
-
-
-def drain(sock: socket.socket, mono_of_real: int = 0, limit: int = 256) -> list[tuple[bytes, Any, int]]:
-    """(data, sender, arrival on CLOCK_MONOTONIC) for each datagram waiting: on a socket opened
-    with timestamps, the kernel's stamp (CLOCK_REALTIME) less mono_of_real, so that a busy loop
-    does not date what it reads late; else when it was read."""
-    out = []
-    for _ in range(limit):
-        try:
-            data, anc, _flags, addr = sock.recvmsg(2048, _CMSG)
-        except BlockingIOError:
-            break
-        except OSError:
-            continue
-        at = time.monotonic_ns()
-        for level, kind, raw in anc:
-            if kind == SO_TIMESTAMPNS and level == socket.SOL_SOCKET and len(raw) >= 16:
-                sec, nsec = _TIMESPEC.unpack_from(raw)
-                at = sec * 1_000_000_000 + nsec - mono_of_real
-        out.append((data, addr, at))
-    return out
-
-
 def _send_timers(master: Master, link: Link) -> None:
     """What the master's timers have due (probes, resends, FDIR), then its beacons, each sent as
     it is made, so that it leaves as it is dated."""
@@ -202,7 +70,7 @@ def _send_timers(master: Master, link: Link) -> None:
 def _master_link(master: Master, sock: socket.socket, loss: float, routes: Explored | None = None) -> Link:
     """The master's link: here the master's clock is the host's CLOCK_MONOTONIC (its datagrams'
     kernel stamps are taken as its times), so its time packets are stamped with the host's.
-    routes: the routed network it found (cell.snp.routed.RoutedLink over its two links)."""
+    routes: the routed network it found (cell.snp.link.RoutedLink over its two links)."""
     kw: dict[str, Any] = {
         "loss": loss,
         "seed": 1,
@@ -210,8 +78,6 @@ def _master_link(master: Master, sock: socket.socket, loss: float, routes: Explo
         "departed": master.departed,
     }
     if routes is not None:
-        from cell.snp.routed import RoutedLink
-
         link: Link = RoutedLink(sock, routes.links, routes.own, **kw)
     else:
         link = Link(sock, **kw)
@@ -366,19 +232,13 @@ class Slot:
         self, t0: int, now: int, loss: float, rmap_timeout_ns: int, rmap_retries: int, plant: Any = None
     ) -> None:
         """A new module, its oscillator (off the host's clock from t0), socket and link; with a plant
-        (cell.modular.cycle.Plant), a module of the modular arm driving its joint by VDC."""
+        (cell.modular.cycle.Plant), the module it makes for the slot: one of the modular arm, driving
+        its joint by VDC."""
         self.osc = Oscillator(self.offset_ns, self.drift_ppm, t0)
-        if plant is None:
-            # (port 1: its parent's downstream port)
-            self.module = JointModule(self.module_id, self.plugged_to, port=1)
-        else:
-            from cell.modular.cycle import VdcModule
-            from cell.modular.vdc import Gains
-
-            self.module = VdcModule(
-                self.module_id, self.plugged_to, plant, port=1, cd=self.cd,
-                gains=Gains(adapt=self.adapt), believed=self.believed,
-            )  # fmt: skip
+        # (port 1: its parent's downstream port)
+        self.module = (
+            JointModule(self.module_id, self.plugged_to, port=1) if plant is None else plant.module_for(self)
+        )
         self.module.use_transport(self.transport, rmap_timeout_ns, rmap_retries)
         self.sock = open_udp("127.0.0.1", self.port, timestamps=True)
         m = self.module
@@ -389,8 +249,6 @@ class Slot:
             "departed": m.departed,
         }
         if self.routes is not None:
-            from cell.snp.routed import FAILOVER_SENDS, RoutedLink
-
             self.link = RoutedLink(
                 self.sock, self.routes, (self.route_port,), failover_after=FAILOVER_SENDS, **kw
             )

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cell.controller.plan import Motion
+from cell.trajectory.motion import Motion
 
 MAX_POINTS = 1_000_000
 LIMIT_SLACK = 1.05  # a planner's points may graze a limit by rounding: 5 % over is refused

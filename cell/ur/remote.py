@@ -35,9 +35,10 @@ from enum import Enum
 
 import numpy as np
 
-from cell.config import RobotConfig, URConfig
+from cell.config import CellConfig, RobotConfig, URConfig
 from cell.counters import Counters
 from cell.robot.emulator import Lateness, RobotGroup
+from cell.robot.node import register_group_backend
 from cell.ur import primary
 from cell.ur.arm import RobotMode, RuntimeState, SafetyMode
 from cell.ur.client import Client, SetupRefused
@@ -474,3 +475,10 @@ class _Stream(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.on_lost(f"the controller closed the connection{f': {exc}' if exc else ''}")
+
+
+def _group(robot: RobotConfig, config: CellConfig, host: str, publish: Publish | None) -> Daemon:
+    return Daemon(robot, config.dataplane.listen, host, config.ur, publish)
+
+
+register_group_backend("ur", _group)  # (cell.robot.node builds a "ur" robot's group with it)

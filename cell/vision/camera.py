@@ -1,6 +1,6 @@
 """A simulated close-range industrial camera looking at a robot of the cell, rendered by MuJoCo.
 
-The robot's own model file (cell/robot/models) gets the calibration card on
+The robot's own model file (cell/models) gets the calibration card on
 its tool flange and a camera with a ring light; MuJoCo renders it off-screen
 (EGL where there is no display) at the robot's joint positions, and the
 thin-lens model (cell.vision.optics) blurs the sharp render by the card's
@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from cell.robot.models import get
-from cell.robot.models.mjcf import FLANGE_RGBA, mjcf
+from cell.models import get
+from cell.models.mjcf import FLANGE_RGBA, mjcf
 from cell.vision import optics
 from cell.vision.target import HEIGHT_MM, WIDTH_MM, target_image
 

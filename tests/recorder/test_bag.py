@@ -15,10 +15,10 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from ruamel.yaml import YAML  # rosbags' own YAML reader
 
+from cell.models import get as get_model
 from cell.recorder.bag import BagError, BagRobot, BagWriter, info
 from cell.recorder.cdr import Template
 from cell.recorder.events import Event
-from cell.robot.models import get as get_model
 from cell.trajectory.sources import load
 from cell.v1 import controller_pb2, robot_pb2
 from tests.conftest import cell_env

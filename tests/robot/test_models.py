@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from cell.config import ConfigError, load_config
+from cell.models import MODELS, get
 from cell.robot.arm import arm_model
-from cell.robot.models import MODELS, get
 
 UR_E = ("ur3e", "ur5e", "ur10e", "ur16e")
 

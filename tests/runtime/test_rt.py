@@ -176,7 +176,7 @@ async def test_a_busy_process_on_every_core_reaches_no_arm(start_cell) -> None:
     """The default cell's packet path (two MuJoCo arms, the native data plane, the Responsive Link)
     while a process spins at the normal priority on every core for 10 s, as a host's other work
     would: no protective stop, no RT hold, and every window of both arms answered (counts)."""
-    from cell.chaos.hog import hog
+    from cell.hog import hog
 
     cell = await start_cell(run=["bus", "dataplane", "robots", "rlink"])
 

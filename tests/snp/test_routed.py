@@ -12,19 +12,12 @@ import time
 import pytest
 
 from cell.snp import rmap
+from cell.snp.link import FAILOVER_SENDS, RoutedLink, module_port, with_return, without_return
 from cell.snp.native import available
 from cell.snp.packet import Header, Pid, Query, decode, encode
-from cell.snp.routed import (
-    FAILOVER_SENDS,
-    RoutedLink,
-    explore_routers,
-    module_port,
-    routers_main,
-    start_routers,
-    with_return,
-    without_return,
-)
+from cell.snp.routed import explore_routers, routers_main, start_routers
 from cell.snp.spacewire import IDENTITY_ADDR, IDENTITY_LEN, ROUTER_LA, Router, RouterInfo
+from tests.conftest import wait_until_quiet
 
 native_only = pytest.mark.skipif(available() is not None, reason=f"the C cycle does not build: {available()}")
 
@@ -185,6 +178,7 @@ def test_the_arms_cycle_runs_over_the_routers_and_fails_over_a_cut_link(in_c: bo
         period_ns=period, budget_ns=period, slot_ns=SLOT_NS * scale, management_ns=400_000 * scale
     )
     slots = chain(6, random.Random(2))
+    wait_until_quiet()  # (eight processes' cycles on this machine's cores: not the last test's teardown)
     r = trial(slots, seconds, config=config, native=in_c, reference=ref, routed=True, cut=(seconds / 2, 3))
     f = cycle_figures(r, period)
     assert f.modules_ran == 6 and f.tsp_offset_us_max < 200.0  # (clocks synced through the routers)

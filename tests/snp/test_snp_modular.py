@@ -208,7 +208,7 @@ def test_a_two_step_link_follows_time_packets_up_with_the_kernels_departure() ->
     import socket
     import time
 
-    from cell.snp.runner import Link, drain, open_udp
+    from cell.snp.link import Link, drain, open_udp
     from cell.timer import realtime_offset
 
     a, b = open_udp(), open_udp(timestamps=True)
@@ -249,7 +249,7 @@ def test_a_two_step_link_follows_time_packets_up_with_the_kernels_departure() ->
 
 
 def test_the_link_dates_time_packets_as_it_sends_them_and_leaves_the_rest() -> None:
-    from cell.snp.runner import Link, open_udp
+    from cell.snp.link import Link, open_udp
 
     a, b = open_udp(), open_udp()
     b.settimeout(5.0)

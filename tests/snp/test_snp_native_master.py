@@ -11,10 +11,11 @@ import time
 
 import pytest
 
+from cell.snp.link import Link, open_udp
 from cell.snp.modular import _A, _C, _IDS, CycleConfig, Master, NodeState
 from cell.snp.native import RUN_EVENT, RUN_HANDED, NativeMaster, available
 from cell.snp.packet import Configured, ModuleKind, NodeInfo, Pid
-from cell.snp.runner import Link, Slot, open_udp, run_modules
+from cell.snp.runner import Slot, run_modules
 from cell.timer import realtime_offset
 from tests.conftest import snp_master_on_loopback
 

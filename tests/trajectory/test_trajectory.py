@@ -8,8 +8,8 @@ import asyncio
 import numpy as np
 import pytest
 
-from cell.bench.cellproc import robots_heard
 from cell.bus import Bus
+from cell.cellproc import robots_heard
 from cell.controller.controller import Controller
 from cell.controller.loop import LoopModel
 from cell.controller.plan import PlanError

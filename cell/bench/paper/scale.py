@@ -318,9 +318,9 @@ async def _t_upd(
     of reps).  Then, on the same service, the check: arms_to_check(those t_upd) updates of one 1 s
     episode each (10 TPs) sent at once, and how long the data plane took to apply them all
     (episode s, arms, s)."""
-    from cell.bench.cellproc import running_cell
     from cell.bench.fleet import dealt
     from cell.bus import Bus
+    from cell.cellproc import running_cell
     from cell.dataplane.client import DataplaneClient
 
     ids = np.arange(1, robots + 1)

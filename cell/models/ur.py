@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 
-from cell.robot.models.registry import Drive, RobotModel, register
+from cell.models.registry import Drive, RobotModel, register
 
 PI, TAU = math.pi, 2 * math.pi
 ALPHA = (PI / 2, 0.0, 0.0, PI / 2, -PI / 2, 0.0)

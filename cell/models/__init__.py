@@ -1,7 +1,7 @@
 """The registry of robot models: what the cell knows of each arm it can emulate, plan for and draw.
 
 A RobotModel holds the published parameters (DH, masses, centres of mass, joint
-limits) and the emulator's drive tuning; cell.robot.models.mjcf builds the MuJoCo
+limits) and the emulator's drive tuning; cell.models.mjcf builds the MuJoCo
 model from them, so one record is the one source of truth for an arm: the
 emulator simulates it, the controller plans with its limits and kinematics, the
 data plane brakes with its decelerations, the recorder and camera draw it.
@@ -15,7 +15,7 @@ MuJoCo: the config checks names against it.
 
 from __future__ import annotations
 
-from cell.robot.models import ur  # noqa: F401  (the UR e-Series register themselves)
-from cell.robot.models.registry import MODELS, Drive, RobotModel, get, register
+from cell.models import ur  # noqa: F401  (the UR e-Series register themselves)
+from cell.models.registry import MODELS, Drive, RobotModel, get, register
 
 __all__ = ["MODELS", "Drive", "RobotModel", "get", "register"]

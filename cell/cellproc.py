@@ -1,4 +1,4 @@
-"""A cell in a child process for benchmarks: `cell up` on free ports, stopped afterwards."""
+"""A cell in a child process for benchmarks and campaigns: `cell up` on free ports, stopped afterwards."""
 
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from functools import cache
 
-from cell.robot.models.registry import RobotModel, get
+from cell.models.registry import RobotModel, get
 
 FLANGE_RGBA = "0.2 0.4 0.8 1"
 
