@@ -246,3 +246,35 @@ def nothing_left_running() -> Iterator[None]:
     assert not left, "processes left running by this module's tests: " + "; ".join(
         f"{p}: {c[:160]}" for p, c in sorted(left.items())
     )
+
+
+# tools `make test` installs (where root and apt allow): a test skipped for want of one is a failure
+# when CI is set, so a broken install is never a quiet skip; matched in the skip's reason
+INSTALLED_TOOLS = (
+    "the C cycle does not build",  # cc (the robots' tick, the native data plane and the SnP cycle too)
+    "no C compiler",
+    "make bpf needs clang",  # clang and libbpf-dev
+    "no chromium",
+    "no `ip`",  # iproute2
+)
+
+
+def _fail_a_tool_skip(report: pytest.TestReport | pytest.CollectReport) -> None:
+    if not (os.environ.get("CI") and report.skipped and isinstance(report.longrepr, tuple)):
+        return
+    reason = str(report.longrepr[2])
+    if any(tool in reason for tool in INSTALLED_TOOLS):
+        report.outcome = "failed"
+        report.longrepr = f"skipped for a tool the project installs, which CI must have: {reason}"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[None]:
+    outcome = yield
+    _fail_a_tool_skip(outcome.get_result())  # type: ignore[attr-defined]
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector: pytest.Collector) -> Iterator[None]:
+    outcome = yield  # (a module skipped whole as it is collected: tests/dataplane/test_xdp.py)
+    _fail_a_tool_skip(outcome.get_result())  # type: ignore[attr-defined]

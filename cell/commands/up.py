@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import replace
 
 from cell.commands import Command, config_arg, load, register, seconds
@@ -72,6 +73,12 @@ def run(args: argparse.Namespace) -> int:
     if layout is not None:
         config = replace(config, services=replace(config.services, layout=layout))
     check_all(config)  # unknown services are config errors (exit 2), before anything starts
+    if config.recorder.mode == "serve" and "recorder" in config.services.run:
+        from cell.recorder.serve import taken
+
+        if why := taken():  # (one line now, not the recorder failing at each restart)
+            print(f"cell up: {why}", file=sys.stderr)
+            return 2
     return aio.run(
         launcher.up(config, duration=args.duration, log_level=args.log_level, counters=args.verbose)
     )

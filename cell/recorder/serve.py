@@ -18,8 +18,10 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import rerun as rr
+if TYPE_CHECKING:  # (this module is imported by `cell up` to check its ports: no SDK for that)
+    import rerun as rr
 
 HOST = "127.0.0.1"
 GRPC_PORT, WEB_PORT = 9876, 9090
@@ -51,17 +53,36 @@ def _listening(port: int) -> bool:
         return s.connect_ex((HOST, port)) == 0
 
 
+def taken(grpc_port: int | None = None, web_port: int | None = None) -> str | None:
+    """Why the loopback viewer cannot start (one of its ports taken: what to do instead), or None.
+    `cell up --rerun serve` asks before anything starts."""
+    for port in (GRPC_PORT if grpc_port is None else grpc_port, WEB_PORT if web_port is None else web_port):
+        if _listening(port):
+            return f"{HOST}:{port} is taken (another viewer?): stop it, or use --rerun save PATH.rrd or spawn"
+    return None
+
+
+# runs the viewer with the kernel's promise to SIGTERM it when the process that started it ends,
+# however that ends (SIGKILL too): prctl(PR_SET_PDEATHSIG) before exec, in a child of its own (a
+# preexec_fn in a process with threads may deadlock); none started if that parent is gone already
+_DIE_WITH_PARENT = (
+    "import ctypes, os, signal, sys\n"
+    "ctypes.CDLL(None).prctl(1, signal.SIGTERM, 0, 0, 0)\n"
+    "os.getppid() == int(sys.argv[1]) or sys.exit(1)\n"
+    "os.execv(sys.argv[2], sys.argv[2:])\n"
+)
+
+
 def serve(rec: rr.RecordingStream, grpc_port: int | None = None, web_port: int | None = None) -> str:
     """Start the loopback viewer server and stream `rec` to it; the web address that opens the viewer
-    on this recording (the bare address opens Rerun's welcome page).  Ports: GRPC_PORT, WEB_PORT."""
+    on this recording (the bare address opens Rerun's welcome page).  Ports: GRPC_PORT, WEB_PORT.
+    The server ends with this process, whatever ends it (it is a child that the kernel stops then)."""
     grpc_port = GRPC_PORT if grpc_port is None else grpc_port
     web_port = WEB_PORT if web_port is None else web_port
-    for port in (grpc_port, web_port):
-        if _listening(port):
-            raise ServeError(
-                f"{HOST}:{port} is taken (another viewer?): stop it, or use --rerun save PATH.rrd or spawn"
-            )
+    if why := taken(grpc_port, web_port):
+        raise ServeError(why)
     cmd = [
+        sys.executable, "-c", _DIE_WITH_PARENT, str(os.getpid()),
         rerun_binary(), "--serve-web", "--bind", HOST, "--port", str(grpc_port),
         "--web-viewer-port", str(web_port),
     ]  # fmt: skip

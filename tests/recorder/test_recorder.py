@@ -8,6 +8,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from collections import Counter
 from dataclasses import replace
 from pathlib import Path
@@ -22,7 +23,7 @@ from cell.controller.controller import Controller
 from cell.launcher import fetch_status
 from cell.rlink.client import EventClient
 from cell.v1 import robot_pb2
-from tests.conftest import cell_env, cell_overrides, free_port, write_config
+from tests.conftest import cell_env, cell_overrides, free_port, run_cell, write_config
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 
@@ -270,6 +271,54 @@ def test_rerun_serve_refuses_a_taken_port_and_says_what_to_do_instead() -> None:
             assert "taken" in str(exc) and "save" in str(exc)
         else:
             raise AssertionError("a taken port was not refused")
+
+
+SERVE_AND_WAIT = """
+import sys, time
+import rerun as rr
+from cell.recorder import serve
+rec = rr.RecordingStream(application_id="cell-test-serve")
+print(serve.serve(rec, int(sys.argv[1]), int(sys.argv[2])), flush=True)
+time.sleep(60)
+"""
+
+
+def test_the_loopback_viewer_ends_with_the_process_that_started_it_even_killed() -> None:
+    """A `cell up --rerun serve` killed outright (SIGKILL: no close) leaves no viewer holding its
+    ports: the kernel stops the viewer with its parent (PR_SET_PDEATHSIG)."""
+    grpc_port, web_port = free_port(), free_port()
+    parent = subprocess.Popen(
+        [sys.executable, "-c", SERVE_AND_WAIT, str(grpc_port), str(web_port)],
+        stdout=subprocess.PIPE, text=True, env=cell_env(),
+    )  # fmt: skip
+    try:
+        assert parent.stdout is not None and parent.stdout.readline().startswith("http://127.0.0.1:")
+        assert _listeners(grpc_port) == {"127.0.0.1"}  # up, in a process of its own session
+    finally:
+        parent.kill()
+        parent.wait()
+    deadline = time.monotonic() + 10
+    while _listeners(grpc_port) | _listeners(web_port) and time.monotonic() < deadline:
+        time.sleep(0.05)  # (polling the kernel's socket table: nothing to wait on)
+    assert _listeners(grpc_port) == set() and _listeners(web_port) == set()
+
+
+def test_cell_up_serve_with_its_port_taken_says_so_in_one_line_before_anything_starts(tmp_path) -> None:
+    import socket
+
+    from cell.recorder.serve import GRPC_PORT
+
+    with socket.socket() as held:
+        with contextlib.suppress(OSError):  # (taken already: the same case)
+            held.bind(("127.0.0.1", GRPC_PORT))
+            held.listen()
+        path = write_config(tmp_path / "cell.toml", cell_overrides(run=["bus", "recorder"]))
+        t0 = time.monotonic()
+        done = run_cell("up", "--config", str(path), "--rerun", "serve", "--duration", "30")
+    assert done.returncode == 2 and time.monotonic() - t0 < 20  # (not the 30 s of a cell that ran)
+    lines = done.stderr.strip().splitlines()
+    assert lines == [f"cell up: 127.0.0.1:{GRPC_PORT} is taken (another viewer?): stop it, or use "
+                     "--rerun save PATH.rrd or spawn"], done.stderr  # fmt: skip
 
 
 def test_the_camera_is_drawn_as_a_frustum_where_it_stands_looking_its_way(tmp_path) -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import random
 import struct
@@ -31,6 +30,7 @@ from cell.snp.packet import (
     PidReply,
     Quantity,
     Query,
+    Refusal,
     Reply,
     TimeRequest,
     TimeResponse,
@@ -128,11 +128,57 @@ def test_error_paths() -> None:
     assert info.value.reply is None and info.value.counter == "malformed"
 
 
+def _valid_packets() -> list[bytes]:
+    h, ph, th = Header(1, Pid.MRT, (3, 7)), Header(1, Pid.PID_MANAGEMENT), Header(1, Pid.TSP)
+    q = Query(9, 10**18, (Item(item_id(1, 1, 0), 0.25, 5),), (Wanted(item_id(1, 2, 5), 6),))
+    return [
+        encode(Header(1, Pid.MRT), q),
+        encode(h, q),
+        encode(h, Reply(9, (Item(1, 2.5, 3), Item(2, -1.0, 4)))),
+        encode(h, Denied(9, Denial.CANCELLED)),
+        encode(h, Cancel(9)),
+        encode(ph, PidQuery(0xF0), type=PacketType.PID_SUPPORTED_QUERY),
+        encode(ph, PidReply((0xF0, 0xF1))),
+        encode(th, TimeRequest(5)),
+        encode(th, TimeResponse(5, 6, 7)),
+    ]
+
+
+def _changed(data: bytes, at: int, value: int, cut: int) -> bytes:
+    """data with one byte set, then cut short by `cut` bytes."""
+    b = bytearray(data)
+    b[at % len(b)] = value
+    return bytes(b[: len(b) - cut])
+
+
+DATAGRAMS = st.one_of(
+    st.binary(max_size=80),  # (mostly a bad header: dropped early)
+    st.sampled_from(_valid_packets()),  # (each kind taken: decoded, encoded back)
+    st.builds(
+        _changed,
+        st.sampled_from(_valid_packets()),
+        st.integers(0, 80),
+        st.integers(0, 255),
+        st.integers(0, 4),
+    ),  # (a valid one with a byte changed or its tail cut)
+)
+
+
 @settings(max_examples=500)
-@given(st.binary(max_size=80))
-def test_no_datagram_makes_decode_fail_another_way(data: bytes) -> None:
-    with contextlib.suppress(PacketError):  # the only way it may fail
-        decode(data)
+@given(DATAGRAMS)
+def test_any_datagram_is_a_packet_that_encodes_back_or_a_counted_refusal(data: bytes) -> None:
+    """decode fails only with PacketError, counted under a Refusal, its reply (if any) an error
+    reply; what it takes is a packet whose encoding decodes to the same packet (bytes for bytes:
+    a NaN among the items is still the same bytes)."""
+    try:
+        p = decode(data)
+    except PacketError as exc:
+        assert exc.counter in set(Refusal) and (exc.reply is None or isinstance(exc.reply.body, ErrorReply))
+        return
+    again = encode(p.header, p.body, type=p.type)
+    q = decode(again)
+    assert (q.header, q.type, type(q.body)) == (p.header, p.type, type(p.body))
+    assert encode(q.header, q.body, type=q.type) == again
 
 
 # --- the handler, sans IO ----------------------------------------------------------------------------
@@ -287,7 +333,8 @@ def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) ->
     f = cycle_figures(r)
     assert {m["module_id"] for m in r["modules"]} == {101, 102}
     assert sorted(m["joint"] for m in r["modules"]) == [0, 1]  # configured by the chain
-    assert f.cycles > 500 and f.modules_ran == 2 and 0 <= f.missed_pct <= 100
+    # (most exchanges answered in time: a broken cycle misses them all; the share is the bench's figure)
+    assert f.cycles > 500 and f.modules_ran == 2 and f.missed_pct < 50.0, f.missed_pct
     h = r["master"]["handler"]
     denied = sum(v for k, v in h.items() if k.startswith("denied."))
     ran = sum(len(m["cycles"]) for m in r["modules"])
