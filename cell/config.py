@@ -283,6 +283,27 @@ class ForwardRule:
 
 
 @dataclass(frozen=True)
+class DataplaneBackend:
+    """What a [dataplane] backend is, for what depends on it (the class that runs it is in
+    cell.dataplane.backends): one place, not the name compared in each."""
+
+    name: str
+    in_kernel: bool  # its packet path in the kernel (XDP): a switch namespace of its own, root, clang
+    batched: bool  # Python answers a wake-up's statuses as a batch (numpy); C answers each burst
+    forwards: bool  # forwarding rules and an egress model (numpy's only, yet)
+
+
+DATAPLANE_BACKENDS = {
+    b.name: b
+    for b in (
+        DataplaneBackend("numpy", in_kernel=False, batched=True, forwards=True),
+        DataplaneBackend("native", in_kernel=False, batched=False, forwards=False),
+        DataplaneBackend("xdp", in_kernel=True, batched=False, forwards=False),
+    )
+}
+
+
+@dataclass(frozen=True)
 class DataplaneConfig:
     listen: str = _check(_host_port)
     capacity: int = _check(_positive)
@@ -310,8 +331,14 @@ class DataplaneConfig:
             return "numpy", "auto: no C compiler to build the native data plane (cell/dataplane/native.c)"
         return "native", "auto: the XDP program's C in user space, no Python per packet"
 
+    @property
+    def runs(self) -> DataplaneBackend:
+        """The backend that runs (chosen())."""
+        return DATAPLANE_BACKENDS[self.chosen()[0]]
+
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
-        if self.backend == "xdp":
+        runs = self.runs
+        if runs.in_kernel:
             x = self.xdp
             host = parse_host_port(self.listen)[0]
             if host != x.switch_addr:
@@ -321,7 +348,7 @@ class DataplaneConfig:
             if x.host_addr == x.switch_addr or ipaddress.IPv4Address(x.switch_addr) not in net:
                 why = f"must be another address in {net} (the host's end is {x.host_addr})"
                 raise err("xdp.switch_addr", why)
-        if self.backend in ("xdp", "native"):  # ("auto" picks numpy for these)
+        if self.backend != "auto" and not runs.forwards:  # ("auto" picks numpy for these)
             if self.forward or self.egress.rate_mbps > 0:
                 why = f"the {self.backend} backend has no forwarding rules or egress model yet (numpy has)"
                 raise err("backend", why)

@@ -84,8 +84,8 @@ def verdict(ok: bool, text: str) -> str:
 
 def backend_why(config: Any) -> str:
     """Why the data plane ran where it did."""
-    backend, why = config.dataplane.chosen()
-    if backend == "xdp":
+    why = config.dataplane.chosen()[1]
+    if config.dataplane.runs.in_kernel:
         return "in the kernel: XDP, built and run as root"
     return f"{why}; --config examples/xdp.toml runs it in the kernel"
 
@@ -264,7 +264,7 @@ async def main(cell: Any) -> None:
         ("stop in effect after the request", f"{stop_latency_ms:.1f} ms"),
         (
             ("data plane batch time p50 / p99", f"{c('batch_p50_us'):.0f} / {c('batch_p99_us'):.0f} us")
-            if backend == "numpy"
+            if cell.config.dataplane.runs.batched
             else (  # the C packet path answers each burst as it comes: no batches to time
                 f"data plane ({backend}) flips / packet path held",
                 f"{c(f'{backend}.gates'):.0f} / at most {c(f'{backend}.gate_us_max'):.0f} us a flip, "

@@ -44,7 +44,7 @@ async def up(
         return 1
     await _join(config)
     with contextlib.ExitStack() as stack:
-        if config.dataplane.backend == "xdp":
+        if config.dataplane.runs.in_kernel:
             from cell.dataplane.xdp.switch import SwitchError, switch_namespace
 
             try:

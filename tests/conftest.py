@@ -125,7 +125,8 @@ def snp_master_on_loopback(n_ports: int, native: bool = False) -> Iterator[tuple
     import threading
 
     from cell.snp.link import open_udp
-    from cell.snp.modular import CycleConfig, Master
+    from cell.snp.master import Master
+    from cell.snp.modular import CycleConfig
     from cell.snp.runner import serve_master
 
     ports = []

@@ -28,6 +28,7 @@ import numpy as np
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.cellproc import robots_heard, running_cell
+from cell.config import DATAPLANE_BACKENDS
 from cell.controller.controller import Controller, MotionStopped, Segment
 from cell.ports import free_port as _port
 from cell.robot.datagram import SCALE
@@ -96,7 +97,7 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
         for i in (1, 2)
     ]
     overrides: dict[str, Any] = {"robots": robots, "services": {"run": ["bus", "dataplane", "robots"]}}
-    if backend == "xdp":  # the data plane in a switch namespace of this run's own (the cell makes it)
+    if DATAPLANE_BACKENDS[backend].in_kernel:  # the data plane in a switch namespace of this run's own
         from cell.bench.dataplane import xdp_dataplane, xdp_switch
 
         overrides["dataplane"] = xdp_dataplane(xdp_switch(tag="cba"))

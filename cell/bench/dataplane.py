@@ -37,6 +37,7 @@ from cell import aio
 from cell.bench import pin, pinned
 from cell.bench.driver import NaiveDriver
 from cell.bench.registry import Bench, Figures, log, register
+from cell.config import DATAPLANE_BACKENDS
 from cell.ports import free_port
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
@@ -674,7 +675,7 @@ def _main(args: argparse.Namespace) -> Figures:
         f"the data plane holds {dp.capacity:,} TPs and {dp.max_entities:,} robots ([dataplane] capacity, "
         "max_entities): a search stops there; robots double from 20 until a trial fails, then two bisections"
     )
-    if args.backend == "xdp":
+    if DATAPLANE_BACKENDS[args.backend].in_kernel:
         from cell.dataplane.xdp.switch import SwitchError
 
         try:

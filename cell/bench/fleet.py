@@ -41,7 +41,7 @@ from cell.bench.registry import Bench, Figures, log, register
 from cell.bench.robots import late_statuses
 from cell.bus import Bus, BusTimeout
 from cell.cellproc import robots_heard, running_cell
-from cell.config import load_config
+from cell.config import DATAPLANE_BACKENDS, load_config
 from cell.controller.controller import Controller, MotionStopped, Segment
 from cell.controller.motion import NotAtGoal
 from cell.dataplane.tables import TPBatch
@@ -207,11 +207,11 @@ async def measure(
         for i in range(1, n + 1)
     ]
     overrides: dict[str, Any] = {"robots": robots, "services": {"run": ["bus", "dataplane", "robots"]}}
-    if backend in ("numpy", "native"):
-        overrides["dataplane"] = {"backend": backend}
-    elif backend == "auto":  # (named by what auto chooses here, as cell config show says)
+    if backend == "auto":  # (named by what auto chooses here, as cell config show says)
         backend = load_config(None).dataplane.chosen()[0]
-    if backend == "xdp":
+    elif not DATAPLANE_BACKENDS[backend].in_kernel:
+        overrides["dataplane"] = {"backend": backend}
+    if DATAPLANE_BACKENDS[backend].in_kernel:
         from cell.bench.dataplane import xdp_dataplane, xdp_switch
 
         overrides["dataplane"] = xdp_dataplane(xdp_switch(cpu=0, tag="cbf"))

@@ -73,7 +73,7 @@ def _master(
     the network through them for its modules' paths."""
     from cell.modular.cycle import VdcMaster
     from cell.snp.link import open_udp
-    from cell.snp.modular import Master
+    from cell.snp.master import Master
     from cell.snp.runner import serve_master
 
     _place(0)

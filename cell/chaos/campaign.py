@@ -626,7 +626,7 @@ async def campaign(
                 try:
                     camp = Campaign(config, link, obs)
                     ur = tuple(r.name for r in config.robots if r.backend == "ur")
-                    in_kernel = config.dataplane.backend == "xdp"
+                    in_kernel = config.dataplane.runs.in_kernel
                     faults = catalogue(camp.robots, ur_robots=ur, in_kernel=in_kernel)
                     if only:
                         faults = [f for f in faults if any(o in f.name for o in only)]

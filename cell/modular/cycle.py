@@ -46,7 +46,9 @@ from cell.modular.wire import (
     ids_of,
     outboard_ids,
 )
-from cell.snp.modular import ArmModel, Cycle, CycleConfig, JointModule, Master, Node, Stage
+from cell.snp.master import ArmModel, Master, Node
+from cell.snp.modular import CycleConfig, Stage
+from cell.snp.module import Cycle, JointModule
 from cell.snp.native import PlantState, VdcModuleState, VdcState, c_addr
 from cell.snp.packet import Header, Pid
 

@@ -11,7 +11,7 @@ modules in processes of their own, as `cell bench snp` runs them, driven by the 
   tool every ms, each module's clock offset, cycle time and misses, the master's view of each module.
 
 CycleRobot is the service's side: ModularRobot's surface (cell.modular.robot.ArmRobot) over those
-reports.  FDIR is the cycle's own (cell.snp.modular.Master: guessed, suspect, lost); a lost module
+reports.  FDIR is the cycle's own (cell.snp.master.Master: guessed, suspect, lost); a lost module
 stops the arm as in ModularRobot (the motion under way fails, the arm holds where it stood).
 """
 
@@ -42,7 +42,7 @@ from cell.snp.routed import Routers, explore_routers, start_routers
 from cell.snp.runner import chain
 
 REPORT_NS = 20_000_000  # each process's report to the service
-LOST_NS_MIN = 50_000_000  # a module silent this long is lost, at the least (cell.snp.modular.Master's)
+LOST_NS_MIN = 50_000_000  # a module silent this long is lost, at the least (cell.snp.master.Master's)
 LEAD_NS = 20_000_000  # a motion starts this long after the master takes it
 MODULE0 = 101  # module ids: MODULE0 + joint, each plugged to the one before (the first to the base)
 SLOT_NS, MANAGEMENT_NS = 30_000, 400_000  # at a 1 ms period (cell.bench.snp's schedule), in proportion

@@ -21,8 +21,10 @@ import numpy as np
 
 from cell.native import NativeUnavailable, build
 from cell.snp.link import RoutedLink
-from cell.snp.modular import _IDS, JointModule, Master, Node, NodeState
+from cell.snp.master import Master, Node
+from cell.snp.modular import _IDS, NodeState
 from cell.snp.modular import ModuleState as ModuleLife  # (ModuleState here: the C mirror)
+from cell.snp.module import JointModule
 
 HERE = Path(__file__).parent
 SOURCES = (HERE / "cycle.c", HERE / "master.c", HERE / "router.c")  # one library; all include wire.h

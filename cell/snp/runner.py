@@ -21,7 +21,9 @@ from typing import TYPE_CHECKING, Any
 
 from cell.sched import Spin
 from cell.snp.link import FAILOVER_SENDS, Link, RoutedLink, drain, open_udp
-from cell.snp.modular import JointModule, Master, ModuleState, Stage
+from cell.snp.master import Master
+from cell.snp.modular import ModuleState, Stage
+from cell.snp.module import JointModule
 from cell.snp.tsp import Oscillator, on_grid
 from cell.timer import Alarm, realtime_offset
 

@@ -13,7 +13,9 @@ from collections.abc import Callable
 import pytest
 
 from cell.snp import rmap
-from cell.snp.modular import CycleConfig, JointModule, Master, ModuleState
+from cell.snp.master import Master
+from cell.snp.modular import CycleConfig, ModuleState
+from cell.snp.module import JointModule
 from cell.snp.packet import (
     Configure,
     Configured,

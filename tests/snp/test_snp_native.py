@@ -13,7 +13,8 @@ import time
 import pytest
 
 from cell.snp.link import Link, open_udp
-from cell.snp.modular import _A, _ANSWER, _C, _IDS, JointModule
+from cell.snp.modular import _A, _ANSWER, _C, _IDS
+from cell.snp.module import JointModule
 from cell.snp.native import RUN_HANDED, RUN_UNTIL, NativeCycles, available
 from cell.snp.packet import Configure, Denied, Header, Pid, encode
 from cell.snp.tsp import Oscillator

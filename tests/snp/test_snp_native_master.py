@@ -12,7 +12,8 @@ import time
 import pytest
 
 from cell.snp.link import Link, open_udp
-from cell.snp.modular import _A, _C, _IDS, CycleConfig, Master, NodeState
+from cell.snp.master import Master
+from cell.snp.modular import _A, _C, _IDS, CycleConfig, NodeState
 from cell.snp.native import RUN_EVENT, RUN_HANDED, NativeMaster, available
 from cell.snp.packet import Configured, ModuleKind, NodeInfo, Pid
 from cell.snp.runner import Slot, run_modules
