@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from cell.bus import RpcFault
+from cell.bus import FaultCode, RpcFault
 from cell.modular.messages import state, status
 from cell.modular.processes import CycleRobot
 from cell.modular.reference import CYCLE_NS
@@ -71,12 +71,12 @@ async def _run(ctx: ServiceContext, robot: ArmRobot, link: SnpLink | None) -> No
                 joints=list(req.joints), tool=list(req.tool), path=req.path, speed=req.speed or c.speed_rad_s
             )
         except MotionRefused as exc:
-            raise RpcFault("refused", str(exc)) from None
+            raise RpcFault(FaultCode.REFUSED, str(exc)) from None
         # (the robot holds the motion; its end comes from the clock's loop below)
         waiting.append(asyncio.get_running_loop().create_future())
         e = await waiting[-1]
         if e.failed:
-            raise RpcFault("stopped", e.failed)
+            raise RpcFault(FaultCode.STOPPED, e.failed)
         return pb.ModularMoveReply(
             path=e.path, duration_s=e.cycles * CYCLE_NS / 1e9, tool_error_mm_max=e.tool_error_mm_max,
             tool_error_mm_rms=e.tool_error_mm_rms, guessed=e.guessed, cycles=e.cycles,
@@ -87,7 +87,7 @@ async def _run(ctx: ServiceContext, robot: ArmRobot, link: SnpLink | None) -> No
             try:
                 (robot.plug if plug else robot.unplug)(req.module)
             except MotionRefused as exc:
-                raise RpcFault("unknown_module", str(exc)) from None
+                raise RpcFault(FaultCode.UNKNOWN_MODULE, str(exc)) from None
             ctx.log.info("module %s %s", req.module, "plugged in" if plug else "unplugged")
             return status(robot, late)
 

@@ -23,7 +23,7 @@ import contextlib
 import time
 from collections.abc import Iterable
 
-from cell.bus import RpcFault
+from cell.bus import FaultCode, RpcFault
 from cell.bus.node import Handler
 from cell.robot.emulator import PYTHON_TICK_PRIORITY, RobotGroup
 from cell.robot.node import (
@@ -90,9 +90,9 @@ async def run(ctx: ServiceContext) -> None:
         def silencer(g: RobotGroup, rid: int, name: str) -> Handler:
             def silence(req: robot_pb2.SilenceRequest) -> robot_pb2.SilenceReply:
                 if req.robot not in ("", name):
-                    raise RpcFault("bad_request", f"this is robot {name}, not {req.robot!r}")
+                    raise RpcFault(FaultCode.BAD_REQUEST, f"this is robot {name}, not {req.robot!r}")
                 if not 0 < req.seconds <= 60:
-                    raise RpcFault("bad_request", f"seconds must be in (0, 60], got {req.seconds}")
+                    raise RpcFault(FaultCode.BAD_REQUEST, f"seconds must be in (0, 60], got {req.seconds}")
                 g.silence(rid, req.seconds)
                 ctx.log.warning("fault injected: robot %s silent for %.1f s", name, req.seconds)
                 return robot_pb2.SilenceReply(until_ns=time.monotonic_ns() + int(req.seconds * 1e9))

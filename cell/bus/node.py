@@ -22,6 +22,7 @@ import time
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import Any, TypeVar
 
 import zmq
@@ -85,6 +86,26 @@ class ServiceDown(BusTimeout):
         super().__init__(f"no reply from {service}.{method}: service {service!r} failed: {why}")
 
 
+class FaultCode(StrEnum):
+    """What a coded RPC error says (RpcFault.code, RemoteError.code, bus_pb2.RpcError.code on the
+    wire): one list, so a caller's comparison names a code that exists."""
+
+    BAD_REQUEST = "bad_request"
+    BUS_LOST = "bus_lost"
+    BUSY = "busy"
+    FAILED = "failed"
+    IN_USE = "in_use"
+    INTERNAL = "internal"
+    NO_FRAME = "no_frame"
+    PLAN = "plan"
+    REFUSED = "refused"
+    STOPPED = "stopped"
+    UNKNOWN_METHOD = "unknown_method"
+    UNKNOWN_MODULE = "unknown_module"
+    UNKNOWN_ROBOT = "unknown_robot"
+    UNREACHABLE = "unreachable"
+
+
 class RemoteError(BusError):
     """The serving side answered a request with an error."""
 
@@ -94,9 +115,10 @@ class RemoteError(BusError):
 
 
 class RpcFault(Exception):
-    """Raise in a request handler to answer with a coded error (e.g. code='refused')."""
+    """Raise in a request handler to answer with a coded error (a FaultCode; a data-plane table's
+    refusal passes its own reason code on: cell.dataplane.tables.Refused)."""
 
-    def __init__(self, code: str, message: str) -> None:
+    def __init__(self, code: FaultCode | str, message: str) -> None:
         self.code, self.message = code, message
         super().__init__(f"{code}: {message}")
 
@@ -731,10 +753,12 @@ class Bus:
         method = self._methods.get(env.topic)
         try:
             if method is None:
-                raise RpcFault("unknown_method", f"no method {env.topic.removeprefix('rpc/')!r} here")
+                raise RpcFault(FaultCode.UNKNOWN_METHOD, f"no method {env.topic.removeprefix('rpc/')!r} here")
             want = method.request_type.DESCRIPTOR.full_name
             if env.type_name != want:
-                raise RpcFault("bad_request", f"expected a {want}, got a {env.type_name or 'nothing'}")
+                raise RpcFault(
+                    FaultCode.BAD_REQUEST, f"expected a {want}, got a {env.type_name or 'nothing'}"
+                )
             result = method.handler(env.decode(method.request_type))
             if inspect.isawaitable(result):
                 result = await result
@@ -742,10 +766,10 @@ class Bus:
         except RpcFault as fault:
             result, kind = bus_pb2.RpcError(code=fault.code, message=fault.message), Kind.ERROR
         except EnvelopeError as exc:
-            result, kind = bus_pb2.RpcError(code="bad_request", message=str(exc)), Kind.ERROR
+            result, kind = bus_pb2.RpcError(code=FaultCode.BAD_REQUEST, message=str(exc)), Kind.ERROR
         except Exception as exc:
             log.exception("%s: handler for %s failed", self.source, env.topic)
-            result = bus_pb2.RpcError(code="internal", message=f"{type(exc).__name__}: {exc}")
+            result = bus_pb2.RpcError(code=FaultCode.INTERNAL, message=f"{type(exc).__name__}: {exc}")
             kind = Kind.ERROR
         if not self._ctl_live:  # our connection was made anew since: a reply sent before the forwarder
             # has subscribed to it would be lost without a word (the requester waits out its timeout)

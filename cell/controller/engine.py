@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from cell.bus import Bus, BusError, RemoteError
+from cell.bus import Bus, BusError, FaultCode, RemoteError
 from cell.config import CellConfig
 from cell.controller.link import Link
 from cell.controller.motion import (
@@ -282,7 +282,7 @@ class Engine(Stopping, RobotBook):
                 for track, _, _ in segments:
                     track.loads += 1
         except RemoteError as exc:
-            if exc.code == "stopped":  # stopped on the link before we heard of it
+            if exc.code == FaultCode.STOPPED:  # stopped on the link before we heard of it
                 raise MotionStopped(exc.message) from None
             raise
         except BusError as exc:  # it may yet be applied, late: it must not start unseen
@@ -382,7 +382,7 @@ class Engine(Stopping, RobotBook):
                     await self._apply(track, None, old)
                 break
             except RemoteError as exc:
-                if exc.code != "in_use" or attempt == 19:
+                if exc.code != FaultCode.IN_USE or attempt == 19:
                     raise
                 await asyncio.sleep(TIDY_NS / 1e9)
         track.q_hold = seg.sections.q[-1].copy()

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cell.bus import BusError, RemoteError, RpcFault
+from cell.bus import BusError, FaultCode, RemoteError, RpcFault
 from cell.controller.controller import Controller, MotionResult, MotionStopped, Track
 from cell.controller.motion import FollowResult, NotAtGoal
 from cell.controller.plan import PlanError
@@ -61,7 +61,7 @@ class ControllerService:
         try:
             return self.ctl.config.robot(name).id
         except KeyError:
-            raise RpcFault("unknown_robot", f"no robot named {name!r}") from None
+            raise RpcFault(FaultCode.UNKNOWN_ROBOT, f"no robot named {name!r}") from None
 
     def _reply(self, robot: int, result: MotionResult) -> controller_pb2.MoveReply:
         pos, rot = self.ctl.pose_of(robot, result.q_end)
@@ -78,15 +78,15 @@ class ControllerService:
         try:
             result = await coro
         except Unreachable as exc:
-            raise RpcFault("unreachable", exc.reason) from None
+            raise RpcFault(FaultCode.UNREACHABLE, exc.reason) from None
         except PlanError as exc:
-            raise RpcFault("plan", str(exc)) from None
+            raise RpcFault(FaultCode.PLAN, str(exc)) from None
         except MotionStopped as exc:
-            raise RpcFault("stopped", str(exc)) from None
+            raise RpcFault(FaultCode.STOPPED, str(exc)) from None
         except NotAtGoal as exc:
-            raise RpcFault("failed", str(exc)) from None
+            raise RpcFault(FaultCode.FAILED, str(exc)) from None
         except BusError as exc:
-            raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
+            raise RpcFault(FaultCode.STOPPED, f"the data plane is not answering: {exc}") from None
         return controller_pb2.MoveReply() if result is None else self._reply(robot, result)
 
     async def move(self, req: controller_pb2.MoveRequest) -> controller_pb2.MoveReply:
@@ -104,7 +104,7 @@ class ControllerService:
         try:
             d_pos, d_rot = from_adept(values)
         except ValueError as exc:
-            raise RpcFault("bad_request", str(exc)) from None
+            raise RpcFault(FaultCode.BAD_REQUEST, str(exc)) from None
         pos, rot = d_pos, d_rot
         if req.frame != Frame.ABSOLUTE:
             here_pos, here_rot = ctl.pose_of(rid, await self._start(track))
@@ -119,16 +119,16 @@ class ControllerService:
     def _trajectories(self, msgs) -> dict[int | str, Trajectory]:
         """The messages as Trajectories by robot (bad_request for one that cannot be a trajectory)."""
         if not msgs:
-            raise RpcFault("bad_request", "no trajectories")
+            raise RpcFault(FaultCode.BAD_REQUEST, "no trajectories")
         trajs: dict[int | str, Trajectory] = {}
         for m in msgs:
             rid = self._robot(m.robot)
             if rid in trajs:
-                raise RpcFault("bad_request", f"two trajectories for robot {m.robot!r}")
+                raise RpcFault(FaultCode.BAD_REQUEST, f"two trajectories for robot {m.robot!r}")
             try:
                 trajs[rid] = from_message(m, self.ctl.arm_of(rid).joints)
             except TrajectoryError as exc:
-                raise RpcFault("bad_request", f"trajectory of {m.robot}: {exc}") from None
+                raise RpcFault(FaultCode.BAD_REQUEST, f"trajectory of {m.robot}: {exc}") from None
         return trajs
 
     async def follow(self, req: controller_pb2.FollowRequest) -> controller_pb2.MoveReply:
@@ -140,7 +140,7 @@ class ControllerService:
             try:
                 trajs = self.ctl.named_trajectories(req.name, robots)
             except PlanError as exc:
-                raise RpcFault("plan", str(exc)) from None
+                raise RpcFault(FaultCode.PLAN, str(exc)) from None
         else:
             trajs = self._trajectories(req.trajectories)
         first = int(next(iter(trajs)))
@@ -158,7 +158,7 @@ class ControllerService:
         try:
             self.ctl.name_trajectories(req.name, trajs)
         except PlanError as exc:
-            raise RpcFault("plan", str(exc)) from None
+            raise RpcFault(FaultCode.PLAN, str(exc)) from None
         return controller_pb2.NameReply(
             name=req.name,
             robots=[next(c.name for c in self.ctl.config.robots if c.id == r) for r in trajs],
@@ -168,7 +168,7 @@ class ControllerService:
 
     async def move_together(self, req: controller_pb2.MoveTogetherRequest) -> controller_pb2.MoveReply:
         if not req.moves:
-            raise RpcFault("bad_request", "no moves")
+            raise RpcFault(FaultCode.BAD_REQUEST, "no moves")
         goals: dict[int | str, np.ndarray] = {}
         for m in req.moves:
             rid = self._robot(m.robot)
@@ -189,7 +189,7 @@ class ControllerService:
         try:
             return await self.ctl.start_q(track)
         except PlanError as exc:
-            raise RpcFault("busy", str(exc)) from None
+            raise RpcFault(FaultCode.BUSY, str(exc)) from None
 
     async def stop(self, req: controller_pb2.StopRequest) -> controller_pb2.StopReply:
         names = list(req.robots) or [r.name for r in self.ctl.config.robots]
@@ -209,11 +209,11 @@ class ControllerService:
         try:
             q, t_ns = await self.ctl.arrive(rid, req.tolerance_rad or 2e-4, req.timeout_s or 60.0)
         except MotionStopped as exc:
-            raise RpcFault("stopped", str(exc)) from None
+            raise RpcFault(FaultCode.STOPPED, str(exc)) from None
         except NotAtGoal as exc:
-            raise RpcFault("failed", str(exc)) from None
+            raise RpcFault(FaultCode.FAILED, str(exc)) from None
         except BusError as exc:  # (a BusTimeout is a TimeoutError too: not the robot's)
-            raise RpcFault("stopped", f"the data plane is not answering: {exc}") from None
+            raise RpcFault(FaultCode.STOPPED, f"the data plane is not answering: {exc}") from None
         except TimeoutError:
             raise RpcFault(
                 "timeout", f"robot {req.robot} did not arrive within {req.timeout_s or 60.0} s"
@@ -226,7 +226,7 @@ class ControllerService:
         try:
             q, _, t_ns = await self.ctl.joints_now(self.ctl.track(rid))
         except PlanError as exc:
-            raise RpcFault("unknown_robot", str(exc)) from None
+            raise RpcFault(FaultCode.UNKNOWN_ROBOT, str(exc)) from None
         pos, rot = self.ctl.pose_of(rid, q)
         return controller_pb2.PoseReply(joints=q.tolist(), pose=to_adept(pos, rot), t_ns=t_ns)
 
@@ -235,7 +235,9 @@ class ControllerService:
     def _goal(self, values, track: Track) -> np.ndarray:
         q = np.array(values, np.float64)
         if q.size != track.joints or not np.isfinite(q).all():
-            raise RpcFault("bad_request", f"a goal takes {track.joints} finite joint values, got {q.size}")
+            raise RpcFault(
+                FaultCode.BAD_REQUEST, f"a goal takes {track.joints} finite joint values, got {q.size}"
+            )
         return q
 
     async def prepare_alternates(
@@ -244,12 +246,12 @@ class ControllerService:
         rid = self._robot(req.robot)
         track = self.ctl.track(rid)
         if not req.alternates or len({a.name for a in req.alternates}) != len(req.alternates):
-            raise RpcFault("bad_request", "alternates need distinct names, at least one")
+            raise RpcFault(FaultCode.BAD_REQUEST, "alternates need distinct names, at least one")
         goals = {a.name: self._goal(a.values, track) for a in req.alternates}
         try:
             n = await self.ctl.prepare_alternates(rid, goals, _speed(req.speed), req.every or 1)
         except PlanError as exc:
-            raise RpcFault("plan", str(exc)) from None
+            raise RpcFault(FaultCode.PLAN, str(exc)) from None
         except RemoteError as exc:  # the data plane refused them (a full table says why)
             raise RpcFault(exc.code, exc.message) from None
         _, branches = self.ctl.alternates[rid]
@@ -264,7 +266,7 @@ class ControllerService:
         track = self.ctl.track(rid)
         values = np.array(req.values, np.float64)
         if values.size == 0 or values.size % track.joints or not np.isfinite(values).all():
-            raise RpcFault("bad_request", f"waypoints take {track.joints} finite joint values each")
+            raise RpcFault(FaultCode.BAD_REQUEST, f"waypoints take {track.joints} finite joint values each")
         waypoints = list(values.reshape(-1, track.joints))
         try:
             run = await self.ctl.run_loop(rid, waypoints, _speed(req.speed), req.laps)
@@ -273,11 +275,11 @@ class ControllerService:
                 laps = await asyncio.shield(run.done)
                 await self.ctl.wait_idle(rid)  # (back where it began)
                 if isinstance(track.failure, NotAtGoal):
-                    raise RpcFault("failed", str(track.failure))
+                    raise RpcFault(FaultCode.FAILED, str(track.failure))
         except PlanError as exc:
-            raise RpcFault("plan", str(exc)) from None
+            raise RpcFault(FaultCode.PLAN, str(exc)) from None
         except MotionStopped as exc:
-            raise RpcFault("stopped", str(exc)) from None
+            raise RpcFault(FaultCode.STOPPED, str(exc)) from None
         return controller_pb2.LoopReply(t_start_ns=run.start_ns, lap_ns=run.lap_ns, laps=laps)
 
     async def end_loop(self, req: controller_pb2.RobotRequest) -> controller_pb2.LoopReply:
@@ -286,7 +288,7 @@ class ControllerService:
         try:
             laps = await self.ctl.end_loop(rid)
         except PlanError as exc:
-            raise RpcFault("plan", str(exc)) from None
+            raise RpcFault(FaultCode.PLAN, str(exc)) from None
         assert run is not None
         return controller_pb2.LoopReply(t_start_ns=run.start_ns, lap_ns=run.lap_ns, laps=laps)
 
@@ -295,7 +297,7 @@ def _speed(percent: float) -> float:
     """A request's speed (percent, 0 meaning 100) as a factor; bad_request outside (0, 100]."""
     speed = (percent or 100.0) / 100.0
     if not 0.0 < speed <= 1.0:
-        raise RpcFault("bad_request", f"speed must be in (0, 100] %, got {percent}")
+        raise RpcFault(FaultCode.BAD_REQUEST, f"speed must be in (0, 100] %, got {percent}")
     return speed
 
 
@@ -303,5 +305,7 @@ def _joints(m: controller_pb2.MoveRequest, track: Track) -> np.ndarray:
     """A joint-space request's joint positions; bad_request unless one finite value per joint."""
     values = np.array(m.values, np.float64)
     if m.kind != Kind.JOINTS or values.size != track.joints or not np.isfinite(values).all():
-        raise RpcFault("bad_request", f"{m.robot}: {track.joints} finite joint positions (rad) expected")
+        raise RpcFault(
+            FaultCode.BAD_REQUEST, f"{m.robot}: {track.joints} finite joint positions (rad) expected"
+        )
     return values

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from cell import models, sched
-from cell.bus import RpcFault
+from cell.bus import FaultCode, RpcFault
 from cell.config import CellConfig, parse_host_port
 from cell.dataplane.egress import ROBOT, EgressPort
 from cell.dataplane.forward import Forwarder
@@ -340,7 +340,7 @@ class DataPlane:
             try:
                 insert, remove = decode_tps(req.insert), decode_keys(req.remove)
             except ValueError as exc:
-                raise RpcFault("bad_request", str(exc)) from None
+                raise RpcFault(FaultCode.BAD_REQUEST, str(exc)) from None
             held = [r.robot_id for r in req.registers if not r.clear and self.stopped(r.robot_id)]
             try:
                 flushed = [k for r in req.flush_robots for k in self.tables.keys_of(r)]
@@ -350,7 +350,9 @@ class DataPlane:
                 remove = np.concatenate([remove, np.array(flushed, np.int64).reshape(-1, 2)])
             registers = [(r, None, 0) for r in req.flush_robots]
             if held:
-                raise RpcFault("stopped", f"robot(s) {held} stopped over the Responsive Link: resume first")
+                raise RpcFault(
+                    FaultCode.STOPPED, f"robot(s) {held} stopped over the Responsive Link: resume first"
+                )
             await pause()
             steps = self.tables.staged_update(
                 insert=insert,
@@ -387,12 +389,12 @@ class DataPlane:
         """New controller constants: tables built in a worker thread, then swapped in at once."""
         constants = ControlConstants(tuple(req.c1), tuple(req.c2), req.n_bits, tuple(req.v_max))
         if len(constants.c1) != self.pipeline.joints:
-            raise RpcFault("bad_request", f"{self.pipeline.joints} values per list expected")
+            raise RpcFault(FaultCode.BAD_REQUEST, f"{self.pipeline.joints} values per list expected")
         t0 = time.perf_counter()
         try:
             built = await asyncio.to_thread(Pipeline.build, constants)
         except ValueError as exc:
-            raise RpcFault("bad_request", str(exc)) from None
+            raise RpcFault(FaultCode.BAD_REQUEST, str(exc)) from None
         build_ms = (time.perf_counter() - t0) * 1e3
         self.pipeline.install(built)
         p = self.pipeline
@@ -553,7 +555,7 @@ class MappedDataPlane(DataPlane):
         try:
             XdpPipeline.check_fits(self.program, ControlConstants(tuple(req.c1), (), req.n_bits, ()))
         except BpfError as exc:
-            raise RpcFault("bad_request", str(exc)) from None
+            raise RpcFault(FaultCode.BAD_REQUEST, str(exc)) from None
         return await super().load_constants(req)
 
     def counters(self) -> dict[str, float]:

@@ -33,7 +33,7 @@ import numpy as np
 import zmq
 import zmq.asyncio
 
-from cell.bus import Bus, BusTimeout, RemoteError
+from cell.bus import Bus, BusTimeout, FaultCode, RemoteError
 from cell.bus.envelope import Encoder, EnvelopeError
 from cell.bus.envelope import Kind as BusKind
 from cell.bus.envelope import decode as decode_frame
@@ -171,7 +171,7 @@ class Probes:
             except BusTimeout:
                 continue
             except RemoteError as exc:
-                if exc.code != "bus_lost":
+                if exc.code != FaultCode.BUS_LOST:
                     raise
 
     async def timed(self, probe: Callable[[], Awaitable[Any]], n: int = 5) -> list[float]:

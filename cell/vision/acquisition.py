@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cell.bus import RpcFault
+from cell.bus import FaultCode, RpcFault
 from cell.config import RobotConfig, VisionConfig
 from cell.counters import Counters
 from cell.v1 import vision_pb2
@@ -135,7 +135,7 @@ class Vision:
                         await self.new_frame.wait()
         frame = self.buffer.closest(t_ns)
         if frame is None:
-            raise RpcFault("no_frame", "the camera has not taken a picture yet")
+            raise RpcFault(FaultCode.NO_FRAME, "the camera has not taken a picture yet")
         return frame
 
     async def measure(self, req: vision_pb2.VisionRequest) -> vision_pb2.VisionReply:

@@ -19,6 +19,7 @@ from cell.bus import (
     BusError,
     BusTimeout,
     BusUnavailable,
+    FaultCode,
     Forwarder,
     RemoteError,
     RpcFault,
@@ -145,7 +146,7 @@ async def test_request_reply_and_errors(forwarder: BusConfig) -> None:
         return bus_pb2.BenchPayload(data=req.data * 2)
 
     def full(_req: bus_pb2.Empty) -> bus_pb2.Empty:
-        raise RpcFault("refused", "table full (50000 of 50000)")
+        raise RpcFault(FaultCode.REFUSED, "table full (50000 of 50000)")
 
     def broken(_req: bus_pb2.Empty) -> bus_pb2.Empty:
         raise ZeroDivisionError("oops")
@@ -160,16 +161,17 @@ async def test_request_reply_and_errors(forwarder: BusConfig) -> None:
         reply = await client.request("svc", "double", bus_pb2.BenchPayload(data=b"ab"), bus_pb2.BenchPayload)
         assert reply.data == b"abab"
 
-        cases = [
-            ("full", bus_pb2.Empty(), "refused", "table full"),
-            ("broken", bus_pb2.Empty(), "internal", "ZeroDivisionError: oops"),
-            ("nothing", bus_pb2.Empty(), "unknown_method", "svc/nothing"),
-            ("double", bus_pb2.Empty(), "bad_request", "expected a cell.v1.BenchPayload"),
+        cases = [  # (each code one of FaultCode's, as the wire carries it: its string)
+            ("full", bus_pb2.Empty(), FaultCode.REFUSED, "table full"),
+            ("broken", bus_pb2.Empty(), FaultCode.INTERNAL, "ZeroDivisionError: oops"),
+            ("nothing", bus_pb2.Empty(), FaultCode.UNKNOWN_METHOD, "svc/nothing"),
+            ("double", bus_pb2.Empty(), FaultCode.BAD_REQUEST, "expected a cell.v1.BenchPayload"),
         ]
         for method, msg, code, text in cases:
             with pytest.raises(RemoteError) as info:
                 await client.request("svc", method, msg)
             assert (info.value.service, info.value.method, info.value.code) == ("svc", method, code)
+            assert FaultCode(info.value.code) is code
             assert text in info.value.message
         # the server survived every failure
         reply = await client.request("svc", "double", bus_pb2.BenchPayload(data=b"z"), bus_pb2.BenchPayload)
