@@ -66,7 +66,7 @@ def build_groups(config: CellConfig, publish: Publish | None = None) -> list[Rob
         ].append(r)
     here = config.here()
     host = here.address if here is not None else parse_host_port(config.dataplane.listen)[0]
-    if config.dataplane.backend == "xdp" and here is None:  # the switch's namespace is not ours: its veth
+    if config.dataplane.runs.in_kernel and here is None:  # the switch's namespace is not ours: its veth
         host = config.dataplane.xdp.host_addr
     groups: list[RobotGroup] = []
     try:

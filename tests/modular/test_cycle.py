@@ -431,9 +431,8 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     config = CycleConfig(period_ns=period_ns, budget_ns=period_ns, slot_ns=SLOT_NS * scale,
                          management_ns=400_000 * scale)  # fmt: skip
     slots = [{**s, "cd": where, **wrong} for s, where in zip(chain(6, random.Random(2)), cd, strict=True)]
-    idle = (
-        wait_until_quiet()
-    )  # (seven processes' cycles on this machine's cores: not the last test's teardown)
+    # (seven processes' cycles on this machine's cores: not the last test's teardown)
+    idle = wait_until_quiet()
     r = trial(slots, seconds, native=in_c, reference=ref, config=config)
     f = cycle_figures(r)
     err = r["tool_error_mm"]
