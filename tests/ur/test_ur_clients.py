@@ -173,6 +173,7 @@ async def test_200_clients_at_once_and_idle_ones_never_hold_up_the_arm_or_anothe
             writer.close()
         else:
             raise AssertionError("no place for a client after one of the held ones closed")
+        missed_before = (await _robots_counters(cell.config))["missed_ticks"]
         outputs = struct.pack(">d", 500.0) + b"timestamp"
         writer.write(rtde.encode(rtde.Package.CONTROL_PACKAGE_SETUP_OUTPUTS, outputs))
         writer.write(rtde.encode(rtde.Package.CONTROL_PACKAGE_START))
@@ -185,14 +186,31 @@ async def test_200_clients_at_once_and_idle_ones_never_hold_up_the_arm_or_anothe
                     if kind == rtde.Package.DATA_PACKAGE and len(body) == 9:
                         stamps.append(struct.unpack_from(">d", body, 1)[0])
         writer.close()
+        ended = time.monotonic()
         steps = np.rint(np.diff(stamps) / 0.002).astype(int)
-        assert (steps >= 1).all() and (steps - 1).sum() <= 2, np.unique(steps, return_counts=True)
+        # a period the arm's own tick missed (its thread held off the CPU by the host: counted in
+        # missed_ticks) has no state to send; any other gap is the RTDE server losing a package
+        missed = await _missed_ticks_since(cell.config, ended) - missed_before
+        skipped = int((steps - 1).sum())
+        assert (steps >= 1).all() and skipped <= 2 + missed, (np.unique(steps, return_counts=True), missed)
     finally:
         for _, w in conns:
             w.close()
     async with asyncio.timeout(5):  # (reported with the next heartbeat)
         while (await _robots_counters(cell.config)).get("ur.rtde_refused", 0) < 200 - ur.max_clients:
             await asyncio.sleep(0.05)
+
+
+async def _missed_ticks_since(config, after: float) -> float:
+    """The robots' missed_ticks as of a heartbeat sent after monotonic time `after`."""
+    async with asyncio.timeout(5):
+        while True:
+            fetched = time.monotonic()
+            status = await fetch_status(config)
+            robots = next(s for s in status.services if s.name == "robots")
+            if fetched - robots.heartbeat_age_s > after:
+                return robots.last.counters["missed_ticks"]
+            await asyncio.sleep(0.1)
 
 
 async def _robots_counters(config) -> dict[str, float]:
