@@ -33,7 +33,8 @@ def running(joint: int = JOINT) -> JointModule:
     m.config = Configure(joint, PERIOD, 0, BUDGET, (20.0,))
     m.joint, m.state = joint, "running"
     m.pos, m.vel = 0.25, -0.5
-    m.next_start = (time.monotonic_ns() // PERIOD + 1) * PERIOD
+    # a whole period ahead at least: the C loop's thread is started after this, maybe late on a busy host
+    m.next_start = (time.monotonic_ns() // PERIOD + 2) * PERIOD
     return m
 
 
@@ -92,7 +93,9 @@ def answer(qid: int, item: int, value: float, t: int) -> bytes:
 def test_the_c_cycle_sends_the_python_modules_bytes_and_ends_in_its_state(rig: Rig) -> None:
     twin = running()  # the Python module, fed the same times and answers
     ids = _IDS[JOINT]
-    rig.start(running(), until=twin.next_start + RUN_FOR)
+    m = running()
+    m.next_start = twin.next_start  # (the same cycle, should a period boundary fall between the two)
+    rig.start(m, until=twin.next_start + RUN_FOR)
     a = rig.recv()
     f = _A.parse(a)
     assert f is not None and f[1] == Pid.MRT and f[3] == MODULE and f[8] == 1  # qid 1
