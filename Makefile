@@ -7,7 +7,7 @@ STAMP_RUN  := $(VENV)/.installed-run
 STAMP_TEST := $(VENV)/.installed-test
 PROTOS := $(wildcard proto/cell/v1/*.proto)
 
-.PHONY: demo test perf lint proto bench clean bpf bpf-if-possible
+.PHONY: demo test test-slow test-tools perf lint proto bench clean bpf bpf-if-possible
 # the XDP data plane ([dataplane] backend = "xdp"): its BPF object, built with clang from the C source
 BPF_SRC := cell/dataplane/xdp/dataplane.bpf.c
 BPF_OBJ := cell/dataplane/xdp/dataplane.bpf.o
@@ -29,7 +29,8 @@ demo: $(STAMP_RUN)
 	@$(MAKE) -s bpf-if-possible
 	$(BIN)/cell demo
 
-test: $(STAMP_TEST)
+# the Debian tools the tests use, installed where apt and root allow (a skip for one fails under CI)
+test-tools:
 	@# the two-host test needs `ip` (iproute2) and root; installed here where apt and root allow
 	@command -v ip >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
 		apt-get install -y -q iproute2 >/dev/null 2>&1; } || true
@@ -42,9 +43,16 @@ test: $(STAMP_TEST)
 		{ apt-get update -q >/dev/null 2>&1 && \
 		apt-get install -y -q --no-install-recommends chromium >/dev/null 2>&1; }; }; } || true
 	@$(MAKE) -s bpf-if-possible
+
+test: $(STAMP_TEST) test-tools
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -m 'not perf and not slow'
+
+# the end-to-end runs of many seconds each (marked slow: campaigns, benches' harnesses, the demo, whole
+# cells through long scenarios); CI runs them after `make test` (.ci/run)
+test-slow: $(STAMP_TEST) test-tools
+	$(BIN)/python -m pytest -m 'slow and not perf'
 
 # throughput and timing checks that need a quiet machine (tests/perf, and the SnP cycle's end-to-end
 # runs: marked perf), then the benches' quick checks

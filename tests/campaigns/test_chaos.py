@@ -6,6 +6,7 @@ import json
 from collections import deque
 
 import numpy as np
+import pytest
 
 from cell.chaos.campaign import Observer, campaign
 from cell.chaos.faults import PROMISES, catalogue
@@ -68,6 +69,7 @@ def test_truth_that_arrives_out_of_order_is_judged_by_its_own_times() -> None:
     assert shuffled.lunge("r1", 0, 4_000_000_000)[0] > 0.4
 
 
+@pytest.mark.slow
 async def test_a_campaign_on_the_default_cell_holds_its_promises() -> None:
     rows: list[str] = []
     result = await campaign(1, ["kill:dataplane"], log_fn=rows.append)

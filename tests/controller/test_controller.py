@@ -91,6 +91,7 @@ async def ready(ctl: Controller, names: list[str]) -> None:
             await asyncio.sleep(0.05)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["kinematic", "mujoco"])
 async def test_a_joint_move_ends_on_its_goal_and_holds(start_cell, backend: str) -> None:
     async with driving(start_cell, robots(backend)) as (ctl, truth):
@@ -116,6 +117,7 @@ async def test_a_joint_move_ends_on_its_goal_and_holds(start_cell, backend: str)
         assert later["resubmits"] == st.counters["resubmits"]
 
 
+@pytest.mark.slow
 async def test_a_long_motion_streams_through_a_slow_jittery_link_without_a_stall(start_cell) -> None:
     """The controller 50 +/- 20 ms away: episodes arrive ahead of need, the tables never hold more
     than three episodes of the robot, and the robot follows the plan without stalling."""
@@ -274,6 +276,7 @@ async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell)
                 await asyncio.sleep(0.05)
 
 
+@pytest.mark.slow
 async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
     async with driving(start_cell, fast_truth("kinematic")) as (ctl, truth):
         first = asyncio.create_task(
@@ -329,6 +332,7 @@ async def test_robots_started_together_start_within_a_status_period(start_cell, 
             )  # (rt: re-estimated since)
 
 
+@pytest.mark.slow
 async def test_the_controller_service_moves_stops_and_resumes_over_the_bus(start_cell) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots", "controller"], robots=robots("kinematic"))
     M = controller_pb2.MoveRequest

@@ -36,6 +36,7 @@ async def pull_tps(bus: Bus, name: str, robot_id: int) -> None:
     await DataplaneClient(bus).update(flush=[robot_id])
 
 
+@pytest.mark.slow
 async def test_a_motion_the_robot_did_not_follow_is_failed_with_where_it_stands(start_cell) -> None:
     cell = await start_cell(
         run=["bus", "dataplane", "robots", "controller", "skills"],

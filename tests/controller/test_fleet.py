@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
+import pytest
 
 from cell.bus import Bus
 from cell.controller.controller import Controller
@@ -16,6 +17,7 @@ from tests.controller.test_controller import Q0, ready
 N = 100
 
 
+@pytest.mark.slow
 async def test_a_hundred_arms_on_one_socket_each_reach_their_own_goal(start_cell) -> None:
     arms = [
         {

@@ -53,6 +53,7 @@ async def test_armed_robots_wait_and_leave_their_holds_together_when_fired(start
             assert np.allclose(q, goal, atol=1e-4)
 
 
+@pytest.mark.slow
 async def test_a_loop_runs_its_laps_from_one_load_then_holds_where_it_began(start_cell) -> None:
     async with driving(start_cell, fast_truth("kinematic", 1)) as (ctl, truth):
         far = Q0 + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
@@ -105,6 +106,7 @@ async def test_a_prepared_alternate_is_taken_at_the_next_tp_without_planning(sta
         assert np.allclose(q, detour, atol=1e-4)
 
 
+@pytest.mark.slow
 async def test_task_scripts_loop_and_arm_alternates_through_the_controller_service(start_cell) -> None:
     from cell.bus import RemoteError
     from cell.master import Cell

@@ -34,6 +34,7 @@ async def last_truth(bus: Bus, name: str) -> robot_pb2.RobotTruth:
         sub.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["kinematic", "mujoco"])
 async def test_robot_follows_a_loaded_trajectory_to_its_end(start_cell, backend: str) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots(backend))

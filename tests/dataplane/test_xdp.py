@@ -284,6 +284,7 @@ async def test_a_detached_program_is_answered_for_from_user_space_and_attached_a
             plane.close()
 
 
+@pytest.mark.slow
 def test_the_background_sweep_times_both_programs_beside_ordinary_traffic_and_cleans_up() -> None:
     """Sec. 7.1 on XDP, one point: the generator offers what was asked through the switch's program,
     probes come back through both the velocity-control pipeline and plain forwarding, and the switch's

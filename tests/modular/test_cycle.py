@@ -416,6 +416,7 @@ def test_a_module_whose_exchanges_keep_missing_brakes_its_joint_until_a_whole_cy
         pytest.param(False, 4_000_000, ["local"] * 6, {}, id="python-4ms-local"),
     ],
 )
+@pytest.mark.slow
 def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     in_c: bool, period_ns: int, cd: list[str], wrong: dict
 ) -> None:

@@ -57,6 +57,7 @@ def test_bad_motions_are_refused_with_the_reason_and_nothing_moves() -> None:
     assert robot.motion is not None and robot.motion.path == "joints"  # the first one goes on
 
 
+@pytest.mark.slow
 def test_an_unplugged_module_stops_the_arm_where_it_stood_until_it_is_back() -> None:
     robot = ModularRobot(lost_cycles=20)
     robot.move(path="circle")

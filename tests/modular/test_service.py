@@ -15,6 +15,7 @@ from rerun.chunk import RrdReader
 from tests.conftest import run_cell
 
 
+@pytest.mark.slow
 async def test_a_task_script_moves_it_and_the_cli_unplugs_and_plugs_a_module(start_cell, tmp_path) -> None:
     rrd = tmp_path / "modular.rrd"
     cell = await start_cell(

@@ -35,6 +35,7 @@ def test_vdc_without_feedback_is_the_arms_inverse_dynamics() -> None:
         assert np.allclose(tau, arm.inverse_dynamics(q, qd, qdd), rtol=0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_the_arm_tracks_within_the_aims_and_loss_is_guessed_not_retried(ref) -> None:
     clean = track_vdc(ref)
     assert clean.tool_error_mm_max <= 2.0 and not clean.guessed
@@ -52,6 +53,7 @@ def test_the_arm_tracks_within_the_aims_and_loss_is_guessed_not_retried(ref) -> 
     assert central.tool_error_mm_max <= 2.0
 
 
+@pytest.mark.slow
 def test_cd_by_the_modules_with_this_cycles_neighbour_force_is_the_masters_bit_for_bit(ref) -> None:
     """[C, D] computed along the chain by the modules (each with its outboard neighbour's force of
     this cycle) is the master's backward recursion, redistributed: the same arm motion exactly.

@@ -50,6 +50,7 @@ def test_each_message_is_a_time_bounded_query_or_its_reply_with_32_bit_values(li
     assert b_of([k / 4 for k in range(20)]).v[-1] == 19 / 4
 
 
+@pytest.mark.slow
 def test_the_arm_tracks_with_every_message_over_sockets_as_it_does_in_memory(link) -> None:
     ref = circle(radius=0.08, speed=0.5)
     memory = track_vdc(ref)
@@ -62,6 +63,7 @@ def test_the_arm_tracks_with_every_message_over_sockets_as_it_does_in_memory(lin
     assert len(link.counters.transit_ns) == cycles - 1  # (one figure a cycle, the last still open)
 
 
+@pytest.mark.slow
 def test_junk_on_the_wire_is_refused_and_guessed_and_the_arm_tracks_on(link) -> None:
     """Every 50th datagram arrives corrupted (a flipped byte: its CRC fails): the receiver refuses it
     and the loop guesses as for a lost one (no retry); the arm keeps to the aim."""

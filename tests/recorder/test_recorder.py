@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pytest
 import rtde_io
 from rerun.chunk import RrdReader
 
@@ -77,6 +78,7 @@ async def saving_cell(tmp_path: Path, robots: list[dict], services: list[str], r
     assert proc.returncode == 0
 
 
+@pytest.mark.slow
 async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(start_cell, tmp_path) -> None:
     rrd = tmp_path / "run.rrd"
     robots = [
@@ -157,6 +159,7 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
         assert view in printed, view
 
 
+@pytest.mark.slow
 def test_cell_demo_runs_the_main_job_end_to_end(tmp_path) -> None:
     cfg = write_config(tmp_path / "cell.toml", cell_overrides())
     out, bag = tmp_path / "demo.rrd", tmp_path / "demo-bag"

@@ -117,6 +117,7 @@ class Browser:
                 await asyncio.sleep(1.0)  # (the interval between two looks at the page)
 
 
+@pytest.mark.slow
 async def test_the_printed_address_opens_the_cells_recording_in_a_browser(
     tmp_path: Path, caplog, monkeypatch
 ) -> None:

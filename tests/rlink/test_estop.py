@@ -146,6 +146,7 @@ async def test_a_task_script_estops_and_resumes_a_robot(cell) -> None:
     assert "released; moved on to" in out
 
 
+@pytest.mark.slow
 async def test_a_stop_that_comes_late_behind_a_newer_release_is_not_obeyed(cell) -> None:
     """A hub that hung loses its bus connection; the forwarder drains the old connection's backlog
     after the new one's events, so an e-stop can reach the controller after its robot's release.

@@ -66,6 +66,7 @@ async def collect(sub, until, timeout: float = 10.0) -> list:
     return got
 
 
+@pytest.mark.slow
 async def test_robots_announce_stream_follow_commands_and_stop(start_cell) -> None:
     cell = await start_cell(run=["bus", "robots"], robots=[{**r, "skill_port": free_port()} for r in ROBOTS])
     plane = Plane(cell.config.dataplane.listen)

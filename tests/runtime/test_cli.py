@@ -72,6 +72,7 @@ def test_config_show_prints_each_arms_ur_address_resolved(capsys: pytest.Capture
     assert [r["ur_address"] for r in data["robots"]] == ["127.0.1.1", "127.0.1.2"]  # r1, r2 (default "")
 
 
+@pytest.mark.slow
 def test_what_a_user_gets_wrong_is_one_line_and_its_exit_code(tmp_path) -> None:
     """No traceback for anything but a bug: no cell to talk to, a robot that is not there, a negative
     time, a reader that stops reading."""

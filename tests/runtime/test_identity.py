@@ -23,6 +23,7 @@ async def bus_counter(cell, key: str) -> float:
     return next(s for s in st.services if s.name == "bus").last.counters.get(key, 0.0)
 
 
+@pytest.mark.slow
 async def test_a_service_of_another_start_never_joins_and_is_counted(start_cell) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=ROBOTS)
     st = await fetch_status(cell.config)

@@ -65,6 +65,7 @@ def run(how: str) -> dict:
     return max(got, key=lambda g: g["gap_ms"])
 
 
+@pytest.mark.slow
 @pytest.mark.skipif((os.cpu_count() or 1) < 2 or not sys.platform.startswith("linux"), reason="2 CPUs, Linux")
 def test_polling_at_fifo_is_throttled_and_seen_polling_through_spin_is_not() -> None:
     if throttling_off():
@@ -97,6 +98,7 @@ def spinners(how: str) -> list[subprocess.Popen]:
     ]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif((os.cpu_count() or 1) < 2 or not sys.platform.startswith("linux"), reason="2 CPUs, Linux")
 async def test_a_cell_held_back_by_rt_throttling_says_so_in_cell_status(start_cell) -> None:
     if throttling_off():
@@ -171,6 +173,7 @@ def test_each_native_loop_of_a_process_is_watched_for_holds(monkeypatch) -> None
     assert meter.HELD.counters("p.") == {"p.held": 2, "p.held_ms": 60.0, "p.held_max_ms": 40.0}
 
 
+@pytest.mark.slow
 @pytest.mark.skipif((os.cpu_count() or 1) < 2 or not sys.platform.startswith("linux"), reason="2 CPUs, Linux")
 async def test_a_busy_process_on_every_core_reaches_no_arm(start_cell) -> None:
     """The default cell's packet path (two MuJoCo arms, the native data plane, the Responsive Link)

@@ -123,6 +123,7 @@ def wait_status(host: Host, config: Path, done, timeout: float) -> dict[str, str
         time.sleep(0.2)  # (pacing of a poll; each poll is a whole `cell status`)
 
 
+@pytest.mark.slow
 def test_a_plant_over_two_hosts_runs_secured_and_survives_one_host_dying(hosts, tmp_path: Path) -> None:
     a, b = hosts
     keys = tmp_path / "keys"

@@ -46,6 +46,7 @@ def test_commands_give_their_messages() -> None:
         MoveTo(1, 2, 3).x = 5  # type: ignore[misc]  # immutable
 
 
+@pytest.mark.slow
 async def test_cmdexec_acks_errors_sharing_and_joined(start_cell) -> None:
     cell = await start_cell(run=SERVICES, robots=kinematic())
     r = cell.config.robots[0]
@@ -93,6 +94,7 @@ async def test_a_connection_lost_mid_command_raises_and_sends_nothing_again(star
         await robot.close()
 
 
+@pytest.mark.slow
 async def test_example_scripts_run_end_to_end_one_after_another_on_one_cell(start_cell) -> None:
     """Each example as a user runs it (`cell run`), against one cell that stays up between them (as a
     user's does); the README's script below starts its own (`--up`)."""
@@ -125,6 +127,7 @@ def test_cell_run_reports_a_broken_script(tmp_path) -> None:
     assert proc.returncode == 2 and "async def main(cell)" in proc.stderr
 
 
+@pytest.mark.slow
 def test_the_readmes_first_script_runs(tmp_path) -> None:
     """The ten-line task script README.md shows a newcomer runs as written."""
     text = (ROOT / "README.md").read_text()

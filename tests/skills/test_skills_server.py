@@ -62,6 +62,7 @@ def pose_deg(q: np.ndarray) -> np.ndarray:
     return np.array(to_adept(*arm_model().fk(q)))
 
 
+@pytest.mark.slow
 async def test_motions_are_answered_when_started_and_break_when_arrived(cell) -> None:
     c = await Conn.open(cell.config.robots[0].skill_port)
     goal = Q0 + np.array([0.3, -0.2, 0.2, 0.1, 0.0, 0.4])

@@ -303,6 +303,7 @@ def test_a_killed_side_is_named_and_the_other_stops_and_holds() -> None:
     assert "remote side died" in str(died)
 
 
+@pytest.mark.slow
 def test_cell_teleop_runs_the_experiment_and_draws_it(tmp_path) -> None:
     rrd, png = tmp_path / "teleop.rrd", tmp_path / "teleop.png"
     cmd = [

@@ -210,6 +210,7 @@ def test_bad_bags_are_refused_in_one_line_naming_the_problem(tmp_path, monkeypat
             Trajectory.build(pts.t, pts.q, joint_names=pts.joint_names, robot_joints=joints)
 
 
+@pytest.mark.slow
 async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_nothing(
     start_cell, tmp_path
 ) -> None:
@@ -280,6 +281,7 @@ async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_n
     assert np.abs(np.array(after.joints) - Q0).max() < 2e-3  # where the trajectory ended: its start
 
 
+@pytest.mark.slow
 async def test_two_robots_follow_together_from_json_and_from_a_task_script(start_cell, tmp_path) -> None:
     robots = [
         {"id": i, "name": f"r{i}", "skill_port": free_port(), "backend": "mujoco", "truth_hz": 500}
@@ -325,6 +327,7 @@ def ramp(q_from: np.ndarray, q_to: np.ndarray, points: int = 25, seconds: float 
     return Trajectory.build(t, q_from + np.outer(s, q_to - q_from), name="ramp")
 
 
+@pytest.mark.slow
 async def test_skill_servers_run_named_trajectories_and_robot_clients_follow_in_turn(
     start_cell, tmp_path
 ) -> None:

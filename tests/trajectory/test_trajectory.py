@@ -164,6 +164,7 @@ async def path_error_mm(truth: Truth, kin: Kinematics, res, traj: Trajectory) ->
     )
 
 
+@pytest.mark.slow
 async def test_a_mujoco_arm_follows_a_trajectory_within_the_cells_own_accuracy(start_cell) -> None:
     robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "mujoco", "truth_hz": 500}]
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots)

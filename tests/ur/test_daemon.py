@@ -8,6 +8,7 @@ import asyncio
 
 import dashboard_client
 import numpy as np
+import pytest
 import rtde_receive
 
 from cell.bus import Bus, RemoteError
@@ -51,6 +52,7 @@ async def _ignored_once_running(config) -> float:
             await asyncio.sleep(0.05)
 
 
+@pytest.mark.slow
 async def test_the_demo_motions_run_through_the_daemon_on_an_arm_reached_only_over_rtde(start_cell) -> None:
     # (the controller is this test's own: no controller service beside it)
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=ur_robot(), sections=UR)
@@ -174,6 +176,7 @@ async def test_the_daemon_gives_way_to_the_controllers_state_and_takes_the_arm_b
         dash.disconnect()
 
 
+@pytest.mark.slow
 async def test_the_controller_going_away_stops_the_arm_by_its_program_and_the_daemon_picks_it_up_again(
     start_cell,
 ) -> None:

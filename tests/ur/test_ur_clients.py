@@ -8,6 +8,7 @@ import time
 
 import dashboard_client
 import numpy as np
+import pytest
 import rtde_io
 import rtde_receive
 
@@ -28,6 +29,7 @@ def robots(n: int = 1) -> list[dict]:
     ]
 
 
+@pytest.mark.slow
 async def test_rtde_reads_the_arms_truth_at_500_hz_while_it_moves(start_cell) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
     host = cell.config.robots[0].ur_host
@@ -142,6 +144,7 @@ async def test_junk_on_the_ur_ports_is_answered_and_counted_and_the_arm_goes_on(
             await asyncio.sleep(0.05)
 
 
+@pytest.mark.slow
 async def test_200_clients_at_once_and_idle_ones_never_hold_up_the_arm_or_another_client(start_cell) -> None:
     """200 RTDE connections to one arm at once, none sending a byte: [ur] max_clients of them are held
     open, the rest closed and counted; a client streaming at 500 Hz beside them misses nothing."""

@@ -64,6 +64,7 @@ async def _counter(config, name: str) -> float:
     return next(s for s in status.services if s.name == "robots").last.counters[name]
 
 
+@pytest.mark.slow
 async def test_rtde_control_takes_the_arm_from_the_cell_moves_it_and_gives_it_back(start_cell) -> None:
     cell = await start_cell(run=CELL, robots=robots())
     host = cell.config.robots[0].ur_host
@@ -109,6 +110,7 @@ async def test_rtde_control_takes_the_arm_from_the_cell_moves_it_and_gives_it_ba
             recv.disconnect()
 
 
+@pytest.mark.slow
 async def test_speedj_stopj_and_a_500_hz_servoj_stream_are_followed(start_cell) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
     host = cell.config.robots[0].ur_host

@@ -152,6 +152,7 @@ def test_the_focus_calibration_finds_the_focus_plane_on_a_whole_cell(tmp_path) -
     assert rows.get("/gantt/requests", 0) >= 1  # vision and robot requests as bars
 
 
+@pytest.mark.slow
 async def test_requests_for_odd_instants_get_a_frame_and_a_killed_camera_comes_back(start_cell) -> None:
     """vision.measure with instants it cannot have (far ahead, before any frame, negative) is answered
     with the closest frame it has, in bounded time; SIGKILL of the camera's process is restarted and
