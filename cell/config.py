@@ -19,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
+from typing import Any, Literal, Union, TypeVar, dataclass_transform, get_args, get_origin, get_type_hints
 
 import tomli_w
 
@@ -102,7 +102,19 @@ def _check_run(run: list[str], err: Callable[[str, str], ConfigError]) -> None:
 
 
 def _check(fn: Callable[[Any], str | None]) -> Any:
+    """A field the loader checks with `fn` (a problem in words, or None); no default: the embedded
+    default.toml holds every default, in one place."""
     return field(metadata={"check": fn})
+
+
+_T = TypeVar("_T")
+
+
+@dataclass_transform(frozen_default=True, field_specifiers=(field, _check))
+def _section(cls: type[_T]) -> type[_T]:
+    """A table of the config: a frozen dataclass whose fields `_check` describes (so a type checker
+    reads them as fields without a default, which they are)."""
+    return dataclass(frozen=True)(cls)
 
 
 def parse_host_port(text: str) -> tuple[str, int]:
@@ -126,13 +138,13 @@ def parse_host_port(text: str) -> tuple[str, int]:
 # --- the schema --------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@_section
 class CellSection:
     name: str = _check(_name)
     host: str = _check(lambda v: None if v == "" else _name(v))  # this host, in a cell of [hosts]
 
 
-@dataclass(frozen=True)
+@_section
 class HostConfig:
     """One host of a cell that spans several: its address and the services it runs."""
 
@@ -143,7 +155,7 @@ class HostConfig:
         _check_run(self.run, err)
 
 
-@dataclass(frozen=True)
+@_section
 class BusConfig:
     pub: str = _check(_zmq_endpoint)
     sub: str = _check(_zmq_endpoint)
@@ -169,7 +181,7 @@ class BusConfig:
 MAIN_GROUP = "main"  # the process of every service no [[services.groups]] entry names
 
 
-@dataclass(frozen=True)
+@_section
 class GroupDefaults:
     """Keys every [[services.groups]] entry inherits unless it sets them itself."""
 
@@ -180,7 +192,7 @@ class GroupDefaults:
     bus_sub: str
 
 
-@dataclass(frozen=True)
+@_section
 class ProcessGroup:
     """Services that share one OS process, and how the OS schedules it (layout = "groups")."""
 
@@ -205,7 +217,7 @@ class ProcessGroup:
             raise err("bus_pub", "the bus service binds [bus] pub/sub itself: no bus override in its group")
 
 
-@dataclass(frozen=True)
+@_section
 class ServicesConfig:
     run: list[str]
     layout: Literal["groups", "single", "each"]
@@ -236,7 +248,7 @@ class ServicesConfig:
             raise err("backoff_max_s", "must be >= backoff_initial_s")
 
 
-@dataclass(frozen=True)
+@_section
 class EgressConfig:
     """The data plane's egress port (NSDI'22 Appendix C): a line rate, a buffer per queue and how
     robot commands share it with forwarded traffic.  rate_mbps = 0: no limit (the kernel's)."""
@@ -257,7 +269,7 @@ def _ipv4(v: str) -> str | None:
     return None
 
 
-@dataclass(frozen=True)
+@_section
 class XdpConfig:
     """The XDP backend's switch: a network namespace the launcher creates, joined to the host by a
     veth pair (<veth>0 on the host, <veth>1 in the namespace, where the program is attached)."""
@@ -273,7 +285,7 @@ class XdpConfig:
 XDP_MAX_ENTITIES = 4096  # entities the XDP program's maps hold (cell/dataplane/xdp/dataplane.bpf.c)
 
 
-@dataclass(frozen=True)
+@_section
 class ForwardRule:
     """Ordinary (non-robot) UDP traffic the data plane forwards: what arrives on `listen` goes to
     `to`, through the egress port (the paper's switch port-forwarded its background traffic)."""
@@ -282,7 +294,7 @@ class ForwardRule:
     to: str = _check(_host_port)
 
 
-@dataclass(frozen=True)
+@_section
 class DataplaneBackend:
     """What a [dataplane] backend is, for what depends on it (the class that runs it is in
     cell.dataplane.backends): one place, not the name compared in each."""
@@ -303,7 +315,7 @@ DATAPLANE_BACKENDS = {
 }
 
 
-@dataclass(frozen=True)
+@_section
 class DataplaneConfig:
     listen: str = _check(_host_port)
     capacity: int = _check(_positive)
@@ -363,7 +375,7 @@ class DataplaneConfig:
                 raise err(f"v_max[{i}]", f"must be in (0, 10] rad/s (got {v})")
 
 
-@dataclass(frozen=True)
+@_section
 class ControllerConfig:
     tp_rate_hz: float = _check(lambda v: None if 1 <= v <= 500 else f"must be 1..500 TP/s (got {v})")
     fine_rate_hz: float = _check(lambda v: None if 1 <= v <= 500 else f"must be 1..500 TP/s (got {v})")
@@ -382,7 +394,7 @@ class ControllerConfig:
     settle_s: float = _check(_positive)
 
 
-@dataclass(frozen=True)
+@_section
 class SkillsConfig:
     host: str = _check(lambda v: _host_port(f"{v}:1"))
     break_tolerance_rad: float = _check(_positive)
@@ -394,7 +406,7 @@ class SkillsConfig:
     line_timeout_s: float = _check(_positive)  # a started command message must end within this
 
 
-@dataclass(frozen=True)
+@_section
 class RecorderConfig:
     mode: Literal["off", "save", "serve", "spawn"]
     path: str
@@ -403,7 +415,7 @@ class RecorderConfig:
     bag: str  # a rosbag2 directory (MCAP) the run is written to as well ("": none; cell.recorder.bag)
 
 
-@dataclass(frozen=True)
+@_section
 class SnpConfig:
     listen: str = _check(_host_port)
 
@@ -414,7 +426,7 @@ def _vector3(v: Any) -> str | None:
     return None
 
 
-@dataclass(frozen=True)
+@_section
 class VisionConfig:
     """The simulated close-range camera (service `vision`) and its frame buffer."""
 
@@ -445,7 +457,7 @@ def _where(v: Any) -> str | None:
     return None
 
 
-@dataclass(frozen=True)
+@_section
 class ModularConfig:
     """The modular robot (service `modular`, seed 002): six joint modules under VDC (docs/modular.md)."""
 
@@ -477,7 +489,7 @@ class ModularConfig:
             )
 
 
-@dataclass(frozen=True)
+@_section
 class RlinkConfig:
     """The cell's Responsive Link: where its nodes listen, their addresses, the beacon."""
 
@@ -497,7 +509,7 @@ class RlinkConfig:
             raise err("watchdog_s", "must cover at least two beacon periods (or be 0: off)")
 
 
-@dataclass(frozen=True)
+@_section
 class RobotConfig:
     id: int = _check(lambda v: None if 1 <= v <= 0xFFFF else f"must be 1..65535 (got {v})")
     name: str = _check(_name)
@@ -550,7 +562,7 @@ class RobotConfig:
             raise err("ur_emulate", f'only for backend = "ur" (this robot is backend = "{self.backend}")')
 
 
-@dataclass(frozen=True)
+@_section
 class RobotDefaults:
     """Keys every [[robots]] entry inherits unless it sets them itself."""
 
@@ -568,7 +580,7 @@ class RobotDefaults:
     tick: Literal["native", "python"]
 
 
-@dataclass(frozen=True)
+@_section
 class URConfig:
     """The UR controller's interfaces each emulated arm offers (cell.ur)."""
 
@@ -605,7 +617,7 @@ def _bound_host(config: CellConfig, service: str) -> str:
     return str(getattr(config, service).host)
 
 
-@dataclass(frozen=True)
+@_section
 class CellConfig:
     cell: CellSection
     bus: BusConfig
@@ -837,7 +849,7 @@ def _kind(value: Any) -> str:
 
 def _convert(tp: Any, value: Any, key: str, source: str) -> Any:
     origin = get_origin(tp)
-    if is_dataclass(tp):
+    if isinstance(tp, type) and is_dataclass(tp):
         return _build(tp, value, key, source)
     if origin is Literal:
         choices = get_args(tp)
