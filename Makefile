@@ -47,6 +47,7 @@ test-tools:
 test: $(STAMP_TEST) test-tools
 	$(BIN)/ruff check cell services tests examples
 	$(BIN)/lint-imports
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -m 'not perf and not slow'
 
 # the end-to-end runs of many seconds each (marked slow: campaigns, benches' harnesses, the demo, whole

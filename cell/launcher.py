@@ -106,7 +106,7 @@ async def _up(config: CellConfig, *, duration: float | None, log_level: str, cou
     stop = asyncio.Event()
     t0 = time.monotonic()
     final: health_pb2.CellStatus | None = None
-    failed: ServiceFailed | None = None
+    failed: Exception | None = None  # (a ServiceFailed, or a group of them)
     with stop_on_signals(stop), tempfile.TemporaryDirectory(prefix="cell-") as tmp:
         timer = asyncio.get_running_loop().call_later(duration, stop.set) if duration else None
         try:
@@ -134,7 +134,7 @@ async def _up(config: CellConfig, *, duration: float | None, log_level: str, cou
                 final = registry.status()
                 keeper.cancel()
         except* ServiceFailed as group:
-            failed = group.exceptions[0]  # type: ignore[assignment]
+            failed = group.exceptions[0]
         finally:
             if timer is not None:
                 timer.cancel()
@@ -243,8 +243,9 @@ async def wait_healthy(
                     last = reply
                     if want <= {s.name for s in last.services if s.health == "ok"}:
                         return last
-                popen = isinstance(proc, subprocess.Popen)
-                code = proc.poll() if popen else getattr(proc, "returncode", None)
+                code = (
+                    proc.poll() if isinstance(proc, subprocess.Popen) else getattr(proc, "returncode", None)
+                )
                 if code is not None:
                     raise RuntimeError(f"the cell exited with code {code}")
                 await asyncio.sleep(0.05)  # (the next heartbeat comes by itself: no busy asking)

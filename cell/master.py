@@ -21,7 +21,7 @@ import time
 import traceback
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from google.protobuf.message import Message
@@ -38,6 +38,7 @@ from cell.v1 import controller_pb2, skills_pb2
 from cell.vision.client import VisionClient
 
 log = logging.getLogger("cell.run")
+M = TypeVar("M", bound=Message)
 
 
 class Cell:
@@ -79,8 +80,8 @@ class Cell:
             raise KeyError(f"no robot {name!r} in this cell (robots: {', '.join(self.robots)})") from None
 
     async def request(
-        self, service: str, method: str, msg: Message, reply_type: type[Message], timeout: float = 5.0
-    ) -> Message:
+        self, service: str, method: str, msg: Message, reply_type: type[M], timeout: float = 5.0
+    ) -> M:
         """A request over the bus, its reply matched by id; BusTimeout after `timeout` s."""
         return await self.bus.request(service, method, msg, reply_type, timeout)
 
@@ -128,7 +129,7 @@ class Cell:
             ]
         )
         reply = await self.request("controller", "move_together", req, controller_pb2.MoveReply, 120.0)
-        return reply.t_start_ns / 1e9, reply.t_end_ns / 1e9  # type: ignore[attr-defined]
+        return reply.t_start_ns / 1e9, reply.t_end_ns / 1e9
 
     async def follow(
         self, trajectories: dict[str, Trajectory], speed: float = 50.0, replace: bool = False
@@ -170,12 +171,12 @@ class Cell:
                 to_message(r, tr.t, tr.q, tr.qd, tr.qdd, name=tr.name) for r, tr in trajectories.items()
             ],
         )
-        return await self.request("controller", "name", req, controller_pb2.NameReply, 30.0)  # type: ignore[return-value]
+        return await self.request("controller", "name", req, controller_pb2.NameReply, 30.0)
 
     async def follow_named(self, name: str, *robots: str, speed: float = 50.0) -> controller_pb2.MoveReply:
         """Run the trajectories named so (of these robots, or all) together; the reply when all have ended."""
         req = controller_pb2.FollowRequest(name=name, robots=list(robots), speed=speed)
-        return await self.request("controller", "follow", req, controller_pb2.MoveReply, 3600.0)  # type: ignore[return-value]
+        return await self.request("controller", "follow", req, controller_pb2.MoveReply, 3600.0)
 
     async def prepare_alternates(
         self, robot: str, goals_deg: dict[str, list[float]], speed: float = 100.0, every: int = 1
@@ -194,14 +195,14 @@ class Cell:
         reply = await self.request(
             "controller", "prepare_alternates", req, controller_pb2.AlternatesReply, 60.0
         )
-        return int(reply.tps_loaded)  # type: ignore[attr-defined]
+        return int(reply.tps_loaded)
 
     async def take_alternate(self, robot: str, name: str) -> tuple[float, float]:
         """Onto a prepared alternate at the next TP in reach (no planning); (start, end) when it has
         ended, on the data-plane clock, s."""
         req = controller_pb2.TakeAlternate(robot=robot, name=name)
         reply = await self.request("controller", "take_alternate", req, controller_pb2.MoveReply, 120.0)
-        return reply.t_start_ns / 1e9, reply.t_end_ns / 1e9  # type: ignore[attr-defined]
+        return reply.t_start_ns / 1e9, reply.t_end_ns / 1e9
 
     def arm_alternate(self, robot: str, name: str) -> None:
         """The same as an event anyone on the bus may send (topic alternate/<robot>): no reply."""
@@ -216,13 +217,13 @@ class Cell:
         values = np.radians(np.asarray(waypoints_deg, np.float64)).ravel().tolist()
         req = controller_pb2.LoopRequest(robot=robot, values=values, laps=laps, speed=speed)
         reply = await self.request("controller", "loop", req, controller_pb2.LoopReply, 3600.0)
-        return int(reply.laps)  # type: ignore[attr-defined]
+        return int(reply.laps)
 
     async def end_loop(self, robot: str) -> int:
         """End the robot's loop at the end of the lap in reach; the laps it runs."""
         req = controller_pb2.RobotRequest(robot=robot)
         reply = await self.request("controller", "end_loop", req, controller_pb2.LoopReply, 10.0)
-        return int(reply.laps)  # type: ignore[attr-defined]
+        return int(reply.laps)
 
 
 def load_main(path: Path) -> Callable[[Cell], Any]:

@@ -109,7 +109,7 @@ class ServiceRunner:
                 self.ctx.ready()
             await self.spec.run(self.ctx)
 
-    def _change(self, state: int, kind: int, text: str = "") -> None:
+    def _change(self, state: State, kind: Event.Kind, text: str = "") -> None:
         self.state = state
         self._sup.event(self, kind, text)
 
@@ -183,7 +183,7 @@ class Supervisor:
         except* ServiceFailed as group:
             raise group.exceptions[0] from None
 
-    def event(self, runner: ServiceRunner, kind: int, text: str) -> None:
+    def event(self, runner: ServiceRunner, kind: Event.Kind, text: str) -> None:
         ev = health_pb2.ServiceEvent(service=runner.name, kind=kind, text=text, restarts=runner.restarts)
         self._events.append((f"events/service/{runner.name}", ev))
         self._flush_events()

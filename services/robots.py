@@ -141,8 +141,7 @@ async def run(ctx: ServiceContext) -> None:
                 tick = Publisher(ctx.bus, g, node, ur_of.get(id(g)), full_rate=bool(ctx.config.recorder.bag))
                 tg.create_task(g.run(tick, starts.get(id(g))), name=f"robots:{g.robots[0].backend}")
             for g in hidden:
-                tick = ur_of[id(g)].after_tick
-                tg.create_task(g.run(tick, starts[id(g)]), name="robots:emulated-ur")
+                tg.create_task(g.run(ur_of[id(g)].after_tick, starts[id(g)]), name="robots:emulated-ur")
             tg.create_task(control(), name="control")
             if node is not None:
                 tg.create_task(node.run(), name="rlink")

@@ -131,7 +131,9 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
         for i in range(n_joint):
             goal = Q0 + rng.uniform(-0.6, 0.6, 6)
             res = await ctl.move_joints("r1", goal, speed=0.6)
-            path_joint.append(tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
+            seg = ctl.track("r1").segment
+            assert seg is not None  # (the move it planned)
+            path_joint.append(tool_errors_mm(kin, truth, "r1", seg, slice(0, 6)))
             await settle_and_read("r1", goal, res.end_ns)
             log(
                 f"joint move {i + 1}: path error at TPs max {path_joint[-1].max():.2f} mm "
@@ -141,22 +143,24 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
         await ctl.move_joints("r1", Q0, speed=0.6)
         # straight lines: a square of 200 mm, tool pointing down, and a diagonal down and back
         pos0, rot0 = kin.fk(Q0)
-        legs = [(0.2, 0, 0), (0, 0.2, 0), (-0.2, 0, 0), (0, -0.2, 0)]
+        legs: list[tuple[float, float, float]] = [(0.2, 0, 0), (0, 0.2, 0), (-0.2, 0, 0), (0, -0.2, 0)]
         if not quick:
             legs += [(0.1, 0.1, -0.15), (-0.1, -0.1, 0.15)]
         pos = pos0.copy()
         for i, leg in enumerate(legs):
             pos = pos + np.array(leg)
             res = await ctl.move_linear("r1", pos, rot0, speed=1.0)
-            path_linear.append(tool_errors_mm(kin, truth, "r1", ctl.track("r1").segment, slice(0, 6)))
+            seg = ctl.track("r1").segment
+            assert seg is not None  # (the move it planned)
+            path_linear.append(tool_errors_mm(kin, truth, "r1", seg, slice(0, 6)))
             e = path_linear[-1]
             log(
                 f"linear move {i + 1}: path error at TPs max {e.max():.2f} mm "
                 f"(TP {int(e.argmax()) + 1} of {e.size}), median {np.median(e):.2f} mm"
             )
-        goal = ctl.track("r1").q_hold
-        assert goal is not None
-        await settle_and_read("r1", goal, res.end_ns)
+        hold = ctl.track("r1").q_hold
+        assert hold is not None
+        await settle_and_read("r1", hold, res.end_ns)
         log(f"after the lines: stop error {stop_err[-1]:.1e} rad")
         # re-planning on the fly: branch off a long motion to another goal
         for k in range(2 if quick else 6):

@@ -116,7 +116,7 @@ def sweep(
     rounds: int | None = None,
 ) -> Sweep:
     """Every frame size and rate (see the module's docstring); SwitchError if XDP cannot run here."""
-    from cell.bench.dataplane import trial, xdp_switch
+    from cell.bench.dataplane import Trial, trial, xdp_switch
     from cell.dataplane.xdp.switch import in_namespace, switch_namespace
 
     seconds = seconds or (1.0 if quick else 2.0)
@@ -146,7 +146,8 @@ def sweep(
                         gen = ctx.Process(target=_generator, args=args, daemon=True)
                         gen.start()
                         out.get(timeout=30)  # under way before the probes
-                    fwd, ctl = [], []
+                    fwd: list[Trial] = []
+                    ctl: list[Trial] = []
                     try:
                         for k in range(rounds):  # interleaved, the order turned each round
                             for name in ("xdp-reflector", "xdp")[:: 1 if k % 2 == 0 else -1]:

@@ -23,6 +23,7 @@ import queue
 import statistics
 import time
 from dataclasses import dataclass, replace
+from multiprocessing.process import BaseProcess
 from typing import Any
 
 import zmq
@@ -104,7 +105,7 @@ def _raw_sink(route: Route, framing: Framing, n: int, out: Any) -> None:
     sub.subscribe(b"bench/")
     out.put("ready")
     count, first, last, warm_seen = 0, 0.0, 0.0, False
-    while count < n and sub.poll(IDLE_S * 1000):
+    while count < n and sub.poll(int(IDLE_S * 1000)):
         while True:
             try:
                 topic = framing.recv_topic(sub, zmq.NOBLOCK)
@@ -133,7 +134,7 @@ def _raw_echo(ping: Route, pong: Route, out: Any) -> None:
     else:
         pong.attach_sender(pub)
     out.put("ready")
-    while sub.poll(IDLE_S * 1000):
+    while sub.poll(int(IDLE_S * 1000)):
         frame = sub.recv()
         pub.send(PONG + frame[len(PING) :])
     sub.close(0)
@@ -184,7 +185,7 @@ def _bus_echo(cfg: BusConfig, out: Any) -> None:
 # --- the measurements (this process sends / pings) ---------------------------------------------
 
 
-def _spawn(target: Any, *args: Any) -> tuple[mp.Process, Any]:
+def _spawn(target: Any, *args: Any) -> tuple[BaseProcess, Any]:
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
     proc = ctx.Process(target=target, args=(*args, out), daemon=True)
@@ -305,7 +306,7 @@ def bus_round_trip(cfg: BusConfig, pings: int) -> dict[str, dict[str, float]]:
     return result
 
 
-def _end_echo(proc: mp.Process) -> None:
+def _end_echo(proc: BaseProcess) -> None:
     """An echo has nothing left to give once its pings are answered: ended now, not after IDLE_S
     of silence (which cost each round trip measurement seconds)."""
     proc.terminate()

@@ -28,6 +28,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -199,12 +200,16 @@ def _drivers_target(robots: int, out: Any, stop: Any) -> None:
         for r in range(1, robots + 1)
     ]
     try:
-        ports = [int(p.stdout.readline()) for p in procs]  # type: ignore[union-attr]
+        ports = []
+        for p in procs:
+            assert p.stdout is not None  # (stdout=PIPE)
+            ports.append(int(p.stdout.readline()))
         out.put({"addrs": [("127.0.0.1", port) for port in ports], "pids": [p.pid for p in procs]})
         stop.wait()
     finally:
         for p in procs:
-            p.stdin.close()  # type: ignore[union-attr]  (each driver ends when its stdin does)
+            assert p.stdin is not None  # (stdin=PIPE)
+            p.stdin.close()  # (each driver ends when its stdin does)
         for p in procs:
             try:
                 p.wait(10)
@@ -212,7 +217,7 @@ def _drivers_target(robots: int, out: Any, stop: Any) -> None:
                 p.kill()
 
 
-TARGETS = {
+TARGETS: dict[str, Callable[..., None]] = {
     "xdp": _xdp_target,
     "xdp+updates": _xdp_updating_target,
     "xdp-reflector": _xdp_reflector_target,
@@ -295,7 +300,7 @@ def _load(
     datagram.pack(
         recs, np.repeat(np.arange(1, robots + 1), 6), np.tile(np.arange(6), robots), Kind.STATUS, 0, 0.0, 0.0
     )
-    raw = memoryview(recs.view(np.uint8))
+    raw = recs.view(np.uint8).data
     chunk = 64 * datagram.SIZE  # GSO segments per call
     if isinstance(addr, list):  # a driver per robot: one send of its 6 joints each
         chunk = 6 * datagram.SIZE
@@ -397,12 +402,15 @@ def trial(target: str, robots: int, seconds: float = 2.0, net: Any = None) -> Tr
         if proc.is_alive():
             proc.kill()
         return Trial(target, robots, robots * 6 * 500, limit=addr)
-    pids = [proc.pid]
+    dest: Address | list[Address]
     if isinstance(addr, dict):  # (a target of many processes: each arm's address, their pids)
-        pids, addr = addr["pids"], [tuple(a) for a in addr["addrs"]]
+        pids, dest = addr["pids"], [tuple(a) for a in addr["addrs"]]
+    else:
+        assert proc.pid is not None  # (started)
+        pids, dest = [proc.pid], addr
     cpu0, t0 = sum(process_cpu_seconds(p) for p in pids), time.monotonic()
     try:
-        result = load(addr, robots, seconds, bind="127.0.0.1" if net is None else net.host_addr)
+        result = load(dest, robots, seconds, bind="127.0.0.1" if net is None else net.host_addr)
         result.cpu_cores = (sum(process_cpu_seconds(p) for p in pids) - cpu0) / (time.monotonic() - t0)
     finally:
         stop.set()

@@ -25,7 +25,7 @@ import queue
 import random
 import socket
 import time
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -96,7 +96,7 @@ def _flood(robots: int, dp_port: int, flowing: Any, stop: Any, out: Any) -> None
     recs = datagram.empty(robots * 6)
     recs["robot_id"] = np.repeat(np.arange(1, robots + 1), 6)
     recs["joint_id"] = np.tile(np.arange(6), robots)
-    raw = memoryview(recs.view(np.uint8))
+    raw = recs.view(np.uint8).data
     sock = udp.open_socket("127.0.0.1")
     sender = udp.Sender(sock, datagram.SIZE)
     chunk = 64 * datagram.SIZE
@@ -111,6 +111,12 @@ def _flood(robots: int, dp_port: int, flowing: Any, stop: Any, out: Any) -> None
     took = time.monotonic() - t0
     out.put({"flood_sent_per_s": sent / took, "flood_s": took})
     sock.close()
+
+
+class _ProbeState(TypedDict):
+    seq: int  # of the probe's last status
+    want: bool | None  # moving: what the awaited command does
+    fut: asyncio.Future[int] | None  # when it came (perf_counter_ns)
 
 
 def _probe_status(robot: int, seq: int) -> bytes:
@@ -129,7 +135,7 @@ async def _trials(cfg: Any, probe: int, dp_port: int, n: int) -> dict[str, Any]:
     sender = udp.Sender(sock, datagram.SIZE)  # one datagram per joint, as robots send
     loop = asyncio.get_running_loop()
     dp = ("127.0.0.1", dp_port)
-    state = {"seq": 0, "want": None, "fut": None}
+    state: _ProbeState = {"seq": 0, "want": None, "fut": None}
 
     def on_command() -> None:
         while True:
@@ -154,9 +160,10 @@ async def _trials(cfg: Any, probe: int, dp_port: int, n: int) -> dict[str, Any]:
             await asyncio.sleep(PERIOD_S)
 
     async def until(moving: bool, timeout: float) -> int:
-        state["want"], state["fut"] = moving, loop.create_future()
+        fut: asyncio.Future[int] = loop.create_future()
+        state["want"], state["fut"] = moving, fut
         async with asyncio.timeout(timeout):
-            return await state["fut"]
+            return await fut
 
     def order(kind: EventType) -> None:
         payload = events.robot_sets([probe], 1)[0].encode()

@@ -195,7 +195,7 @@ async def measure(
     n: int, seconds: float, backend: str = "auto", quiet: bool = False, churn: bool = False
 ) -> FleetRun:
     say = (lambda _m: None) if quiet else log
-    robots = [
+    robots: list[dict[str, Any]] = [
         {
             "id": i,
             "name": f"f{i}",
@@ -239,7 +239,7 @@ async def measure(
         await robots_heard(ctl, set(range(1, n + 1)), timeout=30.0)
         loaded: list[tuple[float, int]] = []
         timed = _TimedUpdates(ctl.dp, loaded)
-        ctl.dp = timed  # type: ignore[assignment]  (the engine's updates; its reads go through ctl.link)
+        ctl.dp = timed  # type: ignore[assignment]  # a stand-in: the engine's updates (reads go through ctl.link)
         for p in pairs:
             await ctl.merge(p)
         if churn:

@@ -101,8 +101,12 @@ def _measure(ports: dict, n: int, n_loaded_data: int, load_ready: Any, loaded: A
             if fut is not None and not fut.done():
                 fut.set_result(None)
 
+        def answered_all(batch: list[Packet]) -> None:
+            for p in batch:
+                answered(p)
+
         links = [LinkPorts(1, ports["a_ev"], ports["a_da"], ports["b_ev"], ports["b_da"])]
-        a = NodeLink(Node(1, _table(1, 1)), links, answered, lambda batch: [answered(p) for p in batch])
+        a = NodeLink(Node(1, _table(1, 1)), links, answered, answered_all)
         task = asyncio.create_task(a.run())
         loop = asyncio.get_running_loop()
         token = 0

@@ -57,7 +57,7 @@ def reflector(out: Any, stop: Any, answer: bool = True, core: int = 1) -> None:
             recs = datagram.view(bytearray(data))
             recs["kind"] = Kind.COMMAND
             recs["velocity"] = 0
-            answered += sender.send(memoryview(recs.view(np.uint8)), sender_addr)
+            answered += sender.send(recs.view(np.uint8).data, sender_addr)
     out.put((received, answered))
     sock.close()
 

@@ -38,7 +38,7 @@ import argparse
 import asyncio
 import itertools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -54,7 +54,7 @@ from cell.vision import focus
 from cell.vision.client import VisionClient
 
 
-def _stats(ns: list[int]) -> dict[str, float]:
+def _stats(ns: Sequence[float]) -> dict[str, float]:
     a = np.array(ns) / 1e6
     return {
         "p50_ms": float(np.median(a)),
@@ -84,14 +84,15 @@ async def _echo_baseline(n: int) -> list[int]:
 
 
 async def measure(n: int, log: Callable[[str], None]) -> dict[str, Any]:
-    robots = [{"id": i, "name": f"r{i}", "skill_port": free_port(), "backend": "kinematic"} for i in (1, 2)]
+    ports = {i: free_port() for i in (1, 2)}
+    robots = [{"id": i, "name": f"r{i}", "skill_port": ports[i], "backend": "kinematic"} for i in (1, 2)]
     services = ["bus", "dataplane", "robots", "controller", "skills"]
     overrides = {"robots": robots, "services": {"run": services}}
     echo = await _echo_baseline(n)
     async with (
         running_cell(overrides) as config,
         Bus.connect(config.bus, "bench-skills") as bus,
-        RobotClient("r1", config.skills.host, robots[0]["skill_port"], bus) as robot,
+        RobotClient("r1", config.skills.host, ports[1], bus) as robot,
     ):
         for _ in range(50):  # warm up
             await robot.cmdexec(SetSpeed(50))
@@ -131,7 +132,8 @@ DELTAS = (1.5, 2.0, 2.5)  # its delta_z values, mm
 async def approach_sweep(increments: int, log: Callable[[str], None]) -> dict[str, Any]:
     """ufloop's approach phase, `increments` iterations per (speed, delta_z), back and forth in front of
     the camera; the paper's timing figures from every iteration."""
-    robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "kinematic"}]
+    port = free_port()
+    robots = [{"id": 1, "name": "r1", "skill_port": port, "backend": "kinematic"}]
     services = ["bus", "dataplane", "robots", "controller", "skills", "vision"]
     overrides = {"robots": robots, "services": {"run": services}}
     tau_r, literal, r2v, v2r, ss_mrt, mrt_b = [], [], [], [], [], []
@@ -139,7 +141,7 @@ async def approach_sweep(increments: int, log: Callable[[str], None]) -> dict[st
     async with (
         running_cell(overrides) as config,
         Bus.connect(config.bus, "bench-ufloop") as bus,
-        RobotClient("r1", config.skills.host, robots[0]["skill_port"], bus) as rc,
+        RobotClient("r1", config.skills.host, port, bus) as rc,
     ):
         vision = VisionClient(bus)
         await focus.init_move(rc)

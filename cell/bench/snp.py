@@ -24,7 +24,7 @@ import multiprocessing as mp
 import random
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 
@@ -208,16 +208,18 @@ def trial(
     master.start()
     master_port = port_q.get(timeout=30)
     net = None
-    if routed:
+    if routes_q is not None:  # (routed)
         from cell.snp.link import module_port
         from cell.snp.routed import start_routers
 
         until = time.monotonic() + seconds + 40
-        net = start_routers(ctx, master_port, ports, until, ROUTER_PRIORITY, ROUTER_CPUS, native=native)
-        routes_q.put(net.master)  # type: ignore[union-attr]
+        net = routers = start_routers(
+            ctx, master_port, ports, until, ROUTER_PRIORITY, ROUTER_CPUS, native=native
+        )
+        routes_q.put(routers.master)
         for s in slots:
             k = ports.index(s["port"])
-            s["routes"], s["route_port"] = net.modules[k], module_port(k)
+            s["routes"], s["route_port"] = routers.modules[k], module_port(k)
     grid = config.management_grid
     mods = ctx.Process(
         target=_modules, args=(slots, seconds, loss, grid, native, done, out_s, reference), daemon=True
@@ -356,6 +358,20 @@ CUT_MODULE = 3  # the routed runs' module whose link to R1 is cut
 ROUTED_RUNS = ("_routed", "_python_routed")
 
 
+class _MassError(TypedDict, total=False):
+    """The modules' believed inertia and its adaptation (chain()'s extra Slot arguments)."""
+
+    believed: float
+    adapt: float
+
+
+class _Routed(TypedDict, total=False):
+    """trial()'s arguments of a routed run."""
+
+    routed: bool
+    cut: tuple[float, int]
+
+
 def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[str, VdcCycleFigures]:
     """VDC's maths in the cycle between processes (cell.modular.cycle): the six modules drive the
     MuJoCo arm along the 0.5 m/s pick and place, the master answers with VDC's recursions.  In C
@@ -399,12 +415,12 @@ def vdc_in_cycle(config: CycleConfig, native: bool, rng: random.Random) -> dict[
     for key, (cfg, in_c, cd) in runs.items():
         if in_c and not native:
             continue
-        wrong = (
+        wrong: _MassError = (
             {"believed": BELIEVED, "adapt": ADAPT if key == "_adapted" else 0.0} if key in MASS_RUNS else {}
         )
-        net = {"routed": True, "cut": cut} if key in ROUTED_RUNS else {}
+        net: _Routed = {"routed": True, "cut": cut} if key in ROUTED_RUNS else {}
         slots = chain(6, rng, "snp", cd=cd, **wrong)
-        r = trial(slots, seconds, config=cfg, native=in_c, reference=ref, **net)  # type: ignore[arg-type]
+        r = trial(slots, seconds, config=cfg, native=in_c, reference=ref, **net)
         err = r["tool_error_mm"]
         out[key] = VdcCycleFigures(
             **dataclasses.asdict(cycle_figures(r, cfg.period_ns)),

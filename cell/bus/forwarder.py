@@ -13,6 +13,7 @@ import itertools
 import struct
 import threading
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import zmq
 
@@ -20,6 +21,9 @@ import cell.bus.curve as curve
 import cell.bus.identity as identity
 from cell.bus.node import BusError, readable, secure_server, tune, zmq_context
 from cell.config import BusConfig
+
+if TYPE_CHECKING:
+    from zmq.auth.thread import ThreadAuthenticator
 
 _ids = itertools.count()
 
@@ -49,8 +53,8 @@ class Forwarder:
         self.config = config
         self._thread: threading.Thread | None = None
         self._control_ep = f"inproc://cell-forwarder-{next(_ids)}"
-        self._ctl = None
-        self._auth = None
+        self._ctl: zmq.Socket | None = None
+        self._auth: ThreadAuthenticator | None = None
         self.guard: identity.Guard | None = None
 
     def start(self) -> None:

@@ -23,7 +23,7 @@ from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import zmq
 from google.protobuf.message import Message
@@ -191,11 +191,11 @@ async def readable(sock: zmq.Socket) -> None:
     whatever the FD says, so that a lost edge costs at most that much, counted
     in `wakeups["missed"]`, never a subscriber asleep on a full queue.
     """
-    if sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+    if cast(int, sock.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
         return
     loop = asyncio.get_running_loop()
     fut: asyncio.Future[None] = loop.create_future()
-    fd = sock.getsockopt(zmq.FD)
+    fd = cast(int, sock.getsockopt(zmq.FD))  # (pyzmq types an option's value int | bytes)
     if fd in _waiting:
         raise RuntimeError("another coroutine is already waiting on this socket (one reader per socket)")
     _waiting.add(fd)
@@ -203,14 +203,16 @@ async def readable(sock: zmq.Socket) -> None:
     def check() -> None:
         if fut.done() or sock.closed:  # (a wake-up queued before the socket was closed)
             return
-        if sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+        if cast(int, sock.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
             fut.set_result(None)
+
+    timer: asyncio.TimerHandle
 
     def recheck() -> None:
         nonlocal timer
         if fut.done() or sock.closed:
             return
-        if sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+        if cast(int, sock.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
             wakeups["missed"] += 1
             fut.set_result(None)
         else:
@@ -348,6 +350,9 @@ class Subscription:
 
 class Bus:
     """One node on the bus, named `source`; open it with `async with Bus.connect(cfg, name) as bus`."""
+
+    _pub: zmq.Socket  # (connect() opens both)
+    _ctl: zmq.Socket
 
     def __init__(self, config: BusConfig, source: str) -> None:
         self.config = config
@@ -700,9 +705,9 @@ class Bus:
 
     def _dispatch(self, frame: bytes) -> None:
         if frame.startswith(_SYNC):
-            fut = self._syncs.get(frame_topic(frame))
-            if fut is not None and not fut.done():
-                fut.set_result(None)
+            sync = self._syncs.get(frame_topic(frame))
+            if sync is not None and not sync.done():
+                sync.set_result(None)
             return
         try:
             env = decode(frame)

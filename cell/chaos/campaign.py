@@ -214,10 +214,13 @@ class Campaign:
         async with asyncio.timeout(timeout):
             while True:
                 st = self.last_status = await self.status()
-                healthy = st is not None and want <= ok_services(st)
-                healthy = healthy and not any(s.last.pid == dead.get(s.name) for s in st.services)
-                if healthy and all(self.obs.at_rest(r) for r in self.robots):
-                    return st  # type: ignore[return-value]
+                if (
+                    st is not None
+                    and want <= ok_services(st)
+                    and not any(s.last.pid == dead.get(s.name) for s in st.services)
+                    and all(self.obs.at_rest(r) for r in self.robots)
+                ):
+                    return st
                 await asyncio.sleep(0.1)
 
     async def counted(

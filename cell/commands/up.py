@@ -5,15 +5,18 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import replace
+from typing import Literal
 
 from cell.commands import Command, config_arg, load, register, seconds
 from cell.config import CellConfig, ConfigError
+
+RERUN_MODES: tuple[Literal["off", "save", "serve", "spawn"], ...] = ("spawn", "serve", "save", "off")
 
 
 def with_rerun(config: CellConfig, words: list[str]) -> CellConfig:
     """`--rerun spawn | serve | save PATH.rrd | off`: the recorder's mode for this run."""
     mode, *rest = words
-    if mode not in ("spawn", "serve", "save", "off") or len(rest) != (1 if mode == "save" else 0):
+    if mode not in RERUN_MODES or len(rest) != (1 if mode == "save" else 0):
         raise ConfigError("--rerun", "", "expected spawn, serve, save PATH.rrd or off")
     recorder = replace(config.recorder, mode=mode, path=rest[0] if rest else config.recorder.path)
     return _recording(config, recorder)
@@ -69,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         config = with_rerun(config, args.rerun)
     if args.bag:
         config = with_bag(config, args.bag)
-    layout = "each" if args.processes else args.layout
+    layout: Literal["groups", "single", "each"] | None = "each" if args.processes else args.layout
     if layout is not None:
         config = replace(config, services=replace(config.services, layout=layout))
     check_all(config)  # unknown services are config errors (exit 2), before anything starts

@@ -84,14 +84,14 @@ class Controller(Engine):
                 remove=[(t.robot, i) for t in held for i in t.loaded],
                 registers=[(t.robot, None, 0) for t in held],
             )
-        q_hold = [t.q_hold for t in old]
+        q_hold = [t.q_hold for t in old if t.q_hold is not None]
         await self.dp.merge(ids)
         merged = self.limits_of(ids)
         for rid in ids:
             self.tracks.pop(rid, None)
         track = Track(ids[0], ids, merged)
-        if all(q is not None for q in q_hold):
-            track.q_hold = np.concatenate(q_hold)  # type: ignore[arg-type]
+        if len(q_hold) == len(old):  # (every robot's)
+            track.q_hold = np.concatenate(q_hold)
         self.tracks[ids[0]] = track
         return track
 
@@ -246,7 +246,7 @@ class Controller(Engine):
             known = ", ".join(sorted(self.named)) or "none"
             raise PlanError(f"no trajectory named {name!r} (named: {known})")
         if not robots:
-            return dict(found)
+            return {r: t for r, t in found.items()}  # (a copy, its keys typed as the result's)
         ids = [self.track(r).robot for r in robots]
         missing = [r for r in ids if r not in found]
         if missing:
@@ -340,6 +340,7 @@ class Controller(Engine):
         if left.kind is MotionKind.LINEAR:
             pos, rot = left.target
             return await self.move_linear(robot, pos, rot, left.speed, left.fine)
+        assert isinstance(left.target, np.ndarray)  # (JOINTS: its joints)
         return await self.move_joints(robot, left.target, left.speed, left.fine)
 
     async def execute(self, motions: dict[int, Motion], fine: bool = False) -> MotionResult:

@@ -260,7 +260,8 @@ class Engine(Stopping, RobotBook):
             await self.confirm_running(track)
             # (in a worker thread: fitting a long motion's TPs takes 0.1-0.5 s of CPU, which would hold
             # up everything else this controller does, its watch on the data plane too)
-            phase = near[robot][1] if near[robot] is not None else 0
+            beside = near[robot]
+            phase = beside[1] if beside is not None else 0
             sections = await asyncio.to_thread(
                 cut, motion, rate, np.resize(self.gain, track.joints), self.loop(track), tick0=phase
             )

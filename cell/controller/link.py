@@ -22,7 +22,7 @@ class Link:
         self.offset_ns = 0
         self.realtime_offset_ns: int | None = None  # the cell clock less the data plane's (exact)
         self.boot_id: int | None = None  # the data plane's start (DataplaneState.boot_id)
-        self._best_rtt = None  # the offset comes from the read with the shortest round trip
+        self._best_rtt: int | None = None  # the offset comes from the read with the shortest round trip
         self.rtts: deque[int] = deque(maxlen=32)
 
     async def state(

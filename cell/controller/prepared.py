@@ -79,7 +79,8 @@ async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.
         await ctl.confirm_running(track)
         q0 = await ctl.start_q(track)
         motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
-        phase = near[track.robot][1] if near[track.robot] is not None else 0
+        beside = near[track.robot]
+        phase = beside[1] if beside is not None else 0
         sections = await asyncio.to_thread(
             cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), ctl.loop(track), tick0=phase
         )
@@ -92,8 +93,9 @@ async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.
     batches, registers, remove, out = [], [], [], []
     for track, motion, sections, (hold_id, *ids) in planned:
         q0 = motion.sample(np.array([0.0]))[0][0]
-        off, phase = near[track.robot] if near[track.robot] is not None and tick0 is not None else (0, None)
-        seg = Segment(start + off, motion, sections, ids, phase, track.robot)
+        beside = near[track.robot]
+        off, seg_tick0 = beside if beside is not None and tick0 is not None else (0, None)
+        seg = Segment(start + off, motion, sections, ids, seg_tick0, track.robot)
         batches.append(hold_batch(track, hold_id, hold_id, q0, period / 1e9))
         batches.append(tp_batch(track, seg, 0, min(ctl.episode, len(ids))))
         registers.append((track.robot, hold_id, at))
@@ -299,6 +301,7 @@ async def take_alternate(ctl: Engine, robot: int | str, name: str) -> MotionResu
         )
     if track.segment is not main or not track.moving:
         raise PlanError(f"the motion alternate {name!r} was prepared for has ended")
+    assert main is not None  # (it has alternates prepared)
     ahead = ctl.link.now() + ctl.link.rtt_ns + SWITCH_MARGIN_NS
     # the earliest branch point in reach whose TP of the main motion is loaded (streaming loads the
     # main motion an episode ahead: later branch points are not in the tables yet)

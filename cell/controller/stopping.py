@@ -9,6 +9,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -59,9 +60,10 @@ class Stopping:
     async def _halt(self, track: Track) -> None:
         """Stop streaming the track's motion; wait for its updates in flight."""
         if track.moving:
-            track.task.cancel()  # type: ignore[union-attr]
+            assert track.task is not None  # (moving: its task runs)
+            track.task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
-                await track.task  # type: ignore[misc]
+                await track.task
         if track.inflight:
             await asyncio.gather(*track.inflight, return_exceptions=True)
 
@@ -92,7 +94,7 @@ class Stopping:
     # --- stops and losses ------------------------------------------------------------------------
 
     async def stop(
-        self, robots: list[int | str] | None = None, flush: bool = False
+        self, robots: Sequence[int | str] | None = None, flush: bool = False
     ) -> dict[int, MotionResult]:
         """Protective stop: the robots decelerate within their limits from where they are, taking
         effect at the data plane's next packet after this update (within one command window).  With
@@ -132,7 +134,9 @@ class Stopping:
                 if not modelled[rid]:
                     r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
                     continue
-                if reply.now_ns > self._last_status_ns(self.track(rid), self.track(rid).segment):
+                track = self.track(rid)
+                assert track.segment is not None  # (its stop's, set above)
+                if reply.now_ns > self._last_status_ns(track, track.segment):
                     self.late_stops += 1  # it brakes a window later than its plan
                     log.warning(
                         "stop of robot %s in place %.1f ms into the window it was planned for",
@@ -187,7 +191,8 @@ class Stopping:
             t.generation += 1
             t.epoch += 1
             if t.moving:
-                t.task.cancel()  # type: ignore[union-attr]
+                assert t.task is not None  # (moving: its task runs)
+                t.task.cancel()
             t.loaded, t.segment, t.q_hold = [], None, None
         if hit:
             self.lost.append((time.monotonic(), reason))

@@ -33,6 +33,7 @@ class DataplaneClient:
         req = dataplane_pb2.TableUpdate(flush_robots=flush)
         encode_tps(insert if isinstance(insert, TPBatch) else TPBatch.of(list(insert)), req.insert)
         encode_keys(remove, req.remove)
+        tp_id: int | None  # (a switch's TP; a register's, None to clear)
         for robot, tp_id, nxt in switches:
             req.switches.add(robot_id=robot, tp_id=tp_id, next_id=nxt or 0, unset=nxt is None)
         for robot, tp_id, next_time in registers:
@@ -55,7 +56,7 @@ class DataplaneClient:
     async def merge(self, robots: Sequence[int]) -> int:
         req = dataplane_pb2.MergeRequest(robot_ids=robots)
         reply = await self.bus.request(self.service, "merge", req, dataplane_pb2.MergeReply, self.timeout)
-        return reply.entity  # type: ignore[union-attr]
+        return reply.entity
 
     async def state(
         self, robot_ids: Sequence[int] = (), robots_only: bool = False, timeout: float | None = None

@@ -81,7 +81,8 @@ class ServerState(ctypes.Structure):
 
 
 @functools.cache
-def _lib() -> ctypes.CDLL:
+def _lib() -> tuple[ctypes.CDLL, int, int]:
+    """The library, and the sizes of native.c's scratch and mark records."""
     lib = build("dataplane", (SOURCE,), (BPF_SOURCE,))
     lib.dp_payload.argtypes = [_P, _P, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint16]
     lib.dp_payload.restype = ctypes.c_int
@@ -100,8 +101,7 @@ def _lib() -> ctypes.CDLL:
     if sizes[8] != len(COUNTERS):
         why = f"native.c counts {sizes[8]} counters, cell.dataplane.xdp.program names {len(COUNTERS)}"
         raise NativeUnavailable(why)
-    lib.scratch_size, lib.mark_size = int(sizes[6]), int(sizes[7])
-    return lib
+    return lib, int(sizes[6]), int(sizes[7])
 
 
 def available() -> str:
@@ -115,7 +115,7 @@ class NativeProgram(Gate):
     gate_error = RuntimeError
 
     def __init__(self, capacity: int, n_bits: int, joints: int) -> None:
-        lib = self.lib = _lib()
+        self.lib, scratch_size, mark_size = _lib()
         self.capacity, self.joints, self.n_bits = capacity, joints, n_bits
         self.eps = entries_per_sign(n_bits)
         self.robots = np.zeros(1 << 16, ROBOT)
@@ -128,8 +128,8 @@ class NativeProgram(Gate):
         self.globals = self._globals[0]
         self._counters = np.zeros(len(COUNTERS), np.uint64)
         self._retired: list[np.ndarray] = []
-        self._scratch = np.zeros(lib.scratch_size, np.uint8)
-        self._marks = np.zeros(MAX_ENTITIES * lib.mark_size, np.uint8)
+        self._scratch = np.zeros(scratch_size, np.uint8)
+        self._marks = np.zeros(MAX_ENTITIES * mark_size, np.uint8)
         self.maps = NativeMaps()
         for name, arr, n, size in (
             ("robots", self.robots, 1 << 16, ROBOT.itemsize),
@@ -140,8 +140,8 @@ class NativeProgram(Gate):
             ("limits", self.limits, MAX_JOINTS, LIMIT.itemsize),
             ("globals", self._globals, 1, GLOBALS.itemsize),
             ("counters", self._counters, len(COUNTERS), 8),
-            ("scratches", self._scratch, 1, lib.scratch_size),
-            ("marks", self._marks, MAX_ENTITIES, lib.mark_size),
+            ("scratches", self._scratch, 1, scratch_size),
+            ("marks", self._marks, MAX_ENTITIES, mark_size),
         ):
             setattr(self.maps, name, _Map(arr.ctypes.data, n, size))
         self._ref = ctypes.addressof(self.maps)

@@ -279,7 +279,7 @@ class Pipeline:
 
     # --- stops -------------------------------------------------------------------------------
 
-    def set_stop_ramp(self, decel: Sequence[float], window_s: float) -> None:
+    def set_stop_ramp(self, decel: Sequence[float] | np.ndarray, window_s: float) -> None:
         """StopRamp: per joint, the velocity a window's braking at `decel` (rad/s^2) takes away."""
         self.stop_ramp = np.rint(np.resize(np.asarray(decel, np.float64), self.joints) * window_s * SCALE)
         self.stop_ramp = self.stop_ramp.astype(np.int64)

@@ -104,8 +104,9 @@ class DataPlane:
         """The packet path's sockets, egress port and forwarders."""
         dp = config.dataplane
         # each robot is pinned to the address its first status came from: another sender's statuses
-        # for it are dropped (counted `spoofed`) until it has been quiet for QUIET_NS (a restart)
-        self.robot_addr: dict[int, tuple] = {}
+        # for it are dropped (counted `spoofed`) until it has been quiet for QUIET_NS (a restart); a
+        # mapped data plane's packet path pins them in its own maps (Pins reads them there)
+        self.robot_addr: dict[int, tuple] | Pins = {}
         self.pin = np.full(1 << 16, -1, np.int32)  # robot -> its sender's number in _sender_ids
         self._sender_ids: dict[tuple, int] = {}
         self.sock = udp.open_socket(*parse_host_port(dp.listen), timestamps=True)
@@ -203,7 +204,7 @@ class DataPlane:
                 self.pipeline.apply_stops(recs)  # once, over every slice: before the stop or after
         # answer each sender with its own records, in one sendto each
         answered = np.bincount(owner, minlength=len(chunks))
-        raw = memoryview(recs.view(np.uint8))
+        raw = recs.view(np.uint8).data
         start = 0
         for k in np.flatnonzero(answered).tolist():
             n = int(answered[k])
@@ -234,10 +235,12 @@ class DataPlane:
         return np.isin(key, bad) if bad else np.zeros(robot.size, bool)
 
     def _pin(self, robot: int, addr: tuple) -> None:
-        self.robot_addr[robot] = addr
+        pinned = self.robot_addr
+        assert isinstance(pinned, dict)  # (the packet path in Python pins them itself)
+        pinned[robot] = addr
         if addr not in self._sender_ids:
-            if len(self._sender_ids) > 2 * len(self.robot_addr) + 64:  # forget senders no robot uses
-                used = set(self.robot_addr.values())
+            if len(self._sender_ids) > 2 * len(pinned) + 64:  # forget senders no robot uses
+                used = set(pinned.values())
                 self._sender_ids = {a: i for a, i in self._sender_ids.items() if a in used}
             self._sender_ids[addr] = max(self._sender_ids.values(), default=-1) + 1
         self.pin[robot] = self._sender_ids[addr]
@@ -311,7 +314,7 @@ class DataPlane:
             recs["position"] = t.status_pos[r, :n]
             recs["velocity"] = self.pipeline.ramp(t.status_vel[r, :n].copy(), np.arange(n))
             before = self.commands_out
-            self._emit(memoryview(recs.view(np.uint8)), addr)
+            self._emit(recs.view(np.uint8).data, addr)
             sent += self.commands_out - before
         return sent
 

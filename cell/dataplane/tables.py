@@ -427,6 +427,7 @@ class Tables:
             key = tpkey(self.entity_of(robot), tp_id)
             return key in self._row or key in new_keys
 
+        tp_id: int | None  # (a switch's TP; a register's, None to clear)
         for robot, tp_id, _ in switches:
             if not exists(robot, tp_id):
                 raise Refused("unknown_tp", f"switch at TP {tp_id} of robot {robot}: no such TP")

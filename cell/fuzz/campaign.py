@@ -315,7 +315,7 @@ class Listeners:
             recs["seq"] = rng.integers(0, 2**32, m, dtype=np.uint64)
             for f in ("velocity", "position"):
                 recs[f] = np.where(rng.random(m) < 0.5, rng.choice(wild, m), rng.integers(-(2**31), 2**31, m))
-            raw = memoryview(recs.view(np.uint8))
+            raw = recs.view(np.uint8).data
             for i in range(0, m, 64):
                 sender.send(raw[i * datagram.SIZE : (i + 64) * datagram.SIZE], addr)
             for _ in range(bad):
@@ -487,6 +487,11 @@ def _harmless(frame: bytes) -> bytes:
 # --- the attacks on resources -----------------------------------------------------------------------
 
 
+def _silent(r: asyncio.StreamReader) -> bool:
+    """Open, and nothing from the server waiting in its buffer."""
+    return not r.at_eof() and not r._buffer  # type: ignore[attr-defined]  # a private buffer: no public peek
+
+
 class Attacks:
     def __init__(self, config: CellConfig, probes: Probes) -> None:
         self.config, self.probes = config, probes
@@ -525,7 +530,7 @@ class Attacks:
             async with asyncio.timeout(30):
                 while unanswered != last:
                     await asyncio.sleep(1.0)
-                    last, unanswered = unanswered, sum(1 for r in readers if not r.at_eof() and not r._buffer)
+                    last, unanswered = unanswered, sum(1 for r in readers if _silent(r))
             st = await fetch_status(self.config, timeout=3.0)
             skills = next(s for s in st.services if s.name == "skills")
             rep.inputs = n
@@ -619,7 +624,7 @@ class Attacks:
         sender = udp.Sender(sock, datagram.SIZE)
         recs = datagram.empty(64)
         datagram.pack(recs, np.arange(1000, 1064), 0, Kind.STATUS, 1, 0.0, 0.0)
-        raw = memoryview(recs.view(np.uint8))
+        raw = recs.view(np.uint8).data
         addr = parse_host_port(self.config.dataplane.listen)
         sent = 0
         during: list[float] = []

@@ -75,7 +75,7 @@ async def fuzz(robot: RobotConfig, ur: URConfig, n: int, mut: Mutator) -> tuple[
 
 async def _dashboard(host: str, port: int, n: int, mut: Mutator, model: str) -> tuple[int, int]:
     judge = Dashboard(URArm("fuzz", arm_model(model)), model, "0")
-    out = []
+    out: list[bytes] = []
     while len(out) < n:
         line = mut.havoc(mut.rng.choice(DASHBOARD), DASHBOARD).replace(b"\n", b" ")
         if judge.handle(line.decode(errors="replace").rstrip("\r")).startswith("could not understand"):
@@ -95,7 +95,7 @@ async def _dashboard(host: str, port: int, n: int, mut: Mutator, model: str) -> 
 
 
 async def _scripts(host: str, port: int, n: int, mut: Mutator) -> tuple[int, int]:
-    out = []
+    out: list[bytes] = []
     while len(out) < n:
         line = mut.havoc(mut.rng.choice(SCRIPTS), SCRIPTS).replace(b"\n", b" ").replace(b"\r", b" ")
         programs = Framer().feed(line + b"\n")

@@ -80,8 +80,9 @@ def mjcf(name: str, torque: bool = False, timestep: float = 0.002) -> str:
             f'diaginertia="{_n(*_inertia(m, i))}"/>',
             f'{indent}  <geom type="cylinder" size="{_n(r, hh)}" pos="0 0 {_n(z)}"{rgba}/>',
         ]
-        if m.beams[i] is not None:
-            br, bz = m.beams[i]
+        beam = m.beams[i]
+        if beam is not None:
+            br, bz = beam
             lines.append(
                 f'{indent}  <geom type="capsule" size="{_n(br)}" fromto="{_n(0, 0, bz, m.a[i], 0, bz)}"/>'
             )

@@ -141,7 +141,8 @@ class VdcModel(ArmModel):
         self.bodies = ModularArm().bodies
         n = len(self.bodies)
         super().__init__(n, 0.0, 0)
-        self.reference, self.gains, self.period_ns = reference, gains or Gains(), period_ns  # (the cycle's)
+        self.gains, self.period_ns = gains or Gains(), period_ns  # (the cycle's)
+        self.followed = reference  # the reference it follows (ArmModel.reference: the toy's, unused)
         self.start_ns: int | None = None  # (None: SETTLE_NS after every joint is in the cycle)
         self.generation = 0  # references followed (a C master takes the new one)
         self.f_star = [np.zeros(6) for _ in range(n)]
@@ -151,7 +152,7 @@ class VdcModel(ArmModel):
 
     def follow(self, reference: Reference, start_ns: int) -> None:
         """Track `reference` from master time start_ns (its first point until then, its last after)."""
-        self.reference, self.start_ns = reference, start_ns
+        self.followed, self.start_ns = reference, start_ns
         self.generation += 1
 
     def take_a(self, j: int, q: float, qd: float, t: int) -> None:
@@ -161,7 +162,7 @@ class VdcModel(ArmModel):
     def desired(self, j: int, t: int) -> tuple[float, float, float]:
         """The reference's position, velocity and acceleration of joint j at t (its start pose
         until it starts, its end pose after)."""
-        ref = self.reference
+        ref = self.followed
         if self.start_ns is None and all(self.active):
             self.start_ns = t + SETTLE_NS
         k = 0 if self.start_ns is None else int(np.clip((t - self.start_ns) // CYCLE_NS, 0, len(ref.t) - 1))
@@ -175,13 +176,14 @@ class VdcModel(ArmModel):
         start = j  # (the step after the highest one below j made this cycle from the same A's)
         while start > 0 and ((c := self._chain[start - 1]) is None or c[0] != (cycle, *self.seq[:start])):
             start -= 1
-        carry = BASE if start == 0 else self._chain[start - 1][3]  # type: ignore[index]
+        below = self._chain[start - 1] if start > 0 else None  # (made: the loop above stopped there)
+        carry = BASE if below is None else below[3]
         lam = self.gains.lam
         for i in range(start, j + 1):  # (a module gone: its joint on its brake where it was)
             a = AMsg(self.guess(i, t), self.vel[i]) if self.active[i] else AMsg(self.pos[i], 0.0)
             out, x, carry = forward_step(self.bodies[i], lam, a, *self.desired(i, t), carry)
             self._chain[i] = ((cycle, *self.seq[: i + 1]), out, x, carry)
-        return self._chain[j][1]  # type: ignore[index]
+        return out  # (joint j's: the loop's last)
 
     def _transform(self, i: int) -> np.ndarray:
         """Body i's ^iX_{i-1} as its last B's recursion made it."""
@@ -224,7 +226,7 @@ class VdcModel(ArmModel):
     def reference_to_c(self, v: VdcState) -> list[np.ndarray]:
         """The reference it follows, and its start, into C; the arrays C reads (where numpy holds
         them: the caller keeps them alive)."""
-        ref = self.reference
+        ref = self.followed
         arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in (ref.q, ref.qd, ref.qdd)]
         v.n_ref, v.start_ns = len(ref.t), self.start_ns or 0
         v.q_ref, v.qd_ref, v.qdd_ref = (a.ctypes.data for a in arrays)
@@ -247,8 +249,8 @@ class VdcMaster(Master):
     def __init__(
         self, ports: list[Any], config: CycleConfig, clock: Any, reference: Reference, **kw: Any
     ) -> None:
-        super().__init__(ports, config, clock, model=VdcModel(reference, period_ns=config.period_ns), **kw)
-        self.vdc: VdcModel = self.model  # type: ignore[assignment]
+        self.vdc = VdcModel(reference, period_ns=config.period_ns)
+        super().__init__(ports, config, clock, model=self.vdc, **kw)
         self.ids = [ids_of(j) for j in range(len(self.vdc.bodies))]
         self.g_ids = [outboard_ids(j) for j in range(len(self.vdc.bodies))]
 
@@ -411,7 +413,8 @@ class VdcModule(JointModule):
         if j == 0:
             return
         carried = carried_force(self.plant.arm.bodies[j].transform(self.q), f)
-        ids, t = outboard_ids(j - 1), self._cycle_no(cy) * self.config.period_ns  # type: ignore[union-attr]
+        assert self.config is not None  # (configured: it runs cycles)
+        ids, t = outboard_ids(j - 1), self._cycle_no(cy) * self.config.period_ns
         items = tuple(x for k, v in zip(ids, carried, strict=True) for x in (k, float(v), t))
         self.to_inboard.append(G_PASS.pack(0, Pid.MRT, self.source_process, 0, self._cycle_no(cy), items))
 
@@ -491,6 +494,7 @@ class VdcModule(JointModule):
         """Its VDC's state as C has it: its cycle goes on in Python from there."""
         self.missed_run, self.braked, self.tau_r, self.q, self.qd = v.missed_run, v.braked, v.tau_r, v.q, v.qd
         self.b = b_of(v.b) if v.have_b else None
+        assert self.module is not None  # (to_c made it)
         self.g, self.f_star, self.module.theta = np.array(v.g), np.array(v.f_star), np.array(v.theta)
 
 

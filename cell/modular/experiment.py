@@ -7,6 +7,7 @@ by the modules alone; against the centralised computed-torque controller on the 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
+from typing import Any, cast
 
 import numpy as np
 
@@ -98,7 +99,7 @@ def carried_of(figures: dict[str, object]) -> Carried | None:
     names = [f.name for f in fields(Carried)]
     if not all(f"vdc_snp_{n}" in figures for n in names):
         return None
-    return Carried(**{n: figures[f"vdc_snp_{n}"] for n in names})  # type: ignore[arg-type]
+    return Carried(**cast(dict[str, Any], {n: figures[f"vdc_snp_{n}"] for n in names}))  # (Carried's own)
 
 
 def _row(ref: Reference, run: Tracking, case: str, where: str) -> Row:

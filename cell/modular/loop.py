@@ -15,7 +15,7 @@ replaced by a guess from physical continuity (data obsolescence), and counted:
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from time import perf_counter_ns
 from typing import Protocol, TypeVar
@@ -152,7 +152,7 @@ class VdcArm:
         self.a_lost = np.zeros(n, dtype=bool)  # this cycle's: whose A the master guessed
         self.unplugged: dict[int, float] = {}  # module -> the joint position its brake holds
         self.last_a = [A(float(q), 0.0) for q in q0]
-        self.last_b: list[B | None] = [None] * n
+        self.last_b: Sequence[B | None] = [None] * n
         self.last_c = [C(np.zeros(6)) for _ in range(n)]
         self.last_d = [D(0.0) for _ in range(n)]
         self.last_f = [np.zeros(6) for _ in range(n)]  # each body's F_r of the cycle before
@@ -213,18 +213,19 @@ class VdcArm:
         b = []
         for i in range(n_mod):
             prev = self.last_b[i]
-            got = link.b(i, b_sent[i]) if prev is None else self.via(i, "B", b_sent[i], link.b)
-            if got is None and prev is not None:
+            got_b = link.b(i, b_sent[i]) if prev is None else self.via(i, "B", b_sent[i], link.b)
+            if got_b is None and prev is not None:
                 b.append(B(prev.qd_r + prev.qdd_r * CYCLE_S, prev.qdd_r, prev.v_r + prev.a_r * CYCLE_S,
                            prev.a_r, prev.v))  # fmt: skip
             else:
-                b.append(got if got is not None else b_sent[i])
+                b.append(got_b if got_b is not None else b_sent[i])
         self.last_b = b
         t_c = perf_counter_ns()
         # C: each body's required net force (the master's copy, or its last)
         c = [modules[i].net_force(b[i], CYCLE_S) for i in range(n_mod)]
         c_master = [
-            self.last_c[i] if (got := self.via(i, "C", c[i], link.c)) is None else got for i in range(n_mod)
+            self.last_c[i] if (got_c := self.via(i, "C", c[i], link.c)) is None else got_c
+            for i in range(n_mod)
         ]
         self.last_c = c_master
         t_d = perf_counter_ns()
@@ -236,8 +237,8 @@ class VdcArm:
         last_d, last_f = self.last_d, self.last_f
         for i in range(n_mod - 1, -1, -1):
             if where[i] == WHERE_MASTER:
-                got = self.via(i, "D", d_master[i], link.d)
-                tau_r[i] = last_d[i].tau_r if got is None else got.tau_r
+                got_d = self.via(i, "D", d_master[i], link.d)
+                tau_r[i] = last_d[i].tau_r if got_d is None else got_d.tau_r
                 last_d[i] = D(tau_r[i])
                 f_now[i] = master.forces[i]
                 continue

@@ -204,7 +204,8 @@ def modules_main(
         for k, s in enumerate(spec.values()):
             s["routes"], s["route_port"] = routes[k], module_port(k)
     slots = [Slot(**s) for s in spec.values()]
-    parent, t0, taken, cycles_taken = os.getppid(), time.monotonic_ns(), 0, {}
+    parent, t0, taken = os.getppid(), time.monotonic_ns(), 0
+    cycles_taken: dict[int, int] = {}  # cycles taken so far, by id(slot)
 
     def control(now: int) -> bool:
         nonlocal taken

@@ -15,6 +15,7 @@ a module (`unplug`) takes it off the network, as pulling its cable would.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -26,7 +27,7 @@ from cell.modular.vdc import WHERE_MASTER, Gains
 from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics, Unreachable
 
-NAMED = {"pick-and-place": pick_and_place, "circle": circle}
+NAMED: dict[str, Callable[[], Reference]] = {"pick-and-place": pick_and_place, "circle": circle}
 
 
 class ModuleState(StrEnum):
@@ -117,6 +118,26 @@ class ArmRobot:
 
     def frames(self) -> np.ndarray:
         """Each joint's origin and the tool, (7, 3) m: the arm as a line."""
+        raise NotImplementedError
+
+    def move(
+        self, *, joints: list[float] | None = None, tool: list[float] | None = None, path: str = "",
+        speed: float = 1.0,
+    ) -> Motion:  # fmt: skip
+        """Start a motion (MotionRefused if the arm is stopped, busy, or the goal is bad)."""
+        raise NotImplementedError
+
+    def unplug(self, name: str) -> None:
+        raise NotImplementedError
+
+    def plug(self, name: str) -> None:
+        """The module back: it runs again from its next A; once every module runs, the arm takes
+        motions again (from where it held)."""
+        raise NotImplementedError
+
+    def cycle(self) -> Ended | None:
+        """The clock's side: one cycle (or what the processes reported since); the motion that ended
+        in it, if one did."""
         raise NotImplementedError
 
     def close(self) -> None:

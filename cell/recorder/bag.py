@@ -24,6 +24,7 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
@@ -37,6 +38,9 @@ from cell.recorder.events import EVENT_TOPICS, Event, Events
 from cell.service import ServiceContext
 from cell.snp.state import realtime_offset_ns
 from cell.v1 import controller_pb2, robot_pb2
+
+if TYPE_CHECKING:
+    from rosbags.typesys.store import Msg
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
@@ -114,7 +118,7 @@ class BagWriter:
 
     # --- stamps -------------------------------------------------------------------------------------
 
-    def stamp(self, t_mono_ns: int) -> tuple[int, object]:
+    def stamp(self, t_mono_ns: int) -> tuple[int, Msg]:
         """The cell-clock time of a CLOCK_MONOTONIC instant: ns, and as builtin_interfaces/msg/Time."""
         t = t_mono_ns + self.offset
         return t, self.Time(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000)
@@ -122,7 +126,7 @@ class BagWriter:
     def write(self, topic: str, t_ns: int, msg: object, msgtype: str) -> None:
         self.raw(topic, t_ns, self.ts.serialize_cdr(msg, msgtype))
 
-    def raw(self, topic: str, t_ns: int, data: bytes) -> None:
+    def raw(self, topic: str, t_ns: int, data: bytes | memoryview) -> None:
         self.writer.write(self.conns[topic], t_ns, data)
         self.counts[topic] += 1
 
@@ -132,7 +136,7 @@ class BagWriter:
         """/tf_static: world -> each robot's base_link, once."""
         t, stamp = self.stamp(t_mono_ns)
         n = len(self.robots)
-        transforms = [
+        transforms: list[Msg] = [
             self._transform(stamp, "world", f"{r.name}/base_link", (*base_position(i, n), 0.0, 0.0, 0.0, 1.0))
             for i, r in enumerate(self.robots.values())
         ]
@@ -157,25 +161,25 @@ class BagWriter:
         n, names, base = len(r.joints), list(r.joints), f"{r.name}/base_link"
         ser, e = self.ts.serialize_cdr, self._empty
 
-        def joint_state(v: dict, position: bool) -> bytes:
+        def joint_state(v: dict, position: bool) -> memoryview:
             header = self.Header(stamp=v["stamp"], frame_id="")
             pos = v["position"] if position else e
             js = self.JointState(header=header, name=names, position=pos, velocity=v["velocity"], effort=e)
             return ser(js, JOINT_STATE)
 
-        def pose(v: dict) -> object:
+        def pose(v: dict) -> Msg:
             x, y, z, qx, qy, qz, qw = v["pose"]
             return self.Pose(
                 position=self.Point3(x=x, y=y, z=z), orientation=self.Quaternion(x=qx, y=qy, z=qz, w=qw)
             )
 
-        def tool_pose(v: dict) -> bytes:
+        def tool_pose(v: dict) -> memoryview:
             return ser(
                 self.PoseStamped(header=self.Header(stamp=v["stamp"], frame_id=base), pose=pose(v)),
                 POSE_STAMPED,
             )
 
-        def tf(v: dict) -> bytes:
+        def tf(v: dict) -> memoryview:
             transform = self._transform(v["stamp"], base, f"{r.name}/tool0", v["pose"])
             return ser(self.TFMessage(transforms=[transform]), TF)
 
@@ -224,7 +228,7 @@ class BagWriter:
         """Writes metadata.yaml: the bag is complete."""
         self.writer.close()
 
-    def _transform(self, stamp, parent: str, child: str, pose: Sequence[float]) -> object:
+    def _transform(self, stamp: Msg, parent: str, child: str, pose: Sequence[float]) -> Msg:
         """child in parent: pose is x, y, z, then the quaternion x, y, z, w (geometry_msgs' order)."""
         x, y, z, qx, qy, qz, qw = (float(v) for v in pose)
         return self.TransformStamped(

@@ -12,6 +12,7 @@ import struct
 from collections.abc import Callable
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 _STAMP = struct.Struct("<iI")
 
@@ -21,7 +22,7 @@ class Template:
     arrays, each found by its sentinel's bytes."""
 
     def __init__(
-        self, serialize: Callable[[dict[str, object]], bytes], arrays: dict[str, int], stamp
+        self, serialize: Callable[[dict[str, object]], bytes | memoryview], arrays: dict[str, int], stamp
     ) -> None:
         """serialize(values) -> the message's CDR for values {"stamp": Time, name: float64 array};
         arrays: each array slot's length; stamp: builtin_interfaces/msg/Time, the type."""
@@ -42,7 +43,7 @@ class Template:
             self.slots[name] = (at, len(pattern))
         self.buf = bytearray(self.raw)
 
-    def fill(self, t_ns: int, **arrays: np.ndarray) -> bytes:
+    def fill(self, t_ns: int, **arrays: ArrayLike) -> bytes:
         """The message at t_ns (cell clock, ns) with these arrays (float64, each its slot's length)."""
         buf = self.buf
         _STAMP.pack_into(buf, self.slots["stamp"][0], t_ns // 1_000_000_000, t_ns % 1_000_000_000)

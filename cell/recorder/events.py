@@ -60,7 +60,7 @@ class Events:
             return Event(env.sent_ns, text, "INFO", f"robot/{a.name}", a)
         if topic == "events/snp/denial":
             d = env.decode(snp_pb2.SnpDenial)
-            why = Denial(d.explanation).name if d.explanation in iter(Denial) else str(d.explanation)
+            why = Denial(d.explanation).name if d.explanation in tuple(Denial) else str(d.explanation)
             return Event(d.t_ns, f"SnP query {d.query_id} from {d.peer} denied: {why}", "WARN", "snp", d)
         if topic.startswith("events/robot/"):
             e = env.decode(robot_pb2.RobotEvent)

@@ -88,11 +88,11 @@ class Hub:
         ids = sorted(self.held)
         return robot_pb2.HeldReply(robot_ids=ids, emergency=[self.held[r] for r in ids])
 
-    def _tell(self, robot: int, kind: int, text: str) -> None:
+    def _tell(self, robot: int, kind: RE.Kind, text: str) -> None:
         name = self.names.get(robot)
         if self.bus is None or name is None:
             return
-        ev = RE(robot_id=robot, name=name, kind=kind, text=text, t_ns=time.monotonic_ns())  # type: ignore[arg-type]
+        ev = RE(robot_id=robot, name=name, kind=kind, text=text, t_ns=time.monotonic_ns())
         self.bus.publish(f"events/robot/{name}", ev)
 
     async def beacon(self) -> None:

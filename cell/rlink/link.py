@@ -253,7 +253,8 @@ class NodeLink:
 
 def link_counters(link: NodeLink, prefix: str = "rlink") -> dict[str, float]:
     """A node's counters as flat names: per link and kind, drops by reason, event latency."""
-    node, out = link.node, {}
+    node = link.node
+    out: dict[str, float] = {}
     for n, c in enumerate(node.links):
         if not any(c.packets_in) and not any(c.packets_out):
             continue

@@ -46,7 +46,9 @@ class Node:
         self.depth = depth
         self.fec_links = fec_links  # links whose line carries FEC-protected bytes
         # queues[link][kind][priority]
-        self.queues = [[[deque() for _ in range(PRIORITIES)] for _ in Kind] for _ in range(LINKS)]
+        self.queues: list[list[list[deque[Packet]]]] = [
+            [[deque() for _ in range(PRIORITIES)] for _ in Kind] for _ in range(LINKS)
+        ]
         self.queued = [[0, 0] for _ in range(LINKS)]
         self.links = [LinkCounters() for _ in range(LINKS)]
         self.drops: dict[Drop, int] = dict.fromkeys(Drop, 0)

@@ -7,11 +7,24 @@ limits) and exposes q and qd, (robots, dof) arrays, after each step.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Protocol
+
 import mujoco
 import numpy as np
 
 from cell.robot.arm import ArmModel
 from cell.robot.drive import Drives
+
+
+class Arms(Protocol):
+    """What a group's backend is: its drives, and q and qd after each step."""
+
+    drives: Drives
+    q: np.ndarray
+    qd: np.ndarray
+
+    def step(self, dt: float) -> None: ...
 
 
 class KinematicArms:
@@ -115,4 +128,8 @@ class RemoteArm:
         """(The arm moves by itself: its state comes in with its RTDE packages.)"""
 
 
-BACKENDS = {"kinematic": KinematicArms, "mujoco": MujocoArms, "ur": RemoteArm}
+BACKENDS: dict[str, Callable[[ArmModel, np.ndarray, int], Arms]] = {
+    "kinematic": KinematicArms,
+    "mujoco": MujocoArms,
+    "ur": RemoteArm,
+}

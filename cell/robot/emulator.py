@@ -195,7 +195,7 @@ class RobotGroup:
         self.status["robot_id"] = self.ids[rows]
         self.status["joint_id"] = np.tile(np.arange(dof), self.n)
         self.status["kind"] = Kind.STATUS
-        self._status_bytes = memoryview(self.status.view(np.uint8))
+        self._status_bytes = self.status.view(np.uint8).data
         self.seq = np.zeros(self.n * dof, np.uint32)
         self._pack()  # the first status: the start pose
         self.state_time = time.monotonic()
@@ -446,7 +446,7 @@ class RobotGroup:
         silent = self.silent_until > clock() if self.silent_until.any() else None
         if self.shared and self.socks:
             if silent is not None:  # (rare: `cell chaos` pulled a cable) the others' statuses only
-                buf = memoryview(self.status[np.repeat(~silent, self.dof)].view(np.uint8))
+                buf = self.status[np.repeat(~silent, self.dof)].view(np.uint8).data
             sent = udp.send_segments(self.socks[0], buf, datagram.SIZE, addr)
             self._count_sent(sent, len(buf) // datagram.SIZE, clock() >= late_after)
             return

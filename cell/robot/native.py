@@ -123,6 +123,7 @@ class NativeTick:
         lib = _lib()
         self.lib, self.group = lib, group
         d, b = group.drives, group.backend
+        assert isinstance(b, KinematicArms | MujocoArms)  # (supports(group) said so)
         n, dof = group.n, group.dof
         self._keep: list[object] = []  # (arrays C points into that nothing else holds)
         st = self.state = GroupState(

@@ -24,6 +24,7 @@ import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 from cell.bus import Bus, RemoteError
 from cell.skills.protocol import NO_ID, Command, Done, Error, ReplyReader
@@ -269,12 +270,12 @@ class RobotClient:
         writer = self._writer
         async with self._send_lock:  # one batch's messages go out together, nothing between them
             for skill, args in messages:
-                named = bool(args) and isinstance(args[0], str)
+                named = bool(args) and isinstance(args[0], str)  # (all names, or all numbers)
                 cmd = (
-                    Command(self._new_id(), skill, names=args)
+                    Command(self._new_id(), skill, names=cast(tuple[str, ...], args))
                     if named
-                    else Command(self._new_id(), skill, args)
-                )  # type: ignore[arg-type]
+                    else Command(self._new_id(), skill, cast(tuple[float, ...], args))
+                )
                 fut: asyncio.Future[Done | Error] = loop.create_future()
                 self._waiting[cmd.id] = fut
                 data = cmd.encode()
@@ -356,7 +357,9 @@ class RobotClient:
         sent = await self._send([m for cmd in cmds for m in cmd.get_messages()])
         waits = (self._await(c, f, t, timeout) for c, f, t in sent)
         results = await asyncio.gather(*waits, return_exceptions=True)
+        acks = []
         for r in results:
             if isinstance(r, BaseException):
                 raise r
-        return list(results)  # type: ignore[arg-type]
+            acks.append(r)
+        return acks

@@ -318,4 +318,4 @@ class RobotSkills:
     def _done(self, cmd: Command, started_ns: int, pose: Sequence[float]) -> Done:
         p = tuple(float(v) for v in pose)
         assert len(p) == 6
-        return Done(cmd.id, self.seconds(started_ns), self.seconds(time.monotonic_ns()), p)  # type: ignore[arg-type]
+        return Done(cmd.id, self.seconds(started_ns), self.seconds(time.monotonic_ns()), p)

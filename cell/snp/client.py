@@ -18,6 +18,7 @@ import time
 from collections.abc import Sequence
 
 from cell.snp.packet import (
+    Body,
     Cancel,
     Denial,
     Denied,
@@ -117,13 +118,13 @@ class SnpClient:
         if fut is not None and not fut.done():
             fut.set_result(pkt)
 
-    def _send(self, pid: int, body: object, type: int | None = None) -> None:
+    def _send(self, pid: int, body: Body, type: int | None = None) -> None:
         if self._transport is None:
             raise RuntimeError("the SnP client is not open")
         h = Header(
             self.header.destination, pid, b"", self.header.source_process, self.header.destination_process
         )
-        self._transport.sendto(encode(h, body, type=type))  # type: ignore[arg-type]
+        self._transport.sendto(encode(h, body, type=type))
 
     def _expect(self, key: tuple[str, int]) -> asyncio.Future[Packet]:
         fut: asyncio.Future[Packet] = asyncio.get_running_loop().create_future()

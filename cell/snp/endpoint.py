@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+from typing import cast
 
 from cell.snp.handler import Address, Handler
 
@@ -17,7 +18,7 @@ class HandlerEndpoint(asyncio.DatagramProtocol):
         self._serving = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
+        self.transport = cast(asyncio.DatagramTransport, transport)  # (a datagram endpoint's)
 
     def datagram_received(self, data: bytes, addr: Address) -> None:
         for out, to in self.handler.receive(data, addr):

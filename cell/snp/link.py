@@ -83,10 +83,10 @@ class Link:
         if self.loss and self.rng.random() < self.loss:
             self.lost += 1
             return
-        timed = self.clock is not None and time_packet(data) is not None
-        if timed:
-            data = stamp_departure(data, self.clock(time.monotonic_ns()))  # type: ignore[misc]
-        two_step = timed and self.two_step
+        clock = self.clock if self.clock is not None and time_packet(data) is not None else None  # (timed)
+        if clock is not None:
+            data = stamp_departure(data, clock(time.monotonic_ns()))
+        two_step = clock is not None and self.two_step
         wire, to = self._wire(data, addr)
         try:
             if two_step:
@@ -102,7 +102,8 @@ class Link:
             if t is None:
                 self.unstamped += 1
                 return
-            for more in self.departed(data, self.clock(t)):  # type: ignore[misc]
+            assert clock is not None and self.departed is not None  # (two_step: both given)
+            for more in self.departed(data, clock(t)):
                 self.send(more, addr)
 
     def _wire(self, data: bytes, addr: Any) -> tuple[bytes, Any]:

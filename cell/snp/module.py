@@ -127,7 +127,7 @@ class JointModule:
         cy = self.cycle
         shape = self.ANSWERS.get(cy.stage) if cy is not None else None
         f = shape.parse(data) if shape is not None and len(data) == shape.size else None
-        if f is not None and f[1] == Pid.MRT and f[8] == cy.qid:  # type: ignore[union-attr]
+        if f is not None and cy is not None and f[1] == Pid.MRT and f[8] == cy.qid:  # (f: cy's shape)
             return self._answered(f[11::3], raw)  # (the fast path: B or D, by its shape)
         if rmap.is_rmap(data):
             return self._rmap(data, raw)
@@ -214,7 +214,8 @@ class JointModule:
         self.servo.beacon(raw, t_master)
         if self.state == ModuleState.SYNCING and self.servo.samples >= 3:
             self.state = ModuleState.RUNNING
-            self._schedule(self.servo.now(raw) + self.config.period_ns)  # type: ignore[union-attr]
+            assert self.config is not None  # (syncing: configured)
+            self._schedule(self.servo.now(raw) + self.config.period_ns)
 
     def _exchanged(self, t1: int, t2: int, t3: int, t4: int) -> list[bytes]:
         """A two-way exchange done (t1, t4 ours; t2, t3 the master's): the path delay; a few more."""
@@ -382,7 +383,7 @@ class JointModule:
         self._finish(cy, now)
         return []
 
-    def _miss(self, cy: Cycle, which: str) -> None:
+    def _miss(self, cy: Cycle, which: Stage) -> None:
         self.missed[which] += 1
         cy.missed += 1
 
@@ -417,7 +418,8 @@ class JointModule:
         if cy is None or cy.stage == Stage.DONE or len(data) != _MSG.size:
             return
         value, _, t = _MSG.unpack(data)
-        if t != cy.start + self.config.period_ns:  # type: ignore[union-attr]
+        assert self.config is not None  # (a cycle: configured)
+        if t != cy.start + self.config.period_ns:
             return  # an answer to an earlier cycle, retried late: that cycle has been guessed
         if address == B_ADDR and cy.stage in (Stage.A, Stage.B):
             self.v_des = value

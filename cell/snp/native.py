@@ -15,14 +15,14 @@ import functools
 import os
 import socket
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, cast
 
 import numpy as np
 
 from cell.native import NativeUnavailable, build
 from cell.snp.link import RoutedLink
 from cell.snp.master import Master, Node
-from cell.snp.modular import _IDS, NodeState
+from cell.snp.modular import _IDS, NodeState, Stage
 from cell.snp.modular import ModuleState as ModuleLife  # (ModuleState here: the C mirror)
 from cell.snp.module import JointModule
 
@@ -32,6 +32,22 @@ HEADERS = (HERE / "wire.h",)
 RECORDS = 256
 RUN_UNTIL, RUN_HANDED, RUN_RECORDS_FULL, RUN_EVENT = 0, 1, 2, 3
 _I, _D = ctypes.c_int64, ctypes.c_double
+
+
+class _VdcModule(Protocol):
+    """A module whose cycle runs more in C (cell.modular.cycle.VdcModule: it has to_c)."""
+
+    def from_c(self, v: VdcModuleState) -> None: ...
+
+
+class _VdcModel(Protocol):
+    """A master's model that runs more in C (cell.modular.cycle.VdcModel: it has to_c)."""
+
+    generation: int
+
+    def reference_to_c(self, v: VdcState) -> list[np.ndarray]: ...
+
+    def from_c(self, v: VdcState) -> None: ...
 
 
 class PlantState(ctypes.Structure):
@@ -60,6 +76,13 @@ class RouteState(ctypes.Structure):
         *((name, _I) for name in ("active", "unheard", "failover_after", "failovers", "refused")),
         ("via", _I * 256),
     ]
+    on: int
+    own: int
+    active: int
+    unheard: int
+    failover_after: int
+    failovers: int
+    refused: int
 
     def take(self, link: Any) -> None:
         """The Python link's state into C (a RoutedLink: on; else off): before each C run, as
@@ -368,13 +391,13 @@ class NativeCycles:
             return
         v = self._vdc.get(st.fd)
         if v is not None:  # (its VDC's state as C has it: its cycle goes on in Python from there)
-            m.from_c(v)  # type: ignore[attr-defined]  (the module that gave to_c)
+            cast(_VdcModule, m).from_c(v)  # (the module that gave to_c)
         n = st.n_records
         if n:  # (one copy of the block: element by element, 256 records of six modules took 4 ms)
             recs = np.frombuffer(st.records, np.int64, 4 * n).reshape(n, 4)
-            m.cycles.extend(map(tuple, recs.tolist()))
-        m.missed["ab"] += st.missed_ab
-        m.missed["cd"] += st.missed_cd
+            m.cycles.extend((a, b, c, d) for a, b, c, d in recs.tolist())
+        m.missed[Stage.AB] += st.missed_ab
+        m.missed[Stage.CD] += st.missed_cd
         m.overruns += st.overruns
         m.late += st.late
         m.pos, m.vel, m.v_des, m.torque, m._qid = st.pos, st.vel, st.v_des, st.torque, st.qid
@@ -432,25 +455,25 @@ class NativeMaster:
         to_c = getattr(master.model, "to_c", None)
         self.vdc: VdcState | None = to_c() if to_c is not None else None
         if self.vdc is not None:
-            self._reference()
+            self._reference(self.vdc)
             self.st.vdc = ctypes.pointer(self.vdc)
 
-    def _reference(self) -> None:
-        model = self.master.model
-        self._ref = model.reference_to_c(self.vdc)  # type: ignore[attr-defined]
-        self._generation = model.generation  # type: ignore[attr-defined]
+    def _reference(self, vdc: VdcState) -> None:
+        model = cast(_VdcModel, self.master.model)  # (the model that gave to_c)
+        self._ref = model.reference_to_c(vdc)
+        self._generation = model.generation
 
     def push(self) -> None:
         """The Python master's view into C: which modules are included (a newly included one with
         its address, items, slot and model entries), what Python heard from them, and the
         reference a VDC master was given to follow since."""
         ms, model, st = self.master, self.master.model, self.st
-        if self.vdc is not None and model.generation != self._generation:  # type: ignore[attr-defined]
-            self._reference()
+        if self.vdc is not None and cast(_VdcModel, model).generation != self._generation:
+            self._reference(self.vdc)
         held: list[Node | None] = [None] * MAX_JOINTS
-        for n in ms.nodes.values():
-            if n.state in _NODE_STATE and 0 <= n.joint < MAX_JOINTS:
-                held[n.joint] = n
+        for node in ms.nodes.values():
+            if node.state in _NODE_STATE and 0 <= node.joint < MAX_JOINTS:
+                held[node.joint] = node
         for j, n in enumerate(held):
             e = st.joints[j]
             if n is None:
@@ -468,7 +491,7 @@ class NativeMaster:
         (the master's, its handler's and the link's), its events (a lost module excluded)."""
         ms, model, st = self.master, self.master.model, self.st
         if self.vdc is not None:
-            model.from_c(self.vdc)  # type: ignore[attr-defined]  (the model that gave to_c)
+            cast(_VdcModel, model).from_c(self.vdc)  # (the model that gave to_c)
         for j, n in enumerate(self._node):
             if n is None:
                 continue

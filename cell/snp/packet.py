@@ -373,9 +373,9 @@ def encode(header: Header, body: Body, type: int | None = None) -> bytes:
     """The datagram for a packet; type is needed for ErrorReply and to answer PID_SUPPORTED_QUERY."""
     if type is None and not header.return_address:
         if body.__class__ is Query:  # the cycle's packets: one pack each (3 us against 9)
-            return _encode_query(header, body)  # type: ignore[arg-type]
+            return _encode_query(header, body)
         if body.__class__ is Reply:
-            return _encode_reply(header, body)  # type: ignore[arg-type]
+            return _encode_reply(header, body)
     if isinstance(body, ErrorReply):
         if type is None:
             raise ValueError("an ErrorReply needs its packet type")
@@ -395,7 +395,11 @@ def encode(header: Header, body: Body, type: int | None = None) -> bytes:
 
 
 # where each SnP-TSP packet's departure time (t1, t3, t_master) sits in its data field
-_DEPARTURE = {PacketType.TIME_REQUEST: 3, PacketType.TIME_RESPONSE: 19, PacketType.TIME_BEACON: 7}
+_DEPARTURE: dict[int, int] = {
+    PacketType.TIME_REQUEST: 3,
+    PacketType.TIME_RESPONSE: 19,
+    PacketType.TIME_BEACON: 7,
+}
 _U64 = struct.Struct("!Q")
 
 
@@ -734,7 +738,8 @@ def _decode_cargo(kind: int, cargo: memoryview) -> Body:
         n_raw, rest = _take(rest, 1, "parameter count")
         raw, rest = _take(rest, 4 * n_raw[0], f"{n_raw[0]} parameters")
         _done(rest, "configuration")
-        return Configure(*_CONF.unpack(head), struct.unpack(f"!{n_raw[0]}f", raw))
+        joint, period_ns, phase_ns, budget_ns = _CONF.unpack(head)
+        return Configure(joint, period_ns, phase_ns, budget_ns, struct.unpack(f"!{n_raw[0]}f", raw))
     if kind == PacketType.CONFIGURE_REPLY:
         raw, rest = _take(cargo, 2, "configured")
         _done(rest, "configured")

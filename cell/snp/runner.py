@@ -403,7 +403,8 @@ def run_modules(
     try:
         while now < end:
             if now >= next_control:
-                if control(now):  # type: ignore[misc]
+                assert control is not None  # (without one, next_control is the end)
+                if control(now):
                     break
                 next_control = _next_sample(now, sample_ns, sample_grid)
                 next_event = now  # (it may have plugged or pulled)
@@ -412,7 +413,7 @@ def run_modules(
             wake, busy = min(next_event, next_control), False
             for s in live:
                 wake = min(wake, s.wake)
-                cy = s.module.cycle  # type: ignore[union-attr]
+                cy = s.module.cycle if s.module is not None else None
                 busy = busy or (cy is not None and cy.stage != Stage.DONE)
             if not (busy and spin) and wake - now > lead:  # nothing in flight: sleep until (just before) it
                 alarm.set(wake - lead)
@@ -422,14 +423,14 @@ def run_modules(
                 rt.poll()
                 ready = ep.poll(0)
             for fd, _ in ready:
-                s = by_fd.get(fd)
-                if s is None:  # the alarm
+                slot = by_fd.get(fd)
+                if slot is None:  # the alarm
                     alarm.clear()
                     continue
-                assert s.sock is not None
-                for data, addr, at in drain(s.sock, mono_of_real):
-                    s.deliver(data, addr, at)
-                s.wake = wake_of(s)
+                assert slot.sock is not None
+                for data, addr, at in drain(slot.sock, mono_of_real):
+                    slot.deliver(data, addr, at)
+                slot.wake = wake_of(slot)
             now = clock()
             for s in live:
                 if now >= s.wake:
@@ -530,7 +531,8 @@ def _run_native(
     try:
         while now < end:
             if now >= next_control:
-                if control(now):  # type: ignore[misc]
+                assert control is not None  # (without one, next_control is the end)
+                if control(now):
                     break
                 next_control = _next_sample(now, sample_ns, sample_grid)
                 next_event = now  # (it may have plugged or pulled)
@@ -542,10 +544,13 @@ def _run_native(
                     until = min(until, s.next_sample)
             routed = [s for s in live if s.routes is not None]
             for s in routed:  # (over routers: the link's state, Python's and C's in turn)
-                cycles.state(s.sock.fileno()).route.take(s.link)  # type: ignore[union-attr]
-            got = cycles.run([s.sock.fileno() for s in live], until)  # type: ignore[union-attr]
+                assert s.sock is not None
+                cycles.state(s.sock.fileno()).route.take(s.link)
+            fds = [s.sock.fileno() for s in live]  # type: ignore[union-attr]  # (live: plugged, its sock open)
+            got = cycles.run(fds, until)
             for s in routed:
-                cycles.state(s.sock.fileno()).route.give(s.link)  # type: ignore[union-attr]
+                assert s.sock is not None
+                cycles.state(s.sock.fileno()).route.give(s.link)
             if got is not None and got[0] == RUN_HANDED:
                 _, fd, data, at, addr = got
                 s = by_fd[fd]

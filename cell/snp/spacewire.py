@@ -285,7 +285,7 @@ class Explorer:
         except rmap.RmapError:
             reply = None
         path = self._asked.pop(reply.transaction, None) if isinstance(reply, rmap.ReadReply) else None
-        info = parse_identity(reply.data) if path is not None and reply is not None else None
+        info = parse_identity(reply.data) if path is not None and isinstance(reply, rmap.ReadReply) else None
         if path is None or info is None:
             self.stray += 1
             return False

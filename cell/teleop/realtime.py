@@ -287,7 +287,7 @@ def run(
             if kind == "ready":
                 ready.add(Role(role))
         if on_ready is not None:
-            on_ready(ports, {r: p.pid for r, p in procs.items()})
+            on_ready(ports, {r: p.pid for r, p in procs.items() if p.pid is not None})  # (all: started)
         if setup.mode != Mode.MODIFIED:
             console.send(EventType.MODE, bytes((setup.mode,)))
         start_ns = time.monotonic_ns() + int(START_AFTER_S * 1e9)

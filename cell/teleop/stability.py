@@ -60,7 +60,7 @@ def plant(obj: str) -> Plant:
 
 def _expm(a: np.ndarray) -> np.ndarray:
     """exp(a) by scaling and squaring a Taylor series (the matrices here are small and tame)."""
-    s = max(0, int(np.ceil(np.log2(max(np.linalg.norm(a, 1), 1e-12)))) + 1)
+    s = max(0, int(np.ceil(np.log2(max(float(np.linalg.norm(a, 1)), 1e-12)))) + 1)
     a = a / 2**s
     out, term = np.eye(len(a)), np.eye(len(a))
     for i in range(1, 20):

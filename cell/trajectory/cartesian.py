@@ -54,7 +54,11 @@ def quaternion_matrix(xyzw: Sequence[float]) -> np.ndarray:
 
 
 def solve(
-    kin: Kinematics, q_start: np.ndarray, poses: Poses, rate_hz: float = 50.0, turn_speed: float = 1.0
+    kin: Kinematics,
+    q_start: Sequence[float] | np.ndarray,
+    poses: Poses,
+    rate_hz: float = 50.0,
+    turn_speed: float = 1.0,
 ) -> Trajectory:
     """The joint trajectory of the poses (see the module's docstring); turn_speed (rad/s) bounds the
     tool's turning as max_speed bounds its travel."""

@@ -66,7 +66,7 @@ class Trajectory:
         cols = None
         if joint_names is not None and robot_joints is not None:
             cols = joint_order(joint_names, robot_joints)
-        arrays = []
+        arrays: list[np.ndarray | None] = []
         for what, a in (("positions", q), ("velocities", qd), ("accelerations", qdd)):
             if a is None:
                 arrays.append(None)
@@ -92,7 +92,9 @@ class Trajectory:
             raise TrajectoryError(
                 f"point {i}: time {t_arr[i]:.6g} s does not come after point {i - 1}'s ({t_arr[i - 1]:.6g} s)"
             )
-        return Trajectory(t_arr, arrays[0], arrays[1], arrays[2], name)
+        q_arr, qd_arr, qdd_arr = arrays
+        assert q_arr is not None  # (q is not optional)
+        return Trajectory(t_arr, q_arr, qd_arr, qdd_arr, name)
 
     def check(self, q_min: np.ndarray, q_max: np.ndarray, v_max: np.ndarray, a_max: np.ndarray) -> None:
         """TrajectoryError naming the first point that leaves the robot's limits (TimedMotion.check)."""
@@ -116,8 +118,10 @@ def joint_order(names: Sequence[str], robot_joints: Sequence[str]) -> list[int]:
             raise TrajectoryError(f"joint name {n!r} is not one of this robot's ({known})")
         out.append(found)
     if sorted(out) != list(range(len(robot_joints))):
-        n = len(robot_joints)
-        raise TrajectoryError(f"joint names {list(names)} do not name each of the robot's {n} joints once")
+        n_joints = len(robot_joints)
+        raise TrajectoryError(
+            f"joint names {list(names)} do not name each of the robot's {n_joints} joints once"
+        )
     return out
 
 

@@ -19,8 +19,10 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -42,7 +44,7 @@ class Points:
     source: str = field(default="", repr=False)
 
 
-def load(path: str | Path, topic: str | None = None, index: int | None = None) -> list[Points | Poses]:
+def load(path: str | Path, topic: str | None = None, index: int | None = None) -> Sequence[Points | Poses]:
     """The trajectories in a file or bag (TrajectoryError naming what is wrong)."""
     p = Path(path)
     if not p.exists():
@@ -153,8 +155,8 @@ def read_csv(path: Path) -> list[Points]:
 # --- ROS 2 bags -------------------------------------------------------------------------------------
 
 
-def _seconds(d: object) -> float:
-    return float(d.sec) + float(d.nanosec) * 1e-9  # type: ignore[attr-defined]
+def _seconds(d: Any) -> float:  # (rosbags' messages: dataclasses made at run time, untyped)
+    return float(d.sec) + float(d.nanosec) * 1e-9
 
 
 def _from_message(msg: object) -> list[object]:
@@ -164,9 +166,9 @@ def _from_message(msg: object) -> list[object]:
     with only a multi-DOF trajectory)."""
     found: list[object] = []
 
-    def walk(obj: object, depth: int) -> None:
+    def walk(obj: Any, depth: int) -> None:  # (a rosbags message, or one of its fields)
         if getattr(obj, "__msgtype__", "") == JOINT_TRAJECTORY:
-            if obj.points:  # type: ignore[attr-defined]
+            if obj.points:
                 found.append(obj)
         elif depth and dataclasses.is_dataclass(obj):
             for f in dataclasses.fields(obj):
@@ -201,11 +203,11 @@ def _joined(parts: list[Points]) -> list[Points]:
     return out
 
 
-def _points(jt: object, source: str, name: str) -> Points:
-    pts = jt.points  # type: ignore[attr-defined]
+def _points(jt: Any, source: str, name: str) -> Points:  # (jt: a rosbags JointTrajectory, untyped)
+    pts = jt.points
     if len(pts) > MAX_POINTS:
         raise TrajectoryError(f"{source}: {len(pts)} points: at most {MAX_POINTS:,}")
-    names = list(jt.joint_names)  # type: ignore[attr-defined]
+    names = list(jt.joint_names)
     t = np.array([_seconds(p.time_from_start) for p in pts])
     n = len(names)
 

@@ -46,9 +46,11 @@ def from_message(m: controller_pb2.JointTrajectory, robot_joints: Sequence[str])
             raise TrajectoryError(f"{what}: {len(values)} values for {n} points of {dof} joints")
         return np.array(values, np.float64).reshape(n, dof)
 
+    q = rows(m.positions, "positions")
+    assert q is not None  # (there are positions: checked above)
     return Trajectory.build(
         np.array(m.t, np.float64),
-        rows(m.positions, "positions"),  # type: ignore[arg-type]
+        q,
         rows(m.velocities, "velocities"),
         rows(m.accelerations, "accelerations"),
         joint_names=list(m.joint_names) or None,

@@ -196,8 +196,8 @@ class URArm:
             regs = self.int_out if name.startswith("output") else self.int_in
             return (regs[int(name.rsplit("_", 1)[1])],)
         if name.startswith(("output_double_register_", "input_double_register_")):
-            regs = self.double_out if name.startswith("output") else self.double_in
-            return (regs[int(name.rsplit("_", 1)[1])],)
+            doubles = self.double_out if name.startswith("output") else self.double_in
+            return (doubles[int(name.rsplit("_", 1)[1])],)
         if name.startswith(("output_bit_registers", "input_bit_registers")):
             bits = self.bits_out if name.startswith("output") else self.bits_in
             return ((bits >> (32 if name.endswith("63") else 0)) & 0xFFFFFFFF,)

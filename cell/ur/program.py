@@ -103,28 +103,28 @@ class LineRunner(Runner):
                 if isinstance(target, Pose)
                 else _joints(target, call)
             )
-            self.motion = MoveJ(q, goal, float(a["v"]), float(a["a"]), model)  # type: ignore[arg-type]
+            self.motion = MoveJ(q, goal, _float(a["v"]), _float(a["a"]), model)
         elif call.name == "movel":
             target = a["pose"]
             goal = np.array(target.v) if isinstance(target, Pose) else self.tool.fk(_joints(target, call))
-            self.motion = MoveL(q, goal, float(a["v"]), float(a["a"]), self.tool)  # type: ignore[arg-type]
+            self.motion = MoveL(q, goal, _float(a["v"]), _float(a["a"]), self.tool)
         elif call.name == "speedj":
-            self.motion = Speed(qd, _joints(a["qd"], call), float(a["a"]))  # type: ignore[arg-type]
-            self.wait = float(a["t"])  # type: ignore[arg-type]
+            self.motion = Speed(qd, _joints(a["qd"], call), _float(a["a"]))
+            self.wait = _float(a["t"])
         elif call.name == "servoj":
             if not isinstance(self.motion, Servo):
                 self.motion = Servo(q)
-            t = float(a["t"])  # type: ignore[arg-type]
-            self.motion.set(_joints(a["q"], call), t, float(a["lookahead_time"]))  # type: ignore[arg-type]
+            t = _float(a["t"])
+            self.motion.set(_joints(a["q"], call), t, _float(a["lookahead_time"]))
             self.wait = t
         elif call.name in ("stopj", "stopl"):
-            self.motion = Speed(qd, np.zeros_like(q), float(a["a"]), stop=True)  # type: ignore[arg-type]
+            self.motion = Speed(qd, np.zeros_like(q), _float(a["a"]), stop=True)
         elif call.name == "sleep":
-            self.wait = float(a["t"])  # type: ignore[arg-type]
+            self.wait = _float(a["t"])
         elif call.name == "sync":
             self.wait = 1e-9
         elif call.name == "set_standard_digital_out":
-            n = int(a["n"])  # type: ignore[call-overload]
+            n = int(a["n"])  # type: ignore[call-overload]  # any literal of the script: int() checks it
             if not 0 <= n <= 7:
                 raise Unreachable(f"standard digital output {n} does not exist (0-7)")
             bit = 1 << n
@@ -146,6 +146,10 @@ class LineRunner(Runner):
             self.wait -= dt
             return True
         return False
+
+
+def _float(v: object) -> float:
+    return float(v)  # type: ignore[arg-type]  # any literal of the script: float() checks it
 
 
 def _joints(v: object, call: Call) -> np.ndarray:
@@ -325,7 +329,7 @@ class RtdeControl(Runner):
                 self.arm.payload = float(self._dbl(0)[0])
                 cog = self._dbl(1, 3)
                 if cog.any():
-                    self.arm.cog = tuple(float(x) for x in cog)
+                    self.arm.cog = (float(cog[0]), float(cog[1]), float(cog[2]))
             elif cmd == Cmd.SET_TCP:
                 tool.set_tcp(self._dbl(0, 6))
             elif cmd == Cmd.GET_INVERSE_KINEMATICS_DEFAULT:
@@ -373,8 +377,10 @@ class DaemonProgram(Runner):
     def __init__(self, script: Script, arm: URArm) -> None:
         super().__init__(script, arm)
         cfg = script.settings  # (parse() checked them)
-        self.first = int(cfg["registers"])  # type: ignore[arg-type]
-        self.watchdog = int(cfg["watchdog"])  # type: ignore[arg-type]
+        registers, watchdog = cfg["registers"], cfg["watchdog"]
+        assert isinstance(registers, float) and isinstance(watchdog, float)
+        self.first = int(registers)
+        self.watchdog = int(watchdog)
         self.v_max = np.array(cfg["v_max"])
         self.a_max = np.array(cfg["a_max"])
         self.window = arm.int_in[self.first]

@@ -32,6 +32,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
+from typing import Any
 
 import numpy as np
 
@@ -77,7 +78,7 @@ def judge(robot_mode: int, safety_mode: int, runtime: int, beating: bool, starti
 
 def _mode_name(kind: type[Enum], value: int) -> str:
     try:
-        return kind(value).name  # type: ignore[call-arg]
+        return kind(value).name
     except ValueError:
         return str(value)
 
@@ -184,7 +185,8 @@ class Daemon(RobotGroup):
                 lambda: _Stream(self._rtde_bytes, self._gone), self.address, self.ur.rtde_port
             )
             self._rtde.write(self.client.hello())
-            await asyncio.wait({self._started, self._lost}, return_when=asyncio.FIRST_COMPLETED)
+            either: set[asyncio.Future[Any]] = {self._started, self._lost}
+            await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
             if self._lost.done():
                 raise OSError(self._lost.result())
         self.stats.connections += 1

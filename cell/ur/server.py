@@ -14,10 +14,12 @@ controller ends its motions of that robot with the reason."""
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -210,7 +212,7 @@ class _Arm:
         else:
             self.group.drives.set_target(self.row, v)
 
-    def _event(self, kind: int, text: str) -> None:
+    def _event(self, kind: robot_pb2.RobotEvent.Kind, text: str) -> None:
         log.info("%s: %s", self.robot.name, text)
         if self.ur.publish is not None:
             r = self.robot
@@ -240,17 +242,13 @@ class URInterfaces:
         for arm in self.arms:
             host = arm.robot.ur_host
             try:
-                self.servers.append(
-                    await loop.create_server(lambda a=arm: RtdeProtocol(self, a), host, self.config.rtde_port)
-                )
-                self.servers.append(
-                    await loop.create_server(
-                        lambda a=arm: DashboardProtocol(self, a), host, self.config.dashboard_port
-                    )
-                )
+                rtde = functools.partial(RtdeProtocol, self, arm)
+                self.servers.append(await loop.create_server(rtde, host, self.config.rtde_port))
+                dashboard = functools.partial(DashboardProtocol, self, arm)
+                self.servers.append(await loop.create_server(dashboard, host, self.config.dashboard_port))
                 for port in (self.config.primary_port, self.config.secondary_port, self.config.realtime_port):
-                    make = lambda a=arm, p=port: ScriptProtocol(self, a, p)  # noqa: E731
-                    self.servers.append(await loop.create_server(make, host, port))
+                    script = functools.partial(ScriptProtocol, self, arm, port)
+                    self.servers.append(await loop.create_server(script, host, port))
             except OSError as exc:
                 raise OSError(
                     exc.errno, f"robot {arm.robot.name}: cannot listen on {host} for its UR interfaces: {exc}"
@@ -260,7 +258,12 @@ class URInterfaces:
         for s in self.servers:
             s.close()
         for arm in self.arms:
-            for p in [*arm.rtde, *arm.dashboards, *arm.scripts]:
+            clients: list[RtdeProtocol | DashboardProtocol | ScriptProtocol] = [
+                *arm.rtde,
+                *arm.dashboards,
+                *arm.scripts,
+            ]
+            for p in clients:
                 p.transport.abort()
 
     def after_tick(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
@@ -337,7 +340,7 @@ class RtdeProtocol(asyncio.Protocol):
         self.transport: asyncio.Transport
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
+        self.transport = cast(asyncio.Transport, transport)  # (a stream server's)
         c = self.ur.counters
         if len(self.arm.rtde) >= self.ur.config.max_clients:
             c.rtde_refused += 1
@@ -372,7 +375,7 @@ class DashboardProtocol(asyncio.Protocol):
         self.transport: asyncio.Transport
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
+        self.transport = cast(asyncio.Transport, transport)  # (a stream server's)
         if len(self.arm.dashboards) >= self.ur.config.max_clients:
             transport.close()
             return
@@ -413,7 +416,7 @@ class ScriptProtocol(asyncio.Protocol):
         self.transport: asyncio.Transport
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
+        self.transport = cast(asyncio.Transport, transport)  # (a stream server's)
         if sum(p.port == self.port for p in self.arm.scripts) >= self.ur.config.max_clients:
             transport.close()
             return

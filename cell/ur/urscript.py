@@ -21,6 +21,7 @@ import ast
 import re
 import warnings
 from dataclasses import dataclass, field
+from typing import TypeGuard
 
 from cell.lines import LineReader, TooLong
 
@@ -242,6 +243,10 @@ def _call(code: str, line: int, indent: int) -> Call:
     return Call(name, args, line)
 
 
+def _is_number(x: object) -> TypeGuard[int | float]:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
 def _value(node: ast.expr) -> object:
     """A literal: a number, a bool, a string, a list of numbers, a pose; with + - * / on numbers."""
     if isinstance(node, ast.Constant) and isinstance(node.value, (int, float, str, bool)):
@@ -250,12 +255,13 @@ def _value(node: ast.expr) -> object:
         return {"True": True, "False": False, "pi": 3.141592653589793}[node.id]
     if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
         v = _value(node.operand)
-        if isinstance(v, (int, float)) and not isinstance(v, bool):
+        if _is_number(v):
             return -v if isinstance(node.op, ast.USub) else v
     if isinstance(node, ast.List):
         items = [_value(e) for e in node.elts]
-        if all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
-            return [float(x) for x in items]  # type: ignore[arg-type]
+        numbers = [x for x in items if _is_number(x)]
+        if len(numbers) == len(items):
+            return [float(x) for x in numbers]
     if isinstance(node, ast.BinOp):
         if isinstance(node.left, ast.Name) and node.left.id == "P" and isinstance(node.op, ast.Add):
             v = _value(node.right)
@@ -263,10 +269,10 @@ def _value(node: ast.expr) -> object:
                 return Pose(tuple(v))
             raise ValueError("a pose is p[x, y, z, rx, ry, rz]")
         a, b = _value(node.left), _value(node.right)
-        if all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (a, b)):
-            ops = {ast.Add: a + b, ast.Sub: a - b, ast.Mult: a * b}  # type: ignore[operator]
+        if _is_number(a) and _is_number(b):
+            ops = {ast.Add: a + b, ast.Sub: a - b, ast.Mult: a * b}
             if type(node.op) in ops:
                 return ops[type(node.op)]
             if isinstance(node.op, ast.Div) and b:
-                return a / b  # type: ignore[operator]
+                return a / b
     raise ValueError(f"{ast.unparse(node)!r} is not a literal value this arm takes")

@@ -36,7 +36,8 @@ WAIT_PERIODS = 2  # a request for an instant newer than every frame waits at mos
 def camera_spec(v: VisionConfig) -> CameraSpec:
     """The camera and its lens as [vision] describes them."""
     lens = ThinLens(v.focal_mm, v.f_number, v.focus_mm, v.pixel_um)
-    return CameraSpec(tuple(v.position_m), tuple(v.axis), v.width_px, v.height_px, lens, v.noise_dn)  # type: ignore[arg-type]
+    (x, y, z), (ax, ay, az) = v.position_m, v.axis  # (3-vectors: the config checks them)
+    return CameraSpec((x, y, z), (ax, ay, az), v.width_px, v.height_px, lens, v.noise_dn)
 
 
 class Acquisition:

@@ -55,7 +55,7 @@ def psf_sigma(diameter_px: float) -> float:
 
 def expose(sharp: np.ndarray, blur_px: float, noise_dn: float, rng: np.random.Generator) -> np.ndarray:
     """The frame the sensor gives: the sharp render blurred by the lens, with read noise, in 8 bits."""
-    img = sharp.astype(np.float32)
+    img: np.ndarray = sharp.astype(np.float32)
     sigma = psf_sigma(blur_px)
     if sigma > 0.05:
         k = max(3, 2 * math.ceil(3 * sigma) + 1)  # (OpenCV's own size would be 1 below sigma 0.3)

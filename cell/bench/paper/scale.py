@@ -222,6 +222,7 @@ def resources(quick: bool, out: Path, log: Log) -> list[Section]:
                 finally:
                     prog.close()
                 xdp_mb[a, k] = res.map_bytes / 1e6
+        assert res is not None  # (arms and per_arm are not empty)
         log(f"  XDP program: {res.programs['velocity_control']} (instructions, verified, JIT bytes)")
     except Exception as exc:  # (no BPF here: root, libbpf, the object)
         why = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
@@ -467,8 +468,8 @@ def x86(quick: bool, out: Path, log: Log) -> list[Section]:
     for t in found.trials:
         if not t.limit:
             best[t.robots] = max(best.get(t.robots, 0.0), 100 * t.on_time_fraction)
-    sizes = sorted(best)
-    ax.plot(sizes, [best[n] for n in sizes], "o-", label="a driver per arm")
+    fleets = sorted(best)
+    ax.plot(fleets, [best[n] for n in fleets], "o-", label="a driver per arm")
     ax.plot(
         [t.robots for t in planes], [100 * t.on_time_fraction for t in planes], "s-", label="the data plane"
     )

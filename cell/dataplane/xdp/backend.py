@@ -110,8 +110,9 @@ class XdpPipeline(Pipeline):
         program = self.program
         self.check_fits(program, built[0])
         with self.t.gated():
-            if getattr(program, "fit", None) is not None:
-                program.fit(built[0].n_bits)
+            fit = getattr(program, "fit", None)  # (NativeProgram's: it resizes its Transform tables)
+            if fit is not None:
+                fit(built[0].n_bits)
             super().install(built)
             size = program.joints * 2 * program.eps
             for bank, t in enumerate(
@@ -124,7 +125,7 @@ class XdpPipeline(Pipeline):
             out["hi_v"][:n], out["hi_m"][:n] = lim.hi_v, lim.hi_m
             out["lo_v"][:n], out["lo_m"][:n] = lim.lo_v, lim.lo_m
 
-    def set_stop_ramp(self, decel: Sequence[float], window_s: float) -> None:
+    def set_stop_ramp(self, decel: Sequence[float] | np.ndarray, window_s: float) -> None:
         super().set_stop_ramp(decel, window_s)
         self.program.globals["stop_ramp"][: self.stop_ramp.size] = self.stop_ramp
 

@@ -11,6 +11,7 @@ import ctypes.util
 import os
 import struct
 from functools import cache
+from typing import NoReturn
 
 
 class BpfError(RuntimeError):
@@ -97,16 +98,19 @@ def check(ret: int, what: str) -> int:
     """ret when it is >= 0; else BpfError naming the call, the error and libbpf's last words."""
     if ret >= 0:
         return ret
-    err = -ret if ret < -1 else ctypes.get_errno()
-    tail = "".join(_log[-12:]).strip()
-    del _log[:]
-    raise BpfError(f"{what}: {os.strerror(err)}" + (f"\n{tail}" if tail else ""))
+    _fail(-ret if ret < -1 else ctypes.get_errno(), what)
 
 
 def pointer(ret: int | None, what: str) -> int:
     if not ret:
-        check(-(ctypes.get_errno() or 1), what)
-    return int(ret)  # type: ignore[arg-type]
+        _fail(ctypes.get_errno(), what)
+    return int(ret)
+
+
+def _fail(err: int, what: str) -> NoReturn:
+    tail = "".join(_log[-12:]).strip()
+    del _log[:]
+    raise BpfError(f"{what}: {os.strerror(err)}" + (f"\n{tail}" if tail else ""))
 
 
 def test_run(prog_fd: int, data: bytes, out_size: int = 4096) -> tuple[int, bytes]:

@@ -208,7 +208,9 @@ class XdpProgram(Gate):
         self.n_bits = n_bits
         self._maps: list[mmap.mmap] = []
         self.ifindex: int | None = None
-        self.obj = libbpf.pointer(bpf.bpf_object__open_file(str(obj).encode(), None), f"opening {obj}")
+        self.obj: int | None = libbpf.pointer(
+            bpf.bpf_object__open_file(str(obj).encode(), None), f"opening {obj}"
+        )
         try:
             sizes = {"rows": capacity, "transform": 3 * joints * 2 * self.eps}
             for name, n in sizes.items():
