@@ -17,6 +17,7 @@ from cell.config import CellConfig, load_config
 from cell.launcher import child_cell
 from cell.ports import free_block, free_port
 from cell.rlink.cellnet import PORTS
+from cell.status import Health
 
 
 def default_robots() -> list[dict[str, Any]]:
@@ -27,7 +28,7 @@ def default_robots() -> list[dict[str, Any]]:
 
 def ok_services(st: Any) -> set[str]:
     """The services a CellStatus says are ok."""
-    return {s.name for s in st.services if s.health == "ok"}
+    return {s.name for s in st.services if s.health == Health.OK}
 
 
 @contextlib.asynccontextmanager

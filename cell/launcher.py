@@ -23,7 +23,7 @@ from cell.config import CellConfig, parse_host_port
 from cell.layout import Process, process_for, process_named, processes
 from cell.processes import ChildProcess
 from cell.service import load_all
-from cell.status import StatusRegistry, format_status, status_names
+from cell.status import Health, StatusRegistry, format_status, status_names
 from cell.supervisor import ServiceFailed, Supervisor
 from cell.v1 import health_pb2
 
@@ -162,7 +162,7 @@ async def _keep_registry(config: CellConfig, registry: StatusRegistry, t0: float
                 reader = asyncio.ensure_future(registry.run(bus))
                 try:
                     while not announced and not reader.done():
-                        if all(s.health == "ok" for s in registry.status().services if s.name in mine):
+                        if all(s.health == Health.OK for s in registry.status().services if s.name in mine):
                             announced = True
                             log.info(
                                 "cell %r is up in %.2f s (%s): `cell status` to inspect, Ctrl-C to stop",
@@ -241,7 +241,7 @@ async def wait_healthy(
                     )
                     assert isinstance(reply, health_pb2.CellStatus)
                     last = reply
-                    if want <= {s.name for s in last.services if s.health == "ok"}:
+                    if want <= {s.name for s in last.services if s.health == Health.OK}:
                         return last
                 code = (
                     proc.poll() if isinstance(proc, subprocess.Popen) else getattr(proc, "returncode", None)
@@ -250,7 +250,7 @@ async def wait_healthy(
                     raise RuntimeError(f"the cell exited with code {code}")
                 await asyncio.sleep(0.05)  # (the next heartbeat comes by itself: no busy asking)
     except (TimeoutError, BusError):
-        ok = set() if last is None else {s.name for s in last.services if s.health == "ok"}
+        ok = set() if last is None else {s.name for s in last.services if s.health == Health.OK}
         raise TimeoutError(
             f"services {sorted(want - ok)} not ok within {timeout:g} s (last status: {last})"
         ) from None

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import socket
 import time
+from enum import StrEnum
 
 from cell.bus import Bus, identity
 from cell.config import CellConfig
@@ -17,12 +18,29 @@ from cell.v1 import health_pb2
 
 POLL_TOPIC = "health-poll"  # supervisors answer a message here with their heartbeats at once
 STALE_AFTER = 2.5  # heartbeat periods without news before a service is "stale"
+
+
+class Health(StrEnum):
+    """A service's health as `cell.status` answers it (ServiceStatus.health: these strings on the
+    wire, and in `cell status --json`): its heartbeat's state, or what the launcher makes of its
+    heartbeats' absence."""
+
+    OK = "ok"
+    STARTING = "starting"
+    BACKOFF = "backoff"  # failed, to be restarted
+    FAILED = "failed"  # failed, not to be restarted
+    STOPPED = "stopped"
+    STALE = "stale"  # heartbeats overdue
+    MISSING = "missing"  # never heard
+    UNKNOWN = "unknown"  # a state this launcher does not know (a newer service's)
+
+
 _HEALTH = {
-    health_pb2.SERVICE_STATE_STARTING: "starting",
-    health_pb2.SERVICE_STATE_RUNNING: "ok",
-    health_pb2.SERVICE_STATE_BACKOFF: "backoff",
-    health_pb2.SERVICE_STATE_FAILED: "failed",
-    health_pb2.SERVICE_STATE_STOPPED: "stopped",
+    health_pb2.SERVICE_STATE_STARTING: Health.STARTING,
+    health_pb2.SERVICE_STATE_RUNNING: Health.OK,
+    health_pb2.SERVICE_STATE_BACKOFF: Health.BACKOFF,
+    health_pb2.SERVICE_STATE_FAILED: Health.FAILED,
+    health_pb2.SERVICE_STATE_STOPPED: Health.STOPPED,
 }
 
 
@@ -112,7 +130,7 @@ class StatusRegistry:
         for name in names:
             entry = out.services.add(name=name)
             if name not in self._last:
-                entry.health = "missing"
+                entry.health = Health.MISSING
                 continue
             hb, at = self._last[name]
             entry.last.CopyFrom(hb)
@@ -126,9 +144,9 @@ class StatusRegistry:
             entry.heartbeat_age_s = now - at
             stale = entry.heartbeat_age_s > STALE_AFTER * max(hb.interval_s, 0.1)
             alive = hb.state not in (health_pb2.SERVICE_STATE_FAILED, health_pb2.SERVICE_STATE_STOPPED)
-            entry.health = "stale" if stale and alive else _HEALTH.get(hb.state, "unknown")
+            entry.health = Health.STALE if stale and alive else _HEALTH.get(hb.state, Health.UNKNOWN)
             if ghost:  # its process died: its last heartbeat is a ghost's
-                entry.health = "backoff"
+                entry.health = Health.BACKOFF
                 entry.last.state = health_pb2.SERVICE_STATE_BACKOFF
         return out
 
@@ -166,8 +184,8 @@ def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
     )
     rows = [head]
     for s in st.services:
-        if s.health == "missing":
-            rows.append((s.name, "missing", "-", "-", "-", "-", "-", "-", "never", ""))
+        if s.health == Health.MISSING:
+            rows.append((s.name, Health.MISSING, "-", "-", "-", "-", "-", "-", "never", ""))
             continue
         hb = s.last
         rows.append(

@@ -43,6 +43,7 @@ from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.rlink.client import EventClient
 from cell.skills.client import ConnectionLost, MoveJoints, RobotClient, SetSpeed, SkillError
+from cell.status import Health
 from cell.v1 import health_pb2, robot_pb2
 
 log = logging.getLogger("cell.chaos")
@@ -384,7 +385,7 @@ class Campaign:
                 hanging = not ended and any(a.kind == "stop" for a in others)
                 if hanging:
                     if (st := await self.status(timeout=0.3)) is not None:
-                        stale_seen |= {s.name for s in st.services if s.health == "stale"}
+                        stale_seen |= {s.name for s in st.services if s.health == Health.STALE}
                     else:
                         stale_seen.add("bus")  # no status at all: the bus is down
         finally:
@@ -549,7 +550,9 @@ class Campaign:
     ) -> tuple[bool, str]:
         if st is None:
             last = self.last_status
-            sick = [f"{s.name} {s.health}" for s in last.services if s.health != "ok"] if last else ["none"]
+            sick = (
+                [f"{s.name} {s.health}" for s in last.services if s.health != Health.OK] if last else ["none"]
+            )
             rest = [self.obs.describe(r) for r in self.robots if not self.obs.at_rest(r)]
             return False, f"the cell did not come back to health: {sick}, not at rest: {rest}"
         by = {s.name: s for s in st.services}
@@ -560,15 +563,15 @@ class Campaign:
                 continue
             if a.kind == "kill":
                 grew = s.last.restarts - restarts_before.get(a.target, 0)
-                good = grew >= 1 and bool(s.last.last_error) and s.health == "ok"
+                good = grew >= 1 and bool(s.last.last_error) and s.health == Health.OK
                 notes.append(
                     f"{a.target}: restarts +{grew} (pid {s.last.pid}), last error {s.last.last_error!r}"
                 )
             elif a.kind == "stop" and a.target == "bus":  # status goes over the bus: none comes
-                good = "bus" in stale_seen and s.health == "ok"
+                good = "bus" in stale_seen and s.health == Health.OK
                 notes.append("bus: status unavailable while it hung" if good else "bus: status answered?")
             elif a.kind == "stop":
-                good = a.target in stale_seen and s.health == "ok"
+                good = a.target in stale_seen and s.health == Health.OK
                 notes.append(f"{a.target}: {'stale seen' if a.target in stale_seen else 'never seen stale'}")
             else:
                 continue

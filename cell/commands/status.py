@@ -7,6 +7,7 @@ import json
 import sys
 
 from cell.commands import Command, config_arg, load, register, seconds
+from cell.status import Health
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
                         f"  {r.name:<10} {r.ur_host:<16} {r.model} ({where}; the daemon's program: {state})"
                     )
                 print(line)
-    return 0 if all(s.health == "ok" for s in st.services) else 3
+    return 0 if all(s.health == Health.OK for s in st.services) else 3
 
 
 register(

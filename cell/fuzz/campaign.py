@@ -50,6 +50,7 @@ from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
 from cell.skills.protocol import Command, CommandReader, Done, Error, ErrorCode, parse_reply
 from cell.snp import packet as snp
+from cell.status import Health
 from cell.v1 import controller_pb2, dataplane_pb2, health_pb2, robot_pb2
 
 PROBE_ROBOT = 65000  # a robot id no cell configures: the data plane tells it to hold
@@ -721,7 +722,7 @@ def _broken(before: dict[str, dict[str, Any]], after: dict[str, dict[str, Any]])
     out = []
     for name, b in before.items():
         a = after.get(name)
-        if a is None or a["pid"] != b["pid"] or a["restarts"] != b["restarts"] or a["health"] != "ok":
+        if a is None or a["pid"] != b["pid"] or a["restarts"] != b["restarts"] or a["health"] != Health.OK:
             out.append(f"{name}: {b['pid']}->{None if a is None else a['pid']} ({a and a['health']})")
     return out
 
