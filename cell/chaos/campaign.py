@@ -20,8 +20,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
-import signal
 import socket
 import subprocess
 import time
@@ -37,7 +35,7 @@ from cell import models
 from cell.bus import Bus, BusError
 from cell.bus.delay import DelayLink
 from cell.cellproc import default_robots, ok_services, running_cell
-from cell.chaos.faults import PROMISES, Action, Fault, catalogue
+from cell.chaos.faults import PROMISES, Fault, Hang, Kill, SlowLink, SwitchDown, catalogue
 from cell.config import CellConfig, load_config
 from cell.launcher import fetch_status
 from cell.ports import free_port
@@ -52,7 +50,6 @@ FAULT_S = 6.0  # how long one fault takes on this machine kind (injected, judged
 REST = 2e-3  # rad/s: a robot whose every joint is slower than this is at rest
 LUNGE = 2e-3  # rad: moving further than this from where it came to rest is an unplanned motion
 ARRIVED = 2e-3  # rad: a motion answered done ended within this of its goal
-LINK = (0.050, 0.020, 0.05)  # the controller's slow link: delay, jitter (s), loss
 SWING = np.array([0.6, -0.25, 0.25, 0.0, 0.0, 0.5])  # rad: the motion driven back and forth
 ESTOP_AT_S = 1.2  # the e-stop comes this long after the fault (after answered_1s's second, in the fault)
 # beyond its braking: the order to the drives (p99 2 ms), the arm following its braking drive (the
@@ -302,33 +299,7 @@ class Campaign:
     def pids(self, st: health_pb2.CellStatus) -> dict[str, int]:
         return {s.name: s.last.pid for s in st.services if s.last.pid}
 
-    async def inject(self, action: Action, pids: dict[str, int]) -> None:
-        """Start the action; it ends by itself after its seconds (see end())."""
-        if action.kind == "kill":
-            os.kill(pids[action.target], signal.SIGKILL)
-        elif action.kind == "stop":
-            os.kill(pids[action.target], signal.SIGSTOP)
-        elif action.kind == "link":
-            self.link.delay, self.link.jitter, self.link.loss = LINK
-        elif action.kind == "switch-down":
-            await asyncio.to_thread(self._switch_port, "down")
-        elif action.kind == "detach":
-            await asyncio.to_thread(self._switch_port, "xdpgeneric", "off")
-        elif action.kind == "silence":
-            async with Bus.connect(self.config.bus, "chaos-silence") as bus:
-                req = robot_pb2.SilenceRequest(robot=action.target, seconds=action.seconds)
-                await bus.request(f"robot/{action.target}", "silence", req)
-
-    def end(self, action: Action, pids: dict[str, int]) -> None:
-        if action.kind == "stop":
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pids[action.target], signal.SIGCONT)
-        elif action.kind == "link":
-            self.link.delay = self.link.jitter = self.link.loss = 0.0
-        elif action.kind == "switch-down":
-            self._switch_port("up")
-
-    def _switch_port(self, *setting: str) -> None:
+    def switch_port(self, *setting: str) -> None:
         """`ip link set` on the XDP switch's port to the robots (its end of the veth pair): down, up,
         xdpgeneric off."""
         x = self.config.dataplane.xdp
@@ -344,12 +315,10 @@ class Campaign:
         counters_before = _counters(before)
         restarts_before = {s.name: s.last.restarts for s in before.services}
         t_fault: list[int] = []
-        slow_link = any(a.kind == "link" for a in fault.actions)
-        others = [a for a in fault.actions if a.kind != "link"]
-        if slow_link:  # motions planned over the slow link: it comes first
-            for a in fault.actions:
-                if a.kind == "link":
-                    await self.inject(a, pids)
+        links = [a for a in fault.actions if isinstance(a, SlowLink)]
+        others = [a for a in fault.actions if not isinstance(a, SlowLink)]
+        for link in links:  # motions planned over the slow link: it comes first
+            await link.inject(self, pids)
         goals = {r: self.goal(r) for r in self.robots}
         drives = [asyncio.ensure_future(self.drive(r, goals[r], t_fault)) for r in self.robots]
         await self.moving()
@@ -360,8 +329,8 @@ class Campaign:
             if others:
                 t_fault.append(time.monotonic_ns())
                 for a in others:
-                    await self.inject(a, pids)
-                if any(a.kind == "switch-down" for a in others):  # (down once `ip` has returned: the
+                    await a.inject(self, pids)
+                if any(isinstance(a, SwitchDown) for a in others):  # (down once `ip` has returned: the
                     t_fault[0] = time.monotonic_ns()  # command's few ms are not the robots')
             deadline = time.monotonic() + fault.seconds
             outcomes: list[Outcome] = []
@@ -374,7 +343,7 @@ class Campaign:
                     stopping = asyncio.ensure_future(self.estop())
                 if not ended and time.monotonic() >= deadline:
                     for a in fault.actions:
-                        self.end(a, pids)
+                        a.end(self, pids)
                     ended = True
                 wait = 0.1 if ended else min(0.1, max(0.0, deadline - time.monotonic()))
                 if pending:
@@ -382,7 +351,7 @@ class Campaign:
                     outcomes += [d.result() for d in done]
                 else:
                     await asyncio.sleep(wait)
-                hanging = not ended and any(a.kind == "stop" for a in others)
+                hanging = not ended and any(isinstance(a, Hang) for a in others)
                 if hanging:
                     if (st := await self.status(timeout=0.3)) is not None:
                         stale_seen |= {s.name for s in st.services if s.health == Health.STALE}
@@ -390,13 +359,13 @@ class Campaign:
                         stale_seen.add("bus")  # no status at all: the bus is down
         finally:
             for a in fault.actions:
-                self.end(a, pids)
+                a.end(self, pids)
         t_end = time.monotonic_ns()
         estop = stopping.result() if stopping is not None else None
         # recovery: every service ok again, then a motion on every robot (back where each came from)
         recovered_st = None
         with contextlib.suppress(TimeoutError):
-            killed = {a.target: pids[a.target] for a in fault.actions if a.kind == "kill"}
+            killed = {a.target: pids[a.target] for a in fault.actions if isinstance(a, Kill)}
             recovered_st = await self.healthy(timeout=60.0, dead=killed)
         if "reattached" in fault.promises and recovered_st is not None:  # (counters come with heartbeats)
             recovered_st = await self.counted(recovered_st, "dataplane.xdp.reattached", counters_before)
@@ -409,7 +378,7 @@ class Campaign:
         t0 = t_fault[0]
 
         # --- judgement -----------------------------------------------------------------------------
-        killed_skills = any(a.kind == "kill" and a.target == "skills" for a in fault.actions)
+        killed_skills = any(isinstance(a, Kill) and a.target == "skills" for a in fault.actions)
         ok_status = {"done", "stopped"} | ({"lost"} if killed_skills else set())
         bad = [o for o in outcomes if o.status not in ok_status]
         held["answered"] = not bad and len(outcomes) == len(self.robots)
@@ -561,16 +530,16 @@ class Campaign:
             s = by.get(a.target)
             if s is None:
                 continue
-            if a.kind == "kill":
+            if isinstance(a, Kill):
                 grew = s.last.restarts - restarts_before.get(a.target, 0)
                 good = grew >= 1 and bool(s.last.last_error) and s.health == Health.OK
                 notes.append(
                     f"{a.target}: restarts +{grew} (pid {s.last.pid}), last error {s.last.last_error!r}"
                 )
-            elif a.kind == "stop" and a.target == "bus":  # status goes over the bus: none comes
+            elif isinstance(a, Hang) and a.target == "bus":  # status goes over the bus: none comes
                 good = "bus" in stale_seen and s.health == Health.OK
                 notes.append("bus: status unavailable while it hung" if good else "bus: status answered?")
-            elif a.kind == "stop":
+            elif isinstance(a, Hang):
                 good = a.target in stale_seen and s.health == Health.OK
                 notes.append(f"{a.target}: {'stale seen' if a.target in stale_seen else 'never seen stale'}")
             else:

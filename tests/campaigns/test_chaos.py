@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 from collections import deque
 
@@ -88,7 +89,7 @@ def test_an_estop_is_judged_by_the_robots_truth_against_their_braking() -> None:
     """Each robot must stand within its braking from the speed it had (+ ESTOP_MARGIN_MS) of the order,
     by its truth; with the hub down no order gets through, and the link's watchdog must stop it."""
     from cell.chaos.campaign import ESTOP_MARGIN_MS, Campaign, EStop
-    from cell.chaos.faults import Action, Fault
+    from cell.chaos.faults import Fault, Kill
     from cell.config import load_config
 
     config = load_config(None)
@@ -107,7 +108,7 @@ def test_an_estop_is_judged_by_the_robots_truth_against_their_braking() -> None:
         return camp
 
     bound = 0.5 / 5.0 * 1e3 + ESTOP_MARGIN_MS  # the UR5e's joints brake at 5 rad/s^2
-    fault = Fault("kill:vision", (Action("kill", "vision"),), ())
+    fault = Fault("kill:vision", (Kill("vision"),), ())
     t0, order = 1_000_000_000_000, 1_001_200_000_000
     order_heard = EStop(order, {r: 120.0 for r in robots})
     ok, why = camp_with({r: bound - 20 for r in robots}, order)._estop_held(
@@ -118,10 +119,61 @@ def test_an_estop_is_judged_by_the_robots_truth_against_their_braking() -> None:
     ok, why = camp_with(late, order)._estop_held(fault, order_heard, t0, order + 2 * 10**9)
     assert not ok and why.startswith("by the order"), why
     # the hub killed: no report, the robots stand by the link's watchdog ([rlink] watchdog_s x 1.25)
-    hub = Fault("kill:rlink", (Action("kill", "rlink"),), ())
+    hub = Fault("kill:rlink", (Kill("rlink"),), ())
     unheard = EStop(order, {}, "robot(s) [1, 2] did not report still within 5.0 s")
     watchdog = t0 + int(config.rlink.watchdog_s * 1.25e9)
     ok, why = camp_with({r: (watchdog - order) / 1e6 + bound - 20 for r in robots}, order)._estop_held(
         hub, unheard, t0, order + 2 * 10**9
     )
     assert ok and why.startswith("by the link's watchdog"), why
+
+
+async def test_each_action_does_what_it_says_to_a_real_process_and_its_end_undoes_it() -> None:
+    """Hang stops a process until its end continues it, Kill kills it, SlowLink slows the link and its
+    end restores it; an end twice is harmless (the campaign ends every action again on its way out)."""
+    import subprocess
+
+    from cell.bus.delay import DelayLink
+    from cell.chaos.faults import LINK, Hang, Kill, SlowLink
+    from cell.config import load_config
+
+    def state(pid: int) -> str:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+
+    class Cell:  # what an action acts on (faults.Target)
+        config = load_config(None)
+        link = DelayLink(config.bus, "tcp://127.0.0.1:1", "tcp://127.0.0.1:2", 0.0, 0.0)
+
+        def switch_port(self, *setting: str) -> None:
+            raise AssertionError("no switch here")
+
+    cell = Cell()
+    proc = subprocess.Popen(["sleep", "30"])
+    try:
+        pids = {"svc": proc.pid}
+        hang = Hang("svc", 1.0)
+        await hang.inject(cell, pids)
+        for _ in range(200):  # (the signal is delivered asynchronously)
+            if state(proc.pid) == "T":
+                break
+            await asyncio.sleep(0.005)
+        assert state(proc.pid) == "T"
+        hang.end(cell, pids)
+        hang.end(cell, pids)
+        for _ in range(200):
+            if state(proc.pid) != "T":
+                break
+            await asyncio.sleep(0.005)
+        assert state(proc.pid) in ("S", "R")
+        await Kill("svc").inject(cell, pids)
+        assert proc.wait(timeout=5) == -9
+        Hang("svc").end(cell, pids)  # (its process gone: nothing to continue, no error)
+    finally:
+        proc.kill()
+        proc.wait()
+    slow = SlowLink("controller", 4.0)
+    await slow.inject(cell, {})
+    assert (cell.link.delay, cell.link.jitter, cell.link.loss) == LINK
+    slow.end(cell, {})
+    assert (cell.link.delay, cell.link.jitter, cell.link.loss) == (0.0, 0.0, 0.0)
