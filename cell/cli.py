@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except Exception as exc:  # no traceback for what is not a bug: no cell to talk to
-        from cell.bus import BusUnavailable
+        from cell.bus import BusUnavailable  # (lazy: `cell --help` loads no ZeroMQ)
 
         if not isinstance(exc, BusUnavailable):
             raise

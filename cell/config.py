@@ -23,6 +23,8 @@ from typing import Any, Literal, TypeVar, Union, dataclass_transform, get_args, 
 
 import tomli_w
 
+from cell.models import MODELS, get
+
 DEFAULT_SOURCE = "<embedded default>"
 _NAME = re.compile(r"[a-z][a-z0-9_\-]{0,31}")
 _ENTRY = re.compile(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*")
@@ -87,8 +89,6 @@ def _joint_vector(v: list[float]) -> str | None:
 
 def _robot_model(v: str) -> str | None:
     """A name in the robot-model registry (cell.models: no MuJoCo imported to check it)."""
-    from cell.models import MODELS
-
     return None if v in MODELS else f"unknown robot model {v!r} (known: {', '.join(sorted(MODELS))})"
 
 
@@ -543,8 +543,6 @@ class RobotConfig:
         return self.ur_address or f"127.0.{1 + self.id // 256}.{self.id % 256}"
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
-        from cell.models import get
-
         if len(self.q0) != (joints := get(self.model).joints):
             raise err("q0", f"must list {joints} joint values in rad, one per joint of a {self.model}")
         if self.command_hz > self.status_hz:

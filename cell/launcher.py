@@ -20,6 +20,7 @@ from cell import sched
 from cell.aio import stop_on_signals, stop_on_stdin_eof
 from cell.bus import Bus, BusError, BusRefused, identity
 from cell.config import CellConfig, parse_host_port
+from cell.dataplane.xdp.switch import SwitchError, switch_namespace
 from cell.layout import Process, process_for, process_named, processes
 from cell.processes import ChildProcess
 from cell.service import load_all
@@ -45,8 +46,6 @@ async def up(
     await _join(config)
     with contextlib.ExitStack() as stack:
         if config.dataplane.runs.in_kernel:
-            from cell.dataplane.xdp.switch import SwitchError, switch_namespace
-
             try:
                 stack.enter_context(switch_namespace(config.dataplane.xdp))
             except SwitchError as exc:

@@ -32,6 +32,7 @@ from cell.launcher import child_cell
 from cell.modular.client import ModularClient
 from cell.rlink.client import EventClient
 from cell.skills.client import RobotClient
+from cell.trajectory.cartesian import solve_where_it_stands
 from cell.trajectory.model import Trajectory
 from cell.trajectory.wire import to_message
 from cell.v1 import controller_pb2, skills_pb2
@@ -156,8 +157,6 @@ class Cell:
         frame, optional rotations, times or a maximum tool speed) as the robot's joint trajectory,
         solved by IK from where it stands now; TrajectoryError naming a waypoint out of reach.
         Follow it with follow({robot: ...})."""
-        from cell.trajectory.cartesian import solve_where_it_stands
-
         return await solve_where_it_stands(self.bus, self.config, robot, poses)
 
     async def name_trajectories(

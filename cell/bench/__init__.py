@@ -1,4 +1,8 @@
-"""Benchmarks behind `cell bench ...`: each measures a hot path next to a baseline in the same run."""
+"""Benchmarks behind `cell bench ...`: each measures a hot path next to a baseline in the same run.
+
+Every module here is imported to list the benches (registry.discover), so a bench imports what only
+its run needs (another bench's parts, the cell's engines, what builds C) inside the functions that
+run it: `cell bench --help` then loads about a second's worth, not every bench's."""
 
 from __future__ import annotations
 

@@ -43,6 +43,10 @@ from cell.dataplane.pipeline import (
 )
 from cell.dataplane.tables import NO_ROW, Refused, Tables
 from cell.dataplane.wire import decode_keys, decode_tps
+from cell.dataplane.xdp.backend import XdpPipeline, XdpTables
+from cell.dataplane.xdp.libbpf import BpfError
+from cell.dataplane.xdp.program import XdpProgram
+from cell.dataplane.xdp.switch import in_namespace, namespace_thread
 from cell.rlink.leaf import LeafNode
 from cell.rlink.station import Order
 from cell.robot import datagram, udp
@@ -532,8 +536,6 @@ class MappedDataPlane(DataPlane):
         raise NotImplementedError
 
     def _state(self, config: CellConfig, constants: ControlConstants) -> tuple[Tables, Pipeline, np.ndarray]:
-        from cell.dataplane.xdp.backend import XdpPipeline, XdpTables
-
         self.program = self._program(config)
         try:
             tables = XdpTables(self.program, config.dataplane.max_joints)
@@ -552,9 +554,6 @@ class MappedDataPlane(DataPlane):
         return reply
 
     async def load_constants(self, req: dataplane_pb2.Constants) -> dataplane_pb2.ConstantsReply:
-        from cell.dataplane.xdp.backend import XdpPipeline
-        from cell.dataplane.xdp.libbpf import BpfError
-
         try:
             XdpPipeline.check_fits(self.program, ControlConstants(tuple(req.c1), (), req.n_bits, ()))
         except BpfError as exc:
@@ -589,14 +588,10 @@ class XdpDataPlane(MappedDataPlane):
     prefix = "xdp."
 
     def _program(self, config: CellConfig) -> Any:
-        from cell.dataplane.xdp.program import XdpProgram
-
         dp = config.dataplane
         return XdpProgram(dp.capacity, dp.n_bits, len(dp.c1))
 
     def _open(self, config: CellConfig) -> None:
-        from cell.dataplane.xdp.switch import in_namespace
-
         dp, x = config.dataplane, config.dataplane.xdp
         host, port = parse_host_port(dp.listen)
         g = self.program.globals
@@ -620,8 +615,6 @@ class XdpDataPlane(MappedDataPlane):
         self.sender = udp.Sender(self.sock, datagram.SIZE)
 
     def close(self) -> None:
-        from cell.dataplane.xdp.switch import in_namespace
-
         self.sock.close()
         with contextlib.suppress(OSError, RuntimeError):  # (the namespace may be gone already)
             in_namespace(self.netns, self.program.detach)
@@ -634,8 +627,6 @@ class XdpDataPlane(MappedDataPlane):
         at once through the very program (BPF_PROG_TEST_RUN on its maps), and the program is
         attached again meanwhile (in a thread inside the namespace: an attach takes ~15 ms of
         statuses).  Another program attached in its place is reported, not fought."""
-        from cell.dataplane.xdp.switch import namespace_thread
-
         for problem in sched.lower_to(CONTROL_PRIORITY):  # (the kernel answers the statuses)
             log.warning("%s", problem)
         loop = asyncio.get_running_loop()
@@ -713,8 +704,6 @@ class XdpDataPlane(MappedDataPlane):
 
     def _check_attached(self) -> None:
         """As the watch does, from any thread (tests)."""
-        from cell.dataplane.xdp.switch import in_namespace
-
         t0 = time.monotonic_ns()
         found, now = in_namespace(self.netns, self._attached_or_attach)
         self.watch.checked(found, now, self.port, (time.monotonic_ns() - t0) / 1e6)

@@ -121,8 +121,6 @@ def bodies(model: mujoco.MjModel) -> tuple[Body, ...]:
 
 @cache
 def _xml() -> str:
-    import cell.models.ur  # noqa: F401  (registers the UR models)
-
     return mjcf(MODEL, torque=True, timestep=TIMESTEP)
 
 

@@ -38,8 +38,9 @@ from cell.ports import free_ports
 from cell.sched import place
 from cell.snp.link import module_port, open_udp
 from cell.snp.modular import CycleConfig, NodeState
+from cell.snp.native import available
 from cell.snp.routed import Routers, explore_routers, start_routers
-from cell.snp.runner import chain
+from cell.snp.runner import SPIN_NS, Slot, chain, run_modules, serve_master
 
 REPORT_NS = 20_000_000  # each process's report to the service
 LOST_NS_MIN = 50_000_000  # a module silent this long is lost, at the least (cell.snp.master.Master's)
@@ -119,8 +120,6 @@ def master_main(
 ) -> None:
     """net: over the routers, (its own port, its two links): it explores the network through them
     and knows its modules by the paths to them, their return addresses (cell.snp.routed)."""
-    from cell.snp.runner import SPIN_NS, serve_master
-
     place([], RT_PRIORITY, -5)
     config = cycle_config(period)
     sock = open_udp(port=net[0] if net else 0, timestamps=True)
@@ -191,8 +190,6 @@ def modules_main(
     routes: list[Any] | None = None,
     seed: int = 1,
 ) -> None:
-    from cell.snp.runner import Slot, run_modules
-
     place([], RT_PRIORITY, -5)
     config = cycle_config(period)
     plant = Plant(np.array(q0))
@@ -279,8 +276,6 @@ class CycleRobot(ArmRobot):
         through each cycle's exchanges (about half a core each at 1 ms; without, each datagram
         waits for a wake-up and more exchanges miss); routed: every datagram through the two
         routers of cell.snp.routed, in a third process."""
-        from cell.snp.native import available
-
         super().__init__(where)
         self.transport = "cycle"
         self.native = available() is None if native is None else native

@@ -28,7 +28,8 @@ from typing import cast
 
 from cell.bus import Bus, RemoteError
 from cell.skills.protocol import NO_ID, Command, Done, Error, ReplyReader
-from cell.v1 import skills_pb2
+from cell.trajectory.wire import to_message
+from cell.v1 import controller_pb2, skills_pb2
 
 Message = tuple[str, tuple[float, ...] | tuple[str, ...]]  # (skill, arguments: numbers, or names)
 
@@ -332,9 +333,6 @@ class RobotClient:
         order) in turn with this robot's other commands; return when it has ended.  It is given to the
         cell under `name` (default `<robot>.script`, replaced by the next call) over the bus, checked
         there (SkillError naming the first point beyond a limit), then run by follow:<name>."""
-        from cell.trajectory.wire import to_message
-        from cell.v1 import controller_pb2
-
         if self.bus is None:
             raise RuntimeError(
                 f"{self.name}: follow() needs the client's bus (the cell's task scripts have it)"

@@ -33,9 +33,11 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from cell.sched import place
 from cell.snp.link import (
     ROUTERS,
 )
+from cell.snp.native import RoutersState, _ip, available, library
 from cell.snp.spacewire import End, Explorer, Packet, Router, RouterInfo
 
 
@@ -158,12 +160,8 @@ def routers_main(
     policy would never run while they wait on it); cpus: where it runs (None: anywhere).  native:
     the routing in C (cell/snp/router.c; None: where it builds), else spacewire.Router in Python."""
     if rt_priority:
-        from cell.sched import place
-
         place(cpus or [], rt_priority, -10)
     if native is None:
-        from cell.snp.native import available
-
         native = available() is None
     routers = [Router(r + 1, len(peers)) for r in range(ROUTERS)]
     socks = {}
@@ -232,8 +230,6 @@ def _route_in_python(conn: Any, peers: list[Any], socks: dict, routers: list[Rou
 
 def _route_in_c(conn: Any, peers: list[Any], socks: dict, routers: list[Router], until_s: float) -> dict:
     import ctypes
-
-    from cell.snp.native import RoutersState, _ip, library
 
     lib = library()
     st = RoutersState(n_ports=len(peers))

@@ -24,6 +24,7 @@ from cell.snp.link import FAILOVER_SENDS, Link, RoutedLink, drain, open_udp
 from cell.snp.master import Master
 from cell.snp.modular import ModuleState, Stage
 from cell.snp.module import JointModule
+from cell.snp.native import RUN_HANDED, RUN_RECORDS_FULL, NativeCycles, NativeMaster
 from cell.snp.tsp import Oscillator, on_grid
 from cell.timer import Alarm, realtime_offset
 
@@ -169,8 +170,6 @@ def _serve_master_native(
     coarse: int,
     routes: Explored | None = None,
 ) -> Link:
-    from cell.snp.native import RUN_HANDED, NativeMaster
-
     link = _master_link(master, sock, loss, routes)
     clock = time.monotonic_ns
     lead, mono_of_real = LEAD_NS if spin_ns else 0, realtime_offset()
@@ -477,8 +476,6 @@ def _run_native(
     loop returns at `until` (the clock samples: in the management slot), when they fill up, when a
     module is pulled out, and at the end (46 us a trip for six modules had gone into pushing and
     pulling them all and into building the run's arguments anew)."""
-    from cell.snp.native import RUN_HANDED, RUN_RECORDS_FULL, NativeCycles
-
     if any(s.transport != "snp" for s in slots):
         raise ValueError("the C cycle runs transport snp only (the RMAP baseline runs in Python)")
     t0 = time.monotonic_ns()

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from cell.recorder.serve import close
 from cell.teleop import figures, lockstep, realtime, stability, twindrive
 from cell.teleop.figures import C
 from cell.teleop.law import Mode
@@ -70,6 +71,7 @@ def teleop(setup: Setup, rerun: list[str] | None = None, png: str | None = None)
     """One real-time run, drawn live in Rerun (`rerun`: spawn | serve | save PATH | off / None)."""
     view = None
     if rerun and rerun[0] != "off":
+        # (lazy: the Rerun SDK, a second to load, only for a run that is drawn)
         from cell.recorder.live import open_recording
         from cell.teleop.view import TeleopView
 
@@ -78,8 +80,6 @@ def teleop(setup: Setup, rerun: list[str] | None = None, png: str | None = None)
     res = realtime.run(replace(setup, stream=view is not None), on_rows=view.rows if view else None)
     out = summarize(res)
     if view is not None:
-        from cell.recorder.serve import close
-
         for r in Role:
             for tick, what in res[r.name.lower()]["log"]:
                 view.text(tick * 1e-3, f"{r.name.lower()}: {what}")

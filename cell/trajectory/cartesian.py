@@ -17,9 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics, Unreachable
 from cell.robot.pose import rotation_error, slerp
 from cell.trajectory.model import MAX_POINTS, Trajectory, TrajectoryError
+from cell.v1 import controller_pb2
 
 BRANCH_JUMP_RAD = 0.5  # a joint moving more than this between two samples changed IK branch
 
@@ -135,9 +137,6 @@ def _waypoint(k: int, p: np.ndarray) -> str:
 async def solve_where_it_stands(bus, config, robot: str, poses: Poses) -> Trajectory:
     """solve() from the robot's joints as the controller reports them now, with its model's IK (for a
     task script's Cell.cartesian and `cell follow` alike)."""
-    from cell.robot.arm import arm_model
-    from cell.v1 import controller_pb2
-
     req = controller_pb2.RobotRequest(robot=robot)
     here = await bus.request("controller", "pose", req, controller_pb2.PoseReply, timeout=10.0)
     return solve(Kinematics(arm_model(config.robot(robot).model)), list(here.joints), poses)
