@@ -98,7 +98,7 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
     ]
     overrides: dict[str, Any] = {"robots": robots, "services": {"run": ["bus", "dataplane", "robots"]}}
     if DATAPLANE_BACKENDS[backend].in_kernel:  # the data plane in a switch namespace of this run's own
-        from cell.bench.dataplane import xdp_dataplane, xdp_switch
+        from cell.bench.xdpnet import xdp_dataplane, xdp_switch
 
         overrides["dataplane"] = xdp_dataplane(xdp_switch(tag="cba"))
     kin = Kinematics()

@@ -116,7 +116,8 @@ def sweep(
     rounds: int | None = None,
 ) -> Sweep:
     """Every frame size and rate (see the module's docstring); SwitchError if XDP cannot run here."""
-    from cell.bench.dataplane import Trial, trial, xdp_switch
+    from cell.bench.dataplane import Trial, trial
+    from cell.bench.xdpnet import xdp_switch
     from cell.dataplane.xdp.switch import in_namespace, switch_namespace
 
     seconds = seconds or (1.0 if quick else 2.0)

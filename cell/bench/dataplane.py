@@ -18,34 +18,28 @@ command window (8 ms); R grows until one fails.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import multiprocessing as mp
-import os
 import queue
 import select
 import signal
 import socket
-import subprocess
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
-from cell import aio
-from cell.bench import pin, pinned
-from cell.bench.driver import NaiveDriver
+from cell.bench import pinned
+from cell.bench.dataplane_targets import TARGETS
 from cell.bench.registry import Bench, Figures, log, register
+from cell.bench.xdpnet import xdp_switch
 from cell.config import DATAPLANE_BACKENDS
-from cell.ports import free_port
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
 from cell.sched import process_cpu_seconds
 from cell.timer import realtime_offset
 
-XDP_PORT = 50000
 WINDOW_NS = 8_000_000
 PERIOD_NS = 2_000_000
 ON_TIME = 0.99
@@ -53,180 +47,6 @@ PAPER = (
     "the paper (Tofino, Sec. 7.1): 0.6-1.3 us status to command at 64 B; 500-1000 robots on one switch "
     "(Sec. 7.5); the x86 ROS driver 45 arms on 12 cores (App. B); table churn does not affect latency"
 )
-PRELOAD = 40_000  # TPs loaded before an updating run, for its deletes
-
-
-# --- the targets (child processes) --------------------------------------------------------------
-
-
-def _updating_target(robots: int, out: Any, stop: Any) -> None:
-    _dataplane_target(robots, out, stop, updates=True)
-
-
-def _dataplane_target(robots: int, out: Any, stop: Any, updates: bool = False, net: Any = None) -> None:
-    """The data plane service's packet path: numpy here, or (net: the switch's XdpConfig) the XDP
-    program attached in the switch's namespace, this process its control plane."""
-    pin(1)
-    from cell.dataplane.tables import Refused
-
-    try:
-        plane = _loaded_plane(robots, net, updates)
-    except Exception as exc:  # (past the target's capacity: the search's limit, told to the parent)
-        out.put({"error": str(exc) if isinstance(exc, Refused) else f"{type(exc).__name__}: {exc}"})
-        return
-    out.put(plane.sock.getsockname())
-    _serve(plane, robots, out, stop, updates)
-
-
-def _loaded_plane(robots: int, net: Any, updates: bool) -> Any:
-    """A data plane with `robots` robots, each heading for its own TP (and the TPs updates delete)."""
-    from cell.config import load_config
-    from cell.dataplane.plane import DataPlane, XdpDataPlane
-    from cell.dataplane.tables import TP
-
-    rob = [{"id": r, "name": f"b{r}", "skill_port": 20000 + r} for r in range(1, robots + 1)]
-    if net is None:
-        listen = f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"
-        cfg = load_config(overrides={"robots": rob, "dataplane": {"listen": listen}})
-        plane = DataPlane(cfg)
-    else:
-        plane = XdpDataPlane(load_config(overrides={"robots": rob, "dataplane": xdp_dataplane(net)}))
-    # every robot heads for a TP 0.1 rad away, forever (a self-loop): the full egress path for each packet
-    plane.tables.insert([TP(r, 1, 1, 1.0, [0.1] * 6, [0.0] * 6) for r in range(1, robots + 1)])
-    for r in range(1, robots + 1):
-        plane.tables.set_registers(r, 1, 2**62)
-    if updates:  # the old TPs the updates will delete, loaded before the load starts
-        old_tps = [TP(1 + i % robots, 1000 + i, 1000 + i, 1.0, [0.0] * 6, [0.0] * 6) for i in range(PRELOAD)]
-        plane.tables.insert(old_tps)
-    return plane
-
-
-def _serve(plane: Any, robots: int, out: Any, stop: Any, updates: bool) -> None:
-    """Run the loaded data plane until `stop`, a controller's updates each second with `updates`."""
-    from cell.dataplane.tables import TPBatch
-    from cell.dataplane.wire import encode_keys, encode_tps
-
-    update_ms: list[float] = []
-    hold_ms: list[float] = []  # the longest the packet path waited, per update
-
-    async def updater() -> None:
-        """Each second, as a controller would: insert 1,600 new TPs and delete 10,000 old ones."""
-        from cell.v1 import dataplane_pb2
-
-        fresh, old = 100_000, 1000
-        while True:
-            await asyncio.sleep(1.0)
-            req = dataplane_pb2.TableUpdate()
-            ids = np.arange(fresh, fresh + 1_600)
-            zeros, n = np.zeros(ids.size * 6), ids.size
-            new = TPBatch.from_flat(1 + ids % robots, ids, ids, np.ones(n), np.full(n, 6), zeros, zeros)
-            encode_tps(new, req.insert)
-            gone = np.arange(old, min(old + 10_000, 1000 + PRELOAD))
-            encode_keys(np.stack([1 + (gone - 1000) % robots, gone], axis=1), req.remove)
-            req = dataplane_pb2.TableUpdate.FromString(req.SerializeToString())  # as it arrives from the bus
-            reply = await plane.update(req)
-            update_ms.append(reply.total_ms)
-            hold_ms.append(reply.apply_us / 1e3)
-            fresh, old = fresh + 1_600, old + 10_000
-
-    async def main() -> None:
-        tasks = [asyncio.ensure_future(plane.run())]
-        if updates:
-            tasks.append(asyncio.ensure_future(updater()))
-        await asyncio.to_thread(stop.wait)
-        for t in tasks:
-            t.cancel()
-
-    aio.run(main())
-    out.put(
-        {"batches": plane.batches, "packets": plane.packets_in, "update_ms": update_ms, "hold_ms": hold_ms}
-    )
-    plane.close()
-
-
-def _xdp_target(robots: int, out: Any, stop: Any, net: Any) -> None:
-    _dataplane_target(robots, out, stop, net=net)
-
-
-def _xdp_updating_target(robots: int, out: Any, stop: Any, net: Any) -> None:
-    _dataplane_target(robots, out, stop, updates=True, net=net)
-
-
-def _xdp_reflector_target(robots: int, out: Any, stop: Any, net: Any) -> None:
-    """The bare XDP reflector in the switch's namespace: every datagram straight back (XDP_TX)."""
-    from cell.dataplane.xdp.program import XdpProgram
-    from cell.dataplane.xdp.switch import in_namespace
-
-    program = XdpProgram(1, 2, 1)
-    try:
-        program.globals["listen_port"] = socket.htons(XDP_PORT)
-        in_namespace(net.netns, lambda: program.attach(socket.if_nametoindex(f"{net.veth}1"), reflect=True))
-        out.put((net.switch_addr, XDP_PORT))
-        stop.wait()
-    finally:
-        in_namespace(net.netns, program.detach)
-        program.close()
-
-
-def _reflector_target(robots: int, out: Any, stop: Any) -> None:
-    from cell.bench.robots import reflector
-
-    reflector(out, stop, True, 1)
-
-
-def _naive_target(robots: int, out: Any, stop: Any) -> None:
-    pin(1)
-
-    async def main() -> None:
-        loop = asyncio.get_running_loop()
-        proto = NaiveDriver({r: [0.1] * 6 for r in range(1, robots + 1)})
-        sock = udp.open_socket("127.0.0.1", gro=False)
-        transport, _ = await loop.create_datagram_endpoint(lambda: proto, sock=sock)
-        out.put(sock.getsockname())
-        await asyncio.to_thread(stop.wait)
-        transport.close()
-        out.put({"answered": proto.answered})
-
-    aio.run(main())
-
-
-def _drivers_target(robots: int, out: Any, stop: Any) -> None:
-    """App. B's baseline: one driver process per arm (cell.bench.driver), all on core 1 as the data
-    plane is; their addresses and pids told to the load."""
-    pin(1)
-    cmd = [sys.executable, "-m", "cell.bench.driver"]
-    procs = [
-        subprocess.Popen([*cmd, str(r)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        for r in range(1, robots + 1)
-    ]
-    try:
-        ports = []
-        for p in procs:
-            assert p.stdout is not None  # (stdout=PIPE)
-            ports.append(int(p.stdout.readline()))
-        out.put({"addrs": [("127.0.0.1", port) for port in ports], "pids": [p.pid for p in procs]})
-        stop.wait()
-    finally:
-        for p in procs:
-            assert p.stdin is not None  # (stdin=PIPE)
-            p.stdin.close()  # (each driver ends when its stdin does)
-        for p in procs:
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-
-
-TARGETS: dict[str, Callable[..., None]] = {
-    "xdp": _xdp_target,
-    "xdp+updates": _xdp_updating_target,
-    "xdp-reflector": _xdp_reflector_target,
-    "dataplane": _dataplane_target,
-    "dataplane+updates": _updating_target,
-    "reflector": _reflector_target,
-    "naive": _naive_target,
-    "drivers": _drivers_target,
-}
 
 
 # --- the load generator (this process) -----------------------------------------------------------
@@ -559,23 +379,6 @@ def format_result(result: Run) -> str:
 
 
 # --- the XDP backend (--backend xdp) ------------------------------------------------------------
-
-
-def xdp_switch(cpu: int = -1, tag: str = "cbx") -> Any:
-    """A benchmark's own switch namespace, named tag + pid (removed afterwards); cpu: where the
-    program runs (-1: on the CPU that sent the packet, the generator's)."""
-    from cell.config import XdpConfig
-
-    name = f"{tag}{os.getpid()}"[:12]
-    host, switch = "10.198.0.1", "10.198.0.2"
-    return XdpConfig(netns=name, veth=name, host_addr=host, switch_addr=switch, prefix=24, cpu=cpu)
-
-
-def xdp_dataplane(net: Any) -> dict[str, Any]:
-    """[dataplane] overrides for the XDP backend on this switch (listen on its end, XDP_PORT)."""
-    from dataclasses import asdict
-
-    return {"listen": f"{net.switch_addr}:{XDP_PORT}", "backend": "xdp", "xdp": asdict(net)}
 
 
 def run_xdp(seconds: float = 2.0, log: Any = None) -> Run:

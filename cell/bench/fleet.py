@@ -212,7 +212,7 @@ async def measure(
     elif not DATAPLANE_BACKENDS[backend].in_kernel:
         overrides["dataplane"] = {"backend": backend}
     if DATAPLANE_BACKENDS[backend].in_kernel:
-        from cell.bench.dataplane import xdp_dataplane, xdp_switch
+        from cell.bench.xdpnet import xdp_dataplane, xdp_switch
 
         overrides["dataplane"] = xdp_dataplane(xdp_switch(cpu=0, tag="cbf"))
         # the kernel runs the packet path (on the robots' core, as it sends): the data plane's process

@@ -9,8 +9,9 @@ from collections import deque
 import numpy as np
 import pytest
 
-from cell.chaos.campaign import Observer, campaign
+from cell.chaos.campaign import campaign
 from cell.chaos.faults import PROMISES, catalogue
+from cell.chaos.observer import Observer
 
 
 def test_every_fault_has_the_promises_its_targets_call_for() -> None:
@@ -88,8 +89,9 @@ async def test_a_campaign_on_the_default_cell_holds_its_promises() -> None:
 def test_an_estop_is_judged_by_the_robots_truth_against_their_braking() -> None:
     """Each robot must stand within its braking from the speed it had (+ ESTOP_MARGIN_MS) of the order,
     by its truth; with the hub down no order gets through, and the link's watchdog must stop it."""
-    from cell.chaos.campaign import ESTOP_MARGIN_MS, Campaign, EStop
+    from cell.chaos.campaign import ESTOP_MARGIN_MS, Campaign
     from cell.chaos.faults import Fault, Kill
+    from cell.chaos.observer import EStop
     from cell.config import load_config
 
     config = load_config(None)
