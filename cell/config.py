@@ -3,6 +3,9 @@
 Every default lives in default.toml, nowhere else; the dataclasses below only
 say what each key must be.  Any unknown key or bad value raises ConfigError
 naming the key and the file, which the CLI turns into exit code 2.
+
+One module, over 600 lines, on purpose: the schema is one dataclass per TOML table, in the order
+default.toml has them, so the two read side by side; the loader is the few functions after them.
 """
 
 from __future__ import annotations

@@ -23,7 +23,8 @@ STALE_AFTER = 2.5  # heartbeat periods without news before a service is "stale"
 class Health(StrEnum):
     """A service's health as `cell.status` answers it (ServiceStatus.health: these strings on the
     wire, and in `cell status --json`): its heartbeat's state, or what the launcher makes of its
-    heartbeats' absence."""
+    heartbeats' absence; health.proto's Health is its source for other languages
+    (tests/bus/test_proto.py holds the two equal)."""
 
     OK = "ok"
     STARTING = "starting"

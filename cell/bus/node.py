@@ -9,6 +9,9 @@ publisher passes every message once its connection is up.  A node is ready
 only when a ping it publishes has come back to it through the forwarder (on
 the control socket at connect, on the new socket for each subscribe), which
 proves both its publisher and its subscription are live end to end.
+
+One module, over 600 lines, on purpose: publishing, subscribing and request/reply share the node's
+sockets, its one reader task and its readiness handshake; the wire format is cell.bus.envelope's.
 """
 
 from __future__ import annotations
@@ -88,7 +91,8 @@ class ServiceDown(BusTimeout):
 
 class FaultCode(StrEnum):
     """What a coded RPC error says (RpcFault.code, RemoteError.code, bus_pb2.RpcError.code on the
-    wire): one list, so a caller's comparison names a code that exists."""
+    wire): one list, so a caller's comparison names a code that exists; bus.proto's FaultCode
+    is its source for other languages (tests/bus/test_proto.py holds the two equal)."""
 
     BAD_REQUEST = "bad_request"
     BUS_LOST = "bus_lost"

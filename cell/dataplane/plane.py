@@ -12,6 +12,10 @@ event socket, read ahead of any status batch), never over the bus: a stop
 sets the robots' REG_stop, clears their registers and sends each of them a
 first stop command at once, from its last status; until a resume the
 controller's register updates for them are refused (`stopped`).
+
+One module, over 600 lines, on purpose: it is the switch, the P4 program's control flow and its
+control plane around the tables and pipelines (cell.dataplane.tables, .pipeline), whichever backend
+carries the packets; split, each half would need the other's state.
 """
 
 from __future__ import annotations

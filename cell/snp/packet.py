@@ -5,6 +5,9 @@ end); layout and field meanings in docs/protocols/snp-mrt.md.  Multi-byte
 fields are big-endian.  decode() never raises anything but PacketError, whose
 `reply` says what the handler should answer (or None: drop), so that no
 packet can stop a service.
+
+One module, over 600 lines, on purpose: it is the one wire format, every packet type's layout, codec
+and CRC beside the others', as docs/protocols/snp-mrt.md lists them.
 """
 
 from __future__ import annotations

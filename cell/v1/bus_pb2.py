@@ -24,13 +24,15 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x11\x63\x65ll/v1/bus.proto\x12\x07\x63\x65ll.v1\")\n\x08RpcError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\"\x07\n\x05\x45mpty\"\x1c\n\x0c\x42\x65nchPayload\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x11\x63\x65ll/v1/bus.proto\x12\x07\x63\x65ll.v1\")\n\x08RpcError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\"\x07\n\x05\x45mpty\"\x1c\n\x0c\x42\x65nchPayload\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c*\x8e\x03\n\tFaultCode\x12\x1a\n\x16\x46\x41ULT_CODE_UNSPECIFIED\x10\x00\x12\x1a\n\x16\x46\x41ULT_CODE_BAD_REQUEST\x10\x01\x12\x17\n\x13\x46\x41ULT_CODE_BUS_LOST\x10\x02\x12\x13\n\x0f\x46\x41ULT_CODE_BUSY\x10\x03\x12\x15\n\x11\x46\x41ULT_CODE_FAILED\x10\x04\x12\x15\n\x11\x46\x41ULT_CODE_IN_USE\x10\x05\x12\x17\n\x13\x46\x41ULT_CODE_INTERNAL\x10\x06\x12\x17\n\x13\x46\x41ULT_CODE_NO_FRAME\x10\x07\x12\x13\n\x0f\x46\x41ULT_CODE_PLAN\x10\x08\x12\x16\n\x12\x46\x41ULT_CODE_REFUSED\x10\t\x12\x16\n\x12\x46\x41ULT_CODE_STOPPED\x10\n\x12\x1d\n\x19\x46\x41ULT_CODE_UNKNOWN_METHOD\x10\x0b\x12\x1d\n\x19\x46\x41ULT_CODE_UNKNOWN_MODULE\x10\x0c\x12\x1c\n\x18\x46\x41ULT_CODE_UNKNOWN_ROBOT\x10\r\x12\x1a\n\x16\x46\x41ULT_CODE_UNREACHABLE\x10\x0e\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'cell.v1.bus_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
+  _globals['_FAULTCODE']._serialized_start=113
+  _globals['_FAULTCODE']._serialized_end=511
   _globals['_RPCERROR']._serialized_start=30
   _globals['_RPCERROR']._serialized_end=71
   _globals['_EMPTY']._serialized_start=73

@@ -15,12 +15,33 @@ class ServiceState(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     SERVICE_STATE_BACKOFF: _ClassVar[ServiceState]
     SERVICE_STATE_FAILED: _ClassVar[ServiceState]
     SERVICE_STATE_STOPPED: _ClassVar[ServiceState]
+
+class Health(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    HEALTH_UNSPECIFIED: _ClassVar[Health]
+    HEALTH_OK: _ClassVar[Health]
+    HEALTH_STARTING: _ClassVar[Health]
+    HEALTH_BACKOFF: _ClassVar[Health]
+    HEALTH_FAILED: _ClassVar[Health]
+    HEALTH_STOPPED: _ClassVar[Health]
+    HEALTH_STALE: _ClassVar[Health]
+    HEALTH_MISSING: _ClassVar[Health]
+    HEALTH_UNKNOWN: _ClassVar[Health]
 SERVICE_STATE_UNSPECIFIED: ServiceState
 SERVICE_STATE_STARTING: ServiceState
 SERVICE_STATE_RUNNING: ServiceState
 SERVICE_STATE_BACKOFF: ServiceState
 SERVICE_STATE_FAILED: ServiceState
 SERVICE_STATE_STOPPED: ServiceState
+HEALTH_UNSPECIFIED: Health
+HEALTH_OK: Health
+HEALTH_STARTING: Health
+HEALTH_BACKOFF: Health
+HEALTH_FAILED: Health
+HEALTH_STOPPED: Health
+HEALTH_STALE: Health
+HEALTH_MISSING: Health
+HEALTH_UNKNOWN: Health
 
 class Heartbeat(_message.Message):
     __slots__ = ("service", "host", "pid", "state", "uptime_s", "restarts", "last_error", "counters", "interval_s", "process", "sched")

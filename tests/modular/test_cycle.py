@@ -423,7 +423,7 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     """In C at the slides' 1 ms; in Python at 4 ms (its modules' VDC costs about 0.9 ms a cycle: at
     1 ms it may miss, which `cell bench snp` shows).  Each module's [C, D] by the master or by itself
     (cd, base to tip); the modules' inertia wrong and adapted as they run (wrong)."""
-    from cell.bench.snp import SLOT_NS, cycle_figures, trial
+    from cell.bench.snp_trial import SLOT_NS, cycle_figures, trial
     from cell.snp.runner import chain
 
     ref = move()

@@ -164,7 +164,8 @@ def test_the_arms_cycle_runs_over_the_routers_and_fails_over_a_cut_link(in_c: bo
     """The master and six modules over the two routers (the cycle and the routers in C, or all in
     Python), the master given nothing but its links; the MuJoCo arm on a joint move; module 4's
     link to R1 cut halfway: it goes over R2 after FAILOVER_CYCLES missed."""
-    from cell.bench.snp import SLOT_NS, cycle_figures, failover_in_cycle_ms, trial
+    from cell.bench.snp import failover_in_cycle_ms
+    from cell.bench.snp_trial import SLOT_NS, cycle_figures, trial
     from cell.modular.cycle import SETTLE_NS
     from cell.modular.reference import Q_HOME, joint_move
     from cell.snp.modular import CycleConfig

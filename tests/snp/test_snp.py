@@ -323,7 +323,7 @@ async def test_the_snp_service_answers_about_a_moving_robot(start_cell) -> None:
 def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) -> None:
     import random
 
-    from cell.bench.snp import cycle_figures, trial
+    from cell.bench.snp_trial import cycle_figures, trial
     from cell.snp.native import available
     from cell.snp.runner import chain
 
@@ -353,7 +353,7 @@ def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) ->
 def test_the_robots_cycle_spans_every_modules_exchanges_in_a_period() -> None:
     import numpy as np
 
-    from cell.bench.snp import CycleFigures, _robot_cycles
+    from cell.bench.snp_trial import CycleFigures, _robot_cycles
 
     # (scheduled, T1, end, missed) per cycle of two modules; period 2 lacks module b: not counted
     a = np.array([[1_000_000, 1_000_010, 1_300_000, 0], [2_000_000, 2_000_000, 2_200_000, 0]])
