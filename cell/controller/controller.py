@@ -20,7 +20,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from cell.bus import RemoteError
+from cell.bus import Bus, RemoteError
+from cell.config import CellConfig
 from cell.controller import prepared, supervision
 from cell.controller.engine import Engine
 from cell.controller.motion import (
@@ -60,8 +61,12 @@ __all__ = [
 
 
 class Controller(Engine):
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
+    """The industrial controller a task script, a service or a bench drives: motions planned, loaded
+    into the data plane's tables and followed, stopped and resumed, on `bus`, for `config`'s robots,
+    through the data plane serving as `service`."""
+
+    def __init__(self, bus: Bus, config: CellConfig, service: str = "dataplane") -> None:
+        super().__init__(bus, config, service)
         self.named: dict[str, dict[int, Trajectory]] = {}  # name -> robot -> trajectory (follow_named)
 
     async def __aenter__(self) -> Controller:
