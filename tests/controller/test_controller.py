@@ -243,6 +243,7 @@ async def test_a_start_the_data_plane_did_not_confirm_is_stopped_and_flushed_not
         assert np.abs(truth.last("r1") - goal).max() < 2e-3
 
 
+@pytest.mark.slow
 async def test_a_stop_takes_effect_within_a_command_window_and_holds(start_cell) -> None:
     async with driving(start_cell, fast_truth("kinematic")) as (ctl, truth):
         move = asyncio.create_task(ctl.move_joints("r1", Q0 + np.array([1.5, 0, 0, 0, 0, 1.5]), speed=0.5))
@@ -301,6 +302,7 @@ async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
         assert np.allclose(result.q_end, goal)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("merged", [False, True, "models"])
 async def test_robots_started_together_start_within_a_status_period(start_cell, merged: bool | str) -> None:
     arms = fast_truth("kinematic", 2)

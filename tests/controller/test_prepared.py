@@ -20,6 +20,7 @@ from tests.controller.test_controller import (
 )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("models", [False, True])
 async def test_armed_robots_wait_and_leave_their_holds_together_when_fired(start_cell, models: bool) -> None:
     arms = fast_truth("kinematic", 2)
@@ -80,6 +81,7 @@ async def test_a_loop_runs_its_laps_from_one_load_then_holds_where_it_began(star
         assert np.allclose(truth.last("r1"), Q0, atol=1e-3)
 
 
+@pytest.mark.slow
 async def test_a_prepared_alternate_is_taken_at_the_next_tp_without_planning(start_cell) -> None:
     async with driving(start_cell, fast_truth("kinematic", 1)) as (ctl, truth):
         main = await ctl.move_joints("r1", Q0 + np.array([1.2, -0.4, 0.3, 0, 0, 0]), speed=0.3, wait=False)

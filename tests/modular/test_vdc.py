@@ -65,6 +65,7 @@ def test_cd_by_the_modules_with_this_cycles_neighbour_force_is_the_masters_bit_f
     assert not np.array_equal(master.q, stale.q) and stale.tool_error_mm_max <= 2.0
 
 
+@pytest.mark.slow
 def test_modules_that_misjudge_their_mass_adapt_it_and_track_again(ref) -> None:
     """Every module believes its body 40 % lighter than it is: without adaptation the arm sags off
     the path by millimetres; with VDC's parameter adaptation (each module its own, from its own

@@ -348,6 +348,7 @@ def test_the_camera_is_drawn_as_a_frustum_where_it_stands_looking_its_way(tmp_pa
     assert rows["/robots/r1/camera"] >= 2  # its pose and its pinhole (the frustum)
 
 
+@pytest.mark.slow
 async def test_a_fleet_on_one_socket_is_drawn_from_its_group_truth(tmp_path) -> None:
     """Robots on one shared socket send their ground truth as one GroupTruth a tick (fleet/<name>): the
     recorder draws every arm's pose from it, at most FLEET_HZ, while they move.  A forged one that does

@@ -65,6 +65,7 @@ async def counters_until(config, service: str, ok, timeout: float = 5.0) -> dict
             await asyncio.sleep(0.1)  # polling interval: the loop's condition decides
 
 
+@pytest.mark.slow
 async def test_an_estop_skill_stops_a_moving_robot_and_motions_are_refused_until_resume(cell) -> None:
     config = cell.config
     r1 = await Conn.open(config.robots[0].skill_port)
@@ -137,6 +138,7 @@ async def test_estop_from_the_cli_and_a_client_names_robots_and_bad_names_are_re
     r2.close()
 
 
+@pytest.mark.slow
 async def test_a_task_script_estops_and_resumes_a_robot(cell) -> None:
     done = await asyncio.to_thread(run_cell, "run", str(EXAMPLE), "--config", str(cell.path))
     assert done.returncode == 0, done.stdout + done.stderr
@@ -172,6 +174,7 @@ async def test_a_stop_that_comes_late_behind_a_newer_release_is_not_obeyed(cell)
     r1.close()
 
 
+@pytest.mark.slow
 async def test_a_data_plane_restarted_during_an_estop_holds_the_robot_stopped_until_resume(cell) -> None:
     """The data plane's process dies while r1 is e-stopped: the new one asks the hub what it holds
     (rlink.held) and sets r1's REG_stop again, r2 untouched; the resume then releases it as usual."""

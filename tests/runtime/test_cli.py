@@ -107,6 +107,7 @@ def test_what_a_user_gets_wrong_is_one_line_and_its_exit_code(tmp_path) -> None:
         assert proc.returncode in (0, 141) and "Traceback" not in err, err
 
 
+@pytest.mark.slow
 def test_a_clean_stop_says_nothing_of_the_bus_going_away(tmp_path) -> None:
     """At a clean stop the bus goes as everything goes: no service warns that it dropped (each used to,
     twice, which read as a failure)."""

@@ -130,6 +130,7 @@ async def test_errors_are_answered_and_the_connection_stays_usable(cell) -> None
         c2.close()
 
 
+@pytest.mark.slow
 async def test_a_non_motion_ack_reports_the_pose_the_server_holds_without_asking_anyone(cell) -> None:
     """set_speed and the air skills answer with the tool pose of the robot's latest state broadcast
     (truth/<robot>, at most one period old): the same pose `break` measures, without two bus hops."""

@@ -145,6 +145,7 @@ def both() -> dict[str, dict]:
     return out
 
 
+@pytest.mark.slow
 def test_the_operator_feels_what_the_object_does(both) -> None:
     for f in both.values():
         assert f["peak_force_remote_n"] == pytest.approx(6.0, rel=0.1)
@@ -238,6 +239,7 @@ def test_the_usual_motor_sticks_at_small_speeds_and_the_twin_drive_does_not() ->
     assert twindrive.standing_band(r.command, r.twin) == 0.0
 
 
+@pytest.mark.slow
 def test_usual_drives_at_the_joints_spoil_what_the_operator_feels() -> None:
     """Why the paper's arms have twin drives: the motors' Coulomb friction, once it reaches the joints,
     sits between what the object does and what the operator feels."""
@@ -269,6 +271,7 @@ def test_an_estop_on_the_event_link_overtakes_a_delayed_data_link() -> None:
     assert e["skew_ms"] < 25
 
 
+@pytest.mark.slow
 def test_junk_on_every_socket_is_counted_and_the_experiment_goes_on() -> None:
     from cell.rlink.packet import Kind, Packet, encode
 
@@ -290,6 +293,7 @@ def test_junk_on_every_socket_is_counted_and_the_experiment_goes_on() -> None:
     assert f["peak_force_remote_n"] == pytest.approx(5.0, rel=0.1) and f["peak_force_diff_pct"] < 10
 
 
+@pytest.mark.slow
 def test_a_killed_side_is_named_and_the_other_stops_and_holds() -> None:
     def kill_remote_soon(_ports: dict, pids: dict) -> None:
         threading.Timer(1.0, os.kill, (pids[Role.REMOTE], signal.SIGKILL)).start()

@@ -129,6 +129,7 @@ async def _move_once_heard(bus: Bus, goal: np.ndarray) -> None:
             await asyncio.sleep(0.05)
 
 
+@pytest.mark.slow
 async def test_the_daemon_gives_way_to_the_controllers_state_and_takes_the_arm_back(start_cell) -> None:
     cell = await start_cell(run=CELL, robots=ur_robot(), sections=UR)
     host, ur = cell.config.robots[0].ur_host, cell.config.ur

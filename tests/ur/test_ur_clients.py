@@ -67,6 +67,7 @@ async def test_rtde_reads_the_arms_truth_at_500_hz_while_it_moves(start_cell) ->
     assert np.abs(periods - np.round(periods)).max() < 1e-3, periods
 
 
+@pytest.mark.slow
 async def test_the_dashboard_powers_the_arm_and_the_io_interface_sets_an_output(start_cell) -> None:
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
     host = cell.config.robots[0].ur_host
@@ -104,6 +105,7 @@ async def _until(cond, timeout: float = 5.0) -> None:
         await asyncio.sleep(0.01)
 
 
+@pytest.mark.slow
 async def test_junk_on_the_ur_ports_is_answered_and_counted_and_the_arm_goes_on(start_cell) -> None:
     """A 1 MB dashboard line, RTDE packages of unknown type and of an unreadable length: each answered
     or dropped and counted; the real client then reads the arm as before."""

@@ -195,6 +195,7 @@ while True:
 """
 
 
+@pytest.mark.slow
 async def test_a_client_that_dies_mid_servoj_leaves_the_arm_stopped_and_the_cell_takes_it_back(
     start_cell,
 ) -> None:
@@ -239,6 +240,7 @@ async def _read_messages(reader: asyncio.StreamReader, want: int) -> list[tuple[
     return got
 
 
+@pytest.mark.slow
 async def test_a_straight_line_program_on_the_primary_port_runs_and_a_foreign_one_is_refused(
     start_cell,
 ) -> None:
