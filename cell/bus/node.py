@@ -104,9 +104,12 @@ class FaultCode(StrEnum):
     PLAN = "plan"
     REFUSED = "refused"
     STOPPED = "stopped"
+    TABLE_FULL = "table_full"
+    TOO_MANY_JOINTS = "too_many_joints"
     UNKNOWN_METHOD = "unknown_method"
     UNKNOWN_MODULE = "unknown_module"
     UNKNOWN_ROBOT = "unknown_robot"
+    UNKNOWN_TP = "unknown_tp"
     UNREACHABLE = "unreachable"
 
 

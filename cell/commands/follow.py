@@ -120,7 +120,7 @@ async def _follow(config, found, speed: float, replace: bool) -> int:
 
     import numpy as np
 
-    from cell.bus import Bus, BusError, RemoteError
+    from cell.bus import Bus, BusError, FaultCode, RemoteError
     from cell.robot.arm import arm_model
     from cell.robot.truth import Truth
     from cell.trajectory.model import Trajectory, TrajectoryError
@@ -142,7 +142,7 @@ async def _follow(config, found, speed: float, replace: bool) -> int:
         return 2
     except RemoteError as exc:
         print(f"cell follow: {exc.message}", file=sys.stderr)
-        return 2 if exc.code in ("bad_request", "plan", "unknown_robot") else 1
+        return 2 if exc.code in (FaultCode.BAD_REQUEST, FaultCode.PLAN, FaultCode.UNKNOWN_ROBOT) else 1
     except BusError as exc:
         print(f"cell follow: no cell answered ({exc})", file=sys.stderr)
         return 1

@@ -42,7 +42,7 @@ def show(st) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from cell import aio
-    from cell.bus import Bus, BusError, RemoteError
+    from cell.bus import Bus, BusError, FaultCode, RemoteError
     from cell.modular.client import ModularClient
 
     config = load(args)
@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         print(aio.run(go()))
     except RemoteError as exc:
         print(f"cell modular {args.action}: {exc.code}: {exc.message}", file=sys.stderr)
-        return 2 if exc.code in ("refused", "unknown_module") else 1
+        return 2 if exc.code in (FaultCode.REFUSED, FaultCode.UNKNOWN_MODULE) else 1
     except (BusError, TimeoutError) as exc:
         print(
             f"cell modular {args.action}: no modular robot answered ({exc or 'timed out'})", file=sys.stderr

@@ -23,6 +23,7 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import ArrayLike
 
+from cell.bus import FaultCode
 from cell.robot.datagram import SCALE
 
 NO_ROW = -1
@@ -42,7 +43,7 @@ def tpkey(entity: T, tp_id: T) -> T:
 class Refused(Exception):
     """A control-plane request that cannot be applied; nothing of it was applied."""
 
-    def __init__(self, code: str, reason: str) -> None:
+    def __init__(self, code: FaultCode, reason: str) -> None:
         self.code, self.reason = code, reason
         super().__init__(f"{code}: {reason}")
 
@@ -216,19 +217,20 @@ class Tables:
     def merge(self, robots: Sequence[int], joints: int = 6) -> int:
         """One entity for several robots, joints side by side in the order given; return it."""
         if len(set(robots)) != len(robots) or len(robots) < 2:
-            raise Refused("bad_request", "merge needs two or more distinct robots")
+            raise Refused(FaultCode.BAD_REQUEST, "merge needs two or more distinct robots")
         for r in robots:
             e = self.robot_entity[r]
             if e != NO_ROW and self.reg_tp[e] != NO_ROW:
-                raise Refused("in_use", f"robot {r} is following a trajectory; stop it before merging")
+                why = f"robot {r} is following a trajectory; stop it before merging"
+                raise Refused(FaultCode.IN_USE, why)
         return self._new_entity(list(robots), [joints] * len(robots))
 
     def _new_entity(self, robots: list[int], joints: list[int]) -> int:
         total = sum(joints)
         if total > self.max_joints:
-            raise Refused("too_many_joints", f"{total} joints, at most {self.max_joints} per entity")
+            raise Refused(FaultCode.TOO_MANY_JOINTS, f"{total} joints, at most {self.max_joints} per entity")
         if self.entities >= self.max_entities:
-            raise Refused("table_full", f"all {self.max_entities} entities in use")
+            raise Refused(FaultCode.TABLE_FULL, f"all {self.max_entities} entities in use")
         e = self.entities
         self.entities += 1
         offset = 0
@@ -243,7 +245,7 @@ class Tables:
     def entity_of(self, robot: int) -> int:
         e = self._entity.get(robot)
         if e is None:
-            raise Refused("unknown_robot", f"robot {robot} is not known to the data plane")
+            raise Refused(FaultCode.UNKNOWN_ROBOT, f"robot {robot} is not known to the data plane")
         return e
 
     def entities_of(self, robots: np.ndarray) -> np.ndarray:
@@ -253,7 +255,8 @@ class Tables:
         ents = np.where(inside, self.robot_entity[np.where(inside, robots, 0)], NO_ROW)
         unknown = np.flatnonzero(ents == NO_ROW)
         if unknown.size:
-            raise Refused("unknown_robot", f"robot {int(robots[unknown[0]])} is not known to the data plane")
+            why = f"robot {int(robots[unknown[0]])} is not known to the data plane"
+            raise Refused(FaultCode.UNKNOWN_ROBOT, why)
         return ents.astype(np.int64)
 
     # --- TPStepper / TargetData ----------------------------------------------------------------
@@ -325,7 +328,7 @@ class Tables:
     def row_of(self, robot: int, tp_id: int) -> int:
         row = self._row.get(tpkey(self.entity_of(robot), tp_id))
         if row is None:
-            raise Refused("unknown_tp", f"robot {robot} has no TP {tp_id} loaded")
+            raise Refused(FaultCode.UNKNOWN_TP, f"robot {robot} has no TP {tp_id} loaded")
         return row
 
     # --- TrajectorySwitcher ----------------------------------------------------------------------
@@ -414,13 +417,13 @@ class Tables:
         keys = karr.tolist()
         yield
         if np.unique(karr).size != karr.size:
-            raise Refused("bad_request", "a TP appears twice in one batch")
+            raise Refused(FaultCode.BAD_REQUEST, "a TP appears twice in one batch")
         loaded = np.fromiter([k in self._row for k in keys], bool, len(keys))
         fresh, replaced = np.flatnonzero(~loaded), np.flatnonzero(loaded)
         if len(fresh) > len(self._free):
             free = len(self._free)
             why = f"{len(fresh)} new TPs, {free} of {self.capacity} places free (delete some first)"
-            raise Refused("table_full", why)
+            raise Refused(FaultCode.TABLE_FULL, why)
         new_keys = set(keys)
 
         def exists(robot: int, tp_id: int) -> bool:
@@ -430,11 +433,11 @@ class Tables:
         tp_id: int | None  # (a switch's TP; a register's, None to clear)
         for robot, tp_id, _ in switches:
             if not exists(robot, tp_id):
-                raise Refused("unknown_tp", f"switch at TP {tp_id} of robot {robot}: no such TP")
+                raise Refused(FaultCode.UNKNOWN_TP, f"switch at TP {tp_id} of robot {robot}: no such TP")
         moved: dict[int, int | None] = {}
         for robot, tp_id, _ in registers:
             if tp_id is not None and not exists(robot, tp_id):
-                raise Refused("unknown_tp", f"registers of robot {robot}: no TP {tp_id}")
+                raise Refused(FaultCode.UNKNOWN_TP, f"registers of robot {robot}: no TP {tp_id}")
             moved[self.entity_of(robot)] = tp_id
         yield
         pairs = np.asarray(remove, np.int64).reshape(-1, 2)
@@ -448,7 +451,7 @@ class Tables:
         for e, tp_id in moved.items():
             row = None if tp_id is None else self._row.get(tpkey(e, tp_id))  # None too: inserted now
             if row is not None and is_gone[row]:
-                raise Refused("in_use", f"TP {tp_id} is both started and deleted")
+                raise Refused(FaultCode.IN_USE, f"TP {tp_id} is both started and deleted")
 
         # --- 2. stage new TPs in fresh rows nothing links to yet (invisible to the packet path) ---
         staged: dict[int, int] = {}  # also entered in the index at once, taken out if refused
@@ -495,9 +498,8 @@ class Tables:
                 )
                 if hit.any():
                     e = int(np.flatnonzero(hit)[0])
-                    raise Refused(
-                        "in_use", f"a TP entity {e} is following is to be deleted; switch or stop it first"
-                    )
+                    why = f"a TP entity {e} is following is to be deleted; switch or stop it first"
+                    raise Refused(FaultCode.IN_USE, why)
         except BaseException:
             if flipping:
                 self.flip_end()
@@ -585,13 +587,13 @@ class Tables:
 
         if (bad := batch.joints != want).any():
             n = int(want[np.flatnonzero(bad)[0]])
-            raise Refused("bad_request", f"{first(bad)}: {n} joint values expected")
+            raise Refused(FaultCode.BAD_REQUEST, f"{first(bad)}: {n} joint values expected")
         if (bad := ~(batch.duration_s > 0) | ~np.isfinite(batch.duration_s)).any():
-            raise Refused("bad_request", f"{first(bad)}: section duration must be > 0")
+            raise Refused(FaultCode.BAD_REQUEST, f"{first(bad)}: section duration must be > 0")
         ids = np.concatenate([batch.id, batch.next_id])
         if ((ids < 0) | (ids >= 2**32)).any():
-            raise Refused("bad_request", "TP ids are u32")
+            raise Refused(FaultCode.BAD_REQUEST, "TP ids are u32")
         values = np.concatenate([batch.positions, batch.velocities], axis=1)
         if (bad := ~(np.abs(values) < LIMIT_RAD).all(axis=1)).any():
-            raise Refused("bad_request", f"{first(bad)}: a joint value is not finite or out of range")
+            raise Refused(FaultCode.BAD_REQUEST, f"{first(bad)}: a joint value is not finite or out of range")
         return tpkey(ents, batch.id)

@@ -22,6 +22,9 @@ class FaultCode(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     FAULT_CODE_UNKNOWN_MODULE: _ClassVar[FaultCode]
     FAULT_CODE_UNKNOWN_ROBOT: _ClassVar[FaultCode]
     FAULT_CODE_UNREACHABLE: _ClassVar[FaultCode]
+    FAULT_CODE_TABLE_FULL: _ClassVar[FaultCode]
+    FAULT_CODE_TOO_MANY_JOINTS: _ClassVar[FaultCode]
+    FAULT_CODE_UNKNOWN_TP: _ClassVar[FaultCode]
 FAULT_CODE_UNSPECIFIED: FaultCode
 FAULT_CODE_BAD_REQUEST: FaultCode
 FAULT_CODE_BUS_LOST: FaultCode
@@ -37,6 +40,9 @@ FAULT_CODE_UNKNOWN_METHOD: FaultCode
 FAULT_CODE_UNKNOWN_MODULE: FaultCode
 FAULT_CODE_UNKNOWN_ROBOT: FaultCode
 FAULT_CODE_UNREACHABLE: FaultCode
+FAULT_CODE_TABLE_FULL: FaultCode
+FAULT_CODE_TOO_MANY_JOINTS: FaultCode
+FAULT_CODE_UNKNOWN_TP: FaultCode
 
 class RpcError(_message.Message):
     __slots__ = ("code", "message")
