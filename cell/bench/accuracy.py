@@ -84,8 +84,8 @@ class Accuracy:
     backend: str = "numpy"
     seconds: float = 0.0
 
-    def figures(self) -> dict[str, Any]:
-        """The JSON line: every figure but the samples."""
+    def to_json(self) -> dict[str, Any]:
+        """The JSON line: every figure but the samples (they are for the paper's plots)."""
         out = asdict(self)
         out.pop("samples")
         return out
@@ -315,7 +315,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 def _main(args: argparse.Namespace) -> Figures:
     result = run(args.quick, log=log, backend=args.backend)
-    return Figures(result.figures(), format_result(result))
+    return Figures(result, format_result(result))
 
 
 register(

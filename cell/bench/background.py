@@ -43,7 +43,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from cell.bench.frames import FRAMES, HEADERS
-from cell.bench.registry import Bench, Figures, log, register
+from cell.bench.registry import Bench, Failed, Figures, log, register
 
 ROBOT_ADDR, SWITCH_R, SWITCH_G, GEN_ADDR = "10.77.1.2", "10.77.1.1", "10.77.2.1", "10.77.2.2"
 STATUS_PORT, FORWARD_PORT, SINK_PORT = 50000, 7000, 7001
@@ -83,6 +83,11 @@ class Result:
 
     def at(self, scheduling: str, load: float) -> list[Point]:
         return [r for r in self.rows if r.scheduling == scheduling and r.load == load]
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON line: the paper's figures (keys named by the loads run, so not fields), then every
+        point."""
+        return summary(self) | {"rows": [dataclasses.asdict(r) for r in self.rows]}
 
 
 # --- the namespaces ------------------------------------------------------------------------------
@@ -411,13 +416,11 @@ def _main(args: argparse.Namespace) -> Figures:
         from cell.dataplane.xdp.switch import missing
 
         if why := missing():
-            return Figures({"error": why}, f"cell bench background --xdp: {why}", 2)
+            return Figures(Failed(why), f"cell bench background --xdp: {why}", 2)
         s = background_xdp.sweep(args.quick, log=log)
-        rows = [dataclasses.asdict(p) | {"apart_us": p.apart_us} for p in s.points]
-        return Figures(s.figures() | {"rows": rows}, background_xdp.format_result(s))
+        return Figures(s, background_xdp.format_result(s))
     result = run(args.quick, args.rate_mbps, args.buffer_ms, log=log)
-    rows = [dataclasses.asdict(r) for r in result.rows]
-    return Figures(summary(result) | {"rows": rows}, format_result(result))
+    return Figures(result, format_result(result))
 
 
 register(

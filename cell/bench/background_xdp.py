@@ -24,7 +24,7 @@ import os
 import socket
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -81,6 +81,12 @@ class Sweep:
                 out[f"apart_us_{f}"] = top.apart_us
                 out[f"offered_kpps_{f}"] = top.offered_kpps
         return out
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON line: figures() (keys named by frame size, so not fields), then every point with
+        its apart_us."""
+        rows = [asdict(p) | {"apart_us": p.apart_us} for p in self.points]
+        return self.figures() | {"rows": rows}
 
 
 def _generator(src: str, dst: tuple[str, int], frame: int, kpps: float, out: Any, stop: Any) -> None:

@@ -32,6 +32,7 @@ from cell import aio
 from cell.bench.registry import Bench, Figures, register
 from cell.bus import Bus, Forwarder, identity
 from cell.config import BusConfig, load_config
+from cell.jsonfields import JsonFields
 from cell.ports import free_port
 from cell.v1 import bus_pb2
 
@@ -323,7 +324,22 @@ LABELS = {
 }
 
 
-def run(messages: int = 200_000, pings: int = 2_000, rounds: int = 3) -> dict[str, Any]:
+@dataclass
+class BusResult(JsonFields):
+    """The best round of each variant (throughput: received, seconds, lost, rate, send_rate, and the
+    bus's gaps; round trip: p50_us, p99_us, max_us, count), and the bus's share of each raw rate."""
+
+    payload_bytes: int
+    messages: int
+    pings: int
+    rounds: int
+    throughput: dict[str, dict[str, float]]
+    round_trip: dict[str, dict[str, float]]
+    bus_share: dict[str, float]
+    rates_by_round: dict[str, list[float]]
+
+
+def run(messages: int = 200_000, pings: int = 2_000, rounds: int = 3) -> BusResult:
     """Alternate every variant `rounds` times; keep the best of each; the bus's share of each raw one."""
     base = load_config().bus
     cfg = replace(base, pub=_endpoint(), sub=_endpoint(), hwm=max(base.hwm, messages * 2))
@@ -356,27 +372,27 @@ def run(messages: int = 200_000, pings: int = 2_000, rounds: int = 3) -> dict[st
     best_tp = {v: max(runs, key=lambda r: r["rate"]) for v, runs in tp.items()}
     best_rt = {v: min(runs, key=lambda r: r["p50_us"]) for v, runs in rt.items()}
     bus_rate = best_tp["bus"]["rate"]
-    return {
-        "payload_bytes": len(PAYLOAD),
-        "messages": messages,
-        "pings": pings,
-        "rounds": rounds,
-        "throughput": best_tp,
-        "round_trip": best_rt,
-        "bus_share": {v: bus_rate / best_tp[v]["rate"] for v in VARIANTS[:3]},
-        "rates_by_round": {v: [r["rate"] for r in runs] for v, runs in tp.items()},
-    }
+    return BusResult(
+        payload_bytes=len(PAYLOAD),
+        messages=messages,
+        pings=pings,
+        rounds=rounds,
+        throughput=best_tp,
+        round_trip=best_rt,
+        bus_share={v: bus_rate / best_tp[v]["rate"] for v in VARIANTS[:3]},
+        rates_by_round={v: [r["rate"] for r in runs] for v, runs in tp.items()},
+    )
 
 
-def format_result(r: dict[str, Any]) -> str:
+def format_result(r: BusResult) -> str:
     lines = [
-        f"bus benchmark: {r['payload_bytes']}-byte payloads, {r['messages']:,} messages and "
-        f"{r['pings']:,} round trips per round, best of {r['rounds']} rounds",
+        f"bus benchmark: {r.payload_bytes}-byte payloads, {r.messages:,} messages and "
+        f"{r.pings:,} round trips per round, best of {r.rounds} rounds",
         f"{'':<26}{'msg/s':>12}{'lost':>7}{'bus share':>11}{'rtt p50 us':>12}{'rtt p99 us':>12}",
     ]
     for v in (*VARIANTS, "bus_request_reply"):
-        tp, rt = r["throughput"].get(v), r["round_trip"].get(v)
-        share = r["bus_share"].get(v)
+        tp, rt = r.throughput.get(v), r.round_trip.get(v)
+        share = r.bus_share.get(v)
         lines.append(
             f"{LABELS[v]:<26}"
             + (f"{tp['rate']:>12,.0f}{int(tp['lost']):>7}" if tp else f"{'-':>12}{'-':>7}")
@@ -385,7 +401,7 @@ def format_result(r: dict[str, Any]) -> str:
         )
     lines.append(
         "rates by round: "
-        + "; ".join(f"{v} " + ", ".join(f"{x:,.0f}" for x in xs) for v, xs in r["rates_by_round"].items())
+        + "; ".join(f"{v} " + ", ".join(f"{x:,.0f}" for x in xs) for v, xs in r.rates_by_round.items())
     )
     return "\n".join(lines)
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from cell.bench import pinned
 from cell.bench.dataplane_targets import TARGETS
-from cell.bench.registry import Bench, Figures, log, register
+from cell.bench.registry import Bench, Failed, Figures, log, register
 from cell.bench.xdpnet import xdp_switch
 from cell.config import DATAPLANE_BACKENDS
 from cell.robot import datagram, udp
@@ -327,8 +327,8 @@ class Run:
     def best(self, target: str) -> float:
         return self.throughput[target].rate
 
-    def figures(self) -> dict[str, Any]:
-        """The JSON line: the summary's flat figures first, then every trial."""
+    def to_json(self) -> dict[str, Any]:
+        """The JSON line: the summary's flat figures first (issue 18's keys), then every trial."""
         out = asdict(self)
         return {**out.pop("summary"), **out}
 
@@ -493,11 +493,11 @@ def _main(args: argparse.Namespace) -> Figures:
             result = run_xdp(args.seconds, log=trial_log)
         except SwitchError as exc:
             print(f"cell bench dataplane: {exc}", file=sys.stderr)
-            return Figures({"error": str(exc)}, exit_code=2)
+            return Figures(Failed(str(exc)), exit_code=2)
         # the issue's figures first, flat (the trials follow in the full result)
-        return Figures(result.figures(), format_xdp(result))
+        return Figures(result, format_xdp(result))
     result = run(args.seconds, log=trial_log)
-    return Figures(result.figures(), format_result(result))
+    return Figures(result, format_result(result))
 
 
 register(

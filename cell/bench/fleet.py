@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from cell import sched
-from cell.bench.registry import Bench, Figures, log, register
+from cell.bench.registry import Bench, Failed, Figures, log, register
 from cell.bench.robots import late_statuses
 from cell.bus import Bus, BusTimeout
 from cell.cellproc import robots_heard, running_cell
@@ -97,6 +97,18 @@ class FleetRun:
             out["churn_update_ms_mean"] = self.churn.update_ms_mean
             out["churn_updates"] = len(self.churn.phases)
         return out
+
+
+@dataclass
+class FleetResult:
+    """What `cell bench fleet` hands on: a run, and with --search the largest fleet that passed (the
+    JSON line's max_robots; without it, the run's own robots if it passed)."""
+
+    run: FleetRun
+    max_robots: int | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return self.run.figures(self.max_robots)
 
 
 @dataclass
@@ -432,7 +444,8 @@ def format_run(r: FleetRun) -> str:
     )
 
 
-def format_result(r: FleetRun, max_robots: int | None) -> str:
+def format_result(result: FleetResult) -> str:
+    r, max_robots = result.run, result.max_robots
     cpu = ", ".join(f"{k} {100 * v:.0f}%" for k, v in r.cpu.items())
     lines = [
         format_run(r),
@@ -476,15 +489,17 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 def _main(args: argparse.Namespace) -> Figures:
     if args.robots < 1 or args.seconds < 2:
-        return Figures({"error": "--robots >= 1 and --seconds >= 2"}, "--robots >= 1 and --seconds >= 2", 2)
+        why = "--robots >= 1 and --seconds >= 2"
+        return Figures(Failed(why), why, 2)
     if args.search:
         best, runs = search(args.seconds, args.backend)
         top = max((r for r in runs if r.ok), key=lambda r: r.robots, default=runs[-1])
-        return Figures(top.figures(best), format_result(top, best))
+        result = FleetResult(top, best)
+        return Figures(result, format_result(result))
     with contextlib.suppress(KeyboardInterrupt):
-        r = asyncio.run(measure(args.robots, args.seconds, args.backend, churn=args.churn))
-        return Figures(r.figures(), format_result(r, None))
-    return Figures({"error": "interrupted"}, "", 130)
+        result = FleetResult(asyncio.run(measure(args.robots, args.seconds, args.backend, churn=args.churn)))
+        return Figures(result, format_result(result))
+    return Figures(Failed("interrupted"), "", 130)
 
 
 register(

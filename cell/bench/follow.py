@@ -15,14 +15,15 @@ from __future__ import annotations
 import argparse
 import asyncio
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.cellproc import running_cell
+from cell.jsonfields import JsonFields
 from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.robot.arm import arm_model
@@ -43,6 +44,21 @@ def long_trajectory(points: int, seconds: float) -> Trajectory:
     return Trajectory.build(t, q, name=f"long-{points}")
 
 
+@dataclass
+class FollowResult(JsonFields):
+    """The controller's memory (MB, to 0.1; its slope in MB/min) and the tool path error (mm)."""
+
+    points: int
+    duration_s: float
+    controller_rss_mb_before: float
+    controller_rss_mb_loaded: float
+    controller_rss_mb_end: float
+    controller_rss_mb_max: float
+    controller_rss_mb_per_min: float
+    path_error_mm_max: float
+    path_error_mm_median: float
+
+
 def rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
@@ -50,7 +66,7 @@ def rss_mb(pid: int) -> float:
     raise RuntimeError(f"no VmRSS for pid {pid}")
 
 
-async def _run(points: int, seconds: float, sample_s: float) -> dict[str, Any]:
+async def _run(points: int, seconds: float, sample_s: float) -> FollowResult:
     robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "mujoco", "truth_hz": 250}]
     overrides = {
         "services": {"run": ["bus", "dataplane", "robots", "controller"], "layout": "each"},
@@ -87,17 +103,17 @@ async def _run(points: int, seconds: float, sample_s: float) -> dict[str, Any]:
     s = np.array(samples)
     steady = s[s[:, 0] >= min(30.0, seconds / 4)]  # after the load and the first episodes
     slope = float(np.polyfit(steady[:, 0] / 60.0, steady[:, 1], 1)[0]) if len(steady) >= 3 else float("nan")
-    return {
-        "points": points,
-        "duration_s": seconds,
-        "controller_rss_mb_before": round(rss_before, 1),
-        "controller_rss_mb_loaded": round(float(steady[0, 1]) if len(steady) else float(s[0, 1]), 1),
-        "controller_rss_mb_end": round(float(s[-1, 1]), 1),
-        "controller_rss_mb_max": round(float(s[:, 1].max()), 1),
-        "controller_rss_mb_per_min": round(slope, 3),
-        "path_error_mm_max": round(float(err.max()), 4),
-        "path_error_mm_median": round(float(np.median(err)), 4),
-    }
+    return FollowResult(
+        points=points,
+        duration_s=seconds,
+        controller_rss_mb_before=round(rss_before, 1),
+        controller_rss_mb_loaded=round(float(steady[0, 1]) if len(steady) else float(s[0, 1]), 1),
+        controller_rss_mb_end=round(float(s[-1, 1]), 1),
+        controller_rss_mb_max=round(float(s[:, 1].max()), 1),
+        controller_rss_mb_per_min=round(slope, 3),
+        path_error_mm_max=round(float(err.max()), 4),
+        path_error_mm_median=round(float(np.median(err)), 4),
+    )
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
@@ -113,10 +129,10 @@ def _main(args: argparse.Namespace) -> Figures:
     log(f"following {points:,} points over {minutes:g} min on a MuJoCo arm (its memory every {every:g} s)")
     r = asyncio.run(_run(points, minutes * 60.0, args.sample_s))
     text = (
-        f"controller RSS {r['controller_rss_mb_before']} MB before, {r['controller_rss_mb_loaded']} MB "
-        f"loaded, {r['controller_rss_mb_end']} MB at the end (max {r['controller_rss_mb_max']}), slope "
-        f"{r['controller_rss_mb_per_min']:+.3f} MB/min; tool path error at the points max "
-        f"{r['path_error_mm_max']:.3f} mm, median {r['path_error_mm_median']:.4f} mm"
+        f"controller RSS {r.controller_rss_mb_before} MB before, {r.controller_rss_mb_loaded} MB "
+        f"loaded, {r.controller_rss_mb_end} MB at the end (max {r.controller_rss_mb_max}), slope "
+        f"{r.controller_rss_mb_per_min:+.3f} MB/min; tool path error at the points max "
+        f"{r.path_error_mm_max:.3f} mm, median {r.path_error_mm_median:.4f} mm"
     )
     return Figures(r, text)
 

@@ -21,6 +21,7 @@ import argparse
 import asyncio
 import os
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -30,6 +31,7 @@ from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.cellproc import default_robots, robots_heard, running_cell
 from cell.config import load_config
+from cell.jsonfields import JsonFields
 from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.sched import process_cpu_seconds
@@ -127,7 +129,39 @@ async def cell_figures(overrides: dict[str, Any], idle_s: float, moving_s: float
     }
 
 
-def run(quick: bool, baseline: bool, idle_s: float, moving_s: float) -> dict[str, Any]:
+@dataclass
+class HeadroomResult(JsonFields):
+    """The tick in C and in Python, the default cell's packet path idle and moving (issue 53's keys),
+    and the baseline cell's figures (cell_figures' keys, each as baseline_<key>) if it ran."""
+
+    tick_us_p50: float
+    tick_us_p99: float
+    python_tick_us_p99: float
+    tick_speedup_p99: float
+    tick_placed: str
+    packet_path_cpu_pct_idle: float
+    packet_path_cpu_pct_moving: float
+    rt_holds: float
+    status_to_command_us_p99: float
+    missed_ticks: float
+    protective_stops: float
+    baseline_cpu_pct_idle: float | None = None
+    baseline_cpu_pct_moving: float | None = None
+    baseline_rt_holds: float | None = None
+    baseline_status_to_command_us_p99: float | None = None
+    baseline_missed_ticks: float | None = None
+    baseline_protective_stops: float | None = None
+    baseline_moves: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """Without the baseline's keys when it did not run (--quick, --no-baseline), as ever."""
+        out = super().to_json()
+        if self.baseline_cpu_pct_idle is None:
+            out = {k: v for k, v in out.items() if not k.startswith("baseline_")}
+        return out
+
+
+def run(quick: bool, baseline: bool, idle_s: float, moving_s: float) -> HeadroomResult:
     n = 2000 if quick else 20000
     log(f"one MuJoCo arm's tick, {n} times, in C and in Python (CPU 1, SCHED_FIFO 70: as the robots run)")
     affinity, policy = os.sched_getaffinity(0), os.sched_getscheduler(0)
@@ -139,17 +173,16 @@ def run(quick: bool, baseline: bool, idle_s: float, moving_s: float) -> dict[str
         os.sched_setscheduler(0, policy, os.sched_param(0))
         os.sched_setaffinity(0, affinity)
         os.setpriority(os.PRIO_PROCESS, 0, nice)
-    result: dict[str, Any] = {
-        "tick_us_p50": float(np.percentile(native, 50)),
-        "tick_us_p99": float(np.percentile(native, 99)),
-        "python_tick_us_p99": float(np.percentile(python, 99)),
-    }
-    result["tick_speedup_p99"] = result["python_tick_us_p99"] / result["tick_us_p99"]
-    result["tick_placed"] = "; ".join(placed) or "cpu 1, fifo 70"
+    tick_p99, python_p99 = float(np.percentile(native, 99)), float(np.percentile(python, 99))
     log(f"the default cell (native tick, {load_config(None).dataplane.chosen()[0]} data plane): "
         f"{idle_s:g} s idle, {moving_s:g} s moving")  # fmt: skip
     now = aio.run(cell_figures({}, idle_s, moving_s))
-    result.update(
+    result = HeadroomResult(
+        tick_us_p50=float(np.percentile(native, 50)),
+        tick_us_p99=tick_p99,
+        python_tick_us_p99=python_p99,
+        tick_speedup_p99=python_p99 / tick_p99,
+        tick_placed="; ".join(placed) or "cpu 1, fifo 70",
         packet_path_cpu_pct_idle=now["cpu_pct_idle"],
         packet_path_cpu_pct_moving=now["cpu_pct_moving"],
         rt_holds=now["rt_holds"],
@@ -161,27 +194,33 @@ def run(quick: bool, baseline: bool, idle_s: float, moving_s: float) -> dict[str
         log("the baseline: the same cell with the Python tick and the numpy data plane")
         was = {"robot_defaults": {"tick": "python"}, "dataplane": {"backend": "numpy"}}
         old = aio.run(cell_figures(was, idle_s, moving_s))
-        result.update({f"baseline_{k}": v for k, v in old.items()})
+        result.baseline_cpu_pct_idle = old["cpu_pct_idle"]
+        result.baseline_cpu_pct_moving = old["cpu_pct_moving"]
+        result.baseline_rt_holds = old["rt_holds"]
+        result.baseline_status_to_command_us_p99 = old["status_to_command_us_p99"]
+        result.baseline_missed_ticks = old["missed_ticks"]
+        result.baseline_protective_stops = old["protective_stops"]
+        result.baseline_moves = old["moves"]
     return result
 
 
-def format_result(r: dict[str, Any]) -> str:
+def format_result(r: HeadroomResult) -> str:
     lines = [
-        f"one MuJoCo arm's tick: p50 {r['tick_us_p50']:.1f} us, p99 {r['tick_us_p99']:.1f} us in C "
-        f"(aim <= {AIMS['tick_us_p99']:g}); p99 {r['python_tick_us_p99']:.1f} us in Python "
-        f"({r['tick_speedup_p99']:.1f}x)",
+        f"one MuJoCo arm's tick: p50 {r.tick_us_p50:.1f} us, p99 {r.tick_us_p99:.1f} us in C "
+        f"(aim <= {AIMS['tick_us_p99']:g}); p99 {r.python_tick_us_p99:.1f} us in Python "
+        f"({r.tick_speedup_p99:.1f}x)",
         "packet path CPU (robots + data plane + rlink), % of a core: "
-        f"idle {r['packet_path_cpu_pct_idle']:.1f} "
-        f"(aim <= {AIMS['packet_path_cpu_pct_idle']:g}), moving {r['packet_path_cpu_pct_moving']:.1f} "
+        f"idle {r.packet_path_cpu_pct_idle:.1f} "
+        f"(aim <= {AIMS['packet_path_cpu_pct_idle']:g}), moving {r.packet_path_cpu_pct_moving:.1f} "
         f"(aim <= {AIMS['packet_path_cpu_pct_moving']:g})",
-        f"RT holds {r['rt_holds']:.0f} (aim 0), status -> command p99 {r['status_to_command_us_p99']:.0f} us "
-        f"at the robot, missed ticks {r['missed_ticks']:.0f}, protective stops {r['protective_stops']:.0f}",
+        f"RT holds {r.rt_holds:.0f} (aim 0), status -> command p99 {r.status_to_command_us_p99:.0f} us "
+        f"at the robot, missed ticks {r.missed_ticks:.0f}, protective stops {r.protective_stops:.0f}",
     ]
-    if "baseline_cpu_pct_idle" in r:
+    if r.baseline_cpu_pct_idle is not None:
         lines.append(
-            f"baseline (Python tick, numpy data plane): idle {r['baseline_cpu_pct_idle']:.1f} %, moving "
-            f"{r['baseline_cpu_pct_moving']:.1f} %, RT holds {r['baseline_rt_holds']:.0f}, status -> "
-            f"command p99 {r['baseline_status_to_command_us_p99']:.0f} us"
+            f"baseline (Python tick, numpy data plane): idle {r.baseline_cpu_pct_idle:.1f} %, moving "
+            f"{r.baseline_cpu_pct_moving:.1f} %, RT holds {r.baseline_rt_holds:.0f}, status -> "
+            f"command p99 {r.baseline_status_to_command_us_p99:.0f} us"
         )
     return "\n".join(lines)
 

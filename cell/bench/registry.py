@@ -5,8 +5,10 @@ group "cell.benches") registers its own, with its arguments and its entry point.
     def _main(args: argparse.Namespace) -> Figures: ...
     register(Bench("name", "one line of help", _arguments, _main))
 
-`--json` is every bench's: Figures.result is printed as one JSON line, last (the keys
-the benches' issues name).  A bench module is imported only when `cell bench` runs.
+`--json` is every bench's: Figures.result.to_json() is printed as one JSON line, last (the keys
+the benches' issues name).  A bench's result is a dataclass of its figures (as ruckig's Result):
+cell.jsonfields.JsonFields gives it a to_json() of its fields.  A bench module is imported only
+when `cell bench` runs.
 """
 
 from __future__ import annotations
@@ -17,14 +19,22 @@ import pkgutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
-from typing import Any
+
+from cell.jsonfields import JsonFields, Result
+
+
+@dataclass
+class Failed(JsonFields):
+    """A bench that could not run, and why (its JSON line: {"error": why})."""
+
+    error: str
 
 
 @dataclass
 class Figures:
     """What a bench measured: its figures (the JSON line), their text, and the command's exit code."""
 
-    result: dict[str, Any]
+    result: Result
     text: str = ""
     exit_code: int = 0
 

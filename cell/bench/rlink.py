@@ -18,6 +18,7 @@ import multiprocessing as mp
 import queue
 import socket
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ import numpy as np
 from cell import aio, sched
 from cell.bench import estop
 from cell.bench.registry import Bench, Figures, register
+from cell.jsonfields import JsonFields
 from cell.ports import free_port
 from cell.rlink.link import LinkPorts, NodeLink
 from cell.rlink.node import Node
@@ -146,16 +148,83 @@ def _measure(ports: dict, n: int, n_loaded_data: int, load_ready: Any, loaded: A
     out.put(aio.run(main()))
 
 
-def _stats(us: list[float]) -> dict[str, float]:
+@dataclass
+class Rtt(JsonFields):
+    """One figure's round trips (us), and the echoes that did not come back."""
+
+    n: int
+    mean: float
+    std: float
+    p50: float
+    p99: float
+    max: float
+    lost: int
+
+
+@dataclass
+class EchoNode(JsonFields):
+    """What the flooded node took in, and dropped."""
+
+    data_in: int
+    drops: int
+
+
+@dataclass
+class BreakEven(JsonFields):
+    """The paper's condition (1): an event keeps the shorter latency while S_p T_e / M < S_p T_d / D."""
+
+    T_e_us: float
+    M_bytes: int
+    T_d_us: float
+    D_bytes: int
+    event_us_per_byte: float
+    data_us_per_byte: float
+    holds: bool
+
+
+@dataclass
+class RlinkResult(JsonFields):
+    """Table 1's figures, unloaded and with the data link flooded, the e-stop's (cell.bench.estop's,
+    without its samples) and the break-even condition; the keys the issue names among them."""
+
+    packets: int
+    bulk_sent: int
+    bulk_rate: float
+    bulk_s: float
+    echo_node: EchoNode
+    placement: str
+    data_handled_per_s: float | None
+    event_unloaded: Rtt
+    data_unloaded: Rtt
+    event_loaded: Rtt
+    data_loaded: Rtt
+    event_rtt_us_mean: float
+    event_rtt_us_std: float
+    data_rtt_us_mean: float
+    data_rtt_us_std: float
+    event_p99_loaded_over_unloaded: float
+    estop: dict[str, Any] | None
+    estop_p99_ms: float | None
+    break_even: BreakEven
+    histogram_png: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """Without estop when it did not run (estop_p99_ms: null) nor histogram_png when none was drawn."""
+        out = super().to_json()
+        return {k: v for k, v in out.items() if v is not None or k not in ("estop", "histogram_png")}
+
+
+def _stats(us: list[float], lost: int) -> Rtt:
     a = np.array(us) if us else np.array([np.nan])
-    return {
-        "n": len(us),
-        "mean": float(a.mean()),
-        "std": float(a.std()),
-        "p50": float(np.percentile(a, 50)),
-        "p99": float(np.percentile(a, 99)),
-        "max": float(a.max()),
-    }
+    return Rtt(
+        n=len(us),
+        mean=float(a.mean()),
+        std=float(a.std()),
+        p50=float(np.percentile(a, 50)),
+        p99=float(np.percentile(a, 99)),
+        max=float(a.max()),
+        lost=lost,
+    )
 
 
 def run(
@@ -164,7 +233,7 @@ def run(
     n_loaded_data: int = 100,
     estop_trials: int = 300,
     estop_robots: int = estop.FLOOD_ROBOTS,
-) -> dict[str, Any]:
+) -> RlinkResult:
     """The figures; samples are drawn into `png` (if given) and left out of the result.  Then the
     e-stop's end-to-end latency with the data plane loaded (cell.bench.estop); 0 trials: skipped."""
     ctx = mp.get_context("spawn")
@@ -188,48 +257,61 @@ def run(
     finally:
         stop_c.set()
         stop_b.set()
-    bulk = out_c.get(timeout=30) if c is not None else {}
+    bulk = out_c.get(timeout=30)  # (the flood ran: without it there is no result above)
     echo = out_b.get(timeout=30)
     for p in (a, b, c):
         if p is not None:
             p.join(10)
-    r: dict[str, Any] = {"packets": n, **bulk, "echo_node": echo, "placement": m["placement"]}
-    # what the flooded node still took in (the data echoes of the unloaded phase are a rounding error)
-    r["data_handled_per_s"] = echo["data_in"] / bulk["bulk_s"] if bulk.get("bulk_s") else None
     samples = {}
+    rtt = {}
     for key in ("event_unloaded", "data_unloaded", "event_loaded", "data_loaded"):
         got, lost = m[key]
-        r[key] = {**_stats(got), "lost": lost}
+        rtt[key] = _stats(got, lost)
         samples[key] = got
-    ev, da = r["event_unloaded"], r["data_unloaded"]
-    # the JSON keys the issue names
-    r["event_rtt_us_mean"], r["event_rtt_us_std"] = ev["mean"], ev["std"]
-    r["data_rtt_us_mean"], r["data_rtt_us_std"] = da["mean"], da["std"]
-    r["event_p99_loaded_over_unloaded"] = r["event_loaded"]["p99"] / ev["p99"]
+    ev, da = rtt["event_unloaded"], rtt["data_unloaded"]
+    e: dict[str, Any] | None = None
     if estop_trials:
         e = estop.run(estop_trials, estop_robots)
         samples["estop"] = e.pop("samples_ms")
-        r["estop"] = e
-        r["estop_p99_ms"] = e["estop_p99_ms"]
-    else:
-        r["estop_p99_ms"] = None
     # break-even condition (1): an event keeps the shorter latency while S_p T_e / M < S_p T_d / D
     mailbox, threshold = EVENT_PAYLOAD, DATA_PAYLOAD  # bytes handed over per event / per data hand-over
-    r["break_even"] = {
-        "T_e_us": ev["mean"],
-        "M_bytes": mailbox,
-        "T_d_us": da["mean"],
-        "D_bytes": threshold,
-        "event_us_per_byte": ev["mean"] / mailbox,
-        "data_us_per_byte": da["mean"] / threshold,
-        "holds": ev["mean"] / mailbox < da["mean"] / threshold,
-    }
+    r = RlinkResult(
+        packets=n,
+        bulk_sent=bulk["bulk_sent"],
+        bulk_rate=bulk["bulk_rate"],
+        bulk_s=bulk["bulk_s"],
+        echo_node=EchoNode(**echo),
+        placement=m["placement"],
+        # what the flooded node still took in (the data echoes of the unloaded phase are a rounding error)
+        data_handled_per_s=echo["data_in"] / bulk["bulk_s"] if bulk["bulk_s"] else None,
+        event_unloaded=ev,
+        data_unloaded=da,
+        event_loaded=rtt["event_loaded"],
+        data_loaded=rtt["data_loaded"],
+        # the JSON keys the issue names
+        event_rtt_us_mean=ev.mean,
+        event_rtt_us_std=ev.std,
+        data_rtt_us_mean=da.mean,
+        data_rtt_us_std=da.std,
+        event_p99_loaded_over_unloaded=rtt["event_loaded"].p99 / ev.p99,
+        estop=e,
+        estop_p99_ms=e["estop_p99_ms"] if e is not None else None,
+        break_even=BreakEven(
+            T_e_us=ev.mean,
+            M_bytes=mailbox,
+            T_d_us=da.mean,
+            D_bytes=threshold,
+            event_us_per_byte=ev.mean / mailbox,
+            data_us_per_byte=da.mean / threshold,
+            holds=ev.mean / mailbox < da.mean / threshold,
+        ),
+    )
     if png:
-        r["histogram_png"] = histogram(r, samples, png)
+        r.histogram_png = histogram(r, samples, png)
     return r
 
 
-def histogram(r: dict[str, Any], samples: dict[str, list[float]], path: str) -> str:
+def histogram(r: RlinkResult, samples: dict[str, list[float]], path: str) -> str:
     """Fig. 10 (a) and (b), and the event link under a data flood, as a PNG."""
     import matplotlib
 
@@ -237,23 +319,22 @@ def histogram(r: dict[str, Any], samples: dict[str, list[float]], path: str) -> 
     import matplotlib.pyplot as plt
 
     panels = [
-        ("event_unloaded", "(a) event packet"),
-        ("data_unloaded", "(b) data packet"),
-        ("event_loaded", "(c) event packet, data link flooded"),
+        (r.event_unloaded, "event_unloaded", "(a) event packet"),
+        (r.data_unloaded, "data_unloaded", "(b) data packet"),
+        (r.event_loaded, "event_loaded", "(c) event packet, data link flooded"),
     ]
-    with_estop = "estop" in samples and bool(samples["estop"])
+    with_estop = r.estop is not None and bool(samples.get("estop"))
     fig, axes = plt.subplots(1, 3 + with_estop, figsize=(13 + 4 * with_estop, 3.6), constrained_layout=True)
-    for ax, (key, title) in zip(axes, panels, strict=False):
+    for ax, (s, key, title) in zip(axes, panels, strict=False):
         us = np.array(samples[key])
         if us.size:
             hi = float(np.percentile(us, 99.5))
             ax.hist(us[us <= hi], bins=60, color="#3a78c2")
-        s = r[key]
-        ax.set_title(f"{title}\nmean {s['mean']:.0f} us, sd {s['std']:.0f}, p99 {s['p99']:.0f}", fontsize=9)
+        ax.set_title(f"{title}\nmean {s.mean:.0f} us, sd {s.std:.0f}, p99 {s.p99:.0f}", fontsize=9)
         ax.set_xlabel("round-trip time (us)")
         ax.set_ylabel("count")
-    if with_estop:
-        ax, e = axes[3], r["estop"]
+    if with_estop and r.estop is not None:
+        ax, e = axes[3], r.estop
         us = np.array(samples["estop"]) * 1e3
         ax.hist(us[us <= np.percentile(us, 99.5)], bins=60, color="#c2453a")
         ax.set_title(
@@ -270,32 +351,32 @@ def histogram(r: dict[str, Any], samples: dict[str, list[float]], path: str) -> 
     return str(Path(path).resolve())
 
 
-def format_result(r: dict[str, Any]) -> str:
-    def line(name: str, s: dict[str, float]) -> str:
-        lost = f", {s['lost']} lost (> {LOST_S:.1f} s)" if s["lost"] else ""
+def format_result(r: RlinkResult) -> str:
+    def line(name: str, s: Rtt) -> str:
+        lost = f", {s.lost} lost (> {LOST_S:.1f} s)" if s.lost else ""
         return (
-            f"  {name:<34} mean {s['mean']:8.1f} us  sd {s['std']:7.1f}  p50 {s['p50']:7.1f}  "
-            f"p99 {s['p99']:8.1f}  ({s['n']:,}{lost})"
+            f"  {name:<34} mean {s.mean:8.1f} us  sd {s.std:7.1f}  p50 {s.p50:7.1f}  "
+            f"p99 {s.p99:8.1f}  ({s.n:,}{lost})"
         )
 
-    be = r["break_even"]
+    be = r.break_even
     lines = [
-        f"round trips between two nodes in separate processes ({r['placement']} for the measuring one):",
-        line("event packets", r["event_unloaded"]),
-        line("data packets", r["data_unloaded"]),
-        f"with the data link flooded ({r.get('bulk_rate', 0):,.0f} packets/s offered, "
-        f"{r.get('data_handled_per_s') or 0:,.0f}/s handled by the echo node):",
-        line("event packets", r["event_loaded"]),
-        line("data packets", r["data_loaded"]),
-        f"event p99 flooded / unloaded: {r['event_p99_loaded_over_unloaded']:.2f} (aim <= 1.2)",
+        f"round trips between two nodes in separate processes ({r.placement} for the measuring one):",
+        line("event packets", r.event_unloaded),
+        line("data packets", r.data_unloaded),
+        f"with the data link flooded ({r.bulk_rate:,.0f} packets/s offered, "
+        f"{r.data_handled_per_s or 0:,.0f}/s handled by the echo node):",
+        line("event packets", r.event_loaded),
+        line("data packets", r.data_loaded),
+        f"event p99 flooded / unloaded: {r.event_p99_loaded_over_unloaded:.2f} (aim <= 1.2)",
         "paper (Table 1): event 247.8 us mean, sd 6.4; data 663.3 us, sd 20.9",
-        f"break-even (1): T_e/M = {be['T_e_us']:.1f}/{be['M_bytes']} = {be['event_us_per_byte']:.2f} us/byte "
-        f"{'<' if be['holds'] else '>='} T_d/D = {be['T_d_us']:.1f}/{be['D_bytes']} = "
-        f"{be['data_us_per_byte']:.2f} us/byte: "
-        + ("events are the cheaper way per byte too" if be["holds"] else "per byte, data packets win"),
+        f"break-even (1): T_e/M = {be.T_e_us:.1f}/{be.M_bytes} = {be.event_us_per_byte:.2f} us/byte "
+        f"{'<' if be.holds else '>='} T_d/D = {be.T_d_us:.1f}/{be.D_bytes} = "
+        f"{be.data_us_per_byte:.2f} us/byte: "
+        + ("events are the cheaper way per byte too" if be.holds else "per byte, data packets win"),
     ]
-    if r.get("estop"):
-        e = r["estop"]
+    if r.estop:
+        e = r.estop
         lines += [
             f"e-stop, order at the hub -> first stop command at the robot, the data plane answering "
             f"{e['plane_handled_per_s']:,.0f} status/s:",
@@ -303,8 +384,8 @@ def format_result(r: dict[str, Any]) -> str:
             f"(aim <= 2)  max {e['estop_ms_max']:.2f}  ({e['trials']} trials, {e['missed']} missed); "
             f"in the data plane, event read -> commands sent: p99 {e['plane_stop_us_p99'] or 0:.0f} us",
         ]
-    if r.get("histogram_png"):
-        lines.append(f"histogram: {r['histogram_png']}")
+    if r.histogram_png:
+        lines.append(f"histogram: {r.histogram_png}")
     return "\n".join(lines)
 
 

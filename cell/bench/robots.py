@@ -18,6 +18,7 @@ import multiprocessing as mp
 import queue
 import resource
 import time
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,7 @@ from cell import aio
 from cell.bench import pin
 from cell.bench.registry import Bench, Figures, log, register
 from cell.config import load_config
+from cell.jsonfields import JsonFields
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
 
@@ -158,9 +160,41 @@ def trial(
     }
 
 
+@dataclass
+class MaxRobots(JsonFields):
+    """One backend's (and socket's) most robots, found by bisection; its trials as trial() gave them."""
+
+    backend: str
+    socket: str
+    max_robots: int
+    best: dict[str, Any] | None
+    trials: list[dict[str, Any]]
+
+
+@dataclass
+class RobotsResult(JsonFields):
+    """The 1-robot baseline (a trial), and each backend's most robots with a socket a robot (own) and
+    one for the group (_shared): those it ran."""
+
+    baseline: dict[str, Any]
+    answered: bool
+    kinematic: MaxRobots | None = None
+    kinematic_shared: MaxRobots | None = None
+    mujoco: MaxRobots | None = None
+    mujoco_shared: MaxRobots | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """Only the backends that ran, as ever."""
+        return {k: v for k, v in super().to_json().items() if v is not None}
+
+    def backends(self) -> dict[str, MaxRobots]:
+        """The backends that ran, by key ("kinematic", "mujoco_shared", ...)."""
+        return {f.name: r for f in fields(self) if isinstance(r := getattr(self, f.name), MaxRobots)}
+
+
 def max_robots(
     backend: str, start: int, seconds: float, log: Any = None, answer: bool = True, socket: str = "own"
-) -> dict[str, Any]:
+) -> MaxRobots:
     trials: list[dict[str, Any]] = []
 
     def run(n: int) -> bool:
@@ -180,7 +214,7 @@ def max_robots(
         mid = (lo + hi) // 2
         lo, hi = (mid, hi) if run(mid) else (lo, mid)
     best = max((t for t in trials if t["ok"]), key=lambda t: t["robots"], default=None)
-    return {"backend": backend, "socket": socket, "max_robots": lo, "best": best, "trials": trials}
+    return MaxRobots(backend, socket, lo, best, trials)
 
 
 def run_bench(
@@ -189,7 +223,7 @@ def run_bench(
     log: Any = None,
     answer: bool = True,
     sockets: tuple[str, ...] = ("own",),
-) -> dict[str, Any]:
+) -> RobotsResult:
     """Each backend's most robots, with a socket a robot (own) and with one for the group (shared)."""
     baseline = {"backend": "kinematic", **trial("kinematic", 1, seconds, answer)}
     if log:
@@ -200,11 +234,11 @@ def run_bench(
         ("kinematic", "shared"): 128,
         ("mujoco", "shared"): 16,
     }
-    out: dict[str, Any] = {"baseline": baseline, "answered": answer}
+    out = RobotsResult(baseline, answer)
     for b in backends:
         for sock in sockets:
             key = b if sock == "own" else f"{b}_shared"
-            out[key] = max_robots(b, starts[b, sock], seconds, log, answer, sock)
+            setattr(out, key, max_robots(b, starts[b, sock], seconds, log, answer, sock))
     return out
 
 
@@ -220,22 +254,14 @@ def format_trial(r: dict[str, Any]) -> str:
     )
 
 
-def format_result(result: dict[str, Any]) -> str:
-    who = "answered by a reflector on the other core" if result["answered"] else "status only"
+def format_result(result: RobotsResult) -> str:
+    who = "answered by a reflector on the other core" if result.answered else "status only"
     lines = [f"robots at 500 Hz status on one core with < 0.1% late sends ({who}):"]
-    lines.append(
-        f"  baseline, 1 robot (the machine's own stalls): {format_trial(result['baseline']).strip()}"
-    )
-    for b in ("kinematic", "kinematic_shared", "mujoco", "mujoco_shared"):
-        if b in result:
-            r = result[b]
-            best = f"  [{format_trial(r['best']).strip()}]" if r["best"] else ""
-            name = (
-                b.replace("_shared", ", one shared socket")
-                if b.endswith("_shared")
-                else f"{b}, a socket each"
-            )
-            lines.append(f"  {name}: {r['max_robots']} robots{best}")
+    lines.append(f"  baseline, 1 robot (the machine's own stalls): {format_trial(result.baseline).strip()}")
+    for b, r in result.backends().items():
+        best = f"  [{format_trial(r.best).strip()}]" if r.best else ""
+        name = b.replace("_shared", ", one shared socket") if b.endswith("_shared") else f"{b}, a socket each"
+        lines.append(f"  {name}: {r.max_robots} robots{best}")
     return "\n".join(lines)
 
 

@@ -39,6 +39,7 @@ import asyncio
 import itertools
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +48,7 @@ import numpy as np
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.cellproc import running_cell
+from cell.jsonfields import JsonFields
 from cell.ports import free_port
 from cell.skills.client import RobotClient, SetSpeed
 from cell.v1 import controller_pb2
@@ -54,14 +56,58 @@ from cell.vision import focus
 from cell.vision.client import VisionClient
 
 
-def _stats(ns: Sequence[float]) -> dict[str, float]:
+@dataclass
+class Stats(JsonFields):
+    """One figure's spread, in ms."""
+
+    p50_ms: float
+    p99_ms: float
+    mean_ms: float
+    sd_ms: float
+
+
+@dataclass
+class Approach(JsonFields):
+    """ufloop's approach over the paper's sweep: its eqs. (1)-(5)."""
+
+    increments: int
+    tau_r: Stats
+    tau_r_literal: Stats
+    switch_r_to_v: Stats
+    switch_v_to_r: Stats
+    gap_ss_mrt: Stats
+    gap_mrt_b: Stats
+
+
+@dataclass
+class SkillsResult(JsonFields):
+    """The task-script path's timing; with the approach (--increments), its figures, PNGs and the
+    keys the issue names (left out of the JSON line when it did not run, as ever)."""
+
+    messages: int
+    set_speed_rtt: Stats
+    tcp_echo_rtt: Stats
+    send_gap: Stats
+    switch_bus_to_robot: Stats
+    switch_robot_to_bus: Stats
+    controller_pose_rtt: Stats
+    approach: Approach | None = None
+    png: dict[str, str] | None = None
+    tau_r_ms_mean: float | None = None
+    tau_r_ms_sd: float | None = None
+    switch_r_to_v_ms_p50: float | None = None
+    switch_v_to_r_ms_p50: float | None = None
+    gap_ss_mrt_ms_p50: float | None = None
+    gap_mrt_b_ms_p50: float | None = None
+    set_speed_ack_ms_p50: float = float("nan")
+
+    def to_json(self) -> dict[str, Any]:
+        return {k: v for k, v in super().to_json().items() if v is not None}
+
+
+def _stats(ns: Sequence[float]) -> Stats:
     a = np.array(ns) / 1e6
-    return {
-        "p50_ms": float(np.median(a)),
-        "p99_ms": float(np.percentile(a, 99)),
-        "mean_ms": float(a.mean()),
-        "sd_ms": float(a.std()),
-    }
+    return Stats(float(np.median(a)), float(np.percentile(a, 99)), float(a.mean()), float(a.std()))
 
 
 async def _echo_baseline(n: int) -> list[int]:
@@ -83,7 +129,7 @@ async def _echo_baseline(n: int) -> list[int]:
     return out
 
 
-async def measure(n: int, log: Callable[[str], None]) -> dict[str, Any]:
+async def measure(n: int, log: Callable[[str], None]) -> SkillsResult:
     ports = {i: free_port() for i in (1, 2)}
     robots = [{"id": i, "name": f"r{i}", "skill_port": ports[i], "backend": "kinematic"} for i in (1, 2)]
     services = ["bus", "dataplane", "robots", "controller", "skills"]
@@ -114,22 +160,27 @@ async def measure(n: int, log: Callable[[str], None]) -> dict[str, Any]:
             (last_ack,) = await robot.cmdexec(SetSpeed(50))
             to_robot.append(last_ack.sent_ns - t_bus_reply)
         log("switching: done")
-    return {
-        "messages": n,
-        "set_speed_rtt": _stats(rtt),
-        "tcp_echo_rtt": _stats(echo),
-        "send_gap": _stats(gaps),
-        "switch_bus_to_robot": _stats(to_robot),
-        "switch_robot_to_bus": _stats(to_bus),
-        "controller_pose_rtt": _stats(pose_rtt),
-    }
+    set_speed = _stats(rtt)
+    return SkillsResult(
+        messages=n,
+        set_speed_rtt=set_speed,
+        tcp_echo_rtt=_stats(echo),
+        send_gap=_stats(gaps),
+        switch_bus_to_robot=_stats(to_robot),
+        switch_robot_to_bus=_stats(to_bus),
+        controller_pose_rtt=_stats(pose_rtt),
+        set_speed_ack_ms_p50=set_speed.p50_ms,
+    )
 
 
 SPEEDS = (5, 25, 50, 75, 100)  # the paper's appr_speed values, %
 DELTAS = (1.5, 2.0, 2.5)  # its delta_z values, mm
 
 
-async def approach_sweep(increments: int, log: Callable[[str], None]) -> dict[str, Any]:
+async def approach_sweep(
+    increments: int, log: Callable[[str], None]
+) -> tuple[Approach, dict[str, list[float]], list[tuple[str, int, int]]]:
+    """The approach's figures, its samples (ms, for the histograms) and two iterations' requests."""
     """ufloop's approach phase, `increments` iterations per (speed, delta_z), back and forth in front of
     the camera; the paper's timing figures from every iteration."""
     port = free_port()
@@ -166,41 +217,34 @@ async def approach_sweep(increments: int, log: Callable[[str], None]) -> dict[st
                         gantt += [(a.skill, a.sent_ns, a.received_ns) for a in (ss, mrt, b)]
                 direction = -direction  # back over the same stretch next time
             log(f"approach sweep: speed {speed}% done")
-    return {
-        "increments": len(tau_r),
-        "tau_r": _stats(tau_r),
-        "tau_r_literal": _stats(literal),
-        "switch_r_to_v": _stats(r2v),
-        "switch_v_to_r": _stats(v2r),
-        "gap_ss_mrt": _stats(ss_mrt),
-        "gap_mrt_b": _stats(mrt_b),
-        "samples_ms": {
-            k: (np.array(v) / 1e6).tolist()
-            for k, v in (("tau_r", tau_r), ("r2v", r2v), ("v2r", v2r), ("ss_mrt", ss_mrt), ("mrt_b", mrt_b))
-        },
-        "gantt": gantt,
+    approach = Approach(
+        increments=len(tau_r),
+        tau_r=_stats(tau_r),
+        tau_r_literal=_stats(literal),
+        switch_r_to_v=_stats(r2v),
+        switch_v_to_r=_stats(v2r),
+        gap_ss_mrt=_stats(ss_mrt),
+        gap_mrt_b=_stats(mrt_b),
+    )
+    samples_ms = {
+        k: (np.array(v) / 1e6).tolist()
+        for k, v in (("tau_r", tau_r), ("r2v", r2v), ("v2r", v2r), ("ss_mrt", ss_mrt), ("mrt_b", mrt_b))
     }
+    return approach, samples_ms, gantt
 
 
 def run(
     n: int = 2000, log: Callable[[str], None] = print, increments: int = 4, png_dir: str | None = None
-) -> dict[str, Any]:
+) -> SkillsResult:
     r = asyncio.run(measure(n, log))
     if increments:
-        sweep = asyncio.run(approach_sweep(increments, log))
-        samples, gantt = sweep.pop("samples_ms"), sweep.pop("gantt")
-        r["approach"] = sweep
+        a, samples, gantt = asyncio.run(approach_sweep(increments, log))
+        r.approach = a
         if png_dir:
-            r["png"] = figures(samples, gantt, png_dir)
-        r.update({
-            "tau_r_ms_mean": sweep["tau_r"]["mean_ms"],
-            "tau_r_ms_sd": sweep["tau_r"]["sd_ms"],
-            "switch_r_to_v_ms_p50": sweep["switch_r_to_v"]["p50_ms"],
-            "switch_v_to_r_ms_p50": sweep["switch_v_to_r"]["p50_ms"],
-            "gap_ss_mrt_ms_p50": sweep["gap_ss_mrt"]["p50_ms"],
-            "gap_mrt_b_ms_p50": sweep["gap_mrt_b"]["p50_ms"],
-        })  # fmt: skip
-    r["set_speed_ack_ms_p50"] = r["set_speed_rtt"]["p50_ms"]
+            r.png = figures(samples, gantt, png_dir)
+        r.tau_r_ms_mean, r.tau_r_ms_sd = a.tau_r.mean_ms, a.tau_r.sd_ms
+        r.switch_r_to_v_ms_p50, r.switch_v_to_r_ms_p50 = a.switch_r_to_v.p50_ms, a.switch_v_to_r.p50_ms
+        r.gap_ss_mrt_ms_p50, r.gap_mrt_b_ms_p50 = a.gap_ss_mrt.p50_ms, a.gap_mrt_b.p50_ms
     return r
 
 
@@ -247,44 +291,42 @@ def figures(samples: dict[str, list[float]], gantt: list[tuple[str, int, int]], 
     return paths
 
 
-def format_result(r: dict[str, Any]) -> str:
-    def line(name: str, s: dict[str, float]) -> str:
-        figures = (
-            f"p50 {s['p50_ms']:6.3f}  p99 {s['p99_ms']:6.3f}  mean {s['mean_ms']:6.3f}  sd {s['sd_ms']:6.3f}"
-        )
+def format_result(r: SkillsResult) -> str:
+    def line(name: str, s: Stats) -> str:
+        figures = f"p50 {s.p50_ms:6.3f}  p99 {s.p99_ms:6.3f}  mean {s.mean_ms:6.3f}  sd {s.sd_ms:6.3f}"
         return f"  {name:<42} {figures} ms"
 
     return "\n".join(
         [
-            f"{r['messages']} messages; the Adept V+ paper (real robot): tau_r 5.219 ms mean, sd 0.964; "
+            f"{r.messages} messages; the Adept V+ paper (real robot): tau_r 5.219 ms mean, sd 0.964; "
             "send gaps ~0.2 ms; switching ~1 ms",
-            line("set_speed acknowledgement round trip", r["set_speed_rtt"]),
-            line("bare TCP echo of the same bytes (baseline)", r["tcp_echo_rtt"]),
-            line("gap: an ack in, the next message out", r["send_gap"]),
-            line("switch: bus reply in, robot message out", r["switch_bus_to_robot"]),
-            line("switch: robot ack in, bus request out", r["switch_robot_to_bus"]),
-            line("bus request: the controller's pose", r["controller_pose_rtt"]),
+            line("set_speed acknowledgement round trip", r.set_speed_rtt),
+            line("bare TCP echo of the same bytes (baseline)", r.tcp_echo_rtt),
+            line("gap: an ack in, the next message out", r.send_gap),
+            line("switch: bus reply in, robot message out", r.switch_bus_to_robot),
+            line("switch: robot ack in, bus request out", r.switch_robot_to_bus),
+            line("bus request: the controller's pose", r.controller_pose_rtt),
             *_approach_lines(r, line),
         ]
     )
 
 
-def _approach_lines(r: dict[str, Any], line: Callable[[str, dict[str, float]], str]) -> list[str]:
-    a = r.get("approach")
+def _approach_lines(r: SkillsResult, line: Callable[[str, Stats], str]) -> list[str]:
+    a = r.approach
     if a is None:
         return []
     out = [
-        f"ufloop's approach, {a['increments']} increments (speeds {SPEEDS} %, delta_z {DELTAS} mm); "
+        f"ufloop's approach, {a.increments} increments (speeds {SPEEDS} %, delta_z {DELTAS} mm); "
         "the paper: tau_r 5.219 / 0.964 ms, switching ~1 ms, send gaps ~0.2 ms",
-        line("tau_r, eq. (1): client wait - server span", a["tau_r"]),
-        line("  eq. (1) read literally (motion left in)", a["tau_r_literal"]),
-        line("switch robot -> vision, eq. (2)", a["switch_r_to_v"]),
-        line("switch vision -> robot, eq. (3)", a["switch_v_to_r"]),
-        line("send gap set_speed -> move_rel_tool, eq. (4)", a["gap_ss_mrt"]),
-        line("send gap move_rel_tool -> break, eq. (5)", a["gap_mrt_b"]),
+        line("tau_r, eq. (1): client wait - server span", a.tau_r),
+        line("  eq. (1) read literally (motion left in)", a.tau_r_literal),
+        line("switch robot -> vision, eq. (2)", a.switch_r_to_v),
+        line("switch vision -> robot, eq. (3)", a.switch_v_to_r),
+        line("send gap set_speed -> move_rel_tool, eq. (4)", a.gap_ss_mrt),
+        line("send gap move_rel_tool -> break, eq. (5)", a.gap_mrt_b),
     ]
-    if "png" in r:
-        out.append("PNGs: " + ", ".join(r["png"].values()))
+    if r.png is not None:
+        out.append("PNGs: " + ", ".join(r.png.values()))
     return out
 
 

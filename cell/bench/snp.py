@@ -165,6 +165,18 @@ def plug_figures(r: dict[str, Any], late_id: int, pulled_id: int, plug_s: float,
     return out
 
 
+@dataclasses.dataclass
+class SnpResult:
+    """What `cell bench snp` hands on: run()'s figures (their keys partly named by the runs made, so a
+    map: the tests and the text read it by key) and whether a hog ran beside them."""
+
+    figures: dict[str, Any]
+    hog: bool = False
+
+    def to_json(self) -> dict[str, Any]:
+        return self.figures | {"hog": self.hog}
+
+
 def run(
     slaves: int = 6,
     seconds: float = 3.0,
@@ -284,7 +296,9 @@ def _tracking_text(rows: list[dict[str, Any]], figures: dict[str, Any]) -> str:
     return format_figures(VdcFigures([Row(**row) for row in rows], carried_of(figures)))
 
 
-def format_result(r: dict[str, Any]) -> str:
+def format_result(result: SnpResult) -> str:
+    r = result.figures
+
     def line(name: str, f: dict[str, Any]) -> str:
         return (
             f"  {name:<22} {f['cycles']:>6} cycles of {f['modules_ran']} modules: "
@@ -424,8 +438,8 @@ def _main(args: argparse.Namespace) -> Figures:
             management_ns=management_ns,
             tracking=args.tracking,
         )
-    result["hog"] = args.hog
-    return Figures(result, format_result(result))
+    snp = SnpResult(result, args.hog)
+    return Figures(snp, format_result(snp))
 
 
 register(

@@ -25,6 +25,7 @@ import asyncio
 import multiprocessing as mp
 import struct
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,7 @@ from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.cellproc import robots_heard, running_cell
 from cell.controller.controller import Controller
+from cell.jsonfields import JsonFields
 from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.robot.kinematics import Kinematics
@@ -222,6 +224,35 @@ async def _bridge_run(moves: int) -> dict[str, float]:
     }
 
 
+@dataclass
+class UrResult(JsonFields):
+    """RTDE's period and misses (1 arm, then `arms`), the ticks' lateness, servoJ's lag and error,
+    and the daemon bridge's latency and path error next to the direct path's (_bridge_run's keys)."""
+
+    arms: int
+    backend: str
+    rtde_period_ms_p50: float
+    rtde_period_ms_p99: float
+    rtde_missed_per_10k: float
+    rtde_period_ms_p99_20_arms: float
+    rtde_missed_per_10k_20_arms: float
+    tick_lateness_p99_us: float
+    tick_lateness_p99_us_20_arms: float
+    servoj_lag_ms: float
+    servoj_error_mrad: float
+    direct_path_error_mm_max: float
+    direct_path_error_mm_median: float
+    bridge_path_error_mm_max: float
+    bridge_path_error_mm_median: float
+    bridge_status_us_p50: float
+    bridge_status_us_p99: float
+    bridge_write_us_p50: float
+    bridge_write_us_p99: float
+    bridge_latency_us_p99: float
+    bridge_echo_ms_p50: float
+    bridge_cycles_missed: float
+
+
 def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=10.0, help="each RTDE stream's length (default 10)")
     p.add_argument("--arms", type=int, default=20, help="arms of the many-arm run (default 20)")
@@ -231,7 +262,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _main(args: argparse.Namespace) -> Figures:
-    async def run() -> dict[str, Any]:
+    async def run() -> UrResult:
         one, late1 = await _rtde_run(1, args.seconds, args.backend)
         log(
             f"RTDE, 1 arm: period p50 {one['period_ms_p50']:.3f} ms, p99 {one['period_ms_p99']:.3f} ms, "
@@ -259,20 +290,30 @@ def _main(args: argparse.Namespace) -> Figures:
             f"through the daemon max {b['bridge_path_error_mm_max']:.2f} mm "
             f"(median {b['bridge_path_error_mm_median']:.3f})"
         )
-        return {
-            "arms": args.arms,
-            "backend": args.backend,
-            "rtde_period_ms_p50": one["period_ms_p50"],
-            "rtde_period_ms_p99": one["period_ms_p99"],
-            "rtde_missed_per_10k": one["missed_per_10k"],
-            "rtde_period_ms_p99_20_arms": many["period_ms_p99"],
-            "rtde_missed_per_10k_20_arms": many["missed_per_10k"],
-            "tick_lateness_p99_us": late1,
-            "tick_lateness_p99_us_20_arms": late_n,
-            "servoj_lag_ms": lag,
-            "servoj_error_mrad": err,
-            **b,
-        }
+        return UrResult(
+            arms=args.arms,
+            backend=args.backend,
+            rtde_period_ms_p50=one["period_ms_p50"],
+            rtde_period_ms_p99=one["period_ms_p99"],
+            rtde_missed_per_10k=one["missed_per_10k"],
+            rtde_period_ms_p99_20_arms=many["period_ms_p99"],
+            rtde_missed_per_10k_20_arms=many["missed_per_10k"],
+            tick_lateness_p99_us=late1,
+            tick_lateness_p99_us_20_arms=late_n,
+            servoj_lag_ms=lag,
+            servoj_error_mrad=err,
+            direct_path_error_mm_max=b["direct_path_error_mm_max"],
+            direct_path_error_mm_median=b["direct_path_error_mm_median"],
+            bridge_path_error_mm_max=b["bridge_path_error_mm_max"],
+            bridge_path_error_mm_median=b["bridge_path_error_mm_median"],
+            bridge_status_us_p50=b["bridge_status_us_p50"],
+            bridge_status_us_p99=b["bridge_status_us_p99"],
+            bridge_write_us_p50=b["bridge_write_us_p50"],
+            bridge_write_us_p99=b["bridge_write_us_p99"],
+            bridge_latency_us_p99=b["bridge_latency_us_p99"],
+            bridge_echo_ms_p50=b["bridge_echo_ms_p50"],
+            bridge_cycles_missed=b["bridge_cycles_missed"],
+        )
 
     result = asyncio.run(run())
     return Figures(result)

@@ -32,9 +32,10 @@ def run(args: argparse.Namespace) -> int:
         from cell.bench import results
 
         argv = [a for a in sys.argv[1:] if a != "--json"]
-        results.write(args.results, args.bench.name, argv or ["bench", args.bench.name], figures.result)
+        name = args.bench.name
+        results.write(args.results, name, argv or ["bench", name], figures.result.to_json())
     if args.json:
-        print(json.dumps(figures.result))
+        print(json.dumps(figures.result.to_json()))
     return figures.exit_code
 
 

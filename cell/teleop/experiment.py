@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from cell.jsonfields import JsonFields
 from cell.recorder.serve import close
 from cell.teleop import figures, lockstep, realtime, stability, twindrive
 from cell.teleop.figures import C
@@ -134,66 +135,103 @@ def drive_comparison(gear: float = USUAL_GEAR) -> dict[str, dict[str, float]]:
     return out
 
 
-def bench(out_dir: str, estop_delay_ms: float = 10.0, estop_jitter_ms: float = 2.0) -> dict[str, Any]:
+@dataclass
+class BilateralResult(JsonFields):
+    """`cell bench bilateral`'s figures: each run's summary (summarize(), as `cell teleop` prints it),
+    the twin drive's ramp, the joints' drives, the delay sweep, and the keys the issue names."""
+
+    sponge: dict[str, Any]
+    wood: dict[str, Any]
+    estop_delayed: dict[str, Any]
+    twin_drive: dict[str, float]
+    joint_drives: dict[str, dict[str, float]]
+    delay_sweep: list[dict[str, Any]]
+    critical_delay_ms: dict[str, int | None]
+    png: dict[str, str]
+    sponge_peak_force_n: float
+    sponge_peak_force_local_n: float
+    wood_peak_force_n: float
+    wood_peak_force_local_n: float
+    peak_force_diff_pct: float
+    sponge_position_pp_mm: float
+    wood_position_pp_mm: float
+    force_error_rms_n: float
+    force_error_max_n: float
+    period_p50_ms: float
+    period_p99_ms: float
+    missed_periods_pct: float
+    estop_skew_ms: float | None
+    estop_taken_ms: float
+    usual_follows_from_rad_s: float
+    twin_follows_from_rad_s: float
+
+
+def bench(out_dir: str, estop_delay_ms: float = 10.0, estop_jitter_ms: float = 2.0) -> BilateralResult:
     """The scripted experiment on both objects in real time, the twin-drive ramp, the delay sweep, and
     an e-stop with a delayed data link; PNGs into out_dir."""
     out = Path(out_dir)
-    r: dict[str, Any] = {}
+    runs: dict[str, dict[str, Any]] = {}
     traces = {}
     for obj in ("sponge", "wood"):
         res = realtime.run(Setup(obj=obj, stream=False))
-        r[obj] = summarize(res)
+        runs[obj] = summarize(res)
         traces[obj] = (res["local"]["trace"], res["remote"]["trace"])
     # the e-stop while the remote presses into the sponge at the operator's speed
-    es = realtime.run(
-        Setup(obj="sponge", delay_ms=estop_delay_ms, jitter_ms=estop_jitter_ms, estop_at_s=1.0, stream=False)
+    es = summarize(
+        realtime.run(
+            Setup(
+                obj="sponge", delay_ms=estop_delay_ms, jitter_ms=estop_jitter_ms, estop_at_s=1.0, stream=False
+            )
+        )
     )
-    r["estop_delayed"] = summarize(es)
     ramp = twindrive.ramp()
-    r["twin_drive"] = ramp.summary()
-    r["joint_drives"] = drive_comparison()
+    drives = drive_comparison()
     sweep = delay_sweep()
-    r["delay_sweep"] = sweep
-    r["critical_delay_ms"] = {
-        f"{obj}_{m.name.lower()}": stability.critical_delay_ms(obj, mode=m)
-        for obj in ("sponge", "wood")
-        for m in (Mode.MODIFIED, Mode.CONVENTIONAL)
-    }
-    r["png"] = {
-        "runs": figures.plot_runs(traces, out / "bilateral-runs.png", _title(Setup())),
-        "twin_drive": figures.plot_ramp(ramp, out / "bilateral-twin-drive.png"),
-        "delays": figures.plot_delays(sweep, out / "bilateral-delays.png"),
-    }
-    sp, wo, es_f = r["sponge"], r["wood"], r["estop_delayed"]["estop"]
-    runs = (sp, wo, r["estop_delayed"])
-    # the JSON keys the issue names, and a few more
-    r.update({
-        "sponge_peak_force_n": sp["peak_force_remote_n"],
-        "sponge_peak_force_local_n": sp["peak_force_local_n"],
-        "wood_peak_force_n": wo["peak_force_remote_n"],
-        "wood_peak_force_local_n": wo["peak_force_local_n"],
-        "peak_force_diff_pct": max(sp["peak_force_diff_pct"], wo["peak_force_diff_pct"]),
-        "sponge_position_pp_mm": sp["position_pp_remote_mm"],
-        "wood_position_pp_mm": wo["position_pp_remote_mm"],
-        "force_error_rms_n": max(sp["force_error_rms_n"], wo["force_error_rms_n"]),
-        "force_error_max_n": max(sp["force_error_max_n"], wo["force_error_max_n"]),
-        "period_p50_ms": max(x["period_p50_ms"] for x in runs),
-        "period_p99_ms": max(x["period_p99_ms"] for x in runs),
-        "missed_periods_pct": max(x["missed_periods_pct"] for x in runs),
-        "estop_skew_ms": es_f["skew_ms"],
-        "estop_taken_ms": max(v for v in es_f["taken_ms"].values() if v is not None),
-        "usual_follows_from_rad_s": ramp.usual_follows_from,
-        "twin_follows_from_rad_s": ramp.twin_follows_from,
-    })  # fmt: skip
-    return r
+    sp, wo, es_f = runs["sponge"], runs["wood"], es["estop"]
+    all_runs = (sp, wo, es)
+    return BilateralResult(
+        sponge=sp,
+        wood=wo,
+        estop_delayed=es,
+        twin_drive=ramp.summary(),
+        joint_drives=drives,
+        delay_sweep=sweep,
+        critical_delay_ms={
+            f"{obj}_{m.name.lower()}": stability.critical_delay_ms(obj, mode=m)
+            for obj in ("sponge", "wood")
+            for m in (Mode.MODIFIED, Mode.CONVENTIONAL)
+        },
+        png={
+            "runs": figures.plot_runs(traces, out / "bilateral-runs.png", _title(Setup())),
+            "twin_drive": figures.plot_ramp(ramp, out / "bilateral-twin-drive.png"),
+            "delays": figures.plot_delays(sweep, out / "bilateral-delays.png"),
+        },
+        # the JSON keys the issue names, and a few more
+        sponge_peak_force_n=sp["peak_force_remote_n"],
+        sponge_peak_force_local_n=sp["peak_force_local_n"],
+        wood_peak_force_n=wo["peak_force_remote_n"],
+        wood_peak_force_local_n=wo["peak_force_local_n"],
+        peak_force_diff_pct=max(sp["peak_force_diff_pct"], wo["peak_force_diff_pct"]),
+        sponge_position_pp_mm=sp["position_pp_remote_mm"],
+        wood_position_pp_mm=wo["position_pp_remote_mm"],
+        force_error_rms_n=max(sp["force_error_rms_n"], wo["force_error_rms_n"]),
+        force_error_max_n=max(sp["force_error_max_n"], wo["force_error_max_n"]),
+        period_p50_ms=max(x["period_p50_ms"] for x in all_runs),
+        period_p99_ms=max(x["period_p99_ms"] for x in all_runs),
+        missed_periods_pct=max(x["missed_periods_pct"] for x in all_runs),
+        estop_skew_ms=es_f["skew_ms"],
+        estop_taken_ms=max(v for v in es_f["taken_ms"].values() if v is not None),
+        usual_follows_from_rad_s=ramp.usual_follows_from,
+        twin_follows_from_rad_s=ramp.twin_follows_from,
+    )
 
 
-def format_result(r: dict[str, Any]) -> str:
+def format_result(r: BilateralResult) -> str:
     lines = ["Bilateral teleoperation over the Responsive Link (Responsive Processor paper, Sec. 4)", ""]
     lines.append(f"{'':8} {'peak local':>10} {'peak remote':>11} {'|fl+fr| rms':>11} {'max':>6} "
                  f"{'z p-p remote':>12} {'local':>7} {'period p50/p99':>15} {'missed':>7}")  # fmt: skip
     for obj in ("sponge", "wood"):
-        x = r[obj]
+        x = r.sponge if obj == "sponge" else r.wood
         lines.append(
             f"{obj:8} {x['peak_force_local_n']:9.2f}N {x['peak_force_remote_n']:10.2f}N "
             f"{x['force_error_rms_n']:10.3f}N {x['force_error_max_n']:5.2f}N "
@@ -205,7 +243,7 @@ def format_result(r: dict[str, Any]) -> str:
         "paper (Figs. 16-17): forces reach about 6 N on both sides, the curves on each other; the tip's "
         "z swings much more on the sponge than on the wood"
     )
-    e = r["estop_delayed"]
+    e = r.estop_delayed
     es = e["estop"]
     lines += [
         "",
@@ -215,7 +253,7 @@ def format_result(r: dict[str, Any]) -> str:
         f"(skew {es['skew_ms']:.2f} ms); tips still after {_ms(es['still_after_ms'].get('local'))} / "
         f"{_ms(es['still_after_ms'].get('remote'))}",
     ]
-    t = r["twin_drive"]
+    t = r.twin_drive
     lines += [
         "",
         f"twin drive (Table 2, K_v {t['kv_nms_per_rad']:.3f} N m s/rad): the usual motor follows speed "
@@ -227,18 +265,18 @@ def format_result(r: dict[str, Any]) -> str:
         + "; ".join(
             f"{k} drives {v['force_error_rms_n']:.3f} N |fl+fr| rms, "
             f"peaks {v['peak_force_diff_pct']:.1f}% apart"
-            for k, v in r["joint_drives"].items()
+            for k, v in r.joint_drives.items()
         ),
         "",
         "added data-link delay (lockstep; rho: the linear model's spectral radius, < 1 stable):",
     ]
-    for row in r["delay_sweep"]:
+    for row in r.delay_sweep:
         lines.append(
             f"  {row['object']:6} {row['mode']:12} +{row['delay_ms']:3d} ms: "
             f"|fl+fr| rms {row['force_error_rms_n']:6.3f} N, "
             f"peak {row['peak_force_remote_n']:6.2f} N, rho {row['spectral_radius']:.4f}"
         )
-    crit = r["critical_delay_ms"]
+    crit = r.critical_delay_ms
     lines.append(
         "  unstable from (linear model): "
         + "; ".join(
@@ -248,7 +286,7 @@ def format_result(r: dict[str, Any]) -> str:
         )
     )
     lines.append("")
-    lines.append("PNGs: " + ", ".join(r["png"].values()))
+    lines.append("PNGs: " + ", ".join(r.png.values()))
     return "\n".join(lines)
 
 

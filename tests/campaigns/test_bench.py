@@ -22,11 +22,12 @@ def test_dataplane_bench_answers_every_status_of_a_small_load() -> None:
 def test_bus_bench_delivers_everything_it_counts() -> None:
     r = bus.run(messages=5_000, pings=50, rounds=1)
     for variant in ("raw_multipart", "raw_1frame", "raw_1frame_via_forwarder", "bus"):
-        tp = r["throughput"][variant]
+        tp = r.throughput[variant]
         assert tp["received"] == 5_000 and tp["lost"] == 0, variant
-    assert r["throughput"]["bus"]["gaps"] == 0
-    assert r["round_trip"]["bus"]["count"] == 50
-    assert r["round_trip"]["bus_request_reply"]["p50_us"] > 0
+    assert r.throughput["bus"]["gaps"] == 0
+    assert r.round_trip["bus"]["count"] == 50
+    assert r.round_trip["bus_request_reply"]["p50_us"] > 0
+    assert {"throughput", "round_trip", "bus_share", "rates_by_round"} <= r.to_json().keys()
 
 
 @pytest.mark.slow
@@ -35,19 +36,23 @@ def test_rlink_bench_times_every_round_trip_and_draws_them(tmp_path) -> None:
 
     png = tmp_path / "rtt.png"
     r = rlink.run(300, png=str(png), n_loaded_data=5, estop_trials=30, estop_robots=50)
-    for key in ("event_unloaded", "data_unloaded", "event_loaded"):
-        assert r[key]["n"] == 300 and r[key]["lost"] == 0, key  # every event echo came back
-        assert 10 < r[key]["p50"] < r[key]["p99"] < 100_000, key
-    assert r["data_loaded"]["n"] + r["data_loaded"]["lost"] == 5
-    assert r["bulk_sent"] > 1000 and r["echo_node"]["data_in"] > 1000  # the flood really flowed
+    for key, rtt in (("event_unloaded", r.event_unloaded), ("data_unloaded", r.data_unloaded),
+                     ("event_loaded", r.event_loaded)):  # fmt: skip
+        assert rtt.n == 300 and rtt.lost == 0, key  # every event echo came back
+        assert 10 < rtt.p50 < rtt.p99 < 100_000, key
+    assert r.data_loaded.n + r.data_loaded.lost == 5
+    assert r.bulk_sent > 1000 and r.echo_node.data_in > 1000  # the flood really flowed
+    line = r.to_json()
     for key in ("event_rtt_us_mean", "event_rtt_us_std", "data_rtt_us_mean", "data_rtt_us_std"):
-        assert r[key] > 0, key
-    assert r["event_p99_loaded_over_unloaded"] > 0
-    e = r["estop"]  # every e-stop timed, through a data plane that really handled the load
-    assert e["trials"] == 30 and e["missed"] == 0 and 0 < e["estop_ms_p50"] <= r["estop_p99_ms"] < 1000
+        assert line[key] > 0, key  # the JSON keys the issue names
+    assert r.event_p99_loaded_over_unloaded > 0
+    e = r.estop  # every e-stop timed, through a data plane that really handled the load
+    assert e is not None and r.estop_p99_ms is not None
+    assert e["trials"] == 30 and e["missed"] == 0 and 0 < e["estop_ms_p50"] <= r.estop_p99_ms < 1000
     assert e["plane_handled_per_s"] > 0.5 * 50 * 6 * 500
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    json.dumps(r)  # one JSON line: no samples, nothing unserialisable
+    assert line["histogram_png"] == r.histogram_png
+    json.dumps(line)  # one JSON line: no samples, nothing unserialisable
 
 
 @pytest.mark.slow

@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +52,7 @@ from cell.bench.paper.network import background, latency, resubmission, xdp_back
 from cell.bench.paper.page import Log, Section, machine, write_page
 from cell.bench.paper.scale import churn, episodes, resources, scaling, x86
 from cell.bench.registry import Bench, Figures, log, register
+from cell.jsonfields import JsonFields
 
 EXPECTED_S = {
     "accuracy": (55, 180),
@@ -81,7 +83,19 @@ EXPERIMENTS: dict[str, Callable[[bool, Path, Log], list[Section]]] = {
 }
 
 
-def run(quick: bool, out: str, only: list[str] | None = None, log: Log = print) -> dict[str, Any]:
+@dataclass
+class PaperResult(JsonFields):
+    """What `cell bench paper` wrote: the page, how long it took, and each section's figures by its key
+    (the sections are chosen by --only, so a map)."""
+
+    page: str
+    seconds: float
+    quick: bool
+    experiments: list[str]
+    figures: dict[str, dict[str, Any]]
+
+
+def run(quick: bool, out: str, only: list[str] | None = None, log: Log = print) -> PaperResult:
     names = only or list(EXPERIMENTS)
     unknown = [n for n in names if n not in EXPERIMENTS]
     if unknown:
@@ -106,18 +120,18 @@ def run(quick: bool, out: str, only: list[str] | None = None, log: Log = print) 
     seconds = time.monotonic() - t_start
     page = write_page(folder, sections, machine(), seconds, quick)
     log(f"wrote {page}")
-    return {
-        "page": str(page),
-        "seconds": round(seconds, 1),
-        "quick": quick,
-        "experiments": names,
-        "figures": {s.key: s.figures for s in sections},
-    }
+    return PaperResult(
+        page=str(page),
+        seconds=round(seconds, 1),
+        quick=quick,
+        experiments=names,
+        figures={s.key: s.figures for s in sections},
+    )
 
 
-def format_result(r: dict[str, Any]) -> str:
-    lines = [f"{r['page']} ({r['seconds']} s)"]
-    for key, figs in r["figures"].items():
+def format_result(r: PaperResult) -> str:
+    lines = [f"{r.page} ({r.seconds} s)"]
+    for key, figs in r.figures.items():
         shown = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in figs.items())
         lines.append(f"  {key}: {shown}")
     return "\n".join(lines)

@@ -108,7 +108,7 @@ def accuracy(quick: bool, out: Path, log: Log) -> list[Section]:
         save(fig, out, "sync.png"),
         f"{len(s.shift_ms['switch'])} repetitions of the switch-entry and merged starts (the paper: 20; "
         "the full run: 20); the largest shift in the table.",
-        {k: v for k, v in r.figures().items() if k.startswith("sync_shift_ms_")},
+        {k: v for k, v in r.to_json().items() if k.startswith("sync_shift_ms_")},
         caption="How far apart two robots begin to move (ground truth), per way of starting them together.",
         headline=(
             "0 merged; up to 8 ms apart",
