@@ -6,6 +6,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Protocol, cast
 
+# a field's metadata: its key is left out of to_json() while it is None (a step that did not run)
+OMIT_IF_NONE = {"json": "omit if None"}
+
 
 class Result(Protocol):
     """Typed figures; to_json() is their JSON object (a bench's `--json` line, its --results section)."""
@@ -14,7 +17,12 @@ class Result(Protocol):
 
 
 class JsonFields:
-    """A result dataclass whose fields are its JSON keys (nested dataclasses as objects, in order)."""
+    """A result dataclass whose fields are its JSON keys (nested dataclasses as objects, in order);
+    a field marked OMIT_IF_NONE appears only once it holds something."""
 
     def to_json(self) -> dict[str, Any]:
-        return dataclasses.asdict(cast(Any, self))  # (a mixin of dataclasses)
+        out = dataclasses.asdict(cast(Any, self))  # (a mixin of dataclasses)
+        for f in dataclasses.fields(cast(Any, self)):
+            if f.metadata == OMIT_IF_NONE and out[f.name] is None:
+                del out[f.name]
+        return out

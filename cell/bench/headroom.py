@@ -21,7 +21,7 @@ import argparse
 import asyncio
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -31,7 +31,7 @@ from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.cellproc import default_robots, robots_heard, running_cell
 from cell.config import load_config
-from cell.jsonfields import JsonFields
+from cell.jsonfields import OMIT_IF_NONE, JsonFields
 from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.sched import process_cpu_seconds
@@ -145,20 +145,13 @@ class HeadroomResult(JsonFields):
     status_to_command_us_p99: float
     missed_ticks: float
     protective_stops: float
-    baseline_cpu_pct_idle: float | None = None
-    baseline_cpu_pct_moving: float | None = None
-    baseline_rt_holds: float | None = None
-    baseline_status_to_command_us_p99: float | None = None
-    baseline_missed_ticks: float | None = None
-    baseline_protective_stops: float | None = None
-    baseline_moves: float | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        """Without the baseline's keys when it did not run (--quick, --no-baseline), as ever."""
-        out = super().to_json()
-        if self.baseline_cpu_pct_idle is None:
-            out = {k: v for k, v in out.items() if not k.startswith("baseline_")}
-        return out
+    baseline_cpu_pct_idle: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    baseline_cpu_pct_moving: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    baseline_rt_holds: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    baseline_status_to_command_us_p99: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    baseline_missed_ticks: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    baseline_protective_stops: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    baseline_moves: float | None = field(default=None, metadata=OMIT_IF_NONE)
 
 
 def run(quick: bool, baseline: bool, idle_s: float, moving_s: float) -> HeadroomResult:

@@ -18,7 +18,7 @@ import multiprocessing as mp
 import queue
 import socket
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +27,7 @@ import numpy as np
 from cell import aio, sched
 from cell.bench import estop
 from cell.bench.registry import Bench, Figures, register
-from cell.jsonfields import JsonFields
+from cell.jsonfields import OMIT_IF_NONE, JsonFields
 from cell.ports import free_port
 from cell.rlink.link import LinkPorts, NodeLink
 from cell.rlink.node import Node
@@ -203,15 +203,10 @@ class RlinkResult(JsonFields):
     data_rtt_us_mean: float
     data_rtt_us_std: float
     event_p99_loaded_over_unloaded: float
-    estop: dict[str, Any] | None
+    estop: dict[str, Any] | None = field(metadata=OMIT_IF_NONE)
     estop_p99_ms: float | None
     break_even: BreakEven
-    histogram_png: str | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        """Without estop when it did not run (estop_p99_ms: null) nor histogram_png when none was drawn."""
-        out = super().to_json()
-        return {k: v for k, v in out.items() if v is not None or k not in ("estop", "histogram_png")}
+    histogram_png: str | None = field(default=None, metadata=OMIT_IF_NONE)
 
 
 def _stats(us: list[float], lost: int) -> Rtt:

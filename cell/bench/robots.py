@@ -18,7 +18,7 @@ import multiprocessing as mp
 import queue
 import resource
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,7 @@ from cell import aio
 from cell.bench import pin
 from cell.bench.registry import Bench, Figures, log, register
 from cell.config import load_config
-from cell.jsonfields import JsonFields
+from cell.jsonfields import OMIT_IF_NONE, JsonFields
 from cell.robot import datagram, udp
 from cell.robot.datagram import Kind
 
@@ -178,14 +178,10 @@ class RobotsResult(JsonFields):
 
     baseline: dict[str, Any]
     answered: bool
-    kinematic: MaxRobots | None = None
-    kinematic_shared: MaxRobots | None = None
-    mujoco: MaxRobots | None = None
-    mujoco_shared: MaxRobots | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        """Only the backends that ran, as ever."""
-        return {k: v for k, v in super().to_json().items() if v is not None}
+    kinematic: MaxRobots | None = field(default=None, metadata=OMIT_IF_NONE)
+    kinematic_shared: MaxRobots | None = field(default=None, metadata=OMIT_IF_NONE)
+    mujoco: MaxRobots | None = field(default=None, metadata=OMIT_IF_NONE)
+    mujoco_shared: MaxRobots | None = field(default=None, metadata=OMIT_IF_NONE)
 
     def backends(self) -> dict[str, MaxRobots]:
         """The backends that ran, by key ("kinematic", "mujoco_shared", ...)."""

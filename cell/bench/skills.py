@@ -39,16 +39,15 @@ import asyncio
 import itertools
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from cell.bench.registry import Bench, Figures, log, register
 from cell.bus import Bus
 from cell.cellproc import running_cell
-from cell.jsonfields import JsonFields
+from cell.jsonfields import OMIT_IF_NONE, JsonFields
 from cell.ports import free_port
 from cell.skills.client import RobotClient, SetSpeed
 from cell.v1 import controller_pb2
@@ -91,18 +90,15 @@ class SkillsResult(JsonFields):
     switch_bus_to_robot: Stats
     switch_robot_to_bus: Stats
     controller_pose_rtt: Stats
-    approach: Approach | None = None
-    png: dict[str, str] | None = None
-    tau_r_ms_mean: float | None = None
-    tau_r_ms_sd: float | None = None
-    switch_r_to_v_ms_p50: float | None = None
-    switch_v_to_r_ms_p50: float | None = None
-    gap_ss_mrt_ms_p50: float | None = None
-    gap_mrt_b_ms_p50: float | None = None
+    approach: Approach | None = field(default=None, metadata=OMIT_IF_NONE)
+    png: dict[str, str] | None = field(default=None, metadata=OMIT_IF_NONE)
+    tau_r_ms_mean: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    tau_r_ms_sd: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    switch_r_to_v_ms_p50: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    switch_v_to_r_ms_p50: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    gap_ss_mrt_ms_p50: float | None = field(default=None, metadata=OMIT_IF_NONE)
+    gap_mrt_b_ms_p50: float | None = field(default=None, metadata=OMIT_IF_NONE)
     set_speed_ack_ms_p50: float = float("nan")
-
-    def to_json(self) -> dict[str, Any]:
-        return {k: v for k, v in super().to_json().items() if v is not None}
 
 
 def _stats(ns: Sequence[float]) -> Stats:
