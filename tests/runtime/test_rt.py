@@ -70,8 +70,13 @@ def run(how: str) -> dict:
 def test_polling_at_fifo_is_throttled_and_seen_polling_through_spin_is_not() -> None:
     if throttling_off():
         pytest.skip("RT throttling is off on this host (sched_rt_runtime_us = -1)")
-    fifo = run("fifo")
-    # the kernel stopped it for the rest of a second (its share is 95% of each), and Held saw it
+    # the kernel stopped it for the rest of a second (its share is 95% of each), and Held saw it; a CPU
+    # may borrow the other's unused share for a second (RT_RUNTIME_SHARE: a 6.7 ms hold once in CI),
+    # so the loops run again, as in the cell's test below, until a second's full hold shows
+    for _ in range(3):
+        fifo = run("fifo")
+        if fifo["gap_ms"] >= 20 and fifo["held"]["rt.held_max_ms"] >= 20:
+            break
     assert fifo["gap_ms"] >= 20, fifo
     assert fifo["held"]["rt.held"] >= 1 and fifo["held"]["rt.held_max_ms"] >= 20, fifo
     assert fifo["policies"] == [os.SCHED_FIFO], fifo
