@@ -172,7 +172,7 @@ async def measure(quick: bool, log: Callable[[str], None], backend: str = "numpy
             await ctl.replan("r1", Q0 + np.array([0.2, 0.2, -0.2, 0.0, 0.1, 0.0]), speed=0.6)
             with contextlib.suppress(MotionStopped):
                 await first
-            sw = ctl.last_switch
+            sw = ctl.engine.last_switch
             assert sw is not None and seg0 is not None
             q_real = truth.at("r1", np.array([sw.t_branch_ns]))[0]
             jumps.append(float(np.abs(q_real - sw.q_pred).max()))

@@ -3,9 +3,11 @@
 Controller is the public face users and the controller service call: motions (move_joints,
 move_to, move_linear, move_together, replan, resume), stops, waiting for arrival, merged robots,
 and the motions prepared ahead (arm/fire, loops, alternates; cell.controller.prepared).  What it
-loads and when is the motion schedule's (cell.controller.schedule, sans I/O); the engine
-(cell.controller.engine) drives that against the data plane in its own task group; supervision
-(cell.controller.supervision) watches the data plane for as long as the controller runs.
+loads and when is the motion schedule's (cell.controller.schedule, sans I/O).  It is a facade over
+three parts, built by its constructor: the robot book (cell.controller.robots), the engine
+(cell.controller.engine), which drives the schedule against the data plane in its own task group,
+and the stopping (cell.controller.stopping); supervision (cell.controller.supervision) watches the
+data plane for as long as the controller runs.
 
     async with Controller(bus, config) as ctl:
         await ctl.move_joints("r1", q_goal)
@@ -16,7 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -24,6 +26,7 @@ from cell.bus import Bus, RemoteError
 from cell.config import CellConfig
 from cell.controller import prepared, supervision
 from cell.controller.engine import Engine
+from cell.controller.link import Link
 from cell.controller.motion import (
     Armed,
     FollowResult,
@@ -39,6 +42,7 @@ from cell.controller.motion import (
     Track,
 )
 from cell.controller.plan import ChainedMotion, PlanError, SampledMotion, plan_joint, plan_linear
+from cell.controller.robots import RobotBook
 from cell.controller.schedule import (
     STOP_JERK,
     SWITCH_MARGIN_NS,
@@ -47,7 +51,8 @@ from cell.controller.schedule import (
     stands_at,
     tp_batch,
 )
-from cell.controller.tps import cut
+from cell.controller.stopping import Stopping
+from cell.dataplane.client import DataplaneClient
 from cell.trajectory.model import TimedMotion, Trajectory, TrajectoryError
 from cell.trajectory.motion import Motion
 
@@ -60,25 +65,61 @@ __all__ = [
 ]  # fmt: skip
 
 
-class Controller(Engine):
+class Controller:
     """The industrial controller a task script, a service or a bench drives: motions planned, loaded
     into the data plane's tables and followed, stopped and resumed, on `bus`, for `config`'s robots,
-    through the data plane serving as `service`."""
+    through the data plane serving as `service`.
+
+    A facade over its parts, each a field: the robot book (`book`: models, grids, tracks, holds), the
+    engine (`engine`: launching, streaming, switching, settling) and the stopping (`stopping`: stops,
+    plans published, losses), which share the data-plane client (`dp`), its clock (`link`) and the
+    lock held around every update that sets registers (`loading`)."""
 
     def __init__(self, bus: Bus, config: CellConfig, service: str = "dataplane") -> None:
-        super().__init__(bus, config, service)
+        self.bus, self.config = bus, config
+        self.dp = DataplaneClient(bus, service)
+        self.link = Link(self.dp)
+        self.loading = asyncio.Lock()
+        self.book = RobotBook(bus, config, self.link)
+        self.stopping = Stopping(bus, self.dp, self.link, self.book, self.loading)
+        self.engine = Engine(bus, config, self.dp, self.link, self.book, self.stopping, self.loading)
         self.named: dict[str, dict[int, Trajectory]] = {}  # name -> robot -> trajectory (follow_named)
 
     async def __aenter__(self) -> Controller:
-        await super().__aenter__()
+        await self.engine.__aenter__()
         return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.engine.__aexit__(*exc)
+
+    # --- the parts' calls a user makes ---------------------------------------------------------
+
+    def track(self, robot: int | str) -> Track:
+        return self.book.track(robot)
+
+    def robot_id(self, robot: int | str) -> int:
+        return self.book.robot_id(robot)
+
+    async def stop(
+        self, robots: Sequence[int | str] | None = None, flush: bool = False
+    ) -> dict[int, MotionResult]:
+        """Protective stop (cell.controller.stopping.Stopping.stop)."""
+        return await self.stopping.stop(robots, flush)
+
+    async def wait_idle(self, robot: int | str | Track) -> None:
+        """Until the robot's motion under way has ended; MotionStopped if it was stopped."""
+        await self.engine.wait_idle(robot)
+
+    async def joints_now(self, track: Track) -> tuple[np.ndarray, np.ndarray, int]:
+        """The last status of the track's robots: positions, velocities, its data-plane time."""
+        return await self.engine.joints_now(track)
 
     # --- robots ------------------------------------------------------------------------------
 
     async def merge(self, robots: list[int | str]) -> Track:
         """Drive several robots as one entity (their joints side by side): they step together."""
-        ids = [self.robot_id(r) for r in robots]
-        old = [self.track(r) for r in ids]
+        ids = [self.book.robot_id(r) for r in robots]
+        old = [self.book.track(r) for r in ids]
         for t in old:
             if t.moving:
                 raise PlanError(f"robot {t.robot} is moving; stop it before merging")
@@ -91,19 +132,19 @@ class Controller(Engine):
             )
         q_hold = [t.q_hold for t in old if t.q_hold is not None]
         await self.dp.merge(ids)
-        merged = self.limits_of(ids)
+        merged = self.book.limits_of(ids)
         for rid in ids:
-            self.tracks.pop(rid, None)
+            self.book.tracks.pop(rid, None)
         track = Track(ids[0], ids, merged)
         if len(q_hold) == len(old):  # (every robot's)
             track.q_hold = np.concatenate(q_hold)
-        self.tracks[ids[0]] = track
+        self.book.tracks[ids[0]] = track
         return track
 
     def pose_of(self, robot: int | str, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The tool flange's position and rotation for the robot's joints q (its own model's)."""
-        rid = self.robot_id(robot)
-        return self.kinematics(rid).fk(q[: self.arm_of(rid).dof])
+        rid = self.book.robot_id(robot)
+        return self.book.kinematics(rid).fk(q[: self.book.arm_of(rid).dof])
 
     # --- motions -----------------------------------------------------------------------------
 
@@ -115,11 +156,11 @@ class Controller(Engine):
         MotionStopped if a stop or loss ends a motion meanwhile (also one that comes while a reading
         is on its way: that reading is not of the goal's robot any more); NotAtGoal if its last motion
         ended elsewhere."""
-        track = self.track(robot)
+        track = self.book.track(robot)
         # (not while the take-over at our start stops every robot: that stop would end this wait
         # with "stopped", though no motion of ours was under way; seen as a flake under load)
-        await self.tables_in_hand()
-        await self.wait_idle(track)
+        await self.engine.tables_in_hand()
+        await self.engine.wait_idle(track)
         if track.stop_reason:  # its last motion ended early (lost or stopped before we were asked):
             why, track.stop_reason = track.stop_reason, None  # it will not arrive where that motion
             if isinstance(track.failure, NotAtGoal):  # was to end; said once (the next break finds
@@ -128,9 +169,9 @@ class Controller(Engine):
         epoch = track.epoch
         async with asyncio.timeout(timeout):
             while True:
-                await self.wait_idle(track)  # (a motion started meanwhile: its end is the goal)
+                await self.engine.wait_idle(track)  # (a motion started meanwhile: its end is the goal)
                 goal = track.q_hold  # None: no motion yet, the robot stands where it stands
-                q, v, t_ns = await self.joints_now(track)
+                q, v, t_ns = await self.engine.joints_now(track)
                 if track.epoch != epoch:  # stopped or lost while we waited (or read)
                     raise MotionStopped(track.stop_reason or "the robot was stopped")
                 if track.moving or track.q_hold is not goal:
@@ -145,12 +186,12 @@ class Controller(Engine):
         """Plan from where the robot will be and start; motions of one robot start in call order,
         each after the one before (a queue).  With wait, return when the motion has ended; else
         once it is loaded and its start time set."""
-        track = self.track(robot)
+        track = self.book.track(robot)
         async with track.starting:
-            await self.confirm_running(track)
-            q0 = await self.start_q(track)
-            result, tracks = await self.launch({track.robot: plan(track, q0)}, fine)
-        return await self.finish(tracks, result) if wait else result
+            await self.engine.confirm_running(track)
+            q0 = await self.engine.start_q(track)
+            result, tracks = await self.engine.launch({track.robot: plan(track, q0)}, fine)
+        return await self.engine.finish(tracks, result) if wait else result
 
     async def move_joints(
         self, robot: int | str, q_goal: np.ndarray, speed: float = 1.0, fine: bool = False, wait: bool = True
@@ -158,7 +199,7 @@ class Controller(Engine):
         goal = np.asarray(q_goal, np.float64)
 
         def plan(track: Track, q0: np.ndarray) -> Motion:
-            self.unfinished[track.robot] = Goal(MotionKind.JOINTS, goal, speed, fine)
+            self.engine.unfinished[track.robot] = Goal(MotionKind.JOINTS, goal, speed, fine)
             return plan_joint(q0, goal, track.limits.scaled(speed))
 
         return await self._move(robot, plan, fine, wait)
@@ -175,8 +216,8 @@ class Controller(Engine):
         """A joint-space motion to a tool pose (IK nearest the joints it starts from)."""
 
         def plan(track: Track, q0: np.ndarray) -> Motion:
-            goal = self.kinematics(track.robot).ik(pos, rot, q0)
-            self.unfinished[track.robot] = Goal(MotionKind.JOINTS, goal, speed, fine)
+            goal = self.book.kinematics(track.robot).ik(pos, rot, q0)
+            self.engine.unfinished[track.robot] = Goal(MotionKind.JOINTS, goal, speed, fine)
             return plan_joint(q0, goal, track.limits.scaled(speed))
 
         return await self._move(robot, plan, fine, wait)
@@ -193,8 +234,8 @@ class Controller(Engine):
         """The tool along a straight line to (pos, rot)."""
 
         def plan(track: Track, q0: np.ndarray) -> Motion:
-            self.unfinished[track.robot] = Goal(MotionKind.LINEAR, (pos, rot), speed, fine)
-            return plan_linear(self.kinematics(track.robot), q0, pos, rot, track.limits.scaled(speed))
+            self.engine.unfinished[track.robot] = Goal(MotionKind.LINEAR, (pos, rot), speed, fine)
+            return plan_linear(self.book.kinematics(track.robot), q0, pos, rot, track.limits.scaled(speed))
 
         return await self._move(robot, plan, fine, wait)
 
@@ -204,11 +245,11 @@ class Controller(Engine):
         """Several robots (or merged entities) to joint goals, started at one data-plane time."""
         motions: dict[int, Motion] = {}
         for robot, q_goal in goals.items():
-            track = self.track(robot)
-            q0 = await self.start_q(track)
+            track = self.book.track(robot)
+            q0 = await self.engine.start_q(track)
             motions[track.robot] = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
-        result, tracks = await self.launch(motions, fine)
-        return await self.finish(tracks, result)
+        result, tracks = await self.engine.launch(motions, fine)
+        return await self.engine.finish(tracks, result)
 
     def check_trajectories(
         self, trajectories: dict[int | str, Trajectory]
@@ -219,8 +260,8 @@ class Controller(Engine):
         TPs track closely) is for the motions it plans."""
         checked: dict[int, tuple[Track, TimedMotion]] = {}
         for robot, traj in trajectories.items():
-            track = self.track(robot)
-            lim, arm = track.limits, self.arm_of(track.robot)
+            track = self.book.track(robot)
+            lim, arm = track.limits, self.book.arm_of(track.robot)
             timed = TimedMotion(traj)
             try:
                 timed.check(arm.limits.q_min, arm.limits.q_max, lim.v_max, arm.limits.a_max)
@@ -252,7 +293,7 @@ class Controller(Engine):
             raise PlanError(f"no trajectory named {name!r} (named: {known})")
         if not robots:
             return {r: t for r, t in found.items()}  # (a copy, its keys typed as the result's)
-        ids = [self.track(r).robot for r in robots]
+        ids = [self.book.track(r).robot for r in robots]
         missing = [r for r in ids if r not in found]
         if missing:
             raise PlanError(f"trajectory {name!r} has nothing for robot(s) {missing}")
@@ -277,7 +318,7 @@ class Controller(Engine):
             if len(checked) != 1:
                 raise PlanError("replacing a running motion takes the trajectory of one robot")
             ((rid, (track, timed)),) = checked.items()
-            await self.confirm_running(track)
+            await self.engine.confirm_running(track)
             if track.moving and track.segment is not None:
                 if np.abs(timed.qd[0]).max() > 1e-9:
                     raise PlanError(f"robot {rid}: a trajectory that starts moving cannot replace a motion")
@@ -291,7 +332,7 @@ class Controller(Engine):
 
                 switched = await self.switch(track, onto)
                 if switched is not None:
-                    self.unfinished.pop(rid, None)
+                    self.engine.unfinished.pop(rid, None)
                     out = FollowResult(
                         switched.start_ns,
                         switched.end_ns,
@@ -299,13 +340,13 @@ class Controller(Engine):
                         switched.start_ns + round(lead[0] * 1e9),
                     )
                     if wait:
-                        await self.finish([track], switched)
+                        await self.engine.finish([track], switched)
                     return out
                 # too late to branch: it follows once the motion under way has ended
         approaches: dict[int, Motion | None] = {}
         for rid, (track, timed) in checked.items():
-            await self.confirm_running(track)
-            q0 = await self.start_q(track)
+            await self.engine.confirm_running(track)
+            q0 = await self.engine.start_q(track)
             off = float(np.abs(q0 - timed.q[0]).max())
             if off <= AT_START_RAD:
                 approaches[rid] = None
@@ -326,20 +367,22 @@ class Controller(Engine):
             if a is None:  # (it waits at its first point for the others' approaches)
                 a = SampledMotion(np.array([0.0, lead_s]), np.vstack([timed.q[0], timed.q[0]]))
             motions[rid] = ChainedMotion([ChainedMotion([a], pad=lead_s - a.duration), timed])
-            self.unfinished.pop(rid, None)  # (a trajectory is not resumed from a stop: it is run again)
-        result, tracks = await self.launch(motions)
+            self.engine.unfinished.pop(
+                rid, None
+            )  # (a trajectory is not resumed from a stop: it is run again)
+        result, tracks = await self.engine.launch(motions)
         out = FollowResult(
             result.start_ns, result.end_ns, result.q_end, result.start_ns + round(lead_s * 1e9)
         )
         if wait:
-            await self.finish(tracks, result)
+            await self.engine.finish(tracks, result)
         return out
 
     async def resume(self, robot: int | str) -> MotionResult | None:
         """After a stop: the interrupted motion's goal, re-planned from where the robot stands
         (None if nothing was interrupted)."""
-        track = self.track(robot)
-        left = self.unfinished.get(track.robot)
+        track = self.book.track(robot)
+        left = self.engine.unfinished.get(track.robot)
         if left is None:
             return None
         if left.kind is MotionKind.LINEAR:
@@ -350,21 +393,21 @@ class Controller(Engine):
 
     async def execute(self, motions: dict[int, Motion], fine: bool = False) -> MotionResult:
         """Start the motions at one shared data-plane time and return when all have ended."""
-        result, tracks = await self.launch(motions, fine)
-        return await self.finish(tracks, result)
+        result, tracks = await self.engine.launch(motions, fine)
+        return await self.engine.finish(tracks, result)
 
     # --- re-planning -----------------------------------------------------------------------------
 
     async def replan(self, robot: int | str, q_goal: np.ndarray, speed: float = 1.0) -> MotionResult:
         """Switch a moving robot onto a new motion to q_goal, branching at a TP far enough ahead."""
-        track = self.track(robot)
+        track = self.book.track(robot)
         goal = np.asarray(q_goal, np.float64)
         if track.moving and track.segment is not None:
             lim = track.limits.scaled(speed)
             switched = await self.switch(track, lambda q, v: plan_joint(q, goal, lim, v0=v))
             if switched is not None:
-                return await self.finish([track], switched)
-            await self.wait_idle(track)  # too late to branch: finish, then move
+                return await self.engine.finish([track], switched)
+            await self.engine.wait_idle(track)  # too late to branch: finish, then move
         return await self.move_joints(robot, goal, speed)
 
     async def switch(
@@ -377,27 +420,25 @@ class Controller(Engine):
         assert seg is not None
         for _attempt in range(4):
             t_plan = time.perf_counter_ns()
-            q_s, v_s, status_ns = await self.joints_now(track)
-            k = branch_point(seg, self.link.now() + self.link.rtt_ns + self.plan_ns + SWITCH_MARGIN_NS)
+            q_s, v_s, status_ns = await self.engine.joints_now(track)
+            k = branch_point(seg, self.link.now() + self.link.rtt_ns + self.engine.plan_ns + SWITCH_MARGIN_NS)
             if k is None:
                 return None
             t_b = seg.t_ns(k)
-            loop = self.loop(track)
+            loop = self.book.loop(track)
             (q_pred, v_pred, held), _ = predict_state(seg, loop, (q_s, v_s, status_ns), t_b)
             motion = plan(q_pred, v_pred)
-            tick0 = self.phase_at(seg, t_b)
-            sections = cut(
-                motion, self.rate_hz, np.resize(self.gain, track.joints), loop, v_pred, tick0, held
-            )
+            tick0 = self.book.phase_at(seg, t_b)
+            sections = self.book.cut(track, motion, self.engine.rate_hz, v_pred, tick0, held)
             ids = track.take_ids(len(sections) + 1)
             new = Segment(t_b, motion, sections, ids, tick0 if seg.tick0 is not None else None, seg.robot)
             took = time.perf_counter_ns() - t_plan
-            self.plan_ns = max(took, int(0.7 * self.plan_ns + 0.3 * took))
+            self.engine.plan_ns = max(took, int(0.7 * self.engine.plan_ns + 0.3 * took))
             # the switch goes in while the old motion still streams; it counts only if it is in place
             # before the robot leaves the branching TP, which the data plane's clock in the reply tells
-            first = tp_batch(track, new, 0, min(self.episode, len(ids)))
+            first = tp_batch(track, new, 0, min(self.engine.episode, len(ids)))
             branch = seg.ids[k]
-            reply = await self._apply(track, first, [], [(track.robot, branch, ids[0])])
+            reply = await self.engine.apply(track, first, [], [(track.robot, branch, ids[0])])
             if reply.now_ns < t_b - SWITCH_MARGIN_NS // 2:
                 break
             # in place late: once the branch's time has passed, the data plane says which way it went
@@ -405,15 +446,15 @@ class Controller(Engine):
             st = await self.link.state(track.robots)
             if any(r.tp_id in ids for r in st.robots if r.robot_id == track.robot):
                 break  # it took the branch after all
-            await self._apply(track, None, ids[: self.episode], [(track.robot, branch, None)])
-            self.plan_ns *= 2  # too slow this time: branch further ahead
+            await self.engine.apply(track, None, ids[: self.engine.episode], [(track.robot, branch, None)])
+            self.engine.plan_ns *= 2  # too slow this time: branch further ahead
         else:
             raise PlanError("could not branch off in time (the link or the planning is too slow)")
-        await self._halt(track)
-        self.last_switch = Switch(branch, t_b, (t_b - reply.now_ns) / 1e6, q_pred, v_pred)
+        await self.stopping.halt(track)
+        self.engine.last_switch = Switch(branch, t_b, (t_b - reply.now_ns) / 1e6, q_pred, v_pred)
         track.segment = new
-        self.stream(track, new)
-        self.publish_plan(track, new)
+        self.engine.stream(track, new)
+        self.stopping.publish_plan(track, new)
         return MotionResult(t_b, new.end_ns, sections.q[-1].copy())
 
     # --- stops over the Responsive Link, and the watch on the data plane ---------------------------
@@ -421,30 +462,30 @@ class Controller(Engine):
     async def stopped_on_link(self, robot: int) -> None:
         """A robot was stopped over the Responsive Link (the data plane has cleared its registers and
         ramps it down): stop streaming its motion (MotionStopped to whoever waits) and unload it."""
-        self.stopped[robot] = time.monotonic()
+        self.book.stopped[robot] = time.monotonic()
         await self._let_go(robot, f"robot {robot} was stopped over the Responsive Link")
 
     def released_on_link(self, robot: int) -> None:
-        self.stopped.pop(robot, None)
+        self.book.stopped.pop(robot, None)
 
     async def held_by_program(self, robot: int, text: str) -> None:
         """A URScript program sent to the robot's UR interfaces holds it (cell.ur): the data plane's
         commands are ignored there, so its motion ends (MotionStopped, with why) and no other starts
         until the program ends."""
-        self.programs[robot] = text
+        self.book.programs[robot] = text
         await self._let_go(robot, f"robot {robot}: {text}")
 
     def program_ended(self, robot: int) -> None:
-        self.programs.pop(robot, None)
+        self.book.programs.pop(robot, None)
 
     async def _let_go(self, robot: int, reason: str) -> None:
-        track = self.track(robot)
+        track = self.book.track(robot)
         track.stop_reason = reason
         track.epoch += 1
-        await self._halt(track)
+        await self.stopping.halt(track)
         if track.loaded:
             with contextlib.suppress(RemoteError):
-                await self._apply(track, None, list(track.loaded))
+                await self.engine.apply(track, None, list(track.loaded))
         track.segment, track.q_hold = None, None  # the next motion starts where the robot stands
 
     async def supervise(self) -> None:

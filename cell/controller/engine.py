@@ -53,7 +53,6 @@ from cell.controller.schedule import (
     window_ns,
 )
 from cell.controller.stopping import Stopping
-from cell.controller.tps import cut
 from cell.dataplane.client import DataplaneClient
 from cell.dataplane.tables import TPBatch
 from cell.trajectory.motion import Motion
@@ -63,34 +62,38 @@ log = logging.getLogger("cell.controller")
 CONFIRM_S = 1.5  # how long a motion asked for waits on the data plane to confirm a stop the controller holds
 
 
-class Engine(Stopping, RobotBook):
-    def __init__(self, bus: Bus, config: CellConfig, service: str = "dataplane") -> None:
-        self.dp = DataplaneClient(bus, service)
-        super().__init__(bus, config, Link(self.dp))
+class Engine:
+    """Motions launched, streamed episode by episode, switched and settled, on the tracks of `book`,
+    with `stopping` for what ends them; every update that sets registers holds `loading` (shared
+    with the stopping).  One of the controller's parts (cell.controller.controller)."""
+
+    def __init__(
+        self,
+        bus: Bus,
+        config: CellConfig,
+        dp: DataplaneClient,
+        link: Link,
+        book: RobotBook,
+        stopping: Stopping,
+        loading: asyncio.Lock,
+    ) -> None:
+        self.bus, self.config, self.dp, self.link = bus, config, dp, link
+        self.book, self.stopping, self.loading = book, stopping, loading
         cc = config.controller
         self.rate_hz, self.fine_hz, self.episode = cc.tp_rate_hz, cc.fine_rate_hz, cc.episode
         self.lead_ns = int(cc.lead_s * 1e9)
-        self.gain = np.array(config.dataplane.c2) / np.array(config.dataplane.c1)  # see cell.controller.tps
-        self.tracks: dict[int, Track] = {}
         self.plan_ns = 100_000_000  # how long planning a re-plan takes (measured, pessimistic)
         self.late_starts = 0  # motions whose first TPs were in place only after their start time
         self.start_shifts = 0  # starts moved on by whole windows while their update waited its turn
-        self.stop_plan_ns = 5_000_000  # how long planning a stop takes (measured, pessimistic)
-        self.late_stops = 0  # stops in place after the command window they were planned for began
         self.not_at_goal = 0  # motions that ended with the robot read elsewhere (answered failed)
         self.last_switch: Switch | None = None
         self.unfinished: dict[int, Goal] = {}  # robot -> the motion a stop interrupted (for resume)
-        # robots stopped over the Responsive Link, until released (-> when we heard it, monotonic s)
-        self.stopped: dict[int, float] = {}
-        self.programs: dict[int, str] = {}  # robots a URScript program holds (cell.ur): what holds them
-        self.lost: list[tuple[float, str]] = []  # (monotonic s, reason) of each loss, for the record
         # set while supervise() has the tables in hand: motions wait for it (a take-over's flush
         # must not sweep away a motion loaded meanwhile); None: not supervised (tests, benches)
         self.tables_ready: asyncio.Event | None = None
         # robot -> its track's `loads` when its TPs were last lost: supervise() flushes them once it can,
         # unless a motion was loaded since (a flush decided before a load must never land after it)
         self.pending_flush: dict[int, int] = {}
-        self.loading = asyncio.Lock()  # held around every update that sets registers, and every flush
         # motions prepared ahead (cell.controller.prepared): loops under way, alternates loaded for a
         # robot's running motion, and the start of each robot of the last armed start
         self.loops: dict[int, LoopRun] = {}
@@ -105,7 +108,9 @@ class Engine(Stopping, RobotBook):
     async def __aenter__(self) -> Engine:
         self._group = await self._exit.enter_async_context(asyncio.TaskGroup())
         sub = await self.bus.subscribe("announce/robot/")
-        self._announcements = self._group.create_task(self._follow_announcements(sub), name="announcements")
+        self._announcements = self._group.create_task(
+            self.book.follow_announcements(sub), name="announcements"
+        )
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -122,10 +127,10 @@ class Engine(Stopping, RobotBook):
             with contextlib.suppress(asyncio.CancelledError):
                 await self._announcements
             self._announcements = None
-        for t in list(self.tracks.values()):
-            await self._halt(t)
+        for t in list(self.book.tracks.values()):
+            await self.stopping.halt(t)
 
-    def _spawn(self, coro: Coroutine[Any, Any, Any], name: str) -> asyncio.Task:
+    def spawn(self, coro: Coroutine[Any, Any, Any], name: str) -> asyncio.Task:
         if self._group is None:
             coro.close()
             raise RuntimeError("the controller runs its motions inside `async with Controller(...)`")
@@ -149,18 +154,7 @@ class Engine(Stopping, RobotBook):
                 log.error("the motion of robot(s) %s failed: %s", track.robots, exc)
 
         track.failure = None
-        track.task = self._spawn(guarded(), f"motion-{track.robot}")
-
-    # --- robots ------------------------------------------------------------------------------
-
-    def track(self, robot: int | str) -> Track:
-        rid = self.robot_id(robot)
-        for t in self.tracks.values():
-            if rid in t.robots:
-                return t
-        t = Track(rid, [rid], self.limits_of([rid]))
-        self.tracks[rid] = t
-        return t
+        track.task = self.spawn(guarded(), f"motion-{track.robot}")
 
     async def joints_now(self, track: Track) -> tuple[np.ndarray, np.ndarray, int]:
         """The last status of the track's robots: positions, velocities, its data-plane time."""
@@ -177,26 +171,28 @@ class Engine(Stopping, RobotBook):
         while its release went unheard or is still on its way (a hub's backlog, a controller that
         started between the stop and the release, a stop's check still waiting on the data plane)."""
         free = {r.robot_id for r in st.robots if not r.stopped}
-        for robot in [r for r, since in self.stopped.items() if since < asked and r in free]:
-            self.stopped.pop(robot, None)
+        for robot in [r for r, since in self.book.stopped.items() if since < asked and r in free]:
+            self.book.stopped.pop(robot, None)
 
     async def confirm_running(self, track: Track) -> None:
         """check_running, once the data plane has confirmed the stops the controller holds: a motion
         asked for right after a release must not be refused for news of the release still on its way.
         Unanswered, the stop holds."""
-        if any(r in self.stopped for r in track.robots):
+        if any(r in self.book.stopped for r in track.robots):
             asked = time.monotonic()
             with contextlib.suppress(BusError, TimeoutError):
                 self.released(await self.link.state(track.robots, timeout=CONFIRM_S), asked)
         self.check_running(track)
 
     def check_running(self, track: Track) -> None:
-        held = [r for r in track.robots if r in self.stopped]
+        held = [r for r in track.robots if r in self.book.stopped]
         if held:
             raise MotionStopped(f"robot(s) {held} stopped over the Responsive Link: resume first")
         for r in track.robots:
-            if r in self.programs:
-                raise MotionStopped(f"robot {r}: {self.programs[r]}; the cell drives it again once it ends")
+            if r in self.book.programs:
+                raise MotionStopped(
+                    f"robot {r}: {self.book.programs[r]}; the cell drives it again once it ends"
+                )
 
     # --- motions -----------------------------------------------------------------------------
 
@@ -209,7 +205,7 @@ class Engine(Stopping, RobotBook):
 
     async def wait_idle(self, robot: int | str | Track) -> None:
         """Until the robot's motion under way has ended; MotionStopped if it was stopped."""
-        track = robot if isinstance(robot, Track) else self.track(robot)
+        track = robot if isinstance(robot, Track) else self.book.track(robot)
         task = track.task
         if task is None or task.done():  # (a task cancelled by an earlier stop: start from the stop)
             return
@@ -238,9 +234,9 @@ class Engine(Stopping, RobotBook):
         other at its own status nearest to that, fitted for its window phase there (schedule.beside:
         the grids of two models' emulators differ).  None: a grid not known beside the lead's."""
         for robot in robots:
-            await self.know_grid(robot)
-        lead = self.grids.get(robots[0])
-        return {r: (0, 0) if k == 0 else beside(lead, self.grids.get(r)) for k, r in enumerate(robots)}
+            await self.book.know_grid(robot)
+        lead = self.book.grids.get(robots[0])
+        return {r: (0, 0) if k == 0 else beside(lead, self.book.grids.get(r)) for k, r in enumerate(robots)}
 
     async def launch(
         self, motions: dict[int, Motion], fine: bool = False
@@ -251,25 +247,25 @@ class Engine(Stopping, RobotBook):
         await self.tables_in_hand()
         # a stop, a program taking a robot over, a loss while this motion is planned and loaded bumps
         # its track's epoch: the motion must not then run (it would stream to a robot that is not ours)
-        epochs = {r: self.track(r).epoch for r in motions}
+        epochs = {r: self.book.track(r).epoch for r in motions}
         lead_id = next(iter(motions))
         near = await self.beside_lead(list(motions))
         planned = []
         for robot, motion in motions.items():
-            track = self.track(robot)
+            track = self.book.track(robot)
             await self.confirm_running(track)
             # (in a worker thread: fitting a long motion's TPs takes 0.1-0.5 s of CPU, which would hold
             # up everything else this controller does, its watch on the data plane too)
             beside = near[robot]
             phase = beside[1] if beside is not None else 0
-            sections = await asyncio.to_thread(
-                cut, motion, rate, np.resize(self.gain, track.joints), self.loop(track), tick0=phase
-            )
+            sections = await asyncio.to_thread(self.book.cut, track, motion, rate, tick0=phase)
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the
         # update's way to the data plane (planning first would eat it on a busy host: a late start)
         await self.link.state([t.robot for t, *_ in planned])  # a fresh clock and round trip (its robots')
-        start, at, tick0 = self.grid_start(lead_id, self.link.now() + self.lead_ns + 2 * self.link.rtt_ns)
+        start, at, tick0 = self.book.grid_start(
+            lead_id, self.link.now() + self.lead_ns + 2 * self.link.rtt_ns
+        )
         for track, *_ in planned:
             self.check_running(track)
         try:
@@ -289,7 +285,7 @@ class Engine(Stopping, RobotBook):
         except BusError as exc:  # it may yet be applied, late: it must not start unseen
             tracks = [t for t, *_ in planned]
             why = f"the data plane did not confirm the motion's start: {exc}"
-            self.lose(tracks, why)
+            self.stopping.lose(tracks, why)
             self.pending_flush.update({r: t.loads for t in tracks for r in t.robots})
             raise MotionStopped(tracks[0].stop_reason or why) from None
         if moved_on := [t for t, _, _ in segments if t.epoch != epochs[t.robot]]:
@@ -316,7 +312,7 @@ class Engine(Stopping, RobotBook):
             track.segment = seg
             track.q_hold = None  # moving: where it ends is the segment's end
             self.stream(track, seg)
-            self.publish_plan(track, seg)
+            self.stopping.publish_plan(track, seg)
         end = max(seg.end_ns for _, seg, _ in segments)
         q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in segments])
         return MotionResult(start, end, q_end), [t for t, _, _ in segments]
@@ -325,7 +321,7 @@ class Engine(Stopping, RobotBook):
         """(start, register time) as `launch` set them, or moved on if its update can no longer reach
         the data plane before them (schedule.moved_on, on the lead's grid)."""
         earliest = self.link.now() + 2 * self.link.rtt_ns + self.lead_ns // 4
-        moved = moved_on(start, at, earliest, window_ns(self.grids.get(lead)))
+        moved = moved_on(start, at, earliest, window_ns(self.book.grids.get(lead)))
         self.start_shifts += moved != (start, at)
         return moved
 
@@ -371,7 +367,7 @@ class Engine(Stopping, RobotBook):
         while (wake := episode_wake(seg, k, self.episode)) is not None:
             await self.link.sleep_until(wake)
             lo, hi, old = episode_update(seg, k, self.episode, track.loaded, self._prepared_ids(track, seg))
-            await self._apply(track, tp_batch(track, seg, lo, hi), old)
+            await self.apply(track, tp_batch(track, seg, lo, hi), old)
             k += 1
         # all but the final hold go once the robot is on it (a deletion that comes too early is
         # refused as in_use; retry)
@@ -380,7 +376,7 @@ class Engine(Stopping, RobotBook):
         for attempt in range(20):
             try:
                 if old:
-                    await self._apply(track, None, old)
+                    await self.apply(track, None, old)
                 break
             except RemoteError as exc:
                 if exc.code != FaultCode.IN_USE or attempt == 19:
@@ -424,7 +420,7 @@ class Engine(Stopping, RobotBook):
             return set()
         return {i for alts in branches.values() for a in alts for i in a.segment.ids[: self.episode]}
 
-    async def _apply(
+    async def apply(
         self,
         track: Track,
         insert: TPBatch | None,
@@ -453,7 +449,7 @@ class Engine(Stopping, RobotBook):
                 track.loaded = [i for i in track.loaded if i not in gone] + new
             done.set_result(reply)
 
-        self._spawn(go(), f"update-{track.robot}")
+        self.spawn(go(), f"update-{track.robot}")
         track.inflight.add(done)
         done.add_done_callback(track.inflight.discard)
         return await asyncio.shield(done)

@@ -23,10 +23,10 @@ kept as for them, so stops, re-plans and the next motion work as usual.
 from __future__ import annotations
 
 import asyncio
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cell.controller.engine import Engine
 from cell.controller.motion import (
     Alternate,
     Armed,
@@ -45,20 +45,22 @@ from cell.controller.schedule import (
     tp_batch,
     window_ns,
 )
-from cell.controller.tps import cut
+
+if TYPE_CHECKING:  # (the facade whose parts these work on; it imports this module)
+    from cell.controller.controller import Controller
 
 
-def _window_ns(ctl: Engine, robot: int) -> int:
-    return window_ns(ctl.grids.get(robot))
+def _window_ns(ctl: Controller, robot: int) -> int:
+    return window_ns(ctl.book.grids.get(robot))
 
 
 # --- armed starts ---------------------------------------------------------------------------------
 
 
-def _first_after(ctl: Engine, robot: int, near: tuple[int, int] | None) -> tuple[int, int] | None:
+def _first_after(ctl: Controller, robot: int, near: tuple[int, int] | None) -> tuple[int, int] | None:
     """beside()'s nearest status turned into the first status after a hold's step time (a quarter
     period before the lead's status): the one a robot on a grid of its own leaves its hold at."""
-    grid = ctl.grids.get(robot)
+    grid = ctl.book.grids.get(robot)
     if near is None or grid is None:
         return near
     off, phase = near
@@ -66,29 +68,30 @@ def _first_after(ctl: Engine, robot: int, near: tuple[int, int] | None) -> tuple
     return (off + period, (phase + 1) % w) if off <= -period // 4 else (off, phase)
 
 
-async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.0) -> Armed:
+async def arm(ctl: Controller, goals: dict[int | str, np.ndarray], speed: float = 1.0) -> Armed:
     """Load each robot's joint motion to its goal behind a hold that steps onto itself once a
     command window (all holds at the same times, on the first robot's window grid).  A robot on a
     grid of its own leaves its hold at its first status after those times: its TPs are fitted for
     its window phase there."""
 
     tracks = [ctl.track(robot) for robot in goals]
-    near = {r: _first_after(ctl, r, n) for r, n in (await ctl.beside_lead([t.robot for t in tracks])).items()}
+    near = {
+        r: _first_after(ctl, r, n)
+        for r, n in (await ctl.engine.beside_lead([t.robot for t in tracks])).items()
+    }
     planned = []
     for track, q_goal in zip(tracks, goals.values(), strict=True):
-        await ctl.confirm_running(track)
-        q0 = await ctl.start_q(track)
+        await ctl.engine.confirm_running(track)
+        q0 = await ctl.engine.start_q(track)
         motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
         beside = near[track.robot]
         phase = beside[1] if beside is not None else 0
-        sections = await asyncio.to_thread(
-            cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), ctl.loop(track), tick0=phase
-        )
+        sections = await asyncio.to_thread(ctl.book.cut, track, motion, ctl.engine.rate_hz, tick0=phase)
         planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
     lead = planned[0][0].robot
-    await ctl.tables_in_hand()
+    await ctl.engine.tables_in_hand()
     await ctl.link.state([t.robot for t in tracks])
-    start, at, tick0 = ctl.grid_start(lead, ctl.link.now() + ctl.lead_ns + 2 * ctl.link.rtt_ns)
+    start, at, tick0 = ctl.book.grid_start(lead, ctl.link.now() + ctl.engine.lead_ns + 2 * ctl.link.rtt_ns)
     period = _window_ns(ctl, lead)
     batches, registers, remove, out = [], [], [], []
     for track, motion, sections, (hold_id, *ids) in planned:
@@ -97,7 +100,7 @@ async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.
         off, seg_tick0 = beside if beside is not None and tick0 is not None else (0, None)
         seg = Segment(start + off, motion, sections, ids, seg_tick0, track.robot)
         batches.append(hold_batch(track, hold_id, hold_id, q0, period / 1e9))
-        batches.append(tp_batch(track, seg, 0, min(ctl.episode, len(ids))))
+        batches.append(tp_batch(track, seg, 0, min(ctl.engine.episode, len(ids))))
         registers.append((track.robot, hold_id, at))
         remove += [(track.robot, i) for i in track.loaded]
         out.append((track, seg, hold_id))
@@ -105,12 +108,12 @@ async def arm(ctl: Engine, goals: dict[int | str, np.ndarray], speed: float = 1.
         await ctl.dp.update(insert=concat(batches), remove=remove, registers=registers)
         for track, seg, hold_id in out:
             track.loads += 1
-            track.loaded = [hold_id, *seg.ids[: ctl.episode]]
+            track.loaded = [hold_id, *seg.ids[: ctl.engine.episode]]
             track.segment, track.q_hold = None, seg.motion.sample(np.array([0.0]))[0][0]  # held there
     return Armed(out, period, at)
 
 
-async def fire(ctl: Engine, armed: Armed, wait: bool = True) -> MotionResult:
+async def fire(ctl: Controller, armed: Armed, wait: bool = True) -> MotionResult:
     """Start armed motions: one update sets every hold's switch entry and moves every hold's next
     step to the same step of the lead's hold grid, the cell's lead (lead_s) ahead, as any start.
     Wherever in a window the update lands, every robot leaves at that step (one on a grid of its own
@@ -118,7 +121,7 @@ async def fire(ctl: Engine, armed: Armed, wait: bool = True) -> MotionResult:
     after that step is counted late (late_starts): the robots then leave at their next statuses."""
 
     window = armed.period_ns
-    earliest = ctl.link.now() + ctl.lead_ns + 2 * ctl.link.rtt_ns
+    earliest = ctl.link.now() + ctl.engine.lead_ns + 2 * ctl.link.rtt_ns
     k = max(0, -(-(earliest - armed.at_ns) // window))
     at = armed.at_ns + k * window
     switches = [(track.robot, hold_id, seg.ids[0]) for track, seg, hold_id in armed.planned]
@@ -127,28 +130,28 @@ async def fire(ctl: Engine, armed: Armed, wait: bool = True) -> MotionResult:
         reply = await ctl.dp.update(switches=switches, registers=registers)
     starts = [seg.start_ns + k * window for _, seg, _ in armed.planned]
     if reply.now_ns > at:
-        ctl.late_starts += 1
+        ctl.engine.late_starts += 1
         starts = [max(s, reply.now_ns) for s in starts]
     start = min(starts)
     for (track, seg, _), own in zip(armed.planned, starts, strict=True):
         seg.start_ns = own
         track.stop_reason = None
         track.segment, track.q_hold = seg, None
-        ctl.stream(track, seg)
-        ctl.publish_plan(track, seg)
+        ctl.engine.stream(track, seg)
+        ctl.stopping.publish_plan(track, seg)
     tracks = [t for t, _, _ in armed.planned]
     end = max(seg.end_ns for _, seg, _ in armed.planned)
     q_end = np.concatenate([seg.sections.q[-1] for _, seg, _ in armed.planned])
     result = MotionResult(start, end, q_end)
-    ctl.last_fire = {t.robot: s for t, s in zip(tracks, starts, strict=True)}
-    return await ctl.finish(tracks, result) if wait else result
+    ctl.engine.last_fire = {t.robot: s for t, s in zip(tracks, starts, strict=True)}
+    return await ctl.engine.finish(tracks, result) if wait else result
 
 
 # --- loops ------------------------------------------------------------------------------------------
 
 
 async def run_loop(
-    ctl: Engine, robot: int | str, waypoints: list[np.ndarray], speed: float = 1.0, laps: int = 0
+    ctl: Controller, robot: int | str, waypoints: list[np.ndarray], speed: float = 1.0, laps: int = 0
 ) -> LoopRun:
     """Load a lap (from where the robot stands through the waypoints and back) once, linked into a
     loop, and start it; it runs `laps` laps (0: until end_loop()).  Await run.done for the laps run."""
@@ -157,18 +160,18 @@ async def run_loop(
         raise PlanError(f"laps must be >= 0 (0: until ended), got {laps}")
     track = ctl.track(robot)
     async with track.starting:
-        await ctl.confirm_running(track)
-        q0 = await ctl.start_q(track)
-        await ctl.know_grid(track.robot)
+        await ctl.engine.confirm_running(track)
+        q0 = await ctl.engine.start_q(track)
+        await ctl.book.know_grid(track.robot)
         window = _window_ns(ctl, track.robot)
         motion = plan_loop(q0, waypoints, track.limits.scaled(speed), window / 1e9)
-        sections = await asyncio.to_thread(
-            cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), ctl.loop(track), tick0=0
-        )
+        sections = await asyncio.to_thread(ctl.book.cut, track, motion, ctl.engine.rate_hz, tick0=0)
         hold_id, *ids = track.take_ids(len(sections) + 2)  # the lap's TPs, then the exit hold
-        await ctl.tables_in_hand()
+        await ctl.engine.tables_in_hand()
         await ctl.link.state()
-        start, at, tick0 = ctl.grid_start(track.robot, ctl.link.now() + ctl.lead_ns + 2 * ctl.link.rtt_ns)
+        start, at, tick0 = ctl.book.grid_start(
+            track.robot, ctl.link.now() + ctl.engine.lead_ns + 2 * ctl.link.rtt_ns
+        )
         seg = Segment(start, motion, sections, ids, tick0, track.robot)
         lap = tp_batch(track, seg, 0, len(ids))  # the lap, then the exit hold
         lap.next_id[-2] = ids[0]  # TPStepper: the lap's last TP leads back to its first
@@ -184,18 +187,18 @@ async def run_loop(
             track.loads += 1
             track.loaded = [hold_id, *ids]
         if reply.now_ns > start:
-            ctl.late_starts += 1
+            ctl.engine.late_starts += 1
         track.stop_reason = None
         track.segment, track.q_hold = None, None
         run = LoopRun(track, q0, start, round(motion.duration * 1e9), ids[-2], ids[-1], laps)
         if laps == 1:
             run.done.set_result(1)
-        ctl.run_motion(track, _follow_loop(ctl, run))
-        ctl.loops[track.robot] = run
+        ctl.engine.run_motion(track, _follow_loop(ctl, run))
+        ctl.engine.loops[track.robot] = run
     return run
 
 
-async def _follow_loop(ctl: Engine, run: LoopRun) -> None:
+async def _follow_loop(ctl: Controller, run: LoopRun) -> None:
     """Set the exit when the laps asked for are nearly run; done once the robot holds at the start."""
 
     track = run.track
@@ -208,16 +211,16 @@ async def _follow_loop(ctl: Engine, run: LoopRun) -> None:
         await ctl.link.sleep_until(run.lap_end_ns(laps) + 20_000_000)
         track.q_hold = run.q0
     finally:
-        ctl.loops.pop(track.robot, None)
+        ctl.engine.loops.pop(track.robot, None)
         if not run.done.done():  # stopped (or lost) under way: whoever waits on the laps hears so
             run.done.set_exception(MotionStopped(track.stop_reason or "the loop was stopped"))
             run.done.exception()  # (retrieved: no warning if nobody waits)
 
 
-async def end_loop(ctl: Engine, robot: int | str) -> int:
+async def end_loop(ctl: Controller, robot: int | str) -> int:
     """Lead the loop out at the end of the lap the update can still reach; how many laps it runs."""
     track = ctl.track(robot)
-    run = ctl.loops.get(track.robot)
+    run = ctl.engine.loops.get(track.robot)
     if run is None:
         raise PlanError(f"robot {robot} runs no loop")
     if run.done.done():
@@ -240,7 +243,7 @@ async def end_loop(ctl: Engine, robot: int | str) -> int:
 
 
 async def prepare_alternates(
-    ctl: Engine, robot: int | str, goals: dict[str, np.ndarray], speed: float = 1.0, every: int = 1
+    ctl: Controller, robot: int | str, goals: dict[str, np.ndarray], speed: float = 1.0, every: int = 1
 ) -> int:
     """For the robot's running motion: a branch to each goal from every `every`-th TP ahead (the
     first episode of each loaded now); how many TPs that loaded.
@@ -258,7 +261,7 @@ async def prepare_alternates(
     ks = [k for k in range(0, len(seg.sections) - 1, max(1, every)) if seg.t_ns(k) >= ahead]
     prepared: dict[str, list[Alternate]] = {}
     batches = []
-    loop = ctl.loop(track)
+    loop = ctl.book.loop(track)
     for name, q_goal in goals.items():
         branches = []
         for k in ks:
@@ -270,31 +273,31 @@ async def prepare_alternates(
                 here = (q_k[0], v_k[0], v_k[0])
             q_k, v_k, held = here
             motion = plan_joint(q_k, np.asarray(q_goal, np.float64), track.limits.scaled(speed), v0=v_k)
-            tick0 = ctl.phase_at(seg, seg.t_ns(k))
+            tick0 = ctl.book.phase_at(seg, seg.t_ns(k))
             sections = await asyncio.to_thread(
-                cut, motion, ctl.rate_hz, np.resize(ctl.gain, track.joints), loop, v_k, tick0, held
+                ctl.book.cut, track, motion, ctl.engine.rate_hz, v_k, tick0, held
             )
             ids = track.take_ids(len(sections) + 1)
             alt = Segment(
                 seg.t_ns(k), motion, sections, ids, tick0 if seg.tick0 is not None else None, seg.robot
             )
-            batches.append(tp_batch(track, alt, 0, min(ctl.episode, len(ids))))
+            batches.append(tp_batch(track, alt, 0, min(ctl.engine.episode, len(ids))))
             branches.append(Alternate(k, alt))
         prepared[name] = branches
     if not batches:
         raise PlanError("the motion ends too soon to branch off it")
     batch = concat(batches)
-    await ctl._apply(track, batch, [])
-    ctl.alternates[track.robot] = (seg, prepared)
+    await ctl.engine.apply(track, batch, [])
+    ctl.engine.alternates[track.robot] = (seg, prepared)
     return len(batch)
 
 
-async def take_alternate(ctl: Engine, robot: int | str, name: str) -> MotionResult:
+async def take_alternate(ctl: Controller, robot: int | str, name: str) -> MotionResult:
     """Switch onto the prepared branch `name` at the next TP the update reaches in time; returns
     when the branch has ended."""
 
     track = ctl.track(robot)
-    main, prepared = ctl.alternates.get(track.robot, (None, {}))
+    main, prepared = ctl.engine.alternates.get(track.robot, (None, {}))
     if name not in prepared:
         raise PlanError(
             f"robot {robot} has no alternate {name!r} prepared (has {sorted(prepared) or 'none'})"
@@ -311,19 +314,21 @@ async def take_alternate(ctl: Engine, robot: int | str, name: str) -> MotionResu
             f"too late to take alternate {name!r}: the motion's prepared branch points have passed"
         )
     branch = main.ids[alt.k]
-    reply = await ctl._apply(track, None, [], [(track.robot, branch, alt.segment.ids[0])])
+    reply = await ctl.engine.apply(track, None, [], [(track.robot, branch, alt.segment.ids[0])])
     t_b = main.t_ns(alt.k)
     if reply.now_ns >= t_b - SWITCH_MARGIN_NS // 2:  # in place late: the data plane says which way
         await ctl.link.sleep_until(t_b + SWITCH_MARGIN_NS // 2)
         st = await ctl.link.state(track.robots)
         if not any(r.tp_id in alt.segment.ids for r in st.robots if r.robot_id == track.robot):
-            await ctl._apply(track, None, [], [(track.robot, branch, None)])
+            await ctl.engine.apply(track, None, [], [(track.robot, branch, None)])
             raise PlanError(f"alternate {name!r} could not be switched in time")
-    await ctl._halt(track)
+    await ctl.stopping.halt(track)
     q_pred, v_pred = alt.segment.motion.sample(np.array([0.0]))
-    ctl.last_switch = Switch(branch, t_b, (t_b - reply.now_ns) / 1e6, q_pred[0], v_pred[0])
-    ctl.alternates.pop(track.robot, None)
+    ctl.engine.last_switch = Switch(branch, t_b, (t_b - reply.now_ns) / 1e6, q_pred[0], v_pred[0])
+    ctl.engine.alternates.pop(track.robot, None)
     track.segment = alt.segment
-    ctl.stream(track, alt.segment)
-    ctl.publish_plan(track, alt.segment)
-    return await ctl.finish([track], MotionResult(t_b, alt.segment.end_ns, alt.segment.sections.q[-1].copy()))
+    ctl.engine.stream(track, alt.segment)
+    ctl.stopping.publish_plan(track, alt.segment)
+    return await ctl.engine.finish(
+        [track], MotionResult(t_b, alt.segment.end_ns, alt.segment.sections.q[-1].copy())
+    )

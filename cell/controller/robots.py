@@ -1,5 +1,6 @@
 """What the controller knows of its robots: their models (cell.models: limits, kinematics), the
-closed loop their TPs drive, and their tick grids (from their announcements)."""
+closed loop their TPs drive, their tick grids (from their announcements), the track each is driven
+on, and what holds them (a Responsive Link stop, a URScript program)."""
 
 from __future__ import annotations
 
@@ -16,9 +17,11 @@ from cell.controller.loop import LoopModel, trackable_accel
 from cell.controller.motion import Segment, Track
 from cell.controller.plan import MotionLimits
 from cell.controller.schedule import Grid, grid_start, phase_at
+from cell.controller.tps import Sections, cut
 from cell.robot.arm import ArmModel, arm_model
 from cell.robot.kinematics import Kinematics
 from cell.timer import realtime_offset
+from cell.trajectory.motion import Motion
 from cell.v1 import robot_pb2
 
 log = logging.getLogger("cell.controller")
@@ -30,11 +33,18 @@ def _kinematics(model: str) -> Kinematics:
 
 
 class RobotBook:
-    """The robots as the controller drives them (the engine's base)."""
+    """The robots as the controller drives them: one of the controller's parts (its engine and its
+    stopping read and write the tracks kept here)."""
 
     def __init__(self, bus: Bus, config: CellConfig, link: Link) -> None:
         self.bus, self.config, self.link = bus, config, link
         self.robots = {r.id: r for r in config.robots}
+        self.tracks: dict[int, Track] = {}  # lead robot -> the track it (and robots merged with it) runs on
+        # the TPs' gain (see cell.controller.tps): how far a TP lies ahead of where the robot should be
+        self.gain = np.array(config.dataplane.c2) / np.array(config.dataplane.c1)
+        # robots stopped over the Responsive Link, until released (-> when we heard it, monotonic s)
+        self.stopped: dict[int, float] = {}
+        self.programs: dict[int, str] = {}  # robots a URScript program holds (cell.ur): what holds them
         # robot -> its tick grid, from its announcements (see grid_start())
         self.grids: dict[int, Grid] = {}
         self._asked: set[int] = set()  # robots asked for their announcement (see know_grid())
@@ -44,6 +54,16 @@ class RobotBook:
         if isinstance(robot, int):
             return robot
         return self.config.robot(robot).id
+
+    def track(self, robot: int | str) -> Track:
+        """The track the robot is driven on (its own, made on first use, or a merged one's)."""
+        rid = self.robot_id(robot)
+        for t in self.tracks.values():
+            if rid in t.robots:
+                return t
+        t = Track(rid, [rid], self.limits_of([rid]))
+        self.tracks[rid] = t
+        return t
 
     def model_of(self, robot: int) -> str:
         """The robot's model (config key `model`; robots not in the config: the defaults')."""
@@ -123,7 +143,21 @@ class RobotBook:
             n_bits=dpc.n_bits,
         )
 
-    async def _follow_announcements(self, sub: Subscription) -> None:
+    def cut(
+        self,
+        track: Track,
+        motion: Motion,
+        rate_hz: float,
+        v0: np.ndarray | None = None,
+        tick0: int = 0,
+        held0: np.ndarray | None = None,
+    ) -> Sections:
+        """The motion cut into the track's TPs (cell.controller.tps.cut) with its robots' gain, fitted to
+        their loop: 0.1-0.5 s of CPU for a long motion, so callers run it in a worker thread."""
+        gain = np.resize(self.gain, track.joints)
+        return cut(motion, rate_hz, gain, self.loop(track), v0, tick0, held0)
+
+    async def follow_announcements(self, sub: Subscription) -> None:
         """Keep each robot's tick grid (RobotAnnounce.window_origin_ns) as robots (re)announce."""
         while True:
             try:

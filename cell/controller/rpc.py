@@ -48,13 +48,13 @@ class ControllerService:
         """The counters for the heartbeat, the controller's gauges read now."""
         c, ctl = self.counters, self.ctl
         c.late_starts, c.late_stops, c.not_at_goal, c.stopped_on_link, c.motions_lost = (
-            ctl.late_starts,
-            ctl.late_stops,
-            ctl.not_at_goal,
-            len(ctl.stopped),
-            len(ctl.lost),
+            ctl.engine.late_starts,
+            ctl.stopping.late_stops,
+            ctl.engine.not_at_goal,
+            len(ctl.book.stopped),
+            len(ctl.stopping.lost),
         )
-        c.start_shifts = ctl.start_shifts
+        c.start_shifts = ctl.engine.start_shifts
         return c.as_dict()
 
     def _robot(self, name: str) -> int:
@@ -126,7 +126,7 @@ class ControllerService:
             if rid in trajs:
                 raise RpcFault(FaultCode.BAD_REQUEST, f"two trajectories for robot {m.robot!r}")
             try:
-                trajs[rid] = from_message(m, self.ctl.arm_of(rid).joints)
+                trajs[rid] = from_message(m, self.ctl.book.arm_of(rid).joints)
             except TrajectoryError as exc:
                 raise RpcFault(FaultCode.BAD_REQUEST, f"trajectory of {m.robot}: {exc}") from None
         return trajs
@@ -187,7 +187,7 @@ class ControllerService:
 
     async def _start(self, track: Track) -> np.ndarray:
         try:
-            return await self.ctl.start_q(track)
+            return await self.ctl.engine.start_q(track)
         except PlanError as exc:
             raise RpcFault(FaultCode.BUSY, str(exc)) from None
 
@@ -254,7 +254,7 @@ class ControllerService:
             raise RpcFault(FaultCode.PLAN, str(exc)) from None
         except RemoteError as exc:  # the data plane refused them (a full table says why)
             raise RpcFault(exc.code, exc.message) from None
-        _, branches = self.ctl.alternates[rid]
+        _, branches = self.ctl.engine.alternates[rid]
         return controller_pb2.AlternatesReply(tps_loaded=n, branch_points=len(next(iter(branches.values()))))
 
     async def take_alternate(self, req: controller_pb2.TakeAlternate) -> controller_pb2.MoveReply:
@@ -284,7 +284,7 @@ class ControllerService:
 
     async def end_loop(self, req: controller_pb2.RobotRequest) -> controller_pb2.LoopReply:
         rid = self._robot(req.robot)
-        run = self.ctl.loops.get(rid)
+        run = self.ctl.engine.loops.get(rid)
         try:
             laps = await self.ctl.end_loop(rid)
         except PlanError as exc:

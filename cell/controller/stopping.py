@@ -1,7 +1,7 @@
-"""The engine's stops and losses (a part of cell.controller.engine.Engine, kept apart for its size):
-protective stops planned from where each robot is, the publication of each plan, and the loss of a
-track's TPs.  It uses the engine's state (its tracks, data-plane client, link, loading lock and
-counters), declared below for the reader and the type checker."""
+"""The controller's stops and losses: protective stops planned from where each robot is, the
+publication of each plan, and the loss of a track's TPs.  One of the controller's parts, beside its
+engine (cell.controller.engine), which calls on it, and its robot book (cell.controller.robots),
+whose tracks it ends."""
 
 from __future__ import annotations
 
@@ -10,15 +10,14 @@ import contextlib
 import logging
 import time
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cell.bus import Bus
 from cell.controller.link import Link
-from cell.controller.loop import LoopModel
 from cell.controller.motion import MotionResult, Segment, Track
 from cell.controller.plan import MotionLimits
+from cell.controller.robots import RobotBook
 from cell.controller.schedule import (
     STOP_MARGIN_NS,
     StopPlan,
@@ -28,36 +27,24 @@ from cell.controller.schedule import (
     stop_plan,
 )
 from cell.dataplane.client import DataplaneClient
-from cell.robot.arm import ArmModel
 from cell.v1 import controller_pb2, dataplane_pb2
 
 log = logging.getLogger("cell.controller")
 
 
 class Stopping:
-    """Stops, plans published, losses: a mixin of the engine (cell.controller.engine.Engine)."""
+    """Stops, plans published, losses, on the tracks of `book`; every update that sets registers or
+    flushes holds `loading` (shared with the engine)."""
 
-    bus: Bus
-    dp: DataplaneClient
-    link: Link
-    robots: dict
-    tracks: dict[int, Track]
-    loading: asyncio.Lock
-    stopped: dict[int, float]
-    lost: list[tuple[float, str]]
-    gain: np.ndarray
-    stop_plan_ns: int
-    late_stops: int
+    def __init__(
+        self, bus: Bus, dp: DataplaneClient, link: Link, book: RobotBook, loading: asyncio.Lock
+    ) -> None:
+        self.bus, self.dp, self.link, self.book, self.loading = bus, dp, link, book, loading
+        self.lost: list[tuple[float, str]] = []  # (monotonic s, reason) of each loss, for the record
+        self.stop_plan_ns = 5_000_000  # how long planning a stop takes (measured, pessimistic)
+        self.late_stops = 0  # stops in place after the command window they were planned for began
 
-    if TYPE_CHECKING:  # (the engine's, and its robot book's: stubs here would shadow them)
-
-        def track(self, robot: int | str) -> Track: ...
-
-        def loop(self, track: Track) -> LoopModel: ...
-
-        def arm_of(self, robot: int) -> ArmModel: ...
-
-    async def _halt(self, track: Track) -> None:
+    async def halt(self, track: Track) -> None:
         """Stop streaming the track's motion; wait for its updates in flight."""
         if track.moving:
             assert track.task is not None  # (moving: its task runs)
@@ -76,10 +63,10 @@ class Stopping:
         v = np.vstack([v0, s.q_plan_v])
         col = 0
         for rid in track.robots:
-            n = self.arm_of(rid).dof
+            n = self.book.arm_of(rid).dof
             cols = slice(col, col + n)
             col += n
-            robot = self.robots.get(rid)
+            robot = self.book.robots.get(rid)
             if robot is None:
                 continue
             msg = controller_pb2.Plan(
@@ -100,11 +87,11 @@ class Stopping:
         effect at the data plane's next packet after this update (within one command window).  With
         flush, every TP of these robots goes first, also those this controller did not load."""
         if robots is None:
-            tracks = list(self.tracks.values())
+            tracks = list(self.book.tracks.values())
         else:
-            tracks = list({id(t): t for t in map(self.track, robots)}.values())
+            tracks = list({id(t): t for t in map(self.book.track, robots)}.values())
         for t in tracks:
-            await self._halt(t)
+            await self.halt(t)
         st = await self.link.state(
             sorted({r for t in tracks for r in t.robots}) if robots is not None else ()
         )
@@ -134,7 +121,7 @@ class Stopping:
                 if not modelled[rid]:
                     r.start_ns = reply.now_ns  # in effect from the data plane's next packet on
                     continue
-                track = self.track(rid)
+                track = self.book.track(rid)
                 assert track.segment is not None  # (its stop's, set above)
                 if reply.now_ns > self._last_status_ns(track, track.segment):
                     self.late_stops += 1  # it brakes a window later than its plan
@@ -156,14 +143,14 @@ class Stopping:
         before the last status of its first window; planning that overran it is done again for
         the next window (a stop a window late would brake a window after its plan)."""
         todo = [(t, s) for t in tracks if (s := status_of(t, by_id)) is not None]
-        todo = [(t, s) for t, s in todo if not any(r in self.stopped for r in t.robots)]
+        todo = [(t, s) for t, s in todo if not any(r in self.book.stopped for r in t.robots)]
         stops: list[tuple[Track, StopPlan]] = []
         for _attempt in range(3):
             t0 = time.perf_counter_ns()
             now = self.link.now()
             apply_ns = now + self.stop_plan_ns * len(todo) + self.link.rtt_ns // 2 + STOP_MARGIN_NS
             stops = [
-                (t, stop_plan(t, s, now, apply_ns, self.stop_limits(t), self.gain, self.loop(t)))
+                (t, stop_plan(t, s, now, apply_ns, self.stop_limits(t), self.book.gain, self.book.loop(t)))
                 for t, s in todo
             ]
             took = (time.perf_counter_ns() - t0) // max(1, len(todo))
@@ -175,12 +162,14 @@ class Stopping:
 
     def _last_status_ns(self, track: Track, seg: Segment) -> int:
         """When the last status of the window a segment starts in is due."""
-        loop = self.loop(track)
+        loop = self.book.loop(track)
         return seg.start_ns + round((loop.window - 1) * loop.status_s * 1e9)
 
     def stop_limits(self, track: Track) -> MotionLimits:
         """A stop brakes with the drives' full deceleration, reached at once (they limit no jerk)."""
-        return stop_limits(track.limits, np.concatenate([self.arm_of(r).limits.a_max for r in track.robots]))
+        return stop_limits(
+            track.limits, np.concatenate([self.book.arm_of(r).limits.a_max for r in track.robots])
+        )
 
     def lose(self, tracks: list[Track], reason: str) -> None:
         """The tables no longer hold these tracks' TPs: end their motions (MotionStopped(reason) to

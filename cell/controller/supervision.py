@@ -12,11 +12,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from typing import TYPE_CHECKING
 
 from cell.bus import BusError
-from cell.controller.engine import Engine
 from cell.controller.schedule import dropped
 from cell.v1.dataplane_pb2 import DataplaneState
+
+if TYPE_CHECKING:  # (the facade whose parts these work on; it imports this module)
+    from cell.controller.controller import Controller
 
 WATCH_S = 0.1  # how often supervise() reads the data plane's registers (a read each, in flight together)
 DEAD_S = 0.5  # a data plane silent this long has lost the motions it carried (for us)
@@ -25,7 +28,7 @@ DEAD_S = 0.5  # a data plane silent this long has lost the motions it carried (f
 IN_FLIGHT = 2
 
 
-async def supervise(ctl: Engine) -> None:
+async def supervise(ctl: Controller) -> None:
     """Watch the data plane; every loss of the tables, for whatever reason, ends the motions they
     carried and flushes what is left of them.
 
@@ -33,7 +36,7 @@ async def supervise(ctl: Engine) -> None:
     to IN_FLIGHT at once): the verdict is DEAD_S without any answer, never a few reads lost in a
     row (over a link that loses 5 % of its messages, two lost reads in a row in 4 s were a 15 %
     chance, each a false "lost")."""
-    ctl.tables_ready = ready = asyncio.Event()
+    ctl.engine.tables_ready = ready = asyncio.Event()
     answers: asyncio.Queue[tuple[float, DataplaneState]] = asyncio.Queue()
     in_flight = asyncio.Semaphore(IN_FLIGHT)
 
@@ -57,7 +60,7 @@ async def supervise(ctl: Engine) -> None:
 
 
 async def _judge(
-    ctl: Engine, ready: asyncio.Event, answers: asyncio.Queue[tuple[float, DataplaneState]]
+    ctl: Controller, ready: asyncio.Event, answers: asyncio.Queue[tuple[float, DataplaneState]]
 ) -> None:
     """The answers in the order they were asked (an older one, overtaken, is no news), and the
     silence between them."""
@@ -75,8 +78,8 @@ async def _judge(
             if not gone and now - silent_since >= DEAD_S:
                 gone = True
                 ready.clear()
-                ctl.lose(
-                    list(ctl.tracks.values()),
+                ctl.stopping.lose(
+                    list(ctl.book.tracks.values()),
                     f"the data plane stopped answering ({now - silent_since:.1f} s): its motions are lost",
                 )
             continue
@@ -84,11 +87,13 @@ async def _judge(
         if asked < newest:
             continue
         newest = asked
-        ctl.released(st, asked)
+        ctl.engine.released(st, asked)
         if boot is None or st.boot_id != boot or gone:
             if boot is not None and st.boot_id != boot:
                 ready.clear()
-                ctl.lose(list(ctl.tracks.values()), "the data plane restarted: its tables were lost")
+                ctl.stopping.lose(
+                    list(ctl.book.tracks.values()), "the data plane restarted: its tables were lost"
+                )
             with contextlib.suppress(BusError):
                 # at our start robots may be moving on an earlier controller's TPs: stop them; after a
                 # loss they went without commands and stand in a protective stop: hold them there
@@ -101,31 +106,31 @@ async def _judge(
             newest = time.monotonic()  # (what was asked before the take-over is stale now)
             continue
         for track, why in dropped(st, seen, ctl.track):
-            ctl.lose([track], why)
-            ctl.pending_flush.update({rid: track.loads for rid in track.robots})
-        if ctl.pending_flush:
+            ctl.stopping.lose([track], why)
+            ctl.engine.pending_flush.update({rid: track.loads for rid in track.robots})
+        if ctl.engine.pending_flush:
             with contextlib.suppress(BusError):
                 await flush_lost(ctl)
 
 
-async def flush_lost(ctl: Engine) -> None:
+async def flush_lost(ctl: Controller) -> None:
     """Remove the TPs of lost motions from the tables, for the robots not loaded anew since."""
     async with ctl.loading:
-        robots = sorted(r for r, loads in ctl.pending_flush.items() if ctl.track(r).loads == loads)
+        robots = sorted(r for r, loads in ctl.engine.pending_flush.items() if ctl.track(r).loads == loads)
         if robots:
             await ctl.dp.update(flush=robots)
-        ctl.pending_flush.clear()
+        ctl.engine.pending_flush.clear()
 
 
-async def take_over(ctl: Engine, plan_stops: bool = True) -> None:
+async def take_over(ctl: Controller, plan_stops: bool = True) -> None:
     """Flush every configured robot's TPs (an earlier controller's, or a lost set); with plan_stops,
     stop the robots that are moving from their measured state, else they hold (commands of 0)."""
-    robots = {r.id for r in ctl.config.robots} | {r for t in ctl.tracks.values() for r in t.robots}
-    for t in ctl.tracks.values():
-        await ctl._halt(t)
+    robots = {r.id for r in ctl.config.robots} | {r for t in ctl.book.tracks.values() for r in t.robots}
+    for t in ctl.book.tracks.values():
+        await ctl.stopping.halt(t)
     if plan_stops:
         await ctl.stop(sorted(robots), flush=True)
-        for t in ctl.tracks.values():  # what it stopped was an earlier controller's motion, not one
+        for t in ctl.book.tracks.values():  # what it stopped was an earlier controller's motion, not one
             t.stop_reason = None  # of ours: a first `break` finds the robot standing, not "stopped"
     else:
         async with ctl.loading:

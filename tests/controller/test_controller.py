@@ -101,7 +101,7 @@ async def test_a_joint_move_ends_on_its_goal_and_holds(start_cell, backend: str)
         assert ctl.track("r1").state is MotionState.ARRIVED
         assert np.allclose(result.q_end, goal)
         assert 0.5 < (result.end_ns - result.start_ns) / 1e9 < 3.0
-        seg = ctl.tracks[1].segment
+        seg = ctl.book.tracks[1].segment
         assert seg is not None
         err = path_error(truth.samples["r1"], seg)
         assert err < 0.02, f"off the plan by {err * 1000:.1f} mrad"  # measured 2-5 mrad; VM stalls add some
@@ -153,11 +153,11 @@ async def test_a_long_motion_streams_through_a_slow_jittery_link_without_a_stall
             tables = tg.create_task(watch_tables())
             result = await ctl.move_joints("r1", goal, speed=0.25)
             tables.cancel()
-            seg = ctl.tracks[1].segment
-            assert seg is not None and len(seg.ids) > 3 * ctl.episode  # it really had to stream
+            seg = ctl.book.tracks[1].segment
+            assert seg is not None and len(seg.ids) > 3 * ctl.engine.episode  # it really had to stream
             after = (await DataplaneClient(near).state()).counters
             assert after["stalls"] == before["stalls"]  # never ran out of TPs
-            assert peak <= 3 * ctl.episode + 1
+            assert peak <= 3 * ctl.engine.episode + 1
             # measured 2-5 mrad; a stall (the plan moving on while the robot waits a section) or a
             # jump would be ~100 mrad at this speed; the bound leaves room for this VM's stalls
             err = path_error(truth.samples["r1"], seg)
@@ -213,13 +213,13 @@ async def test_a_link_stop_whose_release_is_still_on_its_way_does_not_refuse_a_m
     still being checked with a data plane that hung): a motion asked for before the news arrives goes
     once the data plane, the authority on stops, says the robot is free."""
     async with driving(start_cell, robots("kinematic")) as (ctl, truth):
-        ctl.stopped[1] = time.monotonic()  # stopped by the link; the data plane has released it since
+        ctl.book.stopped[1] = time.monotonic()  # stopped by the link; the data plane has released it since
         goal = Q0 + np.array([0.2, 0, 0, 0, 0, 0])
         await ctl.move_joints("r1", goal)
-        assert 1 not in ctl.stopped
+        assert 1 not in ctl.book.stopped
         assert np.abs(truth.last("r1") - goal).max() < 2e-3
         # a stop noted after the data plane was asked is not taken back by that (older) reading
-        ctl.stopped[1] = time.monotonic() + 60.0
+        ctl.book.stopped[1] = time.monotonic() + 60.0
         with pytest.raises(MotionStopped, match="stopped over the Responsive Link"):
             await ctl.move_joints("r1", Q0)
 
@@ -288,7 +288,7 @@ async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
         result = await ctl.replan("r1", goal)
         with pytest.raises(MotionStopped):
             await first
-        sw = ctl.last_switch
+        sw = ctl.engine.last_switch
         assert sw is not None and sw.lead_ms > 0  # the switch entry was in place before its TP
         # around the switch the robot neither jumps nor jerks: velocity changes within the drive's limit
         near = [(t, q, qd) for t, q, qd in truth.samples["r1"] if abs(t - sw.t_branch_ns) < 300_000_000]
@@ -297,7 +297,7 @@ async def test_replanning_switches_branches_without_a_jump(start_cell) -> None:
         assert max_accel(t, v) <= 5.0 * 1.3
         q_at = min(near, key=lambda s: abs(s[0] - sw.t_branch_ns))[1]
         assert np.abs(q_at - sw.q_pred).max() < 0.01  # the predicted start state held
-        err = path_error(truth.samples["r1"], ctl.tracks[1].segment)
+        err = path_error(truth.samples["r1"], ctl.book.tracks[1].segment)
         assert err < 0.02, f"off the new plan by {err * 1000:.1f} mrad"  # measured 2-5 mrad
         assert np.allclose(result.q_end, goal)
 
@@ -324,10 +324,10 @@ async def test_robots_started_together_start_within_a_status_period(start_cell, 
             )
         assert abs(t1 - t2) / 1e6 <= 2.0
         if merged == "models":  # r2 started on a status of its own grid, its TPs fitted for its phase there
-            seg, (origin, period, w) = ctl.track("r2").segment, ctl.grids[2]
+            seg, (origin, period, w) = ctl.track("r2").segment, ctl.book.grids[2]
             assert seg is not None and seg.tick0 is not None
             rt = ctl.link.realtime_offset_ns
-            assert ctl.grids[1][0] != origin and rt is not None
+            assert ctl.book.grids[1][0] != origin and rt is not None
             ticks = (seg.start_ns + rt - origin) / period
             assert (
                 abs(ticks - round(ticks)) < 0.05 and round(ticks) % w == seg.tick0

@@ -104,13 +104,13 @@ async def test_a_break_whose_reading_crosses_a_loss_is_not_arrived(start_cell) -
     async with driving(start_cell, robots("kinematic")) as (ctl, _):
         await ctl.move_joints("r1", Q0 + np.array([0.3, 0, 0, 0, 0, 0]))
         track = ctl.track("r1")
-        read = ctl.joints_now
+        read = ctl.engine.joints_now
 
         async def reading_that_crosses(t):  # the supervisor's verdict lands during the read
             got = await read(t)
-            ctl.lose([track], "its next TPs did not come in time: its trajectory was dropped")
+            ctl.stopping.lose([track], "its next TPs did not come in time: its trajectory was dropped")
             return got
 
-        ctl.joints_now = reading_that_crosses  # type: ignore[method-assign]
+        ctl.engine.joints_now = reading_that_crosses  # type: ignore[method-assign]
         with pytest.raises(MotionStopped):
             await ctl.arrive("r1", tolerance=10.0, timeout=10.0)  # (any reading near enough)

@@ -35,7 +35,7 @@ async def test_armed_robots_wait_and_leave_their_holds_together_when_fired(start
             assert np.abs(truth.last(name) - Q0).max() < 1e-4
         result = await ctl.fire(armed)
         assert result.start_ns > t_armed + 300_000_000
-        s1, s2 = (ctl.last_fire[ctl.robot_id(n)] for n in ("r1", "r2"))
+        s1, s2 = (ctl.engine.last_fire[ctl.robot_id(n)] for n in ("r1", "r2"))
         if not models:
             assert s1 == s2
             t1, t2 = (crossing_time(truth.samples[n], Q0, 1e-3) for n in ("r1", "r2"))
@@ -74,7 +74,7 @@ async def test_a_loop_runs_its_laps_from_one_load_then_holds_where_it_began(star
         assert np.allclose(truth.last("r1"), Q0, atol=1e-3)
         # one load for every lap: the TPs of one lap and its holds, however many laps
         loaded = (await dp.state()).counters.get("tps_loaded", 0) - loads_before
-        assert 0 < loaded < 3 * (run.lap_ns / 1e9 * ctl.rate_hz)
+        assert 0 < loaded < 3 * (run.lap_ns / 1e9 * ctl.engine.rate_hz)
         # until ended: it is ended during its second lap, and runs two
         run = await ctl.run_loop("r1", [far], speed=1.0)
         await ctl.link.sleep_until(run.start_ns + run.lap_ns + run.lap_ns // 3)
@@ -90,13 +90,13 @@ async def test_a_prepared_alternate_is_taken_at_the_next_tp_without_planning(sta
         retreat, detour = Q0 + np.array([-0.2, 0.1, 0, 0, 0, 0]), Q0 + np.array([0.5, 0.3, -0.3, 0, 0, 0])
         loaded = await ctl.prepare_alternates("r1", {"retreat": retreat, "detour": detour}, every=4)
         assert loaded > 0
-        _, branches = ctl.alternates[1]
+        _, branches = ctl.engine.alternates[1]
         ks = [a.k for a in branches["detour"]]
         assert ks == list(range(ks[0], ks[0] + 4 * len(ks), 4)) and ks[-1] >= 40  # to the motion's end
         asked = ctl.link.now()
         assert asked < main.end_ns - 1_000_000_000  # (still under way)
         result = await ctl.take_alternate("r1", "detour")
-        sw = ctl.last_switch
+        sw = ctl.engine.last_switch
         assert sw is not None and sw.lead_ms > 0  # the switch entry was in place before its TP
         # at the next branch point in reach: within a round trip, the margin and four sections
         assert (sw.t_branch_ns - asked) / 1e6 < 20 + 4 * 100 + 50

@@ -187,7 +187,7 @@ def test_a_motion_of_no_length_is_one_section_of_holding() -> None:
 
 
 def test_a_motion_starts_on_a_status_period_that_begins_a_command_window() -> None:
-    """Controller.grid_start: TPs are fitted for window phase 0, so the start must be on such a
+    """RobotBook.grid_start: TPs are fitted for window phase 0, so the start must be on such a
     period of the robot's announced grid, its register a quarter period before it."""
     import time
 
@@ -195,12 +195,12 @@ def test_a_motion_starts_on_a_status_period_that_begins_a_command_window() -> No
     from cell.controller.controller import Controller
 
     ctl = Controller(None, load_config(None))  # type: ignore[arg-type]  (no bus needed for this)
-    assert ctl.grid_start(1, 123_456_789) == (123_456_789, 123_456_789, None)  # not announced yet
+    assert ctl.book.grid_start(1, 123_456_789) == (123_456_789, 123_456_789, None)  # not announced yet
     period, w = 2_000_000, 4
     origin_mono = time.monotonic_ns() - 1_000_000_007
-    ctl.grids[1] = (origin_mono + time.time_ns() - time.monotonic_ns(), period, w)
+    ctl.book.grids[1] = (origin_mono + time.time_ns() - time.monotonic_ns(), period, w)
     for earliest in (time.monotonic_ns() + d for d in (0, 1_234_567, 5_000_001, 7_999_999)):
-        start, at, tick0 = ctl.grid_start(1, earliest)
+        start, at, tick0 = ctl.book.grid_start(1, earliest)
         assert tick0 == 0 and at == start - period // 4
         assert earliest <= start + period // 4 and start - earliest < period * w + period
         k = round((start - origin_mono) / period)

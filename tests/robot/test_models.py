@@ -97,7 +97,7 @@ def test_the_controller_plans_each_robot_with_its_own_model() -> None:
     q = np.array([0.3, -1.2, 1.0, -1.4, -1.5, 0.2])
     assert np.allclose(ctl.pose_of("r2", q)[0], dh_fk("ur10e", q)[0])
     assert np.allclose(ctl.pose_of("r1", q)[0], dh_fk("ur5e", q)[0])
-    merged = ctl.limits_of([1, 2])
+    merged = ctl.book.limits_of([1, 2])
     assert np.allclose(merged.v_max, np.concatenate([v1, v2]))
     # one stop ramp serves every robot: it brakes no joint harder than any model allows
     assert np.allclose(

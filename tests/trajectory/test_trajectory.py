@@ -189,7 +189,7 @@ async def test_a_mujoco_arm_follows_a_trajectory_within_the_cells_own_accuracy(s
             await truth.until("r1", move.start_ns + 300_000_000)
             other = wave(40, 4.0, amp=np.array([-0.3, 0.2, -0.2, 0.3, 0.3, -0.5]))
             res = await ctl.follow({"r1": other}, speed=0.5, replace=True)
-            assert res.start_ns < move.end_ns - 1_000_000_000 and ctl.last_switch is not None
+            assert res.start_ns < move.end_ns - 1_000_000_000 and ctl.engine.last_switch is not None
             err = await path_error_mm(truth, kin, res, other)
             assert err.max() <= 1.0 and np.median(err) <= 0.1, (err.max(), np.median(err))
             watcher.cancel()
