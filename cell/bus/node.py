@@ -592,7 +592,12 @@ class Bus:
         return raw
 
     def _send(self, topic: bytes, msg: Message, kind: Kind = Kind.PUBLISH, correlation: int = 0) -> None:
-        frame = self._enc.encode(topic, msg.DESCRIPTOR.full_name, msg.SerializeToString(), kind, correlation)
+        self._send_raw(topic, msg.DESCRIPTOR.full_name, msg.SerializeToString(), kind, correlation)
+
+    def _send_raw(
+        self, topic: bytes, type_name: str, payload: bytes, kind: Kind = Kind.PUBLISH, correlation: int = 0
+    ) -> None:
+        frame = self._enc.encode(topic, type_name, payload, kind, correlation)
         try:
             self._pub.send(frame, zmq.NOBLOCK)
         except zmq.Again:
@@ -603,6 +608,11 @@ class Bus:
     def publish(self, topic: str, msg: Message) -> None:
         """Send msg on topic to every subscriber of a prefix of it; never blocks (drops at the HWM)."""
         self._send(self._topic(topic), msg)
+
+    def publish_serialized(self, topic: str, type_name: str, payload: bytes) -> None:
+        """publish() of a message serialized already (payload: a `type_name`'s bytes, as protobuf
+        encodes them): for messages built in C (cell.robot.truthcodec)."""
+        self._send_raw(self._topic(topic), type_name, payload)
 
     async def subscribe(self, *prefixes: str) -> Subscription:
         """A Subscription to topics starting with any of prefixes ('' is everything), live on return."""

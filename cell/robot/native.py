@@ -89,7 +89,7 @@ def _lib() -> ctypes.CDLL:
 
 
 @functools.cache
-def _mujoco() -> ctypes.CDLL:
+def mujoco_library() -> ctypes.CDLL:
     """The MuJoCo library the Python bindings loaded (the same one: its soname is already mapped)."""
     return ctypes.CDLL(next(Path(mujoco.__file__).parent.glob("libmujoco.so*")).as_posix())
 
@@ -208,7 +208,7 @@ class NativeTick:
         return _ptr(a)
 
     def _bind_mujoco(self, b: MujocoArms) -> None:
-        st, mj = self.state, _mujoco()
+        st, mj = self.state, mujoco_library()
         st.mujoco, st.h = 1, b.model.opt.timestep
         st.model = b.model._address
         st.step = ctypes.cast(mj.mj_step, ctypes.c_void_p).value

@@ -21,6 +21,8 @@ from cell.rlink.packet import EventType, Kind
 from cell.rlink.station import Order
 from cell.robot.drive import HOLD_ESTOP, HOLD_UR
 from cell.robot.emulator import RobotGroup
+from cell.robot.truthcodec import TYPE_NAME as TRUTH
+from cell.robot.truthcodec import truths_for
 from cell.timer import realtime_offset
 from cell.v1 import robot_pb2
 
@@ -140,6 +142,8 @@ class Publisher:
         hz = group.robots[0].status_hz if full_rate else group.robots[0].truth_hz
         self.every = max(1, round(group.robots[0].status_hz / hz)) if hz > 0 else 0
         self.names = [r.name for r in group.robots]
+        self.topics = [f"truth/{name}" for name in self.names]
+        self.truths = truths_for(group)  # each arm's RobotTruth, encoded in C where it builds
         self.ids = robot_pb2.GroupTruth(robot_id=group.ids.tolist()).SerializeToString()  # (a fleet's)
         self.outputs = group.digital_out.copy()  # the digital outputs the bus was last told of
         # a group ticking in C's thread is read on the truth's grid (and the Responsive Link node's look
@@ -186,22 +190,8 @@ class Publisher:
                 put_arrays(msg, q=group.q.ravel(), stopped=group.stopped)
                 self.bus.publish(f"fleet/{self.names[0]}", msg)
                 return
-            for row, name in enumerate(self.names):
-                q = group.q[row]
-                self.bus.publish(
-                    f"truth/{name}",
-                    robot_pb2.RobotTruth(
-                        robot_id=int(group.ids[row]),
-                        t_ns=at,
-                        q=q,
-                        qd=group.qd[row],
-                        tool_pose=group.arm.tool_pose(q),
-                        target=group.target[row],
-                        stopped=bool(group.stopped[row]),
-                        tick=group.tick_no,
-                        digital_out=int(group.digital_out[row]),
-                    ),
-                )
+            for topic, raw in zip(self.topics, self.truths(group, at), strict=True):
+                self.bus.publish_serialized(topic, TRUTH, raw)
 
     def _outputs(self, group: RobotGroup, now: int) -> None:
         """Digital outputs that changed, as events: none is missed, however short (truth is sampled)."""
