@@ -4,6 +4,8 @@ fields are the JSON keys, so the type and the machine-readable line cannot drift
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 from typing import Any, Protocol, cast
 
 # a field's metadata: its key is left out of to_json() while it is None (a step that did not run)
@@ -26,3 +28,20 @@ class JsonFields:
             if f.metadata == OMIT_IF_NONE and out[f.name] is None:
                 del out[f.name]
         return out
+
+
+def finite(value: Any) -> Any:
+    """value with every NaN or infinity in it as None (null): JSON has no NaN, and a strict reader
+    (jq, JavaScript's JSON.parse, Go's encoding/json) refuses the `NaN` Python's json writes."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite(v) for v in value]
+    return value
+
+
+def json_line(value: Any) -> str:
+    """One line of strict JSON (a figure that could not be measured, NaN, is null)."""
+    return json.dumps(finite(value), allow_nan=False)

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from cell.commands import Command, json_arg, literal, register
+from cell.jsonfields import json_line
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
         name = args.bench.name
         results.write(args.results, name, argv or ["bench", name], figures.result.to_json())
     if args.json:
-        print(json.dumps(figures.result.to_json()))
+        print(json_line(figures.result.to_json()))
     return figures.exit_code
 
 

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 from cell.commands import Command, json_arg, register
+from cell.jsonfields import json_line
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         )
     print(f"{result['held']} of {result['faults']} faults held every promise ({result['rounds']} round(s))")
     if args.json:
-        print(json.dumps(result))
+        print(json_line(result))
     return 0 if result["failed"] == 0 else 1
 
 

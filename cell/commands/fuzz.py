@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 from cell.commands import Command, json_arg, register
+from cell.jsonfields import json_line
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
         f"largest memory growth {growth:.1f} MB"
     )
     if args.json:
-        print(json.dumps(result))
+        print(json_line(result))
     return 0 if result["ok"] else 1
 
 

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from cell.commands import Command, json_arg, register
+from cell.jsonfields import json_line
 
 
 def _pushes(text: str) -> tuple[float, ...]:
@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     if args.png:
         print(f"figure: {r['png']}")
     if args.json:
-        print(json.dumps(r))
+        print(json_line(r))
     return 0
 
 

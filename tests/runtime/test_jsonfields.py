@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 
-from cell.jsonfields import OMIT_IF_NONE, JsonFields
+import pytest
+
+from cell.jsonfields import OMIT_IF_NONE, JsonFields, json_line
 
 
 @dataclass
@@ -30,3 +33,10 @@ def test_fields_are_the_keys_in_order_nested_and_a_marked_none_is_left_out() -> 
     r.extra = Inner(0.25)
     assert list(r.to_json()) == ["n", "rtt", "per_target", "nothing", "extra"]
     assert r.to_json()["extra"] == {"p99": 0.25}
+
+
+def test_a_json_line_is_strict_json_a_figure_not_measured_null() -> None:
+    """A bench's t_upd with no table update is NaN: its line says null, which every reader takes."""
+    line = json_line({"t_upd_ms": math.nan, "p": [math.inf, 1.5], "cpu": {"x": -math.inf, "n": 3}})
+    assert line == '{"t_upd_ms": null, "p": [null, 1.5], "cpu": {"x": null, "n": 3}}'
+    json.loads(line, parse_constant=lambda c: pytest.fail(f"not strict JSON: {c}"))
