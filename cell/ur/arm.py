@@ -20,6 +20,8 @@ from cell.ur.rtde import WIDTH, Type
 CONTROLLER_VERSION = (5, 11, 0, 0)  # an e-Series controller on PolyScope 5.11
 POLYSCOPE = "5.11.0.108249"
 DATAGRAM_PROGRAM = "cell.urp"  # the cell's own program: the data plane's datagrams drive the arm
+CONTROL_STEP_S = 0.002  # a UR controller's step (RTDE's control_step counts them)
+STANDARD_GRAVITY = 9.82  # m/s^2, as URScript's set_gravity has it
 
 
 class RobotMode(IntEnum):
@@ -171,6 +173,17 @@ class URArm:
             return self._pose()
         if name in ("actual_TCP_speed", "target_TCP_speed"):
             return self._speed()
+        if name in ("actual_TCP_acceleration", "target_TCP_acceleration"):  # (J q'', as a UR's: no J' q')
+            return tuple((self.tool.jacobian(self.q) @ self.qdd).tolist())
+        if name == "tcp_offset":
+            return tuple(self.tool.tcp.tolist())
+        if name == "control_step":  # (the controller's 2 ms steps since its start)
+            return (max(0, round(self.timestamp / CONTROL_STEP_S)),)
+        if name == "target_gravity":  # (set_gravity's default: a robot on the floor)
+            return (0.0, 0.0, STANDARD_GRAVITY)
+        if name in ("actual_configurable_digital_output_bits", "actual_configurable_digital_input_bits"):
+            bits = self.digital_out if name.endswith("output_bits") else self.digital_in
+            return ((bits >> 8) & 0xFF,)
         if name == "robot_mode":
             return (int(self.robot_mode),)
         if name == "safety_mode" or name == "safety_status":

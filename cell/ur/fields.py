@@ -1,5 +1,6 @@
 """The RTDE fields an e-Series controller (software 5.x) offers, by name, with their types (UR's RTDE
-guide, "Field names and associated types").  A name not here is NOT_FOUND, as on a UR."""
+guide, "Field names and associated types"; the same as UR's client library's type list, whose
+exhaustive output recipe of 406 fields is accepted whole).  A name not here is NOT_FOUND, as on a UR."""
 
 from __future__ import annotations
 
@@ -33,8 +34,16 @@ OUTPUTS: dict[str, Type] = {
     "input_bit_registers0_to_31": U32, "input_bit_registers32_to_63": U32,
     "tool_output_mode": U8, "tool_digital_output0_mode": U8, "tool_digital_output1_mode": U8,
     "payload": D, "payload_cog": V3, "payload_inertia": V6, "script_control_line": U32,
-    "ft_raw_wrench": V6, "joint_position_deviation_ratio": V6, "collision_detection_ratio": D,
+    "ft_raw_wrench": V6, "joint_position_deviation_ratio": D, "collision_detection_ratio": D,
     "time_scale_source": I32,
+    # (of later 5.x releases: in UR's client library's list and its exhaustive recipe)
+    "actual_current_window": V6, "tcp_offset": V6,
+    "actual_TCP_acceleration": V6, "target_TCP_acceleration": V6,
+    "actual_configurable_digital_input_bits": U64, "actual_configurable_digital_output_bits": U64,
+    "target_execution_time": D, "actual_robot_energy_consumed": D,
+    "actual_robot_braking_energy_dissipated": D, "encoder0_raw": I32, "encoder1_raw": I32,
+    "wrench_calc_from_currents": V6, "target_gravity": V3, "target_base_acceleration": V6,
+    "control_step": U64, "target_base_wrench": V6,
     **{f"output_bit_register_{i}": B for i in range(64, 128)},
     **{f"output_int_register_{i}": I32 for i in range(48)},
     **{f"output_double_register_{i}": D for i in range(48)},

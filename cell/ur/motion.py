@@ -37,10 +37,12 @@ class Tool:
         self.arm = arm
         self.kin = Kinematics(arm)
         self.tcp_pos, self.tcp_rot = np.zeros(3), np.eye(3)
+        self.tcp = np.zeros(6)  # the offset as set_tcp was given it (RTDE's tcp_offset reports it so)
         self._jp, self._jr = np.zeros((3, arm.model.nv)), np.zeros((3, arm.model.nv))
 
     def set_tcp(self, pose: np.ndarray) -> None:
-        self.tcp_pos, self.tcp_rot = np.asarray(pose[:3], np.float64).copy(), from_rotvec(pose[3:])
+        self.tcp = np.asarray(pose[:6], np.float64).copy()
+        self.tcp_pos, self.tcp_rot = self.tcp[:3].copy(), from_rotvec(self.tcp[3:])
 
     def frame(self, q: np.ndarray, tcp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The TCP's position and rotation matrix at q (with another offset if given)."""

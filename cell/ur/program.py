@@ -193,6 +193,7 @@ class Cmd(IntEnum):
 # are refused like any other it does not)
 REALTIME = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
 READY, DONE = 1, 2
+CLIENT_GONE_S = 0.5  # no RTDE session has held the control script's register this long: it ends
 
 
 class RtdeControl(Runner):
@@ -209,6 +210,8 @@ class RtdeControl(Runner):
         self.op_id = 0
         self.watchdog_s = 0.0
         self.commanded = False  # an RTDE client has held the command register
+        self.unowned_since: float | None = None  # (clock s) since when none has held it
+        self.clock = time.monotonic  # (its watchdogs' time: a test sets its own)
         self._progress(-1)
         self._out_int(0, READY)
 
@@ -240,11 +243,15 @@ class RtdeControl(Runner):
         arm = self.arm
         owner = arm.owner(self.cmd_field)
         if owner is not None:
-            self.commanded = True
-        elif self.commanded:  # its client went away: stop, as the script's RTDE watchdog would
-            self.ended = "the RTDE client driving the control script disconnected"
+            self.commanded, self.unowned_since = True, None
+        elif self.commanded:  # its client went away: it stands, and the script stops as its RTDE
+            now = self.clock()  # watchdog would, unless a client takes the register again
+            if self.unowned_since is None:  # within CLIENT_GONE_S (ur_rtde's reuploadScript()
+                self.unowned_since = now  # connects anew after sending the script again)
+            elif now - self.unowned_since > CLIENT_GONE_S:
+                self.ended = "the RTDE client driving the control script disconnected"
             return np.zeros_like(q)
-        if self.watchdog_s and time.monotonic() - arm.written.get(self.cmd_field, 0.0) > self.watchdog_s:
+        if self.watchdog_s and self.clock() - arm.written.get(self.cmd_field, 0.0) > self.watchdog_s:
             ms = self.watchdog_s * 1000
             self.ended = f"the RTDE watchdog on {self.cmd_field}: no input for {ms:.0f} ms"
             return np.zeros_like(q)
@@ -256,7 +263,8 @@ class RtdeControl(Runner):
             cmd = self._int(0)
             if cmd in REALTIME:
                 self._process(cmd, q, qd)
-                self._out_int(0, READY)
+                if self.ended is None:  # (a command that ended the script is not acknowledged: the
+                    self._out_int(0, READY)  # client's call fails, as on a UR whose script died)
             elif cmd == 0:
                 self.executing = False
                 self._out_int(0, READY)

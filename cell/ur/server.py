@@ -32,7 +32,7 @@ from cell.ur import primary
 from cell.ur.arm import CONTROLLER_VERSION, DATAGRAM_PROGRAM, RuntimeState, SafetyMode, URArm
 from cell.ur.dashboard import MAX_LINE, WELCOME, Dashboard
 from cell.ur.fields import INPUTS, OUTPUTS
-from cell.ur.program import Message, Runner, runner
+from cell.ur.program import Message, RtdeControl, Runner, runner
 from cell.ur.rtde import Session
 from cell.ur.urscript import Framer, ScriptError, parse
 from cell.v1 import robot_pb2
@@ -84,6 +84,10 @@ class _Arm:
         self.runner: Runner | None = None
         self.t_last = 0.0  # the state time the program last stepped at
         self.restart_at = 0.0  # (monotonic s) when the datagram program comes back; 0: not due
+        # an input field whose RTDE client must let go first: a control script that died on an error
+        # leaves the arm running nothing while its client is there (as on a UR: runtime STOPPED, so
+        # ur_rtde's next call says its script is not running, and it may send it again)
+        self.restart_after: str | None = None
         self.ended = ""  # how the last program ended
 
     def refresh(self) -> None:
@@ -162,7 +166,7 @@ class _Arm:
             return
         if self.runner is not None:
             self.end(f"replaced by {script.name}")
-        self.restart_at = 0.0
+        self.restart_at, self.restart_after = 0.0, None
         self.runner = runner(script, st)
         self.refresh()
         self.t_last = self.group.state_time
@@ -184,13 +188,19 @@ class _Arm:
         st = self.state
         st.program, st.runtime = self.home, RuntimeState.STOPPED
         self.restart_at = time.monotonic() + RESTART_S
+        field = r.cmd_field if isinstance(r, RtdeControl) else None  # (ur_rtde's command register)
+        self.restart_after = field if reason and field is not None and st.owner(field) is not None else None
         self.refresh()
         self.ended = f"URScript program {r.name} ended" + (f" ({reason})" if reason else "")
         log.info("%s: %s", self.robot.name, self.ended)
 
     def restart(self) -> None:
-        """The datagram program back after a script (if the arm may move and nothing else came)."""
-        self.restart_at = 0.0
+        """The datagram program back after a script (if the arm may move and nothing else came; after
+        a control script's error, once its client has let go of it)."""
+        if self.restart_after is not None and self.state.owner(self.restart_after) is not None:
+            self.restart_at = time.monotonic() + RESTART_S  # (looked at again then)
+            return
+        self.restart_at, self.restart_after = 0.0, None
         self.refresh()
         st = self.state
         if self.runner is None and st.can_move and st.program == DATAGRAM_PROGRAM:

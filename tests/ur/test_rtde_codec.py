@@ -115,3 +115,47 @@ def test_the_dashboard_changes_the_arms_modes_and_answers_as_a_ur() -> None:
     assert d.handle("warp 9") == "could not understand: 'warp 9'" and d.unknown == 1
     assert changed == [False, False, True, True]
     assert d.handle("quit") == "Disconnected" and d.closed
+
+
+def test_every_field_of_the_guide_is_offered_with_its_type_and_streams_at_500_hz() -> None:
+    """A recipe of every output field (as UR's client library's exhaustive recipe asks, 406 of them)
+    is taken whole, each with UR's type, and each package carries exactly their bytes."""
+    s, arm = session()
+    one(s, Package.REQUEST_PROTOCOL_VERSION, b"\x00\x02")
+    names = list(OUTPUTS)
+    assert len(names) >= 406
+    kind, body = one(
+        s, Package.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 500.0) + ",".join(names).encode()
+    )
+    types = body[1:].decode().split(",")
+    assert kind == ord("O") and body[0] == 1 and "NOT_FOUND" not in types
+    assert types == [OUTPUTS[n].value for n in names]
+    for name, want in {  # (as the RTDE guide and UR's client library type them)
+        "joint_position_deviation_ratio": "DOUBLE", "tcp_offset": "VECTOR6D",
+        "target_gravity": "VECTOR3D", "control_step": "UINT64", "encoder0_raw": "INT32",
+        "actual_configurable_digital_output_bits": "UINT64",
+    }.items():  # fmt: skip
+        assert types[names.index(name)] == want, name
+    one(s, Package.CONTROL_PACKAGE_START)
+    arm.update(Q, np.zeros(6), np.zeros(6), 2.0)
+    ((kind, body),) = split(bytearray(s.due(0, arm)[0]))
+    size = {"DOUBLE": 8, "VECTOR6D": 48, "VECTOR3D": 24, "INT32": 4, "UINT32": 4, "UINT64": 8, "UINT8": 1,
+            "BOOL": 1, "VECTOR6INT32": 24, "VECTOR6UINT32": 24}  # fmt: skip
+    assert kind == ord("U") and len(body) == 1 + sum(size[t] for t in types)
+
+
+def test_the_newer_fields_report_the_arm() -> None:
+    """tcp_offset follows set_tcp (as URCL's default recipe reads it); control_step counts the
+    controller's 2 ms steps; the configurable outputs are bits 8-15 of the digital outputs."""
+    s, arm = session()
+    one(s, Package.REQUEST_PROTOCOL_VERSION, b"\x00\x02")
+    names = b"tcp_offset,control_step,actual_configurable_digital_output_bits,target_gravity"
+    assert one(s, Package.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 500.0) + names)[1][0] == 1
+    one(s, Package.CONTROL_PACKAGE_START)
+    arm.tool.set_tcp(np.array([0.0, 0.0, 0.15, 0.0, 0.0, 0.3]))
+    arm.digital_out = 0b1010_0000_0000_0001
+    arm.update(Q, np.zeros(6), np.zeros(6), 4.0)
+    ((_, body),) = split(bytearray(s.due(0, arm)[0]))
+    got = struct.unpack(">6dQQ3d", body[1:])
+    assert got[:6] == (0.0, 0.0, 0.15, 0.0, 0.0, 0.3)
+    assert got[6:8] == (2000, 0b1010_0000) and got[8:] == (0.0, 0.0, 9.82)

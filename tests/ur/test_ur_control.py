@@ -234,6 +234,41 @@ async def test_a_client_that_dies_mid_servoj_leaves_the_arm_stopped_and_the_cell
         assert await bus.request("controller", "move", back, timeout=20) is not None  # the cell's again
 
 
+@pytest.mark.slow
+async def test_what_the_arm_cannot_do_ends_the_script_as_on_a_ur_and_reuploading_it_goes_on(
+    start_cell,
+) -> None:
+    """forceMode (no force model here) is never reported done: the script dies as on a UR (a runtime
+    exception), so isProgramRunning() says so and the next call fails, until ur_rtde's own
+    reuploadScript() sends it again; the cell's program waits for the client meanwhile."""
+    cell = await start_cell(run=CELL, robots=robots())
+    host = cell.config.robots[0].ur_host
+    async with Bus.connect(cell.config.bus, "test") as bus:
+        events = Events(await bus.subscribe("events/robot/r1"))
+        await _ready(bus)
+        ctl = await asyncio.to_thread(rtde_control.RTDEControlInterface, host)
+        try:
+            force = ([0.0] * 6, [0, 0, 1, 0, 0, 0], [0, 0, 10.0, 0, 0, 0], 2, [2, 2, 1.5, 1, 1, 1])
+            await asyncio.to_thread(ctl.forceMode, *force)  # (sent: a realtime command is not waited on)
+            async with asyncio.timeout(5):  # (the script's end reaches ur_rtde with the next RTDE state)
+                while await asyncio.to_thread(ctl.isProgramRunning):
+                    await asyncio.sleep(0.01)
+            assert await asyncio.to_thread(ctl.forceMode, *force) is False  # its script is not running
+            assert await asyncio.to_thread(ctl.reuploadScript)
+            async with asyncio.timeout(5):
+                while not await asyncio.to_thread(ctl.isProgramRunning):
+                    await asyncio.sleep(0.01)
+            goal = (Q0 + np.array([0.2, 0, 0, 0, 0, 0])).tolist()
+            assert await asyncio.to_thread(ctl.moveJ, goal, 1.0, 1.0)
+            recv = await asyncio.to_thread(rtde_receive.RTDEReceiveInterface, host)
+            assert np.abs(np.array(recv.getActualQ()) - goal).max() < 1e-3
+            recv.disconnect()
+            await asyncio.to_thread(ctl.stopScript)
+        finally:
+            await asyncio.to_thread(ctl.disconnect)
+        await events.wait(RE.KIND_PROGRAM_END, "the cell's datagram program drives the arm again")
+
+
 async def _read_messages(reader: asyncio.StreamReader, want: int) -> list[tuple[primary.RobotMessage, bytes]]:
     buf, got = bytearray(), []
     async with asyncio.timeout(10):

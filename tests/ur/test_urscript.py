@@ -12,7 +12,7 @@ from cell.robot.arm import arm_model
 from cell.ur import primary
 from cell.ur.arm import SafetyMode, URArm
 from cell.ur.motion import AT_GOAL_RAD, MoveJ, MoveL, Speed, Trapezoid
-from cell.ur.program import DONE, READY, Cmd, LineRunner, RtdeControl
+from cell.ur.program import CLIENT_GONE_S, DONE, READY, Cmd, LineRunner, RtdeControl
 from cell.ur.urscript import MAX_SCRIPT, Framer, Pose, Script, ScriptError, parse
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
@@ -231,9 +231,10 @@ def test_an_async_move_reports_progress_and_a_stopj_ends_it() -> None:
 def test_what_the_control_script_cannot_do_ends_it_with_the_reason() -> None:
     ur, sim = URArm("r1", arm_model("ur5e")), Arm()
     ctl = control(ur)
-    ur.int_in[0] = 6  # force_mode
+    ur.int_in[0], ur.int_out[0] = 6, 0  # force_mode
     sim.run(ctl.step, 1)
     assert ctl.ended == "ur_rtde command 6 is not emulated" and ctl.messages
+    assert ur.int_out[0] != READY  # never acknowledged: the client's forceMode() fails
     ctl = control(ur)
     ur.int_in[0] = Cmd.NO_CMD
     sim.run(ctl.step, 1)
@@ -255,7 +256,20 @@ def test_the_control_script_stops_when_its_rtde_client_goes() -> None:
     ur.double_in[:11] = [*(Q0 + 0.01), 0, 0, 0.002, 0.1, 300]
     sim.run(ctl.step, 5)
     assert ctl.ended is None and sim.qd.any()
+    now = [0.0]
+    ctl.clock = lambda: now[0]
     ur.release("client")
+    sim.run(ctl.step, 1)  # gone: the arm is stopped, the script waits a moment for a client
+    assert ctl.ended is None
+    now[0] += CLIENT_GONE_S / 2
+    ur.claim("again", ["input_int_register_0"])  # (ur_rtde's reuploadScript() connects anew)
+    sim.run(ctl.step, 1)
+    ur.release("again")
+    sim.run(ctl.step, 1)
+    now[0] += CLIENT_GONE_S * 0.9  # (gone, in all, longer than CLIENT_GONE_S; this time, not)
+    sim.run(ctl.step, 1)
+    assert ctl.ended is None
+    now[0] += CLIENT_GONE_S * 0.2
     sim.run(ctl.step, 1)
     assert ctl.ended == "the RTDE client driving the control script disconnected"
 
