@@ -113,6 +113,16 @@ class MujocoArms:
             self.qd[i] = d.qvel
 
 
+def joint_torques(d: mujoco.MjData, dof: int) -> tuple[np.ndarray, np.ndarray]:
+    """A MuJoCo arm's joint torques (N m) after its last step: what its drives apply (the servo's
+    actuator force, the model-based feed-forward and the gravity compensation: RTDE's target_moment
+    and actual_current_as_torque), and what the joints bear beyond the arm's own dynamics (the
+    constraints': contacts and end stops, as URScript's get_joint_torques() reports, negated as the
+    drives' share of it)."""
+    motor = d.qfrc_actuator[:dof] + d.qfrc_applied[:dof] + d.qfrc_gravcomp[:dof]
+    return motor.copy(), -d.qfrc_constraint[:dof]
+
+
 class RemoteArm:
     """A UR controller elsewhere (cell.ur.remote): q and qd are what its RTDE says, and the drives
     only keep the command windows, the watchdog and the holds; the controller's own servos move it."""

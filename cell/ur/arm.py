@@ -8,6 +8,7 @@ released the way a UR's is (`unlock protective stop` on the dashboard)."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from enum import IntEnum
 
 import numpy as np
@@ -110,6 +111,9 @@ class URArm:
         self.qdd = np.zeros(dof)
         self.target_qd = np.zeros(dof)
         self.timestamp = -1.0  # (no state yet)
+        # its joints' torques now: (the drives', those beyond the arm's own dynamics); a MuJoCo arm's
+        # from its physics (set by cell.ur.server), none for an arm without a dynamics model
+        self.torques: Callable[[], tuple[np.ndarray, np.ndarray]] = lambda: (np.zeros(dof), np.zeros(dof))
         self._values: dict[str, tuple] = {}  # the fields asked for since the last update, computed
 
     # --- modes -------------------------------------------------------------------------------
@@ -175,6 +179,8 @@ class URArm:
             return self._speed()
         if name in ("actual_TCP_acceleration", "target_TCP_acceleration"):  # (J q'', as a UR's: no J' q')
             return tuple((self.tool.jacobian(self.q) @ self.qdd).tolist())
+        if name in ("target_moment", "actual_current_as_torque"):
+            return tuple(self.torques()[0].tolist())
         if name == "tcp_offset":
             return tuple(self.tool.tcp.tolist())
         if name == "control_step":  # (the controller's 2 ms steps since its start)

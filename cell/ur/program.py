@@ -181,6 +181,8 @@ class Cmd(IntEnum):
     STOPL = 33
     STOPJ = 34
     SET_WATCHDOG = 35
+    GET_JOINT_TORQUES = 38
+    GET_TCP_OFFSET = 40
     GET_FORWARD_KINEMATICS_DEFAULT = 43
     GET_FORWARD_KINEMATICS_ARGS = 44
     GET_INVERSE_KINEMATICS_DEFAULT = 46
@@ -348,6 +350,10 @@ class RtdeControl(Runner):
                 self._out_dbl(0, tool.fk(q))
             elif cmd == Cmd.GET_FORWARD_KINEMATICS_ARGS:
                 self._out_dbl(0, tool.fk(self._dbl(0, 6), self._dbl(6, 6)))
+            elif cmd == Cmd.GET_JOINT_TORQUES:  # (get_joint_torques(): beyond the arm's own dynamics)
+                self._out_dbl(0, self.arm.torques()[1])
+            elif cmd == Cmd.GET_TCP_OFFSET:
+                self._out_dbl(0, tool.tcp)
             elif cmd == Cmd.IS_STEADY:
                 moving = self.motion is not None and not self.motion.done
                 steady = not moving and float(np.abs(qd).max()) < STEADY_RAD_S

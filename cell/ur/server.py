@@ -26,6 +26,7 @@ import numpy as np
 from cell.config import CellConfig, RobotConfig
 from cell.counters import Counters
 from cell.lines import LineReader, TooLong
+from cell.robot.backends import MujocoArms, joint_torques
 from cell.robot.drive import HOLD_UR
 from cell.robot.emulator import RobotGroup
 from cell.ur import primary
@@ -75,6 +76,9 @@ class _Arm:
         # offers only its UR interfaces, as a real UR) none: it stands until a program is sent
         self.home = DATAGRAM_PROGRAM if group.datagrams else ""
         self.state = URArm(robot.name, group.arm, program=self.home)
+        if isinstance(group.backend, MujocoArms):  # (its physics' torques; read between two ticks)
+            data, dof = group.backend.data[row], group.dof
+            self.state.torques = lambda: joint_torques(data, dof)
         if not group.datagrams:
             self.state.runtime = RuntimeState.STOPPED
             group.drives.script(row, True)

@@ -9,6 +9,8 @@ import pytest
 
 from cell.config import load_config
 from cell.robot import datagram, udp
+from cell.robot.arm import arm_model
+from cell.robot.backends import MujocoArms, joint_torques
 from cell.robot.datagram import Datagram, Kind
 from cell.robot.emulator import RobotGroup
 from tests.conftest import cell_overrides
@@ -248,3 +250,18 @@ def test_each_robot_announces_itself_where_it_lives(plant) -> None:
         host, port = g.socks[0 if g.shared else row].getsockname()[:2]
         assert one.udp_address == f"{host}:{port}"
         assert one.SerializeToString() == every[row].SerializeToString()
+
+
+def test_a_mujoco_arm_reports_its_drives_torques_and_none_beyond_them_in_free_space() -> None:
+    """Standing still, its drives hold it against gravity (what RTDE's target_moment reports); nothing
+    touches it, so get_joint_torques()'s share is nil."""
+    arm = arm_model("ur5e")
+    q0 = np.array([[0.0, -1.2, 1.0, -1.4, -1.57, 0.0]])
+    b = MujocoArms(arm, q0, 4)
+    for _ in range(200):
+        b.step(0.002)
+    motor, beyond = joint_torques(b.data[0], arm.dof)
+    d = b.data[0]
+    gravity = d.qfrc_bias[: arm.dof]  # (still: the bias is gravity alone)
+    assert abs(motor[1]) > 10.0 and np.abs(motor - gravity).max() < 0.02 * np.abs(gravity).max()
+    assert np.abs(beyond).max() < 1e-9

@@ -241,13 +241,20 @@ async def test_what_the_arm_cannot_do_ends_the_script_as_on_a_ur_and_reuploading
     """forceMode (no force model here) is never reported done: the script dies as on a UR (a runtime
     exception), so isProgramRunning() says so and the next call fails, until ur_rtde's own
     reuploadScript() sends it again; the cell's program waits for the client meanwhile."""
-    cell = await start_cell(run=CELL, robots=robots())
+    cell = await start_cell(run=CELL, robots=[{**robots()[0], "backend": "mujoco"}])  # (its physics)
     host = cell.config.robots[0].ur_host
     async with Bus.connect(cell.config.bus, "test") as bus:
         events = Events(await bus.subscribe("events/robot/r1"))
         await _ready(bus)
         ctl = await asyncio.to_thread(rtde_control.RTDEControlInterface, host)
+        recv = await asyncio.to_thread(rtde_receive.RTDEReceiveInterface, host)
         try:
+            # what it does model: its TCP, its joints' torques (MuJoCo's; nothing touches it)
+            assert await asyncio.to_thread(ctl.setTcp, [0.0, 0.0, 0.12, 0.0, 0.0, 0.0])
+            assert await asyncio.to_thread(ctl.getTCPOffset) == pytest.approx([0.0, 0.0, 0.12, 0, 0, 0])
+            beyond = await asyncio.to_thread(ctl.getJointTorques)
+            assert len(beyond) == 6 and np.abs(beyond).max() < 1.0, beyond
+            assert abs(recv.getTargetMoment()[1]) > 10.0  # its shoulder holds the arm up
             force = ([0.0] * 6, [0, 0, 1, 0, 0, 0], [0, 0, 10.0, 0, 0, 0], 2, [2, 2, 1.5, 1, 1, 1])
             await asyncio.to_thread(ctl.forceMode, *force)  # (sent: a realtime command is not waited on)
             async with asyncio.timeout(5):  # (the script's end reaches ur_rtde with the next RTDE state)
@@ -260,12 +267,11 @@ async def test_what_the_arm_cannot_do_ends_the_script_as_on_a_ur_and_reuploading
                     await asyncio.sleep(0.01)
             goal = (Q0 + np.array([0.2, 0, 0, 0, 0, 0])).tolist()
             assert await asyncio.to_thread(ctl.moveJ, goal, 1.0, 1.0)
-            recv = await asyncio.to_thread(rtde_receive.RTDEReceiveInterface, host)
             assert np.abs(np.array(recv.getActualQ()) - goal).max() < 1e-3
-            recv.disconnect()
             await asyncio.to_thread(ctl.stopScript)
         finally:
             await asyncio.to_thread(ctl.disconnect)
+            recv.disconnect()
         await events.wait(RE.KIND_PROGRAM_END, "the cell's datagram program drives the arm again")
 
 

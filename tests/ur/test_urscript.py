@@ -291,3 +291,21 @@ def test_a_line_program_runs_its_calls_in_order() -> None:
         assert ticks < 2000
     assert r.ended == "" and abs(sim.q[0] - 0.2) <= AT_GOAL_RAD
     assert [m.text for m in r.messages] == ["there"]
+
+
+def test_the_tcp_offset_and_the_joint_torques_are_read_back_through_the_registers() -> None:
+    """getTCPOffset() is what setTcp() set; getJointTorques() is what the arm's physics says its joints
+    bear beyond its own dynamics (cell.robot.backends.joint_torques)."""
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    ctl = control(ur)
+    beyond = np.array([0.5, -1.25, 2.0, 0.0, 0.125, -0.75])
+    ur.torques = lambda: (np.ones(6), beyond)
+    tcp = [0.0, 0.01, 0.15, 0.0, 0.0, 0.3]
+    for cmd, args in ((Cmd.SET_TCP, tcp), (Cmd.NO_CMD, []), (Cmd.GET_TCP_OFFSET, [])):
+        ur.int_in[0] = cmd
+        ur.double_in[: len(args)] = args
+        sim.run(ctl.step, 1)
+    assert ur.double_out[:6] == tcp
+    ur.int_in[0] = Cmd.GET_JOINT_TORQUES  # (a realtime command: answered ready at once)
+    sim.run(ctl.step, 1)
+    assert ur.double_out[:6] == beyond.tolist() and ur.int_out[0] == READY and ctl.ended is None
