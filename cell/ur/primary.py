@@ -4,7 +4,7 @@ A UR controller greets each client of these ports with its version message and t
 programs say and where they fail: text messages (textmsg, popup) and runtime exceptions (the line,
 the column, the reason).  Each is a package: int32 length (header included), uint8 type; robot
 messages (type 20) then carry uint64 timestamp (us), int8 source, int8 robot message type.  The
-robot state packages (type 16, 10 Hz) are not sent: use RTDE for state.
+robot state package (type 16, 10 Hz) is cell.ur.robotstate's.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ from cell.lines import LineReader, TooLong
 from cell.robot.backends import MujocoArms, joint_torques
 from cell.robot.drive import HOLD_UR
 from cell.robot.emulator import RobotGroup
-from cell.ur import primary
+from cell.ur import primary, robotstate
 from cell.ur.arm import CONTROLLER_VERSION, DATAGRAM_PROGRAM, RuntimeState, SafetyMode, URArm
 from cell.ur.dashboard import MAX_LINE, WELCOME, Dashboard
 from cell.ur.fields import INPUTS, OUTPUTS
@@ -55,6 +55,8 @@ class URCounters(Counters):
     dashboard_unknown: int = 0
     dashboard_long_lines: int = 0
     script_clients: int = 0  # on the primary, secondary and real-time interfaces (a gauge)
+    states_out: int = 0  # robot state packages (10 Hz) to the primary and secondary clients
+    states_dropped: int = 0  # not sent: the client's queue was full
     scripts_run: int = 0
     scripts_refused: int = 0  # not a program this arm runs, too long, or the arm could not move
     scripts_ended: int = 0
@@ -248,6 +250,10 @@ class URInterfaces:
         # as the period starts (at_deadline), when the state they carry is the arm's: a UR sends its
         # state at the end of the cycle it describes, never before
         self.due: list[tuple[RtdeProtocol, bytes, int]] = []
+        # the arms with clients on 30001/30002: told their robot state at 10 Hz, on the tick grid
+        self.stated: set[_Arm] = set()
+        self.state_every = max(1, group.robots[0].status_hz // robotstate.STATE_HZ)
+        self.next_state_tick = 0
         group.at_deadline = self.at_deadline
         group.busy = self.busy
 
@@ -303,6 +309,29 @@ class URInterfaces:
             for p in live:
                 if due := p.session.due(tick + 1, arm.state):  # (the next tick's state)
                     self.due.append((p, b"".join(due), len(due)))
+
+        if self.stated and tick >= self.next_state_tick:
+            self.next_state_tick = (tick // self.state_every + 1) * self.state_every
+            self._states(group, t)
+
+    def _states(self, group: RobotGroup, t: float) -> None:
+        """Each listening client's robot state package (a client that does not read loses them,
+        counted, as RTDE's)."""
+        c = self.counters
+        t_us = round(t * 1e6)
+        for arm in self.stated:
+            row = arm.row
+            if arm.state.timestamp != t:  # (not updated this tick for an RTDE client already)
+                arm.state.update(group.q[row], group.qd[row], group.target[row], t)
+            data = robotstate.robot_state(arm.state, t_us)
+            for p in arm.scripts:
+                if not p.listens or p.transport.is_closing():
+                    continue
+                if p.transport.get_write_buffer_size() > WRITE_LIMIT:
+                    c.states_dropped += 1
+                    continue
+                p.transport.write(data)
+                c.states_out += 1
 
     def busy(self) -> bool:
         """Whether it needs every tick (an RTDE client, a program running or due back)."""
@@ -438,6 +467,7 @@ class ScriptProtocol(asyncio.Protocol):
         if self.listens:
             major, minor, bugfix, build = CONTROLLER_VERSION
             self.transport.write(primary.version(int(time.time() * 1e6), major, minor, bugfix, build))
+            self.ur.stated.add(self.arm)
 
     def data_received(self, data: bytes) -> None:
         for program in self.framer.feed(data):
@@ -445,3 +475,5 @@ class ScriptProtocol(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.arm.scripts.discard(self)
+        if not any(p.listens for p in self.arm.scripts):
+            self.ur.stated.discard(self.arm)

@@ -15,7 +15,7 @@ import rtde_receive
 from cell.bus import Bus
 from cell.controller.controller import Controller
 from cell.launcher import fetch_status
-from cell.ur import rtde
+from cell.ur import primary, robotstate, rtde
 from cell.v1 import robot_pb2
 from tests.conftest import free_port
 
@@ -221,3 +221,47 @@ async def _missed_ticks_since(config, after: float) -> float:
 async def _robots_counters(config) -> dict[str, float]:
     status = await fetch_status(config)
     return dict(next(s for s in status.services if s.name == "robots").last.counters)
+
+
+@pytest.mark.slow
+async def test_python_urx_reads_the_arm_at_10_hz_and_moves_it(start_cell) -> None:
+    """python-urx, as lab scripts use it: the secondary interface's robot state (10 Hz, PolyScope 5's
+    layout) for getj and getl, and movej/movel programs sent there.  (Its wait=True reads 5.x's robot
+    mode data as an older layout's and says "Robot stopped", as against a real PolyScope 5: urx's
+    issue 109; the moves are waited for here by reading the arm.)"""
+    from urx.urrobot import URRobot  # (imports math3d: only here)
+
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
+    host = cell.config.robots[0].ur_host
+    async with Bus.connect(cell.config.bus, "test") as bus:
+        truth = await bus.subscribe("truth/r1")
+        robot = await asyncio.to_thread(URRobot, host)
+        try:
+            assert np.abs(np.array(robot.getj()) - Q0).max() < 1e-6
+            pose = np.array(robot.getl())
+            q_truth = np.array((await truth.recv_messages(robot_pb2.RobotTruth))[-1].q)
+            assert np.abs(q_truth - Q0).max() < 1e-6 and np.linalg.norm(pose[:3]) > 0.3
+            goal = (Q0 + np.array([0.2, 0, 0, 0, 0, 0])).tolist()
+            robot.movej(goal, acc=1.0, vel=1.0, wait=False)
+            await _until(lambda: np.abs(np.array(robot.getj()) - goal).max() < 1e-3, timeout=10)
+            target = robot.getl()
+            target[2] += 0.05
+            robot.movel(target, acc=0.5, vel=0.2, wait=False)
+            await _until(lambda: np.abs(np.array(robot.getl()[:3]) - target[:3]).max() < 1e-4, timeout=10)
+        finally:
+            robot.close()
+        # and a plain client on 30002 hears the state at 10 Hz
+        reader, writer = await asyncio.open_connection(host, cell.config.ur.secondary_port)
+        try:
+            buf, stamps = bytearray(), []
+            async with asyncio.timeout(10):
+                while len(stamps) < 21:
+                    buf += await reader.read(65536)
+                    for kind, body in primary.split(buf):
+                        if kind == robotstate.ROBOT_STATE:
+                            stamps.append(struct.unpack_from(">Q", robotstate.read_robot_state(body)[0])[0])
+        finally:
+            writer.close()
+        steps = np.diff(stamps) / 1e3  # ms of the arm's clock between two packages: 50 of its periods
+        # (a tick the host held the arm's thread through is caught up on the next: 2 periods' slack)
+        assert np.abs(steps - 100.0).max() <= 4.0 and abs(steps.mean() - 100.0) < 1.0, steps
