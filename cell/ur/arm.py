@@ -8,6 +8,7 @@ released the way a UR's is (`unlock protective stop` on the dashboard)."""
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 from enum import IntEnum
 
@@ -101,6 +102,10 @@ class URArm:
         self.bits_out = 0
         self.digital_out = 0  # standard 0-7, configurable 8-15, tool 16-17 (actual_digital_output_bits)
         self.digital_in = 0
+        self.program_path = ""  # the loaded program's file, where the dashboard loaded one
+        self.installation = "default.installation"
+        self.operational_mode = "NONE"  # (the dashboard's; NONE: not controlled from there)
+        self.log: deque[str] = deque(maxlen=1000)  # the dashboard's addToLog lines (saveLog writes them)
         self.analog_out = [0.0, 0.0]
         self.payload, self.cog = 0.0, (0.0, 0.0, 0.0)
         self._owners: dict[str, object] = {}  # input field -> the session that holds it

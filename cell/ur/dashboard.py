@@ -1,12 +1,15 @@
 """UR's dashboard server (TCP port 29999), sans IO: one "\\n"-ended text command in, one reply line
-out, in the controller's own words (what ur_rtde's DashboardClient and URCaps parse).  The commands
-change the arm's real state (cell.ur.arm.URArm): powered off or braked, it does not move."""
+out, in the controller's own words (what ur_rtde's DashboardClient, UR's client library and URCaps
+parse).  The commands change the arm's real state (cell.ur.arm.URArm): powered off or braked, it
+does not move.  Programs and installations are loaded from the arm's programs folder, and the logs,
+flight reports and support files it is asked for are written there (cell.ur.programs)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
 from cell.ur.arm import POLYSCOPE, RobotMode, RuntimeState, SafetyMode, URArm
+from cell.ur.programs import Programs
 
 WELCOME = "Connected: Universal Robots Dashboard Server"
 MAX_LINE = 4096  # a longer line is refused (and not buffered), as a UR refuses what it cannot read
@@ -18,9 +21,15 @@ class Dashboard:
     the client said quit."""
 
     def __init__(
-        self, arm: URArm, model: str, serial: str, on_change: Callable[[], None] | None = None
+        self,
+        arm: URArm,
+        model: str,
+        serial: str,
+        on_change: Callable[[], None] | None = None,
+        programs: Programs | None = None,
     ) -> None:
         self.arm, self.model, self.serial = arm, model, serial
+        self.programs = programs or Programs()
         self.on_change = on_change or (lambda: None)  # the arm's modes changed: apply them to the drives
         self.closed = False
         self.commands = 0
@@ -44,8 +53,8 @@ class Dashboard:
             arm.runtime = RuntimeState.STOPPED
             self.on_change()
             return "Powering off"
-        if low == "brake release":
-            if arm.robot_mode in (RobotMode.IDLE, RobotMode.RUNNING):
+        if low == "brake release":  # (from POWER_OFF too: a UR powers on first)
+            if arm.robot_mode in (RobotMode.POWER_OFF, RobotMode.IDLE, RobotMode.RUNNING):
                 arm.robot_mode = RobotMode.RUNNING
                 self.on_change()
                 return "Brake releasing"
@@ -90,19 +99,32 @@ class Dashboard:
             arm.runtime = RuntimeState.PAUSED
             self.on_change()
             return "Pausing program"
+        if low.startswith("load installation"):
+            name = cmd[len("load installation") :].strip()
+            found = self.programs.find(name, ".installation")
+            if found is None:
+                return f"File not found: {name}"
+            arm.installation = found.name
+            return f"Loading installation: {found}"
         if word.lower() == "load" and rest:
-            arm.program = rest.strip()
+            name = rest.strip()
+            found = self.programs.find(name, ".urp")
+            if found is None:
+                return f"File not found: {name}"
+            arm.program, arm.program_path = found.name, str(found)
             arm.runtime = RuntimeState.STOPPED
             self.on_change()
-            return f"Loading program: {arm.program}"
+            return f"Loading program: {found}"
         if low == "get loaded program":
-            return f"Loaded program: {arm.program}" if arm.program else "No program loaded"
+            return (
+                f"Loaded program: {arm.program_path or arm.program}" if arm.program else "No program loaded"
+            )
         if low == "programstate":
             return f"{arm.runtime.name} {arm.program or '<unnamed>'}"
         if low == "running":
             return f"Program running: {'true' if arm.runtime == RuntimeState.PLAYING else 'false'}"
         if low == "isprogramsaved":
-            return f"True {arm.program}"
+            return f"true {arm.program}"
         if low == "is in remote control":
             return "true" if arm.remote else "false"
         if low == "get robot model":
@@ -114,9 +136,30 @@ class Dashboard:
         if low == "version":
             return POLYSCOPE
         if low == "get operational mode":
-            return "NONE"
+            return arm.operational_mode
         if word.lower() == "addtolog":
+            arm.log.append(rest)
             return "Added log message"
+        if low == "savelog":
+            self.programs.save_log(list(arm.log))
+            return "Log saved to disk"
+        if low.startswith("generate flight report"):
+            kind = cmd[len("generate flight report") :].strip()
+            return f"Flight Report generated with id: {self.programs.flight_report(kind, self._state())}"
+        if low.startswith("generate support file"):
+            into = self.programs.directory(cmd[len("generate support file") :].strip())
+            if into is None:
+                return "Error: the directory is not in the programs folder"
+            return f"Completed successfully: {self.programs.support_file(into, self._state(), list(arm.log))}"
+        if low.startswith("set operational mode "):
+            mode = cmd[len("set operational mode ") :].strip().upper()
+            if mode not in ("MANUAL", "AUTOMATIC"):
+                return f"Failed to execute: set operational mode {mode.lower()}"
+            arm.operational_mode = mode
+            return f"Operational mode {mode} is set"
+        if low == "clear operational mode":
+            arm.operational_mode = "NONE"
+            return "No longer controlling the operational mode. Current operational mode: 'NONE'."
         if low == "quit":
             self.closed = True
             return "Disconnected"
@@ -127,3 +170,18 @@ class Dashboard:
             return "Shutting down"
         self.unknown += 1
         return f"could not understand: '{cmd[:200]}'"
+
+    def _state(self) -> dict[str, object]:
+        """What a flight report or support file says of the arm."""
+        a = self.arm
+        return {
+            "robot_model": _MODEL.get(self.model, self.model.upper()),
+            "serial_number": self.serial,
+            "polyscope": POLYSCOPE,
+            "robot_mode": a.robot_mode.name,
+            "safety_mode": a.safety_mode.name,
+            "program": a.program,
+            "program_state": a.runtime.name,
+            "installation": a.installation,
+            "q": [float(x) for x in a.q],
+        }

@@ -34,6 +34,7 @@ from cell.ur.arm import CONTROLLER_VERSION, DATAGRAM_PROGRAM, RuntimeState, Safe
 from cell.ur.dashboard import MAX_LINE, WELCOME, Dashboard
 from cell.ur.fields import INPUTS, OUTPUTS
 from cell.ur.program import Message, RtdeControl, Runner, runner
+from cell.ur.programs import Programs
 from cell.ur.rtde import Session
 from cell.ur.urscript import Framer, ScriptError, parse
 from cell.v1 import robot_pb2
@@ -242,6 +243,7 @@ class URInterfaces:
         self.config = config.ur
         self.group = group
         self.publish = publish  # onto the bus (events/robot/<name>), if there is one
+        self.programs = Programs(config.ur.programs)  # (made on start())
         self.arms = [_Arm(self, group, row, r) for row, r in enumerate(group.robots)]
         self.active: set[_Arm] = set()  # the arms with per-tick work (_Arm.refresh)
         self.counters = URCounters()
@@ -259,6 +261,7 @@ class URInterfaces:
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
+        self.programs.ensure()
         for arm in self.arms:
             host = arm.robot.ur_host
             try:
@@ -413,7 +416,7 @@ class DashboardProtocol(asyncio.Protocol):
     def __init__(self, ur: URInterfaces, arm: _Arm) -> None:
         self.ur, self.arm = ur, arm
         robot = arm.robot
-        self.dash = Dashboard(arm.state, robot.model, f"2020500{robot.id:05d}", arm.apply)
+        self.dash = Dashboard(arm.state, robot.model, f"2020500{robot.id:05d}", arm.apply, ur.programs)
         self.lines = LineReader(MAX_LINE, b"\n")
         self.transport: asyncio.Transport
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import struct
+import zipfile
 
 import numpy as np
 
@@ -10,6 +12,7 @@ from cell.robot.arm import arm_model
 from cell.ur.arm import RobotMode, SafetyMode, URArm
 from cell.ur.dashboard import Dashboard
 from cell.ur.fields import INPUTS, OUTPUTS
+from cell.ur.programs import Programs
 from cell.ur.rtde import Package, Session, encode, split
 
 Q = np.array([0.1, -1.5, 1.4, -1.6, -1.5, 0.2])
@@ -105,15 +108,16 @@ def test_the_dashboard_changes_the_arms_modes_and_answers_as_a_ur() -> None:
     d = Dashboard(arm, "ur5e", "20205000001", lambda: changed.append(arm.can_move))
     assert d.handle("robotmode") == "Robotmode: RUNNING" and arm.can_move
     assert d.handle("power off") == "Powering off" and not arm.can_move
-    assert d.handle("brake release") == "Failed to execute: brake release"  # not powered
     assert d.handle("power on") == "Powering on" and arm.robot_mode == RobotMode.IDLE
     assert d.handle("brake release") == "Brake releasing" and arm.can_move
+    assert d.handle("power off") == "Powering off" and not arm.can_move
+    assert d.handle("brake release") == "Brake releasing" and arm.can_move  # (powered on first, as a UR)
     arm.safety_mode = SafetyMode.PROTECTIVE_STOP
     assert not arm.can_move and d.handle("safetystatus") == "Safetystatus: PROTECTIVE_STOP"
     assert d.handle("unlock protective stop") == "Protective stop releasing" and arm.can_move
     assert d.handle("get robot model") == "UR5" and d.handle("is in remote control") == "true"
     assert d.handle("warp 9") == "could not understand: 'warp 9'" and d.unknown == 1
-    assert changed == [False, False, True, True]
+    assert changed == [False, False, True, False, True, True]
     assert d.handle("quit") == "Disconnected" and d.closed
 
 
@@ -159,3 +163,44 @@ def test_the_newer_fields_report_the_arm() -> None:
     got = struct.unpack(">6dQQ3d", body[1:])
     assert got[:6] == (0.0, 0.0, 0.15, 0.0, 0.0, 0.3)
     assert got[6:8] == (2000, 0b1010_0000) and got[8:] == (0.0, 0.0, 9.82)
+
+
+def test_the_dashboard_loads_from_the_programs_folder_and_writes_its_files_there(tmp_path) -> None:
+    """As URSim's /ursim/programs: `load` finds .urp files there (by name, or a path inside it), and
+    programState names the file; installations likewise; saveLog, flight reports and support files
+    are written there; a name that leads out of the folder is not found."""
+    programs = Programs(str(tmp_path / "programs"))
+    programs.ensure()
+    (programs.root / "sub").mkdir()
+    (programs.root / "sub" / "wait_program.urp").write_text("<urp/>")
+    (tmp_path / "outside.urp").write_text("<urp/>")
+    arm = URArm("r1", arm_model("ur5e"))
+    d = Dashboard(arm, "ur5e", "20205000001", programs=programs)
+    path = programs.root / "sub" / "wait_program.urp"
+    assert d.handle("load sub/wait_program.urp") == f"Loading program: {path}"
+    assert d.handle("programState") == "STOPPED wait_program.urp"
+    assert d.handle("get loaded program") == f"Loaded program: {path}"
+    assert d.handle(f"load {path}") == f"Loading program: {path}"  # (an absolute path inside it)
+    assert d.handle("load ../outside.urp") == "File not found: ../outside.urp"
+    assert d.handle(f"load {tmp_path / 'outside.urp'}") == f"File not found: {tmp_path / 'outside.urp'}"
+    assert d.handle("load nothing.urp") == "File not found: nothing.urp"
+    assert d.handle("load installation default.installation") == (
+        f"Loading installation: {programs.root / 'default.installation'}"
+    )
+    assert d.handle("load installation none.installation") == "File not found: none.installation"
+    assert d.handle("isProgramSaved") == "true wait_program.urp"
+    assert d.handle("addToLog first line") == "Added log message"
+    assert d.handle("saveLog") == "Log saved to disk"
+    assert (programs.root / "log_history.txt").read_text() == "first line\n"
+    reply = d.handle("generate flight report controller")
+    assert reply.startswith("Flight Report generated with id: ")
+    report = programs.root / "flight_reports" / f"flight_report_{reply.rsplit(' ', 1)[1]}.json"
+    assert json.loads(report.read_text())["state"]["program"] == "wait_program.urp"
+    reply = d.handle("generate support file .")
+    assert reply.startswith("Completed successfully: ")
+    with zipfile.ZipFile(reply.split(": ", 1)[1]) as z:
+        assert sorted(z.namelist()) == ["log_history.txt", "state.json"]
+    assert d.handle("generate support file ../..").startswith("Error")  # (nothing written outside)
+    assert d.handle("set operational mode manual") == "Operational mode MANUAL is set"
+    assert d.handle("get operational mode") == "MANUAL"
+    assert d.handle("clear operational mode").startswith("No longer controlling the operational mode")
