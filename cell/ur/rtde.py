@@ -145,6 +145,9 @@ class Session:
         self.tick_hz = tick_hz
         self.protocol = 1  # until the client asks for 2
         self.started = False
+        # counts starts and pauses: data packages made before one are not sent after it (a client
+        # that paused reads no data package after the pause's reply, as from a UR)
+        self.runs = 0
         self.recipes: list[Recipe] = []  # output recipes, by id - 1
         self.input_recipes: dict[int, Recipe] = {}
         self.counters = SessionCounters()
@@ -210,9 +213,11 @@ class Session:
             return self._setup_inputs(p)
         if kind == Package.CONTROL_PACKAGE_START:
             self.started = bool(self.recipes or self.input_recipes)
+            self.runs += 1
             return self._pack(Package.CONTROL_PACKAGE_START, struct.pack(">B", self.started))
         if kind == Package.CONTROL_PACKAGE_PAUSE:
             self.started = False
+            self.runs += 1
             return self._pack(Package.CONTROL_PACKAGE_PAUSE, b"\x01")
         if kind == Package.DATA_PACKAGE:
             self._data(p)

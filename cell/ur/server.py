@@ -251,7 +251,7 @@ class URInterfaces:
         # the RTDE packages of the next deadline's state, made after this tick (after_tick) and sent
         # as the period starts (at_deadline), when the state they carry is the arm's: a UR sends its
         # state at the end of the cycle it describes, never before
-        self.due: list[tuple[RtdeProtocol, bytes, int]] = []
+        self.due: list[tuple[RtdeProtocol, int, bytes, int]] = []  # (client, its session's runs, ...)
         # the arms with clients on 30001/30002: told their robot state at 10 Hz, on the tick grid
         self.stated: set[_Arm] = set()
         self.state_every = max(1, group.robots[0].status_hz // robotstate.STATE_HZ)
@@ -311,7 +311,7 @@ class URInterfaces:
             arm.state.update(group.q[row], group.qd[row], group.target[row], t)
             for p in live:
                 if due := p.session.due(tick + 1, arm.state):  # (the next tick's state)
-                    self.due.append((p, b"".join(due), len(due)))
+                    self.due.append((p, p.session.runs, b"".join(due), len(due)))
 
         if self.stated and tick >= self.next_state_tick:
             self.next_state_tick = (tick // self.state_every + 1) * self.state_every
@@ -361,8 +361,8 @@ class URInterfaces:
         """The packages of the state at this deadline, to their clients (a client that does not read
         loses them, counted: the arm waits for nobody)."""
         c = self.counters
-        for p, data, n in self.due:
-            if p.transport.is_closing():
+        for p, runs, data, n in self.due:
+            if p.transport.is_closing() or p.session.runs != runs:  # (paused or restarted meanwhile)
                 continue
             if p.transport.get_write_buffer_size() > WRITE_LIMIT:
                 c.rtde_dropped += n
