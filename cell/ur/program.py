@@ -134,6 +134,9 @@ class LineRunner(Runner):
         elif call.name == "popup":
             arm.popup = str(a["s"])
             self.messages.append(Message(f"popup: {a['s']}"))
+        elif call.name == "protective_stop":  # (the arm stops; the program ends, as on a UR)
+            arm.safety_mode = SafetyMode.PROTECTIVE_STOP
+            self.ended = "a protective stop (protective_stop())"
 
     def _running(self, call: Call, dt: float) -> bool:
         """Whether the call goes on for another tick."""

@@ -57,6 +57,7 @@ class URCounters(Counters):
     dashboard_long_lines: int = 0
     script_clients: int = 0  # on the primary, secondary and real-time interfaces (a gauge)
     states_out: int = 0  # robot state packages (10 Hz) to the primary and secondary clients
+    primary_commands: int = 0  # the primary interface's own commands (power on, ...) taken
     states_dropped: int = 0  # not sent: the client's queue was full
     scripts_run: int = 0
     scripts_refused: int = 0  # not a program this arm runs, too long, or the arm could not move
@@ -68,6 +69,15 @@ Publish = Callable[[str, object], None]
 # after a script ends, no program runs for this long before the datagram program is back (as a URCap
 # daemon re-sends its program): a client waiting to see its script gone (ur_rtde's stopScript) sees it
 RESTART_S = 0.1
+# the primary interface's own commands (not URScript: a UR takes them there as lines of their own),
+# as the dashboard's commands they are
+PRIMARY_COMMANDS = {
+    "power on": "power on",
+    "power off": "power off",
+    "set robotmode run": "brake release",
+    "set unlock protective stop": "unlock protective stop",
+    "stop program": "stop",
+}
 
 
 class _Arm:
@@ -155,8 +165,13 @@ class _Arm:
             (log.warning if m.line >= 0 else log.info)("%s: %s", self.robot.name, m.text)
 
     def run(self, text: str | ScriptError) -> None:
-        """A program from a client interface: refused, or run in place of whatever holds the arm."""
+        """A program from a client interface: refused, or run in place of whatever holds the arm (or
+        one of the primary interface's own commands, which UR's client library sends there)."""
         c = self.ur.counters
+        if isinstance(text, str) and (command := PRIMARY_COMMANDS.get(text.strip())) is not None:
+            self.ur.commands.setdefault(self, self.ur.dashboard_of(self)).handle(command)
+            c.primary_commands += 1
+            return
         try:
             if isinstance(text, ScriptError):
                 raise text
@@ -244,6 +259,7 @@ class URInterfaces:
         self.group = group
         self.publish = publish  # onto the bus (events/robot/<name>), if there is one
         self.programs = Programs(config.ur.programs)  # (made on start())
+        self.commands: dict[_Arm, Dashboard] = {}  # each arm's primary commands, carried out as these
         self.arms = [_Arm(self, group, row, r) for row, r in enumerate(group.robots)]
         self.active: set[_Arm] = set()  # the arms with per-tick work (_Arm.refresh)
         self.counters = URCounters()
@@ -258,6 +274,10 @@ class URInterfaces:
         self.next_state_tick = 0
         group.at_deadline = self.at_deadline
         group.busy = self.busy
+
+    def dashboard_of(self, arm: _Arm) -> Dashboard:
+        robot = arm.robot
+        return Dashboard(arm.state, robot.model, f"2020500{robot.id:05d}", arm.apply, self.programs)
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -415,8 +435,7 @@ class RtdeProtocol(asyncio.Protocol):
 class DashboardProtocol(asyncio.Protocol):
     def __init__(self, ur: URInterfaces, arm: _Arm) -> None:
         self.ur, self.arm = ur, arm
-        robot = arm.robot
-        self.dash = Dashboard(arm.state, robot.model, f"2020500{robot.id:05d}", arm.apply, ur.programs)
+        self.dash = ur.dashboard_of(arm)
         self.lines = LineReader(MAX_LINE, b"\n")
         self.transport: asyncio.Transport
 

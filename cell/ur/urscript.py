@@ -9,7 +9,7 @@ says what the program is:
 - the cell's daemon script (`def cell_daemon():`, cell.ur.daemon): served natively, its settings
   read from its `global cell_<name> = <number>` lines;
 - a straight-line program: calls of movej, movel, speedj, servoj, stopj, stopl, sleep, sync,
-  set_standard_digital_out, textmsg and popup, one a line, with literal arguments;
+  set_standard_digital_out, textmsg, popup and protective_stop, one a line, with literal arguments;
 
 and anything else is refused (ScriptError: the line, the column and why), as a UR's runtime
 exception says it.  The emulator is not a URScript interpreter: no variables, no control flow.
@@ -129,6 +129,7 @@ SIGNATURES: dict[str, dict[str, object]] = {
     "sync": {},
     "set_standard_digital_out": {"n": None, "b": None},
     "textmsg": {"s1": None, "s2": ""},
+    "protective_stop": {},
     "popup": {"s": None, "title": "Popup", "warning": False, "error": False, "blocking": False},
 }
 

@@ -323,3 +323,27 @@ async def test_a_straight_line_program_on_the_primary_port_runs_and_a_foreign_on
     finally:
         writer.close()
         recv.disconnect()
+
+
+@pytest.mark.slow
+async def test_the_primary_interfaces_own_commands_power_the_arm(start_cell) -> None:
+    """`power off`, `power on`, `set robotmode run` on 30001: as UR's client library's primary client
+    sends them (they are not URScript), with the arm's state read on the dashboard."""
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
+    host = cell.config.robots[0].ur_host
+    dash = dashboard_client.DashboardClient(host)
+    await asyncio.to_thread(dash.connect)
+    _reader, writer = await asyncio.open_connection(host, cell.config.ur.primary_port)
+    try:
+        for line, mode in (
+            ("power off", "POWER_OFF"),
+            ("power on", "IDLE"),
+            ("set robotmode run", "RUNNING"),
+        ):
+            writer.write(f"{line}\n".encode())
+            async with asyncio.timeout(5):
+                while dash.robotmode() != f"Robotmode: {mode}":
+                    await asyncio.sleep(0.01)
+    finally:
+        writer.close()
+        dash.disconnect()

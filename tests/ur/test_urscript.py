@@ -293,6 +293,15 @@ def test_a_line_program_runs_its_calls_in_order() -> None:
     assert [m.text for m in r.messages] == ["there"]
 
 
+def test_protective_stop_stops_the_arm_and_ends_the_program() -> None:
+    """What UR's client library's dashboard test sends on the primary interface."""
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    r = LineRunner(parse("protective_stop()\n"), ur)
+    sim.run(r.step, 1)
+    assert r.ended == "a protective stop (protective_stop())" and ur.safety_mode == SafetyMode.PROTECTIVE_STOP
+    assert not ur.can_move
+
+
 def test_the_tcp_offset_and_the_joint_torques_are_read_back_through_the_registers() -> None:
     """getTCPOffset() is what setTcp() set; getJointTorques() is what the arm's physics says its joints
     bear beyond its own dynamics (cell.robot.backends.joint_torques)."""
