@@ -135,20 +135,19 @@ class Churn:
 
 
 class _TimedUpdates:
-    """The controller's data-plane client with each table update timed (t_upd, as the controller
-    sees it: request to reply, the bus both ways)."""
+    """The controller's table updates timed (t_upd, as the controller sees it: request to reply, the
+    bus both ways): its data-plane client's `update`, which all its parts share, wrapped in place.
+    `untimed` still sends an update as it was (the churn's, which is not the controller's)."""
 
     def __init__(self, dp: Any, loaded: list[tuple[float, int]]) -> None:
-        self.dp = dp
+        self.untimed = dp.update
         self.ms: list[float] = []
         self.loaded = loaded  # (monotonic s, TPs in the tables after the update)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.dp, name)
+        dp.update = self.update
 
     async def update(self, *args: Any, **kwargs: Any) -> Any:
         t0 = time.perf_counter()
-        reply = await self.dp.update(*args, **kwargs)
+        reply = await self.untimed(*args, **kwargs)
         self.ms.append((time.perf_counter() - t0) * 1e3)
         self.loaded.append((time.monotonic(), int(reply.loaded)))
         return reply
@@ -250,16 +249,15 @@ async def measure(
         background = [tg.create_task(truth.run(bus)), tg.create_task(_on_a_par())]
         await robots_heard(ctl, set(range(1, n + 1)), timeout=30.0)
         loaded: list[tuple[float, int]] = []
-        timed = _TimedUpdates(ctl.dp, loaded)
-        ctl.dp = timed  # type: ignore[assignment]  # a stand-in: the engine's updates (reads go through ctl.link)
+        timed = _TimedUpdates(ctl.dp, loaded)  # (its parts' updates; its reads go through ctl.link)
         for p in pairs:
             await ctl.merge(p)
         if churn:
             run.churn = Churn()
             owners = np.array([int(x[1:]) for x in singles])
-            reply = await timed.dp.update(insert=dealt(owners, 0, CHURN_PRELOAD))
+            reply = await timed.untimed(insert=dealt(owners, 0, CHURN_PRELOAD))
             loaded.append((time.monotonic(), int(reply.loaded)))
-            background.append(tg.create_task(_churn(timed.dp, owners, run.churn, loaded)))
+            background.append(tg.create_task(_churn(timed.untimed, owners, run.churn, loaded)))
         procs, c0 = await _snapshot(config)
         cpu0 = {k: sched.process_cpu_seconds(pid) for k, pid in procs.items()}
         me0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -334,7 +332,7 @@ def dealt(owners: np.ndarray, first: int, n: int, id0: int = CHURN_ID0) -> TPBat
     return TPBatch.parked(owners[k % owners.size], id0 + k)
 
 
-async def _churn(dp: Any, owners: np.ndarray, churn: Churn, loaded: list[tuple[float, int]]) -> None:
+async def _churn(update: Any, owners: np.ndarray, churn: Churn, loaded: list[tuple[float, int]]) -> None:
     """Each second 1,600 TPs in, and half a second on the 1,600 oldest out (the preload's first),
     until cancelled; each phase timed, the tables' count after it kept."""
     oldest, newest = 0, CHURN_PRELOAD
@@ -345,11 +343,11 @@ async def _churn(dp: Any, owners: np.ndarray, churn: Churn, loaded: list[tuple[f
             await asyncio.sleep(max(0.0, due - time.monotonic()))
             a = time.monotonic()
             if kind == "insert":
-                reply = await dp.update(insert=dealt(owners, newest, CHURN_TPS))
+                reply = await update(insert=dealt(owners, newest, CHURN_TPS))
                 newest += CHURN_TPS
             else:
                 gone = dealt(owners, oldest, CHURN_TPS)
-                reply = await dp.update(remove=gone.keys)
+                reply = await update(remove=gone.keys)
                 oldest += CHURN_TPS
             b = time.monotonic()
             churn.phases.append((a, b, kind))
