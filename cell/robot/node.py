@@ -143,7 +143,8 @@ class Publisher:
         self.every = max(1, round(group.robots[0].status_hz / hz)) if hz > 0 else 0
         self.names = [r.name for r in group.robots]
         self.topics = [f"truth/{name}" for name in self.names]
-        self.truths = truths_for(group)  # each arm's RobotTruth, encoded in C where it builds
+        # each arm's RobotTruth, encoded in C where it builds (a fleet's truth is one GroupTruth)
+        self.truths = None if group.shared else truths_for(group)
         self.ids = robot_pb2.GroupTruth(robot_id=group.ids.tolist()).SerializeToString()  # (a fleet's)
         self.outputs = group.digital_out.copy()  # the digital outputs the bus was last told of
         # a group ticking in C's thread is read on the truth's grid (and the Responsive Link node's look
@@ -190,6 +191,7 @@ class Publisher:
                 put_arrays(msg, q=group.q.ravel(), stopped=group.stopped)
                 self.bus.publish(f"fleet/{self.names[0]}", msg)
                 return
+            assert self.truths is not None  # (not a fleet)
             for topic, raw in zip(self.topics, self.truths(group, at), strict=True):
                 self.bus.publish_serialized(topic, TRUTH, raw)
 

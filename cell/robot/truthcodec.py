@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ctypes
 import itertools
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -97,9 +98,7 @@ class NativeTruths:
         """The group's arrays' addresses: looked up again when the group replaces them (as C's thread
         starts and ends), and read from a contiguous copy where one is not as C reads it."""
         arrays = (group.q, group.qd, group.target, group.stopped, group.digital_out)
-        if len(self._arrays) == len(arrays) and all(
-            a is b for a, b in zip(arrays, self._arrays, strict=True)
-        ):
+        if self._arrays and all(a is b for a, b in zip(arrays, self._arrays, strict=True)):
             return self._ptrs
         as_c: tuple[np.ndarray, ...] = tuple(
             np.ascontiguousarray(a, k) for a, k in zip(arrays, _KINDS, strict=True)
@@ -136,9 +135,9 @@ class NativeTruths:
         return pose
 
 
-def truths_for(group: RobotGroup):
+def truths_for(group: RobotGroup) -> Callable[[RobotGroup, int], list[bytes]]:
     """The group's truth encoder: C's where it builds, else protobuf's from Python."""
     try:
         return NativeTruths(group)
     except NativeUnavailable:
-        return lambda g, t_ns: python_truths(g, t_ns)
+        return python_truths
