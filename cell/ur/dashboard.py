@@ -99,8 +99,7 @@ class Dashboard:
             arm.runtime = RuntimeState.PAUSED
             self.on_change()
             return "Pausing program"
-        if low.startswith("load installation"):
-            name = cmd[len("load installation") :].strip()
+        if (name := _after(cmd, "load installation")) is not None:
             found = self.programs.find(name, ".installation")
             if found is None:
                 return f"File not found: {name}"
@@ -143,16 +142,15 @@ class Dashboard:
         if low == "savelog":
             self.programs.save_log(list(arm.log))
             return "Log saved to disk"
-        if low.startswith("generate flight report"):
-            kind = cmd[len("generate flight report") :].strip()
+        if (kind := _after(cmd, "generate flight report")) is not None:
             return f"Flight Report generated with id: {self.programs.flight_report(kind, self._state())}"
-        if low.startswith("generate support file"):
-            into = self.programs.directory(cmd[len("generate support file") :].strip())
+        if (folder := _after(cmd, "generate support file")) is not None:
+            into = self.programs.directory(folder)
             if into is None:
                 return "Error: the directory is not in the programs folder"
             return f"Completed successfully: {self.programs.support_file(into, self._state(), list(arm.log))}"
-        if low.startswith("set operational mode "):
-            mode = cmd[len("set operational mode ") :].strip().upper()
+        if (mode := _after(cmd, "set operational mode ")) is not None:
+            mode = mode.upper()
             if mode not in ("MANUAL", "AUTOMATIC"):
                 return f"Failed to execute: set operational mode {mode.lower()}"
             arm.operational_mode = mode
@@ -185,3 +183,8 @@ class Dashboard:
             "installation": a.installation,
             "q": [float(x) for x in a.q],
         }
+
+
+def _after(cmd: str, prefix: str) -> str | None:
+    """What follows a command's words (any case), stripped; None if cmd is not that command."""
+    return cmd[len(prefix) :].strip() if cmd.lower().startswith(prefix) else None

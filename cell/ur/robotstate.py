@@ -49,8 +49,7 @@ def _sub(kind: StateType, fmt: str, *values: object) -> bytes:
     return _HEADER.pack(_HEADER.size + len(body), kind) + body
 
 
-def robot_mode(arm: URArm, t_us: int) -> bytes:
-    st = arm
+def robot_mode(st: URArm, t_us: int) -> bytes:
     estop = st.safety_mode in (SafetyMode.SYSTEM_EMERGENCY_STOP, SafetyMode.ROBOT_EMERGENCY_STOP)
     powered = st.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING)
     return _sub(

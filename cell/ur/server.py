@@ -106,6 +106,7 @@ class _Arm:
         # ur_rtde's next call says its script is not running, and it may send it again)
         self.restart_after: str | None = None
         self.ended = ""  # how the last program ended
+        self.commands = ur.dashboard_of(self)  # what carries out its primary interface's own commands
 
     def refresh(self) -> None:
         """In the interfaces' per-tick set (URInterfaces.active) while it has an RTDE client, a program
@@ -169,7 +170,7 @@ class _Arm:
         one of the primary interface's own commands, which UR's client library sends there)."""
         c = self.ur.counters
         if isinstance(text, str) and (command := PRIMARY_COMMANDS.get(text.strip())) is not None:
-            self.ur.commands.setdefault(self, self.ur.dashboard_of(self)).handle(command)
+            self.commands.handle(command)
             c.primary_commands += 1
             return
         try:
@@ -259,7 +260,6 @@ class URInterfaces:
         self.group = group
         self.publish = publish  # onto the bus (events/robot/<name>), if there is one
         self.programs = Programs(config.ur.programs)  # (made on start())
-        self.commands: dict[_Arm, Dashboard] = {}  # each arm's primary commands, carried out as these
         self.arms = [_Arm(self, group, row, r) for row, r in enumerate(group.robots)]
         self.active: set[_Arm] = set()  # the arms with per-tick work (_Arm.refresh)
         self.counters = URCounters()
