@@ -40,21 +40,30 @@ class Programs:
             if not f.exists():
                 f.write_text(text)
 
+    def _inside(self, name: str) -> Path | None:
+        """`name` (relative to the folder, or an absolute path) resolved, if it lies in the folder;
+        None for one outside it, or one no file system takes (a NUL byte, too long a name)."""
+        try:
+            path = Path(name)
+            path = (path if path.is_absolute() else self.root / path).resolve()
+        except (ValueError, OSError):
+            return None
+        return path if path.is_relative_to(self.root) else None
+
     def find(self, name: str, suffix: str) -> Path | None:
-        """The file `name` (relative to the folder, or an absolute path inside it) if it exists there
-        and ends in `suffix`; else None."""
-        if not name:
+        """The file `name` if it is in the folder and ends in `suffix`; else None."""
+        path = self._inside(name) if name else None
+        try:
+            return path if path is not None and path.suffix == suffix and path.is_file() else None
+        except OSError:
             return None
-        path = Path(name)
-        path = (path if path.is_absolute() else self.root / path).resolve()
-        if not path.is_relative_to(self.root) or path.suffix != suffix or not path.is_file():
-            return None
-        return path
 
     def directory(self, name: str) -> Path | None:
-        path = Path(name or ".")
-        path = (path if path.is_absolute() else self.root / path).resolve()
-        return path if path.is_relative_to(self.root) and path.is_dir() else None
+        path = self._inside(name or ".")
+        try:
+            return path if path is not None and path.is_dir() else None
+        except OSError:
+            return None
 
     def save_log(self, lines: list[str]) -> Path:
         self.ensure()

@@ -184,6 +184,10 @@ def test_the_dashboard_loads_from_the_programs_folder_and_writes_its_files_there
     assert d.handle("load ../outside.urp") == "File not found: ../outside.urp"
     assert d.handle(f"load {tmp_path / 'outside.urp'}") == f"File not found: {tmp_path / 'outside.urp'}"
     assert d.handle("load nothing.urp") == "File not found: nothing.urp"
+    for junk in ("a\x00b.urp", "x" * 3000 + ".urp"):  # (no file system takes these: not found, no crash)
+        assert d.handle(f"load {junk}") == f"File not found: {junk}"
+        assert d.handle(f"load installation {junk}") == f"File not found: {junk}"
+    assert d.handle("generate support file a\x00b").startswith("Error")
     assert d.handle("load installation default.installation") == (
         f"Loading installation: {programs.root / 'default.installation'}"
     )
