@@ -9,7 +9,7 @@
   servoJ (lookahead 0.1 s) while it reads actual_q; the lag that best aligns the arm with the
   commands, and the largest error at that lag.
 - The secondary interface (30002): how many robot state packages a client gets a second (a UR
-  sends 10).
+  sends 10); beside it, the real-time interface (30003): its state messages a second (a UR: 500).
 
 - The daemon (`backend = "ur"`): one cell, two MuJoCo arms driven side by side through the same data
   plane by the same controller with the same motions (the accuracy bench's joint moves and straight
@@ -27,6 +27,7 @@ import asyncio
 import multiprocessing as mp
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,7 +43,7 @@ from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.robot.kinematics import Kinematics
 from cell.robot.truth import Truth
-from cell.ur import primary, robotstate, rtde
+from cell.ur import primary, realtime, robotstate, rtde
 from cell.ur.rtde import Package
 
 PERIOD_S = 0.002
@@ -159,21 +160,34 @@ async def _rtde_run(n: int, seconds: float, backend: str) -> tuple[dict[str, flo
     return _periods(streams), float(robots_status.get("lateness_p99_us", float("nan")))
 
 
-async def _primary_run(seconds: float, backend: str) -> float:
-    """The robot state packages a client of the secondary interface gets a second (wall clock)."""
+async def _state_run(seconds: float, backend: str) -> tuple[float, float]:
+    """The robot state packages a client of the secondary interface (30002) gets a second, and the
+    state messages one of the real-time interface (30003) gets, side by side (wall clock)."""
     overrides = {"services": {"run": ["bus", "dataplane", "robots"]}, "robots": _robots(1, backend)}
     async with running_cell(overrides) as config:
-        reader, writer = await asyncio.open_connection(config.robots[0].ur_host, config.ur.secondary_port)
-        try:
-            buf, seen = bytearray(), list[float]()
-            async with asyncio.timeout(seconds + 10):
-                while not seen or seen[-1] - seen[0] < seconds:
-                    buf += await reader.read(65536)
-                    now = time.monotonic()
-                    seen += [now for kind, _ in primary.split(buf) if kind == robotstate.ROBOT_STATE]
-        finally:
-            writer.close()
-    return (len(seen) - 1) / (seen[-1] - seen[0])
+        host = config.robots[0].ur_host
+
+        async def rate(port: int, count: Callable[[bytearray], int]) -> float:
+            reader, writer = await asyncio.open_connection(host, port)
+            try:
+                buf, seen = bytearray(), list[float]()
+                async with asyncio.timeout(seconds + 10):
+                    while not seen or seen[-1] - seen[0] < seconds:
+                        buf += await reader.read(65536)
+                        seen += [time.monotonic()] * count(buf)
+            finally:
+                writer.close()
+            return (len(seen) - 1) / (seen[-1] - seen[0])
+
+        def states(buf: bytearray) -> int:
+            return sum(kind == robotstate.ROBOT_STATE for kind, _ in primary.split(buf))
+
+        return tuple(  # type: ignore[return-value]
+            await asyncio.gather(
+                rate(config.ur.secondary_port, states),
+                rate(config.ur.realtime_port, lambda buf: len(realtime.split(buf))),
+            )
+        )
 
 
 async def _servo_run(seconds: float, backend: str) -> tuple[float, float]:
@@ -260,6 +274,7 @@ class UrResult(JsonFields):
     servoj_lag_ms: float
     servoj_error_mrad: float
     primary_state_hz: float
+    realtime_state_hz: float
     direct_path_error_mm_max: float
     direct_path_error_mm_median: float
     bridge_path_error_mm_max: float
@@ -295,8 +310,11 @@ def _main(args: argparse.Namespace) -> Figures:
             f"{many['period_ms_p99']:.3f} ms, {many['missed_per_10k']:.2f} missed per 10k "
             f"({many['packages']} packages; ticks' lateness p99 {late_n:.0f} us)"
         )
-        state_hz = await _primary_run(args.seconds, args.backend)
-        log(f"secondary interface (30002): the robot state at {state_hz:.2f} Hz (a UR: 10)")
+        state_hz, realtime_hz = await _state_run(args.seconds, args.backend)
+        log(
+            f"secondary interface (30002): the robot state at {state_hz:.2f} Hz (a UR: 10); real-time "
+            f"interface (30003): its state at {realtime_hz:.1f} Hz (a UR: 500)"
+        )
         lag, err = await _servo_run(args.servo_seconds, args.backend)
         log(f"servoJ, 500 Hz, 1 Hz sine, lookahead 0.1 s: lag {lag:.0f} ms, then off by {err:.2f} mrad")
         b = await _bridge_run(args.moves)
@@ -325,6 +343,7 @@ def _main(args: argparse.Namespace) -> Figures:
             servoj_lag_ms=lag,
             servoj_error_mrad=err,
             primary_state_hz=state_hz,
+            realtime_state_hz=realtime_hz,
             direct_path_error_mm_max=b["direct_path_error_mm_max"],
             direct_path_error_mm_median=b["direct_path_error_mm_median"],
             bridge_path_error_mm_max=b["bridge_path_error_mm_max"],

@@ -3,8 +3,9 @@ tick: RTDE (30004), the dashboard server (29999) and the primary, secondary and 
 interfaces (30001-30003: URScript in, messages out) on each arm's own address (RobotConfig.ur_host).
 
 RTDE data packages go out from the tick itself (after_tick), on the arm's own 2 ms clock: a client
-at 500 Hz gets every status period's state, one at 125 Hz every fourth.  A client that does not
-read is not waited for: past WRITE_LIMIT bytes queued its packages are dropped and counted.
+at 500 Hz gets every status period's state, one at 125 Hz every fourth; a real-time interface
+client (30003) every period's (cell.ur.realtime).  A client that does not read is not waited for:
+past WRITE_LIMIT bytes queued its packages are dropped and counted.
 
 A program sent to the client interfaces takes the arm over from the cell's datagram program
 (cell.ur.program): the drives take the program's velocities, the data plane's commands are counted
@@ -29,7 +30,7 @@ from cell.lines import LineReader, TooLong
 from cell.robot.backends import MujocoArms, joint_torques
 from cell.robot.drive import HOLD_UR
 from cell.robot.emulator import RobotGroup
-from cell.ur import primary, robotstate
+from cell.ur import primary, realtime, robotstate
 from cell.ur.arm import CONTROLLER_VERSION, DATAGRAM_PROGRAM, RuntimeState, SafetyMode, URArm
 from cell.ur.dashboard import MAX_LINE, WELCOME, Dashboard
 from cell.ur.fields import INPUTS, OUTPUTS
@@ -59,6 +60,8 @@ class URCounters(Counters):
     states_out: int = 0  # robot state packages (10 Hz) to the primary and secondary clients
     primary_commands: int = 0  # the primary interface's own commands (power on, ...) taken
     states_dropped: int = 0  # not sent: the client's queue was full
+    realtime_out: int = 0  # real-time state messages (every tick) to the real-time interface's clients
+    realtime_dropped: int = 0  # not sent: the client's queue was full
     scripts_run: int = 0
     scripts_refused: int = 0  # not a program this arm runs, too long, or the arm could not move
     scripts_ended: int = 0
@@ -98,6 +101,7 @@ class _Arm:
         self.rtde: set[RtdeProtocol] = set()
         self.dashboards: set[DashboardProtocol] = set()
         self.scripts: set[ScriptProtocol] = set()  # clients of 30001-30003 (those of 30001/2 hear messages)
+        self.realtime: set[ScriptProtocol] = set()  # those of 30003: told the arm's state every tick
         self.runner: Runner | None = None
         self.t_last = 0.0  # the state time the program last stepped at
         self.restart_at = 0.0  # (monotonic s) when the datagram program comes back; 0: not due
@@ -109,10 +113,10 @@ class _Arm:
         self.commands = ur.dashboard_of(self)  # what carries out its primary interface's own commands
 
     def refresh(self) -> None:
-        """In the interfaces' per-tick set (URInterfaces.active) while it has an RTDE client, a program
-        or a restart due; its digital outputs onto the group's as it leaves (a fleet of a thousand
-        arms with no client costs the ticks nothing)."""
-        if self.rtde or self.runner is not None or self.restart_at:
+        """In the interfaces' per-tick set (URInterfaces.active) while it has an RTDE or a real-time
+        client, a program or a restart due; its digital outputs onto the group's as it leaves (a
+        fleet of a thousand arms with no client costs the ticks nothing)."""
+        if self.rtde or self.realtime or self.runner is not None or self.restart_at:
             self.ur.active.add(self)
         elif self in self.ur.active:
             self.ur.active.discard(self)
@@ -268,6 +272,7 @@ class URInterfaces:
         # as the period starts (at_deadline), when the state they carry is the arm's: a UR sends its
         # state at the end of the cycle it describes, never before
         self.due: list[tuple[RtdeProtocol, int, bytes, int]] = []  # (client, its session's runs, ...)
+        self.realtime_due: list[tuple[ScriptProtocol, bytes]] = []  # (the same for 30003's clients)
         # the arms with clients on 30001/30002: told their robot state at 10 Hz, on the tick grid
         self.stated: set[_Arm] = set()
         self.state_every = max(1, group.robots[0].status_hz // robotstate.STATE_HZ)
@@ -322,16 +327,17 @@ class URInterfaces:
         t = group.state_time - group.origin_ns / 1e9
         for arm in self.active:
             group.digital_out[arm.row] = arm.state.digital_out
-            if not arm.rtde:
-                continue
             live = [p for p in arm.rtde if p.session.started]
-            if not live:
+            if not live and not arm.realtime:
                 continue
             row = arm.row
             arm.state.update(group.q[row], group.qd[row], group.target[row], t)
             for p in live:
                 if due := p.session.due(tick + 1, arm.state):  # (the next tick's state)
                     self.due.append((p, p.session.runs, b"".join(due), len(due)))
+            if arm.realtime:
+                message = realtime.encode(arm.state.values)
+                self.realtime_due.extend((p, message) for p in arm.realtime)
 
         if self.stated and tick >= self.next_state_tick:
             self.next_state_tick = (tick // self.state_every + 1) * self.state_every
@@ -390,6 +396,15 @@ class URInterfaces:
             p.transport.write(data)
             c.rtde_packages_out += n
         self.due.clear()
+        for q, message in self.realtime_due:
+            if q.transport.is_closing():
+                continue
+            if q.transport.get_write_buffer_size() > WRITE_LIMIT:
+                c.realtime_dropped += 1
+                continue
+            q.transport.write(message)
+            c.realtime_out += 1
+        self.realtime_due.clear()
 
     def report(self) -> dict[str, float]:
         c = self.counters
@@ -472,7 +487,8 @@ class DashboardProtocol(asyncio.Protocol):
 
 class ScriptProtocol(asyncio.Protocol):
     """A client of the primary (30001), secondary (30002) or real-time (30003) interface: URScript
-    programs in; on the first two the controller's version, then texts and runtime exceptions out."""
+    programs in; on the first two the controller's version, then texts, runtime exceptions and the
+    robot state (10 Hz) out; on the third the real-time state message, every tick."""
 
     def __init__(self, ur: URInterfaces, arm: _Arm, port: int) -> None:
         self.ur, self.arm, self.port = ur, arm, port
@@ -486,6 +502,9 @@ class ScriptProtocol(asyncio.Protocol):
             transport.close()
             return
         self.arm.scripts.add(self)
+        if self.port == self.ur.config.realtime_port:
+            self.arm.realtime.add(self)
+            self.arm.refresh()
         if self.listens:
             major, minor, bugfix, build = CONTROLLER_VERSION
             self.transport.write(primary.version(int(time.time() * 1e6), major, minor, bugfix, build))
@@ -497,5 +516,8 @@ class ScriptProtocol(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.arm.scripts.discard(self)
+        if self in self.arm.realtime:
+            self.arm.realtime.discard(self)
+            self.arm.refresh()
         if not any(p.listens for p in self.arm.scripts):
             self.ur.stated.discard(self.arm)

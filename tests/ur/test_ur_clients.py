@@ -306,3 +306,48 @@ async def test_no_data_package_follows_a_pause_and_a_start_is_answered_first(sta
                         await reply()
     finally:
         writer.close()
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:notifyAll:DeprecationWarning")  # (urx's own thread)
+async def test_python_urxs_real_time_monitor_gets_every_periods_state_of_the_moving_arm(start_cell) -> None:
+    """The real-time interface (30003), read by python-urx's own URRTMonitor: a state message every
+    2 ms of the arm's clock, each carrying that tick's truth (as the bus has it) while it moves."""
+    from urx.urrtmon import URRTMonitor  # (imports math3d: only here)
+
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
+    host = cell.config.robots[0].ur_host
+    monitor = URRTMonitor(host)
+    truth: dict[int, np.ndarray] = {}
+    async with Bus.connect(cell.config.bus, "test") as bus, Controller(bus, cell.config) as ctl:
+        sub = await bus.subscribe("truth/r1")
+
+        async def follow() -> None:
+            async for env in sub:
+                m = env.decode(robot_pb2.RobotTruth)
+                truth[m.tick + 1] = np.array(m.q)  # (tick k's state is k + 1 periods from the origin)
+
+        monitor.start()
+        await asyncio.to_thread(monitor.q_actual, True)  # (its first message)
+        missed_before = (await _robots_counters(cell.config))["missed_ticks"]
+        monitor.start_buffering()
+        async with asyncio.TaskGroup() as tg:
+            watcher = tg.create_task(follow())
+            await ctl.move_joints("r1", Q0 + np.array([0.4, -0.2, 0.2, 0.1, 0.0, 0.3]))
+            monitor.stop_buffering()
+            await asyncio.sleep(0.1)  # (the truth of the last buffered ticks, on the bus)
+            watcher.cancel()
+    ended = time.monotonic()
+    await asyncio.to_thread(monitor.close)  # (returns with the next message: the arm still sends)
+    samples = monitor.get_buffer()  # (arrival time, controller time, tool vector, q actual)
+    ticks = np.array([round(float(s[1]) / 0.002) for s in samples])
+    assert len(samples) > 200, len(samples)
+    steps = np.diff(ticks)
+    missed = await _missed_ticks_since(cell.config, ended) - missed_before
+    skipped = int((steps - 1).sum())
+    assert (steps >= 1).all() and skipped <= 2 + missed, (np.unique(steps, return_counts=True), missed)
+    both = [(k, s) for k, s in zip(ticks, samples, strict=True) if k in truth]
+    moving = [k for k, _ in both if np.abs(truth[k] - Q0).max() > 1e-3]
+    assert len(both) > 0.9 * len(samples) and len(moving) > 100, (len(both), len(moving))
+    for k, s in both:  # the same state, tick for tick
+        assert np.array_equal(s[3], truth[k]), k
