@@ -7,7 +7,8 @@
   share of the jitter.
 - servoJ: ur_rtde's RTDEControlInterface in its own process streams a 1 Hz sine at 500 Hz through
   servoJ (lookahead 0.1 s) while it reads actual_q; the lag that best aligns the arm with the
-  commands, and the largest error at that lag.
+  commands, and the largest error at that lag.  Then the same through UR's own client library's
+  path: the external_control program and a servoj target every 2 ms on its reverse interface.
 - The secondary interface (30002): how many robot state packages a client gets a second (a UR
   sends 10); beside it, the real-time interface (30003): its state messages a second (a UR: 500).
 
@@ -44,7 +45,9 @@ from cell.ports import free_port
 from cell.robot.kinematics import Kinematics
 from cell.robot.truth import Truth
 from cell.ur import primary, realtime, robotstate, rtde
+from cell.ur.external import MULT, REVERSE, Mode, client_program
 from cell.ur.rtde import Package
+from cell.ur.urscript import EXTERNAL_SOCKETS
 
 PERIOD_S = 0.002
 
@@ -115,6 +118,43 @@ def _servo_client(host: str, seconds: float, out: Any) -> None:
     ctl.stopScript()
     ctl.disconnect()
     recv.disconnect()
+    out.put((np.array(cmd), np.array(got)))
+
+
+def _external_servo_client(host: str, primary_port: int, seconds: float, out: Any) -> None:
+    """UR's client library's servoj loop, as its ROS 2 driver runs it, in its own process: the
+    external_control program sent headless to the primary interface, the arm connecting back to
+    this process's three servers, a target every 2 ms on the reverse interface (read timeout 20 ms,
+    servoj lookahead 0.03 s and gain 2000: the library's defaults), actual_q read over RTDE."""
+    import socket
+
+    import rtde_receive
+
+    servers = {name: socket.create_server(("127.0.0.1", 0)) for name in EXTERNAL_SOCKETS}
+    ports = {name: s.getsockname()[1] for name, s in servers.items()}
+    with socket.create_connection((host, primary_port)) as primary_interface:
+        primary_interface.sendall(client_program("127.0.0.1", ports).encode())
+        conns = {}
+        for name, server in servers.items():
+            server.settimeout(10)
+            conns[name] = server.accept()[0]
+        recv = rtde_receive.RTDEReceiveInterface(host)
+        q0 = np.array(recv.getActualQ())
+        reverse = conns["reverse_socket"]
+        cmd, got = [], []
+        t_next = time.perf_counter()
+        for k in range(int(seconds / PERIOD_S)):
+            q = q0.copy()
+            q[0] += 0.1 * np.sin(2 * np.pi * k * PERIOD_S)
+            reverse.sendall(REVERSE.pack(20, *(round(v * MULT) for v in q), Mode.SERVOJ))
+            cmd.append(q[0])
+            got.append(recv.getActualQ()[0])
+            t_next += PERIOD_S
+            time.sleep(max(0.0, t_next - time.perf_counter()))
+        reverse.sendall(REVERSE.pack(0, 0, 0, 0, 0, 0, 0, Mode.STOPPED))
+        recv.disconnect()
+        for c in conns.values():
+            c.close()
     out.put((np.array(cmd), np.array(got)))
 
 
@@ -190,11 +230,18 @@ async def _state_run(seconds: float, backend: str) -> tuple[float, float]:
         )
 
 
-async def _servo_run(seconds: float, backend: str) -> tuple[float, float]:
+async def _servo_run(seconds: float, backend: str, external: bool = False) -> tuple[float, float]:
+    """servoJ's lag and error: ur_rtde's servoJ, or (external) UR's client library's servoj over
+    the external_control program's reverse interface."""
     overrides = {"services": {"run": ["bus", "dataplane", "robots"]}, "robots": _robots(1, backend)}
     async with running_cell(overrides) as config:
         host = config.robots[0].ur_host
-        cmd, got = await asyncio.to_thread(_in_process, _servo_client, host, seconds, timeout=seconds + 30)
+        how: tuple[Any, ...] = (
+            (_external_servo_client, host, config.ur.primary_port, seconds)
+            if external
+            else (_servo_client, host, seconds)
+        )
+        cmd, got = await asyncio.to_thread(_in_process, *how, timeout=seconds + 30)
     tail = slice(len(cmd) // 4, len(cmd))
     lags = range(0, min(100, tail.start))
     err = [float(np.abs(cmd[tail.start - k : tail.stop - k] - got[tail]).max()) for k in lags]
@@ -273,6 +320,8 @@ class UrResult(JsonFields):
     tick_lateness_p99_us_20_arms: float
     servoj_lag_ms: float
     servoj_error_mrad: float
+    external_control_servoj_lag_ms: float
+    external_control_servoj_error_mrad: float
     primary_state_hz: float
     realtime_state_hz: float
     direct_path_error_mm_max: float
@@ -317,6 +366,11 @@ def _main(args: argparse.Namespace) -> Figures:
         )
         lag, err = await _servo_run(args.servo_seconds, args.backend)
         log(f"servoJ, 500 Hz, 1 Hz sine, lookahead 0.1 s: lag {lag:.0f} ms, then off by {err:.2f} mrad")
+        ext_lag, ext_err = await _servo_run(args.servo_seconds, args.backend, external=True)
+        log(
+            f"external_control servoj (UR's client library's loop), 500 Hz, lookahead 0.03 s: lag "
+            f"{ext_lag:.0f} ms, then off by {ext_err:.2f} mrad"
+        )
         b = await _bridge_run(args.moves)
         log(
             f"daemon: RTDE package -> status datagrams p50 {b['bridge_status_us_p50']:.0f} us, p99 "
@@ -342,6 +396,8 @@ def _main(args: argparse.Namespace) -> Figures:
             tick_lateness_p99_us_20_arms=late_n,
             servoj_lag_ms=lag,
             servoj_error_mrad=err,
+            external_control_servoj_lag_ms=ext_lag,
+            external_control_servoj_error_mrad=ext_err,
             primary_state_hz=state_hz,
             realtime_state_hz=realtime_hz,
             direct_path_error_mm_max=b["direct_path_error_mm_max"],

@@ -108,6 +108,8 @@ class URArm:
         self.log: deque[str] = deque(maxlen=1000)  # the dashboard's addToLog lines (saveLog writes them)
         self.analog_out = [0.0, 0.0]
         self.payload, self.cog = 0.0, (0.0, 0.0, 0.0)
+        self.gravity = (0.0, 0.0, STANDARD_GRAVITY)  # set_gravity's (default: a robot on the floor)
+        self.tool_voltage = 0  # set_tool_voltage's (V)
         self._owners: dict[str, object] = {}  # input field -> the session that holds it
         self.written: dict[str, float] = {}  # input field -> when a package last wrote it (monotonic s)
         dof = model.dof
@@ -116,6 +118,9 @@ class URArm:
         self.qdd = np.zeros(dof)
         self.target_qd = np.zeros(dof)
         self.timestamp = -1.0  # (no state yet)
+        # the running program's reference (positions, velocities) where its motion has one (a
+        # spline): what a UR reports as target_q and target_qd; else the arm's joints and commands
+        self.reference: tuple[np.ndarray, np.ndarray] | None = None
         # its joints' torques now: (the drives', those beyond the arm's own dynamics); a MuJoCo arm's
         # from its physics (set by cell.ur.server), none for an arm without a dynamics model
         self.torques: Callable[[], tuple[np.ndarray, np.ndarray]] = lambda: (np.zeros(dof), np.zeros(dof))
@@ -172,8 +177,12 @@ class URArm:
     def _compute(self, name: str) -> tuple:
         if name == "timestamp":
             return (self.timestamp,)
+        if name == "target_q" and self.reference is not None:
+            return tuple(self.reference[0].tolist())
         if name in ("actual_q", "target_q"):
             return tuple(self.q.tolist())
+        if name == "target_qd" and self.reference is not None:
+            return tuple(self.reference[1].tolist())
         if name in ("actual_qd", "target_qd"):
             return tuple(self.qd.tolist()) if name == "actual_qd" else tuple(self.target_qd.tolist())
         if name in ("actual_qdd", "target_qdd"):
@@ -190,8 +199,10 @@ class URArm:
             return tuple(self.tool.tcp.tolist())
         if name == "control_step":  # (the controller's 2 ms steps since its start)
             return (max(0, round(self.timestamp / CONTROL_STEP_S)),)
-        if name == "target_gravity":  # (set_gravity's default: a robot on the floor)
-            return (0.0, 0.0, STANDARD_GRAVITY)
+        if name == "target_gravity":
+            return self.gravity
+        if name == "tool_output_voltage":
+            return (self.tool_voltage,)
         if name in ("actual_configurable_digital_output_bits", "actual_configurable_digital_input_bits"):
             bits = self.digital_out if name.endswith("output_bits") else self.digital_in
             return ((bits >> 8) & 0xFF,)

@@ -123,6 +123,10 @@ class Motion:
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         raise NotImplementedError
 
+    def reference(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where the motion means the joints to be now, and how fast (None: no reference of its own)."""
+        return None
+
 
 class MoveJ(Motion):
     """movej: every joint on one trapezoid (the leading joint at a, v; none past its own limits)."""
@@ -191,6 +195,43 @@ class MoveL(Motion):
             self.done, self.error = True, f"the line leaves the arm's reach: {exc.reason}"
             return np.zeros_like(q)
         return (self.q_ref - now) / dt + KP * (now - q)
+
+
+class MoveC(MoveL):
+    """movec: the TCP on the circle through where it is, the via point and the target, one trapezoid
+    along the arc (m/s, m/s^2); its orientation turning from the start's to the target's (mode 0,
+    unconstrained) or kept (mode 1, fixed).  Three points on a line make a straight line."""
+
+    def __init__(self, q0: np.ndarray, via: np.ndarray, goal: np.ndarray, v: float, a: float, tool: Tool,
+                 fixed: bool = False) -> None:  # fmt: skip
+        p0, _ = tool.frame(q0)
+        pv, p1 = np.asarray(via[:3], np.float64), np.asarray(goal[:3], np.float64)
+        d1, d2 = pv - p0, p1 - p0
+        normal = np.cross(d1, d2)
+        self.circle: tuple[np.ndarray, float, np.ndarray, np.ndarray, float] | None = None
+        if float(np.linalg.norm(normal)) > 1e-9:
+            center = p0 + np.cross(d1 @ d1 * d2 - d2 @ d2 * d1, normal) / (2 * normal @ normal)
+            radius = float(np.linalg.norm(p0 - center))
+            u = (p0 - center) / radius
+            w = np.cross(normal / np.linalg.norm(normal), u)
+            end = p1 - center
+            sweep = math.atan2(float(end @ w), float(end @ u)) % (2 * math.pi)
+            self.circle = (center, radius, u, w, sweep)
+        target = np.concatenate([p1, to_rotvec(tool.frame(q0)[1]) if fixed else np.asarray(goal[3:])])
+        super().__init__(q0, target, v, a, tool)
+        if self.circle is not None:  # (the arc's length leads, not the chord's)
+            self.lead = self.circle[1] * self.circle[4]
+            self.profile = Trapezoid.make(self.lead, v, a)
+
+    def _ref(self, t: float, near: np.ndarray) -> np.ndarray:
+        if self.circle is None:
+            return super()._ref(t, near)
+        center, radius, u, w, sweep = self.circle
+        d, _ = self.profile.at(t)
+        s = d / self.lead if self.lead > 0 else 1.0
+        angle = sweep * s
+        pos = center + radius * (math.cos(angle) * u + math.sin(angle) * w)
+        return self.tool.ik(pos, slerp(self.r0, self.r1, s), near)
 
 
 class _Ramp(Motion):

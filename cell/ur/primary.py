@@ -19,6 +19,8 @@ SOURCE_CONTROLLER = -2
 class RobotMessage(IntEnum):
     TEXT = 0
     VERSION = 3
+    ERROR_CODE = 6
+    KEY = 7
     RUNTIME_EXCEPTION = 10
 
 
@@ -35,6 +37,29 @@ def version(t_us: int, major: int, minor: int, bugfix: int, build: int, date: st
 
 def text(t_us: int, message: str) -> bytes:
     return _robot_message(RobotMessage.TEXT, t_us, message.encode(errors="replace"))
+
+
+class ReportLevel(IntEnum):
+    DEBUG = 0
+    INFO = 1
+    WARNING = 2
+    VIOLATION = 3
+    FAULT = 4
+
+
+def error_code(t_us: int, code: int, argument: int, level: ReportLevel, message: str) -> bytes:
+    """The controller's own report (C<code>A<argument>): int32 code, int32 argument, int32 report
+    level, uint32 data type, uint32 data, then the text."""
+    body = struct.pack(">iiiII", code, argument, level, 0, 0) + message.encode(errors="replace")
+    return _robot_message(RobotMessage.ERROR_CODE, t_us, body)
+
+
+def key_message(t_us: int, title: str, message: str, code: int = 0, argument: int = 0) -> bytes:
+    """A key message (a program started, stopped): int32 code, int32 argument, uint8 title length,
+    the title, then the text."""
+    name = title.encode(errors="replace")[:255]
+    body = struct.pack(">iiB", code, argument, len(name)) + name + message.encode(errors="replace")
+    return _robot_message(RobotMessage.KEY, t_us, body)
 
 
 def runtime_exception(t_us: int, line: int, column: int, message: str) -> bytes:

@@ -31,11 +31,19 @@ from cell.ur.urscript import Call, Pose, Script
 
 @dataclass(frozen=True, slots=True)
 class Message:
-    """What a program says on the primary interface: a text (textmsg, popup) or a runtime exception."""
+    """What a program says on the primary interface: a text (textmsg, popup), a runtime exception, an
+    error code (the controller's own report, as C209A0 for a protective stop) or a key message (a
+    program started or stopped)."""
 
     text: str
     line: int = -1  # >= 0: a runtime exception at this line
     column: int = 0
+    code: int = -1  # >= 0: an error code message with this code (argument 0)
+    key: str = ""  # a key message with this title (the text is its argument: a program's name)
+
+
+# what the controller reports as a protective stop begins (UR's error code C209A0)
+PROTECTIVE_STOP = Message("A protective stop was triggered", code=209)
 
 
 class Runner:
@@ -54,6 +62,10 @@ class Runner:
 
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         raise NotImplementedError
+
+    def reference(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Its motion's reference (URArm.reference), if it has one."""
+        return self.motion.reference() if self.motion is not None else None
 
     def _move(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         if self.motion is None:
@@ -136,6 +148,7 @@ class LineRunner(Runner):
             self.messages.append(Message(f"popup: {a['s']}"))
         elif call.name == "protective_stop":  # (the arm stops; the program ends, as on a UR)
             arm.safety_mode = SafetyMode.PROTECTIVE_STOP
+            self.messages.append(PROTECTIVE_STOP)
             self.ended = "a protective stop (protective_stop())"
 
     def _running(self, call: Call, dt: float) -> bool:

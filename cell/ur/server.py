@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import ipaddress
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
 from typing import cast
 
@@ -33,11 +34,12 @@ from cell.robot.emulator import RobotGroup
 from cell.ur import primary, realtime, robotstate
 from cell.ur.arm import CONTROLLER_VERSION, DATAGRAM_PROGRAM, RuntimeState, SafetyMode, URArm
 from cell.ur.dashboard import MAX_LINE, WELCOME, Dashboard
+from cell.ur.external import ExternalControl
 from cell.ur.fields import INPUTS, OUTPUTS
-from cell.ur.program import Message, RtdeControl, Runner, runner
+from cell.ur.program import PROTECTIVE_STOP, Message, RtdeControl, Runner, runner
 from cell.ur.programs import Programs
 from cell.ur.rtde import Session
-from cell.ur.urscript import Framer, ScriptError, parse
+from cell.ur.urscript import EXTERNAL_SOCKETS, Framer, Script, ScriptError, parse
 from cell.v1 import robot_pb2
 
 log = logging.getLogger("cell.ur")
@@ -72,6 +74,9 @@ Publish = Callable[[str, object], None]
 # after a script ends, no program runs for this long before the datagram program is back (as a URCap
 # daemon re-sends its program): a client waiting to see its script gone (ur_rtde's stopScript) sees it
 RESTART_S = 0.1
+# what a secondary program may not do: move the arm or take time
+TIMED_CALLS = frozenset({"movej", "movel", "speedj", "servoj", "stopj", "stopl", "sleep", "sync"})
+CONNECT_ATTEMPTS, CONNECT_RETRY_S = 5, 0.2  # the external_control program's connect_socket_with_retry
 # the primary interface's own commands (not URScript: a UR takes them there as lines of their own),
 # as the dashboard's commands they are
 PRIMARY_COMMANDS = {
@@ -111,6 +116,8 @@ class _Arm:
         self.restart_after: str | None = None
         self.ended = ""  # how the last program ended
         self.commands = ur.dashboard_of(self)  # what carries out its primary interface's own commands
+        self.link: asyncio.Task[None] | None = None  # an external_control program's sockets to its client
+        self.link_writers: dict[str, asyncio.StreamWriter] = {}
 
     def refresh(self) -> None:
         """In the interfaces' per-tick set (URInterfaces.active) while it has an RTDE or a real-time
@@ -159,7 +166,11 @@ class _Arm:
         """To the primary and secondary clients (and the log, unless `quiet`: a refusal is the
         sender's to read, and a flood of them must not flood the log)."""
         t_us = int(time.time() * 1e6)
-        if m.line >= 0:
+        if m.key:
+            data = primary.key_message(t_us, m.key, m.text)
+        elif m.code >= 0:
+            data = primary.error_code(t_us, m.code, 0, primary.ReportLevel.VIOLATION, m.text)
+        elif m.line >= 0:
             data = primary.runtime_exception(t_us, m.line, m.column, m.text)
         else:
             data = primary.text(t_us, m.text)
@@ -186,6 +197,9 @@ class _Arm:
             self.say(Message(f"program refused: {exc.reason}", exc.line, exc.column), quiet=True)
             return
         st = self.state
+        if script.secondary:
+            self._secondary(script)
+            return
         if not st.can_move:
             c.scripts_refused += 1
             reason = f"the arm cannot run a program: {st.robot_mode.name}, {st.safety_mode.name}"
@@ -195,19 +209,48 @@ class _Arm:
             self.end(f"replaced by {script.name}")
         self.restart_at, self.restart_after = 0.0, None
         self.runner = runner(script, st)
+        if isinstance(self.runner, ExternalControl):  # (it connects back to its client)
+            self.link = self.ur.spawn(self._connect_back(self.runner))
         self.refresh()
         self.t_last = self.group.state_time
         st.program, st.runtime = f"{script.name}.script", RuntimeState.PLAYING
+        self.say(Message(script.name, key="PROGRAM_XXX_STARTED"), quiet=True)
         c.scripts_run += 1
         self._datagrams(False, f"URScript program {script.name} holds the arm")
+
+    def _secondary(self, script: Script) -> None:
+        """A `sec` program: run at once beside whatever holds the arm (as a UR runs a secondary
+        program), or refused if it would move the arm or take time, which a UR's may not."""
+        c = self.ur.counters
+        timed = [call for call in script.calls if call.name in TIMED_CALLS]
+        if timed:
+            c.scripts_refused += 1
+            call = timed[0]
+            self.say(Message(f"{call.name}: a secondary program cannot move the arm or wait", call.line))
+            return
+        r = runner(script, self.state)
+        group = self.group
+        r.step(group.q[self.row], group.qd[self.row], 0.0)
+        c.scripts_run += 1
+        c.scripts_ended += 1
+        for m in r.messages:
+            self.say(m)
+        self.apply()  # (a protective_stop() in it stops the arm and its program)
 
     def end(self, reason: str) -> None:
         """The program is over: the arm stands, running nothing, until restart() (RESTART_S on)."""
         r, self.runner = self.runner, None
         if r is None:
             return
+        self.state.reference = None
+        if isinstance(r, ExternalControl):
+            self._send_out(r)
+        if self.link is not None:  # (its sockets close: the client sees the program gone)
+            self.link.cancel()
+            self.link = None
         for m in r.messages:
             self.say(m)
+        self.say(Message(r.name, key="PROGRAM_XXX_STOPPED"), quiet=True)
         c = self.ur.counters
         c.scripts_ended += 1
         c.scripts_failed += bool(reason)
@@ -241,6 +284,17 @@ class _Arm:
         t = self.group.state_time
         dt, self.t_last = max(t - self.t_last, 1e-6), t
         v = r.step(q, qd, dt)
+        # its target (RTDE's target_q, target_qd): the motion's own reference, or the last target
+        # moved on at the velocity the drives are told, as a UR's target integrates its speed;
+        # where there is none yet, where the arm stands
+        ref, held = r.reference(), self.state.reference
+        if ref is None and held is not None:
+            ref = (held[0] + v * dt, v.copy())
+        elif ref is None and not v.any():
+            ref = (q.copy(), np.zeros_like(q))
+        self.state.reference = ref
+        if isinstance(r, ExternalControl):
+            self._send_out(r)
         for m in r.messages:
             self.say(m)
         r.messages.clear()
@@ -248,6 +302,53 @@ class _Arm:
             self.end(r.ended)
         else:
             self.group.drives.set_target(self.row, v)
+
+    async def _connect_back(self, r: ExternalControl) -> None:
+        """The external_control program's sockets: opened to its client in the program's order (each
+        tried 5 times 0.2 s apart, as its connect_socket_with_retry), then read into the program
+        until it ends (cancelled) or the client closes them."""
+        s = r.settings
+        local = (self.robot.ur_host, 0) if ipaddress.ip_address(s.host).is_loopback else None
+        readers: dict[str, asyncio.StreamReader] = {}
+        try:
+            for name in EXTERNAL_SOCKETS:
+                for _ in range(CONNECT_ATTEMPTS):
+                    try:
+                        readers[name], self.link_writers[name] = await asyncio.open_connection(
+                            s.host, s.ports[name], local_addr=local
+                        )
+                        break
+                    except OSError:
+                        await asyncio.sleep(CONNECT_RETRY_S)
+                else:
+                    reason = (
+                        f"external_control: could not connect to {s.host}:{s.ports[name]} ({name}); "
+                        f"check that the external control end at {s.host} is running"
+                    )
+                    r.messages.append(Message(reason, 0))
+                    r.ended = reason
+                    return
+            r.connected = True
+            async with asyncio.TaskGroup() as tg:
+                for name, reader in readers.items():
+                    tg.create_task(self._read_into(r, name, reader))
+        finally:
+            for w in self.link_writers.values():
+                w.close()
+            self.link_writers = {}
+
+    @staticmethod
+    async def _read_into(r: ExternalControl, name: str, reader: asyncio.StreamReader) -> None:
+        while data := await reader.read(65536):
+            r.feed(name, data)
+        r.lost(name)
+
+    def _send_out(self, r: ExternalControl) -> None:
+        """What the program wrote to its sockets this tick (trajectory and tool contact results)."""
+        for name, buf in r.outbox.items():
+            if buf and (w := self.link_writers.get(name)) is not None and not w.is_closing():
+                w.write(bytes(buf))
+            buf.clear()
 
     def _event(self, kind: robot_pb2.RobotEvent.Kind, text: str) -> None:
         log.info("%s: %s", self.robot.name, text)
@@ -268,6 +369,7 @@ class URInterfaces:
         self.active: set[_Arm] = set()  # the arms with per-tick work (_Arm.refresh)
         self.counters = URCounters()
         self.servers: list[asyncio.Server] = []
+        self.tasks: set[asyncio.Task[None]] = set()  # the programs' connections back to their clients
         # the RTDE packages of the next deadline's state, made after this tick (after_tick) and sent
         # as the period starts (at_deadline), when the state they carry is the arm's: a UR sends its
         # state at the end of the cycle it describes, never before
@@ -302,7 +404,16 @@ class URInterfaces:
                     exc.errno, f"robot {arm.robot.name}: cannot listen on {host} for its UR interfaces: {exc}"
                 ) from None
 
+    def spawn(self, coro: Coroutine[object, object, None]) -> asyncio.Task[None]:
+        """A task of these interfaces (cancelled by close())."""
+        task = asyncio.get_running_loop().create_task(coro)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+        return task
+
     def close(self) -> None:
+        for t in list(self.tasks):
+            t.cancel()
         for s in self.servers:
             s.close()
         for arm in self.arms:
@@ -317,7 +428,10 @@ class URInterfaces:
     def after_tick(self, group: RobotGroup, stopping: np.ndarray, resuming: np.ndarray) -> None:
         """The tick's protective stops into the arms' safety modes, then the RTDE packages due."""
         for row in stopping:
-            self.arms[row].state.safety_mode = SafetyMode.PROTECTIVE_STOP
+            arm = self.arms[row]
+            if arm.state.safety_mode != SafetyMode.PROTECTIVE_STOP:
+                arm.say(PROTECTIVE_STOP, quiet=True)
+            arm.state.safety_mode = SafetyMode.PROTECTIVE_STOP
         for row in resuming:  # (the cell's own datagram program resumes them by commanding again)
             st = self.arms[row].state
             if st.safety_mode == SafetyMode.PROTECTIVE_STOP:

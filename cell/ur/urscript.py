@@ -8,6 +8,9 @@ says what the program is:
   register offsets read from the script;
 - the cell's daemon script (`def cell_daemon():`, cell.ur.daemon): served natively, its settings
   read from its `global cell_<name> = <number>` lines;
+- UR's external_control program (what UR's client library and ROS 2 driver send; recognised by its
+  reverse socket): served natively (cell.ur.external), where to connect back and its scales read
+  from what the client filled in;
 - a straight-line program: calls of movej, movel, speedj, servoj, stopj, stopl, sleep, sync,
   set_standard_digital_out, textmsg, popup and protective_stop, one a line, with literal arguments;
 
@@ -29,6 +32,12 @@ MAX_SCRIPT = 1 << 20  # bytes of one program; a longer one is refused and skippe
 MAX_LINE = 10_000  # characters of one line of a straight-line program
 _TOP_DEF = re.compile(r"^(def|sec)\s+([A-Za-z_]\w*)\s*\(\s*\)\s*:")
 _POSE = re.compile(r"\bp\s*\[")
+# UR's external_control program (URCL's): the sockets it opens, in order, and what the client filled in
+EXTERNAL_SOCKETS = ("trajectory_socket", "script_command_socket", "reverse_socket")
+_CONNECT = re.compile(r'connect_socket_with_retry\(\s*"([^"]*)"\s*,\s*(\d+)\s*,\s*"(\w+)"\s*\)')
+_MULT = re.compile(r"^\s*MULT_(jointstate|time)\s*=\s*([0-9.eE+]+)\s*$", re.M)
+_SERVO = re.compile(r"servoj\(q,\s*t=steptime,\s*lookahead_time=([0-9.eE+-]+),\s*gain=([0-9.eE+-]+)\)")
+_SPLINE_PROBE = re.compile(r"^[ \t]*write_output_float_register\((\d+),\s*splineTimerTraveled\)", re.M)
 _SETTING = re.compile(r"^\s*global\s+cell_(\w+)\s*=\s*(\[[-+0-9.eE, ]*\]|[-+0-9.eE]+)\s*$", re.M)
 
 
@@ -54,7 +63,8 @@ class Call:
 
 @dataclass(frozen=True, slots=True)
 class Script:
-    """A program as the arm will run it: `kind` "rtde_control", "cell_daemon" or "lines"."""
+    """A program as the arm will run it: `kind` "rtde_control", "cell_daemon", "external_control" or
+    "lines"."""
 
     name: str
     kind: str
@@ -63,6 +73,7 @@ class Script:
     reg_offset_float: int = 0
     # its `global cell_<name> = <number or list of numbers>` lines
     settings: dict[str, float | tuple[float, ...]] = field(default_factory=dict)
+    secondary: bool = False  # a `sec` program: runs beside the arm's program, never moves it
 
 
 class Framer:
@@ -139,6 +150,8 @@ def parse(text: str) -> Script:
     lines = text.splitlines()
     m = _TOP_DEF.match(lines[0]) if lines else None
     name = m.group(2) if m else "program"
+    if '"reverse_socket"' in text and "MULT_jointstate" in text and "socket_read_binary_integer" in text:
+        return Script(name, "external_control", settings=_external_settings(text))
     if name in ("rtde_control", "cell_daemon"):
         settings: dict[str, float | tuple[float, ...]] = {}
         for key, value in _SETTING.findall(text):
@@ -166,7 +179,39 @@ def parse(text: str) -> Script:
         code = _strip_comment(line).strip()
         if code:
             calls.append(_call(code, n, len(line) - len(line.lstrip())))
-    return Script(name, "lines", calls)
+    return Script(name, "lines", calls, secondary=m is not None and m.group(1) == "sec")
+
+
+def _external_settings(text: str) -> dict[str, float | tuple[float, ...]]:
+    """The script's settings as urscript.Script carries them (floats; the host as its 4 bytes)."""
+    found = {name: (host, int(port)) for host, port, name in _CONNECT.findall(text)}
+    missing = [s for s in EXTERNAL_SOCKETS if s not in found]
+    if missing:
+        raise ScriptError(1, 0, f"external_control: no connect_socket_with_retry for {', '.join(missing)}")
+    hosts = {host for host, _ in found.values()}
+    if len(hosts) != 1:
+        raise ScriptError(1, 0, f"external_control: its sockets name {len(hosts)} hosts")
+    try:
+        host = tuple(float(b) for b in bytes(int(x) for x in next(iter(hosts)).split(".")))
+        if len(host) != 4:
+            raise ValueError
+    except ValueError:
+        raise ScriptError(1, 0, f"external_control: {next(iter(hosts))!r} is not an IPv4 address") from None
+    mult = dict(_MULT.findall(text))
+    out: dict[str, float | tuple[float, ...]] = {"host": host}
+    for name, value in (("mult_joint", mult.get("jointstate")), ("mult_time", mult.get("time"))):
+        if value is None or not 0 < float(value) < 1e12:
+            raise ScriptError(1, 0, f"external_control: MULT_{name[5:]} is missing or not positive")
+        out[name] = float(value)
+    servo = _SERVO.search(text)
+    out["lookahead"], out["gain"] = (
+        (float(servo.group(1)), float(servo.group(2))) if servo else (0.03, 2000.0)
+    )
+    for name, (_, port) in found.items():
+        out[f"port_{name}"] = float(port)
+    if probe := _SPLINE_PROBE.search(text):
+        out["spline_register"] = float(probe[1])
+    return out
 
 
 def _check_daemon(settings: dict[str, float | tuple[float, ...]]) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import struct
 import subprocess
 import sys
 
@@ -315,8 +316,18 @@ async def test_a_straight_line_program_on_the_primary_port_runs_and_a_foreign_on
             b'  textmsg("at the pick")\n'
             b"end\n" % ", ".join(repr(float(x)) for x in goal).encode()
         )
-        ((kind, body),) = await _read_messages(reader, 1)
-        assert kind == primary.RobotMessage.TEXT and body == b"at the pick"  # said after the move
+        # the program's start and end as UR's key messages (what UR's client library waits on), and
+        # its text between them, said after the move
+        started, said, stopped = await _read_messages(reader, 3)
+        assert started == (
+            primary.RobotMessage.KEY,
+            struct.pack(">iiB", 0, 0, 19) + b"PROGRAM_XXX_STARTEDpick",
+        )
+        assert said == (primary.RobotMessage.TEXT, b"at the pick")
+        assert stopped == (
+            primary.RobotMessage.KEY,
+            struct.pack(">iiB", 0, 0, 19) + b"PROGRAM_XXX_STOPPEDpick",
+        )
         assert np.abs(np.array(recv.getActualQ()) - goal).max() <= 1e-3
         assert recv.getActualDigitalOutputBits() & (1 << 4)
         assert await _counter(cell.config, "ur.scripts_refused") >= 1

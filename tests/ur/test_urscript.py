@@ -102,6 +102,20 @@ def test_primary_messages_byte_by_byte() -> None:
         struct.pack(">ii", 3, 2) + b"no",
     )
     assert primary.read_robot_message(body2) == (primary.RobotMessage.TEXT, b"hi")
+    # an error code, as UR's client library parses it: code, argument, report level, data type, data
+    c = primary.error_code(5, 209, 0, primary.ReportLevel.VIOLATION, "stop")
+    assert c == struct.pack(">iBQbBiiiII", 39, 20, 5, -2, 6, 209, 0, 3, 0, 0) + b"stop"
+    # a key message: code, argument, the title's length, the title, the text (a program's name)
+    k = primary.key_message(5, "PROGRAM_XXX_STARTED", "test_fun")
+    assert k == struct.pack(">iBQbBiiB", 51, 20, 5, -2, 7, 0, 0, 19) + b"PROGRAM_XXX_STARTEDtest_fun"
+
+
+@pytest.mark.parametrize(
+    ("text", "secondary"),
+    [('sec s():\n  textmsg("x")\nend\n', True), ('def s():\n  textmsg("x")\nend\n', False)],
+)
+def test_a_sec_program_is_a_secondary_one(text: str, secondary: bool) -> None:
+    assert parse(text).secondary is secondary
 
 
 # --- the motions and the runners, on a simulated arm that follows its commands exactly --------------
