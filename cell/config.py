@@ -395,6 +395,8 @@ class ControllerConfig:
     # settle_s after the plan's end; else it failed (NotAtGoal), saying where the robot stands
     goal_tolerance_rad: float = _check(_positive)
     settle_s: float = _check(_positive)
+    # where named trajectories are kept across restarts ("": cell.trajectory.named.state_dir's default)
+    state_dir: str
 
 
 @_section

@@ -46,6 +46,13 @@ def cell_overrides(robots: list[dict] | None = None, **services: object) -> dict
     }
 
 
+@pytest.fixture(autouse=True)
+def _state_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each test's cells (and controllers) keep what outlives them, named trajectories, apart from
+    every other test's and the user's own (cell.trajectory.named.state_dir)."""
+    monkeypatch.setenv("CELL_STATE_DIR", str(tmp_path_factory.mktemp("state")))
+
+
 def write_config(path: Path, data: dict) -> Path:
     path.write_text(tomli_w.dumps(data))
     return path

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from collections.abc import Callable, Sequence
 
@@ -55,6 +56,9 @@ from cell.controller.stopping import Stopping
 from cell.dataplane.client import DataplaneClient
 from cell.trajectory.model import TimedMotion, Trajectory, TrajectoryError
 from cell.trajectory.motion import Motion
+from cell.trajectory.named import NamedStore, state_dir
+
+log = logging.getLogger("cell.controller")
 
 AT_START_RAD = 1e-3  # a robot this close to a trajectory's first point follows it from where it stands
 MAX_NAMED = 64  # trajectories kept under names (follow_named) at once
@@ -83,7 +87,9 @@ class Controller:
         self.book = RobotBook(bus, config, self.link)
         self.stopping = Stopping(bus, self.dp, self.link, self.book, self.loading)
         self.engine = Engine(bus, config, self.dp, self.link, self.book, self.stopping, self.loading)
-        self.named: dict[str, dict[int, Trajectory]] = {}  # name -> robot -> trajectory (follow_named)
+        # name -> robot -> trajectory (follow_named), kept on disk too: a restarted controller has them
+        self.store = NamedStore(state_dir(config.controller.state_dir, config.cell.name))
+        self.named: dict[str, dict[int, Trajectory]] = self._restore_named()
 
     async def __aenter__(self) -> Controller:
         await self.engine.__aenter__()
@@ -281,7 +287,26 @@ class Controller:
         points = sum(t.points for ts in kept.values() for t in ts.values())
         if points > MAX_NAMED_POINTS:
             raise PlanError(f"named trajectories would hold {points:,} points: at most {MAX_NAMED_POINTS:,}")
+        self.store.save(name, {int(r): t for r, t in keep.items()})
         self.named[name] = keep
+
+    def _restore_named(self) -> dict[str, dict[int, Trajectory]]:
+        """The names a controller before this one kept, within today's limits (the robots still in
+        the cell, MAX_NAMED names, MAX_NAMED_POINTS points)."""
+        robots = {r.id for r in self.config.robots}
+        named: dict[str, dict[int, Trajectory]] = {}
+        points = 0
+        for name, trajs in self.store.load_all().items():
+            n = sum(t.points for t in trajs.values())
+            if not set(trajs) <= robots or len(named) >= MAX_NAMED or points + n > MAX_NAMED_POINTS:
+                log.warning(
+                    "named trajectory %r not restored: its robots or its size exceed this cell's", name
+                )
+                continue
+            named[name], points = trajs, points + n
+        if named:
+            log.info("restored %d named trajectories: %s", len(named), ", ".join(named))
+        return named
 
     def named_trajectories(
         self, name: str, robots: list[int | str] | None = None

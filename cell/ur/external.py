@@ -35,9 +35,9 @@ from enum import IntEnum
 import numpy as np
 
 from cell.robot.kinematics import Unreachable
-from cell.ur.arm import URArm
+from cell.ur.arm import SafetyMode, URArm
 from cell.ur.motion import KP, Motion, MoveC, MoveJ, MoveL, Servo, Speed, SpeedL
-from cell.ur.program import RUNNERS, Message, Runner
+from cell.ur.program import PROTECTIVE_STOP, RUNNERS, Message, Runner
 from cell.ur.urscript import EXTERNAL_SOCKETS as SOCKETS
 from cell.ur.urscript import Script
 
@@ -136,6 +136,7 @@ class Settings:
     # the output double register the script writes its spline time to (UR's client library's
     # spline tests uncomment that line), -1 if none
     spline_register: int = -1
+    sends_canceled: bool = True  # whether the script answers a canceled trajectory (a client may strip it)
 
 
 def read_settings(script: Script) -> Settings:
@@ -150,6 +151,7 @@ def read_settings(script: Script) -> Settings:
         float(s["lookahead"]),  # type: ignore[arg-type]
         float(s["gain"]),  # type: ignore[arg-type]
         int(s.get("spline_register", -1)),  # type: ignore[arg-type]
+        bool(s.get("sends_canceled", 1.0)),
     )
 
 
@@ -163,6 +165,9 @@ MULT_jointstate = {MULT}
 MULT_time = {MULT}
 thread servoThread():
   servoj(q, t=steptime, lookahead_time={lookahead}, gain={gain})
+end
+def cancelTrajectory():
+  socket_send_int(TRAJECTORY_RESULT_CANCELED, "trajectory_socket")
 end
 traj_flag = connect_socket_with_retry("{host}", {p["trajectory_socket"]}, "trajectory_socket")
 com_flag = connect_socket_with_retry("{host}", {p["script_command_socket"]}, "script_command_socket")
@@ -348,6 +353,11 @@ class ExternalControl(Runner):
     def _send(self, name: str, value: int) -> None:
         self.outbox[name] += RESULT.pack(value)
 
+    def _canceled(self) -> None:
+        """TRAJECTORY_RESULT_CANCELED to the client, where the script says it (a client may strip it)."""
+        if self.settings.sends_canceled:
+            self._send("trajectory_socket", Result.CANCELED)
+
     # --- the program's loops ----------------------------------------------------------------------
 
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
@@ -405,9 +415,11 @@ class ExternalControl(Runner):
         new = Mode(mode)
         if new != self.mode:
             if self.mode == Mode.FORWARD:
-                if self.points_left > 0 and self.traj_running:
+                if self.points_left > 0 and self.traj_running:  # (a trajectory cut short: canceled)
                     self._drop_points(self.points_left)
-                    self._end_trajectory(Result.CANCELED, qd)
+                    self.points_left = 0
+                    self._stopj()
+                    self._canceled()
                 self.traj_running = False
             self.mode = new
             if new in (Mode.SERVOJ, Mode.POSE):
@@ -500,7 +512,7 @@ class ExternalControl(Runner):
             self.points_left = 0
             self.traj_running = False
             self._stopj()
-            self._send("trajectory_socket", Result.CANCELED)
+            self._canceled()
 
     def _start_trajectory(self, count: int, streaming: bool) -> None:
         if self.points_left > 0:  # (the last one's unread points: clearTrajectoryPointsThread)
@@ -561,8 +573,10 @@ class ExternalControl(Runner):
         last = self.points_left == 0
         try:
             result = self._point(raw, q, qd, last)
-        except Unreachable as exc:
+        except Unreachable as exc:  # (as a UR's planner: the arm protective-stops)
             self.messages.append(Message(f"trajectory point: {exc.reason}"))
+            self.arm.safety_mode = SafetyMode.PROTECTIVE_STOP
+            self.messages.append(PROTECTIVE_STOP)
             result = Result.FAILURE
         self.traj_first = False
         if result is not None:
@@ -583,6 +597,13 @@ class ExternalControl(Runner):
             goal = block[0]
             if kind == MotionType.MOVEJ_POSE:
                 goal = self.tool.ik_pose(block[0], block[1] if block[2][2] else q)
+            lim = self.tool.arm.limits
+            if ((goal < lim.q_min) | (goal > lim.q_max)).any():
+                j = int(np.argmax((goal < lim.q_min) | (goal > lim.q_max)))
+                self.messages.append(
+                    Message(f"movej: joint {j} target {goal[j]:.6g} rad is outside its range")
+                )
+                return Result.FAILURE
             v, a = _timed(goal - q, v, a, t)
             self.motion = MoveJ(q, goal, v, a, self.tool.arm)
         elif kind in (MotionType.MOVEL, MotionType.MOVEL_JOINT, MotionType.MOVEP, MotionType.MOVEP_JOINT):

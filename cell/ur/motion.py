@@ -27,6 +27,8 @@ KP = 30.0  # 1/s: pull toward the reference position (a 33 ms time constant on w
 AT_GOAL_RAD = 2e-5  # a move has ended once every joint is this close to its goal (and so slower than
 # KP * AT_GOAL_RAD < STEADY_RAD_S: is_steady() right after it is true)
 STEADY_RAD_S = 1e-3  # is_steady(): every joint slower than this
+SCALING_SAMPLES = 16  # points along a line or an arc where its joints' rates are found (MoveL._scaled)
+SCALING_MARGIN = 0.9  # of each joint's velocity and acceleration limits a planned line may use
 SETTLE_S = 2.0  # a move that cannot reach its goal (held by a stop) ends this long after its profile
 
 
@@ -169,15 +171,33 @@ class MoveL(Motion):
         length = float(np.linalg.norm(self.p1 - self.p0))
         turn = float(np.linalg.norm(rotation_error(self.r1, self.r0)))
         self.lead = length if length > 1e-6 else turn
-        self.profile = Trapezoid.make(self.lead, v, a)
         self.t = 0.0
         self.q_ref = q0.copy()
+        self.profile = Trapezoid.make(self.lead, *self._scaled(q0, v, a))
+
+    def _scaled(self, q0: np.ndarray, v: float, a: float) -> tuple[float, float]:
+        """v and a, slowed where the line needs a joint faster than its limits (a UR's speed scaling,
+        planned ahead): the joints' rate along the path, sampled, bounds the path's own."""
+        if self.lead <= 0:
+            return v, a
+        near, rate = q0, np.zeros_like(q0)
+        for s in np.linspace(0.0, 1.0, SCALING_SAMPLES + 1)[1:]:
+            q = self._at(s, near)
+            rate = np.maximum(rate, np.abs(q - near) * SCALING_SAMPLES / self.lead)  # rad per path unit
+            near = q
+        lim = self.tool.arm.limits
+        with np.errstate(divide="ignore"):
+            v_cap = float(np.min(np.where(rate > 0, SCALING_MARGIN * lim.v_max / rate, np.inf)))
+            a_cap = float(np.min(np.where(rate > 0, SCALING_MARGIN * lim.a_max / rate, np.inf)))
+        return min(v, v_cap), min(a, a_cap)
+
+    def _at(self, s: float, near: np.ndarray) -> np.ndarray:
+        """The joints at fraction s of the path."""
+        return self.tool.ik(self.p0 + (self.p1 - self.p0) * s, slerp(self.r0, self.r1, s), near)
 
     def _ref(self, t: float, near: np.ndarray) -> np.ndarray:
         d, _ = self.profile.at(t)
-        s = d / self.lead if self.lead > 0 else 1.0
-        pos = self.p0 + (self.p1 - self.p0) * s
-        return self.tool.ik(pos, slerp(self.r0, self.r1, s), near)
+        return self._at(d / self.lead if self.lead > 0 else 1.0, near)
 
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         if self.t >= self.profile.duration:
@@ -221,14 +241,12 @@ class MoveC(MoveL):
         super().__init__(q0, target, v, a, tool)
         if self.circle is not None:  # (the arc's length leads, not the chord's)
             self.lead = self.circle[1] * self.circle[4]
-            self.profile = Trapezoid.make(self.lead, v, a)
+            self.profile = Trapezoid.make(self.lead, *self._scaled(q0, v, a))
 
-    def _ref(self, t: float, near: np.ndarray) -> np.ndarray:
-        if self.circle is None:
-            return super()._ref(t, near)
-        center, radius, u, w, sweep = self.circle
-        d, _ = self.profile.at(t)
-        s = d / self.lead if self.lead > 0 else 1.0
+    def _at(self, s: float, near: np.ndarray) -> np.ndarray:
+        if getattr(self, "circle", None) is None:  # (a line, or MoveL's planning before the arc is known)
+            return super()._at(s, near)
+        center, radius, u, w, sweep = self.circle  # type: ignore[misc]
         angle = sweep * s
         pos = center + radius * (math.cos(angle) * u + math.sin(angle) * w)
         return self.tool.ik(pos, slerp(self.r0, self.r1, s), near)

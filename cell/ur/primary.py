@@ -19,6 +19,7 @@ SOURCE_CONTROLLER = -2
 class RobotMessage(IntEnum):
     TEXT = 0
     VERSION = 3
+    SAFETY_MODE = 5
     ERROR_CODE = 6
     KEY = 7
     RUNTIME_EXCEPTION = 10
@@ -52,6 +53,12 @@ def error_code(t_us: int, code: int, argument: int, level: ReportLevel, message:
     level, uint32 data type, uint32 data, then the text."""
     body = struct.pack(">iiiII", code, argument, level, 0, 0) + message.encode(errors="replace")
     return _robot_message(RobotMessage.ERROR_CODE, t_us, body)
+
+
+def safety_mode(t_us: int, mode: int, code: int = 0, argument: int = 0) -> bytes:
+    """The safety mode, as a UR tells it when it changes: int32 code, int32 argument, uint8 the mode,
+    uint32 report data type, uint32 report data."""
+    return _robot_message(RobotMessage.SAFETY_MODE, t_us, struct.pack(">iiBII", code, argument, mode, 0, 0))
 
 
 def key_message(t_us: int, title: str, message: str, code: int = 0, argument: int = 0) -> bytes:

@@ -97,7 +97,12 @@ class LineRunner(Runner):
                 try:
                     self._begin(call, q, qd)
                 except Unreachable as exc:
-                    self.messages.append(Message(f"{call.name}: {exc.reason}", call.line))
+                    if call.name in ("movej", "movel"):  # (a motion no joints reach: a UR stops)
+                        self.messages.append(Message(f"{call.name}: {exc.reason}"))
+                        self.arm.safety_mode = SafetyMode.PROTECTIVE_STOP
+                        self.messages.append(PROTECTIVE_STOP)
+                    else:
+                        self.messages.append(Message(f"{call.name}: {exc.reason}", call.line))
                     self.ended = f"line {call.line}: {exc.reason}"
                     break
             if self._running(call, dt):

@@ -116,6 +116,7 @@ class _Arm:
         self.restart_after: str | None = None
         self.ended = ""  # how the last program ended
         self.commands = ur.dashboard_of(self)  # what carries out its primary interface's own commands
+        self.said_safety = self.state.safety_mode  # the safety mode its clients were last told
         self.link: asyncio.Task[None] | None = None  # an external_control program's sockets to its client
         self.link_writers: dict[str, asyncio.StreamWriter] = {}
 
@@ -139,6 +140,7 @@ class _Arm:
         (by its UR state only: an e-stop's hold on it stays).  A program ends if the arm stops; the
         data plane's commands reach the drives only while the datagram program runs (a dashboard
         `stop` stops it, `play` starts it again)."""
+        self.tell_safety()
         drives, rows = self.group.drives, np.array([self.row])
         held = bool(drives.holds[self.row] & HOLD_UR)
         if self.state.can_move == held:
@@ -169,7 +171,8 @@ class _Arm:
         if m.key:
             data = primary.key_message(t_us, m.key, m.text)
         elif m.code >= 0:
-            data = primary.error_code(t_us, m.code, 0, primary.ReportLevel.VIOLATION, m.text)
+            self.tell_safety()  # (the safety mode first, as a UR tells it)
+            data = primary.error_code(t_us, m.code, 0, primary.ReportLevel.WARNING, m.text)
         elif m.line >= 0:
             data = primary.runtime_exception(t_us, m.line, m.column, m.text)
         else:
@@ -179,6 +182,20 @@ class _Arm:
                 p.transport.write(data)
         if not quiet:
             (log.warning if m.line >= 0 else log.info)("%s: %s", self.robot.name, m.text)
+
+    def tell_safety(self) -> None:
+        """The safety mode to the primary and secondary clients, if it changed since they were told
+        (a UR tells it only as it changes)."""
+        mode = self.state.safety_mode
+        if mode == self.said_safety:
+            return
+        self.said_safety = mode
+        t_us = round((self.group.state_time - self.group.origin_ns / 1e9) * 1e6)
+        # (and the robot state with it: its robot mode data says the same at once)
+        data = primary.safety_mode(t_us, int(mode)) + robotstate.robot_state(self.state, t_us)
+        for p in self.scripts:
+            if p.listens and not p.transport.is_closing():
+                p.transport.write(data)
 
     def run(self, text: str | ScriptError) -> None:
         """A program from a client interface: refused, or run in place of whatever holds the arm (or
@@ -298,6 +315,10 @@ class _Arm:
         for m in r.messages:
             self.say(m)
         r.messages.clear()
+        if not self.state.can_move:  # (the program stopped the arm: a protective stop)
+            self.apply()
+            if self.runner is None:
+                return
         if r.ended is not None:
             self.end(r.ended)
         else:
@@ -466,6 +487,7 @@ class URInterfaces:
             row = arm.row
             if arm.state.timestamp != t:  # (not updated this tick for an RTDE client already)
                 arm.state.update(group.q[row], group.qd[row], group.target[row], t)
+            arm.tell_safety()
             data = robotstate.robot_state(arm.state, t_us)
             for p in arm.scripts:
                 if not p.listens or p.transport.is_closing():

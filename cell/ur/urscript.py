@@ -211,6 +211,7 @@ def _external_settings(text: str) -> dict[str, float | tuple[float, ...]]:
         out[f"port_{name}"] = float(port)
     if probe := _SPLINE_PROBE.search(text):
         out["spline_register"] = float(probe[1])
+    out["sends_canceled"] = float('socket_send_int(TRAJECTORY_RESULT_CANCELED, "trajectory_socket")' in text)
     return out
 
 

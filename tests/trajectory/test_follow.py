@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import re
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +17,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from cell.bus import Bus, RemoteError
+from cell.launcher import fetch_status
 from cell.robot.arm import arm_model
 from cell.skills.client import RobotClient, SkillError
 from cell.trajectory import sources
@@ -402,3 +405,46 @@ async def test_skill_servers_run_named_trajectories_and_robot_clients_follow_in_
             "controller", "pose", controller_pb2.RobotRequest(robot="r1"), controller_pb2.PoseReply
         )
     assert np.abs(np.array(pose.joints) - Q0).max() < 1e-3
+
+
+@pytest.mark.slow
+async def test_a_named_trajectory_is_followed_after_the_controller_is_killed_and_restarted(
+    start_cell, tmp_path
+) -> None:
+    """Named trajectories are kept in the cell's state directory: the controller's process SIGKILLed,
+    its supervisor's next one has them, and follow:<name> runs as before."""
+    robots = [{"id": 1, "name": "r1", "skill_port": free_port(), "backend": "kinematic", "truth_hz": 100}]
+    cell = await start_cell(run=["bus", "dataplane", "robots", "controller", "skills"], robots=robots)
+    goal = Q0 + np.array([0.3, -0.2, 0.2, 0.1, 0.2, 0.4])
+    tr = ramp(Q0, goal)
+    js = tmp_path / "pick.json"
+    points = [{"t": float(t), "positions": q.tolist()} for t, q in zip(tr.t, tr.q, strict=True)]
+    js.write_text(json.dumps({"trajectories": [{"robot": "r1", "joint_names": UR, "points": points}]}))
+    named = await asyncio.to_thread(
+        run_cell, "follow", str(js), "--name", "pick", "--config", str(cell.path), timeout=60
+    )
+    assert named.returncode == 0, named.stderr
+    before = next(s for s in (await fetch_status(cell.config)).services if s.name == "controller").last.pid
+    os.kill(before, signal.SIGKILL)
+    async with asyncio.timeout(30):  # (its supervisor starts another)
+        while True:
+            st = next(s for s in (await fetch_status(cell.config)).services if s.name == "controller")
+            if st.last.pid not in (0, before) and st.health == "ok":
+                break
+            await asyncio.sleep(0.2)
+    port = cell.config.robot("r1").skill_port
+    reader, writer = await asyncio.open_connection(cell.config.skills.host, port)
+    try:
+        async with asyncio.timeout(60):
+            while True:  # (until the new controller has joined the bus: refused before, with the reason)
+                writer.write(b"abcd0001:follow:pick\r\n")
+                line = (await reader.readuntil(b"\r\n")).decode()
+                if line.startswith("abcd0001:done:"):
+                    break
+                assert "no trajectory named" not in line, line
+                await asyncio.sleep(0.5)
+    finally:
+        writer.close()
+    x, y, z = (float(v) for v in line.split(":")[3].split(",")[:3])
+    want = arm_model("ur5e").fk(goal)[0] * 1000
+    assert np.abs(np.array([x, y, z]) - want).max() < 0.5, (line, want)

@@ -268,3 +268,25 @@ def test_movec_takes_the_tool_through_the_via_point_on_a_circle() -> None:
         to_via.append(float(np.linalg.norm(tool - via[:3])))
     assert np.abs(np.array(radii) - 0.05).max() < 2e-4  # (on the circle all the way)
     assert min(to_via) < 1e-3 and np.linalg.norm(r.tool.fk(arm.q)[:3] - goal[:3]) < 1e-5
+
+
+def test_a_movej_beyond_a_joints_range_fails_and_a_script_without_the_cancel_answer_gives_none() -> None:
+    r, _ = program()
+    arm = Arm(r)
+    r.feed("reverse_socket", reverse(Mode.FORWARD, (TrajectoryAction.RECEIVE, 1, 0, 0, 0, 0), 0))
+    r.feed("trajectory_socket", POINT.pack(*joints([-123, 0, 0, 0, 0, 0]), *[0] * 12, 0, 0, MotionType.MOVEJ))
+    arm.run(0.1)
+    assert results(r) == [Result.FAILURE] and "outside its range" in r.messages[-2].text
+    # UR's client library's test strips the script's canceled answer: then none is sent
+    text = client_program("127.0.0.1", PORTS).split("\n", 1)[1]
+    text = text.replace('socket_send_int(TRAJECTORY_RESULT_CANCELED, "trajectory_socket")', "sync()")
+    stripped = runner(parse(text), URArm("r1", arm_model("ur5e")))
+    assert isinstance(stripped, ExternalControl)
+    stripped.connected = True
+    arm = Arm(stripped)
+    stripped.feed("reverse_socket", reverse(Mode.FORWARD, (TrajectoryAction.RECEIVE, 1, 0, 0, 0, 0), 0))
+    stripped.feed("trajectory_socket", spline(Q0 + 0.2, np.zeros(6), t=2.0))
+    arm.run(0.2)
+    stripped.feed("reverse_socket", reverse(Mode.FORWARD, (TrajectoryAction.CANCEL, 0, 0, 0, 0, 0), 0))
+    arm.run(0.2)
+    assert results(stripped) == [] and not stripped.traj_running

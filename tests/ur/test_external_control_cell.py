@@ -178,7 +178,7 @@ async def test_a_missed_keepalive_ends_the_program_force_mode_is_refused_and_a_s
             words = await client.said(primary.RobotMessage.ERROR_CODE, b"protective stop")
             assert await client.conns["reverse_socket"][0].read() == b""  # (it stopped the program)
         code, argument, level = struct.unpack_from(">iii", words)
-        assert (code, argument, level) == (209, 0, primary.ReportLevel.VIOLATION)
+        assert (code, argument, level) == (209, 0, primary.ReportLevel.WARNING)  # (as a UR reports it)
     finally:
         client.close()
 

@@ -106,6 +106,8 @@ def test_primary_messages_byte_by_byte() -> None:
     c = primary.error_code(5, 209, 0, primary.ReportLevel.VIOLATION, "stop")
     assert c == struct.pack(">iBQbBiiiII", 39, 20, 5, -2, 6, 209, 0, 3, 0, 0) + b"stop"
     # a key message: code, argument, the title's length, the title, the text (a program's name)
+    m = primary.safety_mode(5, 3)  # (PROTECTIVE_STOP)
+    assert m == struct.pack(">iBQbBiiBII", 32, 20, 5, -2, 5, 0, 0, 3, 0, 0)
     k = primary.key_message(5, "PROGRAM_XXX_STARTED", "test_fun")
     assert k == struct.pack(">iBQbBiiB", 51, 20, 5, -2, 7, 0, 0, 19) + b"PROGRAM_XXX_STARTEDtest_fun"
 
