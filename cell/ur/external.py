@@ -36,7 +36,7 @@ import numpy as np
 
 from cell.robot.kinematics import Unreachable
 from cell.ur.arm import SafetyMode, URArm
-from cell.ur.motion import KP, Motion, MoveC, MoveJ, MoveL, Servo, Speed, SpeedL
+from cell.ur.motion import KP, Motion, MoveC, MoveJ, MoveL, Servo, Speed, SpeedL, pull
 from cell.ur.program import PROTECTIVE_STOP, RUNNERS, Message, Runner
 from cell.ur.urscript import EXTERNAL_SOCKETS as SOCKETS
 from cell.ur.urscript import Script
@@ -285,8 +285,7 @@ class Stop(Motion):
     target, held back by its joint limits, still comes to stand where the target did, as a UR's)."""
 
     def __init__(self, q_ref: np.ndarray, v_ref: np.ndarray, a: float, a_max: np.ndarray) -> None:
-        self.q_ref, self.v, self.a = q_ref.copy(), v_ref.copy(), a
-        self.brake = 0.8 * a_max  # (the pull never asks to stop faster than the joints can)
+        self.q_ref, self.v, self.a, self.a_max = q_ref.copy(), v_ref.copy(), a, a_max
 
     def reference(self) -> tuple[np.ndarray, np.ndarray]:
         return self.q_ref, self.v
@@ -299,11 +298,7 @@ class Stop(Motion):
         self.v = self.v + dv
         self.q_ref = self.q_ref + self.v * dt
         self.done = not self.v.any()
-        # the pull onto the target: proportional, but no faster than braking at the joints' limit
-        # would stop it there (a gain alone overshoots an arm that is acceleration-limited)
-        err = self.q_ref - q
-        pull = np.minimum(KP * np.abs(err), np.sqrt(2 * self.brake * np.abs(err)))
-        return self.v + np.sign(err) * pull
+        return self.v + pull(self.q_ref - q, self.a_max)
 
 
 class ExternalControl(Runner):

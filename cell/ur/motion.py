@@ -32,6 +32,14 @@ SCALING_MARGIN = 0.9  # of each joint's velocity and acceleration limits a plann
 SETTLE_S = 2.0  # a move that cannot reach its goal (held by a stop) ends this long after its profile
 
 
+def pull(err: np.ndarray, a_max: np.ndarray) -> np.ndarray:
+    """The velocity that closes a position error: proportional (KP), but never faster than braking
+    at 0.8 of the joints' acceleration limits would stop it on the spot (a gain alone overshoots,
+    and rings, an arm that is acceleration-limited and far off)."""
+    size = np.abs(err)
+    return np.sign(err) * np.minimum(KP * size, np.sqrt(1.6 * a_max * size))
+
+
 class Tool:
     """The arm's kinematics as URScript sees them: TCP poses through the flange and set_tcp's offset."""
 
@@ -206,7 +214,7 @@ class MoveL(Motion):
             if left <= AT_GOAL_RAD or self.t > self.profile.duration + SETTLE_S:
                 self.done = True
                 self.error = "" if left <= AT_GOAL_RAD else f"ended {left:.2g} rad from its goal"
-            return KP * (self.q_end - q)
+            return pull(self.q_end - q, self.tool.arm.limits.a_max)
         now = self.q_ref
         self.t += dt
         try:

@@ -97,7 +97,8 @@ class LineRunner(Runner):
                 try:
                     self._begin(call, q, qd)
                 except Unreachable as exc:
-                    if call.name in ("movej", "movel"):  # (a motion no joints reach: a UR stops)
+                    if call.name == "movel":  # (a line the joints cannot follow: a UR protective-stops;
+                        # movej's pose has no joints at all: get_inverse_kin raises, a runtime exception)
                         self.messages.append(Message(f"{call.name}: {exc.reason}"))
                         self.arm.safety_mode = SafetyMode.PROTECTIVE_STOP
                         self.messages.append(PROTECTIVE_STOP)
