@@ -138,6 +138,7 @@ def _external_servo_client(host: str, primary_port: int, seconds: float, out: An
         for name, server in servers.items():
             server.settimeout(10)
             conns[name] = server.accept()[0]
+            conns[name].setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # (as URCL's servers)
         recv = rtde_receive.RTDEReceiveInterface(host)
         q0 = np.array(recv.getActualQ())
         reverse = conns["reverse_socket"]

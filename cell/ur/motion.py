@@ -29,6 +29,10 @@ AT_GOAL_RAD = 2e-5  # a move has ended once every joint is this close to its goa
 STEADY_RAD_S = 1e-3  # is_steady(): every joint slower than this
 SCALING_SAMPLES = 16  # points along a line or an arc where its joints' rates are found (MoveL._scaled)
 SCALING_MARGIN = 0.9  # of each joint's velocity and acceleration limits a planned line may use
+# servoj's lookahead is its loop's time constant here, closed on the arm's state as the tick reads
+# it (a few ms late): under 0.1 s that loop rang and grew on a 500 Hz stream (URCL's default 0.03 s
+# took a 0.1 rad sine to 0.34 rad), so shorter ones are held at 0.1 s (a UR's own loop is faster)
+SERVO_LOOKAHEAD_MIN_S = 0.1
 SETTLE_S = 2.0  # a move that cannot reach its goal (held by a stop) ends this long after its profile
 
 
@@ -322,7 +326,7 @@ class Servo(Motion):
         self.t = min(max(t, 0.002), 1.0)
         self.ff = (target - self.target) / self.t
         self.target = target.copy()
-        self.lookahead = min(max(lookahead, 0.03), 0.2)
+        self.lookahead = min(max(lookahead, SERVO_LOOKAHEAD_MIN_S), 0.2)
         self.since = 0.0
 
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
