@@ -17,6 +17,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from cell.bus import Bus, RemoteError
+from cell.bus.node import BusTimeout
 from cell.launcher import fetch_status
 from cell.robot.arm import arm_model
 from cell.skills.client import RobotClient, SkillError
@@ -426,9 +427,13 @@ async def test_a_named_trajectory_is_followed_after_the_controller_is_killed_and
     assert named.returncode == 0, named.stderr
     before = next(s for s in (await fetch_status(cell.config)).services if s.name == "controller").last.pid
     os.kill(before, signal.SIGKILL)
-    async with asyncio.timeout(30):  # (its supervisor starts another)
+    async with asyncio.timeout(60):  # (its supervisor starts another)
         while True:
-            st = next(s for s in (await fetch_status(cell.config)).services if s.name == "controller")
+            try:
+                status = await fetch_status(cell.config)
+            except BusTimeout:  # (the process hosting the status went down with it: not yet back)
+                continue
+            st = next(s for s in status.services if s.name == "controller")
             if st.last.pid not in (0, before) and st.health == "ok":
                 break
             await asyncio.sleep(0.2)
