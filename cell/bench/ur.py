@@ -223,12 +223,11 @@ async def _state_run(seconds: float, backend: str) -> tuple[float, float]:
         def states(buf: bytearray) -> int:
             return sum(kind == robotstate.ROBOT_STATE for kind, _ in primary.split(buf))
 
-        return tuple(  # type: ignore[return-value]
-            await asyncio.gather(
-                rate(config.ur.secondary_port, states),
-                rate(config.ur.realtime_port, lambda buf: len(realtime.split(buf))),
-            )
+        state_hz, realtime_hz = await asyncio.gather(
+            rate(config.ur.secondary_port, states),
+            rate(config.ur.realtime_port, lambda buf: len(realtime.split(buf))),
         )
+        return state_hz, realtime_hz
 
 
 async def _servo_run(seconds: float, backend: str, external: bool = False) -> tuple[float, float]:

@@ -391,7 +391,7 @@ class ExternalControl(Runner):
             self.last_v = self.servo.step(q, qd, dt)
             return self.last_v
         if self.mode == Mode.FORWARD:
-            self._trajectory(q, qd, dt)
+            self._trajectory(q, dt)
         v = self._move(q, qd, dt)
         ref = self.reference()
         self.last_v = v if ref is None else ref[1]  # (the target's velocity, not the pull onto it)
@@ -419,7 +419,6 @@ class ExternalControl(Runner):
             self.mode = new
             if new in (Mode.SERVOJ, Mode.POSE):
                 self.servo = Servo(q)
-                self.servo.lookahead = s.lookahead
                 self.messages.append(Message("ExternalControl: Starting servo thread"))
             elif new in (Mode.FORWARD, Mode.IDLE):
                 self._stopj()
@@ -457,7 +456,7 @@ class ExternalControl(Runner):
             else:
                 self.motion = SpeedL(self.tool, q, qd, values, SPEEDJ_ACCELERATION)
         elif self.mode == Mode.FORWARD:
-            self._forward(int(msg[1]), int(msg[2]), qd)
+            self._forward(int(msg[1]), int(msg[2]))
         elif self.mode == Mode.FREEDRIVE and msg[1] in (FREEDRIVE_START, FREEDRIVE_STOP):
             word = "Entering" if msg[1] == FREEDRIVE_START else "Leaving"
             self.messages.append(Message(f"{word} freedrive mode"))
@@ -490,7 +489,7 @@ class ExternalControl(Runner):
 
     # --- trajectory forwarding ------------------------------------------------------------------
 
-    def _forward(self, action: int, count: int, qd: np.ndarray) -> None:
+    def _forward(self, action: int, count: int) -> None:
         if action == TrajectoryAction.RECEIVE:
             self._start_trajectory(count, streaming=False)
         elif action == TrajectoryAction.STREAM_START:
@@ -526,13 +525,13 @@ class ExternalControl(Runner):
         for _ in range(min(n, len(points))):
             points.popleft()
 
-    def _end_trajectory(self, result: Result, qd: np.ndarray) -> None:
+    def _end_trajectory(self, result: Result) -> None:
         self.traj_running = False
         self._stopj()
         self._send("trajectory_socket", result)
         self.messages.append(Message(f"Trajectory finished with result {result.name}"))
 
-    def _trajectory(self, q: np.ndarray, qd: np.ndarray, dt: float) -> None:
+    def _trajectory(self, q: np.ndarray, dt: float) -> None:
         """The trajectory thread: the next point once the last one is done."""
         if not self.traj_running:
             return
@@ -542,10 +541,10 @@ class ExternalControl(Runner):
             self.spline_qd = self.motion.qd_last
             self.spline_qdd = self.motion.qdd_last if self.motion.quintic else None
         if self.motion is not None and self.motion.error:
-            self._end_trajectory(Result.FAILURE, qd)
+            self._end_trajectory(Result.FAILURE)
             return
         if self.points_left <= 0:
-            self._end_trajectory(Result.SUCCESS, qd)
+            self._end_trajectory(Result.SUCCESS)
             return
         points = self.readers["trajectory_socket"].messages
         if not points:
@@ -560,14 +559,14 @@ class ExternalControl(Runner):
                     self.points_left = 0  # (STREAM_END came after the last point was taken: done)
                     return
                 self.messages.append(Message("Receiving trajectory point failed!"))
-                self._end_trajectory(Result.FAILURE, qd)
+                self._end_trajectory(Result.FAILURE)
             return
         self.traj_wait = 0.0
         raw = points.popleft()
         self.points_left -= 1
         last = self.points_left == 0
         try:
-            result = self._point(raw, q, qd, last)
+            result = self._point(raw, q, last)
         except Unreachable as exc:  # (as a UR's planner: the arm protective-stops)
             self.messages.append(Message(f"trajectory point: {exc.reason}"))
             self.arm.safety_mode = SafetyMode.PROTECTIVE_STOP
@@ -575,9 +574,9 @@ class ExternalControl(Runner):
             result = Result.FAILURE
         self.traj_first = False
         if result is not None:
-            self._end_trajectory(result, qd)
+            self._end_trajectory(result)
 
-    def _point(self, raw: tuple[int, ...], q: np.ndarray, qd: np.ndarray, last: bool) -> Result | None:
+    def _point(self, raw: tuple[int, ...], q: np.ndarray, last: bool) -> Result | None:
         """Start one point's motion; a result if the trajectory ends on it."""
         s = self.settings
         block = [np.array(raw[i : i + 6], np.float64) / s.mult_joint for i in (0, 6, 12)]

@@ -256,9 +256,9 @@ class MoveC(MoveL):
             self.profile = Trapezoid.make(self.lead, *self._scaled(q0, v, a))
 
     def _at(self, s: float, near: np.ndarray) -> np.ndarray:
-        if getattr(self, "circle", None) is None:  # (a line, or MoveL's planning before the arc is known)
+        if self.circle is None:  # (three points on a line)
             return super()._at(s, near)
-        center, radius, u, w, sweep = self.circle  # type: ignore[misc]
+        center, radius, u, w, sweep = self.circle
         angle = sweep * s
         pos = center + radius * (math.cos(angle) * u + math.sin(angle) * w)
         return self.tool.ik(pos, slerp(self.r0, self.r1, s), near)

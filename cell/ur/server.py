@@ -88,6 +88,17 @@ PRIMARY_COMMANDS = {
 }
 
 
+def _offer(transport: asyncio.Transport, data: bytes) -> bool | None:
+    """Write to a client that may not read: None if its connection is going, False (not written) if
+    it is WRITE_LIMIT bytes behind, True if written.  The arm waits for nobody."""
+    if transport.is_closing():
+        return None
+    if transport.get_write_buffer_size() > WRITE_LIMIT:
+        return False
+    transport.write(data)
+    return True
+
+
 class _Arm:
     """One arm's UR side: its state, its clients, the program that holds it if not the cell's own."""
 
@@ -451,8 +462,8 @@ class URInterfaces:
         for row in stopping:
             arm = self.arms[row]
             if arm.state.safety_mode != SafetyMode.PROTECTIVE_STOP:
-                arm.say(PROTECTIVE_STOP, quiet=True)
-            arm.state.safety_mode = SafetyMode.PROTECTIVE_STOP
+                arm.state.safety_mode = SafetyMode.PROTECTIVE_STOP
+                arm.say(PROTECTIVE_STOP, quiet=True)  # (after the mode: its clients hear that first)
         for row in resuming:  # (the cell's own datagram program resumes them by commanding again)
             st = self.arms[row].state
             if st.safety_mode == SafetyMode.PROTECTIVE_STOP:
@@ -490,13 +501,9 @@ class URInterfaces:
             arm.tell_safety()
             data = robotstate.robot_state(arm.state, t_us)
             for p in arm.scripts:
-                if not p.listens or p.transport.is_closing():
-                    continue
-                if p.transport.get_write_buffer_size() > WRITE_LIMIT:
-                    c.states_dropped += 1
-                    continue
-                p.transport.write(data)
-                c.states_out += 1
+                if p.listens and (sent := _offer(p.transport, data)) is not None:
+                    c.states_out += sent
+                    c.states_dropped += not sent
 
     def busy(self) -> bool:
         """Whether it needs every tick (an RTDE client, a program running or due back)."""
@@ -524,22 +531,16 @@ class URInterfaces:
         loses them, counted: the arm waits for nobody)."""
         c = self.counters
         for p, runs, data, n in self.due:
-            if p.transport.is_closing() or p.session.runs != runs:  # (paused or restarted meanwhile)
+            if p.session.runs != runs:  # (paused or restarted meanwhile)
                 continue
-            if p.transport.get_write_buffer_size() > WRITE_LIMIT:
-                c.rtde_dropped += n
-                continue
-            p.transport.write(data)
-            c.rtde_packages_out += n
+            if (sent := _offer(p.transport, data)) is not None:
+                c.rtde_packages_out += n * sent
+                c.rtde_dropped += n * (not sent)
         self.due.clear()
         for q, message in self.realtime_due:
-            if q.transport.is_closing():
-                continue
-            if q.transport.get_write_buffer_size() > WRITE_LIMIT:
-                c.realtime_dropped += 1
-                continue
-            q.transport.write(message)
-            c.realtime_out += 1
+            if (sent := _offer(q.transport, message)) is not None:
+                c.realtime_out += sent
+                c.realtime_dropped += not sent
         self.realtime_due.clear()
 
     def report(self) -> dict[str, float]:

@@ -4,6 +4,8 @@ kinematic arm (q advanced by the commanded velocity each tick)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -32,8 +34,10 @@ DT = 0.002
 PORTS = {"trajectory_socket": 50003, "script_command_socket": 50004, "reverse_socket": 50001}
 
 
-def program() -> tuple[ExternalControl, URArm]:
-    (stop, text) = Framer().feed(client_program("127.0.0.1", PORTS, lookahead=0.05).encode())
+def program(edit: Callable[[str], str] = lambda text: text) -> tuple[ExternalControl, URArm]:
+    """The program as a client sends it (edited first, as UR's client library's tests edit it),
+    taken by an arm, its sockets connected."""
+    (stop, text) = Framer().feed(edit(client_program("127.0.0.1", PORTS, lookahead=0.05)).encode())
     assert stop == "stop program\n"  # (a line of its own: the primary interface's own command)
     st = URArm("r1", arm_model("ur5e"))
     r = runner(parse(text), st)
@@ -223,15 +227,9 @@ def test_the_last_spline_point_slows_to_a_stop_on_its_path_as_the_script_does() 
     """A last point with an end velocity: near the end the segment's time is scaled down, so no joint
     is faster than braking at 15 rad/s^2 allows, the target stands at the end, and the spline time
     the script writes to its probe register (UR's client library's spline tests) reaches the end."""
-    text = (
-        client_program("127.0.0.1", PORTS)
-        .split("\n", 1)[1]
-        .replace("end\n", "\twrite_output_float_register(1, splineTimerTraveled)\nend\n")
-    )
-    st = URArm("r1", arm_model("ur5e"))
-    r = runner(parse(text), st)
-    assert isinstance(r, ExternalControl) and r.settings.spline_register == 1
-    r.connected = True
+    probe = "\twrite_output_float_register(1, splineTimerTraveled)\n"
+    r, st = program(lambda text: text.removesuffix("end\n") + probe + "end\n")
+    assert r.settings.spline_register == 1
     arm = Arm(r)
     end_qd = 0.273 * np.array([0.5, 0.4, 0.3, 0.2, 0.1, 1.0])
     r.feed("reverse_socket", reverse(Mode.FORWARD, (TrajectoryAction.RECEIVE, 1, 0, 0, 0, 0), 0))
@@ -278,11 +276,9 @@ def test_a_movej_beyond_a_joints_range_fails_and_a_script_without_the_cancel_ans
     arm.run(0.1)
     assert results(r) == [Result.FAILURE] and "outside its range" in r.messages[-2].text
     # UR's client library's test strips the script's canceled answer: then none is sent
-    text = client_program("127.0.0.1", PORTS).split("\n", 1)[1]
-    text = text.replace('socket_send_int(TRAJECTORY_RESULT_CANCELED, "trajectory_socket")', "sync()")
-    stripped = runner(parse(text), URArm("r1", arm_model("ur5e")))
-    assert isinstance(stripped, ExternalControl)
-    stripped.connected = True
+    answer = 'socket_send_int(TRAJECTORY_RESULT_CANCELED, "trajectory_socket")'
+    stripped, _ = program(lambda text: text.replace(answer, "sync()"))
+    assert not stripped.settings.sends_canceled
     arm = Arm(stripped)
     stripped.feed("reverse_socket", reverse(Mode.FORWARD, (TrajectoryAction.RECEIVE, 1, 0, 0, 0, 0), 0))
     stripped.feed("trajectory_socket", spline(Q0 + 0.2, np.zeros(6), t=2.0))

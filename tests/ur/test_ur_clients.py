@@ -13,6 +13,7 @@ import rtde_io
 import rtde_receive
 
 from cell.bus import Bus
+from cell.bus.node import Subscription
 from cell.controller.controller import Controller
 from cell.launcher import fetch_status
 from cell.ur import primary, robotstate, rtde
@@ -20,6 +21,14 @@ from cell.v1 import robot_pb2
 from tests.conftest import free_port
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+
+
+async def _record_truth(sub: Subscription, truth: dict[int, np.ndarray]) -> None:
+    """Each truth the bus carries, under the status period it is the state of (tick k's state is
+    k + 1 periods from the origin, as RTDE and the real-time interface stamp it)."""
+    async for env in sub:
+        m = env.decode(robot_pb2.RobotTruth)
+        truth[m.tick + 1] = np.array(m.q)
 
 
 def robots(n: int = 1) -> list[dict]:
@@ -41,13 +50,8 @@ async def test_rtde_reads_the_arms_truth_at_500_hz_while_it_moves(start_cell) ->
     async with Bus.connect(cell.config.bus, "test") as bus, Controller(bus, cell.config) as ctl:
         sub = await bus.subscribe("truth/r1")
 
-        async def follow() -> None:
-            async for env in sub:
-                m = env.decode(robot_pb2.RobotTruth)
-                truth[m.tick + 1] = np.array(m.q)  # (tick k's state is k + 1 periods from the origin)
-
         async with asyncio.TaskGroup() as tg:
-            watcher = tg.create_task(follow())
+            watcher = tg.create_task(_record_truth(sub, truth))
             move = tg.create_task(ctl.move_joints("r1", Q0 + np.array([0.5, -0.3, 0.2, 0.1, 0.0, 0.4])))
             while not move.done():  # the client's own state, polled as its users poll it
                 t1, q, t2 = rtde.getTimestamp(), rtde.getActualQ(), rtde.getTimestamp()
@@ -322,17 +326,12 @@ async def test_python_urxs_real_time_monitor_gets_every_periods_state_of_the_mov
     async with Bus.connect(cell.config.bus, "test") as bus, Controller(bus, cell.config) as ctl:
         sub = await bus.subscribe("truth/r1")
 
-        async def follow() -> None:
-            async for env in sub:
-                m = env.decode(robot_pb2.RobotTruth)
-                truth[m.tick + 1] = np.array(m.q)  # (tick k's state is k + 1 periods from the origin)
-
         monitor.start()
         await asyncio.to_thread(monitor.q_actual, True)  # (its first message)
         missed_before = (await _robots_counters(cell.config))["missed_ticks"]
         monitor.start_buffering()
         async with asyncio.TaskGroup() as tg:
-            watcher = tg.create_task(follow())
+            watcher = tg.create_task(_record_truth(sub, truth))
             await ctl.move_joints("r1", Q0 + np.array([0.4, -0.2, 0.2, 0.1, 0.0, 0.3]))
             monitor.stop_buffering()
             await asyncio.sleep(0.1)  # (the truth of the last buffered ticks, on the bus)
