@@ -595,6 +595,7 @@ class URConfig:
     realtime_port: int = _check(_port)  # URScript in (ur_rtde sends its control script here)
     max_clients: int = _check(_positive)  # connections per arm and interface; more are refused
     programs: str  # the programs folder ("": the cell's own; cell.ur.programs)
+    remote_control: bool  # what `is in remote control` answers (URSim's: false; nothing refused either way)
     # the daemon (robots of backend "ur"): the first of the registers its script uses (input int: the
     # window's number; input doubles, six: the joint velocities; output ints: the number echoed, a
     # heartbeat).  24-47 are the range UR leaves to external RTDE clients (0-23 serve the fieldbuses)

@@ -37,9 +37,9 @@ import numpy as np
 from cell.robot.kinematics import Unreachable
 from cell.ur.arm import SafetyMode, URArm
 from cell.ur.motion import KP, Motion, MoveC, MoveJ, MoveL, Servo, Speed, SpeedL, pull
-from cell.ur.program import PROTECTIVE_STOP, RUNNERS, Message, Runner
+from cell.ur.program import PROTECTIVE_STOP, RUNNERS, LineRunner, Message, Runner
 from cell.ur.urscript import EXTERNAL_SOCKETS as SOCKETS
-from cell.ur.urscript import Script
+from cell.ur.urscript import Call, Script
 
 
 class Mode(IntEnum):
@@ -174,7 +174,8 @@ com_flag = connect_socket_with_retry("{host}", {p["script_command_socket"]}, "sc
 rev_flag = connect_socket_with_retry("{host}", {p["reverse_socket"]}, "reverse_socket")
 while control_mode > MODE_STOPPED:
   params_mult = socket_read_binary_integer(8, "reverse_socket", read_timeout)
-end"""
+end
+# NODE_CONTROL_LOOP_ENDS"""
     return (
         "stop program\ndef externalControl():\n"
         + "".join(f"\t{line}\n" for line in body.splitlines())
@@ -335,6 +336,7 @@ class ExternalControl(Runner):
         self.last_v = np.zeros(arm.model.dof)  # the target's velocity last tick
         self.q_now = np.zeros(arm.model.dof)  # the joints as the last tick found them
         self.messages.append(Message(f"ExternalControl: steptime={STEP_S}"))
+        self.tail: LineRunner | None = None  # once its control loop is over: the code after it
 
     # --- I/O, from the server -------------------------------------------------------------------
 
@@ -355,8 +357,17 @@ class ExternalControl(Runner):
 
     # --- the program's loops ----------------------------------------------------------------------
 
+    def reference(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return self.tail.reference() if self.tail is not None else super().reference()
+
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         self.q_now = q
+        if self.tail is not None:  # (the control loop is over: the program's last lines)
+            v = self.tail.step(q, qd, dt)
+            self.messages += self.tail.messages
+            self.tail.messages.clear()
+            self.ended = self.tail.ended
+            return v
         if not self.connected:
             return np.zeros_like(q)
         self._script_commands()
@@ -425,7 +436,13 @@ class ExternalControl(Runner):
             elif new == Mode.STOPPED:
                 self._stopj()
                 self.messages.append(Message("ExternalControl: Stopping communication and control"))
-                self.ended = ""
+                if self.script.tail:  # (its sockets close, then what the client appended runs)
+                    stop = Call("stopj", {"a": STOPJ_ACCELERATION}, 0)
+                    tail = Script(self.script.name, "lines", [stop, *self.script.tail])
+                    self.tail = LineRunner(tail, self.arm)
+                    self.tail.sockets = self.sockets
+                else:
+                    self.ended = ""
                 return
             elif new == Mode.FREEDRIVE:  # (no hand guides it: it stands, as a UR's would)
                 self._stopj()

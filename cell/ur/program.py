@@ -18,15 +18,15 @@ pose or joints).  Real-time commands (servoJ, speedJ, speedL) are taken every ti
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from enum import IntEnum
+from dataclasses import dataclass, field
+from enum import Enum, IntEnum
 
 import numpy as np
 
 from cell.robot.kinematics import Unreachable
 from cell.ur.arm import SafetyMode, URArm
 from cell.ur.motion import STEADY_RAD_S, Motion, MoveJ, MoveL, Servo, Speed, SpeedL
-from cell.ur.urscript import Call, Pose, Script
+from cell.ur.urscript import END_LOOP, Call, Pose, Script
 
 
 @dataclass(frozen=True, slots=True)
@@ -44,6 +44,29 @@ class Message:
 
 # what the controller reports as a protective stop begins (UR's error code C209A0)
 PROTECTIVE_STOP = Message("A protective stop was triggered", code=209)
+# calls a program may make in one tick: a loop that takes no time (no sleep, sync or motion) ends
+# with a runtime exception instead of holding the tick
+CALLS_PER_TICK = 10_000
+
+
+class SocketState(Enum):
+    OPENING = "opening"
+    OPEN = "open"
+    FAILED = "failed"
+    CLOSED = "closed"
+
+
+@dataclass(eq=False, slots=True)
+class ProgramSocket:
+    """A socket a program opened (socket_open): the server connects it (from the arm's address) and
+    sends its outbox; the program waits at its socket_open until it is OPEN or FAILED, as on a UR."""
+
+    name: str
+    host: str
+    port: int
+    timeout: float
+    state: SocketState = SocketState.OPENING
+    outbox: bytearray = field(default_factory=bytearray)
 
 
 class Runner:
@@ -55,6 +78,7 @@ class Runner:
         self.ended: str | None = None
         self.messages: list[Message] = []
         self.motion: Motion | None = None
+        self.sockets: dict[str, ProgramSocket] = {}  # by name (the server opens, writes and closes them)
 
     @property
     def name(self) -> str:
@@ -77,7 +101,8 @@ class Runner:
 
 
 class LineRunner(Runner):
-    """movej, movel, speedj, servoj, stopj/l, sleep, sync, outputs and messages, one after another."""
+    """movej, movel, speedj, servoj, stopj/l, sleep, sync, outputs, messages and sockets, one after
+    another, in `while True:` loops or not."""
 
     def __init__(self, script: Script, arm: URArm) -> None:
         super().__init__(script, arm)
@@ -85,15 +110,26 @@ class LineRunner(Runner):
         self.at = 0
         self.wait = 0.0  # time left on the current call (sleep, speedj's t, servoj's t)
         self.started = False
+        self.fresh = False  # the current call has not had a tick yet (a motion takes one at least)
 
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
+        calls = 0
         while self.ended is None:
             if self.at >= len(self.calls):
                 self.ended = ""
                 break
             call = self.calls[self.at]
+            calls += 1
+            if calls > CALLS_PER_TICK:  # (a loop of calls that take no time: it would hold the tick)
+                reason = f"a loop ran {CALLS_PER_TICK} calls in one tick: it takes no time (add sync())"
+                self.messages.append(Message(reason, call.line))
+                self.ended = f"line {call.line}: {reason}"
+                break
+            if call.name == END_LOOP:
+                self.at = int(call.args["to"])  # type: ignore[call-overload]  # (parse's own index)
+                continue
             if not self.started:
-                self.started = True
+                self.started, self.fresh = True, True
                 try:
                     self._begin(call, q, qd)
                 except Unreachable as exc:
@@ -107,6 +143,7 @@ class LineRunner(Runner):
                     self.ended = f"line {call.line}: {exc.reason}"
                     break
             if self._running(call, dt):
+                self.fresh = False
                 return self._move(q, qd, dt)
             self.at, self.started = self.at + 1, False
         return np.zeros_like(q)
@@ -156,6 +193,24 @@ class LineRunner(Runner):
             arm.safety_mode = SafetyMode.PROTECTIVE_STOP
             self.messages.append(PROTECTIVE_STOP)
             self.ended = "a protective stop (protective_stop())"
+        elif call.name == "socket_open":
+            name = str(a["socket_name"])
+            old = self.sockets.get(name)
+            if old is not None:  # (a name opened again: the old one closes, as on a UR)
+                old.state = SocketState.CLOSED
+            port = int(a["port"])  # type: ignore[call-overload]  # any literal of the script: int() checks it
+            if not 0 < port < 65536:
+                raise Unreachable(f"socket_open: port {port} is not a TCP port")
+            self.sockets[name] = ProgramSocket(name, str(a["address"]), port, max(_float(a["timeout"]), 0.0))
+        elif call.name in ("socket_send_string", "socket_send_line"):
+            sock = self.sockets.get(str(a["socket_name"]))
+            if sock is not None and sock.state == SocketState.OPEN:
+                text = str(a["str"]) + ("\n" if call.name == "socket_send_line" else "")
+                sock.outbox += text.encode()
+        elif call.name == "socket_close":
+            sock = self.sockets.get(str(a["socket_name"]))
+            if sock is not None:
+                sock.state = SocketState.CLOSED
 
     def _running(self, call: Call, dt: float) -> bool:
         """Whether the call goes on for another tick."""
@@ -163,7 +218,9 @@ class LineRunner(Runner):
             m = self.motion
             if m is not None and m.done and m.error:
                 self.messages.append(Message(f"{call.name}: {m.error}", call.line))
-            return m is not None and not m.done
+            return m is not None and (not m.done or self.fresh)
+        if call.name == "socket_open":  # (it waits to be connected, or to fail)
+            return self.sockets[str(call.args["socket_name"])].state == SocketState.OPENING
         if self.wait > 0:
             self.wait -= dt
             return True

@@ -36,10 +36,18 @@ from cell.ur.arm import CONTROLLER_VERSION, DATAGRAM_PROGRAM, RuntimeState, Safe
 from cell.ur.dashboard import MAX_LINE, WELCOME, Dashboard
 from cell.ur.external import ExternalControl
 from cell.ur.fields import INPUTS, OUTPUTS
-from cell.ur.program import PROTECTIVE_STOP, Message, RtdeControl, Runner, runner
+from cell.ur.program import (
+    PROTECTIVE_STOP,
+    Message,
+    ProgramSocket,
+    RtdeControl,
+    Runner,
+    SocketState,
+    runner,
+)
 from cell.ur.programs import Programs
 from cell.ur.rtde import Session
-from cell.ur.urscript import EXTERNAL_SOCKETS, Framer, Script, ScriptError, parse
+from cell.ur.urscript import END_LOOP, EXTERNAL_SOCKETS, Framer, Script, ScriptError, parse
 from cell.v1 import robot_pb2
 
 log = logging.getLogger("cell.ur")
@@ -75,7 +83,9 @@ Publish = Callable[[str, object], None]
 # daemon re-sends its program): a client waiting to see its script gone (ur_rtde's stopScript) sees it
 RESTART_S = 0.1
 # what a secondary program may not do: move the arm or take time
-TIMED_CALLS = frozenset({"movej", "movel", "speedj", "servoj", "stopj", "stopl", "sleep", "sync"})
+TIMED_CALLS = frozenset(
+    {"movej", "movel", "speedj", "servoj", "stopj", "stopl", "sleep", "sync", "socket_open", END_LOOP}
+)
 CONNECT_ATTEMPTS, CONNECT_RETRY_S = 5, 0.2  # the external_control program's connect_socket_with_retry
 # the primary interface's own commands (not URScript: a UR takes them there as lines of their own),
 # as the dashboard's commands they are
@@ -108,6 +118,7 @@ class _Arm:
         # offers only its UR interfaces, as a real UR) none: it stands until a program is sent
         self.home = DATAGRAM_PROGRAM if group.datagrams else ""
         self.state = URArm(robot.name, group.arm, program=self.home)
+        self.state.remote = ur.config.remote_control
         if isinstance(group.backend, MujocoArms):  # (its physics' torques; read between two ticks)
             data, dof = group.backend.data[row], group.dof
             self.state.torques = lambda: joint_torques(data, dof)
@@ -130,6 +141,9 @@ class _Arm:
         self.said_safety = self.state.safety_mode  # the safety mode its clients were last told
         self.link: asyncio.Task[None] | None = None  # an external_control program's sockets to its client
         self.link_writers: dict[str, asyncio.StreamWriter] = {}
+        # the program's own sockets (socket_open): being connected, and connected
+        self.opening: dict[ProgramSocket, asyncio.Task[None]] = {}
+        self.opened: dict[ProgramSocket, asyncio.StreamWriter] = {}
 
     def refresh(self) -> None:
         """In the interfaces' per-tick set (URInterfaces.active) while it has an RTDE or a real-time
@@ -222,7 +236,7 @@ class _Arm:
             script = parse(text)
         except ScriptError as exc:
             c.scripts_refused += 1
-            self.say(Message(f"program refused: {exc.reason}", exc.line, exc.column), quiet=True)
+            self.say(Message(exc.said, exc.line, exc.column), quiet=True)
             return
         st = self.state
         if script.secondary:
@@ -276,6 +290,7 @@ class _Arm:
         if self.link is not None:  # (its sockets close: the client sees the program gone)
             self.link.cancel()
             self.link = None
+        self._sockets(r, ending=True)
         for m in r.messages:
             self.say(m)
         self.say(Message(r.name, key="PROGRAM_XXX_STOPPED"), quiet=True)
@@ -323,6 +338,11 @@ class _Arm:
         self.state.reference = ref
         if isinstance(r, ExternalControl):
             self._send_out(r)
+            if r.tail is not None and self.link is not None:  # (its loop is over: it closes them)
+                self.link.cancel()
+                self.link = None
+        if r.sockets or self.opened:
+            self._sockets(r)
         for m in r.messages:
             self.say(m)
         r.messages.clear()
@@ -374,6 +394,43 @@ class _Arm:
         while data := await reader.read(65536):
             r.feed(name, data)
         r.lost(name)
+
+    def _sockets(self, r: Runner, ending: bool = False) -> None:
+        """The program's sockets as it left them this tick: connected (from the arm's own address, as
+        the external_control program's), written and closed; all closed as it ends."""
+        live = set() if ending else {s for s in r.sockets.values() if s.state != SocketState.CLOSED}
+        for s in [s for s in self.opening if s not in live]:
+            self.opening.pop(s).cancel()
+        for s in [s for s in self.opened if s not in live]:
+            self.opened.pop(s).close()
+        for s in live:
+            if s.state == SocketState.OPENING and s not in self.opening:
+                self.opening[s] = self.ur.spawn(self._open(s))
+            elif (
+                s.outbox
+                and (w := self.opened.get(s)) is not None
+                and w.transport.get_write_buffer_size() <= WRITE_LIMIT  # (else kept: a UR's would wait)
+            ):
+                w.write(bytes(s.outbox))
+                s.outbox.clear()
+
+    async def _open(self, s: ProgramSocket) -> None:
+        """socket_open: connected within its timeout (OPEN) or not (FAILED), as a UR's returns."""
+        try:
+            local = (self.robot.ur_host, 0) if ipaddress.ip_address(s.host).is_loopback else None
+        except ValueError:  # (a host name)
+            local = None
+        try:
+            async with asyncio.timeout(s.timeout or None):
+                _, w = await asyncio.open_connection(s.host, s.port, local_addr=local)
+        except (OSError, TimeoutError) as exc:
+            s.state = SocketState.FAILED
+            log.info("%s: socket_open(%s:%d, %s): %s", self.robot.name, s.host, s.port, s.name, exc)
+        else:
+            s.state = SocketState.OPEN
+            self.opened[s] = w
+        finally:
+            self.opening.pop(s, None)
 
     def _send_out(self, r: ExternalControl) -> None:
         """What the program wrote to its sockets this tick (trajectory and tool contact results)."""

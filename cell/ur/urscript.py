@@ -12,10 +12,13 @@ says what the program is:
   reverse socket): served natively (cell.ur.external), where to connect back and its scales read
   from what the client filled in;
 - a straight-line program: calls of movej, movel, speedj, servoj, stopj, stopl, sleep, sync,
-  set_standard_digital_out, textmsg, popup and protective_stop, one a line, with literal arguments;
+  set_standard_digital_out, textmsg, popup, protective_stop and the socket calls (socket_open,
+  socket_send_string, socket_send_line, socket_close), one a line, with literal arguments, in
+  `while True:` loops or not (an external_control program's code after its control loop too);
 
 and anything else is refused (ScriptError: the line, the column and why), as a UR's runtime
-exception says it.  The emulator is not a URScript interpreter: no variables, no control flow.
+exception says it (a call of a function no UR has, in the compiler's own words).  The emulator is
+not a URScript interpreter: no variables, no conditions.
 """
 
 from __future__ import annotations
@@ -38,12 +41,34 @@ _CONNECT = re.compile(r'connect_socket_with_retry\(\s*"([^"]*)"\s*,\s*(\d+)\s*,\
 _MULT = re.compile(r"^\s*MULT_(jointstate|time)\s*=\s*([0-9.eE+]+)\s*$", re.M)
 _SERVO = re.compile(r"servoj\(q,\s*t=steptime,\s*lookahead_time=([0-9.eE+-]+),\s*gain=([0-9.eE+-]+)\)")
 _SPLINE_PROBE = re.compile(r"^[ \t]*write_output_float_register\((\d+),\s*splineTimerTraveled\)", re.M)
+_WHILE_TRUE = re.compile(r"^while\s*(\(\s*True\s*\)|True)\s*:$")
+# the statements of a URScript interpreter, which the arm has not (refused with what it runs)
+_STATEMENT = re.compile(
+    r"^(?:(if|elif|else|while|for|thread|def|sec|global|local|return|halt|break|continue|run|join|kill"
+    r"|enter_critical|exit_critical)\b|(\w+)\s*(\[[^]]*\])?\s*=[^=])"
+)
+# after this marker comes what a client appends to the external_control script (run once its loop ends)
+_LOOP_ENDS = "# NODE_CONTROL_LOOP_ENDS"
+# what a UR's functions are called (its names and their families): refused as not run here; any
+# other name gets the compiler's compile_error_name_not_found, as on a UR
+_UR_FUNCTION = re.compile(
+    r"^(?:(?:get|set|is|socket|read|write|end|rpc|str|pose|interpolate|force|teach|freedrive|tool|"
+    r"zero|request|stop|move|speed|servo|conveyor|encoder|modbus|enable|disable|path|position|screw|"
+    r"sensor|payload|textmsg|popup|varmsg|ftc|rtde|gripper|operator|tcp|safety|direct|torque|"
+    r"target|high|low|mute|unmute|power|transpose|inv|wrench|length|binary|to|integer|floor|ceil|"
+    r"random|norm|point|acos|asin|atan|atan2|sin|cos|tan|sqrt|pow|log|d2r|r2d|abs|max|min)(?:_\w*)?)$"
+)
 _SETTING = re.compile(r"^\s*global\s+cell_(\w+)\s*=\s*(\[[-+0-9.eE, ]*\]|[-+0-9.eE]+)\s*$", re.M)
 
 
 class ScriptError(ValueError):
-    def __init__(self, line: int, column: int, reason: str) -> None:
+    """A program the arm does not run: where (line, column from 1) and why.  `said` is what the
+    client's runtime exception says: UR's own words where a UR has them (the compiler's), else the
+    reason."""
+
+    def __init__(self, line: int, column: int, reason: str, said: str = "") -> None:
         self.line, self.column, self.reason = line, column, reason
+        self.said = said or f"program refused: {reason}"
         super().__init__(f"line {line}: {reason}")
 
 
@@ -74,6 +99,9 @@ class Script:
     # its `global cell_<name> = <number or list of numbers>` lines
     settings: dict[str, float | tuple[float, ...]] = field(default_factory=dict)
     secondary: bool = False  # a `sec` program: runs beside the arm's program, never moves it
+    # an external_control program's code after its control loop (what a client appended): run after
+    # the loop ends, as lines
+    tail: list[Call] = field(default_factory=list)
 
 
 class Framer:
@@ -142,7 +170,12 @@ SIGNATURES: dict[str, dict[str, object]] = {
     "textmsg": {"s1": None, "s2": ""},
     "protective_stop": {},
     "popup": {"s": None, "title": "Popup", "warning": False, "error": False, "blocking": False},
+    "socket_open": {"address": None, "port": None, "socket_name": "socket_0", "timeout": 2.0},
+    "socket_send_string": {"str": None, "socket_name": "socket_0"},
+    "socket_send_line": {"str": None, "socket_name": "socket_0"},
+    "socket_close": {"socket_name": "socket_0"},
 }
+END_LOOP = "end_loop"  # the call a `while True:` loop's `end` becomes: back to the loop's first call
 
 
 def parse(text: str) -> Script:
@@ -151,9 +184,15 @@ def parse(text: str) -> Script:
     m = _TOP_DEF.match(lines[0]) if lines else None
     name = m.group(2) if m else "program"
     if '"reverse_socket"' in text and "MULT_jointstate" in text and "socket_read_binary_integer" in text:
-        return Script(name, "external_control", settings=_external_settings(text))
+        settings = _external_settings(text)
+        tail: list[Call] = []
+        if _LOOP_ENDS in text:  # (its own closing lines are done by the runner: what follows)
+            at = text[: text.index(_LOOP_ENDS)].count("\n") + 1
+            after = lines[at : len(lines) - (1 if m else 0)]
+            tail = _calls(after, at + 1)
+        return Script(name, "external_control", settings=settings, tail=tail)
     if name in ("rtde_control", "cell_daemon"):
-        settings: dict[str, float | tuple[float, ...]] = {}
+        settings = {}
         for key, value in _SETTING.findall(text):
             try:
                 if value.startswith("["):
@@ -173,13 +212,34 @@ def parse(text: str) -> Script:
             settings=settings,
         )
     body = lines[1:-1] if m else lines
-    first = 2 if m else 1
-    calls = []
+    calls = _calls(body, 2 if m else 1)
+    return Script(name, "lines", calls, secondary=m is not None and m.group(1) == "sec")
+
+
+def _calls(body: list[str], first: int) -> list[Call]:
+    """The lines as calls; a `while True:` loop's `end` an END_LOOP call back to its first."""
+    calls: list[Call] = []
+    loops: list[tuple[int, int, int]] = []  # open loops: their first call, line, column
     for n, line in enumerate(body, first):
         code = _strip_comment(line).strip()
-        if code:
-            calls.append(_call(code, n, len(line) - len(line.lstrip())))
-    return Script(name, "lines", calls, secondary=m is not None and m.group(1) == "sec")
+        if not code:
+            continue
+        column = len(line) - len(line.lstrip()) + 1
+        if _WHILE_TRUE.match(code):
+            loops.append((len(calls), n, column))
+        elif code == "end":
+            if not loops:
+                raise ScriptError(n, column, "an `end` with no `while True:` to close")
+            to, at, _ = loops.pop()
+            if to == len(calls):
+                raise ScriptError(at, column, "an empty `while True:` loop never ends and does nothing")
+            calls.append(Call(END_LOOP, {"to": to}, n))
+        else:
+            calls.append(_call(code, n, column))
+    if loops:
+        _, at, column = loops[-1]
+        raise ScriptError(at, column, "a `while True:` with no `end`")
+    return calls
 
 
 def _external_settings(text: str) -> dict[str, float | tuple[float, ...]]:
@@ -244,48 +304,57 @@ def _strip_comment(line: str) -> str:
     return line
 
 
-def _call(code: str, line: int, indent: int) -> Call:
+def _call(code: str, line: int, column: int) -> Call:
     if len(code) > MAX_LINE:
-        raise ScriptError(line, indent, f"a line of {len(code)} characters (at most {MAX_LINE})")
+        raise ScriptError(line, column, f"a line of {len(code)} characters (at most {MAX_LINE})")
+    if st := _STATEMENT.match(code):
+        what = f"`{st.group(1)}`" if st.group(1) else "an assignment"
+        raise ScriptError(
+            line,
+            column,
+            f"{what}: this arm has no URScript interpreter (it runs calls, one a line, with literal "
+            "arguments, and `while True:` loops of them)",
+        )
     try:
         with warnings.catch_warnings():  # (Python's own warnings about the text are not the arm's)
             warnings.simplefilter("ignore")
             node = ast.parse(_POSE.sub("P+[", code), mode="eval").body
     except SyntaxError as exc:
         raise ScriptError(
-            line, indent + (exc.offset or 1) - 1, f"cannot read {code[:80]!r}: {exc.msg}"
+            line, column + (exc.offset or 1) - 1, f"cannot read {code[:80]!r}: {exc.msg}"
         ) from None
     except (RecursionError, MemoryError):
-        raise ScriptError(line, indent, "an expression nested too deep to read") from None
+        raise ScriptError(line, column, "an expression nested too deep to read") from None
     if not isinstance(node, ast.Call) or not isinstance(node.func, ast.Name):
-        raise ScriptError(line, indent, f"{code[:80]!r} is not a call: this arm runs straight-line programs")
+        raise ScriptError(line, column, f"{code[:80]!r} is not a call: this arm runs straight-line programs")
     name = node.func.id
     sig = SIGNATURES.get(name)
     if sig is None:
-        raise ScriptError(
-            line,
-            indent,
-            f"{name}() is not run by this arm (it runs straight-line programs of {', '.join(SIGNATURES)})",
+        runs = f"it runs straight-line programs of {', '.join(SIGNATURES)}"
+        if _UR_FUNCTION.match(name):
+            raise ScriptError(line, column, f"{name}() is not run by this arm ({runs})")
+        raise ScriptError(  # (no UR has it: the compiler's words)
+            line, column, f"no function {name}() ({runs})", said=f"compile_error_name_not_found:{name}:"
         )
     params = list(sig)
     if len(node.args) > len(params):
-        raise ScriptError(line, indent, f"{name}() takes at most {len(params)} arguments")
+        raise ScriptError(line, column, f"{name}() takes at most {len(params)} arguments")
     args: dict[str, object] = {}
     try:
         for p, a in zip(params, node.args, strict=False):
             args[p] = _value(a)
         for kw in node.keywords:
             if kw.arg not in sig:
-                raise ScriptError(line, indent, f"{name}() has no parameter {kw.arg!r}")
+                raise ScriptError(line, column, f"{name}() has no parameter {kw.arg!r}")
             args[kw.arg] = _value(kw.value)
     except ValueError as exc:
-        raise ScriptError(line, indent, f"{name}(): {exc}") from None
+        raise ScriptError(line, column, f"{name}(): {exc}") from None
     except RecursionError:
-        raise ScriptError(line, indent, f"{name}(): an argument nested too deep to read") from None
+        raise ScriptError(line, column, f"{name}(): an argument nested too deep to read") from None
     for p, default in sig.items():
         if p not in args:
             if default is None:
-                raise ScriptError(line, indent, f"{name}() needs {p}")
+                raise ScriptError(line, column, f"{name}() needs {p}")
             args[p] = default
     return Call(name, args, line)
 

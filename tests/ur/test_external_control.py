@@ -25,7 +25,7 @@ from cell.ur.external import (
     client_program,
     read_settings,
 )
-from cell.ur.program import runner
+from cell.ur.program import SocketState, runner
 from cell.ur.urscript import Framer, ScriptError, parse
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
@@ -146,6 +146,40 @@ def test_speedj_and_mode_stopped() -> None:
     assert r.ended == ""
 
 
+def appended(text: str) -> str:
+    """The edit UR's client library's ExternalControlProgramTest makes: code after the loop."""
+    assert text.endswith("\nend\n")
+    return (
+        text[:-4]
+        + '\tsocket_open("127.0.0.1", 60005, "test_socket")\n\tsleep(0.6)\n\ttextmsg("done.")\nend\n'
+    )
+
+
+def test_code_after_the_control_loop_runs_once_control_is_stopped_and_not_after_a_timeout() -> None:
+    """stop_control_does_not_halt_program and program_halts_on_timeout: the appended socket_open
+    is reached only when the client stops control; a read timeout halts the program before it."""
+    r, _ = program(appended)
+    assert [c.name for c in r.script.tail] == ["socket_open", "sleep", "textmsg"]
+    arm = Arm(r)
+    for _ in range(100):
+        r.feed("reverse_socket", reverse(Mode.SPEEDJ, joints([0.2, 0, 0, 0, 0, 0])))
+        arm.run(DT)
+    r.feed("reverse_socket", reverse(Mode.STOPPED))
+    arm.run(0.2)  # stopj(4.0) first, then socket_open, which waits for the server to connect it
+    s = r.sockets["test_socket"]
+    assert r.ended is None and (s.host, s.port) == ("127.0.0.1", 60005) and not arm.qd.any()
+    s.state = SocketState.OPEN
+    arm.run(0.59)
+    assert r.ended is None
+    arm.run(0.02)
+    assert r.ended == "" and r.messages[-1].text == "done."
+    r, _ = program(appended)
+    arm = Arm(r)
+    r.feed("reverse_socket", reverse(Mode.IDLE, timeout_ms=20))
+    arm.run(0.2)
+    assert r.ended == "the reverse interface's read timed out" and not r.sockets
+
+
 @pytest.mark.parametrize("quintic", [False, True])
 def test_a_spline_trajectory_passes_its_points_and_answers_success(quintic: bool) -> None:
     r, _ = program()
@@ -228,7 +262,9 @@ def test_the_last_spline_point_slows_to_a_stop_on_its_path_as_the_script_does() 
     is faster than braking at 15 rad/s^2 allows, the target stands at the end, and the spline time
     the script writes to its probe register (UR's client library's spline tests) reaches the end."""
     probe = "\twrite_output_float_register(1, splineTimerTraveled)\n"
-    r, st = program(lambda text: text.removesuffix("end\n") + probe + "end\n")
+    r, st = program(
+        lambda text: text.replace("\t# NODE_CONTROL_LOOP_ENDS", probe + "\t# NODE_CONTROL_LOOP_ENDS")
+    )
     assert r.settings.spline_register == 1
     arm = Arm(r)
     end_qd = 0.273 * np.array([0.5, 0.4, 0.3, 0.2, 0.1, 1.0])

@@ -42,9 +42,12 @@ class Client:
         self.servers: list[asyncio.Server] = []
         self.ports: dict[str, int] = {}
         self.connected = asyncio.Event()
-        self.messages: list[tuple[primary.RobotMessage, bytes]] = []
+        self.buf = bytearray()  # from the primary interface: not yet a whole package
+        self.heard: list[tuple[int, bytes]] = []  # its packages not yet looked at
 
-    async def start(self, arm_host: str, primary_port: int) -> None:
+    async def start(self, arm_host: str, primary_port: int, after: str = "") -> None:
+        """`after`: lines appended after the program's control loop (as UR's client library's
+        ExternalControlProgramTest appends them)."""
         for name in NAMES:
 
             def accept(r: asyncio.StreamReader, w: asyncio.StreamWriter, name: str = name) -> None:
@@ -57,20 +60,24 @@ class Client:
             self.ports[name] = server.sockets[0].getsockname()[1]
         self.primary = await asyncio.open_connection(arm_host, primary_port)
         script = client_program("127.0.0.1", self.ports)
+        script = (
+            script.removesuffix("end\n") + "".join(f"\t{line}\n" for line in after.splitlines()) + "end\n"
+        )
         self.primary[1].write(script.encode())
         async with asyncio.timeout(5):
             await self.connected.wait()
 
     async def said(self, kind: primary.RobotMessage, words: bytes) -> bytes:
         """The next message of that kind with those words, from the primary interface."""
-        buf = bytearray()
         while True:
-            for k, body in primary.split(buf):
+            while self.heard:
+                k, body = self.heard.pop(0)
                 if k == primary.ROBOT_MESSAGE:
                     got = primary.read_robot_message(body)
                     if got[0] == kind and words in got[1]:
                         return got[1]
-            buf += await self.primary[0].read(65536)
+            self.buf += await self.primary[0].read(65536)
+            self.heard += primary.split(self.buf)
 
     def send(self, name: str, data: bytes) -> None:
         self.conns[name][1].write(data)
@@ -92,8 +99,20 @@ async def test_the_program_connects_back_runs_a_spline_trajectory_and_stops_when
     cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
     host = cell.config.robots[0].ur_host
     client = Client()
+    # what the program does once control stops: it opens a socket to the client's host and writes
+    heard: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue()
+
+    async def hear(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        await heard.put((w.get_extra_info("peername")[0], await r.read()))
+        w.close()
+
+    told = await asyncio.start_server(hear, "127.0.0.1", 0)
+    after = (
+        f'socket_open("127.0.0.1", {told.sockets[0].getsockname()[1]}, "test_socket")\n'
+        'socket_send_line("after the loop", "test_socket")\nsleep(0.1)\ntextmsg("sleeping done.")\n'
+    )
     try:
-        await client.start(host, cell.config.ur.primary_port)
+        await client.start(host, cell.config.ur.primary_port, after)
         # from the arm's own address, as from a UR's
         assert client.conns["reverse_socket"][1].get_extra_info("peername")[0] == host
         d = np.array([0.3, -0.2, 0.2, 0.1, -0.1, 0.4])
@@ -137,10 +156,14 @@ async def test_the_program_connects_back_runs_a_spline_trajectory_and_stops_when
         rtde.disconnect()
         client.send("reverse_socket", REVERSE.pack(0, 0, 0, 0, 0, 0, 0, Mode.IDLE))  # (still there)
         client.send("reverse_socket", REVERSE.pack(0, 0, 0, 0, 0, 0, 0, Mode.STOPPED))
-        async with asyncio.timeout(5):  # the program ends: its sockets close
+        async with asyncio.timeout(5):  # the control loop ends: its sockets close, and what follows runs
             assert await client.conns["reverse_socket"][0].read() == b""
+            assert await heard.get() == (host, b"after the loop\n")  # (closed as the program ended)
+            await client.said(primary.RobotMessage.TEXT, b"sleeping done.")
+            await client.said(primary.RobotMessage.KEY, b"PROGRAM_XXX_STOPPED")
     finally:
         client.close()
+        told.close()
 
 
 @pytest.mark.slow

@@ -46,3 +46,23 @@ def test_only_arms_with_a_client_or_a_program_are_looked_at_each_tick() -> None:
     finally:
         g.close()
         sink.close()
+
+
+def test_remote_control_is_what_the_config_says_as_a_fresh_ursims_is_false() -> None:
+    """`[ur] remote_control`: the dashboard's `is in remote control` (UR's client library's
+    operational_mode test expects URSim's false); the arm takes programs either way, as URSim does."""
+    robots = [{"id": 1, "name": "r1", "skill_port": 3000, "backend": "kinematic"}]
+    sink = udp.open_socket("127.0.0.1")
+    host, port = sink.getsockname()
+    for remote, said in ((True, "true"), (False, "false")):
+        cfg = load_config(overrides={**cell_overrides(), "robots": robots, "ur": {"remote_control": remote}})
+        g = RobotGroup(cfg.robots, f"{host}:{port}", tick="python")
+        try:
+            ur = URInterfaces(g, cfg)
+            arm = ur.arms[0]
+            assert ur.dashboard_of(arm).handle("is in remote control") == said
+            arm.run('textmsg("hello")\n')
+            assert arm.runner is not None
+        finally:
+            g.close()
+    sink.close()

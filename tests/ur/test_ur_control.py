@@ -297,16 +297,12 @@ async def test_a_straight_line_program_on_the_primary_port_runs_and_a_foreign_on
         ((kind, body),) = await _read_messages(reader, 1)
         assert kind == primary.RobotMessage.VERSION and body.startswith(b"\x09URControl\x05\x0b")
         writer.write(
-            b"def wander():\n"
-            b"  while True:\n"
-            b"    movej([1, -1.5708, 1.5708, -1.5708, -1.5708, 0])\n"
-            b"  end\n"
-            b"end\n"
+            b"def wander():\n  if True:\n    movej([1, -1.5708, 1.5708, -1.5708, -1.5708, 0])\n  end\nend\n"
         )
         ((kind, body),) = await _read_messages(reader, 1)
         assert kind == primary.RobotMessage.RUNTIME_EXCEPTION
         line, column, text = int.from_bytes(body[:4]), int.from_bytes(body[4:8]), body[8:].decode()
-        assert line == 2 and "while True" in text and column >= 2
+        assert (line, column) == (2, 3) and "`if`: this arm has no URScript interpreter" in text
         assert np.allclose(recv.getActualQ(), Q0, atol=1e-6)  # the arm did not move
         goal = Q0 + np.array([0.3, 0, 0, 0, 0.2, 0])
         writer.write(
@@ -334,6 +330,49 @@ async def test_a_straight_line_program_on_the_primary_port_runs_and_a_foreign_on
     finally:
         writer.close()
         recv.disconnect()
+
+
+@pytest.mark.slow
+async def test_a_loop_runs_until_stop_program_and_a_function_no_ur_has_is_the_compilers_error(
+    start_cell,
+) -> None:
+    """UR's client library's test_stop_command and test_program_execution_reports_exception, on the
+    primary interface."""
+    cell = await start_cell(run=["bus", "dataplane", "robots"], robots=robots())
+    host = cell.config.robots[0].ur_host
+    reader, writer = await asyncio.open_connection(host, cell.config.ur.primary_port)
+    buf, heard = bytearray(), []
+
+    async def next_message() -> tuple[primary.RobotMessage, bytes]:
+        while not heard:
+            buf.extend(await reader.read(4096))
+            heard.extend(primary.read_robot_message(b) for k, b in primary.split(buf) if k == 20)
+        return heard.pop(0)
+
+    try:
+        async with asyncio.timeout(10):
+            assert (await next_message())[0] == primary.RobotMessage.VERSION
+            writer.write(
+                b'def test_fun():\n  while True:\n     textmsg("still running")\n     sleep(0.05)\n'
+                b"     sync()\n  end\nend\n"
+            )
+            assert await next_message() == (
+                primary.RobotMessage.KEY,
+                struct.pack(">iiB", 0, 0, 19) + b"PROGRAM_XXX_STARTEDtest_fun",
+            )
+            for _ in range(3):  # (round and round)
+                assert await next_message() == (primary.RobotMessage.TEXT, b"still running")
+            writer.write(b"stop program\n")
+            while (got := await next_message())[0] != primary.RobotMessage.KEY:
+                assert got == (primary.RobotMessage.TEXT, b"still running")
+            assert got[1].endswith(b"PROGRAM_XXX_STOPPEDtest_fun")
+            writer.write(b"def illegal_fun():\n  calldoesntexist()\nend\n")
+            kind, body = await next_message()
+        assert kind == primary.RobotMessage.RUNTIME_EXCEPTION
+        assert struct.unpack_from(">ii", body) == (2, 3)
+        assert body[8:] == b"compile_error_name_not_found:calldoesntexist:"
+    finally:
+        writer.close()
 
 
 @pytest.mark.slow

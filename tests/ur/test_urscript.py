@@ -12,8 +12,17 @@ from cell.robot.arm import arm_model
 from cell.ur import primary
 from cell.ur.arm import SafetyMode, URArm
 from cell.ur.motion import AT_GOAL_RAD, MoveJ, MoveL, Speed, Trapezoid
-from cell.ur.program import CLIENT_GONE_S, DONE, READY, Cmd, LineRunner, RtdeControl
-from cell.ur.urscript import MAX_SCRIPT, Framer, Pose, Script, ScriptError, parse
+from cell.ur.program import (
+    CALLS_PER_TICK,
+    CLIENT_GONE_S,
+    DONE,
+    READY,
+    Cmd,
+    LineRunner,
+    RtdeControl,
+    SocketState,
+)
+from cell.ur.urscript import END_LOOP, MAX_SCRIPT, Framer, Pose, Script, ScriptError, parse
 
 Q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 DT = 0.002
@@ -70,7 +79,12 @@ def test_a_straight_line_program_is_read_with_defaults_poses_and_arithmetic() ->
 @pytest.mark.parametrize(
     ("text", "line", "words"),
     [
-        ("def x():\n  movej([0,0,0,0,0,0])\n  while True:\n", 3, "cannot read"),
+        ("def x():\n  movej([0,0,0,0,0,0])\n  while True:\n", 3, "with no `end`"),
+        ("def x():\n  while True:\n  end\n", 2, "empty `while True:`"),
+        ("def x():\n  sync()\n  end\n", 3, "no `while True:` to close"),
+        ("def x():\n  while n < 3:\n    sync()\n  end\n", 2, "`while`: this arm has no URScript interpreter"),
+        ("def x():\n  if True:\n", 2, "`if`: this arm has no URScript interpreter"),
+        ("def x():\n  n = 1\n", 2, "an assignment"),
         ("def x():\n  sleep(1)\n  force_mode(p[0,0,0,0,0,0], [0,0,1,0,0,0])\n", 3, "force_mode() is not run"),
         ("def x():\n  1 + 2\n", 2, "not a call"),
         ("def x():\n  movej(q)\n", 2, "not a literal"),
@@ -86,6 +100,28 @@ def test_what_the_arm_does_not_run_is_refused_with_its_line(text: str, line: int
     with pytest.raises(ScriptError) as err:
         parse(text + ("end\n" if text.startswith("def") else ""))
     assert err.value.line == line and words in err.value.reason
+
+
+def test_a_function_no_ur_has_is_refused_in_the_compilers_words_at_its_column() -> None:
+    """As UR's client library's test_program_execution_reports_exception reads a UR's answer."""
+    with pytest.raises(ScriptError) as err:
+        parse("def illegal_fun():\n  calldoesntexist()\nend\n")
+    e = err.value
+    assert (e.line, e.column, e.said) == (2, 3, "compile_error_name_not_found:calldoesntexist:")
+    with pytest.raises(ScriptError) as err:  # (a UR has this one: not run here, and said so)
+        parse("def f():\n\tget_actual_tcp_speed()\nend\n")
+    assert (err.value.column, err.value.said) == (2, f"program refused: {err.value.reason}")
+    assert "get_actual_tcp_speed() is not run by this arm" in err.value.reason
+
+
+def test_a_while_true_loop_becomes_a_jump_back_to_its_first_call() -> None:
+    s = parse(
+        'def f():\n  textmsg("a")\n  while True:\n    sleep(1.0)\n    while (True):\n      sync()\n'
+        "    end\n  end\nend\n"
+    )
+    assert [(c.name, c.args.get("to"), c.line) for c in s.calls] == [
+        ("textmsg", None, 2), ("sleep", None, 4), ("sync", None, 6), (END_LOOP, 2, 7), (END_LOOP, 1, 8),
+    ]  # fmt: skip
 
 
 def test_primary_messages_byte_by_byte() -> None:
@@ -307,6 +343,48 @@ def test_a_line_program_runs_its_calls_in_order() -> None:
         assert ticks < 2000
     assert r.ended == "" and abs(sim.q[0] - 0.2) <= AT_GOAL_RAD
     assert [m.text for m in r.messages] == ["there"]
+
+
+def test_a_loop_runs_until_stopped_and_one_that_takes_no_time_ends_with_a_runtime_exception() -> None:
+    """UR's client library's test_stop_command: textmsg, sleep(1.0), sync() for ever."""
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    r = LineRunner(
+        parse('def f():\n  while True:\n    textmsg("still")\n    sleep(0.01)\n    sync()\n  end\nend\n'), ur
+    )
+    sim.run(r.step, 100)  # 0.2 s: 0.01 s and a tick a pass
+    assert r.ended is None and 15 <= [m.text for m in r.messages].count("still") <= 17
+    q = sim.q.copy()
+    # a loop back to a move where the arm stands: each pass still takes a tick, as on a UR
+    r = LineRunner(parse(f"def f():\n  while True:\n    movej({[float(x) for x in q]})\n  end\nend\n"), ur)
+    sim.run(r.step, 50)
+    assert r.ended is None
+    r = LineRunner(parse('def f():\n  while True:\n    textmsg("x")\n  end\nend\n'), ur)
+    sim.run(r.step, 1)
+    assert r.ended is not None and "takes no time" in r.ended
+    assert r.messages[-1].line == 3 and len(r.messages) <= CALLS_PER_TICK + 1
+
+
+def test_socket_open_waits_to_be_connected_and_sends_then_closes() -> None:
+    """The program's side (the server connects it): socket_open blocks until OPEN or FAILED."""
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    r = LineRunner(
+        parse(
+            'def f():\n  socket_open("127.0.0.1", 60005, "s")\n  socket_send_line("hi", "s")\n'
+            '  socket_send_string("x", socket_name="s")\n  socket_close("s")\n'
+            '  socket_open("127.0.0.1", 60006)\n  textmsg("after")\nend\n'
+        ),
+        ur,
+    )
+    sim.run(r.step, 3)
+    s = r.sockets["s"]
+    assert (s.host, s.port, s.timeout, s.state) == ("127.0.0.1", 60005, 2.0, SocketState.OPENING)
+    assert r.ended is None and not r.messages
+    s.state = SocketState.OPEN
+    sim.run(r.step, 1)
+    assert s.outbox == b"hi\nx" and s.state == SocketState.CLOSED and r.sockets["socket_0"].port == 60006
+    r.sockets["socket_0"].state = SocketState.FAILED  # (socket_open returns False; the program goes on)
+    sim.run(r.step, 1)
+    assert r.ended == "" and [m.text for m in r.messages] == ["after"]
 
 
 def test_protective_stop_stops_the_arm_and_ends_the_program() -> None:
