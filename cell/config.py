@@ -382,6 +382,10 @@ class DataplaneConfig:
 class ControllerConfig:
     tp_rate_hz: float = _check(lambda v: None if 1 <= v <= 500 else f"must be 1..500 TP/s (got {v})")
     fine_rate_hz: float = _check(lambda v: None if 1 <= v <= 500 else f"must be 1..500 TP/s (got {v})")
+    # a followed trajectory's TPs are fitted so the modelled tool stays this close to its plan (mm)
+    follow_tolerance_mm: float = _check(
+        lambda v: None if 0.001 <= v <= 100 else f"must be 0.001..100 mm (got {v})"
+    )
     episode: int = _check(lambda v: None if v >= 2 else f"must be >= 2 TPs (got {v})")
     lead_s: float = _check(_positive)
     a_max: list[float] = field(metadata={"check": _joint_vector})
@@ -541,11 +545,21 @@ class RobotConfig:
     # "native": the group's tick in C (cell/robot/tick.c), no Python per tick; "python": the reference
     # model it is held to (and the fallback where no C compiler works)
     tick: Literal["native", "python"]
+    # what its joints' names start with in a trajectory naming several robots' joints (a dual-arm
+    # MoveIt group): "" is its name and "_" (r1_shoulder_pan_joint)
+    joint_prefix: str = _check(
+        lambda v: None if v == "" or v.strip() == v else f"no spaces around it (got {v!r})"
+    )
 
     @property
     def ur_host(self) -> str:
         """Its UR interfaces' address: ur_address, else its own loopback one (r1 127.0.1.1)."""
         return self.ur_address or f"127.0.{1 + self.id // 256}.{self.id % 256}"
+
+    @property
+    def prefix(self) -> str:
+        """Its joints' prefix in a trajectory of several robots (joint_prefix, else `<name>_`)."""
+        return self.joint_prefix or f"{self.name}_"
 
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         if len(self.q0) != (joints := get(self.model).joints):
@@ -581,6 +595,9 @@ class RobotDefaults:
     ur_emulate: Literal["", "mujoco", "kinematic"]
     socket: Literal["own", "shared"]
     tick: Literal["native", "python"]
+    joint_prefix: str = _check(
+        lambda v: None if v == "" else f"a robot's own (got {v!r}): set it in its [[robots]] entry"
+    )
 
 
 @_section

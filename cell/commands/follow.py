@@ -31,7 +31,8 @@ def arguments(p: argparse.ArgumentParser) -> None:
         "--max-speed",
         type=float,
         metavar="M_S",
-        help="a Cartesian path whose poses have no times: the tool's top speed between them (m/s)",
+        help="a Cartesian path whose poses have no times: the tool's top speed between them (m/s; "
+        "default: its own, else [controller] tool_v_max)",
     )
     p.add_argument(
         "--replace",
@@ -42,12 +43,19 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from cell import aio
+    from cell.trajectory.cartesian import Poses
     from cell.trajectory.model import TrajectoryError
+    from cell.trajectory.sources import Points, split_robots
     from cell.trajectory.sources import load as load_source
 
     config = load(args)
+    prefixes = {r.name: r.prefix for r in config.robots}
     try:
-        found = load_source(args.source, args.topic, args.index)
+        found: list[Points | Poses] = []
+        for pts in load_source(args.source, args.topic, args.index):
+            # one trajectory of several robots' joints (a dual-arm group): one per robot, started together
+            parts = split_robots(pts, prefixes) if isinstance(pts, Points) and not pts.robot else None
+            found += parts or [pts]
     except TrajectoryError as exc:
         print(f"cell follow: {exc}", file=sys.stderr)
         return 2
@@ -60,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
         if pts.robot not in names:
             print(f"cell follow: no robot {pts.robot!r} in this cell ({', '.join(names)})", file=sys.stderr)
             return 2
-        if args.max_speed is not None and hasattr(pts, "max_speed"):
-            pts.max_speed = args.max_speed
+        if isinstance(pts, Poses) and pts.t is None:  # (untimed: at the top speed given, else the
+            pts.max_speed = args.max_speed or pts.max_speed or config.controller.tool_v_max  # controller's)
     if args.name:
         return aio.run(_name(config, found, args.name))
     return aio.run(_follow(config, found, args.speed, args.replace))
@@ -146,7 +154,7 @@ async def _follow(config, found, speed: float, replace: bool) -> int:
     except BusError as exc:
         print(f"cell follow: no cell answered ({exc})", file=sys.stderr)
         return 1
-    starts = []
+    starts = []  # each robot's start against its plan's: when it got 1 mrad off, less when the plan did
     for p in found:
         arm = arm_model(config.robot(p.robot).model)
         traj = Trajectory.build(p.t, p.q, joint_names=p.joint_names or None, robot_joints=arm.joints)
@@ -160,7 +168,13 @@ async def _follow(config, found, speed: float, replace: bool) -> int:
             f"error at the points max {err.max():.3f} mm, median {np.median(err):.3f} mm"
         )
         with contextlib.suppress(IndexError):  # (a robot that never moved has no start)
-            starts.append(truth.start_of_motion(p.robot, reply.t0_ns - 20_000_000))
+            moved = truth.start_of_motion(p.robot, reply.t0_ns - 20_000_000)
+            starts.append(moved - reply.t0_ns - traj.starts_moving_s() * 1e9)
+    if reply.tps_per_s:
+        print(
+            f"TPs fitted to the plan: {reply.tps_per_s:.1f} a second, the modelled tool within "
+            f"{reply.fitted_deviation_mm:.4f} mm of it"
+        )
     if len(starts) > 1:
         print(f"start shift between robots: {(max(starts) - min(starts)) / 1e6:.2f} ms")
     return 0

@@ -53,6 +53,7 @@ from cell.controller.schedule import (
     tp_batch,
 )
 from cell.controller.stopping import Stopping
+from cell.controller.tps import Led
 from cell.dataplane.client import DataplaneClient
 from cell.trajectory.model import TimedMotion, Trajectory, TrajectoryError
 from cell.trajectory.motion import Motion
@@ -384,20 +385,32 @@ class Controller:
                 approaches[rid] = plan_joint(q0, timed.q[0], track.limits.scaled(speed))
         lead_s = max((a.duration for a in approaches.values() if a is not None), default=0.0)
         motions: dict[int, Motion] = {}
-        for rid, (_track, timed) in checked.items():
+        # each fitted with led TPs (cell.controller.tps.fit_led): where the plan needs them, within
+        # follow_tolerance_mm; the robots start a command window after their TPs do
+        window_s = 0.0
+        for rid, (track, timed) in checked.items():
             a = approaches[rid]
+            loop = self.book.loop(track)
+            window_s = window_s or loop.window * loop.status_s
             if lead_s == 0.0:
-                motions[rid] = timed
+                motions[rid] = Led(timed, window_s)
                 continue
             if a is None:  # (it waits at its first point for the others' approaches)
                 a = SampledMotion(np.array([0.0, lead_s]), np.vstack([timed.q[0], timed.q[0]]))
-            motions[rid] = ChainedMotion([ChainedMotion([a], pad=lead_s - a.duration), timed])
+            chained = ChainedMotion([ChainedMotion([a], pad=lead_s - a.duration), timed])
+            motions[rid] = Led(chained, window_s, check_from_s=lead_s)
             self.engine.unfinished.pop(
                 rid, None
             )  # (a trajectory is not resumed from a stop: it is run again)
         result, tracks = await self.engine.launch(motions)
+        fits = [(t.segment.sections, motions[t.robot]) for t in tracks if t.segment is not None]
         out = FollowResult(
-            result.start_ns, result.end_ns, result.q_end, result.start_ns + round(lead_s * 1e9)
+            result.start_ns,
+            result.end_ns,
+            result.q_end,
+            result.start_ns + round((window_s + lead_s) * 1e9),
+            tps_per_s=max((len(s) / max(m.duration - window_s, 1e-9) for s, m in fits), default=0.0),
+            deviation_mm=max((s.deviation_m * 1e3 for s, _ in fits), default=0.0),
         )
         if wait:
             await self.engine.finish(tracks, result)

@@ -69,7 +69,8 @@ void loop_run(int64_t rows, int64_t dof, double *q, double *v, double *held, int
 int loop_fit(int64_t sections, int64_t dof, const double *q_end, const int64_t *ns, double *q,
              double *v, double *held, int64_t tick, int64_t w, const double *c1, const double *c2,
              const double *v_max, const double *a_dt, double status_s, int64_t candidates,
-             int64_t steps, double tol, double *out, double *tq, double *tv, double *theld) {
+             int64_t steps, double tol, double *out, double *tq, double *tv, double *theld,
+             int64_t lead) {
     if (dof > MAX_DOF || candidates > MAX_CANDIDATES || candidates < 2) return -1;
     double lo[MAX_DOF], hi[MAX_DOF], f_lo[MAX_DOF], f_hi[MAX_DOF], side[MAX_DOF], rise[MAX_DOF];
     double guess[MAX_DOF], sq[MAX_DOF], sv[MAX_DOF], sh[MAX_DOF], sf[MAX_DOF], qe[MAX_CANDIDATES];
@@ -79,7 +80,9 @@ int loop_fit(int64_t sections, int64_t dof, const double *q_end, const int64_t *
         theld[j] = held[j];
     }
     for (int64_t k = 0; k < sections; k++) {
-        int64_t n = ns[k];
+        /* (led TPs: the robot is on the target `lead` periods after the section's end, where the
+         * command of its last window has acted; the state goes on from the section's end) */
+        int64_t n = ns[k] + lead;
         const double *target = &q_end[k * dof];
         for (int64_t j = 0; j < dof; j++) {
             double span = 4.0 * v_max[j] + 1.0, start = -span;
@@ -131,6 +134,13 @@ int loop_fit(int64_t sections, int64_t dof, const double *q_end, const int64_t *
         }
         for (int64_t j = 0; j < dof; j++) {
             out[k * dof + j] = guess[j];
+            if (lead > 0) {
+                sq[j] = q[j];
+                sv[j] = v[j];
+                sh[j] = held[j];
+                run_one(&sq[j], &sv[j], &sh[j], tick, ns[k], w, c1[j], c2[j], v_max[j], a_dt[j],
+                        target[j], guess[j], status_s);
+            }
             q[j] = sq[j];
             v[j] = sv[j];
             held[j] = sh[j];
@@ -138,7 +148,25 @@ int loop_fit(int64_t sections, int64_t dof, const double *q_end, const int64_t *
             tv[(k + 1) * dof + j] = v[j];
             theld[(k + 1) * dof + j] = held[j];
         }
-        tick += n;
+        tick += ns[k];
     }
     return 0;
+}
+
+/* The modelled robot at every status period of a motion's TPs: q, v, held (dof), the start state,
+ * in place the end state; ns, p_trg, v_trg: each section's periods and TP; out: (sum ns, dof), the
+ * positions after each period. */
+void loop_path(int64_t sections, int64_t dof, const int64_t *ns, const double *p_trg,
+               const double *v_trg, double *q, double *v, double *held, int64_t tick, int64_t w,
+               const double *c1, const double *c2, const double *v_max, const double *a_dt,
+               double status_s, double *out) {
+    int64_t row = 0;
+    for (int64_t k = 0; k < sections; k++) {
+        for (int64_t i = 0; i < ns[k]; i++, row++, tick++)
+            for (int64_t j = 0; j < dof; j++) {
+                run_one(&q[j], &v[j], &held[j], tick, 1, w, c1[j], c2[j], v_max[j], a_dt[j],
+                        p_trg[k * dof + j], v_trg[k * dof + j], status_s);
+                out[row * dof + j] = q[j];
+            }
+    }
 }

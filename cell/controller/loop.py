@@ -49,8 +49,10 @@ def _native() -> ctypes.CDLL | None:
     d = ctypes.c_double
     lib.loop_run.argtypes = [i64, i64, p, p, p, i64, i64, i64, p, p, p, p, p, p, d]
     lib.loop_run.restype = None
-    lib.loop_fit.argtypes = [i64, i64, p, p, p, p, p, i64, i64, p, p, p, p, d, i64, i64, d, p, p, p, p]
+    lib.loop_fit.argtypes = [i64, i64, p, p, p, p, p, i64, i64, p, p, p, p, d, i64, i64, d, p, p, p, p, i64]
     lib.loop_fit.restype = ctypes.c_int
+    lib.loop_path.argtypes = [i64, i64, p, p, p, p, p, p, i64, i64, p, p, p, p, d, p]
+    lib.loop_path.restype = None
     return lib
 
 
@@ -215,6 +217,40 @@ class LoopModel:
         gain = np.where(self.c2 > 0, self.c2, np.inf)
         return q + short / gain / SCALE
 
+    def path(
+        self,
+        ns: np.ndarray,
+        p_trg: np.ndarray,
+        v_trg: np.ndarray,
+        q0: np.ndarray,
+        v0: np.ndarray,
+        held0: np.ndarray,
+        tick0: int = 0,
+    ) -> np.ndarray:
+        """The modelled robot's positions after every status period of sections of ns periods with
+        these TPs, from (q0, v0, held0): (sum ns, dof).  What the data plane's own interpolation
+        makes of the TPs, to hold against the plan (cell.controller.tps.fit_led)."""
+        ns = np.ascontiguousarray(ns, np.int64)
+        dof = q0.size
+        out = np.empty((int(ns.sum()), dof))
+        q, v, held = (np.array(x, np.float64, order="C") for x in (q0, v0, held0))
+        pt = np.ascontiguousarray(p_trg, np.float64)
+        vt = np.ascontiguousarray(v_trg, np.float64)
+        if (lib := _native()) is not None:
+            lib.loop_path(
+                ns.size, dof, ns.ctypes.data, pt.ctypes.data, vt.ctypes.data, q.ctypes.data, v.ctypes.data,
+                held.ctypes.data, int(tick0), int(self.window), *self._per_joint[1], float(self.status_s),
+                out.ctypes.data,
+            )  # fmt: skip
+            return out
+        row, tick = 0, tick0
+        for k, n in enumerate(ns.tolist()):
+            for _ in range(n):
+                q, v, held = self.run_numpy(q, v, held, tick, 1, pt[k], vt[k])
+                out[row] = q
+                row, tick = row + 1, tick + 1
+        return out
+
     def min_section_s(self) -> float:
         return 6 * self.window * self.status_s
 
@@ -226,18 +262,22 @@ class LoopModel:
         v0: np.ndarray,
         tick0: int = 0,
         held0: np.ndarray | None = None,
+        lead: int = 0,
     ) -> tuple[np.ndarray, LoopTrace]:
         """v_trg for each section (rows of q_end, ending at t_end s) so that the modelled robot,
         starting at (q0, v0) and keeping the command held0 (default v0), is on q_end at each
-        section's end; and the modelled states on the way (LoopTrace).
+        section's end; and the modelled states on the way (LoopTrace).  lead (status periods, one
+        command window): the TPs lead the motion (cell.controller.tps.Led), and the robot is on
+        q_end that much after each section's end, when the command of its last window has acted;
+        the trace stays at the sections' ends.
 
         Per section: a grid of candidates brackets the crossing (the end position grows with
         v_trg), then regula falsi closes in on it: the loop is piecewise linear in v_trg (a
         limit starts or stops acting at the kinks), so it lands exactly within a few steps.
         """
         if (native := _native()) is not None and q0.size <= 64:
-            return self._fit_native(native, q_end, t_end, q0, v0, tick0, held0)
-        return self.fit_numpy(q_end, t_end, q0, v0, tick0, held0)
+            return self._fit_native(native, q_end, t_end, q0, v0, tick0, held0, lead)
+        return self.fit_numpy(q_end, t_end, q0, v0, tick0, held0, lead)
 
     def _fit_native(
         self,
@@ -248,6 +288,7 @@ class LoopModel:
         v0: np.ndarray,
         tick0: int,
         held0: np.ndarray | None,
+        lead: int = 0,
     ) -> tuple[np.ndarray, LoopTrace]:
         """fit() in C (loop.c's loop_fit): the same steps, a whole motion in one call."""
         dof, sections = q0.size, len(t_end)
@@ -263,10 +304,10 @@ class LoopModel:
             sections, dof, targets.ctypes.data, ns.ctypes.data, q.ctypes.data, v.ctypes.data,
             held.ctypes.data, int(tick0), int(self.window), *self._per_joint[1], float(self.status_s),
             _CANDIDATES, _STEPS, _TOL_RAD, out.ctypes.data, trace.q.ctypes.data, trace.v.ctypes.data,
-            trace.held.ctypes.data,
+            trace.held.ctypes.data, int(lead),
         )  # fmt: skip
         if ok != 0:
-            return self.fit_numpy(q_end, t_end, q0, v0, tick0, held0)
+            return self.fit_numpy(q_end, t_end, q0, v0, tick0, held0, lead)
         return out, trace
 
     def fit_numpy(
@@ -277,6 +318,7 @@ class LoopModel:
         v0: np.ndarray,
         tick0: int = 0,
         held0: np.ndarray | None = None,
+        lead: int = 0,
     ) -> tuple[np.ndarray, LoopTrace]:
         """fit() step by step in Python around run(): the reference (and the fallback)."""
         dof = q0.size
@@ -289,7 +331,8 @@ class LoopModel:
         trace.q[0], trace.v[0], trace.held[0] = q, v, held
         span = 4.0 * self.v_max + 1.0
         for k in range(len(t_end)):
-            n = max(1, round((t_end[k] - t0) / self.status_s))
+            section = max(1, round((t_end[k] - t0) / self.status_s))
+            n = section + lead
             target = q_end[k]
             cand = np.linspace(-span, span, _CANDIDATES)  # (C, dof)
             qe = np.broadcast_to(self.run(q, v, held, tick, n, target, cand)[0], cand.shape)
@@ -316,8 +359,8 @@ class LoopModel:
                 f_lo = np.where(~low & (side > 0), 0.5 * f_lo, f_lo)
                 side = np.where(low, -1.0, 1.0)
             out[k] = guess
-            q, v, held = state
-            tick += n
+            q, v, held = self.run(q, v, held, tick, section, target, guess) if lead else state
+            tick += section
             t0 = float(t_end[k])
             trace.q[k + 1], trace.v[k + 1], trace.held[k + 1] = q, v, held
             trace.periods[k + 1] = tick - tick0

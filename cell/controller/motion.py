@@ -39,6 +39,8 @@ class MotionResult:
 @dataclass
 class FollowResult(MotionResult):
     t0_ns: int = 0  # when the trajectories' time 0 was (after the approach to their first points)
+    tps_per_s: float = 0.0  # the TPs a second of trajectory its fitting used (the busiest robot's)
+    deviation_mm: float = 0.0  # the largest distance of the modelled tool from the plan (fit_led)
 
 
 @dataclass

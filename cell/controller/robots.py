@@ -17,7 +17,7 @@ from cell.controller.loop import LoopModel, trackable_accel
 from cell.controller.motion import Segment, Track
 from cell.controller.plan import MotionLimits
 from cell.controller.schedule import Grid, grid_start, phase_at
-from cell.controller.tps import Sections, cut
+from cell.controller.tps import Led, Sections, ToolError, cut, fit_led
 from cell.robot.arm import ArmModel, arm_model
 from cell.robot.kinematics import Kinematics
 from cell.timer import realtime_offset
@@ -154,8 +154,34 @@ class RobotBook:
     ) -> Sections:
         """The motion cut into the track's TPs (cell.controller.tps.cut) with its robots' gain, fitted to
         their loop: 0.1-0.5 s of CPU for a long motion, so callers run it in a worker thread."""
+        loop = self.loop(track)
+        if isinstance(motion, Led):  # (a trajectory followed: TPs where its plan needs them)
+            bound = self.config.controller.follow_tolerance_mm / 1e3
+            return fit_led(motion, loop, rate_hz, self.tool_error(track), bound, v0, tick0, held0)
         gain = np.resize(self.gain, track.joints)
-        return cut(motion, rate_hz, gain, self.loop(track), v0, tick0, held0)
+        return cut(motion, rate_hz, gain, loop, v0, tick0, held0)
+
+    def tool_error(self, track: Track) -> ToolError:
+        """How far each robot's tool is from the plan for joint deviations dq at plan positions q
+        (the largest over the track's robots): through the arm's Jacobian, a window's rows at a
+        time (the plan turns little in 8 ms)."""
+        parts = []
+        col = 0
+        for rid in track.robots:
+            arm = self.arm_of(rid)
+            parts.append((arm, slice(col, col + arm.dof)))
+            col += arm.dof
+
+        def error(q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+            out = np.zeros(len(q))
+            every = 4
+            for arm, cols in parts:
+                jac = np.stack([arm.jacobian(x) for x in q[::every, cols]])  # (m / every, 3, dof)
+                jac = np.repeat(jac, every, axis=0)[: len(q)]
+                out = np.maximum(out, np.linalg.norm(np.einsum("mij,mj->mi", jac, dq[:, cols]), axis=1))
+            return out
+
+        return error
 
     async def follow_announcements(self, sub: Subscription) -> None:
         """Keep each robot's tick grid (RobotAnnounce.window_origin_ns) as robots (re)announce."""

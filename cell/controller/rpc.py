@@ -71,6 +71,8 @@ class ControllerService:
             joints=result.q_end.tolist(),
             pose=to_adept(pos, rot),
             t0_ns=result.t0_ns if isinstance(result, FollowResult) else 0,
+            tps_per_s=result.tps_per_s if isinstance(result, FollowResult) else 0.0,
+            fitted_deviation_mm=result.deviation_mm if isinstance(result, FollowResult) else 0.0,
         )
 
     async def _guard(self, robot: int, coro) -> controller_pb2.MoveReply:

@@ -57,7 +57,9 @@ class Stopping:
     def publish_plan(self, track: Track, seg: Segment) -> None:
         """The segment's plan on plan/<robot>, one message per robot of the track."""
         s = seg.sections
-        t = np.concatenate([[seg.start_ns], seg.start_ns + np.rint(s.t_end * 1e9).astype(np.int64)])
+        # (led TPs: the robot is on each a window after its section's end)
+        ends = np.rint((s.t_end + s.lead_s) * 1e9).astype(np.int64)
+        t = np.concatenate([[seg.start_ns], seg.start_ns + ends])
         q0, v0 = seg.motion.sample(np.array([0.0]))
         q = np.vstack([q0, s.q])
         v = np.vstack([v0, s.q_plan_v])

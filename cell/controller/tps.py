@@ -17,12 +17,16 @@ position (velocity 0, a self-loop) so a finished robot stays put.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from cell.controller.loop import LoopModel, LoopTrace
+from cell.controller.plan import PlanError
 from cell.trajectory.motion import Motion
+
+FIT_ROUNDS = 16  # fit, hold against the plan, split where off: at most this often
 
 
 @dataclass(frozen=True)
@@ -36,6 +40,8 @@ class Sections:
     q_plan_v: np.ndarray  # (n, dof) planned velocities at t_end (for predictions)
     trace: LoopTrace | None = None  # the loop model's robot on the way (fitted TPs only)
     p_trg: np.ndarray | None = None  # (n, dof) the TPs' positions, if not q (LoopModel.tp_positions)
+    lead_s: float = 0.0  # led TPs (Led): the robot is on q[k] this long after t_end[k]
+    deviation_m: float = math.nan  # led TPs: the modelled tool's largest distance from the plan
 
     def __len__(self) -> int:
         return int(self.t_end.size)
@@ -116,3 +122,103 @@ def cut(
         v_ff, trace = loop.fit(q_end, t_end, q_start[0], start, tick0, held0)
     p_trg = loop.tp_positions(q_end, v_ff) if loop is not None else None
     return Sections(t_end, duration, q_end, v_ff, v_end, trace, p_trg)
+
+
+class Led(Motion):
+    """A motion its TPs lead by one command window: it stands for `lead_s`, then runs `inner`.
+
+    The command answering a window's last status acts in the next window, so a TP's command moves
+    the robot a window after the TP is in force.  Fitted as Led (fit_led), TP k is in force one
+    window before the part of the plan it moves the robot along, and each TP holds the robot onto
+    the plan through its own section, however short: sections down to one command window stay
+    stable (fitted without the lead they need six windows and more).  Sampled on the segment's
+    clock, it says where the robot is meant to be (the plan a window late)."""
+
+    def __init__(self, inner: Motion, lead_s: float, check_from_s: float = 0.0) -> None:
+        self.inner, self.lead_s = inner, lead_s
+        self.duration, self.dof = inner.duration + lead_s, inner.dof
+        self.check_from_s = check_from_s  # the inner motion's time the bound holds from (after an approach)
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(t, np.float64)
+        q, v = self.inner.sample(np.clip(t - self.lead_s, 0.0, self.inner.duration))
+        return q, np.where((t < self.lead_s)[:, None], 0.0, v)
+
+
+# the tool's distance from the plan for joint deviations dq at plan positions q, rows: (m,) m
+ToolError = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def fit_led(
+    motion: Led,
+    loop: LoopModel,
+    rate_hz: float,
+    tool_error: ToolError,
+    bound_m: float,
+    v0: np.ndarray | None = None,
+    tick0: int = 0,
+    held0: np.ndarray | None = None,
+) -> Sections:
+    """Led TPs where the plan needs them: sections of whole command windows, first 1/rate_hz long,
+    fitted to the loop (LoopModel.fit with the lead), the modelled robot held against the plan at
+    every status period (LoopModel.path) and each section the tool strays more than bound_m in
+    split in two, until none does.  A section of one window still off is past what the TPs can do
+    (one command a window): PlanError with where and by how much.  Few TPs where the plan is
+    straight or slow, one a window where it turns fast."""
+    inner, dt, w = motion.inner, loop.status_s, loop.window
+    dof = inner.dof
+    periods = max(1, round(inner.duration / dt))
+    step = max(1, round(1.0 / (rate_hz * w * dt))) * w  # the first cut, in periods
+    bounds = np.unique(np.concatenate([np.arange(step, periods, step), [periods]])).astype(np.int64)
+    q0 = motion.sample(np.array([0.0]))[0][0]
+    v0 = np.zeros(dof) if v0 is None else np.asarray(v0, np.float64)
+    held0 = v0.copy() if held0 is None else np.asarray(held0, np.float64)
+    # the plan where the robot should be after each period (the segment's clock: a window late),
+    # and the tool's sensitivity there, a window at a time
+    t_path = (np.arange(periods + w) + 1) * dt
+    plan = motion.sample(t_path)[0]
+    checked = t_path - motion.lead_s >= motion.check_from_s - 1e-12
+    for _ in range(FIT_ROUNDS):
+        t_end = bounds * dt
+        t_end[-1] = inner.duration
+        q_end, v_end = inner.sample(t_end)
+        v_ff, trace = loop.fit(q_end, t_end, q0, v0, tick0, held0, lead=w)
+        ns = np.diff(bounds, prepend=0)
+        # the TPs' path, with the final hold's first window (where the last section's command acts)
+        hold_ns = np.append(ns, w)
+        p_trg = np.vstack([q_end, q_end[-1:]])
+        v_trg = np.vstack([v_ff, np.zeros((1, dof))])
+        path = loop.path(hold_ns, p_trg, v_trg, q0, v0, held0, tick0)
+        err = np.zeros(len(path))
+        err[checked] = tool_error(plan[checked], path[checked] - plan[checked])
+        # each period's deviation is the work of the TP in force a window earlier
+        owner = np.searchsorted(bounds, np.arange(len(path)) + 1 - w, side="right")
+        worst = np.zeros(len(bounds) + 1)
+        np.maximum.at(worst, np.minimum(owner, len(bounds)), err)
+        off = np.flatnonzero(worst[: len(bounds)] > bound_m)
+        if off.size == 0:
+            break
+        starts = np.concatenate([[0], bounds[:-1]])
+        # a section of one window still off: its neighbours' commands reach into it (the state they
+        # leave), so they are split in its stead until they are of one window too
+        wide = {k for k in off.tolist() if ns[k] > w}
+        wide |= {
+            j for k in off.tolist() if ns[k] <= w for j in (k - 1, k + 1) if 0 <= j < len(ns) and ns[j] > w
+        }
+        splits = [starts[k] + (ns[k] // w // 2) * w for k in sorted(wide)]
+        if not splits:
+            k = int(off[0])
+            raise PlanError(
+                f"the plan turns too fast for one TP a command window at t = {t_end[k] - ns[k] * dt:.3f}-"
+                f"{t_end[k]:.3f} s: the robot would stray {worst[k] * 1e3:.3f} mm from it "
+                f"(follow_tolerance_mm {bound_m * 1e3:g})"
+            )
+        bounds = np.unique(np.concatenate([bounds, np.array(splits, np.int64)]))
+    else:
+        k = int(np.argmax(worst[: len(bounds)]))
+        why = f"the TPs could not be fitted within {bound_m * 1e3:g} mm around t = {t_end[k]:.3f} s"
+        raise PlanError(why)
+    p_pos = loop.tp_positions(q_end, v_ff)
+    return Sections(
+        t_end, np.diff(t_end, prepend=0.0), q_end, v_ff, v_end, trace, p_pos, motion.lead_s, float(err.max())
+    )

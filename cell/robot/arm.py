@@ -55,6 +55,16 @@ class ArmModel:
         mujoco.mj_kinematics(self.model, d)
         return d.site_xpos[self.tool_site].copy(), d.site_xmat[self.tool_site].reshape(3, 3).copy()
 
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        """The tool flange's positional Jacobian (3, dof) at q: m per rad of each joint."""
+        m, d = self.model, self._data
+        d.qpos[:] = q
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        jac = np.empty((3, m.nv))
+        mujoco.mj_jacSite(m, d, jac, None, self.tool_site)
+        return jac
+
     def tool_pose(self, q: np.ndarray) -> np.ndarray:
         """[x, y, z, qw, qx, qy, qz]: the tool flange pose for q."""
         pos, rot = self.fk(q)

@@ -46,6 +46,15 @@ class Trajectory:
     def points(self) -> int:
         return int(self.t.size)
 
+    def starts_moving_s(self, dist: float = 1e-3) -> float:
+        """When its plan first gets `dist` rad from its first point, to 0.1 ms (as
+        cell.robot.truth.Truth.start_of_motion reads a robot: two robots whose plans start unlike
+        are each held to their own)."""
+        t = np.arange(0.0, self.duration, 1e-4)
+        q = TimedMotion(self).sample(t)[0]
+        off = np.flatnonzero(np.abs(q - q[0]).max(axis=1) >= dist)
+        return float(t[off[0]]) if off.size else 0.0
+
     @staticmethod
     def build(
         t: Sequence[float] | np.ndarray,

@@ -44,6 +44,41 @@ class Points:
     source: str = field(default="", repr=False)
 
 
+def split_robots(points: Points, prefixes: dict[str, str]) -> list[Points] | None:
+    """A trajectory naming several robots' joints (a dual-arm MoveIt group: `r1_shoulder_pan_joint`,
+    `r2_...`) as one per robot, its joints' names without the robot's prefix (prefixes: robot ->
+    prefix; the longest that fits wins); None if its names are not of several robots.
+    TrajectoryError for a name of none of them among names of several."""
+    owner: list[str | None] = []
+    for n in points.joint_names:
+        fits = [r for r, p in prefixes.items() if n.startswith(p) and len(n) > len(p)]
+        owner.append(max(fits, key=lambda r: len(prefixes[r])) if fits else None)
+    robots = list(dict.fromkeys(r for r in owner if r is not None))
+    if len(robots) < 2:
+        return None
+    if None in owner:
+        stray = points.joint_names[owner.index(None)]
+        raise TrajectoryError(
+            f"{points.source}: joint {stray!r} is of none of the robots the other joints name "
+            f"({', '.join(f'{r}: {prefixes[r]}*' for r in robots)})"
+        )
+    out = []
+    for r in robots:
+        cols = [i for i, o in enumerate(owner) if o == r]
+        names = [points.joint_names[i][len(prefixes[r]) :] for i in cols]
+
+        def part(a: np.ndarray | None, cols: list[int] = cols) -> np.ndarray | None:
+            return None if a is None else a[:, cols]
+
+        name = f"{points.name}:{r}" if points.name else r
+        out.append(
+            Points(
+                names, points.t, points.q[:, cols], part(points.qd), part(points.qdd), r, name, points.source
+            )
+        )
+    return out
+
+
 def load(path: str | Path, topic: str | None = None, index: int | None = None) -> Sequence[Points | Poses]:
     """The trajectories in a file or bag (TrajectoryError naming what is wrong)."""
     p = Path(path)
@@ -124,7 +159,7 @@ def _poses(e: dict, where: str, source: str) -> Poses:
     return Poses(positions, rots, t, max_speed, str(e.get("robot", "")), str(e.get("name", "")), source)
 
 
-def read_csv(path: Path) -> list[Points]:
+def read_csv(path: Path) -> list[Points | Poses]:
     try:
         with path.open(newline="") as f:
             rows = list(csv.reader(f))
@@ -135,6 +170,8 @@ def read_csv(path: Path) -> list[Points]:
     if len(rows) - 1 > MAX_POINTS:
         raise TrajectoryError(f"{path}: {len(rows) - 1} points: at most {MAX_POINTS:,}")
     header = [h.strip() for h in rows[0]]
+    if {"x", "y", "z"} <= set(header):
+        return [_csv_poses(path, header, rows[1:])]
     if header[0] not in ("t", "time_from_start"):
         raise TrajectoryError(f"{path}: the first column must be t (s from the start), not {header[0]!r}")
     pos = [i for i, h in enumerate(header) if i > 0 and not h.endswith(".vel")]
@@ -150,6 +187,26 @@ def read_csv(path: Path) -> list[Points]:
             raise TrajectoryError(f"{path}: velocity columns {sorted(vel)} for joints {names}")
         qd = table[:, [vel[n] for n in names]]
     return [Points(names, table[:, 0], table[:, pos], qd, None, "", path.stem, str(path))]
+
+
+def _csv_poses(path: Path, header: list[str], rows: list[list[str]]) -> Poses:
+    """A Cartesian path as CSV: columns x, y, z (m), optionally qx, qy, qz, qw (the tool's orientation)
+    and t (s; without it a maximum tool speed times the path)."""
+    try:
+        table = np.array([[float(x) for x in r] for r in rows], np.float64)
+    except ValueError as exc:
+        raise TrajectoryError(f"{path}: {exc}") from None
+    col = {h: i for i, h in enumerate(header)}
+    rots = None
+    if {"qx", "qy", "qz", "qw"} <= set(col):
+        try:
+            rots = np.stack(
+                [quaternion_matrix(r[[col["qx"], col["qy"], col["qz"], col["qw"]]]) for r in table]
+            )
+        except TrajectoryError as exc:
+            raise TrajectoryError(f"{path}: {exc}") from None
+    t = table[:, col["t"]] if "t" in col else None
+    return Poses(table[:, [col["x"], col["y"], col["z"]]], rots, t, None, "", path.stem, str(path))
 
 
 # --- ROS 2 bags -------------------------------------------------------------------------------------
@@ -226,9 +283,43 @@ def _points(jt: Any, source: str, name: str) -> Points:  # (jt: a rosbags JointT
     return Points(names, t, q, column("velocities"), column("accelerations"), "", name, source)
 
 
-def read_bag(path: Path, topic: str | None = None, index: int | None = None) -> list[Points]:
+PATH, POSE_ARRAY = "nav_msgs/msg/Path", "geometry_msgs/msg/PoseArray"
+
+
+def _bag_poses(msg: Any, msgtype: str, source: str, name: str) -> Poses:
+    """A Cartesian path in a bag: nav_msgs/Path (timed by its poses' stamps, from the first; not timed
+    where they are all alike) or geometry_msgs/PoseArray (not timed: a maximum tool speed times it)."""
+    if msgtype == PATH:
+        stamped = list(msg.poses)
+        poses = [p.pose for p in stamped]
+        stamps = np.array([_seconds(p.header.stamp) for p in stamped])
+    else:
+        poses, stamps = list(msg.poses), np.zeros(len(msg.poses))
+    if len(poses) < 2:
+        raise TrajectoryError(f"{source}: a path of {len(poses)} poses (2 at least)")
+    if len(poses) > MAX_POINTS:
+        raise TrajectoryError(f"{source}: {len(poses)} poses: at most {MAX_POINTS:,}")
+    positions = np.array([[p.position.x, p.position.y, p.position.z] for p in poses], np.float64)
+    try:
+        rots = np.stack(
+            [
+                quaternion_matrix((p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
+                for p in poses
+            ]
+        )
+    except TrajectoryError as exc:
+        raise TrajectoryError(f"{source}: {exc}") from None
+    t = stamps - stamps[0] if np.ptp(stamps) > 0 else None
+    if t is not None and np.any(np.diff(t) <= 0):
+        k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
+        raise TrajectoryError(f"{source}: pose {k}'s stamp is not after the one before")
+    return Poses(positions, rots, t, None, "", name, source)
+
+
+def read_bag(path: Path, topic: str | None = None, index: int | None = None) -> list[Points | Poses]:
     """The trajectories of one message of a bag: the `index`-th (default: the last) on `topic` (default:
-    the only topic of a trajectory type)."""
+    the only topic of a trajectory type); a Cartesian path (nav_msgs/Path, geometry_msgs/PoseArray) as
+    Poses, solved by the robot's IK once its joints are known."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
@@ -240,7 +331,11 @@ def read_bag(path: Path, topic: str | None = None, index: int | None = None) -> 
         raise TrajectoryError(f"{path}: not a readable ROS 2 bag ({type(exc).__name__}: {exc})") from None
     try:
         kinds = ("JointTrajectory", "FollowJointTrajectory", "DisplayTrajectory")
-        wanted = [c for c in reader.connections if any(k in c.msgtype for k in kinds)]
+        wanted = [
+            c
+            for c in reader.connections
+            if any(k in c.msgtype for k in kinds) or c.msgtype in (PATH, POSE_ARRAY)
+        ]
         if topic is not None:
             wanted = [c for c in wanted if c.topic == topic]
         topics = sorted({c.topic for c in wanted})
@@ -268,6 +363,8 @@ def read_bag(path: Path, topic: str | None = None, index: int | None = None) -> 
                 f"{path}: cannot decode {conn.msgtype} ({why}): is its type defined in the bag?"
             ) from None
         source = f"{path} {conn.topic} #{k % len(raws)}"
+        if conn.msgtype in (PATH, POSE_ARRAY):
+            return [_bag_poses(msg, conn.msgtype, source, f"{conn.topic}#{k % len(raws)}")]
         found = _from_message(msg)
         if not found:
             raise TrajectoryError(f"{path}: {conn.msgtype} holds no JointTrajectory")
@@ -275,6 +372,6 @@ def read_bag(path: Path, topic: str | None = None, index: int | None = None) -> 
         total = sum(p.t.size for p in points)
         if total > MAX_POINTS:
             raise TrajectoryError(f"{source}: {total} points: at most {MAX_POINTS:,}")
-        return points
+        return list(points)
     finally:
         reader.close()

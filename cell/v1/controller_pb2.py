@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18\x63\x65ll/v1/controller.proto\x12\x07\x63\x65ll.v1\"\x87\x02\n\x0bMoveRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\'\n\x04kind\x18\x02 \x01(\x0e\x32\x19.cell.v1.MoveRequest.Kind\x12)\n\x05\x66rame\x18\x03 \x01(\x0e\x32\x1a.cell.v1.MoveRequest.Frame\x12\x0e\n\x06values\x18\x04 \x03(\x01\x12\r\n\x05speed\x18\x05 \x01(\x01\x12\x0c\n\x04\x66ine\x18\x06 \x01(\x08\x12\x12\n\nstart_only\x18\x07 \x01(\x08\"(\n\x04Kind\x12\n\n\x06JOINTS\x10\x00\x12\x08\n\x04POSE\x10\x01\x12\n\n\x06LINEAR\x10\x02\"*\n\x05\x46rame\x12\x0c\n\x08\x41\x42SOLUTE\x10\x00\x12\t\n\x05WORLD\x10\x01\x12\x08\n\x04TOOL\x10\x02\":\n\x13MoveTogetherRequest\x12#\n\x05moves\x18\x01 \x03(\x0b\x32\x14.cell.v1.MoveRequest\"H\n\rArriveRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x15\n\rtolerance_rad\x18\x02 \x01(\x01\x12\x11\n\ttimeout_s\x18\x03 \x01(\x01\"^\n\tMoveReply\x12\x12\n\nt_start_ns\x18\x01 \x01(\x03\x12\x10\n\x08t_end_ns\x18\x02 \x01(\x03\x12\x0e\n\x06joints\x18\x03 \x03(\x01\x12\x0c\n\x04pose\x18\x04 \x03(\x01\x12\r\n\x05t0_ns\x18\x05 \x01(\x03\"\x8c\x01\n\x0fJointTrajectory\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x13\n\x0bjoint_names\x18\x02 \x03(\t\x12\t\n\x01t\x18\x03 \x03(\x01\x12\x11\n\tpositions\x18\x04 \x03(\x01\x12\x12\n\nvelocities\x18\x05 \x03(\x01\x12\x15\n\raccelerations\x18\x06 \x03(\x01\x12\x0c\n\x04name\x18\x07 \x01(\t\"\x91\x01\n\rFollowRequest\x12.\n\x0ctrajectories\x18\x01 \x03(\x0b\x32\x18.cell.v1.JointTrajectory\x12\r\n\x05speed\x18\x02 \x01(\x01\x12\x0c\n\x04name\x18\x03 \x01(\t\x12\x0e\n\x06robots\x18\x04 \x03(\t\x12\x0f\n\x07replace\x18\x05 \x01(\x08\x12\x12\n\nstart_only\x18\x06 \x01(\x08\"K\n\x0bNameRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\x12.\n\x0ctrajectories\x18\x02 \x03(\x0b\x32\x18.cell.v1.JointTrajectory\"M\n\tNameReply\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06robots\x18\x02 \x03(\t\x12\x0e\n\x06points\x18\x03 \x01(\r\x12\x12\n\nduration_s\x18\x04 \x01(\x01\"\x1d\n\x0bStopRequest\x12\x0e\n\x06robots\x18\x01 \x03(\t\")\n\tStopReply\x12\x0e\n\x06robots\x18\x01 \x03(\t\x12\x0c\n\x04t_ns\x18\x02 \x01(\x03\"\x1d\n\x0cRobotRequest\x12\r\n\x05robot\x18\x01 \x01(\t\"7\n\tPoseReply\x12\x0e\n\x06joints\x18\x01 \x03(\x01\x12\x0c\n\x04pose\x18\x02 \x03(\x01\x12\x0c\n\x04t_ns\x18\x03 \x01(\x03\"]\n\x04Plan\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0e\n\x06joints\x18\x02 \x01(\r\x12\x0c\n\x04t_ns\x18\x03 \x03(\x03\x12\x11\n\tpositions\x18\x04 \x03(\x01\x12\x12\n\nvelocities\x18\x05 \x03(\x01\")\n\tAlternate\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06values\x18\x02 \x03(\x01\"h\n\x11\x41lternatesRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12&\n\nalternates\x18\x02 \x03(\x0b\x32\x12.cell.v1.Alternate\x12\r\n\x05speed\x18\x03 \x01(\x01\x12\r\n\x05\x65very\x18\x04 \x01(\r\"<\n\x0f\x41lternatesReply\x12\x12\n\ntps_loaded\x18\x01 \x01(\r\x12\x15\n\rbranch_points\x18\x02 \x01(\r\",\n\rTakeAlternate\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\"]\n\x0bLoopRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x0e\n\x06values\x18\x02 \x03(\x01\x12\r\n\x05speed\x18\x03 \x01(\x01\x12\x0c\n\x04laps\x18\x04 \x01(\r\x12\x12\n\nstart_only\x18\x05 \x01(\x08\"=\n\tLoopReply\x12\x12\n\nt_start_ns\x18\x01 \x01(\x03\x12\x0e\n\x06lap_ns\x18\x02 \x01(\x03\x12\x0c\n\x04laps\x18\x03 \x01(\rb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18\x63\x65ll/v1/controller.proto\x12\x07\x63\x65ll.v1\"\x87\x02\n\x0bMoveRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\'\n\x04kind\x18\x02 \x01(\x0e\x32\x19.cell.v1.MoveRequest.Kind\x12)\n\x05\x66rame\x18\x03 \x01(\x0e\x32\x1a.cell.v1.MoveRequest.Frame\x12\x0e\n\x06values\x18\x04 \x03(\x01\x12\r\n\x05speed\x18\x05 \x01(\x01\x12\x0c\n\x04\x66ine\x18\x06 \x01(\x08\x12\x12\n\nstart_only\x18\x07 \x01(\x08\"(\n\x04Kind\x12\n\n\x06JOINTS\x10\x00\x12\x08\n\x04POSE\x10\x01\x12\n\n\x06LINEAR\x10\x02\"*\n\x05\x46rame\x12\x0c\n\x08\x41\x42SOLUTE\x10\x00\x12\t\n\x05WORLD\x10\x01\x12\x08\n\x04TOOL\x10\x02\":\n\x13MoveTogetherRequest\x12#\n\x05moves\x18\x01 \x03(\x0b\x32\x14.cell.v1.MoveRequest\"H\n\rArriveRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x15\n\rtolerance_rad\x18\x02 \x01(\x01\x12\x11\n\ttimeout_s\x18\x03 \x01(\x01\"\x8e\x01\n\tMoveReply\x12\x12\n\nt_start_ns\x18\x01 \x01(\x03\x12\x10\n\x08t_end_ns\x18\x02 \x01(\x03\x12\x0e\n\x06joints\x18\x03 \x03(\x01\x12\x0c\n\x04pose\x18\x04 \x03(\x01\x12\r\n\x05t0_ns\x18\x05 \x01(\x03\x12\x11\n\ttps_per_s\x18\x06 \x01(\x01\x12\x1b\n\x13\x66itted_deviation_mm\x18\x07 \x01(\x01\"\x8c\x01\n\x0fJointTrajectory\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x13\n\x0bjoint_names\x18\x02 \x03(\t\x12\t\n\x01t\x18\x03 \x03(\x01\x12\x11\n\tpositions\x18\x04 \x03(\x01\x12\x12\n\nvelocities\x18\x05 \x03(\x01\x12\x15\n\raccelerations\x18\x06 \x03(\x01\x12\x0c\n\x04name\x18\x07 \x01(\t\"\x91\x01\n\rFollowRequest\x12.\n\x0ctrajectories\x18\x01 \x03(\x0b\x32\x18.cell.v1.JointTrajectory\x12\r\n\x05speed\x18\x02 \x01(\x01\x12\x0c\n\x04name\x18\x03 \x01(\t\x12\x0e\n\x06robots\x18\x04 \x03(\t\x12\x0f\n\x07replace\x18\x05 \x01(\x08\x12\x12\n\nstart_only\x18\x06 \x01(\x08\"K\n\x0bNameRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\x12.\n\x0ctrajectories\x18\x02 \x03(\x0b\x32\x18.cell.v1.JointTrajectory\"M\n\tNameReply\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06robots\x18\x02 \x03(\t\x12\x0e\n\x06points\x18\x03 \x01(\r\x12\x12\n\nduration_s\x18\x04 \x01(\x01\"\x1d\n\x0bStopRequest\x12\x0e\n\x06robots\x18\x01 \x03(\t\")\n\tStopReply\x12\x0e\n\x06robots\x18\x01 \x03(\t\x12\x0c\n\x04t_ns\x18\x02 \x01(\x03\"\x1d\n\x0cRobotRequest\x12\r\n\x05robot\x18\x01 \x01(\t\"7\n\tPoseReply\x12\x0e\n\x06joints\x18\x01 \x03(\x01\x12\x0c\n\x04pose\x18\x02 \x03(\x01\x12\x0c\n\x04t_ns\x18\x03 \x01(\x03\"]\n\x04Plan\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0e\n\x06joints\x18\x02 \x01(\r\x12\x0c\n\x04t_ns\x18\x03 \x03(\x03\x12\x11\n\tpositions\x18\x04 \x03(\x01\x12\x12\n\nvelocities\x18\x05 \x03(\x01\")\n\tAlternate\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06values\x18\x02 \x03(\x01\"h\n\x11\x41lternatesRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12&\n\nalternates\x18\x02 \x03(\x0b\x32\x12.cell.v1.Alternate\x12\r\n\x05speed\x18\x03 \x01(\x01\x12\r\n\x05\x65very\x18\x04 \x01(\r\"<\n\x0f\x41lternatesReply\x12\x12\n\ntps_loaded\x18\x01 \x01(\r\x12\x15\n\rbranch_points\x18\x02 \x01(\r\",\n\rTakeAlternate\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\"]\n\x0bLoopRequest\x12\r\n\x05robot\x18\x01 \x01(\t\x12\x0e\n\x06values\x18\x02 \x03(\x01\x12\r\n\x05speed\x18\x03 \x01(\x01\x12\x0c\n\x04laps\x18\x04 \x01(\r\x12\x12\n\nstart_only\x18\x05 \x01(\x08\"=\n\tLoopReply\x12\x12\n\nt_start_ns\x18\x01 \x01(\x03\x12\x0e\n\x06lap_ns\x18\x02 \x01(\x03\x12\x0c\n\x04laps\x18\x03 \x01(\rb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -41,36 +41,36 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_MOVETOGETHERREQUEST']._serialized_end=361
   _globals['_ARRIVEREQUEST']._serialized_start=363
   _globals['_ARRIVEREQUEST']._serialized_end=435
-  _globals['_MOVEREPLY']._serialized_start=437
-  _globals['_MOVEREPLY']._serialized_end=531
-  _globals['_JOINTTRAJECTORY']._serialized_start=534
-  _globals['_JOINTTRAJECTORY']._serialized_end=674
-  _globals['_FOLLOWREQUEST']._serialized_start=677
-  _globals['_FOLLOWREQUEST']._serialized_end=822
-  _globals['_NAMEREQUEST']._serialized_start=824
-  _globals['_NAMEREQUEST']._serialized_end=899
-  _globals['_NAMEREPLY']._serialized_start=901
-  _globals['_NAMEREPLY']._serialized_end=978
-  _globals['_STOPREQUEST']._serialized_start=980
-  _globals['_STOPREQUEST']._serialized_end=1009
-  _globals['_STOPREPLY']._serialized_start=1011
-  _globals['_STOPREPLY']._serialized_end=1052
-  _globals['_ROBOTREQUEST']._serialized_start=1054
-  _globals['_ROBOTREQUEST']._serialized_end=1083
-  _globals['_POSEREPLY']._serialized_start=1085
-  _globals['_POSEREPLY']._serialized_end=1140
-  _globals['_PLAN']._serialized_start=1142
-  _globals['_PLAN']._serialized_end=1235
-  _globals['_ALTERNATE']._serialized_start=1237
-  _globals['_ALTERNATE']._serialized_end=1278
-  _globals['_ALTERNATESREQUEST']._serialized_start=1280
-  _globals['_ALTERNATESREQUEST']._serialized_end=1384
-  _globals['_ALTERNATESREPLY']._serialized_start=1386
-  _globals['_ALTERNATESREPLY']._serialized_end=1446
-  _globals['_TAKEALTERNATE']._serialized_start=1448
-  _globals['_TAKEALTERNATE']._serialized_end=1492
-  _globals['_LOOPREQUEST']._serialized_start=1494
-  _globals['_LOOPREQUEST']._serialized_end=1587
-  _globals['_LOOPREPLY']._serialized_start=1589
-  _globals['_LOOPREPLY']._serialized_end=1650
+  _globals['_MOVEREPLY']._serialized_start=438
+  _globals['_MOVEREPLY']._serialized_end=580
+  _globals['_JOINTTRAJECTORY']._serialized_start=583
+  _globals['_JOINTTRAJECTORY']._serialized_end=723
+  _globals['_FOLLOWREQUEST']._serialized_start=726
+  _globals['_FOLLOWREQUEST']._serialized_end=871
+  _globals['_NAMEREQUEST']._serialized_start=873
+  _globals['_NAMEREQUEST']._serialized_end=948
+  _globals['_NAMEREPLY']._serialized_start=950
+  _globals['_NAMEREPLY']._serialized_end=1027
+  _globals['_STOPREQUEST']._serialized_start=1029
+  _globals['_STOPREQUEST']._serialized_end=1058
+  _globals['_STOPREPLY']._serialized_start=1060
+  _globals['_STOPREPLY']._serialized_end=1101
+  _globals['_ROBOTREQUEST']._serialized_start=1103
+  _globals['_ROBOTREQUEST']._serialized_end=1132
+  _globals['_POSEREPLY']._serialized_start=1134
+  _globals['_POSEREPLY']._serialized_end=1189
+  _globals['_PLAN']._serialized_start=1191
+  _globals['_PLAN']._serialized_end=1284
+  _globals['_ALTERNATE']._serialized_start=1286
+  _globals['_ALTERNATE']._serialized_end=1327
+  _globals['_ALTERNATESREQUEST']._serialized_start=1329
+  _globals['_ALTERNATESREQUEST']._serialized_end=1433
+  _globals['_ALTERNATESREPLY']._serialized_start=1435
+  _globals['_ALTERNATESREPLY']._serialized_end=1495
+  _globals['_TAKEALTERNATE']._serialized_start=1497
+  _globals['_TAKEALTERNATE']._serialized_end=1541
+  _globals['_LOOPREQUEST']._serialized_start=1543
+  _globals['_LOOPREQUEST']._serialized_end=1636
+  _globals['_LOOPREPLY']._serialized_start=1638
+  _globals['_LOOPREPLY']._serialized_end=1699
 # @@protoc_insertion_point(module_scope)

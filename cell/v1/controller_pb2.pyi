@@ -58,18 +58,22 @@ class ArriveRequest(_message.Message):
     def __init__(self, robot: _Optional[str] = ..., tolerance_rad: _Optional[float] = ..., timeout_s: _Optional[float] = ...) -> None: ...
 
 class MoveReply(_message.Message):
-    __slots__ = ("t_start_ns", "t_end_ns", "joints", "pose", "t0_ns")
+    __slots__ = ("t_start_ns", "t_end_ns", "joints", "pose", "t0_ns", "tps_per_s", "fitted_deviation_mm")
     T_START_NS_FIELD_NUMBER: _ClassVar[int]
     T_END_NS_FIELD_NUMBER: _ClassVar[int]
     JOINTS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
     T0_NS_FIELD_NUMBER: _ClassVar[int]
+    TPS_PER_S_FIELD_NUMBER: _ClassVar[int]
+    FITTED_DEVIATION_MM_FIELD_NUMBER: _ClassVar[int]
     t_start_ns: int
     t_end_ns: int
     joints: _containers.RepeatedScalarFieldContainer[float]
     pose: _containers.RepeatedScalarFieldContainer[float]
     t0_ns: int
-    def __init__(self, t_start_ns: _Optional[int] = ..., t_end_ns: _Optional[int] = ..., joints: _Optional[_Iterable[float]] = ..., pose: _Optional[_Iterable[float]] = ..., t0_ns: _Optional[int] = ...) -> None: ...
+    tps_per_s: float
+    fitted_deviation_mm: float
+    def __init__(self, t_start_ns: _Optional[int] = ..., t_end_ns: _Optional[int] = ..., joints: _Optional[_Iterable[float]] = ..., pose: _Optional[_Iterable[float]] = ..., t0_ns: _Optional[int] = ..., tps_per_s: _Optional[float] = ..., fitted_deviation_mm: _Optional[float] = ...) -> None: ...
 
 class JointTrajectory(_message.Message):
     __slots__ = ("robot", "joint_names", "t", "positions", "velocities", "accelerations", "name")
