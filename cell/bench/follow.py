@@ -250,7 +250,7 @@ def _main(args: argparse.Namespace) -> Figures:
         f"{r.controller_rss_mb_per_min:+.3f} MB/min; tool path error at the points max "
         f"{r.path_error_mm_max:.3f} mm, median {r.path_error_mm_median:.4f} mm"
     )
-    return Figures(r, text)
+    return Figures(r, text, section="follow --long")
 
 
 register(

@@ -37,6 +37,7 @@ class Figures:
     result: Result
     text: str = ""
     exit_code: int = 0
+    section: str = ""  # its section of the results page, if not the bench's name (a mode of its own)
 
 
 @dataclass(frozen=True)

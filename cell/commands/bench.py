@@ -33,7 +33,9 @@ def run(args: argparse.Namespace) -> int:
 
         argv = [a for a in sys.argv[1:] if a != "--json"]
         name = args.bench.name
-        results.write(args.results, name, argv or ["bench", name], figures.result.to_json())
+        results.write(
+            args.results, figures.section or name, argv or ["bench", name], figures.result.to_json()
+        )
     if args.json:
         print(json_line(figures.result.to_json()))
     return figures.exit_code

@@ -165,7 +165,8 @@ async def _follow(config, found, speed: float, replace: bool) -> int:
         err *= 1000
         print(
             f"{p.robot}: {traj.points} points over {traj.duration:.2f} s ({p.name or p.source}); tool path "
-            f"error at the points max {err.max():.3f} mm, median {np.median(err):.3f} mm"
+            f"error at the points max {err.max():.3f} mm (t = {traj.t[int(err.argmax())]:.3f} s), "
+            f"median {np.median(err):.3f} mm"
         )
         with contextlib.suppress(IndexError):  # (a robot that never moved has no start)
             moved = truth.start_of_motion(p.robot, reply.t0_ns - 20_000_000)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Coroutine
 from typing import Any
@@ -59,6 +60,9 @@ from cell.trajectory.motion import Motion
 from cell.v1 import dataplane_pb2
 
 log = logging.getLogger("cell.controller")
+# a followed trajectory's episodes (led TPs, up to one a command window) last this long at least, so
+# that a busy host holding the controller back for a few hundred ms does not starve the tables
+EPISODE_MIN_S = 1.0
 CONFIRM_S = 1.5  # how long a motion asked for waits on the data plane to confirm a stop the controller holds
 
 
@@ -135,6 +139,10 @@ class Engine:
             coro.close()
             raise RuntimeError("the controller runs its motions inside `async with Controller(...)`")
         return self._group.create_task(coro, name=name)
+
+    def episode_of(self, seg: Segment) -> int:
+        """TPs of the segment loaded at a time (episode_update)."""
+        return seg.episode or self.episode
 
     def stream(self, track: Track, seg: Segment, next_episode: int = 1) -> None:
         """Stream the segment into the tables from episode next_episode on, in the task group."""
@@ -289,8 +297,11 @@ class Engine:
             self.pending_flush.update({r: t.loads for t in tracks for r in t.robots})
             raise MotionStopped(tracks[0].stop_reason or why) from None
         if moved_on := [t for t, _, _ in segments if t.epoch != epochs[t.robot]]:
-            n = self.episode
-            loaded = [(t.robot, i) for t, seg, hold_id in segments for i in (hold_id, *seg.ids[:n])]
+            loaded = [
+                (t.robot, i)
+                for t, seg, hold_id in segments
+                for i in (hold_id, *seg.ids[: self.episode_of(seg)])
+            ]
             with contextlib.suppress(RemoteError, BusError):
                 async with self.loading:
                     await self.dp.update(remove=loaded)
@@ -308,7 +319,7 @@ class Engine:
         for track, seg, hold_id in segments:
             track.stop_reason = None
             track.loaded_ns = reply.now_ns
-            track.loaded = [hold_id, *seg.ids[: self.episode]]
+            track.loaded = [hold_id, *seg.ids[: self.episode_of(seg)]]
             track.segment = seg
             track.q_hold = None  # moving: where it ends is the segment's end
             self.stream(track, seg)
@@ -338,9 +349,13 @@ class Engine:
             off, phase = (
                 near[track.robot] if near[track.robot] is not None and tick0 is not None else (0, None)
             )
-            seg = Segment(start + off, motion, sections, ids, phase, track.robot)
+            # (an episode lasts EPISODE_MIN_S at least: dense TPs, a followed trajectory's, in
+            # episodes of the usual count would leave the controller a fifth of a second to deliver each)
+            per_s = len(sections) / max(float(sections.t_end[-1]), 1e-9) if sections.lead_s else 0.0
+            n = max(self.episode, math.ceil(EPISODE_MIN_S * per_s))
+            seg = Segment(start + off, motion, sections, ids, phase, track.robot, episode=n)
             first.append(hold_batch(track, hold_id, ids[0], q0))
-            first.append(tp_batch(track, seg, 0, min(self.episode, len(ids))))
+            first.append(tp_batch(track, seg, 0, min(n, len(ids))))
             registers.append((track.robot, hold_id, at + off))
             remove += [(track.robot, i) for i in track.loaded]
             segments.append((track, seg, hold_id))
@@ -364,9 +379,10 @@ class Engine:
     async def _stream(self, track: Track, seg: Segment, next_episode: int) -> None:
         """Load episode after episode ahead of the robot; then tidy up behind it."""
         k = next_episode
-        while (wake := episode_wake(seg, k, self.episode)) is not None:
+        n = self.episode_of(seg)
+        while (wake := episode_wake(seg, k, n)) is not None:
             await self.link.sleep_until(wake)
-            lo, hi, old = episode_update(seg, k, self.episode, track.loaded, self._prepared_ids(track, seg))
+            lo, hi, old = episode_update(seg, k, n, track.loaded, self._prepared_ids(track, seg))
             await self.apply(track, tp_batch(track, seg, lo, hi), old)
             k += 1
         # all but the final hold go once the robot is on it (a deletion that comes too early is

@@ -64,6 +64,7 @@ class Segment:
     ids: list[int]  # one per section, then the final hold (a self-loop at the end position)
     tick0: int | None = None  # the robot's status period in its window at start_ns (None: unknown)
     robot: int = 0  # whose tick grid start_ns is on (with tick0)
+    episode: int = 0  # TPs loaded at a time, if not the controller's `episode` (dense TPs: more)
 
     def __post_init__(self) -> None:
         s = self.sections

@@ -230,3 +230,20 @@ def test_the_headroom_bench_measures_the_packet_path_next_to_its_baseline_tick()
     assert 0 < r["tick_us_p50"] <= r["tick_us_p99"] and r["python_tick_us_p99"] > 0
     assert r["status_to_command_us_p99"] > 0  # (commands came back: the robots timed them)
     assert r["rt_holds"] >= 0 and r["missed_ticks"] >= 0
+
+
+@pytest.mark.slow
+def test_the_follow_bench_prints_each_densitys_error_and_the_tps_it_took() -> None:
+    """`cell bench follow --json`: the JSON line issue 55 names, each figure measured on the cell's
+    ground truth (a denser plan takes no more TPs: they are placed where the plan needs them)."""
+    from tests.conftest import run_cell
+
+    done = run_cell("bench", "follow", "--json", timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    r = json.loads(done.stdout.strip().splitlines()[-1])
+    for pps in (8, 40, 250):
+        assert 0 < r[f"path_error_mm_median_{pps}"] <= r[f"path_error_mm_max_{pps}"] < 1.0, r
+        assert 10 <= r[f"tps_per_s_{pps}"] <= 125, r  # (at most one a command window)
+    assert r["tps_per_s_250"] <= r["tps_per_s_8"] * 1.1, r
+    assert 0 < r["fitted_deviation_mm_max"] <= 0.0201 and 0 < r["dual_path_error_mm_max"] < 1.0, r
+    assert 0 <= r["dual_start_shift_ms"] <= 1.0, r

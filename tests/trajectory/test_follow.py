@@ -225,7 +225,9 @@ async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_n
     bag = write_bag(tmp_path / "plan", traj.t, traj.q[:, ::-1], list(reversed(UR)), StoragePlugin.MCAP)
     done = await asyncio.to_thread(run_cell, "follow", str(bag), "--config", cfg, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
-    got = re.search(r"r1: 40 points over 4\.00 s .* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout)
+    got = re.search(
+        r"r1: 40 points over 4\.00 s .* max ([\d.]+) mm \(t = [\d.]+ s\), median ([\d.]+) mm", done.stdout
+    )
     assert got is not None, done.stdout
     assert float(got.group(1)) <= 1.0 and float(got.group(2)) <= 0.1, done.stdout
     # MoveIt's DisplayTrajectory of two segments, joined, within the same bounds
@@ -234,7 +236,9 @@ async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_n
     display = write_message(tmp_path / "display", "/display_planned_path", shown)
     done = await asyncio.to_thread(run_cell, "follow", str(display), "--config", cfg, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
-    got = re.search(r"r1: 30 points over 3\.00 s .* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout)
+    got = re.search(
+        r"r1: 30 points over 3\.00 s .* max ([\d.]+) mm \(t = [\d.]+ s\), median ([\d.]+) mm", done.stdout
+    )
     assert got is not None and float(got.group(1)) <= 1.0 and float(got.group(2)) <= 0.1, done.stdout
     # a Cartesian square of 100 mm from a JSON file of tool poses and a top speed: through IK, within
     # the same bounds
@@ -247,7 +251,8 @@ async def test_cell_follow_runs_a_bag_on_the_cell_and_refuses_a_bad_one_moving_n
     done = await asyncio.to_thread(run_cell, "follow", str(square), "--config", cfg, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     got = re.search(
-        r"r1: (\d+) points over ([\d.]+) s \(square\).* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout
+        r"r1: (\d+) points over ([\d.]+) s \(square\).* max ([\d.]+) mm \(t = [\d.]+ s\), median ([\d.]+) mm",
+        done.stdout,
     )
     assert got is not None and int(got.group(1)) > 100, done.stdout
     assert float(got.group(3)) <= 1.0 and float(got.group(4)) <= 0.1, done.stdout
@@ -317,7 +322,8 @@ async def test_two_robots_follow_together_from_json_and_from_a_task_script(start
     assert done.returncode == 0, done.stderr[-2000:]
     for name in ("r1", "r2"):
         got = re.search(
-            rf"{name}: 30 points over 3\.00 s .* max ([\d.]+) mm, median ([\d.]+) mm", done.stdout
+            rf"{name}: 30 points over 3\.00 s .* max ([\d.]+) mm \(t = [\d.]+ s\), median ([\d.]+) mm",
+            done.stdout,
         )
         assert got is not None and float(got.group(1)) <= 1.0 and float(got.group(2)) <= 0.1, done.stdout
     shift = re.search(r"start shift between robots: ([\d.]+) ms", done.stdout)

@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import asyncio
 import re
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cell.launcher import fetch_status
 from cell.robot.arm import arm_model
 from cell.trajectory.cartesian import Poses
 from cell.trajectory.sources import Points, load, split_robots
@@ -87,7 +89,9 @@ def test_cartesian_paths_are_read_from_bags_and_csv(tmp_path: Path) -> None:
 
 
 def _errors(stdout: str, robot: str) -> tuple[float, float]:
-    got = re.search(rf"{robot}: \d+ points over [\d.]+ s .* max ([\d.]+) mm, median ([\d.]+) mm", stdout)
+    got = re.search(
+        rf"{robot}: \d+ points over [\d.]+ s .* max ([\d.]+) mm \(t = [\d.]+ s\), median ([\d.]+) mm", stdout
+    )
     assert got is not None, stdout
     return float(got.group(1)), float(got.group(2))
 
@@ -106,15 +110,34 @@ async def test_plans_of_any_density_two_arms_and_a_cartesian_path_are_followed_a
     async def follow(source: Path, *args: str):
         return await asyncio.to_thread(run_cell, "follow", str(source), "--config", cfg, *args, timeout=120)
 
-    # the same out-and-back at 8, 40 and 250 points a second: within 0.5 mm at the points, 0.05 median
+    async def robots_heard() -> tuple[float, float]:
+        """(uptime, missed ticks) of the robots service's latest heartbeat."""
+        st = next(s for s in (await fetch_status(cell.config)).services if s.name == "robots").last
+        return st.uptime_s, st.counters["missed_ticks"]
+
+    async def missed_since(before: tuple[float, float], seconds: float) -> float:
+        """Ticks the robots missed (the host held their process up) over the `seconds` after `before`:
+        read from the first heartbeat that covers them."""
+        async with asyncio.timeout(10):
+            while (now := await robots_heard())[0] < before[0] + seconds:
+                await asyncio.sleep(0.2)
+        return now[1] - before[1]
+
+    # the same out-and-back at 8, 40 and 250 points a second: within 0.5 mm at the points, 0.05 median.
+    # A host that holds the arms' tick up (missed ticks) moves them off any plan: a follow it
+    # disturbed, and only such a one, is run once more
     for pps in (8, 40, 250):
         t, q = out_and_back(pps, 3.0)
-        done = await follow(
-            write_message(tmp_path / f"d{pps}", "/planned", joint_trajectory(t, q, UR)), "--robot", "r1"
-        )
-        assert done.returncode == 0, done.stderr[-2000:]
-        worst, median = _errors(done.stdout, "r1")
-        assert worst <= 0.5 and median <= 0.05, done.stdout
+        bag = write_message(tmp_path / f"d{pps}", "/planned", joint_trajectory(t, q, UR))
+        for again in (False, True):
+            before, t0 = await robots_heard(), time.monotonic()
+            done = await follow(bag, "--robot", "r1")
+            assert done.returncode == 0, done.stderr[-2000:]
+            worst, median = _errors(done.stdout, "r1")
+            if worst <= 0.5 and median <= 0.05:
+                break
+            missed = await missed_since(before, time.monotonic() - t0)
+            assert missed > 0 and not again, f"{missed} ticks missed meanwhile: {done.stdout}"
         fitted = re.search(
             r"TPs fitted to the plan: ([\d.]+) a second, the modelled tool within ([\d.]+) mm", done.stdout
         )
