@@ -19,7 +19,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         default=50.0,
         metavar="PCT",
-        help="the approach to the first point (default 50 %%)",
+        help="the approach to the first point, and an untimed Cartesian path (default 50 %%)",
     )
     p.add_argument(
         "--name",
@@ -32,7 +32,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         metavar="M_S",
         help="a Cartesian path whose poses have no times: the tool's top speed between them (m/s; "
-        "default: its own, else [controller] tool_v_max)",
+        "default: its own, else as fast as ruckig times it within the joints' limits at --speed)",
     )
     p.add_argument(
         "--replace",
@@ -68,24 +68,28 @@ def run(args: argparse.Namespace) -> int:
         if pts.robot not in names:
             print(f"cell follow: no robot {pts.robot!r} in this cell ({', '.join(names)})", file=sys.stderr)
             return 2
-        if isinstance(pts, Poses) and pts.t is None:  # (untimed: at the top speed given, else the
-            pts.max_speed = args.max_speed or pts.max_speed or config.controller.tool_v_max  # controller's)
+        if isinstance(pts, Poses) and pts.t is None and args.max_speed is not None:
+            pts.max_speed = args.max_speed  # (untimed, without one: timed by ruckig, joint_points())
+    speed = args.speed / 100.0
     if args.name:
-        return aio.run(_name(config, found, args.name))
+        return aio.run(_name(config, found, args.name, speed))
     return aio.run(_follow(config, found, args.speed, args.replace))
 
 
-async def joint_points(bus, config, found: list) -> list:
+async def joint_points(bus, config, found: list, speed: float = 0.5) -> list:
     """Every source's trajectories as joint points: a Cartesian path (cell.trajectory.cartesian) is
-    solved by IK from where its robot stands now (the controller says); TrajectoryError if it cannot."""
+    solved by IK from where its robot stands now (the controller says), one with neither times nor
+    a tool speed timed by ruckig within the limits the controller plans with at `speed`;
+    TrajectoryError if it cannot."""
     from cell.robot.arm import arm_model
-    from cell.trajectory.cartesian import Poses, solve_where_it_stands
+    from cell.trajectory.cartesian import Poses, planning_limits, solve_where_it_stands
     from cell.trajectory.sources import Points
 
     out = []
     for p in found:
         if isinstance(p, Poses):
-            traj = await solve_where_it_stands(bus, config, p.robot, p)
+            limits = planning_limits(config, p.robot, speed)
+            traj = await solve_where_it_stands(bus, config, p.robot, p, limits)
             joints = list(arm_model(config.robot(p.robot).model).joints)
             p = Points(joints, traj.t, traj.q, None, None, p.robot, p.name, p.source)
         out.append(p)
@@ -99,14 +103,14 @@ def messages(found: list) -> list:
     return [to_message(p.robot, p.t, p.q, p.qd, p.qdd, p.joint_names, p.name) for p in found]
 
 
-async def _name(config, found, name: str) -> int:
+async def _name(config, found, name: str, speed: float = 0.5) -> int:
     from cell.bus import Bus, BusError, RemoteError
     from cell.trajectory.model import TrajectoryError
     from cell.v1 import controller_pb2
 
     try:
         async with Bus.connect(config.bus, "cell-follow") as bus:
-            found = await joint_points(bus, config, found)
+            found = await joint_points(bus, config, found, speed)
             req = controller_pb2.NameRequest(name=name, trajectories=messages(found))
             reply = await bus.request("controller", "name", req, controller_pb2.NameReply, timeout=60.0)
     except (RemoteError, TrajectoryError) as exc:
@@ -136,7 +140,7 @@ async def _follow(config, found, speed: float, replace: bool) -> int:
 
     try:
         async with Bus.connect(config.bus, "cell-follow") as bus:
-            found = await joint_points(bus, config, found)
+            found = await joint_points(bus, config, found, speed / 100.0)
             req = controller_pb2.FollowRequest(speed=speed, trajectories=messages(found), replace=replace)
             longest = max(float(p.t[-1] - p.t[0]) for p in found)
             async with Truth.watching(bus) as truth:

@@ -54,6 +54,7 @@ from cell.controller.schedule import (
     window_ns,
 )
 from cell.controller.stopping import Stopping
+from cell.controller.tps import Led
 from cell.dataplane.client import DataplaneClient
 from cell.dataplane.tables import TPBatch
 from cell.trajectory.motion import Motion
@@ -266,6 +267,9 @@ class Engine:
             # up everything else this controller does, its watch on the data plane too)
             beside = near[robot]
             phase = beside[1] if beside is not None else 0
+            if fine and not isinstance(motion, Led):  # (fine: led TPs fitted to the plan, as close as
+                loop = self.book.loop(track)  # one a command window gets, within follow_tolerance_mm)
+                motion = Led(motion, loop.window * loop.status_s, strict=False)
             sections = await asyncio.to_thread(self.book.cut, track, motion, rate, tick0=phase)
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the

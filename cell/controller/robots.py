@@ -155,7 +155,7 @@ class RobotBook:
         """The motion cut into the track's TPs (cell.controller.tps.cut) with its robots' gain, fitted to
         their loop: 0.1-0.5 s of CPU for a long motion, so callers run it in a worker thread."""
         loop = self.loop(track)
-        if isinstance(motion, Led):  # (a trajectory followed: TPs where its plan needs them)
+        if isinstance(motion, Led):  # (a trajectory followed, a fine motion: TPs where the plan needs them)
             bound = self.config.controller.follow_tolerance_mm / 1e3
             return fit_led(motion, loop, rate_hz, self.tool_error(track), bound, v0, tick0, held0)
         gain = np.resize(self.gain, track.joints)

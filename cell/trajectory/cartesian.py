@@ -16,6 +16,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from ruckig import InputParameter, Result, Ruckig
+from ruckig import Trajectory as RuckigTrajectory
 
 from cell.robot.arm import arm_model
 from cell.robot.kinematics import Kinematics, Unreachable
@@ -24,6 +26,17 @@ from cell.trajectory.model import MAX_POINTS, Trajectory, TrajectoryError
 from cell.v1 import controller_pb2
 
 BRANCH_JUMP_RAD = 0.5  # a joint moving more than this between two samples changed IK branch
+PATH_GRID = 64  # samples of a straight leg's joint path, for the limits of its ruckig timing
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """What an untimed path's joints may do (rad/s, rad/s^2, rad/s^3 per joint; the tool's m/s)."""
+
+    v_max: np.ndarray
+    a_max: np.ndarray
+    j_max: np.ndarray
+    tool_v_max: float = math.inf
 
 
 @dataclass
@@ -61,9 +74,11 @@ def solve(
     poses: Poses,
     rate_hz: float = 50.0,
     turn_speed: float = 1.0,
+    limits: JointLimits | None = None,
 ) -> Trajectory:
     """The joint trajectory of the poses (see the module's docstring); turn_speed (rad/s) bounds the
-    tool's turning as max_speed bounds its travel."""
+    tool's turning as max_speed bounds its travel.  Poses with neither times nor a maximum speed are
+    timed by ruckig within `limits` (_ruckig_leg): each straight leg as fast as its joints allow."""
     p = np.asarray(poses.positions, np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 1:
         raise TrajectoryError(f"positions: {p.shape} (one row of x, y, z a pose)")
@@ -83,6 +98,10 @@ def solve(
         if t.shape != (len(p),):
             raise TrajectoryError(f"{t.size} times for {len(p)} poses")
         samples = [(_waypoint(k, p), p[k], rots[k]) for k in range(len(p))]
+    elif poses.max_speed is None and limits is not None:
+        if len(p) < 2:
+            raise TrajectoryError("a Cartesian path needs at least 2 poses")
+        return _ruckig_path(kin, q_start, p, rots, limits, rate_hz, poses.name)
     else:
         if poses.max_speed is None or not poses.max_speed > 0:
             raise TrajectoryError("Cartesian poses need times or a maximum tool speed (m/s) > 0")
@@ -130,13 +149,94 @@ def solve(
     return Trajectory.build(t, q, name=poses.name)
 
 
+def _leg_ik(
+    kin: Kinematics, near: np.ndarray, p: np.ndarray, rots: np.ndarray, k: int, s: np.ndarray
+) -> np.ndarray:
+    """The joints along leg k (waypoint k to k + 1) at path parameters s, from `near`; TrajectoryError
+    where out of reach or where a joint would jump (another IK branch)."""
+    q = np.empty((len(s), near.size))
+    for i, si in enumerate(s.tolist()):
+        pos, rot = p[k] + (p[k + 1] - p[k]) * si, slerp(rots[k], rots[k + 1], si)
+        where = f"{100 * si:.0f}% of the way from waypoint {k} to {k + 1}"
+        try:
+            q[i] = kin.ik(pos, rot, near)
+        except Unreachable as exc:
+            raise TrajectoryError(f"{where}: {exc.reason}") from None
+        if np.abs(q[i] - near).max() > BRANCH_JUMP_RAD:
+            j = int(np.abs(q[i] - near).argmax())
+            raise TrajectoryError(
+                f"{where}: joint {j + 1} would jump {abs(q[i, j] - near[j]):.2f} rad on the way there "
+                "(a singularity or another IK branch): add poses between, or move there by joints"
+            )
+        near = q[i]
+    return q
+
+
+def _ruckig_path(
+    kin: Kinematics,
+    q_start: np.ndarray,
+    p: np.ndarray,
+    rots: np.ndarray,
+    limits: JointLimits,
+    rate_hz: float,
+    name: str,
+) -> Trajectory:
+    """Each straight leg, at rest at both ends, timed by a 1-D ruckig profile of its path parameter s
+    in [0, 1] whose limits keep every joint within its own: with the joint path q(s) (IK on a grid),
+    q' s_dot <= v, q'' s_dot^2 + q' s_ddot <= a and q' s_dddot <= j (with a margin for the cross
+    terms jerk has), the tool within tool_v_max."""
+    t_all, q_all, t0 = [0.0], [kin.ik(p[0], rots[0], q_start)], 0.0
+    grid = np.linspace(0.0, 1.0, PATH_GRID)
+    for k in range(len(p) - 1):
+        q = _leg_ik(kin, q_all[-1], p, rots, k, grid)
+        d1 = np.abs(np.gradient(q, grid, axis=0)).max(axis=0)
+        d2 = np.abs(np.gradient(np.gradient(q, grid, axis=0), grid, axis=0)).max(axis=0)
+        length = float(np.linalg.norm(p[k + 1] - p[k]))
+        if d1.max() < 1e-9:
+            continue  # (the same pose again)
+        sv = min(float(np.min(limits.v_max / np.maximum(d1, 1e-9))), limits.tool_v_max / max(length, 1e-9))
+        sv = min(sv, float(np.min(np.sqrt(0.5 * limits.a_max / np.maximum(d2, 1e-9)))))
+        sa = float(np.min((limits.a_max - d2 * sv * sv) / np.maximum(d1, 1e-9)))
+        sj = 0.5 * float(np.min(limits.j_max / np.maximum(d1, 1e-9)))
+        inp = InputParameter(1)
+        inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [0.0], [0.0]
+        inp.target_position, inp.target_velocity, inp.target_acceleration = [1.0], [0.0], [0.0]
+        inp.max_velocity, inp.max_acceleration, inp.max_jerk = [sv], [sa], [sj]
+        traj = RuckigTrajectory(1)
+        if Ruckig(1).calculate(inp, traj) not in (Result.Working, Result.Finished):
+            raise TrajectoryError(f"{_waypoint(k + 1, p)}: no timing within the joints' limits")
+        n = max(2, math.ceil(traj.duration * rate_hz) + 1)
+        ts = np.linspace(0.0, traj.duration, n)[1:]
+        s = np.clip([traj.at_time(float(x))[0][0] for x in ts], 0.0, 1.0)
+        q_all += list(_leg_ik(kin, q_all[-1], p, rots, k, np.asarray(s)))
+        t_all += (t0 + ts).tolist()
+        t0 += float(traj.duration)
+    if len(t_all) > MAX_POINTS:
+        raise TrajectoryError(f"{len(t_all):,} points: at most {MAX_POINTS:,} (a lower rate_hz?)")
+    return Trajectory.build(np.array(t_all), np.array(q_all), name=name)
+
+
 def _waypoint(k: int, p: np.ndarray) -> str:
     return f"waypoint {k} ({', '.join(f'{v * 1000:.1f}' for v in p[k])} mm)"
 
 
-async def solve_where_it_stands(bus, config, robot: str, poses: Poses) -> Trajectory:
+def planning_limits(config, robot: str, speed: float = 0.5) -> JointLimits:
+    """The limits the controller plans the robot's own motions with (its model's, under the data
+    plane's v_max and [controller] a_max, j_max, tool_v_max), scaled by `speed` as its motions are
+    (v s, a s^2, j s^3): what an untimed Cartesian path is timed within."""
+    lim = arm_model(config.robot(robot).model).limits
+    cc, n = config.controller, lim.v_max.size
+    v = np.minimum(lim.v_max, np.resize(np.array(config.dataplane.v_max), n))
+    a = np.minimum(lim.a_max, np.resize(np.array(cc.a_max), n))
+    j = np.resize(np.array(cc.j_max, np.float64), n)
+    return JointLimits(v * speed, a * speed**2, j * speed**3, cc.tool_v_max * speed)
+
+
+async def solve_where_it_stands(
+    bus, config, robot: str, poses: Poses, limits: JointLimits | None = None
+) -> Trajectory:
     """solve() from the robot's joints as the controller reports them now, with its model's IK (for a
     task script's Cell.cartesian and `cell follow` alike)."""
     req = controller_pb2.RobotRequest(robot=robot)
     here = await bus.request("controller", "pose", req, controller_pb2.PoseReply, timeout=10.0)
-    return solve(Kinematics(arm_model(config.robot(robot).model)), list(here.joints), poses)
+    return solve(Kinematics(arm_model(config.robot(robot).model)), list(here.joints), poses, limits=limits)

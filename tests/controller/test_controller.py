@@ -383,3 +383,22 @@ async def test_the_controller_service_moves_stops_and_resumes_over_the_bus(start
         assert info.value.code == "stopped"
         resumed = await call("resume", controller_pb2.RobotRequest(robot="r1"))
         assert np.allclose(resumed.joints, goal)
+
+
+@pytest.mark.slow
+async def test_a_fine_joint_move_stays_on_its_plan_between_its_tps(start_cell) -> None:
+    """The fine mode's led TPs (cell.controller.tps.fit_led): the MuJoCo arm's joints stay within a
+    few tenths of a mrad of the plan all along (the coarse mode's 10 TP/s: 2-5 mrad), and it
+    ends on its goal."""
+    async with driving(start_cell, robots("mujoco")) as (ctl, truth):
+        goal = Q0 + np.array([0.4, -0.3, 0.2, 0.1, -0.2, 0.5])
+        result = await ctl.move_joints("r1", goal, fine=True)
+        assert np.allclose(result.q_end, goal) and ctl.track("r1").state is MotionState.ARRIVED
+        seg = ctl.book.tracks[1].segment
+        assert seg is not None and seg.sections.lead_s > 0
+        assert len(seg.sections) / seg.motion.duration >= 43  # (at least the fine mode's rate)
+        err = path_error(truth.samples["r1"], seg)
+        assert err < 3e-4, f"off the plan by {err * 1000:.3f} mrad"  # measured 0.11 mrad
+        async with asyncio.timeout(8):
+            while np.abs(truth.last("r1") - goal).max() > 1e-5:
+                await asyncio.sleep(0.1)

@@ -164,6 +164,15 @@ async def test_plans_of_any_density_two_arms_and_a_cartesian_path_are_followed_a
     assert done.returncode == 0, done.stderr[-2000:]
     worst, _ = _errors(done.stdout, "r1")
     assert worst <= 1.0, done.stdout
+    # and untimed (a PoseArray, back to the start and out again): ruckig times it within the joints'
+    # limits at --speed
+    T = TS.types
+    header = T["std_msgs/msg/Header"](stamp=stamp(0.0), frame_id="base")
+    array = T["geometry_msgs/msg/PoseArray"](header=header, poses=[pose(x) for x in positions[::-20]])
+    done = await follow(write_message(tmp_path / "array", "/poses", array), "--robot", "r1")
+    assert done.returncode == 0, done.stderr[-2000:]
+    worst, _ = _errors(done.stdout, "r1")
+    assert worst <= 1.0, done.stdout
     # a plan past what one TP a command window can hold within follow_tolerance_mm: refused, with
     # where, and nothing moves
     t, q = out_and_back(250, 0.8, np.full(6, 0.15))
@@ -172,3 +181,36 @@ async def test_plans_of_any_density_two_arms_and_a_cartesian_path_are_followed_a
     assert refused.returncode == 2 and "turns too fast for one TP a command window" in refused.stderr, (
         refused.stdout + refused.stderr
     )
+
+
+def test_an_untimed_cartesian_path_is_timed_by_ruckig_within_the_joints_limits() -> None:
+    """Neither times nor a tool speed: each straight leg at rest at its ends, as fast as the planning
+    limits allow its joints (the tool on the line all along)."""
+    from cell.config import load_config
+    from cell.robot.kinematics import Kinematics
+    from cell.trajectory.cartesian import TrajectoryError, planning_limits, solve
+
+    arm = arm_model("ur5e")
+    kin = Kinematics(arm)
+    p0 = arm.fk(Q0)[0]
+    corners = np.array([p0 + d for d in ([0, 0, 0], [0.15, 0, 0], [0.15, 0.1, -0.05], [0, 0, 0])])
+    cfg = load_config(overrides={"robots": [{"id": 1, "name": "r1", "skill_port": 1234}]})
+    lim = planning_limits(cfg, "r1", 0.5)
+    traj = solve(kin, Q0, Poses(corners), limits=lim)
+    dt = np.diff(traj.t)
+    qd = np.diff(traj.q, axis=0) / dt[:, None]
+    qdd = np.diff(qd, axis=0) / dt[1:, None]
+    assert np.all(np.abs(qd) <= lim.v_max * 1.02) and np.all(np.abs(qdd) <= lim.a_max * 1.1)
+    # it uses them: some joint comes near its acceleration limit, and the tool near a corner stands
+    assert np.abs(qdd).max() > 0.5 * lim.a_max.max()
+    tool = np.array([arm.fk(q)[0] for q in traj.q])
+    at = [0]
+    for c in corners[1:]:  # (each corner after the one before: the path ends where it began)
+        at.append(at[-1] + 1 + int(np.argmin(np.linalg.norm(tool[at[-1] + 1 :] - c, axis=1))))
+    assert np.allclose(tool[at], corners, atol=1e-6) and at[-1] == len(tool) - 1
+    for k in range(3):  # on the lines between the corners
+        leg = tool[at[k] : at[k + 1] + 1] - corners[k]
+        u = (corners[k + 1] - corners[k]) / np.linalg.norm(corners[k + 1] - corners[k])
+        assert np.abs(leg - np.outer(leg @ u, u)).max() < 1e-6
+    with pytest.raises(TrajectoryError, match=r"Cartesian poses need times or a maximum tool speed"):
+        solve(kin, Q0, Poses(corners))  # (no limits given: nothing to time it with)
