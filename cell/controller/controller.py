@@ -390,8 +390,7 @@ class Controller:
         window_s = 0.0
         for rid, (track, timed) in checked.items():
             a = approaches[rid]
-            loop = self.book.loop(track)
-            window_s = window_s or loop.window * loop.status_s
+            window_s = window_s or self.book.loop(track).window_s
             if lead_s == 0.0:
                 motions[rid] = Led(timed, window_s)
                 continue
@@ -403,13 +402,13 @@ class Controller:
                 rid, None
             )  # (a trajectory is not resumed from a stop: it is run again)
         result, tracks = await self.engine.launch(motions)
-        fits = [(t.segment.sections, motions[t.robot]) for t in tracks if t.segment is not None]
+        fits = [(t.segment.sections, t.segment.motion) for t in tracks if t.segment is not None]
         out = FollowResult(
             result.start_ns,
             result.end_ns,
             result.q_end,
             result.start_ns + round((window_s + lead_s) * 1e9),
-            tps_per_s=max((len(s) / max(m.duration - window_s, 1e-9) for s, m in fits), default=0.0),
+            tps_per_s=max((len(s) / max(m.duration - s.lead_s, 1e-9) for s, m in fits), default=0.0),
             deviation_mm=max((s.deviation_m * 1e3 for s, _ in fits), default=0.0),
         )
         if wait:

@@ -268,8 +268,8 @@ class Engine:
             beside = near[robot]
             phase = beside[1] if beside is not None else 0
             if fine and not isinstance(motion, Led):  # (fine: led TPs fitted to the plan, as close as
-                loop = self.book.loop(track)  # one a command window gets, within follow_tolerance_mm)
-                motion = Led(motion, loop.window * loop.status_s, strict=False)
+                # one a command window gets, within follow_tolerance_mm)
+                motion = Led(motion, self.book.loop(track).window_s, strict=False)
             sections = await asyncio.to_thread(self.book.cut, track, motion, rate, tick0=phase)
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the

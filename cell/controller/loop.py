@@ -251,6 +251,11 @@ class LoopModel:
                 row, tick = row + 1, tick + 1
         return out
 
+    @property
+    def window_s(self) -> float:
+        """One command window (s): what led TPs lead their motion by (cell.controller.tps.Led)."""
+        return self.window * self.status_s
+
     def min_section_s(self) -> float:
         return 6 * self.window * self.status_s
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+from collections.abc import Callable
 from functools import cache
 
 import numpy as np
@@ -163,25 +164,28 @@ class RobotBook:
 
     def tool_error(self, track: Track) -> ToolError:
         """How far each robot's tool is from the plan for joint deviations dq at plan positions q
-        (the largest over the track's robots): through the arm's Jacobian, a window's rows at a
-        time (the plan turns little in 8 ms)."""
-        parts = []
-        col = 0
-        for rid in track.robots:
-            arm = self.arm_of(rid)
-            parts.append((arm, slice(col, col + arm.dof)))
-            col += arm.dof
+        (the largest over the track's robots): through each arm's Jacobian, taken once at q, a
+        window's rows at a time (the plan turns little in 8 ms)."""
 
-        def error(q: np.ndarray, dq: np.ndarray) -> np.ndarray:
-            out = np.zeros(len(q))
-            every = 4
-            for arm, cols in parts:
+        def at(q: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+            every, col = 4, 0
+            jacobians = []  # (the columns of each robot, its Jacobians row by row)
+            for rid in track.robots:
+                arm = self.arm_of(rid)
+                cols = slice(col, col + arm.dof)
+                col += arm.dof
                 jac = np.stack([arm.jacobian(x) for x in q[::every, cols]])  # (m / every, 3, dof)
-                jac = np.repeat(jac, every, axis=0)[: len(q)]
-                out = np.maximum(out, np.linalg.norm(np.einsum("mij,mj->mi", jac, dq[:, cols]), axis=1))
-            return out
+                jacobians.append((cols, np.repeat(jac, every, axis=0)[: len(q)]))
 
-        return error
+            def error(dq: np.ndarray) -> np.ndarray:
+                out = np.zeros(len(dq))
+                for cols, jac in jacobians:
+                    out = np.maximum(out, np.linalg.norm(np.einsum("mij,mj->mi", jac, dq[:, cols]), axis=1))
+                return out
+
+            return error
+
+        return at
 
     async def follow_announcements(self, sub: Subscription) -> None:
         """Keep each robot's tick grid (RobotAnnounce.window_origin_ns) as robots (re)announce."""

@@ -148,8 +148,9 @@ class Led(Motion):
         return q, np.where((t < self.lead_s)[:, None], 0.0, v)
 
 
-# the tool's distance from the plan for joint deviations dq at plan positions q, rows: (m,) m
-ToolError = Callable[[np.ndarray, np.ndarray], np.ndarray]
+# the tool's sensitivity at plan positions q (rows): a function of joint deviations dq there (same
+# rows) giving the tool's distance from the plan, (m,) m; made once a fit, used every round
+ToolError = Callable[[np.ndarray], Callable[[np.ndarray], np.ndarray]]
 
 
 def fit_led(
@@ -181,6 +182,7 @@ def fit_led(
     t_path = (np.arange(periods + w) + 1) * dt
     plan = motion.sample(t_path)[0]
     checked = t_path - motion.lead_s >= motion.check_from_s - 1e-12
+    error_at = tool_error(plan[checked])
     for _ in range(FIT_ROUNDS):
         t_end = bounds * dt
         t_end[-1] = inner.duration
@@ -193,7 +195,7 @@ def fit_led(
         v_trg = np.vstack([v_ff, np.zeros((1, dof))])
         path = loop.path(hold_ns, p_trg, v_trg, q0, v0, held0, tick0)
         err = np.zeros(len(path))
-        err[checked] = tool_error(plan[checked], path[checked] - plan[checked])
+        err[checked] = error_at(path[checked] - plan[checked])
         # each period's deviation is the work of the TP in force a window earlier
         owner = np.searchsorted(bounds, np.arange(len(path)) + 1 - w, side="right")
         worst = np.zeros(len(bounds) + 1)

@@ -78,7 +78,7 @@ def solve(
 ) -> Trajectory:
     """The joint trajectory of the poses (see the module's docstring); turn_speed (rad/s) bounds the
     tool's turning as max_speed bounds its travel.  Poses with neither times nor a maximum speed are
-    timed by ruckig within `limits` (_ruckig_leg): each straight leg as fast as its joints allow."""
+    timed by ruckig within `limits` (_ruckig_path): each straight leg as fast as its joints allow."""
     p = np.asarray(poses.positions, np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 1:
         raise TrajectoryError(f"positions: {p.shape} (one row of x, y, z a pose)")
@@ -117,9 +117,7 @@ def solve(
             n = max(2, math.ceil(span * rate_hz) + 1)
             start = t_list[-1]
             for i, ts in enumerate(np.linspace(0.0, span, n)[1:], 1):
-                s = (1 - math.cos(math.pi * ts / span)) / 2
-                pos, rot = p[k] + (p[k + 1] - p[k]) * s, slerp(rots[k], rots[k + 1], s)
-                on = f"{100 * s:.0f}% of the way from waypoint {k} to {k + 1}"
+                on, pos, rot = _on_leg(p, rots, k, (1 - math.cos(math.pi * ts / span)) / 2)
                 samples.append((_waypoint(k + 1, p) if i == n - 1 else on, pos, rot))
                 t_list.append(start + float(ts))
         t = np.array(t_list)
@@ -132,37 +130,32 @@ def solve(
                 near = kin.ik(p[k], rots[k], near)
             except Unreachable as exc:
                 raise TrajectoryError(f"{_waypoint(k, p)}: {exc.reason}") from None
-    q = np.empty((len(samples), q_start.size))
-    near = q_start
+    return Trajectory.build(t, _solve_along(kin, q_start, samples, jump_from_start=False), name=poses.name)
+
+
+def _on_leg(p: np.ndarray, rots: np.ndarray, k: int, s: float) -> tuple[str, np.ndarray, np.ndarray]:
+    """Where the tool is at path parameter s of leg k (waypoint k to k + 1): (in words, position,
+    rotation), the line and a slerp."""
+    where = f"{100 * s:.0f}% of the way from waypoint {k} to {k + 1}"
+    return where, p[k] + (p[k + 1] - p[k]) * s, slerp(rots[k], rots[k + 1], s)
+
+
+def _solve_along(
+    kin: Kinematics,
+    near: np.ndarray,
+    samples: list[tuple[str, np.ndarray, np.ndarray]],
+    jump_from_start: bool,
+) -> np.ndarray:
+    """The joints at each (where, position, rotation), each solved from the one before (the first
+    from `near`); TrajectoryError naming where a pose is out of reach or a joint would jump (another
+    IK branch): from `near` too if jump_from_start."""
+    q = np.empty((len(samples), near.size))
     for i, (where, pos, rot) in enumerate(samples):
         try:
             q[i] = kin.ik(pos, rot, near)
         except Unreachable as exc:
             raise TrajectoryError(f"{where}: {exc.reason}") from None
-        if i and np.abs(q[i] - near).max() > BRANCH_JUMP_RAD:
-            j = int(np.abs(q[i] - near).argmax())
-            raise TrajectoryError(
-                f"{where}: joint {j + 1} would jump {abs(q[i, j] - near[j]):.2f} rad on the way there "
-                "(a singularity or another IK branch): add poses between, or move there by joints"
-            )
-        near = q[i]
-    return Trajectory.build(t, q, name=poses.name)
-
-
-def _leg_ik(
-    kin: Kinematics, near: np.ndarray, p: np.ndarray, rots: np.ndarray, k: int, s: np.ndarray
-) -> np.ndarray:
-    """The joints along leg k (waypoint k to k + 1) at path parameters s, from `near`; TrajectoryError
-    where out of reach or where a joint would jump (another IK branch)."""
-    q = np.empty((len(s), near.size))
-    for i, si in enumerate(s.tolist()):
-        pos, rot = p[k] + (p[k + 1] - p[k]) * si, slerp(rots[k], rots[k + 1], si)
-        where = f"{100 * si:.0f}% of the way from waypoint {k} to {k + 1}"
-        try:
-            q[i] = kin.ik(pos, rot, near)
-        except Unreachable as exc:
-            raise TrajectoryError(f"{where}: {exc.reason}") from None
-        if np.abs(q[i] - near).max() > BRANCH_JUMP_RAD:
+        if (i or jump_from_start) and np.abs(q[i] - near).max() > BRANCH_JUMP_RAD:
             j = int(np.abs(q[i] - near).argmax())
             raise TrajectoryError(
                 f"{where}: joint {j + 1} would jump {abs(q[i, j] - near[j]):.2f} rad on the way there "
@@ -170,6 +163,13 @@ def _leg_ik(
             )
         near = q[i]
     return q
+
+
+def _leg_ik(
+    kin: Kinematics, near: np.ndarray, p: np.ndarray, rots: np.ndarray, k: int, s: np.ndarray
+) -> np.ndarray:
+    """The joints along leg k at path parameters s, from `near` (_solve_along)."""
+    return _solve_along(kin, near, [_on_leg(p, rots, k, float(x)) for x in s], jump_from_start=True)
 
 
 def _ruckig_path(

@@ -360,7 +360,7 @@ class _Arm:
         tried 5 times 0.2 s apart, as its connect_socket_with_retry), then read into the program
         until it ends (cancelled) or the client closes them."""
         s = r.settings
-        local = (self.robot.ur_host, 0) if ipaddress.ip_address(s.host).is_loopback else None
+        local = self._local_addr(s.host)
         readers: dict[str, asyncio.StreamReader] = {}
         try:
             for name in EXTERNAL_SOCKETS:
@@ -395,6 +395,14 @@ class _Arm:
             r.feed(name, data)
         r.lost(name)
 
+    def _local_addr(self, host: str) -> tuple[str, int] | None:
+        """Where a program's connection comes from: the arm's own address to a loopback peer (as a
+        UR's comes from the UR), else wherever the route says."""
+        try:
+            return (self.robot.ur_host, 0) if ipaddress.ip_address(host).is_loopback else None
+        except ValueError:  # (a host name)
+            return None
+
     def _sockets(self, r: Runner, ending: bool = False) -> None:
         """The program's sockets as it left them this tick: connected (from the arm's own address, as
         the external_control program's), written and closed; all closed as it ends."""
@@ -417,12 +425,8 @@ class _Arm:
     async def _open(self, s: ProgramSocket) -> None:
         """socket_open: connected within its timeout (OPEN) or not (FAILED), as a UR's returns."""
         try:
-            local = (self.robot.ur_host, 0) if ipaddress.ip_address(s.host).is_loopback else None
-        except ValueError:  # (a host name)
-            local = None
-        try:
             async with asyncio.timeout(s.timeout or None):
-                _, w = await asyncio.open_connection(s.host, s.port, local_addr=local)
+                _, w = await asyncio.open_connection(s.host, s.port, local_addr=self._local_addr(s.host))
         except (OSError, TimeoutError) as exc:
             s.state = SocketState.FAILED
             log.info("%s: socket_open(%s:%d, %s): %s", self.robot.name, s.host, s.port, s.name, exc)

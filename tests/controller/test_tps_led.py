@@ -26,9 +26,9 @@ def out_and_back(seconds: float, pps: float = 40.0, amp: np.ndarray = AMP) -> Le
     return Led(TimedMotion(Trajectory.build(t, q)), W)
 
 
-def tool_error(q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+def tool_error(q: np.ndarray):
     jac = np.stack([ARM.jacobian(x) for x in q])
-    return np.linalg.norm(np.einsum("mij,mj->mi", jac, dq), axis=1)
+    return lambda dq: np.linalg.norm(np.einsum("mij,mj->mi", jac, dq), axis=1)
 
 
 def modelled_tool_error_mm(motion: Led, s) -> np.ndarray:
