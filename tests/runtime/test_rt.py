@@ -73,12 +73,14 @@ def test_polling_at_fifo_is_throttled_and_seen_polling_through_spin_is_not() -> 
     # the kernel stopped it for the rest of a second (its share is 95% of each), and Held saw it; a CPU
     # may borrow the other's unused share for a second (RT_RUNTIME_SHARE: a 6.7 ms hold once in CI),
     # so the loops run again, as in the cell's test below, until a second's full hold shows
+    # Held reads the thread's run-queue wait at its checks, so one hold may be seen in two parts (CI: a
+    # 20.2 ms gap seen as 15.8 + 5.3 ms): what it saw in all must account for most of the longest gap
     for _ in range(3):
         fifo = run("fifo")
-        if fifo["gap_ms"] >= 20 and fifo["held"]["rt.held_max_ms"] >= 20:
+        if fifo["gap_ms"] >= 20 and fifo["held"]["rt.held_ms"] >= 0.75 * fifo["gap_ms"]:
             break
     assert fifo["gap_ms"] >= 20, fifo
-    assert fifo["held"]["rt.held"] >= 1 and fifo["held"]["rt.held_max_ms"] >= 20, fifo
+    assert fifo["held"]["rt.held"] >= 1 and fifo["held"]["rt.held_ms"] >= 0.75 * fifo["gap_ms"], fifo
     assert fifo["policies"] == [os.SCHED_FIFO], fifo
     spin = run("spin")
     # the same work polled at the normal policy: never a throttled stretch (CFS slices are ms)
