@@ -164,11 +164,12 @@ class Campaign:
             async with EventClient(self.config) as ev:
                 await ev.resume(timeout=10.0)
 
-    def estop_bound_ms(self, robot: str, speed: float) -> float:
-        """How long a robot at this speed may take to stand after an e-stop: its full braking (the
-        slowest joint's deceleration) and ESTOP_MARGIN_MS."""
+    def estop_bound_ms(self, robot: str, speed: float, age_ms: float = 0.0) -> float:
+        """How long a robot may take to stand after an e-stop, at the speed its truth said age_ms
+        before the order: its full braking (the slowest joint's deceleration) from there, the time it
+        may have sped up since (at that deceleration: as long again), and ESTOP_MARGIN_MS."""
         a = float(np.min(models.get(self.config.robot(robot).model).a_max))
-        return speed / a * 1e3 + ESTOP_MARGIN_MS
+        return speed / a * 1e3 + age_ms + ESTOP_MARGIN_MS
 
     # --- faults ------------------------------------------------------------------------------------
 
@@ -367,7 +368,11 @@ class Campaign:
             # its speed when the stop came: as last heard (the bus killed, the last truth before the
             # order may be a second old: a robot braking from speed is no robot at rest)
             before = self.obs.between(r, since - 500_000_000, since) or self.obs.between(r, 0, since)
-            bound = self.estop_bound_ms(r, before[-1][1] if before else 0.0)
+            # (a sample up to a truth period old: an accelerating robot is faster at the order than it
+            # said; a hogged run's arm stood 2 ms past a bound taken from a 10 ms old speed)
+            hz = self.config.robot(r).truth_hz
+            age_ns = min(since - before[-1][0], int(1e9 / hz)) if before and hz > 0 else 0
+            bound = self.estop_bound_ms(r, before[-1][1] if before else 0.0, max(age_ns, 0) / 1e6)
             samples = self.obs.between(r, since, t_resume)
             moving = [t for t, qd, _, _ in samples if qd >= REST]
             by_truth = (max(moving) - since) / 1e6 if moving else 0.0

@@ -557,7 +557,8 @@ static void *run(void *arg) {
         if (now < next) continue;
         int64_t due = (now - g->origin_ns) / period_ns; /* the latest deadline passed */
         int64_t periods = due - last, deadline_ns = g->origin_ns + due * period_ns;
-        hist_add(g->lateness, g->lateness_stats, (double)(now - deadline_ns) / 1e3, 1);
+        /* (late against the deadline slept for: a wake past the next one too shows as late as it was) */
+        hist_add(g->lateness, g->lateness_stats, (double)(now - next) / 1e3, 1);
         pthread_mutex_lock(&rt->mutex);
         int64_t cutoff = real_ns(); /* (the kernel stamps datagrams in CLOCK_REALTIME) */
         rg_send(g, (double)deadline_ns / 1e9);
