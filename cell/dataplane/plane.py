@@ -638,7 +638,9 @@ class XdpDataPlane(MappedDataPlane):
             log.warning("%s", problem)
         loop = asyncio.get_running_loop()
         passed, look = asyncio.Event(), asyncio.Event()
-        netns = namespace_thread(self.netns)
+        # (its attaches off this process's CPUs: the packet path's core, which it shares with the robots)
+        pinned = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
+        netns = namespace_thread(self.netns, frozenset(pinned))
         loop.add_reader(self.sock.fileno(), passed.set)
 
         async def answer() -> None:

@@ -96,10 +96,22 @@ def enter(netns: str) -> None:
         os.close(fd)
 
 
-def namespace_thread(netns: str) -> ThreadPoolExecutor:
+def namespace_thread(netns: str, off_cpus: frozenset[int] = frozenset()) -> ThreadPoolExecutor:
     """One thread that lives inside the namespace: calls there without a new thread each (an XDP
-    attach can take 15 ms; the event loop awaits it instead of stopping for it)."""
-    return ThreadPoolExecutor(1, thread_name_prefix=f"netns:{netns}", initializer=enter, initargs=(netns,))
+    attach can take 15 ms; the event loop awaits it instead of stopping for it).  off_cpus: CPUs it
+    leaves (unless they are all there are), at the normal policy: an attach holds its CPU in the
+    kernel for 15-70 ms, which on the robots' core cost them ticks and protective stops (cell chaos
+    xdp-detached)."""
+
+    def start() -> None:
+        enter(netns)
+        elsewhere = set(range(os.cpu_count() or 1)) - off_cpus
+        with contextlib.suppress(OSError, AttributeError):  # (the calling thread only; Linux)
+            if off_cpus and elsewhere:
+                os.sched_setaffinity(0, elsewhere)
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+    return ThreadPoolExecutor(1, thread_name_prefix=f"netns:{netns}", initializer=start)
 
 
 def in_namespace(netns: str, fn: Callable[[], T]) -> T:
