@@ -122,7 +122,7 @@ def serve_master(
     spin_until = 0
     lead = LEAD_NS if spin_ns else 0  # (spin_ns 0: never poll without sleeping)
     due = master.next_due()
-    rt = Spin()  # (polls at the normal policy: never into the kernel's RT throttling)
+    rt = Spin()  # (polls at FIFO within a budget: never into the kernel's RT throttling)
     try:
         while not stop():
             now = clock()
@@ -398,7 +398,7 @@ def run_modules(
     now = clock()
     next_event = events()
     next_control = now if control is not None else end
-    rt = Spin()  # (polls at the normal policy: never into the kernel's RT throttling)
+    rt = Spin()  # (polls at FIFO within a budget: never into the kernel's RT throttling)
     try:
         while now < end:
             if now >= next_control:
