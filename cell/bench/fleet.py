@@ -250,8 +250,14 @@ async def measure(
         await robots_heard(ctl, set(range(1, n + 1)), timeout=30.0)
         loaded: list[tuple[float, int]] = []
         timed = _TimedUpdates(ctl.dp, loaded)  # (its parts' updates; its reads go through ctl.link)
-        for p in pairs:
-            await ctl.merge(p)
+        try:
+            for p in pairs:
+                await ctl.merge(p)
+        except BusTimeout:  # (a host too busy to set the fleet up: a failed run, counted, not a crash)
+            run.unanswered += 1
+            for task in background:
+                task.cancel()
+            return run
         if churn:
             run.churn = Churn()
             owners = np.array([int(x[1:]) for x in singles])

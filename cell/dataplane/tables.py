@@ -482,8 +482,8 @@ class Tables:
                 waits += [(t, r) for t, r, x in zip(wanted, rows.tolist(), to, strict=True) if x == NO_ROW]
                 yield
             # the valid rows linking to TPs about to go (the flip adds those it links itself)
-            links, none = (self.next_row, self.switch_row), np.zeros(0, np.int64)
-            pointing = [self._links_into(arr, is_gone) if gone.size else none for arr in links]
+            both, none = (self.next_row, self.switch_row), np.zeros(0, np.int64)
+            pointing = [self._links_into(arr, is_gone) if gone.size else none for arr in both]
             yield
             # --- 3. the flip: everything visible in one step ------------------------------------
             self.flip_begin()

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -76,8 +80,6 @@ def test_config_show_prints_each_arms_ur_address_resolved(capsys: pytest.Capture
 def test_what_a_user_gets_wrong_is_one_line_and_its_exit_code(tmp_path) -> None:
     """No traceback for anything but a bug: no cell to talk to, a robot that is not there, a negative
     time, a reader that stops reading."""
-    import subprocess
-    import sys
 
     from tests.conftest import cell_env, cell_overrides, free_port, run_cell, write_config
 
@@ -111,16 +113,34 @@ def test_what_a_user_gets_wrong_is_one_line_and_its_exit_code(tmp_path) -> None:
 def test_a_clean_stop_says_nothing_of_the_bus_going_away(tmp_path) -> None:
     """At a clean stop the bus goes as everything goes: no service warns that it dropped (each used to,
     twice, which read as a failure)."""
-    from tests.conftest import cell_overrides, run_cell, write_config
+    from tests.conftest import cell_env, cell_overrides, write_config
 
     path = write_config(tmp_path / "c.toml", cell_overrides())  # the default cell, in its process groups
-    # (--duration counts from the launch: a loaded CI host once took over 3 s to bring the groups up)
-    got = run_cell("up", "--config", str(path), "--duration", "10", timeout=60)
-    assert got.returncode == 0, got.stderr[-2000:]
-    assert "is up in" in got.stderr, got.stderr[-2000:]  # (its log is there ...)
-    assert "the bus connection dropped" not in got.stderr and " WARNING " not in got.stderr, got.stderr[
-        -3000:
-    ]
+    # stopped once it says it is up (a fixed --duration of 3 s once ended a loaded CI host's cell
+    # before its groups were up); killed if it never says so
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cell", "up", "--config", str(path)],
+        env=cell_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    watchdog = threading.Timer(60, proc.kill)
+    watchdog.start()
+    try:
+        assert proc.stderr is not None
+        head = []
+        for line in proc.stderr:
+            head.append(line)
+            if "is up in" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        _, rest = proc.communicate(timeout=30)
+    finally:
+        watchdog.cancel()
+        if proc.poll() is None:
+            proc.kill()
+    err = "".join(head) + rest
+    assert proc.returncode == 0, err[-2000:]
+    assert "is up in" in err, err[-2000:]  # (its log is there ...)
+    assert "the bus connection dropped" not in err and " WARNING " not in err, err[-3000:]
 
 
 def test_every_package_of_cell_is_in_the_packaging() -> None:
