@@ -176,15 +176,15 @@ class Spin:
     it, and every other real-time thread of its CPU, for the rest of the second.  Nor at the normal
     policy: any busy normal process then takes the CPU from a cycle in flight (a CPU hog: 6% of the
     C cycle's exchanges missed where 0.7% were).  It sleeps at its real-time priority (a wake comes
-    at once) and polls at it while its polling stays within BUDGET_NS of each WINDOW_NS (80 ms of
-    each 100: the kernel's 95% is never reached, the CPU's normal threads get 20 ms of every 100),
+    at once) and polls at it while its polling stays within BUDGET_NS of each WINDOW_NS (90 ms of
+    each 100: the kernel's 95% is never reached, the CPU's normal threads get 10 ms of every 100),
     past that at the normal policy and its nice value until the next window.  poll() before a poll
     without sleeping, sleep() before a sleep or when done.  At most two system calls a cycle;
     nothing at all in a thread that is not real-time.  The C cycles' spin_t (cell/snp/wire.h) is
     the same."""
 
     WINDOW_NS = 100_000_000
-    BUDGET_NS = 80_000_000
+    BUDGET_NS = 90_000_000
 
     def __init__(self) -> None:
         rt = realtime()
