@@ -370,9 +370,10 @@ class Campaign:
             before = self.obs.between(r, since - 500_000_000, since) or self.obs.between(r, 0, since)
             # (a sample up to a truth period old: an accelerating robot is faster at the order than it
             # said; a hogged run's arm stood 2 ms past a bound taken from a 10 ms old speed)
+            heard_ns, speed = before[-1][:2] if before else (since, 0.0)
             hz = self.config.robot(r).truth_hz
-            age_ns = min(since - before[-1][0], int(1e9 / hz)) if before and hz > 0 else 0
-            bound = self.estop_bound_ms(r, before[-1][1] if before else 0.0, max(age_ns, 0) / 1e6)
+            age_ns = min(since - heard_ns, int(1e9 / hz)) if hz > 0 else 0  # (samples up to `since`)
+            bound = self.estop_bound_ms(r, speed, age_ns / 1e6)
             samples = self.obs.between(r, since, t_resume)
             moving = [t for t, qd, _, _ in samples if qd >= REST]
             by_truth = (max(moving) - since) / 1e6 if moving else 0.0

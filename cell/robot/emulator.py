@@ -486,8 +486,10 @@ class RobotGroup:
             while True:
                 periods = await timer.wait()
                 deadline = (timer.start_ns + (timer.ticks - 1) * period_ns) / 1e9
-                # (late against the deadline waited for: a wake past the next one too shows as late as it was)
-                lateness.add((time.monotonic() - deadline) * 1e6 + (periods - 1) * period_ns / 1e3)
+                # (late against the deadline waited for, as tick.c: a wake past the next one too shows
+                # as late as it was)
+                waited = deadline - (periods - 1) * period_ns / 1e9
+                lateness.add((time.monotonic() - waited) * 1e6)
                 stopping, resuming = self.tick(deadline, periods)
                 if on_tick is not None:
                     on_tick(self, stopping, resuming)

@@ -41,8 +41,8 @@ typedef struct {
  * and poll at it too while their polling stays within SPIN_BUDGET_NS of each SPIN_WINDOW_NS (90 ms
  * of each 100: the kernel's 95% is never reached, and the CPU's normal threads get 10 ms of every
  * 100; a six-module cycle polls 60-65% of the time, and missed 1.9% at 6 ms of 10, 0.04-7.9% at
- * 80 of 100, 0.2-1.1% at 90), past that at the normal policy until the next window.  At most two system calls a cycle (~1-2 us), and a
- * clock read a poll. */
+ * 80 of 100, 0.2-1.1% at 90), past that at the normal policy until the next window.  At most two
+ * system calls a cycle (~1-2 us), and a clock read a poll. */
 #define SPIN_WINDOW_NS 100000000LL
 #define SPIN_BUDGET_NS 90000000LL
 typedef struct {
