@@ -23,6 +23,7 @@ if TYPE_CHECKING:  # (the facade whose parts these work on; it imports this modu
 
 WATCH_S = 0.1  # how often supervise() reads the data plane's registers (a read each, in flight together)
 DEAD_S = 0.5  # a data plane silent this long has lost the motions it carried (for us)
+HELD_S = 0.05  # a wait of WATCH_S that ended this much later: this process was held up
 # reads out at once at most: a lost one does not hold up the next, and a data plane slow to answer (a
 # fleet's thousand robots in each state) is not asked faster than it answers
 IN_FLIGHT = 2
@@ -70,11 +71,18 @@ async def _judge(
     silent_since = newest = time.monotonic()
     gone = False  # the motions were declared lost for silence; flush once it answers again
     while True:
+        waited = time.monotonic()
         try:
             async with asyncio.timeout(WATCH_S):
                 asked, st = await answers.get()
         except TimeoutError:
             now = time.monotonic()
+            # time this process was held up (a loaded or stalled host: it woke late) is not the data
+            # plane's silence: the answers that came meanwhile are still on their way in, behind this
+            # timeout (a 0.5 s hold-up as ur_rtde's control interface started was once a false "lost")
+            held = now - waited - WATCH_S
+            if held > HELD_S:
+                silent_since += held
             if not gone and now - silent_since >= DEAD_S:
                 gone = True
                 ready.clear()

@@ -7,7 +7,10 @@ windows makes a protective stop (decelerates to 0 within its limits) and
 resumes once every joint is commanded again.  The watchdog arms with a robot's
 first command: a robot nobody has commanded yet simply stands still.  The
 drive never exceeds the
-joint's velocity or acceleration limit, whatever it is told.  A halted robot
+joint's velocity or acceleration limit, whatever it is told.  A URScript program's servoj (cell.ur)
+is a servo reference the drives close on the arm's position every tick (`servo`), as a UR's
+controller does in its own real-time loop: the program, which runs at the normal policy and may be
+late, only gives them the targets.  A halted robot
 (an emergency stop on the Responsive Link) brakes at once with its full
 deceleration and ignores every command until every holder (the e-stop, the arm's UR
 state) has released it.
@@ -62,6 +65,16 @@ class Drives:
         # robots a URScript program drives (cell.ur): the datagram commands are not theirs (each one is
         # counted in `ignored`), no watchdog runs, and the program sets `target` itself every tick
         self.scripted = np.zeros(robots, bool)
+        # servoj's reference, a robot's: its target position, the target's step fed forward as a speed
+        # for `servo_t` seconds after it came (`servo_since` ago), the rest pulled in with time constant
+        # `servo_tau` (0: no servo); with `servo_extrapolate` the target moves on at that speed until
+        # the next one (URCL's extrapolate())
+        self.servo_q = np.zeros(shape)
+        self.servo_ff = np.zeros(shape)
+        self.servo_t = np.zeros(robots)
+        self.servo_since = np.zeros(robots)
+        self.servo_tau = np.zeros(robots)
+        self.servo_extrapolate = np.zeros(robots, bool)
         # commands ignored (scripted robots'), protective stops and windows so far: an array, so that
         # the tick in C (cell/robot/tick.c) counts them where Python reads them
         self.counts = np.zeros(3, np.int64)
@@ -115,13 +128,42 @@ class Drives:
             self.stopped[row] = False
 
     def set_target(self, row: int, velocity: np.ndarray | float) -> None:
-        """What a URScript program drives robot `row` at in this period (cell.ur)."""
+        """What a URScript program drives robot `row` at in this period (cell.ur); its servo is off."""
         with self.lock:
             self.target[row] = velocity
+            self.servo_tau[row] = 0.0
+
+    def set_servo(
+        self, row: int, q: np.ndarray, ff: np.ndarray, t: float, tau: float, extrapolate: bool = False
+    ) -> None:
+        """A URScript program's new servoj target for robot `row`: from the next tick the drives feed
+        `ff` forward for `t` seconds and pull the rest in with time constant `tau` (see `servo`)."""
+        with self.lock:
+            self.servo_q[row], self.servo_ff[row] = q, ff
+            self.servo_t[row], self.servo_since[row], self.servo_tau[row] = t, 0.0, tau
+            self.servo_extrapolate[row] = extrapolate
+
+    def servo(self, q: np.ndarray, dt: float) -> None:
+        """The servoing robots' targets for the next dt, closed on their positions `q` now (motion.Servo's
+        law, here so that it runs in the tick whenever the program that set it runs)."""
+        on = self.servo_tau > 0.0
+        if not on.any():
+            return
+        for r in np.flatnonzero(on & ~self.halted).tolist():  # (a robot or two: a program each)
+            since = self.servo_since[r] + dt
+            self.servo_since[r] = since
+            ff = self.servo_ff[r]
+            if since > self.servo_t[r] + 1e-9:
+                if self.servo_extrapolate[r]:
+                    self.servo_q[r] += ff * dt
+                else:
+                    ff = 0.0
+            self.target[r] = ff + (self.servo_q[r] - q[r]) / self.servo_tau[r]
 
     def _clear(self, rows: np.ndarray | int, rearm: bool) -> None:
         """No command executing or pending; with rearm, the watchdog off until the next command."""
         self.target[rows] = 0.0
+        self.servo_tau[rows] = 0.0
         self.pending[rows] = 0.0
         self.has_pending[rows] = False
         if rearm:

@@ -384,6 +384,7 @@ class RobotGroup:
             self.at_deadline()
         stopping, resuming, left = self.take(cutoff_ns, periods)
         self.sent_rt_ns = cutoff_ns
+        self.drives.servo(self.backend.q, self.period * periods)
         self.backend.step(self.period * left)
         # the instant q, qd now describe: one period past the latest deadline (the backend stepped from
         # the last state, one period past the last tick's deadline, over every period missed since)

@@ -69,6 +69,8 @@ class GroupState(ctypes.Structure):
         *((name, _I) for name in ("ring_cap", "ring_head")),
         *((name, _P) for name in ("ring_tick", "ring_q", "ring_qd", "ring_target", "ring_velocity")),
         *((name, _P) for name in ("ring_stopped", "ring_flags", "lateness", "lateness_stats", "rt")),
+        *((name, _P) for name in ("servo_q", "servo_ff", "servo_t", "servo_since", "servo_tau")),
+        ("servo_extrapolate", _P),
     ]
 
 
@@ -143,6 +145,8 @@ class NativeTick:
         for name in ("v_max", "a_max", "velocity", "target", "pending", "has_pending", "missed"):
             setattr(st, name, _ptr(getattr(d, name)))
         for name in ("stopped", "armed", "holds", "scripted"):
+            setattr(st, name, _ptr(getattr(d, name)))
+        for name in ("servo_q", "servo_ff", "servo_t", "servo_since", "servo_tau", "servo_extrapolate"):
             setattr(st, name, _ptr(getattr(d, name)))
         st.drive_counts = _ptr(d.counts)
         st.q, st.qd = _ptr(b.q), _ptr(b.qd)

@@ -114,6 +114,9 @@ typedef struct {
     int64_t *lateness;           /* the ticks' lateness histogram (emulator.Lateness.counts) */
     double *lateness_stats;
     void *rt;                    /* (C's own: the mutex and the thread) */
+    /* servoj's references (Drives.servo_*): n x dof, then n each */
+    double *servo_q, *servo_ff, *servo_t, *servo_since, *servo_tau;
+    uint8_t *servo_extrapolate;
 } group_t;
 
 static double now_mono(void) {
@@ -172,6 +175,29 @@ static void end_window(group_t *g, int resumes) {
         if (g->stopped[r] || halted)
             for (int64_t j = 0; j < dof; j++) g->target[r * dof + j] = 0.0;
         memset(has, 0, (size_t)dof);
+    }
+}
+
+/* Drives.servo: the servoing robots' targets for the next dt, closed on q now (a URScript program's
+ * servoj, whenever the program that set the reference last ran) */
+static void servo(group_t *g, double dt) {
+    int64_t dof = g->dof;
+    for (int64_t r = 0; r < g->n; r++) {
+        if (!(g->servo_tau[r] > 0.0) || g->holds[r]) continue;
+        double since = g->servo_since[r] + dt, tau = g->servo_tau[r];
+        g->servo_since[r] = since;
+        int ff_on = 1;
+        if (since > g->servo_t[r] + 1e-9) {
+            if (g->servo_extrapolate[r])
+                for (int64_t j = 0; j < dof; j++) g->servo_q[r * dof + j] += g->servo_ff[r * dof + j] * dt;
+            else
+                ff_on = 0;
+        }
+        for (int64_t j = 0; j < dof; j++) {
+            int64_t i = r * dof + j;
+            double ff = ff_on ? g->servo_ff[i] : 0.0;
+            g->target[i] = ff + (g->servo_q[i] - g->q[i]) / tau;
+        }
     }
 }
 
@@ -440,6 +466,7 @@ static int64_t take(group_t *g, int64_t cutoff_ns, int64_t periods) {
 void rg_after(group_t *g, int64_t cutoff_ns, int64_t periods) {
     int64_t left = take(g, cutoff_ns, periods);
     g->sent_rt_ns = cutoff_ns;
+    servo(g, g->period * (double)periods);
     rg_step(g, g->period * (double)left);
     pack(g);
     g->counters[C_TICKS]++;

@@ -360,6 +360,11 @@ class ExternalControl(Runner):
     def reference(self) -> tuple[np.ndarray, np.ndarray] | None:
         return self.tail.reference() if self.tail is not None else super().reference()
 
+    def servoing(self) -> Servo | None:
+        if self.tail is not None:
+            return self.tail.servoing()
+        return self.servo if self.mode in (Mode.SERVOJ, Mode.POSE) and self.ended is None else None
+
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         self.q_now = q
         if self.tail is not None:  # (the control loop is over: the program's last lines)
@@ -397,7 +402,7 @@ class ExternalControl(Runner):
         if self.mode == Mode.SERVOJ or self.mode == Mode.POSE:
             assert self.servo is not None
             if not self.servo_new:  # extrapolate(): the last target moved on at the target speed
-                self.servo.set(self.servo.target + self.servo.ff * STEP_S, STEP_S, self.servo.lookahead)
+                self.servo.extrapolate(STEP_S)
             self.servo_new = False
             self.last_v = self.servo.step(q, qd, dt)
             return self.last_v
@@ -429,7 +434,7 @@ class ExternalControl(Runner):
                 self.traj_running = False
             self.mode = new
             if new in (Mode.SERVOJ, Mode.POSE):
-                self.servo = Servo(q)
+                self.servo = Servo(q, extrapolates=True)
                 self.messages.append(Message("ExternalControl: Starting servo thread"))
             elif new in (Mode.FORWARD, Mode.IDLE):
                 self._stopj()

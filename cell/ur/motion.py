@@ -29,9 +29,10 @@ AT_GOAL_RAD = 2e-5  # a move has ended once every joint is this close to its goa
 STEADY_RAD_S = 1e-3  # is_steady(): every joint slower than this
 SCALING_SAMPLES = 16  # points along a line or an arc where its joints' rates are found (MoveL._scaled)
 SCALING_MARGIN = 0.9  # of each joint's velocity and acceleration limits a planned line may use
-# servoj's lookahead is its loop's time constant here, closed on the arm's state as the tick reads
-# it (a few ms late): under 0.1 s that loop rang and grew on a 500 Hz stream (URCL's default 0.03 s
-# took a 0.1 rad sine to 0.34 rad), so shorter ones are held at 0.1 s (a UR's own loop is faster)
+# servoj's lookahead is its loop's time constant here (closed in the robots' tick: Drives.servo):
+# under 0.1 s that loop rang and grew on a 500 Hz stream when it closed on the arm's state a few ms
+# late (URCL's default 0.03 s took a 0.1 rad sine to 0.34 rad), so shorter ones are held at 0.1 s
+# (a UR's own loop is faster)
 SERVO_LOOKAHEAD_MIN_S = 0.1
 SETTLE_S = 2.0  # a move that cannot reach its goal (held by a stop) ends this long after its profile
 
@@ -316,18 +317,33 @@ class Servo(Motion):
     the rest pulled in with the lookahead time as time constant; with no new target the arm settles on
     the last one.  (UR's gain is taken and not modelled.)"""
 
-    def __init__(self, q: np.ndarray) -> None:
+    def __init__(self, q: np.ndarray, extrapolates: bool = False) -> None:
         self.target = q.copy()
         self.ff = np.zeros_like(q)
         self.t, self.lookahead, self.since = 0.002, 0.1, 0.0
+        self.extrapolates = extrapolates  # with no new target the last one moves on (URCL's script)
+        # a reference the drives have not been given (the arm hands it to Drives.set_servo, whose
+        # loop runs in the tick: this one runs when the program does, which may be ticks late)
+        self.fresh = True
 
     def set(self, target: np.ndarray, t: float, lookahead: float) -> None:
         target = np.asarray(target, np.float64)
-        self.t = min(max(t, 0.002), 1.0)
+        t, lookahead = min(max(t, 0.002), 1.0), min(max(lookahead, SERVO_LOOKAHEAD_MIN_S), 0.2)
+        # (the same target again is no news: the drives' feed-forward runs out on its own; given it,
+        # a program catching up on ticks would cut the last step's feed-forward short)
+        same = np.array_equal(target, self.target) and (t, lookahead) == (self.t, self.lookahead)
+        self.fresh |= not same
+        self.t = t
         self.ff = (target - self.target) / self.t
         self.target = target.copy()
-        self.lookahead = min(max(lookahead, SERVO_LOOKAHEAD_MIN_S), 0.2)
+        self.lookahead = lookahead
         self.since = 0.0
+
+    def extrapolate(self, dt: float) -> None:
+        """No new target this cycle: the last one moves on at its speed (the drives do the same)."""
+        fresh = self.fresh
+        self.set(self.target + self.ff * dt, dt, self.lookahead)
+        self.fresh = fresh
 
     def step(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         self.since += dt

@@ -91,6 +91,10 @@ class Runner:
         """Its motion's reference (URArm.reference), if it has one."""
         return self.motion.reference() if self.motion is not None else None
 
+    def servoing(self) -> Servo | None:
+        """Its servoj, if that is what moves the arm: the drives close its loop (Drives.set_servo)."""
+        return self.motion if isinstance(self.motion, Servo) and self.ended is None else None
+
     def _move(self, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
         if self.motion is None:
             return np.zeros_like(q)

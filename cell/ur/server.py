@@ -352,8 +352,12 @@ class _Arm:
                 return
         if r.ended is not None:
             self.end(r.ended)
-        else:
+        elif (servo := r.servoing()) is None:
             self.group.drives.set_target(self.row, v)
+        elif servo.fresh:  # (else the drives' loop runs on with the reference they have)
+            servo.fresh = False
+            d = self.group.drives
+            d.set_servo(self.row, servo.target, servo.ff, servo.t, servo.lookahead, servo.extrapolates)
 
     async def _connect_back(self, r: ExternalControl) -> None:
         """The external_control program's sockets: opened to its client in the program's order (each

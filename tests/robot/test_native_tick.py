@@ -93,6 +93,10 @@ DRIVE_ARRAYS = (
     "armed",
     "holds",
     "scripted",
+    "servo_q",
+    "servo_ff",
+    "servo_since",
+    "servo_tau",
 )
 
 
@@ -122,7 +126,7 @@ def test_the_c_tick_does_what_the_python_tick_does_datagram_for_datagram(twin: T
 
     for k, g in enumerate(twin.groups):
         g.at_deadline = answerer(k)
-    stopped_seen = resumed_seen = 0
+    stopped_seen = resumed_seen = servoed = 0
     for tick in range(420):
         late.clear()
         if tick % 4 == 1:  # each window: most robots commanded, some only partly, some not at all
@@ -150,8 +154,15 @@ def test_the_c_tick_does_what_the_python_tick_does_datagram_for_datagram(twin: T
                 g.drives.halt(np.array([1]), on=False)
             if tick == 150:
                 g.drives.script(2, True)  # a URScript program takes robot 2 over
-            if 150 <= tick < 190:
+            if 150 <= tick < 170:
                 g.drives.target[2] = 0.2 * np.sin(np.arange(6) + tick / 10)
+            if 170 <= tick < 190 and tick % 3 != 2:  # its servoj: targets as a late program sets them
+                q = 0.1 * np.sin(np.arange(6) + tick / 10)
+                g.drives.set_servo(2, q, q * 5, 0.004 if tick % 2 else 0.002, 0.1, extrapolate=tick > 180)
+            if tick == 186:
+                g.drives.halt(np.array([2]))  # (an e-stop in a servo: it brakes, the servo ends)
+            if tick == 188:
+                g.drives.halt(np.array([2]), on=False)
             if tick == 190:
                 g.drives.script(2, False)
             if tick == 260:
@@ -163,6 +174,8 @@ def test_the_c_tick_does_what_the_python_tick_does_datagram_for_datagram(twin: T
         stopped_seen += got[1][0].size
         resumed_seen += got[1][1].size
         assert_same(twin, got, tick)
+        d = twin.groups[0].drives
+        servoed += bool(d.servo_tau[2] > 0 and d.target[2].any() and d.servo_since[2] > 0.002)
     c, p = (g.counters.as_dict() for g in twin.groups)
     timing = ("lateness", "answer")
     assert {k: v for k, v in c.items() if not k.startswith(timing)} == {
@@ -170,6 +183,7 @@ def test_the_c_tick_does_what_the_python_tick_does_datagram_for_datagram(twin: T
     }
     # the run did what it meant to: stops, resumes, rejects, programs' commands ignored, held ticks
     assert stopped_seen >= 3 and resumed_seen >= 2
+    assert servoed >= 5  # ticks the drives ran a servo on past its feed-forward (t = 2 ms)
     counters = twin.groups[0].counters
     assert counters.rejected == {"length": 12, "kind": 24, "robot": 12, "joint": 12}
     assert counters.commands_ignored > 0 and counters.missed_ticks == 2 + 149
