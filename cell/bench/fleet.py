@@ -245,8 +245,10 @@ async def measure(
         Bus.connect(config.bus, "bench-fleet") as bus,
         Controller(bus, config) as ctl,
         asyncio.TaskGroup() as tg,
+        contextlib.AsyncExitStack() as stack,
     ):
         background = [tg.create_task(truth.run(bus)), tg.create_task(_on_a_par())]
+        stack.callback(lambda: [task.cancel() for task in background])  # (they run until told)
         await robots_heard(ctl, set(range(1, n + 1)), timeout=30.0)
         loaded: list[tuple[float, int]] = []
         timed = _TimedUpdates(ctl.dp, loaded)  # (its parts' updates; its reads go through ctl.link)
@@ -255,8 +257,6 @@ async def measure(
                 await ctl.merge(p)
         except BusTimeout:  # (a host too busy to set the fleet up: a failed run, counted, not a crash)
             run.unanswered += 1
-            for task in background:
-                task.cancel()
             return run
         if churn:
             run.churn = Churn()
@@ -306,8 +306,6 @@ async def measure(
         me1 = resource.getrusage(resource.RUSAGE_SELF)
         cpu1 = {k: sched.process_cpu_seconds(pid) for k, pid in procs.items()}
         _, c1 = await _snapshot(config)
-        for task in background:  # (they run until told)
-            task.cancel()
     run.seconds = round(spent, 1)
     run.cpu = {k: round((cpu1[k] - cpu0[k]) / spent, 2) for k in procs}
     run.cpu["controller (this process)"] = round(
