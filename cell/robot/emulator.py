@@ -212,6 +212,9 @@ class RobotGroup:
         # called as each status period starts, right after the status went out: what else reports the
         # state of this deadline sends it then (the arms' RTDE packages, cell.ur.server)
         self.at_deadline: Callable[[], None] | None = None
+        # whether the tick handed to the hooks is the newest this process knows of (False for the
+        # older ticks of the ring a late reader catches up on: run_native)
+        self.live = True
         # each robot's digital outputs, as its UR controller has them (cell.ur: set by a program or an
         # RTDE client on an emulated arm, read over RTDE by the daemon); 0 for an arm without
         self.digital_out = np.zeros(self.n, np.uint64)
@@ -565,7 +568,11 @@ class RobotGroup:
             pick = (native.ring_tick[slots] % every == 0) | native.ring_flags[slots].any(axis=1)
             pick[-1] = True
             slots = slots[pick]
+        last = int(slots[-1]) if slots.size else -1
         for slot in slots.tolist():
+            # (the ticks before the newest are ones this reader is late for: a hook that measures a
+            # client's silence in ticks does not count them, as the client's data waits unread too)
+            self.live = slot == last
             tick, flags = int(native.ring_tick[slot]), native.ring_flags[slot]
             self.tick_no = tick
             self.state_time = (self.origin_ns + tick * period_ns) / 1e9 + self.period
@@ -579,4 +586,5 @@ class RobotGroup:
                     on_tick(self, np.flatnonzero(flags & 1), np.flatnonzero(flags & 2))
                 else:
                     on_tick(self, _NO_ROWS, _NO_ROWS)
+        self.live = True
         return head

@@ -384,7 +384,7 @@ class ExternalControl(Runner):
                 self._reverse(reverse.popleft(), q, qd)
             self.since_message = 0.0
         else:
-            self.since_message += dt
+            self.since_message += dt if self.live else 0.0  # (its messages wait unread too)
             if "reverse_socket" in self.closed or (
                 self.read_timeout > 0 and self.since_message > self.read_timeout
             ):
@@ -570,7 +570,7 @@ class ExternalControl(Runner):
             return
         points = self.readers["trajectory_socket"].messages
         if not points:
-            self.traj_wait += dt
+            self.traj_wait += dt if self.live else 0.0  # (the points sent meanwhile wait unread too)
             # (as the script's read: 0.5 s while the arm stands, a step while it moves; a tick of
             # slack for the bytes that arrive between two ticks)
             limit = STEP_S + dt if self.traj_moving else FIRST_POINT_TIMEOUT_S

@@ -79,6 +79,9 @@ class Runner:
         self.messages: list[Message] = []
         self.motion: Motion | None = None
         self.sockets: dict[str, ProgramSocket] = {}  # by name (the server opens, writes and closes them)
+        # the tick it steps is the newest the process knows of (RobotGroup.live): a program stepped
+        # through ticks its process was late for has not heard what its clients sent meanwhile
+        self.live = True
 
     @property
     def name(self) -> str:

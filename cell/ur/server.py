@@ -326,6 +326,7 @@ class _Arm:
         assert r is not None
         t = self.group.state_time
         dt, self.t_last = max(t - self.t_last, 1e-6), t
+        r.live = self.group.live
         v = r.step(q, qd, dt)
         # its target (RTDE's target_q, target_qd): the motion's own reference, or the last target
         # moved on at the velocity the drives are told, as a UR's target integrates its speed;

@@ -9,7 +9,10 @@ numpy's order, without fused multiply-adds).
 
 from __future__ import annotations
 
+import asyncio
+import itertools
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -222,3 +225,42 @@ def test_a_full_socket_buffer_is_counted_not_fatal() -> None:
     finally:
         g.close()
         sink.close()
+
+
+async def test_a_late_reader_of_the_ring_gets_every_tick_and_knows_the_newest() -> None:
+    """run_native: C ticks in its own thread and Python reads the ring when it gets the CPU; a reader
+    held up catches up on every tick it missed, each marked not live but the newest (RobotGroup.live:
+    what a program's timeouts go by)."""
+    sink = udp.open_socket("127.0.0.1")
+    host, port = sink.getsockname()
+    robots = [{"id": 10, "name": "t0", "skill_port": 3000, "backend": "kinematic"}]
+    cfg = load_config(overrides={**cell_overrides(), "robots": robots})
+    g = RobotGroup(cfg.robots, f"{host}:{port}", tick="native")
+    g.busy = lambda: True  # (every tick read, as for an RTDE client)
+    seen: list[tuple[int, bool]] = []
+    enough = asyncio.Event()
+
+    def at_deadline() -> None:
+        seen.append((g.tick_no, g.live))
+        if len(seen) == 20:
+            time.sleep(0.03)  # this reader held up for 15 ticks
+        if len(seen) >= 80:
+            enough.set()
+
+    g.at_deadline = at_deadline
+    try:
+        async with asyncio.timeout(10), asyncio.TaskGroup() as tg:
+            reader = tg.create_task(g.run_native())
+            await enough.wait()
+            reader.cancel()
+        missed = g.counters.missed_ticks  # (periods C itself missed: a tick of several, one entry)
+    finally:
+        g.close()
+        sink.close()
+    ticks = [t for t, _ in seen]
+    gaps = [b - a for a, b in itertools.pairwise(ticks)]
+    assert min(gaps) == 1 and sum(gaps) - len(gaps) <= missed  # every tick C ticked, once, in order
+    late = [k for k, (_, live) in enumerate(seen) if not live]
+    assert len(late) >= 10  # the hold-up's ticks, caught up on
+    assert all(seen[k + 1][0] == seen[k][0] + 1 for k in late)  # (a newer one always followed)
+    assert seen[20][1] is False and seen[19][1] is True  # (before the hold-up: read as they came)

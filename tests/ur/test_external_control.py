@@ -125,6 +125,23 @@ def test_servoj_follows_the_stream_and_a_late_message_ends_the_program() -> None
     assert any("Socket timed out waiting for command on reverse_socket" in m.text for m in r.messages)
 
 
+def test_ticks_its_process_was_late_for_are_no_silence_of_the_clients() -> None:
+    """A program stepped through ticks its process is catching up on (RobotGroup.live False) has not
+    read what its client sent meanwhile: those ticks do not count toward the read timeout."""
+    r, _ = program()
+    arm = Arm(r)
+    r.feed("reverse_socket", reverse(Mode.SERVOJ, joints(Q0)))  # (a 100 ms read timeout)
+    arm.run(DT)
+    r.live = False
+    arm.run(0.3)  # three timeouts' worth of ticks, caught up on
+    assert r.ended is None
+    r.live = True
+    arm.run(0.08)
+    assert r.ended is None
+    arm.run(0.04)  # its own ticks do count
+    assert r.ended == "the reverse interface's read timed out"
+
+
 def test_a_servoj_target_beyond_20_rad_s_is_ignored_with_the_scripts_words() -> None:
     r, _ = program()
     arm = Arm(r)
