@@ -15,8 +15,12 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import logging
 import os
+import threading
 import time
+
+log = logging.getLogger("cell.sched")
 
 _POLICY = {
     getattr(os, "SCHED_OTHER", 0): "normal",
@@ -106,6 +110,7 @@ class Held:
     def __init__(self, tid: int = 0) -> None:
         """tid: another thread of this process to watch (a native loop's), 0: the calling one."""
         path = f"/proc/self/task/{tid}/schedstat" if tid else "/proc/thread-self/schedstat"
+        self.tid = tid or threading.get_native_id()
         try:  # (open for the process's life: one pread a check)
             self._fd = os.open(path, os.O_RDONLY)
         except OSError:  # (not Linux, or no CONFIG_SCHED_INFO)
@@ -136,6 +141,10 @@ class Held:
         self.events += 1
         self.total_ns += grew
         self.max_ns = max(self.max_ns, grew)
+        # (when and where, for the log: the counters say how often and how long; a hold that comes
+        # with every real-time thread of its CPU held is the kernel's throttling, one alone is not)
+        ms, where = grew / 1e6, _where(self.tid)
+        log.info("real-time thread %d was held %.0f ms on the run queue (%s)", self.tid, ms, where)
         return grew
 
     def counters(self, prefix: str = "rt.") -> dict[str, float]:
@@ -144,6 +153,17 @@ class Held:
             f"{prefix}held_ms": self.total_ns / 1e6,
             f"{prefix}held_max_ms": self.max_ns / 1e6,
         }
+
+
+def _where(tid: int) -> str:
+    """A thread's CPU and policy now, in words (its /proc stat's processor and policy fields)."""
+    try:
+        with open(f"/proc/self/task/{tid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        cpu, prio, policy = int(fields[36]), int(fields[37]), int(fields[38])
+    except (OSError, IndexError, ValueError):
+        return "where: unknown"
+    return f"on CPU {cpu}, {_POLICY.get(policy, policy)}" + (f" {prio}" if prio else "")
 
 
 class HeldThreads:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -143,12 +144,13 @@ async def test_a_cell_held_back_by_rt_throttling_says_so_in_cell_status(start_ce
     assert table.returncode == 0 and "RT throttling: the kernel held" in table.stdout, table.stdout
 
 
-def test_many_short_waits_over_a_long_while_are_no_hold(monkeypatch) -> None:
+def test_many_short_waits_over_a_long_while_are_no_hold(monkeypatch, caplog) -> None:
     """A busy loop that reaches its check seldom sums short waits behind other real-time threads: 9.5 s
     of them over 28 s of a flooded hub read as one 9.5 s hold.  Only a wait that filled at least half
     the time since the last check is one."""
     from cell import sched
 
+    caplog.set_level(logging.INFO, logger="cell.sched")
     held = sched.Held()
     run_delay = iter([0, 0, 9_500_000_000, 9_500_000_000 + 40_000_000])
     monkeypatch.setattr(held, "_read", lambda: next(run_delay))
@@ -157,6 +159,10 @@ def test_many_short_waits_over_a_long_while_are_no_hold(monkeypatch) -> None:
     assert held.check(29_000_000_000) == 0  # 9.5 s of waits over 28 s: not a hold
     assert held.check(29_050_000_000) == 40_000_000  # 40 ms of the last 50: held back
     assert held.events == 1 and held.max_ns == 40_000_000
+    # each hold is logged, with where the thread is (a throttled CPU holds all its real-time threads)
+    said = [r.getMessage() for r in caplog.records if r.name == "cell.sched"]
+    assert said == [f"real-time thread {held.tid} was held 40 ms on the run queue ({sched._where(held.tid)})"]
+    assert said[0].endswith(")") and "on CPU " in said[0]
 
 
 def test_each_native_loop_of_a_process_is_watched_for_holds(monkeypatch) -> None:
