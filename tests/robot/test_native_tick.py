@@ -243,8 +243,8 @@ async def test_a_late_reader_of_the_ring_gets_every_tick_and_knows_the_newest() 
     def at_deadline() -> None:
         seen.append((g.tick_no, g.live))
         if len(seen) == 20:
-            time.sleep(0.03)  # this reader held up for 15 ticks
-        if len(seen) >= 80:
+            time.sleep(0.06)  # this reader held up for 30 ticks
+        if len(seen) >= 100:
             enough.set()
 
     g.at_deadline = at_deadline
@@ -260,7 +260,8 @@ async def test_a_late_reader_of_the_ring_gets_every_tick_and_knows_the_newest() 
     ticks = [t for t, _ in seen]
     gaps = [b - a for a, b in itertools.pairwise(ticks)]
     assert min(gaps) == 1 and sum(gaps) - len(gaps) <= missed  # every tick C ticked, once, in order
-    late = [k for k, (_, live) in enumerate(seen) if not live]
-    assert len(late) >= 10  # the hold-up's ticks, caught up on
-    assert all(seen[k + 1][0] == seen[k][0] + 1 for k in late)  # (a newer one always followed)
-    assert seen[20][1] is False and seen[19][1] is True  # (before the hold-up: read as they came)
+    # the hold-up's 30 ticks, caught up on right after it, not live (a third of them at least, should
+    # C itself miss some); the newest of each read is (whether the reader kept up before it is this
+    # host's business: a read of two is no failure)
+    assert sum(not live for _, live in seen[20:50]) >= 10
+    assert seen[-1][1] is True
