@@ -328,6 +328,10 @@ class Servo(Motion):
 
     def set(self, target: np.ndarray, t: float, lookahead: float) -> None:
         target = np.asarray(target, np.float64)
+        if not (np.isfinite(target).all() and math.isfinite(t) and math.isfinite(lookahead)):
+            # (a client's NaN would reach the drives' loop, every tick, and the arm's state with it)
+            why = f"servoj(): not a number in q {target.tolist()}, t {t} or lookahead {lookahead}"
+            raise Unreachable(why)
         t, lookahead = min(max(t, 0.002), 1.0), min(max(lookahead, SERVO_LOOKAHEAD_MIN_S), 0.2)
         # (the same target again is no news: the drives' feed-forward runs out on its own; given it,
         # a program catching up on ticks would cut the last step's feed-forward short)

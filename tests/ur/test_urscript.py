@@ -300,6 +300,20 @@ def test_what_the_control_script_cannot_do_ends_it_with_the_reason() -> None:
     assert ur.safety_mode == SafetyMode.PROTECTIVE_STOP and "protective stop" in ctl.ended
 
 
+def test_a_servoj_target_that_is_not_a_number_ends_the_script_and_the_arm_stays_sound() -> None:
+    ur, sim = URArm("r1", arm_model("ur5e")), Arm()
+    ctl = control(ur)
+    ur.int_in[0] = Cmd.SERVOJ
+    ur.double_in[:11] = [*(Q0 + 0.01), 0, 0, 0.002, 0.1, 300]
+    sim.run(ctl.step, 5)
+    assert ctl.ended is None and sim.qd.any()
+    ur.double_in[2] = float("nan")  # (a client's bug, sent over RTDE)
+    sim.run(ctl.step, 1)
+    assert ctl.ended is not None and "servoj(): not a number" in ctl.ended
+    assert any("not a number" in m.text for m in ctl.messages)
+    assert np.isfinite(sim.q).all() and np.isfinite(sim.qd).all()
+
+
 def test_the_control_script_stops_when_its_rtde_client_goes() -> None:
     ur, sim = URArm("r1", arm_model("ur5e")), Arm()
     ctl = control(ur)
