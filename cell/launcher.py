@@ -185,7 +185,7 @@ async def service(
     """Run services in this process (the named ones, or process group `group`'s) until SIGINT/SIGTERM,
     placed on the CPUs and at the priority their group asks for, before anything else starts."""
     process = process_named(config, group) if group is not None else process_for(config, names or [])
-    for problem in sched.place(process.cpus, process.rt_priority, process.nice):
+    for problem in sched.place_loops(process.cpus, process.rt_priority, process.nice):
         log.warning("process %r: %s", process.name, problem)
     config = process.config_for(config)
     specs = load_all(config, process.services)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import collections.abc
 import contextvars
+import threading
 import time
 from collections.abc import Coroutine
 from typing import Any
@@ -134,6 +135,15 @@ def watch_thread(tid: int) -> None:
     if not isinstance(HELD, sched.HeldThreads):
         HELD = sched.HeldThreads()
     HELD.add(tid)
+
+
+def real_time_loop(priority: int) -> list[str]:
+    """From now on this process's Python runs at SCHED_FIFO `priority` (sched.rest_at: a loop that
+    must be real-time in Python), this thread watched for holds; what could not be done, in words."""
+    problems = sched.rest_at(priority)
+    if sched.realtime():
+        watch_thread(threading.get_native_id())
+    return problems
 
 
 def charge_to(account: Account) -> None:

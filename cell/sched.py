@@ -8,7 +8,9 @@ SCHED_FIFO is refused (no CAP_SYS_NICE, an RLIMIT_RTPRIO of 0, a cgroup with
 no real-time budget) the process falls back to a nice value, and where that
 is refused too it runs as it is: what it got is reported, never hidden.
 Everything is applied to every thread the process has, and threads started
-later (ZeroMQ's I/O thread) inherit it.
+later (ZeroMQ's I/O thread) inherit it.  A cell's real-time group (place_loops)
+gives its SCHED_FIFO priority to its native loops alone, as they start
+(hand_over): its Python stays at the normal policy from the first import on.
 """
 
 from __future__ import annotations
@@ -175,7 +177,8 @@ class HeldThreads:
         self.next_ns = 0
 
     def add(self, tid: int) -> None:
-        self.threads.append(Held(tid))
+        if all(h.tid != tid for h in self.threads):
+            self.threads.append(Held(tid))
 
     def check(self, now_ns: int) -> int:
         self.next_ns = now_ns + CHECK_NS
@@ -280,51 +283,77 @@ def realtime() -> bool:
 # loops) once hand_over() moved the rest of it to the normal policy
 RT_THREADS: set[int] = set()
 RT_NICE = -10  # what the rest of a real-time process runs at, after hand_over()
+# the SCHED_FIFO priority this process's group asked for (place_loops), for its native loops; 0: none
+LOOP_PRIORITY = 0
+REST_PRIORITY = 0  # SCHED_FIFO of the process's other threads (rest_at), 0: the normal policy
+
+
+def place_loops(cpus: list[int], rt_priority: int, nice: int) -> list[str]:
+    """Place a real-time group's process: pinned to `cpus`, every thread at the normal policy (at
+    RT_NICE, or `nice` with no `rt_priority`), `rt_priority` kept for its native loops, which take
+    it as they start (hand_over).  Its Python (imports, models, config) never runs at real-time
+    priority: a process starting at SCHED_FIFO held the data plane's loop, on the same core, for up
+    to 340 ms.  What could not be done, in words."""
+    global LOOP_PRIORITY
+    problems = place(cpus, 0, RT_NICE if rt_priority else nice)
+    if rt_priority and hasattr(os, "sched_setscheduler"):
+        LOOP_PRIORITY = rt_priority
+        if why := keep_cpus_awake():
+            problems.append(why)
+    return problems
 
 
 def hand_over(tid: int, nice: int = RT_NICE, rest_priority: int = 0) -> list[str]:
-    """Keep this process's real-time priority for thread `tid` (a native loop: cell/robot/tick.c,
-    cell/dataplane/native.c) alone, and move every other thread (Python's, ZeroMQ's) to the normal
-    policy at `nice`: nothing per bus message or per client runs at real-time priority, and nothing
-    but the native loop can spend the CPU's real-time budget (RT throttling holds every real-time
-    thread of a CPU once they used it up).  Threads started later inherit the normal policy.  Return
-    what could not be done, in words (a process that was not real-time: nothing to hand over).
-    rest_priority > 0: the other threads go to SCHED_FIFO at that priority instead, under the native
-    loops (a process that must still tick something in Python at real-time priority)."""
-    if tid <= 0 or not (realtime() or RT_THREADS):
+    """Give thread `tid` (a native loop: cell/robot/tick.c, cell/dataplane/native.c) this process's
+    real-time priority (LOOP_PRIORITY, or the whole process's if place() made it real-time) and leave
+    every other thread (Python's, ZeroMQ's) at the normal policy at `nice`: nothing per bus message
+    or per client runs at real-time priority, and nothing but the native loops can spend the CPU's
+    real-time budget (RT throttling holds every real-time thread of a CPU once they used it up).
+    Threads started later inherit the normal policy.  rest_priority > 0: the other threads go to
+    SCHED_FIFO at that priority instead, under the native loops (rest_at).  Return what could not
+    be done, in words (a process that asked for no real-time priority: nothing to hand over)."""
+    if tid <= 0 or not (LOOP_PRIORITY or realtime() or RT_THREADS):
         return []
-    problems: list[str] = []
+    if LOOP_PRIORITY and tid not in RT_THREADS:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY))
+        except OSError as exc:
+            return [f"SCHED_FIFO {LOOP_PRIORITY} refused for native loop {tid} ({exc.strerror})"]
     RT_THREADS.add(tid)
+    return _rest(max(rest_priority, REST_PRIORITY), nice)
+
+
+def rest_at(priority: int) -> list[str]:
+    """From now on, every thread of this process but its native loops at SCHED_FIFO `priority` (at
+    most LOOP_PRIORITY): a loop that must run real-time in Python (a robots group ticking in Python,
+    the numpy data plane, a control plane over every normal process).  Only in a process whose
+    group asked for real time; what could not be done, in words."""
+    global REST_PRIORITY
+    if not LOOP_PRIORITY:  # (a process place() made real-time as a whole is so already)
+        return []
+    REST_PRIORITY = max(REST_PRIORITY, min(priority, LOOP_PRIORITY))
+    return _rest(REST_PRIORITY, RT_NICE)
+
+
+def _rest(priority: int, nice: int) -> list[str]:
+    """Every thread but the native loops at SCHED_FIFO `priority`, or the normal policy at `nice`."""
+    problems: list[str] = []
     for t in _threads():
         if t in RT_THREADS:
             continue
         try:
-            if rest_priority > 0:
-                os.sched_setscheduler(t, os.SCHED_FIFO, os.sched_param(rest_priority))
+            if priority > 0:
+                os.sched_setscheduler(t, os.SCHED_FIFO, os.sched_param(priority))
             else:
                 os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
             os.setpriority(os.PRIO_PROCESS, t, nice)
         except OSError as exc:
             problems.append(
-                f"thread {t}: SCHED_FIFO {rest_priority} refused ({exc.strerror})"
-                if rest_priority > 0
+                f"thread {t}: SCHED_FIFO {priority} refused ({exc.strerror})"
+                if priority > 0
                 else f"thread {t}: normal policy refused ({exc.strerror})"
             )
     return problems
-
-
-def lower_to(priority: int) -> list[str]:
-    """Every thread of this real-time process to SCHED_FIFO `priority` (a control plane whose packet
-    path runs in the kernel, the XDP program's: under every native loop, over every normal process).
-    What could not be done, in words; a process that is not real-time stays as it is."""
-    if not realtime():
-        return []
-    try:
-        for t in _threads():
-            os.sched_setscheduler(t, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError as exc:
-        return [f"SCHED_FIFO {priority} refused ({exc.strerror})"]
-    return []
 
 
 def describe() -> str:

@@ -20,9 +20,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from collections.abc import Iterable
 
+from cell import meter
 from cell.bus import FaultCode, RpcFault
 from cell.bus.node import Handler
 from cell.robot.emulator import PYTHON_TICK_PRIORITY, RobotGroup
@@ -42,6 +44,8 @@ from cell.service import ServiceContext, ServiceSpec
 from cell.ur.remote import Daemon
 from cell.ur.server import URInterfaces
 from cell.v1 import robot_pb2
+
+log = logging.getLogger("cell.robots")
 
 DAEMONS_UP_S = 5.0  # the service waits this long at most for its daemons' programs to run
 
@@ -126,13 +130,13 @@ async def run(ctx: ServiceContext) -> None:
         # groups that tick on timers, their grids staggered over the period: each group's tick has the
         # process to itself (on one grid a second group ticked as late as the first took: a UR5e and
         # a UR10e, two groups, had the robots' lateness p99 at 740 us where one group has 170)
-        # the C threads keep the process's real-time priority for themselves; where a group ticks in
+        # the C threads take the process's real-time priority for themselves; where a group ticks in
         # Python here (a daemon's tick is its controller's RTDE package: it must stay real-time) the
-        # rest of the process stays real-time too, under every native loop (the robots' and the data
+        # rest of the process becomes real-time too, under every native loop (the robots' and the data
         # plane's: at 70 it held the data plane's thread up to 39 ms in a chaos campaign)
-        in_python = [g for g in [*groups, *hidden] if g.native is None]
-        for g in [*groups, *hidden]:
-            g.rest_priority = PYTHON_TICK_PRIORITY if in_python else 0
+        if any(g.native is None for g in [*groups, *hidden]):
+            for problem in meter.real_time_loop(PYTHON_TICK_PRIORITY):
+                log.warning("%s", problem)
         ticking = [g for g in [*groups, *hidden] if not isinstance(g, Daemon)]
         t0 = time.monotonic_ns() + 2_000_000
         starts = {id(g): t0 + round(k * g.period * 1e9 / len(ticking)) for k, g in enumerate(ticking)}

@@ -15,6 +15,7 @@
 #include <netinet/in.h>
 #include <poll.h>
 #include <pthread.h>
+#include "../rt_thread.h"
 #include <sched.h>
 #include <stdint.h>
 #include <string.h>
@@ -278,21 +279,8 @@ static void *serve_thread(void *arg)
  * 0, or the errno of what failed */
 int dp_start(struct server *sv, int priority)
 {
-    pthread_attr_t attr;
-    pthread_attr_init(&attr);
-    if (priority > 0) {
-        struct sched_param sp = {.sched_priority = priority};
-        pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
-        pthread_attr_setschedpolicy(&attr, SCHED_FIFO);
-        pthread_attr_setschedparam(&attr, &sp);
-    }
     sv->stop = 0;
-    int rc = pthread_create(&sv->thread, &attr, serve_thread, sv);
-    if (rc == EPERM && priority > 0) { /* no real-time priority here: as the caller runs */
-        pthread_attr_setinheritsched(&attr, PTHREAD_INHERIT_SCHED);
-        rc = pthread_create(&sv->thread, &attr, serve_thread, sv);
-    }
-    pthread_attr_destroy(&attr);
+    int rc = rt_thread_start(&sv->thread, priority, serve_thread, sv);
     sv->running = rc == 0;
     return rc;
 }

@@ -44,6 +44,7 @@ from cell.robot import datagram, udp
 HERE = Path(__file__).parent
 SOURCE = HERE / "native.c"
 BPF_SOURCE = HERE / "xdp" / "dataplane.bpf.c"
+RT_THREAD = HERE.parent / "rt_thread.h"
 HANDLED, HELD, BAD = 0, 1, 2  # handle()'s verdicts (dataplane.bpf.c)
 BATCH_BINS = 1024  # native.c's: each wake-up's handling time in 1 us bins
 MAPS = (
@@ -83,7 +84,7 @@ class ServerState(ctypes.Structure):
 @functools.cache
 def _lib() -> tuple[ctypes.CDLL, int, int]:
     """The library, and the sizes of native.c's scratch and mark records."""
-    lib = build("dataplane", (SOURCE,), (BPF_SOURCE,))
+    lib = build("dataplane", (SOURCE,), (BPF_SOURCE, RT_THREAD))
     lib.dp_payload.argtypes = [_P, _P, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint16]
     lib.dp_payload.restype = ctypes.c_int
     lib.dp_gate.argtypes, lib.dp_gate.restype = [_P, ctypes.c_int], None
@@ -248,7 +249,7 @@ class NativeDataPlane(MappedDataPlane):
 
     async def run(self) -> None:
         """Serve in C until cancelled; this process's other threads leave the real-time priority."""
-        self.server.start()
+        self.server.start(sched.LOOP_PRIORITY)  # (real-time from its first packet: sched.place_loops)
         try:
             tid = int(self.server.state.tid)
             # the control plane under the packet path, over every normal process (CONTROL_PRIORITY)

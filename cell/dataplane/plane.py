@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from cell import models, sched
+from cell import meter, models, sched
 from cell.bus import FaultCode, RpcFault
 from cell.config import CellConfig, parse_host_port
 from cell.dataplane.egress import ROBOT, EgressPort
@@ -263,7 +263,10 @@ class DataPlane:
             self.pipeline.sweep(robots, time.monotonic_ns())
 
     async def run(self) -> None:
-        """Handle datagrams as they come, until cancelled."""
+        """Handle datagrams as they come, until cancelled: this process's Python is the packet path
+        here, at its group's real-time priority."""
+        for problem in meter.real_time_loop(sched.LOOP_PRIORITY):
+            log.warning("%s", problem)
         loop = asyncio.get_running_loop()
         ready = asyncio.Event()
         fd = self.sock.fileno()
@@ -634,7 +637,7 @@ class XdpDataPlane(MappedDataPlane):
         at once through the very program (BPF_PROG_TEST_RUN on its maps), and the program is
         attached again meanwhile (in a thread inside the namespace: an attach takes ~15 ms of
         statuses).  Another program attached in its place is reported, not fought."""
-        for problem in sched.lower_to(CONTROL_PRIORITY):  # (the kernel answers the statuses)
+        for problem in sched.rest_at(CONTROL_PRIORITY):  # (the kernel answers the statuses)
             log.warning("%s", problem)
         loop = asyncio.get_running_loop()
         passed, look = asyncio.Event(), asyncio.Event()

@@ -233,10 +233,6 @@ class RobotGroup:
         self.wake_every = 1
         self.read_every = 0  # (0: wake_every's)
         self.busy: Callable[[], bool] | None = None
-        # what run_native leaves the process's other threads at once its C thread runs (sched.hand_over):
-        # 0, the normal policy; while the process still ticks a group in Python (a daemon's, whose tick
-        # must stay real-time), SCHED_FIFO PYTHON_TICK_PRIORITY, under every native loop
-        self.rest_priority = 0
         self.native: NativeTick | None = None
         self.tick_why = ""  # why this group ticks in Python though its robots asked for C
         if (tick or first.tick) == "native":
@@ -524,8 +520,8 @@ class RobotGroup:
         woken = asyncio.Event()
         loop.add_reader(fd, woken.set)
         try:
-            tid = native.start(self.origin_ns, fd, self._wake_every())
-            for problem in sched.hand_over(tid, rest_priority=self.rest_priority):
+            tid = native.start(self.origin_ns, fd, self._wake_every(), sched.LOOP_PRIORITY)
+            for problem in sched.hand_over(tid):
                 log.warning("%s", problem)
             if tid in sched.RT_THREADS:
                 meter.watch_thread(tid)

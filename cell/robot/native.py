@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 
 HERE = Path(__file__).parent
 SOURCE = HERE / "tick.c"
+RT_THREAD = HERE.parent / "rt_thread.h"  # (its thread, created at its real-time priority)
 VLEN, RX_BYTES = 8, 65536  # tick.c's
 RING = 256  # ticks the ring keeps (0.5 s at 500 Hz): Python may fall that far behind and lose none
 # GroupCounters' integer fields in tick.c's order (C_*); the rejects go to counters.rejected
@@ -76,15 +77,15 @@ class GroupState(ctypes.Structure):
 
 @functools.cache
 def _lib() -> ctypes.CDLL:
-    lib = build("robot-tick", (SOURCE,), cflags=(*CFLAGS, "-ffp-contract=off"))
+    lib = build("robot-tick", (SOURCE,), (RT_THREAD,), cflags=(*CFLAGS, "-ffp-contract=off"))
     p = ctypes.POINTER(GroupState)
     lib.rg_send.argtypes, lib.rg_send.restype = [p, _D], None
     lib.rg_after.argtypes, lib.rg_after.restype = [p, _I, _I], None
     lib.rg_step.argtypes, lib.rg_step.restype = [p, _D], None
     lib.rg_pack.argtypes, lib.rg_pack.restype = [p], None
     lib.rg_tick_timed.argtypes, lib.rg_tick_timed.restype = [p, _D, _I], _I
-    for name in ("rg_start", "rg_init"):
-        getattr(lib, name).argtypes, getattr(lib, name).restype = [p], ctypes.c_int
+    lib.rg_init.argtypes, lib.rg_init.restype = [p], ctypes.c_int
+    lib.rg_start.argtypes, lib.rg_start.restype = [p, ctypes.c_int], ctypes.c_int
     for name in ("rg_stop", "rg_lock", "rg_unlock", "rg_free"):
         getattr(lib, name).argtypes, getattr(lib, name).restype = [p], None
     return lib
@@ -253,12 +254,13 @@ class NativeTick:
 
     # --- the tick in a thread of its own ----------------------------------------------------------
 
-    def start(self, origin_ns: int, wake_fd: int, wake_every: int) -> int:
+    def start(self, origin_ns: int, wake_fd: int, wake_every: int, priority: int = 0) -> int:
         """Tick in C's own thread from origin_ns (CLOCK_MONOTONIC), writing `wake_fd` (an eventfd) on
-        every `wake_every`-th tick and on each tick a robot stopped or resumed in; its thread id."""
+        every `wake_every`-th tick and on each tick a robot stopped or resumed in, at SCHED_FIFO
+        `priority` (0, or refused: as this thread runs); its thread id."""
         st = self.state
         st.origin_ns, st.wake_fd, st.wake_every = origin_ns, wake_fd, wake_every
-        rc = self.lib.rg_start(self._ref)
+        rc = self.lib.rg_start(self._ref, priority)
         if rc:
             raise OSError(rc, f"cannot start the robots' tick thread: {os.strerror(rc)}")
         deadline = time.monotonic() + 1.0

@@ -24,6 +24,7 @@
 #include <math.h>
 #include <netinet/in.h>
 #include <pthread.h>
+#include "../rt_thread.h"
 #include <stdlib.h>
 #include <unistd.h>
 #include <netinet/udp.h>
@@ -603,13 +604,13 @@ static void *run(void *arg) {
     return NULL;
 }
 
-/* The tick in a thread of its own from origin_ns (CLOCK_MONOTONIC: period 0's deadline), at the
- * caller's scheduling (inherited); 0, or the errno of what failed */
-int rg_start(group_t *g) {
-    rt_t *rt = g->rt;
+/* The tick in a thread of its own from origin_ns (CLOCK_MONOTONIC: period 0's deadline), at
+ * SCHED_FIFO `priority` from its first instruction (0, or refused: the caller's scheduling,
+ * inherited); 0, or the errno of what failed */
+int rg_start(group_t *g, int priority) {
     g->stop = 0;
     g->tid = 0;
-    int rc = pthread_create(&rt->thread, NULL, run, g);
+    int rc = rt_thread_start(&((rt_t *)g->rt)->thread, priority, run, g);
     g->running = rc == 0;
     return rc;
 }

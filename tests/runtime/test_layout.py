@@ -96,6 +96,44 @@ def test_where_real_time_is_refused_the_process_says_so_and_runs_on() -> None:
     assert any("nice -5 refused" in p for p in got["problems"]), got
 
 
+PLACE_LOOPS = """
+import json, os, socket
+from cell import sched
+from cell.dataplane.native import NativeProgram, NativeServer
+def policies():
+    return {int(t): os.sched_getscheduler(int(t)) & 0xFF for t in os.listdir("/proc/self/task")}
+problems = sched.place_loops([0], 10, -5)
+started = policies()  # (the group's Python, from its first import on)
+sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+sock.bind(("127.0.0.1", 0))
+server = NativeServer(NativeProgram(8, 8, 6), sock)
+server.start(sched.LOOP_PRIORITY)
+tid = int(server.state.tid)
+loop_policy = os.sched_getscheduler(tid) & 0xFF  # (before any hand_over: from its first instruction)
+problems += sched.hand_over(tid)
+now, described = policies(), sched.describe()
+server.stop()
+print(json.dumps({"problems": problems, "started": list(started.values()), "loop": loop_policy,
+                  "rest": [p for t, p in now.items() if t != tid], "now": described}))
+"""
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="granting SCHED_FIFO needs root or CAP_SYS_NICE")
+def test_a_real_time_group_runs_its_native_loop_alone_at_its_priority_from_its_start() -> None:
+    """A group's Python (imports, models) never runs at SCHED_FIFO: starting up at FIFO 70 on the
+    packet path's core, the robots' process held the data plane's loop there for up to 340 ms."""
+    out = subprocess.run(
+        [sys.executable, "-c", PLACE_LOOPS], capture_output=True, text=True, env=cell_env(), timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout)
+    assert got["problems"] == []
+    assert set(got["started"]) == {os.SCHED_OTHER}
+    assert got["loop"] == os.SCHED_FIFO
+    assert set(got["rest"]) == {os.SCHED_OTHER}
+    assert got["now"].startswith("fifo 10 native, rest nice -10, cpu 0"), got["now"]
+
+
 def test_a_benchmark_run_in_process_gives_the_process_its_cpus_back() -> None:
     from cell.bench import pinned
 

@@ -173,9 +173,16 @@ def test_each_native_loop_of_a_process_is_watched_for_holds(monkeypatch) -> None
     from cell import meter, sched
 
     monkeypatch.setattr(meter, "HELD", None)
-    tid = threading.get_native_id()
-    for _ in range(2):
-        meter.watch_thread(tid)
+    done, started = threading.Event(), threading.Event()
+    other = threading.Thread(target=lambda: (started.set(), done.wait()))
+    other.start()
+    started.wait()
+    try:
+        for tid in (threading.get_native_id(), other.native_id, other.native_id):  # (each once)
+            meter.watch_thread(tid or 0)
+    finally:
+        done.set()
+        other.join()
     assert isinstance(meter.HELD, sched.HeldThreads)
     first, second = meter.HELD.threads
     delays = {first: iter([0, 0, 40_000_000, 40_000_000]), second: iter([0, 0, 0, 20_000_000])}
