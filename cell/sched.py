@@ -403,6 +403,23 @@ def cpu_seconds() -> float:
     return t.user + t.system
 
 
+def stolen_seconds() -> dict[int, float]:
+    """Each CPU's steal time so far (/proc/stat): how long the hypervisor ran something else while
+    this VM's vCPU had work.  A real-time thread cannot be held back more visibly: it was runnable
+    and nothing in the guest ran instead, so no guest setting (priority, pinning) helps; {} where
+    the kernel does not count it."""
+    out: dict[int, float] = {}
+    try:
+        with open("/proc/stat") as f:
+            for line in f:
+                name, *fields = line.split()
+                if name.startswith("cpu") and name != "cpu" and len(fields) >= 8:
+                    out[int(name[3:])] = int(fields[7]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError):
+        return {}
+    return out
+
+
 def process_cpu_seconds(pid: int) -> float:
     """Another process's user + system CPU seconds so far (/proc/<pid>/stat); NaN once it is gone."""
     try:

@@ -187,7 +187,11 @@ def test_cell_demo_runs_the_main_job_end_to_end(tmp_path) -> None:
     assert got is not None, text[-3000:]
     missed, periods = (int(g.replace(",", "")) for g in got.groups())
     assert periods > 8_000  # the whole demo at 500 Hz
-    assert missed / periods < 0.005, text[-3000:]
+    # ... but for what the hypervisor took of the packet path's CPU (steal: a run stolen 8% of CPU 1
+    # missed 3.06%, one stolen 0.1% missed 0.01%)
+    stolen = re.search(r"hypervisor steal, packet path's CPU\s+CPU \d+: \d+ ms \(([\d.]+)% of the", text)
+    assert stolen is not None, text[-3000:]
+    assert missed / periods < 0.005 + float(stolen.group(1)) / 100, text[-3000:]
     placed = re.search(r"processes \(groups\)\s+(.*)", text)
     assert placed is not None and "robots: " in placed.group(1), text[-3000:]
     if os.geteuid() == 0:  # SCHED_FIFO is granted (elsewhere the cell says what it got instead)
