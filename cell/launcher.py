@@ -32,9 +32,15 @@ log = logging.getLogger("cell")
 
 
 async def up(
-    config: CellConfig, *, duration: float | None = None, log_level: str = "INFO", counters: bool = False
+    config: CellConfig,
+    *,
+    duration: float | None = None,
+    log_level: str = "INFO",
+    counters: bool = False,
+    watch_stdin: bool = False,
 ) -> int:
-    """Run the cell until SIGINT/SIGTERM or `duration`; print a summary; 0 on a clean stop.
+    """Run the cell until SIGINT/SIGTERM or `duration` (or, watch_stdin, its standard input's end:
+    the parent that started it is gone); print a summary; 0 on a clean stop.
 
     The services go into processes as `[services] layout` says (cell/layout.py); the
     launcher itself keeps the status registry and, in the "single" layout, runs everything.
@@ -51,7 +57,9 @@ async def up(
             except SwitchError as exc:
                 print(f"cell: {exc}", file=sys.stderr)
                 return 2
-        return await _up(config, duration=duration, log_level=log_level, counters=counters)
+        return await _up(
+            config, duration=duration, log_level=log_level, counters=counters, watch_stdin=watch_stdin
+        )
 
 
 async def _join(config: CellConfig) -> None:
@@ -99,7 +107,9 @@ async def already_running(config: CellConfig) -> str:
     )
 
 
-async def _up(config: CellConfig, *, duration: float | None, log_level: str, counters: bool) -> int:
+async def _up(
+    config: CellConfig, *, duration: float | None, log_level: str, counters: bool, watch_stdin: bool
+) -> int:
     layout = config.services.layout
     registry = StatusRegistry.of(config)
     stop = asyncio.Event()
@@ -108,6 +118,7 @@ async def _up(config: CellConfig, *, duration: float | None, log_level: str, cou
     failed: Exception | None = None  # (a ServiceFailed, or a group of them)
     with stop_on_signals(stop), tempfile.TemporaryDirectory(prefix="cell-") as tmp:
         timer = asyncio.get_running_loop().call_later(duration, stop.set) if duration else None
+        watch = await stop_on_stdin_eof(stop) if watch_stdin else None
         try:
             async with asyncio.TaskGroup() as tg:
                 if layout == "single":
@@ -137,6 +148,8 @@ async def _up(config: CellConfig, *, duration: float | None, log_level: str, cou
         finally:
             if timer is not None:
                 timer.cancel()
+            if watch is not None:
+                watch.close()
     if failed is not None:
         print(f"cell: {failed}; the cell stopped (services.on_failure = 'stop')", file=sys.stderr)
         return 1
@@ -261,15 +274,15 @@ async def child_cell(
 ) -> AsyncIterator[None]:
     """`cell up` in a child process, healthy when the block starts, stopped when it ends (for
     `cell run --up`, `cell demo` and benchmarks); quiet: without its summary at the stop."""
-    cmd = [sys.executable, "-m", "cell", "--log-level", "WARNING", "up"]
+    # (--watch-stdin: the cell stops when this process ends, however it ends: SIGTERM or SIGKILL
+    # leave no cell running behind a benchmark)
+    cmd = [sys.executable, "-m", "cell", "--log-level", "WARNING", "up", "--watch-stdin"]
     if config_path is not None:
         cmd += ["--config", str(config_path)]
     if config.cell.host:
         cmd += ["--host", config.cell.host]
     out = subprocess.DEVNULL if quiet else None
-    proc = await asyncio.create_subprocess_exec(
-        *cmd, stdin=subprocess.DEVNULL, stdout=out, env=dict(os.environ)
-    )
+    proc = await asyncio.create_subprocess_exec(*cmd, stdin=subprocess.PIPE, stdout=out, env=dict(os.environ))
     try:
         await wait_healthy(config, set(status_names(config)), 60.0, proc)
         yield

@@ -58,6 +58,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="write the run as a ROS 2 bag (rosbag2, MCAP) in DIR as well ([recorder] bag)",
     )
+    p.add_argument("--watch-stdin", action="store_true", help=argparse.SUPPRESS)  # (set by child_cell)
     p.add_argument(
         "--verbose", "-v", action="store_true", help="at the stop, every service's counters below the table"
     )
@@ -83,7 +84,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"cell up: {why}", file=sys.stderr)
             return 2
     return aio.run(
-        launcher.up(config, duration=args.duration, log_level=args.log_level, counters=args.verbose)
+        launcher.up(
+            config,
+            duration=args.duration,
+            log_level=args.log_level,
+            counters=args.verbose,
+            watch_stdin=args.watch_stdin,
+        )
     )
 
 

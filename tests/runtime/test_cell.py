@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import socket
+import sys
 import time
 
 import pytest
@@ -14,7 +15,7 @@ import pytest
 from cell.bus import Bus
 from cell.launcher import fetch_status
 from cell.v1 import bus_pb2
-from tests.conftest import cell_overrides, free_port, run_cell, write_config
+from tests.conftest import cell_env, cell_overrides, free_port, run_cell, write_config
 
 ECHO = {"echo": "tests.plugins:echo"}
 SIDE = [{"name": "side", "services": ["echo"]}]  # layout "groups": echo in a process of its own
@@ -101,6 +102,40 @@ async def test_children_stop_when_the_launcher_is_killed(start_cell) -> None:
     while any(pid_alive(p) for p in children) and time.monotonic() < deadline:
         await asyncio.sleep(0.05)
     assert [p for p in children if pid_alive(p)] == []
+
+
+BENCH = """
+import asyncio
+from cell import aio
+from cell.cellproc import running_cell
+from cell.launcher import fetch_status
+async def main():
+    async with running_cell({"services": {"run": ["bus"]}}, quiet=True) as config:
+        st = await fetch_status(config)
+        print(st.launcher_pid, *(s.last.pid for s in st.services), flush=True)
+        await asyncio.Event().wait()
+aio.run(main())
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+async def test_a_cell_a_benchmark_started_stops_when_the_benchmark_is_killed(sig: int) -> None:
+    """`cell bench ...` (cell.cellproc.running_cell) ended by a signal it cannot clean up after
+    leaves no `cell up` behind it (one held the packet path's core and ports until killed by hand)."""
+    bench = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", BENCH, stdout=asyncio.subprocess.PIPE, env=cell_env()
+    )
+    assert bench.stdout is not None
+    async with asyncio.timeout(60):
+        line = await bench.stdout.readline()
+    cell = [int(p) for p in line.split()]
+    assert len(cell) == 2 and all(pid_alive(p) for p in cell), line
+    bench.send_signal(sig)
+    await bench.wait()
+    deadline = time.monotonic() + 10
+    while any(pid_alive(p) for p in cell) and time.monotonic() < deadline:
+        await asyncio.sleep(0.05)
+    assert [p for p in cell if pid_alive(p)] == []
 
 
 async def test_a_killed_process_is_restarted_and_counted_and_the_rest_runs_on(start_cell) -> None:
