@@ -34,3 +34,15 @@ async def crasher(ctx: ServiceContext) -> None:
     """Runs briefly, then fails: for the supervision tests."""
     await asyncio.sleep(0.05)
     raise RuntimeError("deliberate failure from the crasher test service")
+
+
+def doubles(x: int, out) -> None:
+    """A benchmark's child (cell.bench.ur._in_process) that answers."""
+    out.put(2 * x)
+
+
+def dies(x: int, out) -> None:
+    """One that ends with no answer, as a client that crashed would."""
+    import os
+
+    os._exit(3)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import multiprocessing as mp
+import queue
 import struct
 import time
 from collections.abc import Callable
@@ -160,12 +161,23 @@ def _external_servo_client(host: str, primary_port: int, seconds: float, out: An
 
 
 def _in_process(target: Any, *args: Any, timeout: float) -> Any:
+    """target(*args, queue) in a process of its own (a client as users run it, its own GIL); what it
+    put on the queue.  A child that dies first says so at once, not at the timeout."""
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
     proc = ctx.Process(target=target, args=(*args, out), daemon=True)
     proc.start()
+    deadline = time.monotonic() + timeout
     try:
-        return out.get(timeout=timeout)
+        while True:
+            try:
+                return out.get(timeout=0.5)
+            except queue.Empty:
+                if not proc.is_alive() and out.empty():
+                    why = f"{target.__name__} ended (exit code {proc.exitcode}) with no result"
+                    raise RuntimeError(why) from None
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"{target.__name__} gave no result in {timeout:.0f} s") from None
     finally:
         proc.join(5)
         if proc.is_alive():

@@ -134,6 +134,17 @@ def test_a_real_time_group_runs_its_native_loop_alone_at_its_priority_from_its_s
     assert got["now"].startswith("fifo 10 native, rest nice -10, cpu 0"), got["now"]
 
 
+def test_a_benchmarks_client_process_that_dies_is_reported_at_once_not_at_its_timeout() -> None:
+    from cell.bench.ur import _in_process
+    from tests.plugins import dies, doubles
+
+    assert _in_process(doubles, 21, timeout=60) == 42
+    t0 = time.monotonic()
+    with pytest.raises(RuntimeError, match=r"dies ended \(exit code 3\) with no result"):
+        _in_process(dies, 21, timeout=60)
+    assert time.monotonic() - t0 < 30  # (not the 60 s timeout: within the child's start and a poll)
+
+
 def test_a_benchmark_run_in_process_gives_the_process_its_cpus_back() -> None:
     from cell.bench import pinned
 
