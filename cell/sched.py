@@ -331,7 +331,7 @@ def rest_at(priority: int) -> list[str]:
     global REST_PRIORITY
     if not LOOP_PRIORITY:  # (a process place() made real-time as a whole is so already)
         return []
-    REST_PRIORITY = max(REST_PRIORITY, min(priority, LOOP_PRIORITY))
+    REST_PRIORITY = max(REST_PRIORITY, max(1, min(priority, LOOP_PRIORITY - 1)))  # (under the loops)
     return _rest(REST_PRIORITY, RT_NICE)
 
 

@@ -112,9 +112,12 @@ tid = int(server.state.tid)
 loop_policy = os.sched_getscheduler(tid) & 0xFF  # (before any hand_over: from its first instruction)
 problems += sched.hand_over(tid)
 now, described = policies(), sched.describe()
+problems += sched.rest_at(50)  # (a Python loop that must be real-time: under the native one)
+raised = {t: os.sched_getparam(t).sched_priority for t in policies() if t != tid}
 server.stop()
 print(json.dumps({"problems": problems, "started": list(started.values()), "loop": loop_policy,
-                  "rest": [p for t, p in now.items() if t != tid], "now": described}))
+                  "rest": [p for t, p in now.items() if t != tid], "now": described,
+                  "raised": list(raised.values())}))
 """
 
 
@@ -132,6 +135,7 @@ def test_a_real_time_group_runs_its_native_loop_alone_at_its_priority_from_its_s
     assert got["loop"] == os.SCHED_FIFO
     assert set(got["rest"]) == {os.SCHED_OTHER}
     assert got["now"].startswith("fifo 10 native, rest nice -10, cpu 0"), got["now"]
+    assert set(got["raised"]) == {9}  # (rest_at: capped under the loop's 10)
 
 
 def test_a_benchmarks_client_process_that_dies_is_reported_at_once_not_at_its_timeout() -> None:
