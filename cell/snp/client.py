@@ -13,7 +13,11 @@ handling by data obsolescence): the answer would be obsolete anyway.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
+import socket
+import struct
+import sys
 import time
 from collections.abc import Sequence
 
@@ -54,12 +58,10 @@ class DeadlineMissed(TimeoutError):
     """Neither a reply nor a denial came before the deadline."""
 
 
-class _Endpoint(asyncio.DatagramProtocol):
-    def __init__(self, client: SnpClient) -> None:
-        self.client = client
-
-    def datagram_received(self, data: bytes, addr: object) -> None:
-        self.client._received(data)
+_TIMESTAMP = struct.Struct("qq")  # SO_TIMESTAMPNS's struct timespec (CLOCK_REALTIME)
+# (Linux's asm-generic value: Python's socket module does not name it; elsewhere, no stamps)
+SO_TIMESTAMPNS = 35 if sys.platform.startswith("linux") else 0
+ARRIVAL_GRACE_NS = 500_000  # a reply arriving this long after its query's deadline is still in time
 
 
 class SnpClient:
@@ -68,21 +70,34 @@ class SnpClient:
         self.header = Header(0, Pid.MRT, b"", source_process, destination_process)
         self.offset_ns = 0  # cell clock = CLOCK_REALTIME here + offset
         self.delay_ns = 0  # the round trip of the best time exchange
-        self._transport: asyncio.DatagramTransport | None = None
+        self._sock: socket.socket | None = None
         self._ids = itertools.count(1)
         self._waiting: dict[tuple[str, int], asyncio.Future[Packet]] = {}
+        # when each awaited packet reached this host (the kernel's stamp, CLOCK_REALTIME ns): whether
+        # an answer came in time is the wire's to say, not when this process got the CPU to read it
+        self._arrived: dict[tuple[str, int], int] = {}
         self.malformed = 0
 
     async def open(self) -> SnpClient:
-        loop = asyncio.get_running_loop()
-        self._transport, _ = await loop.create_datagram_endpoint(
-            lambda: _Endpoint(self), remote_addr=self.addr
-        )
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setblocking(False)
+            if SO_TIMESTAMPNS:  # (no stamps: the time each is read instead)
+                sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            sock.connect(self.addr)
+            asyncio.get_running_loop().add_reader(sock.fileno(), self._readable)
+        except BaseException:
+            sock.close()
+            raise
+        self._sock = sock
         return self
 
     def close(self) -> None:
-        if self._transport is not None:
-            self._transport.close()
+        if self._sock is not None:
+            with contextlib.suppress(RuntimeError):  # (its loop closed already)
+                asyncio.get_running_loop().remove_reader(self._sock.fileno())
+            self._sock.close()
+            self._sock = None
         for fut in self._waiting.values():
             if not fut.done():
                 fut.cancel()
@@ -99,7 +114,24 @@ class SnpClient:
 
     # --- plumbing ----------------------------------------------------------------------------------
 
-    def _received(self, data: bytes) -> None:
+    def _readable(self) -> None:
+        """Every datagram waiting, with the time it arrived."""
+        assert self._sock is not None
+        while True:
+            try:
+                data, anc, _, _ = self._sock.recvmsg(65536, socket.CMSG_SPACE(_TIMESTAMP.size))
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:  # (an ICMP error of an earlier send: the handler is not there yet)
+                continue
+            arrived = time.time_ns()
+            for level, kind, raw in anc:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= 16:
+                    sec, nsec = _TIMESTAMP.unpack_from(raw)
+                    arrived = sec * 1_000_000_000 + nsec
+            self._received(data, arrived)
+
+    def _received(self, data: bytes, arrived_ns: int | None = None) -> None:
         try:
             pkt = decode(data)
         except PacketError:
@@ -116,15 +148,23 @@ class SnpClient:
             key = ("e", 0)  # an error reply: whoever waits for one
         fut = self._waiting.pop(key, None)
         if fut is not None and not fut.done():
+            self._arrived[key] = time.time_ns() if arrived_ns is None else arrived_ns
             fut.set_result(pkt)
 
     def _send(self, pid: int, body: Body, type: int | None = None) -> None:
-        if self._transport is None:
+        if self._sock is None:
             raise RuntimeError("the SnP client is not open")
         h = Header(
             self.header.destination, pid, b"", self.header.source_process, self.header.destination_process
         )
-        self._transport.sendto(encode(h, body, type=type))
+        self.send_raw(encode(h, body, type=type))
+
+    def send_raw(self, datagram: bytes) -> None:
+        """One datagram to the handler as it is (tests: malformed ones)."""
+        if self._sock is None:
+            raise RuntimeError("the SnP client is not open")
+        with contextlib.suppress(BlockingIOError, ConnectionRefusedError):  # (lost, as UDP may)
+            self._sock.send(datagram)
 
     def _expect(self, key: tuple[str, int]) -> asyncio.Future[Packet]:
         fut: asyncio.Future[Packet] = asyncio.get_running_loop().create_future()
@@ -147,12 +187,19 @@ class SnpClient:
         deadline = self.now() + 10_000_000 if deadline is None else deadline
         fut = self._expect(("q", qid))
         self._send(Pid.MRT, Query(qid, deadline, tuple(inputs), wanted))
+        key = ("q", qid)
         try:
-            async with asyncio.timeout((deadline - self.now()) / 1e9 + 0.0005):
+            async with asyncio.timeout((deadline - self.now() + ARRIVAL_GRACE_NS) / 1e9):
                 pkt = await fut
         except TimeoutError:
-            self._waiting.pop(("q", qid), None)
-            raise DeadlineMissed(f"query {qid}: no answer before its deadline") from None
+            self._readable()  # (this process woke late: an answer may be waiting, its arrival says when)
+            if not fut.done():
+                self._waiting.pop(key, None)
+                raise DeadlineMissed(f"query {qid}: no answer before its deadline") from None
+            pkt = fut.result()
+        late_ns = self._arrived.pop(key, 0) + self.offset_ns - deadline
+        if late_ns > ARRIVAL_GRACE_NS:
+            raise DeadlineMissed(f"query {qid}: the answer arrived {late_ns / 1e3:.0f} us after its deadline")
         if isinstance(pkt.body, Denied):
             raise QueryDenied(qid, pkt.body.explanation)
         assert isinstance(pkt.body, Reply)
@@ -176,7 +223,7 @@ class SnpClient:
             except TimeoutError:
                 self._waiting.pop(("t", t1), None)
                 continue
-            t4 = time.time_ns()
+            t4 = self._arrived.pop(("t", t1), time.time_ns())  # (when it arrived, not when read)
             r = pkt.body
             assert isinstance(r, TimeResponse)
             offset = ((r.t2 - r.t1) + (r.t3 - t4)) // 2
