@@ -433,6 +433,7 @@ class DataPlane:
             "packets_in": self.packets_in,
             "commands_out": self.commands_out,
             "unsent": self.unsent,
+            "send_errors": self.sender.errors,  # (of those unsent, the ones the network refused)
             "batches": self.batches,
             "holds": c.holds,
             "steps": c.steps,

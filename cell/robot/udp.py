@@ -63,12 +63,17 @@ class Sender:
             self.gso = False
 
     def send(self, buf: memoryview, addr: tuple[str, int]) -> int:
-        """Send buf (a whole number of datagrams) to addr; return how many datagrams went out."""
+        """Send buf (a whole number of datagrams) to addr; return how many datagrams went out.  One
+        the network refuses (no route while a link is down, the peer's port closed) is not sent,
+        as a full buffer's: the caller counts it, and `errors` / `last_error` say why."""
         if self.gso:
             try:
                 self.sock.sendto(buf, addr)
                 return len(buf) // self.size
             except BlockingIOError:
+                return 0
+            except OSError as exc:
+                self._refused(exc)
                 return 0
         sent = 0
         for i in range(0, len(buf), self.size):
@@ -76,8 +81,18 @@ class Sender:
                 self.sock.sendto(buf[i : i + self.size], addr)
             except BlockingIOError:
                 break
+            except OSError as exc:
+                self._refused(exc)
+                break
             sent += 1
         return sent
+
+    errors = 0  # sends the network refused
+    last_error = ""
+
+    def _refused(self, exc: OSError) -> None:
+        self.errors += 1
+        self.last_error = exc.strerror or type(exc).__name__
 
 
 GSO_MAX_SEGMENTS = 64  # datagrams one UDP_SEGMENT send may carry (UDP_MAX_SEGMENTS on older kernels)
