@@ -190,13 +190,18 @@ class SnpClient:
         key = ("q", qid)
         try:
             async with asyncio.timeout((deadline - self.now() + ARRIVAL_GRACE_NS) / 1e9):
-                pkt = await fut
+                pkt = await asyncio.shield(fut)  # (a timeout must not cancel it: read below)
         except TimeoutError:
             self._readable()  # (this process woke late: an answer may be waiting, its arrival says when)
             if not fut.done():
                 self._waiting.pop(key, None)
+                fut.cancel()
                 raise DeadlineMissed(f"query {qid}: no answer before its deadline") from None
             pkt = fut.result()
+        except asyncio.CancelledError:
+            self._waiting.pop(key, None)
+            fut.cancel()
+            raise
         late_ns = self._arrived.pop(key, 0) + self.offset_ns - deadline
         if late_ns > ARRIVAL_GRACE_NS:
             raise DeadlineMissed(f"query {qid}: the answer arrived {late_ns / 1e3:.0f} us after its deadline")
