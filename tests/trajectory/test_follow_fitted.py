@@ -125,11 +125,12 @@ async def test_plans_of_any_density_two_arms_and_a_cartesian_path_are_followed_a
 
     # the same out-and-back at 8, 40 and 250 points a second: within 0.5 mm at the points, 0.05 median.
     # A host that holds the arms' tick up (missed ticks) moves them off any plan: a follow it
-    # disturbed, and only such a one, is run once more
+    # disturbed, and only such a one, is run again (twice at most: a CI run once saw two follows in a
+    # row lose 300 ticks each to the hypervisor's steal)
     for pps in (8, 40, 250):
         t, q = out_and_back(pps, 3.0)
         bag = write_message(tmp_path / f"d{pps}", "/planned", joint_trajectory(t, q, UR))
-        for again in (False, True):
+        for attempt in range(3):
             before, t0 = await robots_heard(), time.monotonic()
             done = await follow(bag, "--robot", "r1")
             assert done.returncode == 0, done.stderr[-2000:]
@@ -137,7 +138,7 @@ async def test_plans_of_any_density_two_arms_and_a_cartesian_path_are_followed_a
             if worst <= 0.5 and median <= 0.05:
                 break
             missed = await missed_since(before, time.monotonic() - t0)
-            assert missed > 0 and not again, f"{missed} ticks missed meanwhile: {done.stdout}"
+            assert missed > 0 and attempt < 2, f"{missed} ticks missed meanwhile: {done.stdout}"
         fitted = re.search(
             r"TPs fitted to the plan: ([\d.]+) a second, the modelled tool within ([\d.]+) mm", done.stdout
         )

@@ -16,6 +16,7 @@ import pytest
 import rtde_control
 import rtde_receive
 
+from cell import sched
 from cell.bus import Bus, RemoteError
 from cell.launcher import fetch_status
 from cell.ur import primary
@@ -165,17 +166,24 @@ async def test_speedj_stopj_and_a_500_hz_servoj_stream_are_followed(start_cell) 
             ctl.servoStop(4.0)
             return np.array(cmd), np.array(got)
 
-        cmd, got = await asyncio.to_thread(servo)
-        tail = slice(250, 600)  # after the first half second
-        lags = range(0, 40)  # ticks of 2 ms
-        off = [np.abs(cmd[tail.start - k : tail.stop - k] - got[tail]) for k in lags]
-        lag = int(np.argmin([np.percentile(o, 95) for o in off]))
-        p95, worst = float(np.percentile(off[lag], 95)), float(off[lag].max())
         # followed within 20 ms, and within 4 mrad once shifted by that lag (the client reads the arm
         # at its own loop's instants, up to a tick off the arm's) in 95 % of the periods; a stall of this
         # test's own loop on a loaded host reads the arm late for a few periods (9.6 mrad once in CI:
-        # 8 periods of the sine's steepest 1.3 mrad each), never a whole cycle's amplitude
-        assert lag * 2 <= 20 and p95 < 4e-3 and worst < 0.02, (lag, p95, worst)
+        # 8 periods of the sine's steepest 1.3 mrad each), never a whole cycle's amplitude.  A stream
+        # the hypervisor stole 10 ms or more of a CPU from (sched.stolen_seconds: neither the arm nor
+        # the client ran) is streamed again, twice at most
+        for attempt in range(3):
+            stolen = sched.stolen_seconds()
+            cmd, got = await asyncio.to_thread(servo)
+            steal = max((b - stolen.get(c, b) for c, b in sched.stolen_seconds().items()), default=0.0)
+            tail = slice(250, 600)  # after the first half second
+            lags = range(0, 40)  # ticks of 2 ms
+            off = [np.abs(cmd[tail.start - k : tail.stop - k] - got[tail]) for k in lags]
+            lag = int(np.argmin([np.percentile(o, 95) for o in off]))
+            p95, worst = float(np.percentile(off[lag], 95)), float(off[lag].max())
+            if lag * 2 <= 20 and p95 < 4e-3 and worst < 0.02:
+                break
+            assert steal >= 0.01 and attempt < 2, (lag, p95, worst, f"steal {steal * 1e3:.0f} ms")
     finally:
         ctl.stopScript()
         ctl.disconnect()
