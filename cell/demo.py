@@ -103,8 +103,8 @@ class Steal:
 
     def worst(self) -> tuple[int, float, float]:
         """The packet path's CPU the hypervisor took most of: (cpu, seconds, share of the run)."""
-        after, took = sched.stolen_seconds(), time.monotonic() - self.t0
-        stolen = [(after[c] - self.before[c], c) for c in self.cpus if c in after and c in self.before]
+        since, took = sched.stolen_since(self.before), time.monotonic() - self.t0
+        stolen = [(since[c], c) for c in self.cpus if c in since]
         if not stolen:
             return -1, float("nan"), float("nan")
         s, cpu = max(stolen)

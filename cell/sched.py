@@ -303,15 +303,15 @@ def place_loops(cpus: list[int], rt_priority: int, nice: int) -> list[str]:
     return problems
 
 
-def hand_over(tid: int, nice: int = RT_NICE, rest_priority: int = 0) -> list[str]:
+def hand_over(tid: int, nice: int = RT_NICE) -> list[str]:
     """Give thread `tid` (a native loop: cell/robot/tick.c, cell/dataplane/native.c) this process's
     real-time priority (LOOP_PRIORITY, or the whole process's if place() made it real-time) and leave
     every other thread (Python's, ZeroMQ's) at the normal policy at `nice`: nothing per bus message
     or per client runs at real-time priority, and nothing but the native loops can spend the CPU's
     real-time budget (RT throttling holds every real-time thread of a CPU once they used it up).
-    Threads started later inherit the normal policy.  rest_priority > 0: the other threads go to
-    SCHED_FIFO at that priority instead, under the native loops (rest_at).  Return what could not
-    be done, in words (a process that asked for no real-time priority: nothing to hand over)."""
+    Threads started later inherit the normal policy; after rest_at(), the other threads stay at
+    its SCHED_FIFO priority instead, under the native loops.  Return what could not be done, in
+    words (a process that asked for no real-time priority: nothing to hand over)."""
     if tid <= 0 or not (LOOP_PRIORITY or realtime() or RT_THREADS):
         return []
     if LOOP_PRIORITY and tid not in RT_THREADS:
@@ -320,7 +320,7 @@ def hand_over(tid: int, nice: int = RT_NICE, rest_priority: int = 0) -> list[str
         except OSError as exc:
             return [f"SCHED_FIFO {LOOP_PRIORITY} refused for native loop {tid} ({exc.strerror})"]
     RT_THREADS.add(tid)
-    return _rest(max(rest_priority, REST_PRIORITY), nice)
+    return _rest(REST_PRIORITY, nice)
 
 
 def rest_at(priority: int) -> list[str]:
@@ -401,6 +401,12 @@ def cpu_seconds() -> float:
     """CPU time this process has used so far, all its threads, user and system."""
     t = os.times()
     return t.user + t.system
+
+
+def stolen_since(before: dict[int, float]) -> dict[int, float]:
+    """Each CPU's steal since `before` (a stolen_seconds() reading), in seconds."""
+    now = stolen_seconds()
+    return {cpu: now[cpu] - before[cpu] for cpu in now if cpu in before}
 
 
 def stolen_seconds() -> dict[int, float]:

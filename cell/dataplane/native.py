@@ -248,12 +248,14 @@ class NativeDataPlane(MappedDataPlane):
         return self.server.serve()
 
     async def run(self) -> None:
-        """Serve in C until cancelled; this process's other threads leave the real-time priority."""
-        self.server.start(sched.LOOP_PRIORITY)  # (real-time from its first packet: sched.place_loops)
+        """Serve in C until cancelled; this process's other threads under its real-time priority."""
+        # the control plane under the packet path, over every normal process (CONTROL_PRIORITY); set
+        # before the loop starts, which is created at its own priority (sched.place_loops)
+        problems = sched.rest_at(CONTROL_PRIORITY)
+        self.server.start(sched.LOOP_PRIORITY)
         try:
             tid = int(self.server.state.tid)
-            # the control plane under the packet path, over every normal process (CONTROL_PRIORITY)
-            for problem in sched.hand_over(tid, rest_priority=CONTROL_PRIORITY):
+            for problem in problems + sched.hand_over(tid):
                 log.warning("%s", problem)
             if tid in sched.RT_THREADS:
                 meter.watch_thread(tid)

@@ -56,6 +56,8 @@ class Sender:
     def __init__(self, sock: socket.socket, size: int) -> None:
         self.sock = sock
         self.size = size
+        self.errors = 0  # sends the network refused
+        self.last_error = ""
         try:
             sock.setsockopt(socket.SOL_UDP, UDP_SEGMENT, size)
             self.gso = True
@@ -86,9 +88,6 @@ class Sender:
                 break
             sent += 1
         return sent
-
-    errors = 0  # sends the network refused
-    last_error = ""
 
     def _refused(self, exc: OSError) -> None:
         self.errors += 1

@@ -131,7 +131,7 @@ class SnpClient:
                     arrived = sec * 1_000_000_000 + nsec
             self._received(data, arrived)
 
-    def _received(self, data: bytes, arrived_ns: int | None = None) -> None:
+    def _received(self, data: bytes, arrived_ns: int) -> None:
         try:
             pkt = decode(data)
         except PacketError:
@@ -148,7 +148,7 @@ class SnpClient:
             key = ("e", 0)  # an error reply: whoever waits for one
         fut = self._waiting.pop(key, None)
         if fut is not None and not fut.done():
-            self._arrived[key] = time.time_ns() if arrived_ns is None else arrived_ns
+            self._arrived[key] = arrived_ns
             fut.set_result(pkt)
 
     def _send(self, pid: int, body: Body, type: int | None = None) -> None:
