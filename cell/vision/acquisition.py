@@ -52,6 +52,7 @@ class Acquisition:
         self.error: BaseException | None = None
         self.frames_per_s = 0.0
         self.late = 0
+        self.renders = 0  # frames rendered anew; the others showed a still scene (Camera.capture)
         self._stop = threading.Event()
         self._ready = threading.Event()
         self.on_frame = lambda _f: None
@@ -85,6 +86,7 @@ class Acquisition:
                 q, q_t = self.state
                 image, dist = cam.capture(q)
                 done = time.monotonic_ns()
+                self.renders = cam.renders
                 blur = self.spec.lens.coc_px(dist)
                 frame = Frame(q_t or t_render, image, dist, blur, done - t_render)
                 self.buffer.add(frame)
@@ -181,4 +183,5 @@ class Vision:
         out["frames"] = float(self.buffer.added)
         out["frames_per_s"] = self.acq.frames_per_s
         out["late_frames"] = float(self.acq.late)
+        out["renders"] = float(self.acq.renders)
         return out

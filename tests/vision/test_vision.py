@@ -16,7 +16,7 @@ from rerun.chunk import RrdReader
 from cell.vision import sharpness as sh
 from cell.vision.camera import Camera, CameraSpec
 from cell.vision.frames import Frame, FrameBuffer
-from cell.vision.optics import ThinLens, expose, psf_sigma
+from cell.vision.optics import ReadNoise, ThinLens, expose, psf_sigma
 from cell.vision.target import target_image
 from tests.conftest import cell_env, cell_overrides, write_config
 
@@ -110,6 +110,37 @@ def test_the_camera_sees_the_card_sharpest_at_its_focus_distance() -> None:
         values[round(dist)] = r.sharpness
     assert set(values) == {358, 350, 342}
     assert values[350] > 1.3 * max(values[358], values[342])
+
+
+def test_a_still_scene_is_rendered_once_and_each_frame_gets_its_own_noise() -> None:
+    cam = Camera(CameraSpec())
+    try:
+        a, dist_a = cam.capture(Q0)
+        b, dist_b = cam.capture(Q0 + 1e-7)  # (well under a hundredth of a pixel at the card)
+        assert (cam.renders, cam.reused) == (1, 1) and dist_a == dist_b
+        diff = a.astype(float) - b.astype(float)
+        # the same picture (no offset between the two) under independent noise: sqrt(2) x 1.5 grey
+        # levels, less the quantisation's share; a frame with the first frame's noise again would be 0
+        assert abs(diff.mean()) < 0.05 and 1.6 < diff.std() < 2.6
+        moved = Q0.copy()
+        moved[5] += 0.2  # the wrist turns the card under the camera: rendered anew
+        c, _ = cam.capture(moved)
+        assert (cam.renders, cam.reused) == (2, 1)
+        assert np.abs(c.astype(float) - a.astype(float)).mean() > 2 * np.abs(diff).mean()
+    finally:
+        cam.close()
+
+
+def test_read_noise_windows_are_gaussian_and_differ_from_frame_to_frame() -> None:
+    noise = ReadNoise((48, 64), 1.5, np.random.default_rng(3))
+    zero = np.zeros((48, 64), np.float32)
+    frames = [noise.add_to(zero) for _ in range(200)]
+    stack = np.stack(frames)
+    assert abs(stack.mean()) < 0.05 and 1.45 < stack.std() < 1.55
+    assert all(f.shape == (48, 64) and f.dtype == np.float32 for f in frames)
+    same = sum(np.array_equal(frames[k], frames[k + 1]) for k in range(len(frames) - 1))
+    assert same == 0
+    assert zero.max() == 0  # (added to a new array: the clean image is kept for the next frame)
 
 
 @pytest.mark.slow
