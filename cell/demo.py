@@ -28,7 +28,7 @@ from cell.robot.truth import Truth
 from cell.skills.client import DisableAir, EnableAir, MoveJoints, MoveRelWorld, MoveToolZ, SetSpeed
 from cell.snp.client import DeadlineMissed, QueryDenied, SnpClient
 from cell.snp.packet import Quantity, item_id
-from cell.status import rt_throttling
+from cell.status import rt_holds
 from cell.v1 import controller_pb2, health_pb2
 
 HOME = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]  # deg
@@ -144,7 +144,7 @@ def real_time_rows(
         ("robot ticks missed / late sends", f"{missed:,.0f} of {periods:,.0f} ({share:.2%}) / {late:,.0f}"),
         ("tick lateness p50 / p99 / max", f"{p50:.0f} / {p99:.0f} / {rb.get('lateness_max_us', 0):.0f} us"),
         ("real time", verdict(real_time, said)),
-        ("RT throttling", _throttling_row(status)),
+        ("RT holds", _holds_row(status)),
         (
             "hypervisor steal, packet path's CPU",
             f"CPU {steal[0]}: {steal[1] * 1e3:.0f} ms ({steal[2]:.2%} of the run)" if steal[0] >= 0 else "-",
@@ -154,11 +154,11 @@ def real_time_rows(
     ]
 
 
-def _throttling_row(status: health_pb2.CellStatus) -> str:
-    said = rt_throttling(status)
+def _holds_row(status: health_pb2.CellStatus) -> str:
+    said = rt_holds(status)
     if said is None:
         return "not watched (no process ran at a real-time priority)"
-    return said.removeprefix("RT throttling: ") or "none (no real-time process was held back by the kernel)"
+    return said.removeprefix("RT holds: ") or "none (no real-time process was held runnable but not run)"
 
 
 async def settled_error(truth: Truth, names: tuple[str, ...], goal: np.ndarray, deadline: float) -> float:

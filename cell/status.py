@@ -206,8 +206,8 @@ def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows]
     lines += format_robots(st)
-    if throttled := rt_throttling(st):
-        lines.append(throttled)
+    if held := rt_holds(st):
+        lines.append(held)
     if counters:
         for s in st.services:
             if s.last.counters:
@@ -222,9 +222,12 @@ def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
 RT_DOC = "docs/running.md#rt-throttling"
 
 
-def rt_throttling(st: health_pb2.CellStatus) -> str | None:
-    """The kernel holding the cell's real-time processes back (RT throttling, sched.Held), in one
-    line; "" if they never were, None if no process runs at a real-time priority (none watched)."""
+def rt_holds(st: health_pb2.CellStatus) -> str | None:
+    """The cell's real-time processes held runnable but not run (sched.Held), in one line; "" if they
+    never were, None if no process runs at a real-time priority (none watched).  Such a hold is the
+    kernel's RT throttling when every real-time thread of its CPU was held at once, and a thread of
+    a higher priority on its CPU when one alone was: the processes' counters cannot tell which, the
+    INFO log of cell.sched can (each hold's thread, CPU and policy)."""
     held: dict[str, tuple[float, float, float]] = {}
     for s in st.services:
         c = s.last.counters
@@ -242,8 +245,8 @@ def rt_throttling(st: health_pb2.CellStatus) -> str | None:
     each = "; ".join(f"{p} {n:.0f}x, {ms:.0f} ms" for p, (n, ms, _) in sorted(hit.items()))
     longest = max(m for _, _, m in hit.values())
     return (
-        f"RT throttling: the kernel held real-time processes back ({each}; longest {longest:.0f} ms): "
-        f"they used up their share of a CPU; see {RT_DOC}"
+        f"RT holds: real-time processes were held runnable but not run ({each}; longest {longest:.0f} ms): "
+        f"the kernel's RT throttling or a higher priority on their CPU; see {RT_DOC}"
     )
 
 

@@ -6,7 +6,7 @@ Two measurements, each next to its baseline in the same run:
   (cell/robot/tick.c) and in Python (the reference model, `tick = "python"`);
 - the cell: the default cell (two MuJoCo arms) idle, then moving (both arms back and forth through
   the controller), with the CPU its packet path's processes use (robots, which runs the Responsive
-  Link's hub too, and the data plane), the kernel's holds of their real-time threads (RT throttling,
+  Link's hub too, and the data plane), the holds of their real-time threads (runnable, not run:
   cell/sched.Held), and each command's time from its status leaving the robot to its arrival back
   (kernel stamps, measured at the robot); then the same for the cell as it ran before the native
   loops (`tick = "python"`, `backend = "numpy"`), unless --no-baseline.

@@ -16,7 +16,7 @@ import time
 import pytest
 
 from cell.launcher import fetch_status
-from cell.status import rt_throttling
+from cell.status import rt_holds
 from tests.conftest import free_port, run_cell
 
 # a loop on a CPU of its own busy ~98% of the time for 2.2 s, at SCHED_FIFO 50, one on each CPU (the
@@ -137,11 +137,11 @@ async def test_a_cell_held_back_by_rt_throttling_says_so_in_cell_status(start_ce
         if robots_now["process.rt.held"] >= 1:
             break
     assert robots_now["process.rt.held_max_ms"] >= 5
-    said = rt_throttling(st)
-    assert said and said.startswith("RT throttling: the kernel held real-time processes back (")
+    said = rt_holds(st)
+    assert said and said.startswith("RT holds: real-time processes were held runnable but not run (")
     assert "robots " in said and "docs/running.md#rt-throttling" in said
     table = await asyncio.to_thread(run_cell, "status", "--config", str(cell.path))
-    assert table.returncode == 0 and "RT throttling: the kernel held" in table.stdout, table.stdout
+    assert table.returncode == 0 and "RT holds: real-time processes were held" in table.stdout, table.stdout
 
 
 def test_many_short_waits_over_a_long_while_are_no_hold(monkeypatch, caplog) -> None:
