@@ -17,7 +17,7 @@ from cell.snp.native import available
 from cell.snp.packet import Header, Pid, Query, decode, encode
 from cell.snp.routed import explore_routers, routers_main, start_routers
 from cell.snp.spacewire import IDENTITY_ADDR, IDENTITY_LEN, ROUTER_LA, Router, RouterInfo
-from tests.conftest import wait_until_quiet
+from tests.conftest import run_unless_stolen, wait_until_quiet
 
 native_only = pytest.mark.skipif(available() is not None, reason=f"the C cycle does not build: {available()}")
 
@@ -157,7 +157,9 @@ def test_the_master_finds_its_port_and_its_modules_by_exploring_the_running_rout
     ("in_c", "period"),
     [
         pytest.param(True, 1_000_000, marks=native_only, id="c-1ms"),
-        pytest.param(False, 4_000_000, id="python-4ms"),
+        # (six Python modules' exchanges take 3.5-4 ms of a 4 ms cycle's slots: a slower hour of this
+        # host missed 58-68 % of them there, routed or not, and 0.04 % at 8 ms)
+        pytest.param(False, 8_000_000, id="python-8ms"),
     ],
 )
 def test_the_arms_cycle_runs_over_the_routers_and_fails_over_a_cut_link(in_c: bool, period: int) -> None:
@@ -179,18 +181,38 @@ def test_the_arms_cycle_runs_over_the_routers_and_fails_over_a_cut_link(in_c: bo
         period_ns=period, budget_ns=period, slot_ns=SLOT_NS * scale, management_ns=400_000 * scale
     )
     slots = chain(6, random.Random(2))
-    wait_until_quiet()  # (eight processes' cycles on this machine's cores: not the last test's teardown)
-    r = trial(slots, seconds, config=config, native=in_c, reference=ref, routed=True, cut=(seconds / 2, 3))
-    f = cycle_figures(r, period)
-    assert f.modules_ran == 6 and f.tsp_offset_us_max < 200.0  # (clocks synced through the routers)
-    # the master found its modules' paths by exploring the routers, each router answering it once
-    assert r["master"]["explored"] == [[2 + k] for k in range(6)]
-    assert r["routers"]["R1"]["config"] == 1 and r["routers"]["R2"]["config"] == 1
-    # the cut module ended on R2 (at 1 ms a stall of the master's core now and then moves every
-    # module over together: counted, not a fault of the path)
-    cut_module = next(m for m in r["modules"] if m["module_id"] == slots[3]["module_id"])
-    assert cut_module["failovers"] >= 1 and cut_module["router"] == 1
-    assert r["routers"]["R2"]["forwarded"] > 100
-    took = failover_in_cycle_ms(r, slots[3]["module_id"])
-    assert took is not None and took <= (FAILOVER_CYCLES + 2) * period / 1e6, took
-    assert r["tool_error_mm"].max() < 5.0 and len(r["tool_error_mm"]) == len(ref.t)
+    cut_id = slots[3]["module_id"]
+
+    def run() -> dict:
+        wait_until_quiet()  # (eight processes' cycles on this machine's cores: not the last test's teardown)
+        r = trial(
+            slots, seconds, config=config, native=in_c, reference=ref, routed=True, cut=(seconds / 2, 3)
+        )
+        # the master found its modules' paths by exploring the routers, each router answering it once
+        assert r["master"]["explored"] == [[2 + k] for k in range(6)]
+        assert r["routers"]["R1"]["config"] == 1 and r["routers"]["R2"]["config"] == 1
+        # the cut module ended on R2 (at 1 ms a stall of the master's core now and then moves every
+        # module over together: counted, not a fault of the path)
+        cut_module = next(m for m in r["modules"] if m["module_id"] == cut_id)
+        assert cut_module["failovers"] >= 1 and cut_module["router"] == 1
+        assert r["routers"]["R2"]["forwarded"] > 100 and len(r["tool_error_mm"]) == len(ref.t)
+        return r
+
+    def timing(r: dict) -> str | None:
+        f = cycle_figures(r, period)
+        took = failover_in_cycle_ms(r, cut_id)
+        if f.modules_ran != 6 or f.tsp_offset_us_max >= 200.0:  # (clocks synced through the routers)
+            return f"modules ran {f.modules_ran}, clock offsets up to {f.tsp_offset_us_max:.0f} us"
+        if took is None or took > (FAILOVER_CYCLES + 2) * period / 1e6:
+            return f"the cut module's first whole cycle came {took} ms after the cut"
+        if r["tool_error_mm"].max() >= 5.0:
+            return f"tool error up to {r['tool_error_mm'].max():.2f} mm"
+        return None
+
+    def disturbed(r: dict) -> str | None:
+        """The modules not cut missing more than 5 % of their cycles: the host ran the cycle late."""
+        others = [m["cycles"] for m in r["modules"] if m["module_id"] != cut_id]
+        share = 100 * sum(int((c[:, 3] > 0).sum()) for c in others) / max(1, sum(len(c) for c in others))
+        return f"the modules not cut missed in {share:.1f} % of their cycles" if share > 5.0 else None
+
+    run_unless_stolen(run, timing, disturbed=disturbed)

@@ -43,7 +43,7 @@ from cell.snp.packet import (
 )
 from cell.snp.state import CellState
 from cell.v1 import snp_pb2
-from tests.conftest import free_port
+from tests.conftest import free_port, run_unless_stolen
 
 
 def crc_bitwise(data: bytes) -> int:
@@ -330,25 +330,36 @@ def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) ->
 
     if native and available() is not None:
         pytest.skip(f"the C cycle does not build here: {available()}")
-    r = trial(chain(2, random.Random(3)), seconds=1.5, native=native)
-    f = cycle_figures(r)
-    assert {m["module_id"] for m in r["modules"]} == {101, 102}
-    assert sorted(m["joint"] for m in r["modules"]) == [0, 1]  # configured by the chain
-    # (most exchanges answered in time: a broken cycle misses them all; the share is the bench's figure)
-    assert f.cycles > 500 and f.modules_ran == 2 and f.missed_pct < 50.0, f.missed_pct
-    h = r["master"]["handler"]
-    denied = sum(v for k, v in h.items() if k.startswith("denied."))
-    ran = sum(len(m["cycles"]) for m in r["modules"])
-    assert h["replies"] + denied == h["queries"]  # each answered or denied, none left
-    assert h["queries"] >= 2 * ran - 4  # two queries a cycle (a miss is not retried)
-    assert f.tsp_offset_us_max < 2000  # the modules started up to 2 ms off
-    if all(m["two_step_link"] for m in r["modules"]):  # (the kernel gives transmit stamps)
-        assert f.tsp_two_step and r["master"]["counters"]["follow_ups"] > 0
-        assert f.tsp_offset_us_max < 10  # servoed to the kernel's stamps (one-step: 20-50 us)
-    # the master stopped with the modules (it had run on 0.5 s, guessing and then excluding them;
-    # a module may still be excluded mid-run, when this VM stalls a process for 50 ms)
-    end = max(int(m["cycles"][-1, 2]) for m in r["modules"])  # (the master's clock is the host's)
-    assert [t - end for t, what, _, _ in r["master"]["events"] if what == "lost" and t > end] == []
+
+    def run() -> dict:
+        r = trial(chain(2, random.Random(3)), seconds=1.5, native=native)
+        assert {m["module_id"] for m in r["modules"]} == {101, 102}
+        assert sorted(m["joint"] for m in r["modules"]) == [0, 1]  # configured by the chain
+        h = r["master"]["handler"]
+        denied = sum(v for k, v in h.items() if k.startswith("denied."))
+        ran = sum(len(m["cycles"]) for m in r["modules"])
+        assert h["replies"] + denied == h["queries"]  # each answered or denied, none left
+        assert h["queries"] >= 2 * ran - 4  # two queries a cycle (a miss is not retried)
+        two_step = all(m["two_step_link"] for m in r["modules"])  # (the kernel gives transmit stamps)
+        assert not two_step or (cycle_figures(r).tsp_two_step and r["master"]["counters"]["follow_ups"] > 0)
+        # the master stopped with the modules (it had run on 0.5 s, guessing and then excluding them;
+        # a module may still be excluded mid-run, when this VM stalls a process for 50 ms)
+        end = max(int(m["cycles"][-1, 2]) for m in r["modules"])  # (the master's clock is the host's)
+        assert [t - end for t, what, _, _ in r["master"]["events"] if what == "lost" and t > end] == []
+        return r
+
+    def timing(r: dict) -> str | None:
+        f = cycle_figures(r)
+        # (most exchanges answered in time: a broken cycle misses them all; the share is the bench's
+        # figure); the modules started up to 2 ms off, and two-step links are servoed to the kernel's
+        # stamps (one-step: 20-50 us)
+        bound = 10 if all(m["two_step_link"] for m in r["modules"]) else 2000
+        if f.cycles <= 500 or f.modules_ran != 2 or f.missed_pct >= 50.0 or f.tsp_offset_us_max >= bound:
+            offsets = f"offsets up to {f.tsp_offset_us_max:.0f} us"
+            return f"{f.cycles} cycles of {f.modules_ran} modules, {f.missed_pct:.1f} % missed, {offsets}"
+        return None
+
+    run_unless_stolen(run, timing)
 
 
 def test_the_robots_cycle_spans_every_modules_exchanges_in_a_period() -> None:

@@ -27,7 +27,7 @@ from cell.teleop.model import CONTACT_STIFFNESS, HOME, OBJECTS, SURFACE_Z, TIP_R
 from cell.teleop.operator import Operator
 from cell.teleop.side import STALE_PERIODS, Side
 from cell.teleop.wire import Role, Sample, State
-from tests.conftest import cell_env
+from tests.conftest import cell_env, run_unless_stolen
 
 # --- the wire ----------------------------------------------------------------------------------
 
@@ -255,20 +255,30 @@ def test_usual_drives_at_the_joints_spoil_what_the_operator_feels() -> None:
 
 
 def test_an_estop_on_the_event_link_overtakes_a_delayed_data_link() -> None:
-    setup = realtime.Setup(obj="sponge", delay_ms=30.0, jitter_ms=5.0, estop_at_s=1.0, pushes=(6.0,), max_s=8)
-    res = realtime.run(setup)
-    lo, re = res["local"], res["remote"]
-    for side in (lo, re):
-        assert side["counters"]["rlink.L1.data.packets_in"] > 0.9 * side["ticks"]  # a sample every period
-        assert any(name == "ESTOP" for name, _, _ in side["events"])
-        assert side["bad_payloads"] == 0
-        ages = side["trace"][:, figures.C["peer_age"]]
-        assert np.nanmedian(ages[ages >= 0]) >= 30  # the data did come 30 ms late ...
     from cell.teleop.experiment import summarize
 
-    e = summarize(res)["estop"]
-    assert e["taken_ms"]["remote"] < 25  # ... and the e-stop did not
-    assert e["skew_ms"] < 25
+    setup = realtime.Setup(obj="sponge", delay_ms=30.0, jitter_ms=5.0, estop_at_s=1.0, pushes=(6.0,), max_s=8)
+
+    def run() -> dict:
+        res = realtime.run(setup)
+        for side in (res["local"], res["remote"]):
+            assert any(name == "ESTOP" for name, _, _ in side["events"])
+            assert side["bad_payloads"] == 0
+            ages = side["trace"][:, figures.C["peer_age"]]
+            assert np.nanmedian(ages[ages >= 0]) >= 30  # the data did come 30 ms late ...
+        return res
+
+    def timing(res: dict) -> str | None:
+        for name in ("local", "remote"):  # a sample every period
+            samples, ticks = res[name]["counters"]["rlink.L1.data.packets_in"], res[name]["ticks"]
+            if samples <= 0.9 * ticks:
+                return f"{name}: {samples} samples in {ticks} ticks"
+        e = summarize(res)["estop"]
+        if e["taken_ms"]["remote"] >= 25 or e["skew_ms"] >= 25:  # ... and the e-stop did not
+            return f"the e-stop taken {e['taken_ms']['remote']:.1f} ms after, skew {e['skew_ms']:.1f} ms"
+        return None
+
+    run_unless_stolen(run, timing)
 
 
 @pytest.mark.slow
