@@ -32,7 +32,7 @@ from cell.snp.modular import CycleConfig, NodeState, Stage
 from cell.snp.native import NativeCycles, NativeMaster, available
 from cell.snp.packet import Configure, Configured, Denial, Denied, ModuleKind, NodeInfo, Pid, decode
 from cell.timer import realtime_offset
-from tests.conftest import wait_until_quiet
+from tests.conftest import run_unless_stolen, wait_until_quiet
 
 native = pytest.mark.skipif(available() is not None, reason=f"the C cycle does not build: {available()}")
 FAR = 10**18  # a deadline no run reaches
@@ -432,29 +432,41 @@ def test_a_master_and_six_modules_move_the_arm_along_the_reference_over_udp(
     config = CycleConfig(period_ns=period_ns, budget_ns=period_ns, slot_ns=SLOT_NS * scale,
                          management_ns=400_000 * scale)  # fmt: skip
     slots = [{**s, "cd": where, **wrong} for s, where in zip(chain(6, random.Random(2)), cd, strict=True)]
-    # (seven processes' cycles on this machine's cores: not the last test's teardown)
-    idle = wait_until_quiet()
-    r = trial(slots, seconds, native=in_c, reference=ref, config=config)
-    f = cycle_figures(r)
-    err = r["tool_error_mm"]
-    assert len(err) == len(ref.t)  # the whole reference ran, recorded every ms
-    assert f.modules_ran == 6 and sorted(m["joint"] for m in r["modules"]) == list(range(6))
-    h = r["master"]["handler"]
-    assert h["replies"] + sum(v for k, v in h.items() if k.startswith("denied.")) == h["queries"]
-    # a module computing its own [C, D] asks the master once a cycle, the master's twice
-    asked = sum(len(m["cycles"]) * (1 if cd[m["joint"]] != "master" else 2) for m in r["modules"])
-    quiet = f"{idle:.2f} cores idle before"
-    # (cycles at the edges: a first one ended without its [C, D] before any B came, a last one's query
-    # sent as the run ended; and an exchange missed in a stall may be a query the master never had)
-    missed = sum(int(np.asarray(m["cycles"])[:, 3].sum()) for m in r["modules"] if len(m["cycles"]))
-    assert abs(h["queries"] - asked) <= 12 + missed, (asked, h["queries"], missed, quiet)
-    # (the 2 mm aim of a clean cycle is `cell bench snp`'s, on a quiet machine; here a VM stall of a few
-    # ms costs cycles now and then, which the modules guess across: the bound is issue 39's aim for a
-    # lossy cycle, 5 mm; a fresh-clone run here saw 2.14 mm once, and 7.6 mm with the inertia adapted
-    # on guessed cycles, which it no longer is.  The misses are the VM's stalls, every module's at
-    # once: 0.5-5.5 % of exchanges on a quiet machine here, 9.5 % beside another test's processes;
-    # the bound is a cycle that runs, the share a bench's figure: `cell bench snp`)
-    assert err.max() < 5.0 and f.missed_pct < 15.0, (err.max(), f.missed_pct, quiet)
+
+    def run() -> tuple[dict, float]:
+        # (seven processes' cycles on this machine's cores: not the last test's teardown)
+        idle = wait_until_quiet()
+        r = trial(slots, seconds, native=in_c, reference=ref, config=config)
+        assert len(r["tool_error_mm"]) == len(ref.t)  # the whole reference ran, recorded every ms
+        assert sorted(m["joint"] for m in r["modules"]) == list(range(6))
+        h = r["master"]["handler"]
+        assert h["replies"] + sum(v for k, v in h.items() if k.startswith("denied.")) == h["queries"]
+        # a module computing its own [C, D] asks the master once a cycle, the master's twice
+        asked = sum(len(m["cycles"]) * (1 if cd[m["joint"]] != "master" else 2) for m in r["modules"])
+        # (cycles at the edges: a first one ended without its [C, D] before any B came, a last one's
+        # query sent as the run ended; and an exchange missed in a stall may be a query the master
+        # never had)
+        missed = sum(int(np.asarray(m["cycles"])[:, 3].sum()) for m in r["modules"] if len(m["cycles"]))
+        assert abs(h["queries"] - asked) <= 12 + missed, (asked, h["queries"], missed, f"{idle:.2f} idle")
+        return r, idle
+
+    def timing(out: tuple[dict, float]) -> str | None:
+        # (the 2 mm aim of a clean cycle is `cell bench snp`'s, on a quiet machine; here a VM stall of a
+        # few ms costs cycles now and then, which the modules guess across: the bound is issue 39's aim
+        # for a lossy cycle, 5 mm; a fresh-clone run here saw 2.14 mm once, and 7.6 mm with the inertia
+        # adapted on guessed cycles, which it no longer is.  The misses are the VM's stalls, every
+        # module's at once: 0.5-5.5 % of exchanges on a quiet machine here, 9.5 % beside another
+        # test's processes; the bound is a cycle that runs, the share a bench's figure: `cell bench
+        # snp`.  A CI run once saw 46-73 % missed in all five cases, on an idle guest whose host ran
+        # slow for a while: run_unless_stolen runs such a trial again)
+        r, idle = out
+        f, err = cycle_figures(r), r["tool_error_mm"]
+        if f.modules_ran != 6 or err.max() >= 5.0 or f.missed_pct >= 15.0:
+            ran = f"{f.modules_ran} modules ran, {err.max():.2f} mm"
+            return f"{ran}, {f.missed_pct:.1f} % missed ({idle:.2f} cores idle before)"
+        return None
+
+    run_unless_stolen(run, timing)
 
 
 def _c_module(plant: Plant, joint: int, period: int, cd: str = "master") -> tuple:

@@ -137,7 +137,9 @@ def test_invalid_toml_and_missing_file(tmp_path: Path) -> None:
         load_config(tmp_path / "nope.toml")
 
 
-@pytest.mark.parametrize("command", [["config", "show"], ["up", "--duration", "1"], ["status"]])
+@pytest.mark.parametrize(
+    "command", [["config", "show"], ["up", "--duration", "1"], ["status"], ["bench", "headroom", "--quick"]]
+)
 def test_cli_exits_2_naming_key_and_file(tmp_path: Path, command: list[str]) -> None:
     path = tmp_path / "bad.toml"
     path.write_text("[robot_defaults]\nstatus_hz = 0\n")
