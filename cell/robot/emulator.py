@@ -204,6 +204,11 @@ class RobotGroup:
         self.origin_ns = 0  # CLOCK_MONOTONIC ns period 0 was due at (0: not ticking yet)
         self._counters = GroupCounters()
         self.sent_rt_ns = 0  # CLOCK_REALTIME the last tick's status left (0: none yet)
+        # CLOCK_REALTIME each robot's status left in this tick's send (row 0) and the last's (row 1;
+        # 0: it did not send): an answer is timed from its own robot's status, not the group's first
+        # (a group's later robots send after its first; in the kernel, a data plane answers each
+        # robot within microseconds of its own send)
+        self.sent_ns = np.zeros((2, self.n), np.int64)
         # fault injection (`cell chaos`): a robot silent until this monotonic time sends no status and
         # takes no command, as with its cable pulled; its watchdog goes on running
         self.silent_until = np.zeros(self.n)
@@ -318,9 +323,11 @@ class RobotGroup:
         if not chunks:
             return 0
         at = np.array(stamps, np.int64)  # (kernel receive stamps, CLOCK_REALTIME; 0: none)
-        if cutoff_ns and self.sent_rt_ns:  # (answers to the last status, or to this tick's if after it)
-            since = np.where(at > cutoff_ns, cutoff_ns, self.sent_rt_ns)
-            ok = at > 0
+        if cutoff_ns:  # (answers to the robot's last status, or to this tick's if after it left)
+            rows = np.array(owners)
+            now_sent, since = self.sent_ns[0][rows], self.sent_ns[1][rows]
+            since = np.where((now_sent > 0) & (at >= now_sent), now_sent, since)
+            ok = (at > 0) & (since > 0)
             self.counters.answers.add_all(np.repeat((at - since)[ok] / 1e3, np.array(counts)[ok]))
         recs = datagram.view(b"".join(chunks))
         if self.shared:  # (one socket: each record's robot says whose it is)
@@ -445,15 +452,19 @@ class RobotGroup:
         buf, addr = self._status_bytes, self.dataplane
         late_after = deadline + self.period
         silent = self.silent_until > clock() if self.silent_until.any() else None
+        self.sent_ns[1] = self.sent_ns[0]
+        self.sent_ns[0] = 0
         if self.shared and self.socks:
             if silent is not None:  # (rare: `cell chaos` pulled a cable) the others' statuses only
                 buf = self.status[np.repeat(~silent, self.dof)].view(np.uint8).data
+            self.sent_ns[0] = time.time_ns()
             sent = udp.send_segments(self.socks[0], buf, datagram.SIZE, addr)
             self._count_sent(sent, len(buf) // datagram.SIZE, clock() >= late_after)
             return
         for r, sender in enumerate(self.senders):
             if silent is not None and silent[r]:
                 continue
+            self.sent_ns[0, r] = time.time_ns()
             sent = sender.send(buf[r * chunk : (r + 1) * chunk], addr)
             self._count_sent(sent, self.dof, clock() >= late_after)
 

@@ -72,6 +72,7 @@ class GroupState(ctypes.Structure):
         *((name, _P) for name in ("ring_stopped", "ring_flags", "lateness", "lateness_stats", "rt")),
         *((name, _P) for name in ("servo_q", "servo_ff", "servo_t", "servo_since", "servo_tau")),
         ("servo_extrapolate", _P),
+        ("sent", _P),
     ]
 
 
@@ -196,6 +197,7 @@ class NativeTick:
             setattr(st, name, _ptr(getattr(self, name)))
         st.ring_stopped, st.ring_flags = _ptr(self.ring_stopped), _ptr(self.ring_flags)
         st.lateness, st.lateness_stats = _ptr(c.lateness.counts), _ptr(c.lateness.stats)
+        st.sent = _ptr(group.sent_ns)
         self._ref = ctypes.byref(st)
         rc = lib.rg_init(self._ref)
         if rc:

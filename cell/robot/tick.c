@@ -118,6 +118,9 @@ typedef struct {
     /* servoj's references (Drives.servo_*): n x dof, then n each */
     double *servo_q, *servo_ff, *servo_t, *servo_since, *servo_tau;
     uint8_t *servo_extrapolate;
+    /* (2 x n) CLOCK_REALTIME each robot's status left in this tick's send, then in the last (0: it
+     * did not): an answer is timed from its own robot's send, not the group's first */
+    int64_t *sent;
 } group_t;
 
 static double now_mono(void) {
@@ -402,9 +405,11 @@ static void receive(group_t *g, int64_t cutoff_ns) {
                     int64_t whole = len - len % SIZE, count = whole / SIZE;
                     if (whole != len) g->counters[C_REJ_LENGTH]++;
                     if (!count) continue;
-                    if (cutoff_ns && g->sent_rt_ns && stamp > 0) { /* the loop as the robot sees it */
-                        int64_t since = stamp > cutoff_ns ? cutoff_ns : g->sent_rt_ns;
-                        hist_add(g->answers, g->answer_stats, (double)(stamp - since) / 1e3, count);
+                    if (cutoff_ns && stamp > 0) { /* the loop as the robot sees it: from its status */
+                        int64_t now_sent = g->sent[owner], since = g->sent[g->n + owner];
+                        if (now_sent > 0 && stamp >= now_sent) since = now_sent; /* this tick's */
+                        if (since > 0)
+                            hist_add(g->answers, g->answer_stats, (double)(stamp - since) / 1e3, count);
                     }
                     int late = cutoff_ns && stamp > cutoff_ns;
                     take_records(g, owner, (const uint8_t *)iov[m].iov_base, count, late, &now);
@@ -499,8 +504,12 @@ static int64_t send_gso(group_t *g, int fd, const uint8_t *buf, int64_t len) {
 }
 
 /* RobotGroup._send: each robot's status (robots made silent by `cell chaos` send none) */
+static int64_t real_ns(void);
+
 void rg_send(group_t *g, double deadline) {
     int64_t per = g->dof * SIZE;
+    memcpy(g->sent + g->n, g->sent, (size_t)g->n * sizeof *g->sent); /* (this tick's is the last's) */
+    memset(g->sent, 0, (size_t)g->n * sizeof *g->sent);
     double late_after = deadline + g->period, now = -1.0;
     int silent_any = 0;
     for (int64_t r = 0; r < g->n; r++)
@@ -521,6 +530,8 @@ void rg_send(group_t *g, double deadline) {
                 }
             buf = g->tx;
         }
+        int64_t at = real_ns();
+        for (int64_t r = 0; r < g->n; r++) g->sent[r] = at;
         int64_t sent = send_gso(g, g->fds[0], buf, len);
         g->counters[C_STATUS_SENT] += sent;
         g->counters[C_STATUS_UNSENT] += len / SIZE - sent;
@@ -529,6 +540,7 @@ void rg_send(group_t *g, double deadline) {
     }
     for (int64_t r = 0; r < g->n; r++) {
         if (silent_any && g->silent_until[r] > now) continue;
+        g->sent[r] = real_ns();
         int64_t sent = send_gso(g, g->fds[r], g->status + r * per, per);
         g->counters[C_STATUS_SENT] += sent;
         g->counters[C_STATUS_UNSENT] += g->dof - sent;

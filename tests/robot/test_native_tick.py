@@ -207,6 +207,34 @@ def test_the_c_tick_measures_the_loop_as_the_python_tick_does(twin: Twin) -> Non
     assert h.take_window()[0] == 30 and h.take_window()[0] == 0
 
 
+@pytest.mark.parametrize("k", [0, 1], ids=["c", "python"])
+def test_an_answer_is_timed_from_its_own_robots_status_not_the_groups_first(k: int) -> None:
+    """A group's robots send one after another; each answer is timed from its own robot's status
+    leaving (in the kernel a data plane answers each within microseconds of it), so a later robot's
+    answers are not charged with the sends before it.  Here robot 0's status left 8 ms before the
+    answers came and robot 1's 2 ms: the group's cutoff, 10 ms before, is neither's."""
+    t = Twin("kinematic", "own")
+    try:
+        g = t.groups[k]
+        g.tick(deadline=float("inf"))
+        t.statuses(k)
+        for row in (0, 1):
+            t.send(row, list(range(6)), [0.1] * 6, only=k)
+        at = time.time_ns()  # (loopback delivers within the send: every answer is stamped before this)
+        g.sent_ns[0] = [at - 8_000_000, at - 2_000_000, 0]
+        h = g.counters.answers
+        before = h.counts.copy()
+        if g.native is not None:
+            g.native.after(at - 10_000_000, 1)
+        else:
+            g.receive(at - 10_000_000)
+        us = np.repeat(np.arange(len(h.counts)), h.counts - before) * h.BIN_US
+        assert len(us) == 12
+        assert all(1000 <= v <= 2000 for v in us[:6]) and all(7000 <= v <= 8000 for v in us[6:]), us
+    finally:
+        t.close()
+
+
 def test_a_full_socket_buffer_is_counted_not_fatal() -> None:
     """A data plane that never reads: the C tick counts what the kernel would not take."""
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
