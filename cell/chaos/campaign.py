@@ -164,12 +164,15 @@ class Campaign:
             async with EventClient(self.config) as ev:
                 await ev.resume(timeout=10.0)
 
-    def estop_bound_ms(self, robot: str, speed: float, age_ms: float = 0.0) -> float:
-        """How long a robot may take to stand after an e-stop, at the speed its truth said age_ms
-        before the order: its full braking (the slowest joint's deceleration) from there, the time it
-        may have sped up since (at that deceleration: as long again), and ESTOP_MARGIN_MS."""
-        a = float(np.min(models.get(self.config.robot(robot).model).a_max))
-        return speed / a * 1e3 + age_ms + ESTOP_MARGIN_MS
+    def braking(self, robot: str) -> float:
+        """The robot's slowest joint's deceleration (rad/s^2): its braking, and the most its speed
+        can change by in a second."""
+        return float(np.min(models.get(self.config.robot(robot).model).a_max))
+
+    def estop_bound_ms(self, robot: str, speed: float) -> float:
+        """How long a robot may take to stand after an e-stop at `speed` (rad/s, its fastest joint, at
+        most: see _estop_held): its full braking from there, and ESTOP_MARGIN_MS."""
+        return speed / self.braking(robot) * 1e3 + ESTOP_MARGIN_MS
 
     # --- faults ------------------------------------------------------------------------------------
 
@@ -365,16 +368,21 @@ class Campaign:
             since = e.t_ns
         notes, ok = [], True
         for r in self.robots:
-            # its speed when the stop came: as last heard (the bus killed, the last truth before the
-            # order may be a second old: a robot braking from speed is no robot at rest)
+            # its speed when the stop came, at most: the speed last heard before the order, plus what
+            # its joints' acceleration could add since (a hogged run's arm stood 2 ms past a bound
+            # taken from a 10 ms old speed); and at most the first speed heard after the order plus
+            # what they could have shed by then.  The bus killed, the last truth before the order
+            # was 1.2 s old: capped at a truth period, as it was, the bound took an arm that had
+            # sped up meanwhile for one slow to stop (kill:bus on XDP, 2 of 3 rounds, 117 ms
+            # against 91-97)
             before = self.obs.between(r, since - 500_000_000, since) or self.obs.between(r, 0, since)
-            # (a sample up to a truth period old: an accelerating robot is faster at the order than it
-            # said; a hogged run's arm stood 2 ms past a bound taken from a 10 ms old speed)
-            heard_ns, speed = before[-1][:2] if before else (since, 0.0)
-            hz = self.config.robot(r).truth_hz
-            age_ns = min(since - heard_ns, int(1e9 / hz)) if hz > 0 else 0  # (samples up to `since`)
-            bound = self.estop_bound_ms(r, speed, age_ns / 1e6)
             samples = self.obs.between(r, since, t_resume)
+            a = self.braking(r)
+            top = before[-1][1] + a * (since - before[-1][0]) / 1e9 if before else float("inf")
+            if samples:
+                top = min(top, samples[0][1] + a * (samples[0][0] - since) / 1e9)
+            top = min(top, float(np.max(models.get(self.config.robot(r).model).v_max)))  # (its joints' top)
+            bound = self.estop_bound_ms(r, top)
             moving = [t for t, qd, _, _ in samples if qd >= REST]
             by_truth = (max(moving) - since) / 1e6 if moving else 0.0
             heard = bool(samples) and samples[-1][0] - since > bound * 1e6

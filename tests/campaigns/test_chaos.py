@@ -129,6 +129,28 @@ def test_an_estop_is_judged_by_the_robots_truth_against_their_braking() -> None:
     )
     assert ok and why.startswith("by the link's watchdog"), why
 
+    # the bus down before the order: the last truth heard 1.2 s before it said 0.2 rad/s, the first
+    # after it (10 ms on) 0.5: the arm sped up meanwhile, and its bound is from 0.55 rad/s (0.5 plus
+    # what 10 ms of braking sheds), not from 0.2 (110 ms: it would have failed the first arm below)
+    def unheard_before(stands_ms: float) -> Campaign:
+        camp = camp_with({r: stands_ms for r in robots}, order)
+        for r in robots:
+            t = np.arange(order - 2_000_000_000, order + 3_000_000_000, 10_000_000)
+            t = t[(t <= order - 1_200_000_000) | (t > order)]
+            qd = np.where(t < order, 0.2, np.where(t < order + stands_ms * 1e6, 0.5, 0.0))
+            camp.obs.truth[r] = deque(
+                (int(ti), float(v), np.zeros(6), False) for ti, v in zip(t, qd, strict=True)
+            )
+        return camp
+
+    bus = Fault("kill:bus", (Kill("bus"),), ())
+    ok, why = unheard_before(0.5 / 5.0 * 1e3 + 20)._estop_held(bus, order_heard, t0, order + 2 * 10**9)
+    assert ok and "bound 170 ms" in why, why
+    ok, why = unheard_before(0.55 / 5.0 * 1e3 + ESTOP_MARGIN_MS + 20)._estop_held(
+        bus, order_heard, t0, order + 2 * 10**9
+    )
+    assert not ok, why  # (standing 20 ms past that bound)
+
 
 async def test_each_action_does_what_it_says_to_a_real_process_and_its_end_undoes_it() -> None:
     """Hang stops a process until its end continues it, Kill kills it, SlowLink slows the link and its
