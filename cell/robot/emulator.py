@@ -203,7 +203,6 @@ class RobotGroup:
         self.tick_no = -1  # index of the last status period served (period k is due at start + k T)
         self.origin_ns = 0  # CLOCK_MONOTONIC ns period 0 was due at (0: not ticking yet)
         self._counters = GroupCounters()
-        self.sent_rt_ns = 0  # CLOCK_REALTIME the last tick's status left (0: none yet)
         # CLOCK_REALTIME each robot's status left in this tick's send (row 0) and the last's (row 1;
         # 0: it did not send): an answer is timed from its own robot's status, not the group's first
         # (a group's later robots send after its first; in the kernel, a data plane answers each
@@ -389,7 +388,6 @@ class RobotGroup:
         if self.at_deadline is not None:
             self.at_deadline()
         stopping, resuming, left = self.take(cutoff_ns, periods)
-        self.sent_rt_ns = cutoff_ns
         self.drives.servo(self.backend.q, self.period * periods)
         self.backend.step(self.period * left)
         # the instant q, qd now describe: one period past the latest deadline (the backend stepped from

@@ -48,7 +48,7 @@ class GroupState(ctypes.Structure):
             (name, _I)
             for name in (
                 *("n", "dof", "window_ticks", "watchdog", "shared", "nsock", "gso", "mujoco", "epfd"),
-                *("tick_no", "sent_rt_ns", "n_stopping", "n_resuming"),
+                *("tick_no", "n_stopping", "n_resuming"),
             )
         ),
         *((name, _D) for name in ("period", "scale", "h")),
@@ -140,7 +140,6 @@ class NativeTick:
             gso=int(all(s.gso for s in group.senders)),
             epfd=group.poller.fileno(),
             tick_no=group.tick_no,
-            sent_rt_ns=group.sent_rt_ns,
             period=group.period,
             scale=datagram.SCALE,
         )
@@ -249,7 +248,7 @@ class NativeTick:
         st = self.state
         self.lib.rg_after(self._ref, cutoff_ns, periods)
         g = self.group
-        g.tick_no, g.sent_rt_ns = st.tick_no, st.sent_rt_ns
+        g.tick_no = st.tick_no
         if isinstance(g.backend, KinematicArms):
             g.backend.limit_hits = int(self.limit_hits[0])
         return self.stopping[: st.n_stopping].copy(), self.resuming[: st.n_resuming].copy()
@@ -273,7 +272,7 @@ class NativeTick:
     def stop(self) -> None:
         self.lib.rg_stop(self._ref)
         st = self.state
-        self.group.tick_no, self.group.sent_rt_ns = st.tick_no, st.sent_rt_ns
+        self.group.tick_no = st.tick_no
 
     def pull(self, into) -> None:
         """C's counts since the last pull into the group's GroupCounters (a pull at any time is safe:

@@ -65,7 +65,7 @@ enum { H_N, H_MAX, H_WN, H_WSUM, H_WMAX };
 typedef struct {
     /* shape and schedule */
     int64_t n, dof, window_ticks, watchdog, shared, nsock, gso, mujoco, epfd;
-    int64_t tick_no, sent_rt_ns, n_stopping, n_resuming;
+    int64_t tick_no, n_stopping, n_resuming;
     double period, scale, h;
     /* the Drives' arrays (n x dof, or n) and counts */
     double *v_max, *a_max, *velocity, *target, *pending;
@@ -471,7 +471,6 @@ static int64_t take(group_t *g, int64_t cutoff_ns, int64_t periods) {
 /* After the status went out: take, step to the next deadline, pack the next status */
 void rg_after(group_t *g, int64_t cutoff_ns, int64_t periods) {
     int64_t left = take(g, cutoff_ns, periods);
-    g->sent_rt_ns = cutoff_ns;
     servo(g, g->period * (double)periods);
     rg_step(g, g->period * (double)left);
     pack(g);
@@ -503,9 +502,9 @@ static int64_t send_gso(group_t *g, int fd, const uint8_t *buf, int64_t len) {
     return sent;
 }
 
-/* RobotGroup._send: each robot's status (robots made silent by `cell chaos` send none) */
 static int64_t real_ns(void);
 
+/* RobotGroup._send: each robot's status (robots made silent by `cell chaos` send none) */
 void rg_send(group_t *g, double deadline) {
     int64_t per = g->dof * SIZE;
     memcpy(g->sent + g->n, g->sent, (size_t)g->n * sizeof *g->sent); /* (this tick's is the last's) */
