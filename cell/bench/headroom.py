@@ -165,9 +165,10 @@ class HeadroomResult(JsonFields):
 def run(
     quick: bool, baseline: bool, idle_s: float, moving_s: float, config_path: str | None = None
 ) -> HeadroomResult:
-    """config_path: a cell config whose settings go over the default's for the measured cell."""
-    user = tomllib.loads(Path(config_path).read_text()) if config_path else {}
+    """config_path: a cell config whose settings go over the default's for the measured cell (a bad
+    file is said in one line, exit 2, before anything starts: load_config raises ConfigError)."""
     backend = load_config(config_path).dataplane.chosen()[0]
+    user = tomllib.loads(Path(config_path).read_text()) if config_path else {}
     n = 2000 if quick else 20000
     log(f"one MuJoCo arm's tick, {n} times, in C and in Python (CPU 1, SCHED_FIFO 70: as the robots run)")
     affinity, policy = os.sched_getaffinity(0), os.sched_getscheduler(0)
@@ -249,8 +250,6 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 def _main(args: argparse.Namespace) -> Figures:
     idle = args.idle_s if args.idle_s is not None else (2.0 if args.quick else 10.0)
     moving = args.moving_s if args.moving_s is not None else (2.0 if args.quick else 10.0)
-    if args.config:
-        load_config(args.config)  # (a bad file is said in one line, exit 2, before anything starts)
     result = run(args.quick, not (args.quick or args.no_baseline), idle, moving, args.config)
     return Figures(result, format_result(result))
 
