@@ -11,6 +11,7 @@ default.toml has them, so the two read side by side; the loader is the few funct
 from __future__ import annotations
 
 import copy
+import ctypes
 import functools
 import ipaddress
 import os
@@ -285,6 +286,29 @@ class XdpConfig:
     cpu: int = _check(lambda v: None if v >= -1 else f"must be a CPU number or -1 (got {v})")
 
 
+XDP_OBJECT = Path(__file__).parent / "dataplane" / "xdp" / "dataplane.bpf.o"  # `make bpf` builds it
+
+
+@functools.cache
+def xdp_missing() -> str | None:
+    """What keeps the XDP backend from running on this machine, or None (asked once a process)."""
+    if os.geteuid() != 0:
+        return "it needs root (CAP_BPF and CAP_NET_ADMIN for the program and the switch's namespace)"
+    if shutil.which("ip") is None:
+        return "it needs `ip` (Debian's iproute2) for the switch's namespace"
+    if not XDP_OBJECT.exists():
+        return f"{XDP_OBJECT} is not built: `make bpf` (needs clang and libbpf-dev)"
+    try:
+        ctypes.CDLL("libbpf.so.1")
+    except OSError:
+        return "it needs libbpf.so.1 (Debian's libbpf1)"
+    return None
+
+
+def _loopback(host: str) -> bool:
+    return host == "localhost" or ipaddress.ip_address(host).is_loopback
+
+
 XDP_MAX_ENTITIES = 4096  # entities the XDP program's maps hold (cell/dataplane/xdp/dataplane.bpf.c)
 
 
@@ -333,27 +357,72 @@ class DataplaneConfig:
     forward: list[ForwardRule]
     backend: Literal["auto", "numpy", "native", "xdp"]
     xdp: XdpConfig
+    # the cell runs its data plane, on one host ([services] run, no [hosts]): "auto" may then put it
+    # in the kernel (whoever plays the data plane else listens on `listen`, as the robots send there)
+    one_host: bool = field(default=True, metadata={"internal": True})
 
     def chosen(self) -> tuple[str, str]:
-        """The backend that runs, and why: "auto" is the native data plane (C, no Python per packet)
-        where a C compiler is installed and nothing needs the numpy one's forwarding or egress
-        model, else numpy."""
+        """The backend that runs, and why: "auto" is the XDP program in the kernel where it can run
+        and the cell is on one host (listen on loopback: its robots are this host's), else the
+        native data plane (C, no Python per packet) where a C compiler is installed, else numpy;
+        numpy wherever forwarding rules or an egress model need it."""
         if self.backend != "auto":
             return self.backend, "set in [dataplane] backend"
         if self.forward or self.egress.rate_mbps > 0:
             return "numpy", "auto: forwarding rules or an egress model need the numpy data plane"
+        if not self.one_host:
+            why_not: str | None = "the cell runs no data plane of its own on this one host"
+        elif not _loopback(parse_host_port(self.listen)[0]):
+            why_not = "[dataplane] listen is not on loopback (robots of other hosts)"
+        elif self.max_entities > XDP_MAX_ENTITIES:
+            why_not = f"max_entities is over the program's {XDP_MAX_ENTITIES}"
+        elif (why_not := xdp_missing()) is None:
+            return "xdp", "auto: root, ip, libbpf and the built program are here (the kernel's packet path)"
         if not (os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")):
             return "numpy", "auto: no C compiler to build the native data plane (cell/dataplane/native.c)"
-        return "native", "auto: the XDP program's C in user space, no Python per packet"
+        return "native", f"auto: the XDP program's C in user space, no Python per packet (not XDP: {why_not})"
 
     @property
     def runs(self) -> DataplaneBackend:
         """The backend that runs (chosen())."""
         return DATAPLANE_BACKENDS[self.chosen()[0]]
 
+    @property
+    def switch(self) -> XdpConfig:
+        """The XDP switch the in-kernel backend runs behind: [dataplane.xdp] as written with
+        backend = "xdp"; with "auto", a switch of its own per listen port, so that two cells run at
+        once (namespace cellsw<port>, veth csw<port>0/1, a /30 of host_addr's /16)."""
+        if self.backend == "xdp":
+            return self.xdp
+        port = parse_host_port(self.listen)[1]
+        base = int(ipaddress.IPv4Network(f"{self.xdp.host_addr}/16", strict=False).network_address)
+        base += 4 * (port % 16384)
+        return replace(
+            self.xdp,
+            netns=f"cellsw{port}",
+            veth=f"csw{port}",
+            host_addr=str(ipaddress.IPv4Address(base + 1)),
+            switch_addr=str(ipaddress.IPv4Address(base + 2)),
+            prefix=30,
+        )
+
+    @property
+    def address(self) -> str:
+        """Where the data plane takes statuses ("HOST:PORT"): [dataplane] listen, or for the
+        in-kernel backend listen's port on the switch's end of its veth pair."""
+        if not self.runs.in_kernel:
+            return self.listen
+        return f"{self.switch.switch_addr}:{parse_host_port(self.listen)[1]}"
+
+    @property
+    def sender_host(self) -> str:
+        """The address a sender on this host binds to reach `address` (a probe, a test's robot): the
+        host's end of the switch's veth pair for the in-kernel backend, else loopback."""
+        return self.switch.host_addr if self.runs.in_kernel else "127.0.0.1"
+
     def validate(self, err: Callable[[str, str], ConfigError]) -> None:
         runs = self.runs
-        if runs.in_kernel:
+        if runs.in_kernel and self.backend == "xdp":  # ("auto" places its switch itself: switch)
             x = self.xdp
             host = parse_host_port(self.listen)[0]
             if host != x.switch_addr:
@@ -744,6 +813,7 @@ class CellConfig:
         data = asdict(self)
         del data["source"]
         del data["bus"]["cell"]  # (internal: [cell] name, as the bus knows it)
+        del data["dataplane"]["one_host"]  # (internal: from [services] and [hosts])
         return data
 
     def to_toml(self) -> str:
@@ -811,6 +881,8 @@ def config_from_dict(data: dict[str, Any], source: str = DEFAULT_SOURCE) -> Cell
         data = {**data, "services": _with_defaults(services, "groups", services.get("group_defaults"))}
     config = replace(_build(CellConfig, data, "", source), source=source)
     config = replace(config, bus=replace(config.bus, cell=config.cell.name))
+    one_host = "dataplane" in config.services.run and not config.hosts
+    config = replace(config, dataplane=replace(config.dataplane, one_host=one_host))
     here = config.here()
     if here is not None:  # a host of several: it runs its own services, with its own bus certificate
         services = replace(config.services, run=list(here.run))

@@ -85,14 +85,6 @@ def verdict(ok: bool, text: str) -> str:
     return f"{'✓' if ok else '✗'} {text}"
 
 
-def backend_why(config: Any) -> str:
-    """Why the data plane ran where it did."""
-    why = config.dataplane.chosen()[1]
-    if config.dataplane.runs.in_kernel:
-        return "in the kernel: XDP, built and run as root"
-    return f"{why}; --config examples/xdp.toml runs it in the kernel"
-
-
 class Steal:
     """The hypervisor's share of the packet path's CPUs over the run (sched.stolen_seconds): on a
     VM, the one hold of a real-time loop that nothing in the guest can prevent or see otherwise."""
@@ -287,7 +279,7 @@ async def main(cell: Any) -> None:
     drops = f"{c('rejected.length'):.0f}, {c('rejected.kind'):.0f}, {c('rejected.joint'):.0f}"
     rows = [
         ("moves done", f"{moves} (one switched on the fly, one stopped and resumed)"),
-        ("data plane", f"{backend} ({backend_why(cell.config)})"),
+        ("data plane", "{} ({})".format(*cell.config.dataplane.chosen())),
         ("tool path error at TPs, max / median", path_text),
         (
             "stop error (joints at rest vs goal)",

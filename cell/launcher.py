@@ -53,7 +53,7 @@ async def up(
     with contextlib.ExitStack() as stack:
         if config.dataplane.runs.in_kernel:
             try:
-                stack.enter_context(switch_namespace(config.dataplane.xdp))
+                stack.enter_context(switch_namespace(config.dataplane.switch))
             except SwitchError as exc:
                 print(f"cell: {exc}", file=sys.stderr)
                 return 2

@@ -71,9 +71,11 @@ class StatusRegistry:
         host: str = "",
         qualify: bool = False,
         config_source: str = "",
+        dataplane: str = "",
     ):
         self.cell = cell
         self.config_source = config_source
+        self.dataplane = dataplane  # its backend and why, as the launcher's config chose it
         self.mode = mode
         self.expected = list(expected)
         self.host = host
@@ -114,6 +116,7 @@ class StatusRegistry:
             host=host_name(config),
             qualify=bool(config.hosts),
             config_source=config.source,
+            dataplane="{} ({})".format(*config.dataplane.chosen()) if config.runs("dataplane") else "",
         )
 
     def observe(self, hb: health_pb2.Heartbeat, at: float | None = None) -> None:
@@ -125,7 +128,7 @@ class StatusRegistry:
         out = health_pb2.CellStatus(
             cell=self.cell, mode=self.mode, uptime_s=now - self.started, config=self.config_source,
             launcher_pid=os.getpid(),
-            member=identity.member_token(),
+            member=identity.member_token(), dataplane=self.dataplane,
         )  # fmt: skip
         names = self.expected + sorted(set(self._last) - set(self.expected))
         for name in names:
@@ -171,6 +174,8 @@ def _fmt_count(v: float) -> str:
 def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
     """A table for people: one row per service, counters below it."""
     lines = [f"cell {st.cell!r} (layout {st.mode}), up {st.uptime_s:.1f} s"]
+    if st.dataplane:
+        lines.append(f"data plane: {st.dataplane}")
     head = (
         "SERVICE",
         "HEALTH",

@@ -75,7 +75,7 @@ async def run(ctx: ServiceContext) -> None:
             while True:
                 for part in parts:
                     for g, row in part:
-                        msg = announcement(g, row, ctx.config.dataplane.listen)
+                        msg = announcement(g, row, ctx.config.dataplane.address)
                         ctx.bus.publish(f"announce/robot/{msg.name}", msg)
                     await asyncio.sleep(ANNOUNCE_S / len(parts))
 
@@ -105,7 +105,7 @@ async def run(ctx: ServiceContext) -> None:
 
         def announcer(g: RobotGroup, row: int) -> Handler:
             def announce(_req: robot_pb2.AnnounceRequest) -> robot_pb2.RobotAnnounce:
-                return announcement(g, row, ctx.config.dataplane.listen)
+                return announcement(g, row, ctx.config.dataplane.address)
 
             return announce
 

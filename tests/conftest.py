@@ -271,6 +271,10 @@ async def start_cell(tmp_path: Path) -> AsyncIterator:
             except subprocess.TimeoutExpired:
                 cell.proc.kill()
                 cell.proc.communicate()
+        if cell.config.dataplane.runs.in_kernel:  # (a launcher killed outright left its XDP switch)
+            from cell.dataplane.xdp.switch import reap
+
+            reap(cell.config.dataplane.switch)
 
 
 def _marked_processes() -> dict[int, str]:

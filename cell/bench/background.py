@@ -413,9 +413,9 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 def _main(args: argparse.Namespace) -> Figures:
     if args.xdp:
         from cell.bench import background_xdp
-        from cell.dataplane.xdp.switch import missing
+        from cell.config import xdp_missing
 
-        if why := missing():
+        if why := xdp_missing():
             return Figures(Failed(why), f"cell bench background --xdp: {why}", 2)
         s = background_xdp.sweep(args.quick, log=log)
         return Figures(s, background_xdp.format_result(s))

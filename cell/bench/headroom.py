@@ -11,9 +11,10 @@ Two measurements, each next to its baseline in the same run:
   (kernel stamps, measured at the robot); then the same for the cell as it ran before the native
   loops (`tick = "python"`, `backend = "numpy"`), unless --no-baseline.
 
---config FILE measures a cell with FILE's settings over the default (e.g. examples/xdp.toml: the
-data plane in the kernel, whose status -> command aim is 50 us); the baseline stays the default
-cell as it ran before the native loops.
+The default cell's data plane is the XDP program where it can run (as root: status -> command aim
+50 us), else the native one (200 us).  --config FILE measures a cell with FILE's settings over the
+default (e.g. `[dataplane] backend = "native"`); the baseline stays the default cell as it ran
+before the native loops.
 
 The JSON line (last) has packet_path_cpu_pct_idle, packet_path_cpu_pct_moving, tick_us_p99,
 rt_holds and status_to_command_us_p99 (issue 53), and the baseline's figures beside them.

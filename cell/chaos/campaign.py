@@ -182,7 +182,7 @@ class Campaign:
     def switch_port(self, *setting: str) -> None:
         """`ip link set` on the XDP switch's port to the robots (its end of the veth pair): down, up,
         xdpgeneric off."""
-        x = self.config.dataplane.xdp
+        x = self.config.dataplane.switch
         subprocess.run(
             ["ip", "-n", x.netns, "link", "set", "dev", f"{x.veth}1", *setting], check=True, timeout=10
         )

@@ -603,8 +603,8 @@ class XdpDataPlane(MappedDataPlane):
         return XdpProgram(dp.capacity, dp.n_bits, len(dp.c1))
 
     def _open(self, config: CellConfig) -> None:
-        dp, x = config.dataplane, config.dataplane.xdp
-        host, port = parse_host_port(dp.listen)
+        dp, x = config.dataplane, config.dataplane.switch
+        host, port = parse_host_port(dp.address)
         g = self.program.globals
         g["listen_addr"] = int.from_bytes(socket.inet_aton(host), "little")  # (network order in memory)
         g["listen_port"] = socket.htons(port)
@@ -638,7 +638,9 @@ class XdpDataPlane(MappedDataPlane):
         at once through the very program (BPF_PROG_TEST_RUN on its maps), and the program is
         attached again meanwhile (in a thread inside the namespace: an attach takes ~15 ms of
         statuses).  Another program attached in its place is reported, not fought."""
-        for problem in sched.rest_at(CONTROL_PRIORITY):  # (the kernel answers the statuses)
+        # (the kernel answers the statuses: the control plane is this process's real-time thread, its
+        # holds counted as a packet path's are)
+        for problem in meter.real_time_loop(CONTROL_PRIORITY):
             log.warning("%s", problem)
         loop = asyncio.get_running_loop()
         passed, look = asyncio.Event(), asyncio.Event()

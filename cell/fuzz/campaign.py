@@ -176,15 +176,15 @@ class Attacks:
     async def udp_flood(self, rep: Report, seconds: float = 3.0) -> None:
         """Status for robots nobody has, as fast as this machine sends them (GSO), at the data plane;
         a probe from another socket meanwhile."""
-        sock = udp.open_socket("127.0.0.1")
+        sock = udp.open_socket(self.config.dataplane.sender_host)
         sender = udp.Sender(sock, datagram.SIZE)
         recs = datagram.empty(64)
         datagram.pack(recs, np.arange(1000, 1064), 0, Kind.STATUS, 1, 0.0, 0.0)
         raw = recs.view(np.uint8).data
-        addr = parse_host_port(self.config.dataplane.listen)
+        addr = parse_host_port(self.config.dataplane.address)
         sent = 0
         during: list[float] = []
-        probe_sock = udp.open_socket("127.0.0.1")
+        probe_sock = udp.open_socket(self.config.dataplane.sender_host)
 
         async def probe() -> None:
             while True:

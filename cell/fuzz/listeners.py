@@ -78,7 +78,7 @@ class Probes:
     def __init__(self, config: CellConfig) -> None:
         self.config = config
         self.robot = config.robots[0]
-        self.dp_sock = udp.open_socket("127.0.0.1")
+        self.dp_sock = udp.open_socket(config.dataplane.sender_host)
         self.snp_sock = udp.open_socket("127.0.0.1", gro=False)
         self.rlink_sock = udp.open_socket("127.0.0.1", gro=False)
         self.hub = Topology(config.rlink).address("hub")
@@ -113,7 +113,7 @@ class Probes:
         seq = self._next()
         rec = datagram.empty(1)
         datagram.pack(rec, PROBE_ROBOT, 0, Kind.STATUS, seq, 0.0, 0.0)
-        addr = parse_host_port(self.config.dataplane.listen)
+        addr = parse_host_port(self.config.dataplane.address)
         return await _ask(sock, lambda: sock.sendto(rec.tobytes(), addr), lambda data: _has_answer(data, seq))
 
     async def snp(self) -> int:
@@ -278,7 +278,7 @@ class Listeners:
         datagrams of wrong lengths; the probe after each burst."""
         rng = np.random.default_rng(self.seed)
         corpus = self.corpus(strategies.datagrams)
-        sock, addr = self.probes.dp_sock, parse_host_port(self.config.dataplane.listen)
+        sock, addr = self.probes.dp_sock, parse_host_port(self.config.dataplane.address)
         sender = udp.Sender(sock, datagram.SIZE)
         ids = np.array([r.id for r in self.config.robots] + [0, 65535, PROBE_ROBOT, 4000], np.int64)
         wild = np.array([0, 1, -1, 2**31 - 1, -(2**31), 2**30, 12345], np.int64)

@@ -46,8 +46,8 @@ def cell_blueprint(robots: Sequence[str], camera: bool = True, modular: bool = F
         rrb.Tabs(*tabs, name="joints") if tabs else rrb.Vertical(name="joints"),
         rrb.TimeSeriesView(
             origin="dataplane",
-            contents=["dataplane/batch_p50_us", "dataplane/batch_p99_us"],
-            name="data plane: status -> command (us, p50 / p99)",
+            contents=[f"dataplane/{k}_{p}_us" for k in ("answer", "batch") for p in ("p50", "p99")],
+            name="data plane: status -> command (us, p50 / p99: at the robots; a batch in user space)",
         ),
     ]
     if camera:

@@ -233,6 +233,15 @@ class Recorder:
             if key in hb.counters:
                 rec.log(f"rlink/{hb.service}/{key.removeprefix('rlink.')}", rr.Scalars(hb.counters[key]))
 
+    def answers(self, hb: health_pb2.Heartbeat, t_mono_ns: int) -> None:
+        """dataplane/answer_p50_us and _p99_us: each status's command back, as its robots measure it
+        (every backend; the kernel's has no batch timings of its own), from the robots' heartbeat."""
+        c = hb.counters
+        if "answer_p99_us" in c:
+            self.at(t_mono_ns)
+            for key in ("answer_p50_us", "answer_p99_us"):
+                self.rec.log(f"dataplane/{key}", rr.Scalars(c[key]))
+
     # --- the services' lives ---------------------------------------------------------------------------
 
     def health(self, hb: health_pb2.Heartbeat, t_mono_ns: int) -> None:
@@ -395,6 +404,8 @@ async def record(ctx: ServiceContext, ready: Callable[[], None]) -> None:
             return
         hb = env.decode(health_pb2.Heartbeat)
         r.health(hb, env.sent_ns)
+        if hb.service == "robots":
+            r.answers(hb, env.sent_ns)
         if any(k.startswith("rlink.L") for k in hb.counters):
             r.link(hb, env.sent_ns)
 

@@ -69,7 +69,7 @@ def build_groups(config: CellConfig, publish: Publish | None = None) -> list[Rob
     here = config.here()
     host = here.address if here is not None else parse_host_port(config.dataplane.listen)[0]
     if config.dataplane.runs.in_kernel and here is None:  # the switch's namespace is not ours: its veth
-        host = config.dataplane.xdp.host_addr
+        host = config.dataplane.switch.host_addr
     groups: list[RobotGroup] = []
     try:
         for robots in by_key.values():
@@ -77,7 +77,7 @@ def build_groups(config: CellConfig, publish: Publish | None = None) -> list[Rob
             if factory is not None:
                 groups.append(factory(robots[0], config, host, publish))
             else:
-                groups.append(RobotGroup(robots, config.dataplane.listen, host=host))
+                groups.append(RobotGroup(robots, config.dataplane.address, host=host))
     except BaseException:
         for g in groups:
             g.close()
@@ -94,7 +94,7 @@ def build_emulated_controllers(config: CellConfig) -> list[RobotGroup]:
         by_key[(r.backend, r.model, r.status_hz, r.command_hz, r.tick)].append(r)
     groups: list[RobotGroup] = []
     try:
-        groups.extend(RobotGroup(rs, config.dataplane.listen, datagrams=False) for rs in by_key.values())
+        groups.extend(RobotGroup(rs, config.dataplane.address, datagrams=False) for rs in by_key.values())
     except BaseException:
         for g in groups:
             g.close()

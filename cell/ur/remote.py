@@ -480,7 +480,7 @@ class _Stream(asyncio.Protocol):
 
 
 def _group(robot: RobotConfig, config: CellConfig, host: str, publish: Publish | None) -> Daemon:
-    return Daemon(robot, config.dataplane.listen, host, config.ur, publish)
+    return Daemon(robot, config.dataplane.address, host, config.ur, publish)
 
 
 register_group_backend("ur", _group)  # (cell.robot.node builds a "ur" robot's group with it)

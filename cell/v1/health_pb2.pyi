@@ -117,7 +117,7 @@ class ServiceStatus(_message.Message):
     def __init__(self, name: _Optional[str] = ..., health: _Optional[str] = ..., heartbeat_age_s: _Optional[float] = ..., last: _Optional[_Union[Heartbeat, _Mapping]] = ...) -> None: ...
 
 class CellStatus(_message.Message):
-    __slots__ = ("cell", "mode", "uptime_s", "services", "config", "launcher_pid", "member")
+    __slots__ = ("cell", "mode", "uptime_s", "services", "config", "launcher_pid", "member", "dataplane")
     CELL_FIELD_NUMBER: _ClassVar[int]
     MODE_FIELD_NUMBER: _ClassVar[int]
     UPTIME_S_FIELD_NUMBER: _ClassVar[int]
@@ -125,6 +125,7 @@ class CellStatus(_message.Message):
     CONFIG_FIELD_NUMBER: _ClassVar[int]
     LAUNCHER_PID_FIELD_NUMBER: _ClassVar[int]
     MEMBER_FIELD_NUMBER: _ClassVar[int]
+    DATAPLANE_FIELD_NUMBER: _ClassVar[int]
     cell: str
     mode: str
     uptime_s: float
@@ -132,4 +133,5 @@ class CellStatus(_message.Message):
     config: str
     launcher_pid: int
     member: str
-    def __init__(self, cell: _Optional[str] = ..., mode: _Optional[str] = ..., uptime_s: _Optional[float] = ..., services: _Optional[_Iterable[_Union[ServiceStatus, _Mapping]]] = ..., config: _Optional[str] = ..., launcher_pid: _Optional[int] = ..., member: _Optional[str] = ...) -> None: ...
+    dataplane: str
+    def __init__(self, cell: _Optional[str] = ..., mode: _Optional[str] = ..., uptime_s: _Optional[float] = ..., services: _Optional[_Iterable[_Union[ServiceStatus, _Mapping]]] = ..., config: _Optional[str] = ..., launcher_pid: _Optional[int] = ..., member: _Optional[str] = ..., dataplane: _Optional[str] = ...) -> None: ...

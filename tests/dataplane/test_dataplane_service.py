@@ -68,7 +68,12 @@ async def test_robot_follows_a_loaded_trajectory_to_its_end(start_cell, backend:
 
 
 async def test_refusals_and_bad_datagrams(start_cell) -> None:
-    cell = await start_cell(run=["bus", "dataplane"], robots=robots("kinematic"))
+    # (the user-space data plane: its constants can be reloaded, and junk reaches it from loopback;
+    # the XDP program's maps are sized for one n_bits, and its refusals are tests/dataplane/test_xdp.py's)
+    dp_section = {"listen": f"127.0.0.1:{free_port()}", "backend": "native"}
+    cell = await start_cell(
+        run=["bus", "dataplane"], robots=robots("kinematic"), sections={"dataplane": dp_section}
+    )
     async with Bus.connect(cell.config.bus, "controller") as bus:
         dp = DataplaneClient(bus)
         with pytest.raises(RemoteError) as info:

@@ -14,6 +14,7 @@ import select
 import socket
 import struct
 import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -30,6 +31,8 @@ if os.geteuid() != 0:
 if not xdp.OBJECT.exists():
     pytest.skip(f"{xdp.OBJECT.name} not built (make bpf needs clang)", allow_module_level=True)
 
+from cell.dataplane.xdp.switch import SwitchError  # noqa: E402
+from tests.conftest import cell_env, wait_status  # noqa: E402
 from tests.dataplane.mapped import (  # noqa: E402
     Pair,
     check_random_stream,
@@ -197,6 +200,75 @@ def test_the_service_answers_from_the_kernel_and_its_control_plane_writes_the_ma
     assert tag not in names
 
 
+def namespaces() -> set[str]:
+    out = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True, check=True).stdout
+    return {line.split()[0] for line in out.splitlines() if line.strip()}
+
+
+async def test_two_default_cells_run_at_once_each_behind_a_switch_of_its_own(start_cell) -> None:
+    """The default backend ("auto") is XDP here: two cells started at once each get their own
+    namespace and veth pair, their robots are answered by the kernel's program, the status says which
+    backend runs and why, and each cell's switch is gone once it stops."""
+    from cell.launcher import fetch_status
+
+    robot = {"name": "k1", "backend": "kinematic"}
+    cells = [
+        await start_cell(
+            run=["bus", "dataplane", "robots"], robots=[{**robot, "id": i + 1, "skill_port": 23100 + i}]
+        )
+        for i in range(2)
+    ]
+    switches = [c.config.dataplane.switch for c in cells]
+    assert switches[0].netns != switches[1].netns and {s.netns for s in switches} <= namespaces()
+    for cell in cells:
+        async with asyncio.timeout(10):  # (the first statuses and their answers)
+            while True:
+                st = await fetch_status(cell.config)
+                counters = {s.name: dict(s.last.counters) for s in st.services}
+                if (
+                    counters["dataplane"].get("xdp.datagrams", 0) > 100
+                    and counters["robots"]["commands"] > 100
+                ):
+                    break
+                await asyncio.sleep(0.1)
+        assert st.dataplane.startswith("xdp (auto: root, ip, libbpf")
+        assert counters["dataplane"]["xdp.answered_in_user_space"] == 0  # (all answered in the kernel)
+    for cell, switch in zip(cells, switches, strict=True):
+        code, _, _, err = cell.stop()
+        assert code == 0, err
+        assert switch.netns not in namespaces()
+
+
+async def test_a_switch_left_by_a_killed_cell_is_removed_when_the_cell_starts_again(start_cell) -> None:
+    """`cell up` SIGKILLed cannot remove its switch: the next start of that cell finds the namespace
+    its dead launcher recorded, removes it and makes its own; one that is not a cell's is refused."""
+    from cell.dataplane.xdp.switch import owner, switch_namespace
+
+    robot = {"id": 1, "name": "k1", "backend": "kinematic", "skill_port": 23110}
+    cell = await start_cell(run=["bus", "dataplane"], robots=[robot])
+    switch = cell.config.dataplane.switch
+    first = owner(switch.netns)
+    assert first == cell.proc.pid
+    cell.proc.kill()
+    cell.proc.communicate()
+    assert switch.netns in namespaces() and owner(switch.netns) is None  # (left)
+    again = subprocess.Popen([sys.executable, "-m", "cell", "up", "--config", str(cell.path)], env=cell_env())
+    try:
+        await wait_status(cell.config, {"bus", "dataplane"})
+        assert owner(switch.netns) == again.pid
+    finally:
+        again.terminate()
+        again.wait(10)
+    assert switch.netns not in namespaces() and owner(switch.netns) is None
+    subprocess.run(["ip", "netns", "add", switch.netns], check=True)  # (somebody else's namespace)
+    try:
+        with pytest.raises(SwitchError, match="no cell made it"), switch_namespace(switch):
+            pass
+        assert switch.netns in namespaces()  # (left alone)
+    finally:
+        subprocess.run(["ip", "netns", "del", switch.netns], check=True)
+
+
 async def test_a_detached_program_is_answered_for_from_user_space_and_attached_again() -> None:
     """Someone detaches the program (`ip link set dev ... xdpgeneric off`): the statuses then reach the
     control plane's socket.  It answers them through the program itself, at once, and attaches it
@@ -290,9 +362,9 @@ def test_the_background_sweep_times_both_programs_beside_ordinary_traffic_and_cl
     probes come back through both the velocity-control pipeline and plain forwarding, and the switch's
     namespace and the generator are gone afterwards."""
     from cell.bench import background_xdp as bx
-    from cell.dataplane.xdp.switch import missing
+    from cell.config import xdp_missing
 
-    if why := missing():
+    if why := xdp_missing():
         pytest.skip(why)
     s = bx.sweep(seconds=0.5, frames=(64,), rates=(40,), rounds=1, log=lambda _line: None)
     (p,) = s.points

@@ -133,7 +133,7 @@ async def test_a_recording_holds_both_robots_their_series_and_the_data_plane(sta
         ):
             assert rows[f"/joints/{name}/{series}"] > 5, series
     assert all(rows[f"/services/{s}/restarts"] >= 1 for s in ("dataplane", "robots", "controller"))
-    assert rows["/dataplane/batch_p99_us"] >= 1 and rows["/events"] >= 4  # joins, e-stop, still, release
+    assert rows["/dataplane/answer_p99_us"] >= 1 and rows["/events"] >= 4  # joins, e-stop, still, release
     assert rows["/robots/r1/io/DO3"] == 2 and "/robots/r2/io/DO3" not in rows  # on, then off
     for node in ("dataplane", "robots", "rlink"):  # every node's links, from the heartbeats (1/s at most)
         assert (

@@ -333,3 +333,60 @@ def test_the_xdp_programs_entity_count_is_the_one_the_config_checks_against() ->
     source = (Path(__file__).resolve().parents[2] / "cell/dataplane/xdp/dataplane.bpf.c").read_text()
     assert XDP_MAX_ENTITIES == MAX_ENTITIES and f"#define MAX_ENTITIES {MAX_ENTITIES}" in source
     assert load_config(None).dataplane.max_entities <= XDP_MAX_ENTITIES  # (the default suits both)
+
+
+def test_auto_puts_the_data_plane_in_the_kernel_where_xdp_can_run_and_says_why_not_elsewhere(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """auto: XDP where it can run (root, ip, libbpf, the built program) for a cell that runs its data
+    plane on one host; else the native data plane, with the reason XDP was not taken."""
+    import cell.config
+
+    monkeypatch.setattr(cell.config, "xdp_missing", lambda: None)
+    dp = load_config(None).dataplane
+    assert dp.chosen()[0] == "xdp" and dp.runs.in_kernel and "root, ip, libbpf" in dp.chosen()[1]
+    monkeypatch.setattr(cell.config, "xdp_missing", lambda: "it needs root")
+    backend, why = load_config(None).dataplane.chosen()
+    assert backend == "native" and why.endswith("(not XDP: it needs root)")
+    monkeypatch.setattr(cell.config, "xdp_missing", lambda: None)
+    cases = [
+        ({"dataplane": {"listen": "10.0.0.5:50000"}}, "not on loopback"),
+        ({"services": {"run": ["bus", "robots"]}}, "runs no data plane of its own"),
+        ({"dataplane": {"max_entities": 5000}}, "over the program's 4096"),
+    ]
+    for overrides, reason in cases:
+        backend, why = load_config(overrides=overrides).dataplane.chosen()
+        assert backend == "native" and reason in why, (overrides, why)
+    backend, why = load_config(overrides={"dataplane": {"egress": {"rate_mbps": 10.0}}}).dataplane.chosen()
+    assert backend == "numpy" and "egress" in why
+    # what a service process reads back from the launcher's file is what the launcher chose
+    again = load_config(overrides=tomllib.loads(load_config(None).to_toml())).dataplane
+    assert again.chosen()[0] == "xdp" and again.address == load_config(None).dataplane.address
+
+
+def test_auto_gives_each_cell_a_switch_of_its_own_by_its_listen_port(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two cells on two ports: two namespaces, two veth pairs, two /30s (so both run at once); the
+    robots send to the switch's end on listen's port.  backend = "xdp" keeps [dataplane.xdp] as set."""
+    import ipaddress
+
+    import cell.config
+
+    monkeypatch.setattr(cell.config, "xdp_missing", lambda: None)
+    a, b = (
+        load_config(overrides={"dataplane": {"listen": f"127.0.0.1:{p}"}}).dataplane for p in (50000, 50001)
+    )
+    sa, sb = a.switch, b.switch
+    assert (sa.netns, sa.veth, sb.netns, sb.veth) == ("cellsw50000", "csw50000", "cellsw50001", "csw50001")
+    nets = [ipaddress.IPv4Network(f"{s.host_addr}/{s.prefix}", strict=False) for s in (sa, sb)]
+    assert not nets[0].overlaps(nets[1]) and all(
+        n.subnet_of(ipaddress.IPv4Network("10.199.0.0/16")) for n in nets
+    )
+    for s, net in zip((sa, sb), nets, strict=True):
+        assert s.prefix == 30 and s.host_addr != s.switch_addr
+        assert {ipaddress.IPv4Address(s.host_addr), ipaddress.IPv4Address(s.switch_addr)} <= set(net.hosts())
+    assert a.address == f"{sa.switch_addr}:50000" and b.address == f"{sb.switch_addr}:50001"
+    assert a.listen == "127.0.0.1:50000"  # (as set: a user-space data plane's, were XDP to go)
+    explicit = load_config(overrides={"dataplane": {"backend": "xdp"}}).dataplane
+    assert explicit.switch == explicit.xdp and explicit.address == "10.199.0.2:50000"
+    monkeypatch.setattr(cell.config, "xdp_missing", lambda: "no")
+    assert load_config(None).dataplane.address == "127.0.0.1:50000"  # (native: listen itself)

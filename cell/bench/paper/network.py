@@ -255,10 +255,10 @@ def xdp_background(quick: bool, out: Path, log: Log) -> list[Section]:
     """Sec. 7.1's response time beside background traffic, on the XDP backend, against plain
     forwarding in the same run (cell.bench.background_xdp)."""
     from cell.bench import background_xdp as bx
-    from cell.dataplane.xdp.switch import missing
+    from cell.config import xdp_missing
 
     title, ref = "Response time with background traffic (XDP)", "Sec. 7.1"
-    if why := missing():
+    if why := xdp_missing():
         log(f"  xdp-background: skipped, {why}")
         return [
             Section(

@@ -20,11 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
+from cell.config import XDP_OBJECT
 from cell.dataplane.approx import entries_per_sign
 from cell.dataplane.xdp import libbpf
 from cell.dataplane.xdp.libbpf import BpfError
 
-OBJECT = Path(__file__).with_name("dataplane.bpf.o")
+OBJECT = XDP_OBJECT
 MAX_JOINTS = 12  # the C program's TP width
 MAX_ENTITIES = 4096
 XDP_DROP, XDP_PASS, XDP_TX = 1, 2, 3

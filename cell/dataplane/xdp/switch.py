@@ -10,16 +10,18 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import logging
 import os
-import shutil
 import subprocess
 import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import TypeVar
 
-from cell.config import XdpConfig
-from cell.dataplane.xdp.program import OBJECT
+from cell.config import XdpConfig, xdp_missing
+
+log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 CLONE_NEWNET = 0x40000000
@@ -29,47 +31,66 @@ class SwitchError(RuntimeError):
     """The XDP backend cannot run here; the message says what is missing."""
 
 
-def missing() -> str | None:
-    """What keeps the XDP backend from running on this machine, or None."""
-    if os.geteuid() != 0:
-        return "it needs root (CAP_BPF and CAP_NET_ADMIN for the program and the switch's namespace)"
-    if shutil.which("ip") is None:
-        return "it needs `ip` (Debian's iproute2) for the switch's namespace"
-    if not OBJECT.exists():
-        return f"{OBJECT} is not built: `make bpf` (needs clang and libbpf-dev)"
-    try:
-        ctypes.CDLL("libbpf.so.1")
-    except OSError:
-        return "it needs libbpf.so.1 (Debian's libbpf1)"
-    return None
-
-
 def _ip(*args: str) -> None:
     done = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=10)
     if done.returncode:
         raise SwitchError(f"ip {' '.join(args)}: {done.stderr.strip()}")
 
 
+OWNERS = Path("/run/cell-switches")  # <netns>: the pid of the launcher that made that switch
+
+
 def remove(cfg: XdpConfig) -> None:
-    """The namespace and the veth pair gone (whatever is left of them)."""
+    """The namespace and the veth pair gone (whatever is left of them), and its owner's record."""
     subprocess.run(["ip", "netns", "del", cfg.netns], capture_output=True, timeout=10)
     subprocess.run(["ip", "link", "del", f"{cfg.veth}0"], capture_output=True, timeout=10)
+    (OWNERS / cfg.netns).unlink(missing_ok=True)
+
+
+def owner(netns: str) -> int | None:
+    """The live process that made the switch `netns`; None if it is gone (killed: its switch was
+    left behind) or the namespace is not one a launcher recorded."""
+    try:
+        pid = int((OWNERS / netns).read_text())
+        os.kill(pid, 0)
+    except PermissionError:
+        return pid
+    except (OSError, ValueError):
+        return None
+    return pid
+
+
+def reap(cfg: XdpConfig) -> bool:
+    """Remove the switch `cfg` if a launcher made it and is gone (SIGKILLed before it could); whether
+    it did."""
+    if not (OWNERS / cfg.netns).exists() or owner(cfg.netns) is not None:
+        return False
+    remove(cfg)
+    return True
 
 
 @contextlib.contextmanager
 def switch_namespace(cfg: XdpConfig) -> Iterator[None]:
     """The switch's namespace and veth pair, up for the duration; SwitchError if they cannot be made
-    (a namespace of that name already exists: another cell runs with the XDP backend)."""
-    if problem := missing():
+    (a namespace of that name exists and is not a dead launcher's: another cell runs with the XDP
+    backend, or it is not ours)."""
+    if problem := xdp_missing():
         raise SwitchError(f'[dataplane] backend = "xdp" cannot run: {problem}')
     if os.path.exists(f"/var/run/netns/{cfg.netns}"):
-        raise SwitchError(
-            f"network namespace {cfg.netns!r} exists: another cell with the XDP backend? "
-            f"(`ip netns del {cfg.netns}` if not, or set [dataplane.xdp] netns)"
-        )
+        if reap(cfg):
+            log.warning("switch %s was left by a cell that was killed: removed and made anew", cfg.netns)
+        elif (pid := owner(cfg.netns)) is not None:
+            raise SwitchError(f"network namespace {cfg.netns!r} is the switch of a running cell (pid {pid})")
+        else:
+            raise SwitchError(
+                f"network namespace {cfg.netns!r} exists and no cell made it "
+                f"(`ip netns del {cfg.netns}` if it is not needed, or set [dataplane.xdp] netns)"
+            )
     host, sw = f"{cfg.veth}0", f"{cfg.veth}1"
     try:
         _ip("netns", "add", cfg.netns)
+        OWNERS.mkdir(exist_ok=True)
+        (OWNERS / cfg.netns).write_text(str(os.getpid()))
         _ip("link", "add", host, "type", "veth", "peer", "name", sw, "netns", cfg.netns)
         _ip("addr", "add", f"{cfg.host_addr}/{cfg.prefix}", "dev", host)
         _ip("link", "set", host, "up")
