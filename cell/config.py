@@ -292,8 +292,8 @@ XDP_OBJECT = Path(__file__).parent / "dataplane" / "xdp" / "dataplane.bpf.o"  # 
 @functools.cache
 def xdp_missing() -> str | None:
     """What keeps the XDP backend from running on this machine, or None (asked once a process)."""
-    if os.geteuid() != 0:
-        return "it needs root (CAP_BPF and CAP_NET_ADMIN for the program and the switch's namespace)"
+    if os.geteuid() != 0 or not _capable():
+        return "it needs root with CAP_NET_ADMIN and CAP_BPF (or CAP_SYS_ADMIN): the switch and the program"
     if shutil.which("ip") is None:
         return "it needs `ip` (Debian's iproute2) for the switch's namespace"
     if not XDP_OBJECT.exists():
@@ -303,6 +303,17 @@ def xdp_missing() -> str | None:
     except OSError:
         return "it needs libbpf.so.1 (Debian's libbpf1)"
     return None
+
+
+def _capable() -> bool:
+    """Whether this process holds the capabilities XDP needs (root in a container may not)."""
+    try:
+        with open("/proc/self/status") as f:
+            caps = next((int(line.split()[1], 16) for line in f if line.startswith("CapEff:")), 0)
+    except OSError:
+        return False
+    net_admin, sys_admin, bpf = (caps >> bit & 1 for bit in (12, 21, 39))  # (linux/capability.h)
+    return bool(net_admin and (bpf or sys_admin))
 
 
 def _loopback(host: str) -> bool:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -390,3 +393,13 @@ def test_auto_gives_each_cell_a_switch_of_its_own_by_its_listen_port(monkeypatch
     assert explicit.switch == explicit.xdp and explicit.address == "10.199.0.2:50000"
     monkeypatch.setattr(cell.config, "xdp_missing", lambda: "no")
     assert load_config(None).dataplane.address == "127.0.0.1:50000"  # (native: listen itself)
+
+
+def test_root_without_the_capabilities_xdp_needs_gets_the_native_data_plane_and_the_reason() -> None:
+    """Root in a container is often without CAP_NET_ADMIN and CAP_BPF: auto must not pick XDP there
+    (its switch and program would fail at start); a process started without them says so."""
+    code = "from cell.config import load_config; print(*load_config(None).dataplane.chosen(), sep='|')"
+    drop = ["setpriv", "--bounding-set=-net_admin,-sys_admin,-bpf"] if os.geteuid() == 0 else []
+    out = subprocess.run([*drop, sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    backend, why = out.stdout.strip().split("|")
+    assert backend == "native" and "CAP_NET_ADMIN and CAP_BPF" in why
