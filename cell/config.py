@@ -388,7 +388,7 @@ class DataplaneConfig:
         elif self.max_entities > XDP_MAX_ENTITIES:
             why_not = f"max_entities is over the program's {XDP_MAX_ENTITIES}"
         elif (why_not := xdp_missing()) is None:
-            return "xdp", "auto: root, ip, libbpf and the built program are here (the kernel's packet path)"
+            return "xdp", "auto: XDP can run here (root, ip, libbpf, the built program): the kernel answers"
         if not (os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")):
             return "numpy", "auto: no C compiler to build the native data plane (cell/dataplane/native.c)"
         return "native", f"auto: the XDP program's C in user space, no Python per packet (not XDP: {why_not})"
