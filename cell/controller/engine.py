@@ -165,6 +165,20 @@ class Engine:
         track.failure = None
         track.task = self.spawn(guarded(), f"motion-{track.robot}")
 
+    async def _held_why(self, track: Track) -> str:
+        """What the data plane says of the track's robots (where a motion ended elsewhere: the TP each
+        follows, a Responsive Link stop, a stall, a dropped trajectory), as a clause; "" unanswered."""
+        try:
+            st = await self.link.state(track.robots, timeout=0.5)
+        except (BusError, TimeoutError):
+            return ""
+        said = []
+        for r in st.robots:
+            flags = [f for f, on in (("stopped", r.stopped), ("stalled", r.stalled)) if on]
+            dropped = f", dropped ({r.dropped_why})" if r.dropped_ns else ""
+            said.append(f"robot {r.robot_id} at TP {r.tp_id}{''.join(', ' + f for f in flags)}{dropped}")
+        return f"; the data plane: {'; '.join(said)}" if said else ""
+
     async def joints_now(self, track: Track) -> tuple[np.ndarray, np.ndarray, int]:
         """The last status of the track's robots: positions, velocities, its data-plane time."""
         st = await self.link.state(track.robots)
@@ -430,6 +444,7 @@ class Engine:
                     f"joint {j} stands {err[j]:.4f} rad from it (tolerance {tol:g}), moving at up to "
                     f"{np.abs(v).max():.4f} rad/s; joints {np.round(q, 4).tolist()}"
                     + ("" if t_ns >= end_ns else "; no status since the motion's end")
+                    + await self._held_why(track)
                 )
             await asyncio.sleep(0.005)
 

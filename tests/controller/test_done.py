@@ -69,6 +69,7 @@ async def test_a_motion_the_robot_did_not_follow_is_failed_with_where_it_stands(
             await client.close()
         assert info.value.skill == "break" and info.value.code == "failed", info.value
         assert "not at the goal" in info.value.text and "joints [" in info.value.text
+        assert f"; the data plane: robot {rc.id} at TP " in info.value.text  # (what it held it to)
         here = await call("pose", controller_pb2.RobotRequest(robot="r1"), controller_pb2.PoseReply)
         stands = np.array(here.joints)
         assert np.abs(stands - goal).max() > 0.1  # (it was stopped well short)
