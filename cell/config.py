@@ -815,10 +815,15 @@ class CellConfig:
         return [r for r in self.robots if r.host == hub]
 
     def robot(self, name: str) -> RobotConfig:
-        for robot in self.robots:
-            if robot.name == name:
-                return robot
-        raise KeyError(f"no robot named {name!r} in {self.source}")
+        robot = self._robot_named.get(name)
+        if robot is None:
+            raise KeyError(f"no robot named {name!r} in {self.source}")
+        return robot
+
+    @functools.cached_property
+    def _robot_named(self) -> dict[str, RobotConfig]:
+        """The robots by name (a controller looks a fleet's robots up by name on every motion)."""
+        return {r.name: r for r in reversed(self.robots)}  # (the first of a name, as a scan finds it)
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)

@@ -405,7 +405,8 @@ def _score(run: FleetRun, truth: _Truth, segments: list[tuple[list[str], Segment
 
 
 def search(seconds: float, backend: str, start: int = 50, limit: int = 2000) -> tuple[int, list[FleetRun]]:
-    """The largest N within the bounds: N doubles from `start` until a run fails, then two bisections.
+    """The largest N within the bounds: N doubles from `start` until a run fails, then three bisections
+    (to an eighth of the last doubling: 800 -> 1600 is found to within 100).
     A failed run is tried once more before N counts as too many (a VM's stall of a few ms makes one
     run's late statuses, not the fleet's size)."""
     runs: list[FleetRun] = []
@@ -423,7 +424,7 @@ def search(seconds: float, backend: str, start: int = 50, limit: int = 2000) -> 
     while n <= limit and passes(n):
         ok, n = n, n * 2
     bad = n
-    for _ in range(2):
+    for _ in range(3):
         mid = (ok + bad) // 2
         if mid <= ok or mid > limit:
             break

@@ -390,6 +390,7 @@ class Bus:
         self.requests = 0
         self.served = 0
         self.late_replies = 0
+        self.held_replies = 0  # replies found queued once the request's timer was seen (see request())
         self.malformed = 0
         self.patient = False  # see connect(wait=False)
         self._ctl_live = False  # a ping has come back on the control socket: replies will reach us
@@ -536,6 +537,7 @@ class Bus:
             "bus.requests": self.requests,
             "bus.served": self.served,
             "bus.late_replies": self.late_replies,
+            "bus.held_replies": self.held_replies,
             "bus.disconnects": self.disconnects,
             "bus.missed_wakeups": wakeups["missed"],  # (the process's, all its nodes together)
         }
@@ -671,16 +673,23 @@ class Bus:
         self.requests += 1
         try:
             self._send(self._topic(f"rpc/{service}/{method}"), msg, Kind.REQUEST, corr)
-            async with asyncio.timeout(timeout):
-                env = await fut
-        except ServiceDown:
-            raise
-        except TimeoutError:
-            why = self._down.get(service, "")
-            state = f"service {service!r} is down: {why}" if why else f"is service {service!r} running?"
-            raise BusTimeout(f"no reply from {service}.{method} within {timeout:g} s ({state})") from None
+            # (asyncio.wait, not asyncio.timeout: the future must outlive the deadline, see below)
+            done, _ = await asyncio.wait((fut,), timeout=timeout)
+            if not done and not self._ctl.closed:
+                # a reply already queued here counts: a loop held up past the deadline (a controller
+                # busy with a fleet's thousand arms) sees its timers before the replies that beat them,
+                # and would read a data plane that answered in milliseconds as silent
+                self._drain_control()
+                if fut.done():
+                    self.held_replies += 1
+            if not fut.done():
+                why = self._down.get(service, "")
+                state = f"service {service!r} is down: {why}" if why else f"is service {service!r} running?"
+                raise BusTimeout(f"no reply from {service}.{method} within {timeout:g} s ({state})")
+            env = fut.result()  # (or ServiceDown, RemoteError: the service's failure, as it came)
         finally:
             self._pending.pop(corr, None)
+            fut.cancel()  # (a no-op once done: a caller cancelled mid-wait leaves nothing behind)
         if env.kind == Kind.ERROR:
             err = env.decode(bus_pb2.RpcError)
             raise RemoteError(service, method, err.code, err.message)
@@ -706,19 +715,25 @@ class Bus:
     # --- the control reader ------------------------------------------------------------------
 
     async def _read_control(self) -> None:
-        recv = self._ctl.recv
         while True:
             await readable(self._ctl)
-            while True:
-                try:
-                    frame = recv(zmq.NOBLOCK)
-                except zmq.Again:
-                    break
-                try:
-                    self._dispatch(frame)
-                except Exception:  # a bug here must not silence the node: log it and go on
-                    self.malformed += 1
-                    log.exception("%s: control message %r not handled", self.source, frame[:64])
+            self._drain_control()
+
+    def _drain_control(self) -> None:
+        """Dispatch every control message queued now (replies, requests, syncs), without waiting."""
+        recv = self._ctl.recv
+        while True:
+            try:
+                frame = recv(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            except zmq.ZMQError:  # (the socket closed under a late look: nothing more to read)
+                return
+            try:
+                self._dispatch(frame)
+            except Exception:  # a bug here must not silence the node: log it and go on
+                self.malformed += 1
+                log.exception("%s: control message %r not handled", self.source, frame[:64])
 
     def _dispatch(self, frame: bytes) -> None:
         if frame.startswith(_SYNC):

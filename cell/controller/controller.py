@@ -97,7 +97,10 @@ class Controller:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
-        await self.engine.__aexit__(*exc)
+        try:
+            await self.engine.__aexit__(*exc)
+        finally:
+            self.book.close()
 
     # --- the parts' calls a user makes ---------------------------------------------------------
 

@@ -4,10 +4,12 @@ on, and what holds them (a Responsive Link stop, a URScript program)."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 from collections.abc import Callable
-from functools import cache
+from concurrent.futures import ThreadPoolExecutor
+from functools import cache, partial
 
 import numpy as np
 
@@ -50,6 +52,10 @@ class RobotBook:
         self.grids: dict[int, Grid] = {}
         self._asked: set[int] = set()  # robots asked for their announcement (see know_grid())
         self._capped: set[int] = set()  # robots whose configured a_max was capped (warned once)
+        # cut()'s one thread: not asyncio's pool of six, whose planners at once (a fleet launching
+        # hundreds of motions) held the GIL from the event loop for 0.3 s at a time, and replies that
+        # had come in milliseconds waited out their requests' timeouts unread
+        self._planner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="planner")
 
     def robot_id(self, robot: int | str) -> int:
         if isinstance(robot, int):
@@ -59,7 +65,10 @@ class RobotBook:
     def track(self, robot: int | str) -> Track:
         """The track the robot is driven on (its own, made on first use, or a merged one's)."""
         rid = self.robot_id(robot)
-        for t in self.tracks.values():
+        t = self.tracks.get(rid)  # (a track is kept under its lead robot: a fleet's thousand, looked up
+        if t is not None and rid in t.robots:  # one by one in a scan per motion, were a tenth of its loop)
+            return t
+        for t in self.tracks.values():  # (a robot merged behind another's lead)
             if rid in t.robots:
                 return t
         t = Track(rid, [rid], self.limits_of([rid]))
@@ -143,6 +152,22 @@ class RobotBook:
             window=status_hz // command_hz,
             n_bits=dpc.n_bits,
         )
+
+    async def cut_aside(
+        self,
+        track: Track,
+        motion: Motion,
+        rate_hz: float,
+        v0: np.ndarray | None = None,
+        tick0: int = 0,
+        held0: np.ndarray | None = None,
+    ) -> Sections:
+        """cut() in the book's planning thread, the event loop free meanwhile."""
+        job = partial(self.cut, track, motion, rate_hz, v0, tick0, held0)
+        return await asyncio.get_running_loop().run_in_executor(self._planner, job)
+
+    def close(self) -> None:
+        self._planner.shutdown(wait=False, cancel_futures=True)
 
     def cut(
         self,

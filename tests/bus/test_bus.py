@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import replace
 
@@ -222,6 +223,44 @@ async def test_late_reply_is_counted_not_delivered(forwarder: BusConfig) -> None
                 )  # a fresh round trip flushes the late one
         assert server.served > served
         assert client.late_replies == 1
+
+
+async def test_a_reply_that_came_while_the_requesters_loop_was_held_is_not_a_timeout(
+    forwarder: BusConfig,
+) -> None:
+    """A requester whose own loop is held past the deadline (a controller busy with a fleet) gets the
+    reply that reached it in time, not a BusTimeout: its timers are not the server's silence."""
+    up, stop = threading.Event(), threading.Event()
+
+    def server() -> None:
+        async def main() -> None:
+            async with Bus.connect(forwarder, "server") as srv:
+                await srv.serve("svc", {"echo": (bus_pb2.BenchPayload, lambda req: req)})
+                up.set()
+                while not stop.is_set():
+                    await asyncio.sleep(0.01)
+
+        asyncio.run(main())
+
+    thread = threading.Thread(target=server, daemon=True)
+    thread.start()
+    try:
+        assert await asyncio.to_thread(up.wait, 10)
+        async with Bus.connect(forwarder, "client") as client:
+            await client.request("svc", "echo", payload(0), bus_pb2.BenchPayload)  # (the path is up)
+            asked = asyncio.create_task(client.request("svc", "echo", payload(7), bus_pb2.BenchPayload, 0.2))
+            await asyncio.sleep(0)  # (the request is sent, its timer set)
+            # this loop held (the fault) past the deadline, until the reply has come in meanwhile
+            held_until = time.monotonic() + 0.3
+            while time.monotonic() < held_until:
+                time.sleep(0.01)  # noqa: ASYNC251  (holding this loop is the point)
+            assert client._ctl.poll(10_000, zmq.POLLIN), "the server never answered"
+            reply = await asked
+            assert reply.data == payload(7).data
+            assert client.late_replies == 0
+    finally:
+        stop.set()
+        thread.join(10)
 
 
 async def test_no_forwarder_is_a_clear_error(bus_config: BusConfig) -> None:
