@@ -144,3 +144,28 @@ def check_random_stream(pair: Pair, rng: np.random.Generator) -> None:
         assert c.dropped > 0 and c.stop_commands > 0 and c.holds > 0
     finally:
         pair.close()
+
+
+def check_gate_keeps_robots_heard(pair: Pair, rng: np.random.Generator) -> None:
+    """Statuses answered at a closed gate were heard: a robot held there for more periods than its
+    watchdog allows (a fleet's updates back to back) is not judged at its next status to have lived
+    without us, and its plan goes on; the statuses it never sent still count."""
+    try:
+        load_random_trajectories(pair, rng, 1_000_000_000)  # (stale after a jump of 3 periods)
+        p, ent = pair.program, int(pair.xt.robot_entity[2])
+        pair.packet(statuses(rng, 2, list(range(6)), 2), 1_000_000_000)
+        assert pair.xt.reg_tp[ent] != -1 and pair.xt.status_seq[2] == 2
+        for seq in range(3, 13):  # ten periods, each at a gate closed for a flip
+            p.close_gate()
+            try:
+                pair.run(p, statuses(rng, 2, list(range(6)), seq))
+            finally:
+                p.open_gate()
+        assert pair.xt.status_seq[2] == 12
+        pair.packet(statuses(rng, 2, list(range(6)), 13), 1_002_000_000)
+        assert pair.xt.reg_tp[ent] != -1, "the plan of a robot answered at the gate was dropped"
+        assert pair.xt.reg_dropped_ns[ent] == 0
+        pair.packet(statuses(rng, 2, list(range(6)), 20), 1_004_000_000)  # (six periods never sent)
+        assert pair.xt.reg_tp[ent] == -1 and pair.xt.reg_dropped_why[ent] == 1  # the watchdog's rule
+    finally:
+        pair.close()

@@ -15,6 +15,7 @@ from cell.dataplane.xdp.backend import XdpPipeline, XdpTables
 from cell.robot import datagram, udp
 from tests.dataplane.mapped import (
     Pair,
+    check_gate_keeps_robots_heard,
     check_random_stream,
     load_random_trajectories,
     random_constants,
@@ -78,6 +79,11 @@ def test_a_closed_gate_answers_with_the_last_commands_and_reads_no_table() -> No
         p.open_gate()
     assert held["velocity"].tolist() == first["velocity"].tolist()
     assert p.counters()["held"] == 6 and p.gates == gates + 1
+
+
+def test_a_robot_answered_at_the_gate_through_many_flips_keeps_its_plan() -> None:
+    rng = np.random.default_rng(8)
+    check_gate_keeps_robots_heard(Pair(random_constants(rng), NativeProgram, run_payload), rng)
 
 
 class Plane:

@@ -35,6 +35,7 @@ from cell.dataplane.xdp.switch import SwitchError  # noqa: E402
 from tests.conftest import cell_env, wait_status  # noqa: E402
 from tests.dataplane.mapped import (  # noqa: E402
     Pair,
+    check_gate_keeps_robots_heard,
     check_random_stream,
     load_random_trajectories,
     random_constants,
@@ -119,6 +120,11 @@ def test_a_real_time_control_plane_holds_the_gate_at_a_priority_ceiling() -> Non
         assert pair.program.gates == gates + 1
     finally:
         pair.close()
+
+
+def test_a_robot_answered_at_the_gate_through_many_flips_keeps_its_plan() -> None:
+    rng = np.random.default_rng(8)
+    check_gate_keeps_robots_heard(Pair(random_constants(rng), make_program, run_frame), rng)
 
 
 # --- the service: the program attached in a switch namespace, robots on the host's end ----------

@@ -634,7 +634,10 @@ static long write_one(__u32 i, void *ctx)
 
 static long held_one(__u32 i, void *ctx)
 {
-	/* the tables are being flipped: answer with the joint's last command, touching nothing */
+	/* the tables are being flipped: answer with the joint's last command, touching no table.  The
+	 * robot heard us, so its liveness registers move on (when and which status came last): else a
+	 * robot answered at the gate through a run of flips (a fleet's table updates back to back) was
+	 * judged, at its next status, to have lived past its watchdog without us, and its plan dropped */
 	struct scratch *s = ((struct loop *)ctx)->s;
 	__u64 k = bounded(i);
 	if (k >= MAX_RECS)
@@ -647,6 +650,12 @@ static long held_one(__u32 i, void *ctx)
 	__s64 out = 0;
 	if (st && j < MAX_JOINTS)
 		out = st->cmd[j];
+	struct robot *rb = bpf_map_lookup_elem(&robots, &rk);
+	if (rb && w[3] == KIND_STATUS && rb->pinned && rb->pin_addr == s->saddr && rb->pin_port == s->sport
+	    && rb->status_ns > 0) {  /* (its own sender's, and heard before: the judge's rule, not a pin) */
+		rb->status_ns = s->now;
+		rb->status_seq = ((__u32)w[4] << 24) | ((__u32)w[5] << 16) | ((__u32)w[6] << 8) | w[7];
+	}
 	w[3] = KIND_COMMAND;
 	*(__u64 *)&w[8] = bpf_cpu_to_be64((__u64)out);
 	return 0;
@@ -664,16 +673,16 @@ static __always_inline int handle(struct globals *g, struct scratch *s, __u32 n,
 {
 	struct loop lp = {.s = s};
 	__sync_fetch_and_add(&g->inflight, 1);
+	s->now = g->clock_ns ? g->clock_ns : now;
+	s->saddr = saddr;
+	s->sport = sport;
 	if (g->closed) {  /* the control plane is flipping a batch in */
 		count(C_HELD, n);
 		bpf_loop(n, held_one, &lp, 0);
 		__sync_fetch_and_add(&g->inflight, -1);
 		return HELD;
 	}
-	s->now = g->clock_ns ? g->clock_ns : now;
 	s->n = n;
-	s->saddr = saddr;
-	s->sport = sport;
 	s->bad = 0;
 	s->serial += 1;
 	bpf_loop(n, parse_one, &lp, 0);
