@@ -19,6 +19,7 @@ import logging
 import math
 import time
 from collections.abc import Coroutine
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -284,7 +285,7 @@ class Engine:
             if fine and not isinstance(motion, Led):  # (fine: led TPs fitted to the plan, as close as
                 # one a command window gets, within follow_tolerance_mm)
                 motion = Led(motion, self.book.loop(track).window_s, strict=False)
-            sections = await self.book.cut_aside(track, motion, rate, tick0=phase)
+            sections = await self.book.aside(partial(self.book.cut, track, motion, rate, tick0=phase))
             planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
         # the start time is set once the planning is done, so that the lead only has to cover the
         # update's way to the data plane (planning first would eat it on a busy host: a late start)

@@ -23,6 +23,7 @@ kept as for them, so stops, re-plans and the next motion work as usual.
 from __future__ import annotations
 
 import asyncio
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -86,7 +87,7 @@ async def arm(ctl: Controller, goals: dict[int | str, np.ndarray], speed: float 
         motion = plan_joint(q0, np.asarray(q_goal, np.float64), track.limits.scaled(speed))
         beside = near[track.robot]
         phase = beside[1] if beside is not None else 0
-        sections = await ctl.book.cut_aside(track, motion, ctl.engine.rate_hz, tick0=phase)
+        sections = await ctl.book.aside(partial(ctl.book.cut, track, motion, ctl.engine.rate_hz, tick0=phase))
         planned.append((track, motion, sections, track.take_ids(len(sections) + 2)))
     lead = planned[0][0].robot
     await ctl.engine.tables_in_hand()
@@ -165,7 +166,7 @@ async def run_loop(
         await ctl.book.know_grid(track.robot)
         window = _window_ns(ctl, track.robot)
         motion = plan_loop(q0, waypoints, track.limits.scaled(speed), window / 1e9)
-        sections = await ctl.book.cut_aside(track, motion, ctl.engine.rate_hz, tick0=0)
+        sections = await ctl.book.aside(partial(ctl.book.cut, track, motion, ctl.engine.rate_hz, tick0=0))
         hold_id, *ids = track.take_ids(len(sections) + 2)  # the lap's TPs, then the exit hold
         await ctl.engine.tables_in_hand()
         await ctl.link.state()
@@ -274,7 +275,9 @@ async def prepare_alternates(
             q_k, v_k, held = here
             motion = plan_joint(q_k, np.asarray(q_goal, np.float64), track.limits.scaled(speed), v0=v_k)
             tick0 = ctl.book.phase_at(seg, seg.t_ns(k))
-            sections = await ctl.book.cut_aside(track, motion, ctl.engine.rate_hz, v_k, tick0, held)
+            sections = await ctl.book.aside(
+                partial(ctl.book.cut, track, motion, ctl.engine.rate_hz, v_k, tick0, held)
+            )
             ids = track.take_ids(len(sections) + 1)
             alt = Segment(
                 seg.t_ns(k), motion, sections, ids, tick0 if seg.tick0 is not None else None, seg.robot

@@ -9,7 +9,8 @@ import contextlib
 import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from functools import cache, partial
+from functools import cache
+from typing import TypeVar
 
 import numpy as np
 
@@ -27,6 +28,7 @@ from cell.timer import realtime_offset
 from cell.trajectory.motion import Motion
 from cell.v1 import robot_pb2
 
+_T = TypeVar("_T")
 log = logging.getLogger("cell.controller")
 
 
@@ -153,17 +155,8 @@ class RobotBook:
             n_bits=dpc.n_bits,
         )
 
-    async def cut_aside(
-        self,
-        track: Track,
-        motion: Motion,
-        rate_hz: float,
-        v0: np.ndarray | None = None,
-        tick0: int = 0,
-        held0: np.ndarray | None = None,
-    ) -> Sections:
-        """cut() in the book's planning thread, the event loop free meanwhile."""
-        job = partial(self.cut, track, motion, rate_hz, v0, tick0, held0)
+    async def aside(self, job: Callable[[], _T]) -> _T:
+        """job() in the book's planning thread (a cut: partial(book.cut, ...)), the loop free meanwhile."""
         return await asyncio.get_running_loop().run_in_executor(self._planner, job)
 
     def close(self) -> None:
