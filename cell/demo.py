@@ -124,6 +124,10 @@ def real_time_rows(
         if steal[2] >= STEAL_NOTE:
             cpu, share = steal[0], steal[2]
             said += f"; the hypervisor took {share:.1%} of CPU {cpu} meanwhile (steal: the host's doing)"
+    # ground truth is read out of the tick's ring at Python's pace: behind by more than the ring, ticks
+    # are lost to every reader (the bag's joint states too); and the bus may lose what it carries
+    overruns = rb.get("ring_overruns", 0.0)
+    bus_lost = sum(s.last.counters.get("bus.lost", 0.0) for s in status.services)
     places = {s.last.process: s.last.sched for s in status.services if s.last.process}
     loads = sorted(
         (
@@ -135,6 +139,7 @@ def real_time_rows(
     return [
         ("robot ticks missed / late sends", f"{missed:,.0f} of {periods:,.0f} ({share:.2%}) / {late:,.0f}"),
         ("tick lateness p50 / p99 / max", f"{p50:.0f} / {p99:.0f} / {rb.get('lateness_max_us', 0):.0f} us"),
+        ("ticks lost to Python (ring overruns) / bus messages lost", f"{overruns:,.0f} / {bus_lost:,.0f}"),
         ("real time", verdict(real_time, said)),
         ("RT holds", _holds_row(status)),
         (
