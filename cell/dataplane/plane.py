@@ -579,7 +579,9 @@ class MappedDataPlane(DataPlane):
         out["dropped"] = k["dropped"] + user.dropped  # (the control plane drops too: sweeps, stops)
         out["stop_commands"] = k["stop_commands"] + user.stop_commands
         refused = ("kind", "joint", "spoofed", "batch")
-        out["packets_in"] = k["packets"] + sum(k[f"rejected.{r}"] for r in refused)
+        # (every status that came in: stepped, answered at the gate, or refused; commands_out counts
+        # the gate's answers too, and a test once saw 6 more commands out than statuses in)
+        out["packets_in"] = k["packets"] + k["held"] + sum(k[f"rejected.{r}"] for r in refused)
         out["commands_out"] = k["commands_out"] + self.commands_out
         out.update({n: k[n] for n in k if n.startswith("rejected.")})
         p = self.prefix
