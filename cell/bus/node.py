@@ -725,9 +725,7 @@ class Bus:
         while True:
             try:
                 frame = recv(zmq.NOBLOCK)
-            except zmq.Again:
-                return
-            except zmq.ZMQError:  # (the socket closed under a late look: nothing more to read)
+            except zmq.ZMQError:  # (Again: nothing more queued; or the socket closed under a late look)
                 return
             try:
                 self._dispatch(frame)

@@ -7,8 +7,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from cell.dataplane.pipeline import ControlConstants, Pipeline
-from cell.dataplane.tables import TP, Tables
+from cell.dataplane.pipeline import DROP_WATCHDOG, ControlConstants, Pipeline
+from cell.dataplane.tables import NO_ROW, TP, Tables
 from cell.dataplane.xdp.backend import XdpPipeline, XdpTables
 from cell.robot import datagram
 
@@ -154,7 +154,7 @@ def check_gate_keeps_robots_heard(pair: Pair, rng: np.random.Generator) -> None:
         load_random_trajectories(pair, rng, 1_000_000_000)  # (stale after a jump of 3 periods)
         p, ent = pair.program, int(pair.xt.robot_entity[2])
         pair.packet(statuses(rng, 2, list(range(6)), 2), 1_000_000_000)
-        assert pair.xt.reg_tp[ent] != -1 and pair.xt.status_seq[2] == 2
+        assert pair.xt.reg_tp[ent] != NO_ROW and pair.xt.status_seq[2] == 2
         for seq in range(3, 13):  # ten periods, each at a gate closed for a flip
             p.close_gate()
             try:
@@ -163,9 +163,9 @@ def check_gate_keeps_robots_heard(pair: Pair, rng: np.random.Generator) -> None:
                 p.open_gate()
         assert pair.xt.status_seq[2] == 12
         pair.packet(statuses(rng, 2, list(range(6)), 13), 1_002_000_000)
-        assert pair.xt.reg_tp[ent] != -1, "the plan of a robot answered at the gate was dropped"
+        assert pair.xt.reg_tp[ent] != NO_ROW, "the plan of a robot answered at the gate was dropped"
         assert pair.xt.reg_dropped_ns[ent] == 0
         pair.packet(statuses(rng, 2, list(range(6)), 20), 1_004_000_000)  # (six periods never sent)
-        assert pair.xt.reg_tp[ent] == -1 and pair.xt.reg_dropped_why[ent] == 1  # the watchdog's rule
+        assert pair.xt.reg_tp[ent] == NO_ROW and pair.xt.reg_dropped_why[ent] == DROP_WATCHDOG
     finally:
         pair.close()

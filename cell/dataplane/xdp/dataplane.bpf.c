@@ -331,6 +331,12 @@ static __always_inline __u64 bounded(__u32 i)
 	return k;
 }
 
+/* a record's status number (bytes 4-7, network order): the packet path's and the gate's reading */
+static __always_inline __u32 wire_seq(const __u8 *w)
+{
+	return ((__u32)w[4] << 24) | ((__u32)w[5] << 16) | ((__u32)w[6] << 8) | w[7];
+}
+
 /* --- parsing: host order, validity, senders -------------------------------------------------- */
 
 static long parse_one(__u32 i, void *ctx)
@@ -344,7 +350,7 @@ static long parse_one(__u32 i, void *ctx)
 	r->robot = ((__u32)w[0] << 8) | w[1];
 	r->joint = w[2];
 	r->kind = w[3];
-	r->seq = ((__u32)w[4] << 24) | ((__u32)w[5] << 16) | ((__u32)w[6] << 8) | w[7];
+	r->seq = wire_seq(w);
 	r->vel = (__s64)bpf_be64_to_cpu(*(__u64 *)&w[8]);
 	r->pos = (__s64)bpf_be64_to_cpu(*(__u64 *)&w[16]);
 	__u32 key = r->robot;
@@ -654,7 +660,7 @@ static long held_one(__u32 i, void *ctx)
 	if (rb && w[3] == KIND_STATUS && rb->pinned && rb->pin_addr == s->saddr && rb->pin_port == s->sport
 	    && rb->status_ns > 0) {  /* (its own sender's, and heard before: the judge's rule, not a pin) */
 		rb->status_ns = s->now;
-		rb->status_seq = ((__u32)w[4] << 24) | ((__u32)w[5] << 16) | ((__u32)w[6] << 8) | w[7];
+		rb->status_seq = wire_seq(w);
 	}
 	w[3] = KIND_COMMAND;
 	*(__u64 *)&w[8] = bpf_cpu_to_be64((__u64)out);
