@@ -29,7 +29,7 @@ from cell.v1 import robot_pb2
 ANNOUNCE_S = 2.0
 ANNOUNCE_SLICE = 32  # robots announced at once (services/robots.py spreads the rest over ANNOUNCE_S)
 Publish = Callable[[str, object], None]
-WAKE_HZ = 50  # how often a group ticking in C wakes its Python (besides stops, resumes and clients)
+WAKE_HZ = 20  # how often a group ticking in C wakes its Python (besides stops, resumes and clients)
 _PROVIDED_BY = {"ur": "cell.ur.remote"}  # the group backends this package knows of, and their home
 STILL_RAD_S = 1e-3  # a stopped robot stands still once every joint is slower than this
 
@@ -149,7 +149,7 @@ class Publisher:
         self.outputs = group.digital_out.copy()  # the digital outputs the bus was last told of
         # a group ticking in C's thread is read on the truth's grid (and the Responsive Link node's look
         # for robots standing still: at 50 Hz at least), woken for it at WAKE_HZ: each wake-up costs
-        # more than the messages it sends (two truths of 100 Hz a wake, not one)
+        # more than the messages it sends (five truths of 100 Hz a wake, not one or two)
         status_hz = group.robots[0].status_hz
         group.read_every = min(self.every or status_hz, max(1, status_hz // 50))
         group.wake_every = max(group.read_every, status_hz // WAKE_HZ)

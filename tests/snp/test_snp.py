@@ -339,7 +339,10 @@ def test_the_modular_robot_bench_trial_accounts_for_every_query(native: bool) ->
         denied = sum(v for k, v in h.items() if k.startswith("denied."))
         ran = sum(len(m["cycles"]) for m in r["modules"])
         assert h["replies"] + denied == h["queries"]  # each answered or denied, none left
-        assert h["queries"] >= 2 * ran - 4  # two queries a cycle (a miss is not retried)
+        # two queries a cycle (a miss is not retried), but for a cycle cut short by the next one's start
+        # before its second (an overrun; a slow day's run was 9 short), and those in flight at the end
+        overruns = sum(m["overruns"] for m in r["modules"])
+        assert h["queries"] >= 2 * ran - overruns - 4
         two_step = all(m["two_step_link"] for m in r["modules"])  # (the kernel gives transmit stamps)
         assert not two_step or (cycle_figures(r).tsp_two_step and r["master"]["counters"]["follow_ups"] > 0)
         # the master stopped with the modules (it had run on 0.5 s, guessing and then excluding them;
