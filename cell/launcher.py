@@ -275,14 +275,18 @@ async def child_cell(
     """`cell up` in a child process, healthy when the block starts, stopped when it ends (for
     `cell run --up`, `cell demo` and benchmarks); quiet: without its summary at the stop."""
     # (--watch-stdin: the cell stops when this process ends, however it ends: SIGTERM or SIGKILL
-    # leave no cell running behind a benchmark)
+    # leave no cell running behind a benchmark.  A session of its own: a terminal's Ctrl-C reaches
+    # this process, which stops the cell with one SIGTERM; had the cell had the SIGINT too, that
+    # SIGTERM was its second signal, on which it exits at once, leaving its XDP switch behind)
     cmd = [sys.executable, "-m", "cell", "--log-level", "WARNING", "up", "--watch-stdin"]
     if config_path is not None:
         cmd += ["--config", str(config_path)]
     if config.cell.host:
         cmd += ["--host", config.cell.host]
     out = subprocess.DEVNULL if quiet else None
-    proc = await asyncio.create_subprocess_exec(*cmd, stdin=subprocess.PIPE, stdout=out, env=dict(os.environ))
+    proc = await asyncio.create_subprocess_exec(
+        *cmd, stdin=subprocess.PIPE, stdout=out, env=dict(os.environ), start_new_session=True
+    )
     try:
         await wait_healthy(config, set(status_names(config)), 60.0, proc)
         yield

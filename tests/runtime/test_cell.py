@@ -118,24 +118,40 @@ aio.run(main())
 """
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
-async def test_a_cell_a_benchmark_started_stops_when_the_benchmark_is_killed(sig: int) -> None:
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL", "Ctrl-C"])
+async def test_a_cell_a_benchmark_started_stops_when_the_benchmark_is_killed(how: str) -> None:
     """`cell bench ...` (cell.cellproc.running_cell) ended by a signal it cannot clean up after
-    leaves no `cell up` behind it (one held the packet path's core and ports until killed by hand)."""
+    leaves no `cell up` behind it (one held the packet path's core and ports until killed by hand).
+    A terminal's Ctrl-C (SIGINT to the foreground process group) stops the cell in order: it reaches
+    the benchmark alone, which stops the cell with one SIGTERM (had the cell had the SIGINT too, the
+    SIGTERM was its second signal: it exited at once and left a fleet bench's XDP switch behind)."""
     bench = await asyncio.create_subprocess_exec(
-        sys.executable, "-c", BENCH, stdout=asyncio.subprocess.PIPE, env=cell_env()
+        sys.executable,
+        "-c",
+        BENCH,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+        env=cell_env(),
+        start_new_session=True,  # (its own process group, as a terminal's foreground job)
     )
-    assert bench.stdout is not None
+    assert bench.stdout is not None and bench.stderr is not None
     async with asyncio.timeout(60):
         line = await bench.stdout.readline()
     cell = [int(p) for p in line.split()]
     assert len(cell) == 2 and all(pid_alive(p) for p in cell), line
-    bench.send_signal(sig)
-    await bench.wait()
+    if how == "Ctrl-C":
+        os.killpg(bench.pid, signal.SIGINT)
+    else:
+        bench.send_signal(signal.Signals[how])
+    async with asyncio.timeout(30):
+        err = (await bench.stderr.read()).decode()
+        await bench.wait()
     deadline = time.monotonic() + 10
     while any(pid_alive(p) for p in cell) and time.monotonic() < deadline:
         await asyncio.sleep(0.05)
     assert [p for p in cell if pid_alive(p)] == []
+    if how == "Ctrl-C":
+        assert "exiting now" not in err, err  # (the launcher's words on a second signal)
 
 
 async def test_a_killed_process_is_restarted_and_counted_and_the_rest_runs_on(start_cell) -> None:
