@@ -118,6 +118,12 @@ aio.run(main())
 """
 
 
+def _sigint_as_at_a_terminal() -> None:
+    """A process started in the background by a shell that has no job control ignores SIGINT, and so
+    do its children: a job at a terminal has it at its default (Python's KeyboardInterrupt)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL", "Ctrl-C"])
 async def test_a_cell_a_benchmark_started_stops_when_the_benchmark_is_killed(how: str) -> None:
     """`cell bench ...` (cell.cellproc.running_cell) ended by a signal it cannot clean up after
@@ -132,7 +138,8 @@ async def test_a_cell_a_benchmark_started_stops_when_the_benchmark_is_killed(how
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
         env=cell_env(),
-        start_new_session=True,  # (its own process group, as a terminal's foreground job)
+        start_new_session=True,  # (its own process group, as a terminal's foreground job ...
+        preexec_fn=_sigint_as_at_a_terminal,  # (... and SIGINT not ignored, as under CI's runner)
     )
     assert bench.stdout is not None and bench.stderr is not None
     async with asyncio.timeout(60):
