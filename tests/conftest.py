@@ -16,6 +16,7 @@ from typing import TypeVar
 import pytest
 import tomli_w
 
+from cell import sched
 from cell.bus import Forwarder
 from cell.config import BusConfig, CellConfig, load_config
 from cell.ports import free_block, free_port
@@ -150,6 +151,11 @@ def host_pace() -> float:
     return took / _best_pace_s[0]
 
 
+def most_stolen(before: dict[int, float]) -> float:
+    """The most any one CPU had stolen since `before` (a sched.stolen_seconds() reading), s."""
+    return max(sched.stolen_since(before).values(), default=0.0)
+
+
 def run_unless_stolen(
     run: Callable[[], T],
     timing: Callable[[T], str | None],
@@ -163,15 +169,13 @@ def run_unless_stolen(
     the trial: it is then waited for, up to RECOVER_S), or disturbed(trial) says how the trial's own
     control group fared (what the test did not touch, late too).  A miss otherwise, or on the last
     attempt, fails the test with what was missed and why it was not run again."""
-    from cell import sched
-
     for attempt in range(attempts):
         before, pace = sched.stolen_seconds(), host_pace()
         out = run()
         missed = timing(out)
         if missed is None:
             return out
-        steal = max(sched.stolen_since(before).values(), default=0.0)
+        steal = most_stolen(before)
         pace = max(pace, host_pace())
         seen = disturbed(out) if disturbed is not None else None
         why = f"steal {steal * 1e3:.0f} ms, the host at {pace:.2f}x its best time"
@@ -360,10 +364,7 @@ _rerun: list[str] = []  # what was run again and why, for the session's summary
 
 
 def _steal_share(before: dict[int, float], t0: float) -> float:
-    from cell import sched
-
-    took = max(time.monotonic() - t0, 1e-3)
-    return max(sched.stolen_since(before).values(), default=0.0) / took
+    return most_stolen(before) / max(time.monotonic() - t0, 1e-3)
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -377,8 +378,6 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
     if item.get_closest_marker("slow") is None:
         return None
     from _pytest.runner import runtestprotocol
-
-    from cell import sched
 
     item.ihook.pytest_runtest_logstart(nodeid=item.nodeid, location=item.location)
     before, t0 = sched.stolen_seconds(), time.monotonic()
