@@ -40,6 +40,7 @@ from cell.config import CellConfig, load_config
 from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.rlink.client import EventClient
+from cell.sched import stolen_seconds, stolen_since
 from cell.skills.client import ConnectionLost, MoveJoints, RobotClient, SetSpeed, SkillError
 from cell.status import Health
 from cell.v1 import health_pb2
@@ -150,14 +151,15 @@ class Campaign:
     async def estop(self) -> EStop:
         """An e-stop of every robot over the Responsive Link, as `cell estop` sends it; until each
         robot reports it stands (or 5 s)."""
-        t0 = time.monotonic_ns()
+        t0, steal = time.monotonic_ns(), stolen_seconds()
         names = {r.id: r.name for r in self.config.robots}
         try:
             async with EventClient(self.config) as ev:
                 ms = await ev.estop(timeout=5.0)
         except (TimeoutError, OSError) as exc:
             return EStop(t0, {}, str(exc))
-        return EStop(t0, {names[i]: v for i, v in ms.items()})
+        stolen = max(stolen_since(steal).values(), default=0.0) * 1e3
+        return EStop(t0, {names[i]: v for i, v in ms.items()}, stolen_ms=stolen)
 
     async def resume(self) -> None:
         with contextlib.suppress(TimeoutError, OSError):
@@ -355,7 +357,8 @@ class Campaign:
         return FaultResult(fault.name, held, detail, detect, recover, figures)
 
     def _estop_held(self, fault: Fault, e: EStop, t_fault: int, t_resume: int) -> tuple[bool, str]:
-        """Every robot stood within its bound of the order, by its truth (no motion from then until
+        """Every robot stood within its bound of the order (its braking, ESTOP_MARGIN_MS and what the
+        hypervisor stole meanwhile), by its truth (no motion from then until
         the release), or where no truth was heard (the bus down) by its own report over the
         Responsive Link (REPORT_MS later).  No order gets through a killed or hung hub: the link's
         watchdog must then stop the robots ([rlink] watchdog_s after the fault, +1/4 of it: how often a
@@ -382,7 +385,7 @@ class Campaign:
             if samples:
                 top = min(top, samples[0][1] + a * (samples[0][0] - since) / 1e9)
             top = min(top, float(np.max(models.get(self.config.robot(r).model).v_max)))  # (its joints' top)
-            bound = self.estop_bound_ms(r, top)
+            bound = self.estop_bound_ms(r, top) + e.stolen_ms
             moving = [t for t, qd, _, _ in samples if qd >= REST]
             by_truth = (max(moving) - since) / 1e6 if moving else 0.0
             heard = bool(samples) and samples[-1][0] - since > bound * 1e6
@@ -391,7 +394,8 @@ class Campaign:
             ok = ok and good
             told = "no report" if reported is None else f"reported still {reported:.0f} ms"
             truth = f"truth moving until {by_truth:.0f} ms" if heard else "no truth heard"
-            notes.append(f"{r}: {truth}, {told} (bound {bound:.0f} ms)")
+            stolen = f", {e.stolen_ms:.0f} of them stolen" if e.stolen_ms else ""
+            notes.append(f"{r}: {truth}, {told} (bound {bound:.0f} ms{stolen})")
         how = "by the order" if since == e.t_ns else "by the link's watchdog (the hub down)"
         return ok, f"{how}: " + "; ".join(notes) + (f"; {e.error}" if e.error else "")
 
