@@ -22,6 +22,8 @@ import os
 import threading
 import time
 
+from cell import rtbudget
+
 log = logging.getLogger("cell.sched")
 
 _POLICY = {
@@ -314,6 +316,7 @@ def hand_over(tid: int, nice: int = RT_NICE) -> list[str]:
     words (a process that asked for no real-time priority: nothing to hand over)."""
     if tid <= 0 or not (LOOP_PRIORITY or realtime() or RT_THREADS):
         return []
+    rtbudget.exempt(tid)  # (where a budget watches the rest of the process: not this loop)
     if LOOP_PRIORITY and tid not in RT_THREADS:
         try:
             os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY))
@@ -332,14 +335,17 @@ def rest_at(priority: int) -> list[str]:
     if not LOOP_PRIORITY:  # (a process place() made real-time as a whole is so already)
         return []
     REST_PRIORITY = max(REST_PRIORITY, max(1, min(priority, LOOP_PRIORITY - 1)))  # (under the loops)
-    return _rest(REST_PRIORITY, RT_NICE)
+    problems = _rest(REST_PRIORITY, RT_NICE)
+    if not problems:  # (real-time granted: within its budget, never the kernel's RT throttling)
+        problems = rtbudget.start(LOOP_PRIORITY, REST_PRIORITY, RT_NICE, RT_THREADS)
+    return problems
 
 
 def _rest(priority: int, nice: int) -> list[str]:
     """Every thread but the native loops at SCHED_FIFO `priority`, or the normal policy at `nice`."""
     problems: list[str] = []
     for t in _threads():
-        if t in RT_THREADS:
+        if t in RT_THREADS or t == rtbudget.watcher():
             continue
         try:
             if priority > 0:
@@ -363,10 +369,14 @@ def describe() -> str:
     policy = _policy()
     name = _POLICY.get(policy, f"policy {policy}")
     rt_thread = _rt_thread_policy()
-    if rt_thread and policy in _REALTIME:  # (the loop native, the rest of the process under it)
+    if rt_thread and rtbudget.watcher():  # (the rest real-time within its budget: at times normal)
+        what = f"{rt_thread} native, rest fifo {REST_PRIORITY}"
+    elif rt_thread and policy in _REALTIME:  # (the loop native, the rest of the process under it)
         what = f"{rt_thread} native, rest {name} {os.sched_getparam(0).sched_priority}"
     elif rt_thread:  # (the real-time loop is native, the rest of the process normal)
         what = f"{rt_thread} native, rest nice {os.getpriority(os.PRIO_PROCESS, 0)}"
+    elif rtbudget.watcher():  # (its Python real-time within its budget, no native loop: XDP's control)
+        what = f"fifo {REST_PRIORITY}"
     elif policy in _REALTIME:
         what = f"{name} {os.sched_getparam(0).sched_priority}"
     else:

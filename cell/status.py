@@ -213,6 +213,8 @@ def format_status(st: health_pb2.CellStatus, counters: bool = True) -> str:
     lines += format_robots(st)
     if held := rt_holds(st):
         lines.append(held)
+    if spent := rt_budget_spent(st):
+        lines.append(spent)
     if counters:
         for s in st.services:
             if s.last.counters:
@@ -252,6 +254,26 @@ def rt_holds(st: health_pb2.CellStatus) -> str | None:
     return (
         f"RT holds: real-time processes were held runnable but not run ({each}; longest {longest:.0f} ms): "
         f"the kernel's RT throttling or a higher priority on their CPU; see {RT_DOC}"
+    )
+
+
+def rt_budget_spent(st: health_pb2.CellStatus) -> str:
+    """The processes whose Python ran out of its real-time budget (cell.rtbudget), in one line; ""
+    if none did."""
+    spent: dict[str, tuple[float, float]] = {}
+    for s in st.services:
+        c = s.last.counters
+        if c.get("process.rt.budget_spent", 0.0):
+            spent[s.last.process or s.name] = (
+                c["process.rt.budget_spent"],
+                c.get("process.rt.budget_normal_ms", 0.0),
+            )
+    if not spent:
+        return ""
+    each = "; ".join(f"{p} {n:.0f}x, {ms:.0f} ms" for p, (n, ms) in sorted(spent.items()))
+    return (
+        f"RT budget: a real-time process's Python had more work than half its CPU and ran at the normal "
+        f"policy meanwhile ({each}), not to stop its CPU's native loops; see {RT_DOC}"
     )
 
 

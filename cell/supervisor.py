@@ -20,7 +20,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable
 
-from cell import aio, meter, sched
+from cell import aio, meter, rtbudget, sched
 from cell.bus import Bus, BusError
 from cell.config import MAIN_GROUP, CellConfig
 from cell.service import ServiceContext, ServiceSpec
@@ -203,6 +203,7 @@ class Supervisor:
             process["process.cpu_ms_per_s"] = cpu
         if meter.HELD is not None:  # (a real-time process: the kernel's RT throttling, seen)
             process.update(meter.HELD.counters("process.rt."))
+        process.update(rtbudget.counters("process.rt."))  # (its Python's real-time budget, if it has one)
         placement = sched.describe()
         for r in self.runners:
             self._bus.publish(f"health/{r.name}", r.heartbeat(process, placement))

@@ -125,6 +125,7 @@ class URArm:
         # from its physics (set by cell.ur.server), none for an arm without a dynamics model
         self.torques: Callable[[], tuple[np.ndarray, np.ndarray]] = lambda: (np.zeros(dof), np.zeros(dof))
         self._values: dict[str, tuple] = {}  # the fields asked for since the last update, computed
+        self._jacobian: np.ndarray | None = None  # (this tick's, once asked for)
 
     # --- modes -------------------------------------------------------------------------------
 
@@ -158,75 +159,30 @@ class URArm:
             self.qdd = (qd - self.qd) / dt
         self.q, self.qd, self.target_qd, self.timestamp = q.copy(), qd.copy(), target_qd.copy(), t
         self._values.clear()
+        self._jacobian = None
 
     def _pose(self) -> tuple[float, ...]:
         """The TCP pose as a UR gives it: x, y, z (m) and a rotation vector (rad), base frame."""
         return tuple(self.tool.fk(self.q).tolist())
 
-    def _speed(self) -> tuple[float, ...]:
-        """The TCP's velocity, linear (m/s) and angular (rad/s), base frame: the arm's Jacobian."""
-        return tuple((self.tool.jacobian(self.q) @ self.qd).tolist())
+    def jacobian(self) -> np.ndarray:
+        """The arm's Jacobian at its joints now (once a tick: the TCP's speed and acceleration)."""
+        if self._jacobian is None:
+            self._jacobian = self.tool.jacobian(self.q)
+        return self._jacobian
 
     def values(self, name: str) -> tuple:
-        """One RTDE output field's values now, flattened (rtde.Source)."""
-        got = self._values.get(name)
+        """One RTDE output field's values now, flattened (rtde.Source); computed once a tick, once
+        for the fields that are the same here (a 500 Hz ur_rtde recipe's ~40 fields, every tick)."""
+        key = _SAME.get(name, name)
+        got = self._values.get(key)
         if got is None:
-            got = self._values[name] = self._compute(name)
+            compute = _FIELDS.get(key)
+            got = self._values[key] = compute(self) if compute is not None else self._compute(key)
         return got
 
     def _compute(self, name: str) -> tuple:
-        if name == "timestamp":
-            return (self.timestamp,)
-        if name == "target_q" and self.reference is not None:
-            return tuple(self.reference[0].tolist())
-        if name in ("actual_q", "target_q"):
-            return tuple(self.q.tolist())
-        if name == "target_qd" and self.reference is not None:
-            return tuple(self.reference[1].tolist())
-        if name in ("actual_qd", "target_qd"):
-            return tuple(self.qd.tolist()) if name == "actual_qd" else tuple(self.target_qd.tolist())
-        if name in ("actual_qdd", "target_qdd"):
-            return tuple(self.qdd.tolist())
-        if name in ("actual_TCP_pose", "target_TCP_pose"):
-            return self._pose()
-        if name in ("actual_TCP_speed", "target_TCP_speed"):
-            return self._speed()
-        if name in ("actual_TCP_acceleration", "target_TCP_acceleration"):  # (J q'', as a UR's: no J' q')
-            return tuple((self.tool.jacobian(self.q) @ self.qdd).tolist())
-        if name in ("target_moment", "actual_current_as_torque"):
-            return tuple(self.torques()[0].tolist())
-        if name == "tcp_offset":
-            return tuple(self.tool.tcp.tolist())
-        if name == "control_step":  # (the controller's 2 ms steps since its start)
-            return (max(0, round(self.timestamp / CONTROL_STEP_S)),)
-        if name == "target_gravity":
-            return self.gravity
-        if name == "tool_output_voltage":
-            return (self.tool_voltage,)
-        if name in ("actual_configurable_digital_output_bits", "actual_configurable_digital_input_bits"):
-            bits = self.digital_out if name.endswith("output_bits") else self.digital_in
-            return ((bits >> 8) & 0xFF,)
-        if name == "robot_mode":
-            return (int(self.robot_mode),)
-        if name == "safety_mode" or name == "safety_status":
-            return (int(self.safety_mode),)
-        if name == "joint_mode":
-            mode = JointMode.RUNNING if self.robot_mode == RobotMode.RUNNING else JointMode.POWER_OFF
-            return (int(mode),) * 6
-        if name == "runtime_state":
-            return (int(self.runtime),)
-        if name == "robot_status_bits":
-            return (self.robot_status_bits,)
-        if name == "safety_status_bits":
-            return (self.safety_status_bits,)
-        if name in ("speed_scaling", "target_speed_fraction"):
-            return (self.speed_fraction if self.can_move else 0.0,)
-        if name == "actual_digital_output_bits":
-            return (self.digital_out,)
-        if name == "actual_digital_input_bits":
-            return (self.digital_in,)
-        if name == "actual_execution_time":
-            return (0.0,)
+        """The fields _FIELDS does not name one by one: the registers, and those with no model here."""
         if name.startswith(("output_int_register_", "input_int_register_")):
             regs = self.int_out if name.startswith("output") else self.int_in
             return (regs[int(name.rsplit("_", 1)[1])],)
@@ -239,17 +195,7 @@ class URArm:
         if name.startswith(("output_bit_register_", "input_bit_register_")):
             bits = self.bits_out if name.startswith("output") else self.bits_in
             return (bool(bits >> int(name.rsplit("_", 1)[1]) & 1),)
-        if name in ("standard_analog_output0", "standard_analog_output1"):
-            return (self.analog_out[int(name[-1])],)
-        if name == "payload":
-            return (self.payload,)
-        if name == "payload_cog":
-            return self.cog
         # the fields the emulator has no model of: fixed, plausible values
-        if name == "actual_main_voltage" or name == "actual_robot_voltage":
-            return (48.0,)
-        if name == "joint_temperatures":
-            return (30.0,) * 6
         zero = False if OUTPUTS[name] == Type.BOOL else 0
         return (zero,) * WIDTH.get(OUTPUTS[name], 1)
 
@@ -302,3 +248,62 @@ class URArm:
         for i in (0, 1):
             if m >> i & 1 and f"standard_analog_output_{i}" in given:
                 self.analog_out[i] = float(given[f"standard_analog_output_{i}"])
+
+
+def _configurable(bits: int) -> tuple:
+    return ((bits >> 8) & 0xFF,)
+
+
+def _joint_mode(a: URArm) -> tuple:
+    mode = JointMode.RUNNING if a.robot_mode == RobotMode.RUNNING else JointMode.POWER_OFF
+    return (int(mode),) * 6
+
+
+# each RTDE output field the emulator models, by name (URArm.values)
+_FIELDS: dict[str, Callable[[URArm], tuple]] = {
+    "timestamp": lambda a: (a.timestamp,),
+    "actual_q": lambda a: tuple(a.q.tolist()),
+    "target_q": lambda a: tuple((a.q if a.reference is None else a.reference[0]).tolist()),
+    "actual_qd": lambda a: tuple(a.qd.tolist()),
+    "target_qd": lambda a: tuple((a.target_qd if a.reference is None else a.reference[1]).tolist()),
+    "actual_qdd": lambda a: tuple(a.qdd.tolist()),
+    "actual_TCP_pose": URArm._pose,
+    "actual_TCP_speed": lambda a: tuple((a.jacobian() @ a.qd).tolist()),
+    # (J q'', as a UR's: no J' q')
+    "actual_TCP_acceleration": lambda a: tuple((a.jacobian() @ a.qdd).tolist()),
+    "target_moment": lambda a: tuple(a.torques()[0].tolist()),
+    "tcp_offset": lambda a: tuple(a.tool.tcp.tolist()),
+    "control_step": lambda a: (max(0, round(a.timestamp / CONTROL_STEP_S)),),  # (its 2 ms steps so far)
+    "target_gravity": lambda a: a.gravity,
+    "tool_output_voltage": lambda a: (a.tool_voltage,),
+    "actual_configurable_digital_output_bits": lambda a: _configurable(a.digital_out),
+    "actual_configurable_digital_input_bits": lambda a: _configurable(a.digital_in),
+    "robot_mode": lambda a: (int(a.robot_mode),),
+    "safety_mode": lambda a: (int(a.safety_mode),),
+    "joint_mode": _joint_mode,
+    "runtime_state": lambda a: (int(a.runtime),),
+    "robot_status_bits": lambda a: (a.robot_status_bits,),
+    "safety_status_bits": lambda a: (a.safety_status_bits,),
+    "speed_scaling": lambda a: (a.speed_fraction if a.can_move else 0.0,),
+    "actual_digital_output_bits": lambda a: (a.digital_out,),
+    "actual_digital_input_bits": lambda a: (a.digital_in,),
+    "actual_execution_time": lambda a: (0.0,),
+    "standard_analog_output0": lambda a: (a.analog_out[0],),
+    "standard_analog_output1": lambda a: (a.analog_out[1],),
+    "payload": lambda a: (a.payload,),
+    "payload_cog": lambda a: a.cog,
+    # the fields the emulator has no model of: fixed, plausible values
+    "actual_main_voltage": lambda a: (48.0,),
+    "joint_temperatures": lambda a: (30.0,) * 6,
+}
+# fields whose values are another's here (computed once a tick for both)
+_SAME = {
+    "target_TCP_pose": "actual_TCP_pose",
+    "target_TCP_speed": "actual_TCP_speed",
+    "target_TCP_acceleration": "actual_TCP_acceleration",
+    "target_qdd": "actual_qdd",
+    "actual_current_as_torque": "target_moment",
+    "safety_status": "safety_mode",
+    "target_speed_fraction": "speed_scaling",
+    "actual_robot_voltage": "actual_main_voltage",
+}

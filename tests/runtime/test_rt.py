@@ -16,7 +16,8 @@ import time
 import pytest
 
 from cell.launcher import fetch_status
-from cell.status import rt_holds
+from cell.status import rt_budget_spent, rt_holds
+from cell.v1 import health_pb2
 from tests.conftest import free_port, run_cell
 
 # a loop on a CPU of its own busy ~98% of the time for 2.2 s, at SCHED_FIFO 50, one on each CPU (the
@@ -28,7 +29,10 @@ LOOP = """
 import json, os, sys, time
 from cell import sched
 how, cpu, start = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-problems = sched.place([cpu], 50, -10)
+if how == "budget":  # (a group's native loops at 70, its Python at 50 under a budget: rest_at)
+    problems = sched.place_loops([cpu], 70, -10) + sched.rest_at(50)
+else:
+    problems = sched.place([cpu], 50, -10)
 if problems:
     print(json.dumps({"refused": problems})); sys.exit(0)
 held, rt = sched.Held(), sched.Spin()
@@ -45,12 +49,14 @@ while (now := clock()) < end:
     if how == "spin":
         rt.poll()
     policies.add(os.sched_getscheduler(0) & 0xFF)
-    if (now // 1_000_000) % 100 == 99:  # ~1-2 ms in 100 asleep
+    if how != "budget" and (now // 1_000_000) % 100 == 99:  # ~1-2 ms in 100 asleep
         rt.sleep()
         policies.add(os.sched_getscheduler(0) & 0xFF)
         time.sleep(0.0009)
         last = clock()
-print(json.dumps({"gap_ms": gap / 1e6, "held": held.counters(), "policies": sorted(policies)}))
+from cell import rtbudget
+out = {"gap_ms": gap / 1e6, "held": held.counters(), "policies": sorted(policies)}
+print(json.dumps({**out, "budget": rtbudget.counters("rt.")}))
 """
 
 
@@ -90,6 +96,42 @@ def test_polling_at_fifo_is_throttled_and_seen_polling_through_spin_is_not() -> 
     assert spin["held"]["rt.held_max_ms"] < 15, spin
     # (asleep at FIFO, polling too within its budget, past it not)
     assert spin["policies"] == [os.SCHED_OTHER, os.SCHED_FIFO], spin
+
+
+@pytest.mark.slow
+@pytest.mark.skipif((os.cpu_count() or 1) < 2 or not sys.platform.startswith("linux"), reason="2 CPUs, Linux")
+def test_python_at_fifo_that_never_sleeps_is_kept_to_its_budget_and_never_throttled() -> None:
+    # the same busy loop at FIFO 50 as "fifo" above, but through sched.rest_at (a robots process
+    # ticking a UR daemon's group in Python): the budget's watcher moves it to the normal policy for
+    # the rest of each 100 ms window once it used 50 ms, so the kernel's 95% is never reached
+    budget = run("budget")
+    assert budget["gap_ms"] < 15, budget
+    assert budget["held"]["rt.held_max_ms"] < 15, budget
+    assert budget["policies"] == [os.SCHED_OTHER, os.SCHED_FIFO], budget
+    # about one spent budget a window over the loop's 2.2 s, each followed by ~50 ms at the normal policy
+    b = budget["budget"]
+    assert b["rt.budget_spent"] >= 10 and b["rt.budget_normal_ms"] >= 10 * 40, b
+    assert 45 <= b["rt.budget_used_max_ms"] <= 100, b
+
+
+def test_cell_status_names_a_process_whose_python_ran_out_of_its_real_time_budget() -> None:
+    def status(spent: float) -> health_pb2.CellStatus:
+        robots = health_pb2.Heartbeat(
+            process="robots",
+            counters={"process.rt.budget_spent": spent, "process.rt.budget_normal_ms": 40.0 * spent},
+        )
+        main = health_pb2.Heartbeat(process="main", counters={"process.cpu_s": 1.0})
+        return health_pb2.CellStatus(
+            services=[
+                health_pb2.ServiceStatus(name="robots", last=robots),
+                health_pb2.ServiceStatus(name="bus", last=main),
+            ]
+        )
+
+    assert rt_budget_spent(status(0.0)) == ""
+    said = rt_budget_spent(status(3.0))
+    assert said.startswith("RT budget: ") and "(robots 3x, 120 ms)" in said and "main" not in said, said
+    assert "docs/running.md#rt-throttling" in said
 
 
 def throttling_off() -> bool:
@@ -210,7 +252,18 @@ async def test_a_busy_process_on_every_core_reaches_no_arm(start_cell) -> None:
         st = await fetch_status(cell.config)
         return {s.name: dict(s.last.counters) for s in st.services if s.name in ("robots", "dataplane")}
 
-    status = await fetch_status(cell.config)
+    # (the robots' heartbeat says how its process is scheduled once its tick thread runs: the first
+    # may come before, "nice -10, cpu 1")
+    async def robots_sched() -> tuple[health_pb2.CellStatus, str]:
+        status = await fetch_status(cell.config)
+        return status, next(s for s in status.services if s.name == "robots").last.sched
+
+    status, sched = await robots_sched()
+    with contextlib.suppress(TimeoutError):
+        async with asyncio.timeout(5):
+            while "native" not in sched:
+                await asyncio.sleep(0.1)  # (the next heartbeat's)
+                status, sched = await robots_sched()
     st = {s.name: s for s in status.services}
     if not st["robots"].last.sched.startswith("fifo"):
         pytest.skip(f"the robots' process is not real-time here ({st['robots'].last.sched})")

@@ -5,6 +5,7 @@ it through the data plane exactly as it drives its own arms: the real bytes both
 from __future__ import annotations
 
 import asyncio
+import os
 
 import dashboard_client
 import numpy as np
@@ -111,6 +112,11 @@ async def test_the_demo_motions_run_through_the_daemon_on_an_arm_reached_only_ov
     assert (
         "r1         127.0.1.1        ur5e (emulated, mujoco; the daemon's program: running)" in status.stdout
     )
+    # the daemon's group ticks in Python: the robots' Python at FIFO 50 where SCHED_FIFO is granted,
+    # under a budget (cell.rtbudget) that keeps it from the kernel's RT throttling
+    robots = next(s for s in (await fetch_status(cell.config)).services if s.name == "robots").last
+    if os.geteuid() == 0:
+        assert "rest fifo 50" in robots.sched and "process.rt.budget_spent" in robots.counters, robots
 
 
 async def _move_once_heard(bus: Bus, goal: np.ndarray) -> None:
