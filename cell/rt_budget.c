@@ -3,10 +3,11 @@
  * the native loops of its CPU; if it ever has more work than its CPU, the kernel's RT throttling
  * (950 ms of each second) stops every real-time thread of that CPU for the rest of the second: the
  * robots' C tick of every other arm, the data plane's loop.  A watcher thread, at the native loops'
- * priority, reads the CPU time of the process's other threads every CHECK and, once they used BUDGET
- * of a WINDOW, moves them to the normal policy until the window ends (the kernel's limit is never
- * reached; they still run, at their nice value).  The idea of sched.Spin, for code that cannot
- * check its own budget (uvloop's callbacks, C extensions).
+ * priority, reads the CPU time of the process's other threads when they could have spent the
+ * budget at the soonest and at each window's end; once they used BUDGET of a WINDOW it moves them
+ * to the normal policy until the window ends (the kernel's limit is never reached; they still run,
+ * at their nice value).  The idea of sched.Spin, for code that cannot check its own budget
+ * (uvloop's callbacks, C extensions).
  */
 #define _GNU_SOURCE
 #include "rt_thread.h"
@@ -22,13 +23,15 @@
 typedef struct {
     int64_t priority;  /* SCHED_FIFO of the budgeted threads while they have budget left */
     int64_t nice;      /* theirs at the normal policy, once it is spent */
-    int64_t window_ns, budget_ns, check_ns;
+    int64_t window_ns, budget_ns, check_ns; /* check_ns: the least time between two looks */
+    int64_t cpus;                           /* the CPUs the budgeted threads may run on */
     int64_t loops[MAX_LOOPS]; /* the native loops' thread ids: not budgeted, never moved */
     int64_t n_loops;          /* (written by Python after the id: read with acquire) */
     int64_t stop, tid;        /* tid: the watcher's own */
     int64_t spent;            /* windows whose budget was spent */
     int64_t normal_ns;        /* time the budgeted threads spent at the normal policy */
     int64_t used_max_ns;      /* the most they used of one window */
+    int64_t looks;            /* the watcher's wake-ups */
     void *rt;                 /* (C's own: the thread) */
 } budget_t;
 
@@ -98,13 +101,21 @@ static void restore(budget_t *b) {
 static void *watch(void *arg) {
     budget_t *b = arg;
     __atomic_store_n(&b->tid, (int64_t)gettid(), __ATOMIC_RELEASE);
-    int64_t start = mono_ns(), next = start, base = budgeted_ns(b), since = 0;
+    int64_t start = mono_ns(), base = budgeted_ns(b), since = 0, used = 0;
     int normal = 0;
     while (!__atomic_load_n(&b->stop, __ATOMIC_ACQUIRE)) {
-        next += b->check_ns;
-        struct timespec at = {.tv_sec = next / 1000000000, .tv_nsec = next % 1000000000};
+        /* the next look: the window's end, or the soonest the budget could be spent (the threads
+         * use at most `cpus` CPU-seconds a second): an idle Python costs it 2-3 wakes a window */
+        int64_t now = mono_ns(), wake = start + b->window_ns;
+        if (!normal) {
+            int64_t soonest = now + (b->budget_ns - used) / (b->cpus > 0 ? b->cpus : 1);
+            if (soonest < wake) wake = soonest;
+        }
+        if (wake < now + b->check_ns) wake = now + b->check_ns;
+        struct timespec at = {.tv_sec = wake / 1000000000, .tv_nsec = wake % 1000000000};
         if (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &at, NULL)) continue;
-        int64_t now = mono_ns(), used = budgeted_ns(b) - base;
+        now = mono_ns();
+        used = budgeted_ns(b) - base;
         if (now - start >= b->window_ns) { /* a new window: its budget whole again */
             if (used > b->used_max_ns) b->used_max_ns = used;
             if (normal) {
@@ -114,13 +125,14 @@ static void *watch(void *arg) {
             }
             start = now;
             base = budgeted_ns(b);
-            if (next < now) next = now; /* (a watcher held back: no burst of checks) */
+            used = 0;
         } else if (!normal && used >= b->budget_ns) {
             demote(b);
             b->spent++;
             normal = 1;
             since = now;
         }
+        b->looks++;
     }
     if (normal) restore(b);
     return NULL;

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import os
 from pathlib import Path
 
 from cell.native import CFLAGS, NativeUnavailable, build
@@ -22,7 +23,9 @@ WINDOW_NS = 100_000_000
 # half of each window: with the native loops' share (a robots tick thread ~10%) the CPU's real-time
 # threads stay far under the kernel's 95%, and the CPU's normal threads get time in every window
 BUDGET_NS = 50_000_000
-CHECK_NS = 5_000_000  # how often the watcher looks (a wake costs it a few microseconds)
+# the least time between two looks of the watcher: it looks when the budget could be spent at the
+# soonest (and at each window's end), 2-3 times a window for an idle Python
+CHECK_NS = 2_000_000
 MAX_LOOPS = 32  # rt_budget.c's
 _I = ctypes.c_int64
 
@@ -31,9 +34,9 @@ class BudgetState(ctypes.Structure):
     """budget_t of rt_budget.c."""
 
     _fields_ = [
-        *((name, _I) for name in ("priority", "nice", "window_ns", "budget_ns", "check_ns")),
+        *((name, _I) for name in ("priority", "nice", "window_ns", "budget_ns", "check_ns", "cpus")),
         ("loops", _I * MAX_LOOPS),
-        *((name, _I) for name in ("n_loops", "stop", "tid", "spent", "normal_ns", "used_max_ns")),
+        *((name, _I) for name in ("n_loops", "stop", "tid", "spent", "normal_ns", "used_max_ns", "looks")),
         ("rt", ctypes.c_void_p),
     ]
 
@@ -63,8 +66,9 @@ def start(watcher_priority: int, priority: int, nice: int, loops: set[int]) -> l
         lib = _lib()
     except NativeUnavailable as exc:
         return [f"no real-time budget for this process's Python ({exc})"]
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     st = BudgetState(
-        priority=priority, nice=nice, window_ns=WINDOW_NS, budget_ns=BUDGET_NS, check_ns=CHECK_NS
+        priority=priority, nice=nice, window_ns=WINDOW_NS, budget_ns=BUDGET_NS, check_ns=CHECK_NS, cpus=cpus
     )
     for tid in loops:
         exempt(tid, st)
@@ -99,6 +103,7 @@ def counters(prefix: str) -> dict[str, float]:
         f"{prefix}budget_spent": float(st.spent),
         f"{prefix}budget_normal_ms": st.normal_ns / 1e6,
         f"{prefix}budget_used_max_ms": st.used_max_ns / 1e6,
+        f"{prefix}budget_looks": float(st.looks),
     }
 
 

@@ -113,11 +113,14 @@ loop_policy = os.sched_getscheduler(tid) & 0xFF  # (before any hand_over: from i
 problems += sched.hand_over(tid)
 now, described = policies(), sched.describe()
 problems += sched.rest_at(50)  # (a Python loop that must be real-time: under the native one)
-raised = {t: os.sched_getparam(t).sched_priority for t in policies() if t != tid}
+from cell import rtbudget
+watcher = rtbudget.watcher()  # (the rest's budget: at the loops' priority, over the rest)
+raised = {t: os.sched_getparam(t).sched_priority for t in policies() if t not in (tid, watcher)}
+watching = os.sched_getparam(watcher).sched_priority if watcher else 0
 server.stop()
 print(json.dumps({"problems": problems, "started": list(started.values()), "loop": loop_policy,
                   "rest": [p for t, p in now.items() if t != tid], "now": described,
-                  "raised": list(raised.values())}))
+                  "raised": list(raised.values()), "watcher": watching}))
 """
 
 
@@ -136,6 +139,7 @@ def test_a_real_time_group_runs_its_native_loop_alone_at_its_priority_from_its_s
     assert set(got["rest"]) == {os.SCHED_OTHER}
     assert got["now"].startswith("fifo 10 native, rest nice -10, cpu 0"), got["now"]
     assert set(got["raised"]) == {9}  # (rest_at: capped under the loop's 10)
+    assert got["watcher"] == 10  # (and its budget's watcher, cell.rtbudget, at the loop's priority)
 
 
 def test_a_benchmarks_client_process_that_dies_is_reported_at_once_not_at_its_timeout() -> None:

@@ -112,6 +112,10 @@ def test_python_at_fifo_that_never_sleeps_is_kept_to_its_budget_and_never_thrott
     b = budget["budget"]
     assert b["rt.budget_spent"] >= 10 and b["rt.budget_normal_ms"] >= 10 * 40, b
     assert 45 <= b["rt.budget_used_max_ms"] <= 100, b
+    # the watcher looks when the budget could be spent at the soonest and at each window's end: 3-4
+    # looks a window here (the budget's end is neared in steps of 2 ms at least; polling every 2 ms
+    # would be ~1,100 looks)
+    assert b["rt.budget_looks"] <= 5 * 2.2 / 0.1 + 5, b
 
 
 def test_cell_status_names_a_process_whose_python_ran_out_of_its_real_time_budget() -> None:
