@@ -275,7 +275,10 @@ async def test_a_busy_process_on_every_core_reaches_no_arm(start_cell) -> None:
     in_kernel = status.dataplane.startswith("xdp")  # (else its packet path is a native loop of its own)
     assert in_kernel == cell.config.dataplane.runs.in_kernel
     assert in_kernel or "native" in st["dataplane"].last.sched
-    before = await packet_path()
+    # (and measured from once the data plane answers them: a cell this fresh may not yet)
+    async with asyncio.timeout(10):
+        while not (before := await packet_path())["robots"].get("commands"):
+            await asyncio.sleep(0.1)
     with hog(max_s=60):
         await asyncio.sleep(10)  # (the load's duration: what is measured is counted, not timed)
         during = await packet_path()
