@@ -272,7 +272,7 @@ def rt_budget_spent(st: health_pb2.CellStatus) -> str:
         return ""
     each = "; ".join(f"{p} {n:.0f}x, {ms:.0f} ms" for p, (n, ms) in sorted(spent.items()))
     return (
-        f"RT budget: a real-time process's Python had more work than half its CPU and ran at the normal "
+        f"RT budget: a real-time process's Python had more work than 70 % of its CPU and ran at the normal "
         f"policy meanwhile ({each}), not to stop its CPU's native loops; see {RT_DOC}"
     )
 
