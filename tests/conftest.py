@@ -357,9 +357,9 @@ def pytest_make_collect_report(collector: pytest.Collector) -> Iterator[None]:
     _fail_a_tool_skip(outcome.get_result())  # type: ignore[attr-defined]
 
 
-# --- a slow test that failed while the hypervisor took the VM's CPUs: run again, once, and said ----
+# --- a test that failed while the hypervisor took the VM's CPUs: run again, once, and said ---------
 
-STOLEN_SHARE = 0.03  # of a CPU's time over a slow test: seen 0.5-1.7 % quiet, 10-33 % in bursts
+STOLEN_SHARE = 0.03  # of a CPU's time over a test: seen 0.5-1.7 % quiet, 10-33 % in bursts
 _rerun: list[str] = []  # what was run again and why, for the session's summary
 
 
@@ -369,14 +369,13 @@ def _steal_share(before: dict[int, float], t0: float) -> float:
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> bool | None:
-    """A slow test (a whole cell, seconds of real time) that failed while the hypervisor stole
-    STOLEN_SHARE or more of a CPU's time over it is run once more, as run_unless_stolen does for a
-    timed trial: nothing in this VM ran meanwhile, the cell's real-time threads included (a fresh
-    clone's slow tier once failed four tests, each in a 5-minute burst of 10-33 % steal, which all
-    passed after it).  The second run's outcome is the test's; the first failure is named in the
-    session's summary.  A failure without steal, or on the second run, fails as ever."""
-    if item.get_closest_marker("slow") is None:
-        return None
+    """A test that failed while the hypervisor stole STOLEN_SHARE or more of a CPU's time over it is
+    run once more, as run_unless_stolen does for a timed trial: nothing in this VM ran meanwhile, the
+    cell's real-time threads included (a fresh clone's slow tier once failed four tests, each in a
+    5-minute burst of 10-33 % steal, which all passed after it; a fast-tier teleop test once used
+    its three timed attempts in one such burst, 770 ms stolen of ~3 s).  The second run's outcome is
+    the test's; the first failure is named in the session's summary.  A failure without steal, or
+    on the second run, fails as ever."""
     from _pytest.runner import runtestprotocol
 
     item.ihook.pytest_runtest_logstart(nodeid=item.nodeid, location=item.location)
