@@ -25,6 +25,7 @@ WINDOW_NS = 100_000_000
 # and the Python that needs real time (a UR daemon's e-stop path) loses it only in true overload (at
 # 50 % a CI run's daemon spent it in 138 windows of 150 and stood 14 ms past its e-stop bound)
 BUDGET_NS = 70_000_000
+SHARE = BUDGET_NS / WINDOW_NS  # (of its CPU, at the most, at real-time priority)
 # the least time between two looks of the watcher: it looks when the budget could be spent at the
 # soonest (and at each window's end), 2-3 times a window for an idle Python
 CHECK_NS = 2_000_000

@@ -419,6 +419,11 @@ def stolen_since(before: dict[int, float]) -> dict[int, float]:
     return {cpu: now[cpu] - before[cpu] for cpu in now if cpu in before}
 
 
+def most_stolen(before: dict[int, float]) -> float:
+    """The most any one CPU had stolen since `before` (a stolen_seconds() reading), s."""
+    return max(stolen_since(before).values(), default=0.0)
+
+
 def stolen_seconds() -> dict[int, float]:
     """Each CPU's steal time so far (/proc/stat): how long the hypervisor ran something else while
     this VM's vCPU had work.  A real-time thread cannot be held back more visibly: it was runnable

@@ -12,6 +12,7 @@ import socket
 import time
 from enum import StrEnum
 
+from cell import rtbudget
 from cell.bus import Bus, identity
 from cell.config import CellConfig
 from cell.v1 import health_pb2
@@ -272,8 +273,8 @@ def rt_budget_spent(st: health_pb2.CellStatus) -> str:
         return ""
     each = "; ".join(f"{p} {n:.0f}x, {ms:.0f} ms" for p, (n, ms) in sorted(spent.items()))
     return (
-        f"RT budget: a real-time process's Python had more work than 70 % of its CPU and ran at the normal "
-        f"policy meanwhile ({each}), not to stop its CPU's native loops; see {RT_DOC}"
+        f"RT budget: a real-time process's Python had more work than {rtbudget.SHARE:.0%} of its CPU and ran "
+        f"at the normal policy meanwhile ({each}), not to stop its CPU's native loops; see {RT_DOC}"
     )
 
 

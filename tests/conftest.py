@@ -151,11 +151,6 @@ def host_pace() -> float:
     return took / _best_pace_s[0]
 
 
-def most_stolen(before: dict[int, float]) -> float:
-    """The most any one CPU had stolen since `before` (a sched.stolen_seconds() reading), s."""
-    return max(sched.stolen_since(before).values(), default=0.0)
-
-
 def run_unless_stolen(
     run: Callable[[], T],
     timing: Callable[[T], str | None],
@@ -175,7 +170,7 @@ def run_unless_stolen(
         missed = timing(out)
         if missed is None:
             return out
-        steal = most_stolen(before)
+        steal = sched.most_stolen(before)
         pace = max(pace, host_pace())
         seen = disturbed(out) if disturbed is not None else None
         why = f"steal {steal * 1e3:.0f} ms, the host at {pace:.2f}x its best time"
@@ -364,7 +359,7 @@ _rerun: list[str] = []  # what was run again and why, for the session's summary
 
 
 def _steal_share(before: dict[int, float], t0: float) -> float:
-    return most_stolen(before) / max(time.monotonic() - t0, 1e-3)
+    return sched.most_stolen(before) / max(time.monotonic() - t0, 1e-3)
 
 
 @pytest.hookimpl(tryfirst=True)

@@ -40,7 +40,7 @@ from cell.config import CellConfig, load_config
 from cell.launcher import fetch_status
 from cell.ports import free_port
 from cell.rlink.client import EventClient
-from cell.sched import stolen_seconds, stolen_since
+from cell.sched import most_stolen, stolen_seconds
 from cell.skills.client import ConnectionLost, MoveJoints, RobotClient, SetSpeed, SkillError
 from cell.status import Health
 from cell.v1 import health_pb2
@@ -158,8 +158,7 @@ class Campaign:
                 ms = await ev.estop(timeout=5.0)
         except (TimeoutError, OSError) as exc:
             return EStop(t0, {}, str(exc))
-        stolen = max(stolen_since(steal).values(), default=0.0) * 1e3
-        return EStop(t0, {names[i]: v for i, v in ms.items()}, stolen_ms=stolen)
+        return EStop(t0, {names[i]: v for i, v in ms.items()}, stolen_ms=most_stolen(steal) * 1e3)
 
     async def resume(self) -> None:
         with contextlib.suppress(TimeoutError, OSError):
