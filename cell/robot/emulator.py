@@ -45,6 +45,7 @@ MAX_READS = 256  # recvmsg calls per socket per tick
 # SCHED_FIFO of a robots process's Python while it ticks a group in Python (a UR daemon's): under the
 # native loops (the robots' 70, the data plane's 60), over every normal process
 PYTHON_TICK_PRIORITY = 50
+LATE_READ_NS = 10_000_000  # Python this far behind C's tick while it needs every tick: a late read
 CATCH_UP_WINDOWED_S = 0.25  # a tick catching up more than this steps window by window (see tick())
 
 
@@ -113,6 +114,10 @@ class GroupCounters(Counters):
     late_sends: int = 0  # left a full status period or more after their deadline
     missed_ticks: int = 0  # status periods that passed with no tick at all (the process was held up)
     ring_overruns: int = 0  # ticks of C's thread Python read too late to read (over its ring's)
+    # wakes for every tick (a client streaming, a program) that found Python LATE_READ_NS or more
+    # behind C's tick: the host held the process's Python (which runs at the normal policy) that long,
+    # and what it serves each tick (RTDE, servoj) was as late
+    late_reads: int = 0
     commands: int = 0
     commands_ignored: int = 0  # for robots a URScript program drives (cell.ur): not theirs to take
     rejected: dict[str, int] = tally(keys=tuple(r.name.lower() for r in Reject))
@@ -534,12 +539,14 @@ class RobotGroup:
                 log.warning("%s", problem)
             if tid in sched.RT_THREADS:
                 meter.watch_thread(tid)
-            seen = 0
+            seen, late = 0, max(1, LATE_READ_NS // period_ns)
             while True:
                 await woken.wait()
                 woken.clear()
                 with contextlib.suppress(BlockingIOError):
                     os.eventfd_read(fd)
+                if native.state.wake_every == 1 and seen and int(native.state.ring_head) - seen >= late:
+                    self._counters.late_reads += 1
                 seen = self._read_ticks(seen, on_tick)
                 native.state.wake_every = self._wake_every()
         finally:

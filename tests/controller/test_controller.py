@@ -50,14 +50,16 @@ class Truth:
 
 def path_error(samples: list[tuple[int, np.ndarray, np.ndarray]], seg, settle_s: float = 0.15) -> float:
     """The largest joint deviation from the plan while the motion runs (rad), away from the emulator's
-    stalls: a gap of over three periods in its truth (its process held up, 50-60 ms on a loaded
-    machine) leaves it that far behind the plan for a while, which no controller can help; samples
-    within settle_s after one are not judged."""
+    stalls: a truth missing (a gap of over 1.5 truth periods: the arm's tick held up by the host, 2 ms
+    to 50-60 ms on a loaded machine, and its commands with it) leaves the arm behind the plan for a
+    while, which no controller can help; samples within settle_s after one are not judged.  (At the
+    status rate, truth_hz = status_hz, every missed tick shows; at 100 Hz only those that skip a
+    truth's tick.)"""
     t = np.array([(t_ns - seg.start_ns) / 1e9 for t_ns, _, _ in samples])
     q = np.array([q for _, q, _ in samples])
     inside = (t >= 0) & (t <= seg.motion.duration)
     dt = np.diff(t)
-    for i in np.flatnonzero(dt > 3 * np.median(dt)):
+    for i in np.flatnonzero(dt > 1.5 * np.median(dt)):
         inside &= ~((t > t[i]) & (t <= t[i + 1] + settle_s))
     assert inside.sum() > 10, "the emulator stalled through most of the motion"
     plan, _ = seg.motion.sample(t[inside])
@@ -390,7 +392,8 @@ async def test_a_fine_joint_move_stays_on_its_plan_between_its_tps(start_cell) -
     """The fine mode's led TPs (cell.controller.tps.fit_led): the MuJoCo arm's joints stay within a
     few tenths of a mrad of the plan all along (the coarse mode's 10 TP/s: 2-5 mrad), and it
     ends on its goal."""
-    async with driving(start_cell, robots("mujoco")) as (ctl, truth):
+    arm = robots("mujoco")[0] | {"truth_hz": 500}  # (every tick's truth: each one the host held shows)
+    async with driving(start_cell, [arm]) as (ctl, truth):
         goal = Q0 + np.array([0.4, -0.3, 0.2, 0.1, -0.2, 0.5])
         result = await ctl.move_joints("r1", goal, fine=True)
         assert np.allclose(result.q_end, goal) and ctl.track("r1").state is MotionState.ARRIVED

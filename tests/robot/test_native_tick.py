@@ -258,7 +258,7 @@ def test_a_full_socket_buffer_is_counted_not_fatal() -> None:
 async def test_a_late_reader_of_the_ring_gets_every_tick_and_knows_the_newest() -> None:
     """run_native: C ticks in its own thread and Python reads the ring when it gets the CPU; a reader
     held up catches up on every tick it missed, each marked not live but the newest (RobotGroup.live:
-    what a program's timeouts go by)."""
+    what a program's timeouts go by), and counted as a late read."""
     sink = udp.open_socket("127.0.0.1")
     host, port = sink.getsockname()
     robots = [{"id": 10, "name": "t0", "skill_port": 3000, "backend": "kinematic"}]
@@ -282,6 +282,7 @@ async def test_a_late_reader_of_the_ring_gets_every_tick_and_knows_the_newest() 
             await enough.wait()
             reader.cancel()
         missed = g.counters.missed_ticks  # (periods C itself missed: a tick of several, one entry)
+        late = g.counters.late_reads  # (wakes that found the reader 10 ms or more behind)
     finally:
         g.close()
         sink.close()
@@ -293,3 +294,4 @@ async def test_a_late_reader_of_the_ring_gets_every_tick_and_knows_the_newest() 
     # host's business: a read of two is no failure)
     assert sum(not live for _, live in seen[20:50]) >= 10
     assert seen[-1][1] is True
+    assert late >= 1  # the hold-up, counted: what RTDE and servoj served late

@@ -17,7 +17,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from cell.bus import Bus, RemoteError
-from cell.bus.node import BusTimeout
+from cell.bus.node import BusRefused, BusTimeout, BusUnavailable
 from cell.launcher import fetch_status
 from cell.robot.arm import arm_model
 from cell.skills.client import RobotClient, SkillError
@@ -437,8 +437,10 @@ async def test_a_named_trajectory_is_followed_after_the_controller_is_killed_and
         while True:
             try:
                 status = await fetch_status(cell.config)
-            except BusTimeout:  # (the process hosting the status went down with it: not yet back)
-                continue
+            except BusRefused:
+                raise
+            except (BusTimeout, BusUnavailable):  # (the process hosting the bus or the status went down
+                continue  # with it: not yet back, or back in the middle of a node's handshake)
             st = next(s for s in status.services if s.name == "controller")
             if st.last.pid not in (0, before) and st.health == "ok":
                 break

@@ -182,7 +182,7 @@ async def test_200_clients_at_once_and_idle_ones_never_hold_up_the_arm_or_anothe
             writer.close()
         else:
             raise AssertionError("no place for a client after one of the held ones closed")
-        missed_before = (await _robots_counters(cell.config))["missed_ticks"]
+        missed_before = (await robots_counters(cell.config))["missed_ticks"]
         outputs = struct.pack(">d", 500.0) + b"timestamp"
         writer.write(rtde.encode(rtde.Package.CONTROL_PACKAGE_SETUP_OUTPUTS, outputs))
         writer.write(rtde.encode(rtde.Package.CONTROL_PACKAGE_START))
@@ -199,30 +199,30 @@ async def test_200_clients_at_once_and_idle_ones_never_hold_up_the_arm_or_anothe
         steps = np.rint(np.diff(stamps) / 0.002).astype(int)
         # a period the arm's own tick missed (its thread held off the CPU by the host: counted in
         # missed_ticks) has no state to send; any other gap is the RTDE server losing a package
-        missed = await _missed_ticks_since(cell.config, ended) - missed_before
+        missed = await robots_counter_since(cell.config, ended) - missed_before
         skipped = int((steps - 1).sum())
         assert (steps >= 1).all() and skipped <= 2 + missed, (np.unique(steps, return_counts=True), missed)
     finally:
         for _, w in conns:
             w.close()
     async with asyncio.timeout(5):  # (reported with the next heartbeat)
-        while (await _robots_counters(cell.config)).get("ur.rtde_refused", 0) < 200 - ur.max_clients:
+        while (await robots_counters(cell.config)).get("ur.rtde_refused", 0) < 200 - ur.max_clients:
             await asyncio.sleep(0.05)
 
 
-async def _missed_ticks_since(config, after: float) -> float:
-    """The robots' missed_ticks as of a heartbeat sent after monotonic time `after`."""
+async def robots_counter_since(config, after: float, name: str = "missed_ticks") -> float:
+    """A counter of the robots service as of a heartbeat sent after monotonic time `after`."""
     async with asyncio.timeout(5):
         while True:
             fetched = time.monotonic()
             status = await fetch_status(config)
             robots = next(s for s in status.services if s.name == "robots")
             if fetched - robots.heartbeat_age_s > after:
-                return robots.last.counters["missed_ticks"]
+                return robots.last.counters[name]
             await asyncio.sleep(0.1)
 
 
-async def _robots_counters(config) -> dict[str, float]:
+async def robots_counters(config) -> dict[str, float]:
     status = await fetch_status(config)
     return dict(next(s for s in status.services if s.name == "robots").last.counters)
 
@@ -255,7 +255,7 @@ async def test_python_urx_reads_the_arm_at_10_hz_and_moves_it(start_cell) -> Non
         finally:
             robot.close()
         # and a plain client on 30002 hears the state at 10 Hz
-        missed_before = (await _robots_counters(cell.config))["missed_ticks"]
+        missed_before = (await robots_counters(cell.config))["missed_ticks"]
         reader, writer = await asyncio.open_connection(host, cell.config.ur.secondary_port)
         try:
             buf, stamps = bytearray(), []
@@ -272,7 +272,7 @@ async def test_python_urx_reads_the_arm_at_10_hz_and_moves_it(start_cell) -> Non
         # each package is the state of the first tick the arm ran at or after its 100 ms: 2 periods'
         # slack, and one more for each period the host held the arm's thread through (its C tick
         # counts them: missed ticks), which makes that package late and the next one early
-        missed = await _missed_ticks_since(cell.config, ended) - missed_before
+        missed = await robots_counter_since(cell.config, ended) - missed_before
         slack = 4.0 + 2.0 * missed
         assert np.abs(steps - 100.0).max() <= slack, (steps, missed)
         assert abs(steps.mean() - 100.0) < 1.0 + slack / len(steps), (steps, missed)
@@ -335,7 +335,7 @@ async def test_python_urxs_real_time_monitor_gets_every_periods_state_of_the_mov
 
         monitor.start()
         await asyncio.to_thread(monitor.q_actual, True)  # (its first message)
-        missed_before = (await _robots_counters(cell.config))["missed_ticks"]
+        missed_before = (await robots_counters(cell.config))["missed_ticks"]
         monitor.start_buffering()
         async with asyncio.TaskGroup() as tg:
             watcher = tg.create_task(_record_truth(sub, truth))
@@ -349,7 +349,7 @@ async def test_python_urxs_real_time_monitor_gets_every_periods_state_of_the_mov
     ticks = np.array([round(float(s[1]) / 0.002) for s in samples])
     assert len(samples) > 200, len(samples)
     steps = np.diff(ticks)
-    missed = await _missed_ticks_since(cell.config, ended) - missed_before
+    missed = await robots_counter_since(cell.config, ended) - missed_before
     skipped = int((steps - 1).sum())
     assert (steps >= 1).all() and skipped <= 2 + missed, (np.unique(steps, return_counts=True), missed)
     both = [(k, s) for k, s in zip(ticks, samples, strict=True) if k in truth]
