@@ -105,6 +105,7 @@ class FaultCode(StrEnum):
     REFUSED = "refused"
     STOPPED = "stopped"
     TABLE_FULL = "table_full"
+    TAKEN = "taken"
     TOO_MANY_JOINTS = "too_many_joints"
     UNKNOWN_METHOD = "unknown_method"
     UNKNOWN_MODULE = "unknown_module"

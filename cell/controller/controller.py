@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import time
 from collections.abc import Callable, Sequence
 
@@ -82,7 +83,10 @@ class Controller:
 
     def __init__(self, bus: Bus, config: CellConfig, service: str = "dataplane") -> None:
         self.bus, self.config = bus, config
-        self.dp = DataplaneClient(bus, service)
+        # (an id of this run: the robots it takes over are its own at the data plane, and another
+        # controller taking them is seen, not fought over)
+        self.id = int.from_bytes(os.urandom(8), "little") or 1
+        self.dp = DataplaneClient(bus, service, controller=self.id)
         self.link = Link(self.dp)
         self.loading = asyncio.Lock()
         self.book = RobotBook(bus, config, self.link)

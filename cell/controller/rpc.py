@@ -87,6 +87,9 @@ class ControllerService:
             raise RpcFault(FaultCode.STOPPED, str(exc)) from None
         except NotAtGoal as exc:
             raise RpcFault(FaultCode.FAILED, str(exc)) from None
+        except RemoteError as exc:  # the data plane refused an update: its code and reason (taken, ...)
+            code = FaultCode(exc.code) if exc.code in {c.value for c in FaultCode} else FaultCode.FAILED
+            raise RpcFault(code, f"the data plane refused: {exc.message}") from None
         except BusError as exc:
             raise RpcFault(FaultCode.STOPPED, f"the data plane is not answering: {exc}") from None
         return controller_pb2.MoveReply() if result is None else self._reply(robot, result)
@@ -214,6 +217,9 @@ class ControllerService:
             raise RpcFault(FaultCode.STOPPED, str(exc)) from None
         except NotAtGoal as exc:
             raise RpcFault(FaultCode.FAILED, str(exc)) from None
+        except RemoteError as exc:  # the data plane refused an update: its code and reason (taken, ...)
+            code = FaultCode(exc.code) if exc.code in {c.value for c in FaultCode} else FaultCode.FAILED
+            raise RpcFault(code, f"the data plane refused: {exc.message}") from None
         except BusError as exc:  # (a BusTimeout is a TimeoutError too: not the robot's)
             raise RpcFault(FaultCode.STOPPED, f"the data plane is not answering: {exc}") from None
         except TimeoutError:

@@ -421,6 +421,20 @@ def dropped(st: dataplane_pb2.DataplaneState, seen: dict[int, int], track_of) ->
     return out
 
 
+def taken(
+    st: dataplane_pb2.DataplaneState, owners: dict[int, int], me: int, track_of
+) -> list[tuple[Track, str]]:
+    """The tracks with a robot another controller than `me` took over since `owners` (robot -> the
+    controller last seen owning it, updated here), each with why."""
+    out = []
+    for r in st.robots:
+        before, owners[r.robot_id] = owners.get(r.robot_id, 0), r.controller
+        if r.controller not in (0, me, before):
+            why = "another controller took it over (it flushed the robot's tables as it started)"
+            out.append((track_of(r.robot_id), f"robot {r.robot_id} lost: {why}"))
+    return out
+
+
 def stands_at(q: np.ndarray, v: np.ndarray, goal: np.ndarray | None, tolerance: float) -> bool:
     """Whether joints q, moving at v, stand at goal: every joint within tolerance (rad) of it (goal
     None: anywhere) and still (within 10x that per second)."""

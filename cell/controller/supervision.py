@@ -1,10 +1,11 @@
 """The controller's watch on the data plane, for as long as the controller runs.
 
 A data plane that stops answering, comes back with new (empty) tables, or drops a robot's
-trajectory because the robot protective-stopped, ends the motions it carried: whoever waits on
-them gets MotionStopped with the reason at once, and the next motion plans from where the robots
-are measured to stand.  The first answer is a take-over: whatever an earlier controller left in the
-tables goes (robots in motion get a stop planned from their status).
+trajectory because the robot protective-stopped, ends the motions it carried, and so does another
+controller taking a robot over: whoever waits on them gets MotionStopped with the reason at once,
+and the next motion plans from where the robots are measured to stand.  The first answer is a
+take-over: whatever an earlier controller left in the tables goes (robots in motion get a stop
+planned from their status), and the robots are this controller's at the data plane from then on.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import time
 from typing import TYPE_CHECKING
 
 from cell.bus import BusError
-from cell.controller.schedule import dropped
+from cell.controller.schedule import dropped, taken
 from cell.v1.dataplane_pb2 import DataplaneState
 
 if TYPE_CHECKING:  # (the facade whose parts these work on; it imports this module)
@@ -67,6 +68,7 @@ async def _judge(
     silence between them."""
     boot: int | None = None
     seen: dict[int, int] = {}  # robot -> the data plane's dropped_ns last seen
+    owners: dict[int, int] = {}  # robot -> the controller the data plane last said it was
     # silence counts from the last answer (or our start): one slow answer is no verdict
     silent_since = newest = time.monotonic()
     gone = False  # the motions were declared lost for silence; flush once it answers again
@@ -116,6 +118,8 @@ async def _judge(
         for track, why in dropped(st, seen, ctl.track):
             ctl.stopping.lose([track], why)
             ctl.engine.pending_flush.update({rid: track.loads for rid in track.robots})
+        for track, why in taken(st, owners, ctl.id, ctl.track):  # (its tables are the other's now)
+            ctl.stopping.lose([track], why)
         if ctl.engine.pending_flush:
             with contextlib.suppress(BusError):
                 await flush_lost(ctl)

@@ -15,10 +15,13 @@ from cell.v1 import dataplane_pb2
 class DataplaneClient:
     """Requests over the bus to service "dataplane"; errors come back as RemoteError(code, reason)."""
 
-    def __init__(self, bus: Bus, service: str = "dataplane", timeout: float | None = None) -> None:
+    def __init__(
+        self, bus: Bus, service: str = "dataplane", timeout: float | None = None, controller: int = 0
+    ) -> None:
         self.bus = bus
         self.service = service
         self.timeout = timeout
+        self.controller = controller  # a controller's id, sent with its updates (TableUpdate.controller)
 
     async def update(
         self,
@@ -30,7 +33,7 @@ class DataplaneClient:
     ) -> dataplane_pb2.UpdateReply:
         """One atomic batch (see Tables.update): applied whole, or refused whole with a reason.  The
         robots in `flush` lose every TP and their registers first (a controller taking over)."""
-        req = dataplane_pb2.TableUpdate(flush_robots=flush)
+        req = dataplane_pb2.TableUpdate(flush_robots=flush, controller=self.controller)
         encode_tps(insert if isinstance(insert, TPBatch) else TPBatch.of(list(insert)), req.insert)
         encode_keys(remove, req.remove)
         tp_id: int | None  # (a switch's TP; a register's, None to clear)

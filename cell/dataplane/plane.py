@@ -45,7 +45,7 @@ from cell.dataplane.pipeline import (
     ControlConstants,
     Pipeline,
 )
-from cell.dataplane.tables import NO_ROW, Refused, Tables
+from cell.dataplane.tables import NO_ROW, Refused, Tables, TPBatch
 from cell.dataplane.wire import decode_keys, decode_tps
 from cell.dataplane.xdp.backend import XdpPipeline, XdpTables
 from cell.dataplane.xdp.libbpf import BpfError
@@ -91,6 +91,10 @@ class DataPlane:
             self.pipeline.stale_periods[r.id] = (r.watchdog_windows + 1) * (r.status_hz // r.command_hz)
             self.pipeline.quiet_ns[r.id] = QUIET_NS
         self.boot_id = int.from_bytes(os.urandom(8), "little")  # tells a controller our tables are new
+        # robot -> the controller whose it is: the last to flush it (TableUpdate.controller).  Two
+        # controllers on one data plane would otherwise take each other's robots over unseen: the
+        # later one's start flushes the tables the earlier one is moving its robots on
+        self.owner: dict[int, int] = {}
         self.poll: Callable[[], None] | None = None  # called between slices (the event socket)
         self.batch = dp.batch
         self.rejected = {"length": 0, "kind": 0, "joint": 0, "spoofed": 0}
@@ -355,6 +359,12 @@ class DataPlane:
                 insert, remove = decode_tps(req.insert), decode_keys(req.remove)
             except ValueError as exc:
                 raise RpcFault(FaultCode.BAD_REQUEST, str(exc)) from None
+            if req.controller and (taken := self._taken(req, insert, remove)):
+                raise RpcFault(
+                    FaultCode.TAKEN,
+                    f"robot(s) {taken} taken over by another controller (it flushed their tables as it "
+                    "started): this one has lost them",
+                )
             held = [r.robot_id for r in req.registers if not r.clear and self.stopped(r.robot_id)]
             try:
                 flushed = [k for r in req.flush_robots for k in self.tables.keys_of(r)]
@@ -388,6 +398,7 @@ class DataPlane:
             finally:
                 steps.close()  # cancelled mid-way: the staged rows go back (GeneratorExit in the update)
             longest = max(longest, time.perf_counter_ns() - slice_start)  # the last slice
+            self.owner.update(dict.fromkeys(req.flush_robots, req.controller))
             return dataplane_pb2.UpdateReply(
                 inserted=len(insert),
                 removed=removed,
@@ -398,6 +409,13 @@ class DataPlane:
                 now_ns=time.monotonic_ns(),
                 boot_id=self.boot_id,
             )
+
+    def _taken(self, req: dataplane_pb2.TableUpdate, insert: TPBatch, remove: np.ndarray) -> list[int]:
+        """The robots an update from req.controller touches that another controller has taken."""
+        touched = {*insert.robot.tolist(), *remove[:, 0].tolist()}
+        touched |= {s.robot_id for s in req.switches} | {r.robot_id for r in req.registers}
+        touched -= set(req.flush_robots)  # (a take-over: what it flushes becomes its own)
+        return sorted(r for r in touched if self.owner.get(r, 0) not in (0, req.controller))
 
     async def load_constants(self, req: dataplane_pb2.Constants) -> dataplane_pb2.ConstantsReply:
         """New controller constants: tables built in a worker thread, then swapped in at once."""
@@ -523,6 +541,7 @@ class DataPlane:
                 stalled=bool(stalled),
                 dropped_why=_DROP_WHY.get(why, ""),
                 stopped=bool(stopped) or e in stopped_merged,
+                controller=self.owner.get(robot, 0),
             )
         return st
 

@@ -25,6 +25,7 @@ class FaultCode(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     FAULT_CODE_TABLE_FULL: _ClassVar[FaultCode]
     FAULT_CODE_TOO_MANY_JOINTS: _ClassVar[FaultCode]
     FAULT_CODE_UNKNOWN_TP: _ClassVar[FaultCode]
+    FAULT_CODE_TAKEN: _ClassVar[FaultCode]
 FAULT_CODE_UNSPECIFIED: FaultCode
 FAULT_CODE_BAD_REQUEST: FaultCode
 FAULT_CODE_BUS_LOST: FaultCode
@@ -43,6 +44,7 @@ FAULT_CODE_UNREACHABLE: FaultCode
 FAULT_CODE_TABLE_FULL: FaultCode
 FAULT_CODE_TOO_MANY_JOINTS: FaultCode
 FAULT_CODE_UNKNOWN_TP: FaultCode
+FAULT_CODE_TAKEN: FaultCode
 
 class RpcError(_message.Message):
     __slots__ = ("code", "message")

@@ -33,18 +33,20 @@ class TpKeys(_message.Message):
     def __init__(self, robot_id: _Optional[_Iterable[int]] = ..., id: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class TableUpdate(_message.Message):
-    __slots__ = ("insert", "remove", "switches", "registers", "flush_robots")
+    __slots__ = ("insert", "remove", "switches", "registers", "flush_robots", "controller")
     INSERT_FIELD_NUMBER: _ClassVar[int]
     REMOVE_FIELD_NUMBER: _ClassVar[int]
     SWITCHES_FIELD_NUMBER: _ClassVar[int]
     REGISTERS_FIELD_NUMBER: _ClassVar[int]
     FLUSH_ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    CONTROLLER_FIELD_NUMBER: _ClassVar[int]
     insert: TrajectoryPoints
     remove: TpKeys
     switches: _containers.RepeatedCompositeFieldContainer[SwitchEntry]
     registers: _containers.RepeatedCompositeFieldContainer[RegisterEntry]
     flush_robots: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, insert: _Optional[_Union[TrajectoryPoints, _Mapping]] = ..., remove: _Optional[_Union[TpKeys, _Mapping]] = ..., switches: _Optional[_Iterable[_Union[SwitchEntry, _Mapping]]] = ..., registers: _Optional[_Iterable[_Union[RegisterEntry, _Mapping]]] = ..., flush_robots: _Optional[_Iterable[int]] = ...) -> None: ...
+    controller: int
+    def __init__(self, insert: _Optional[_Union[TrajectoryPoints, _Mapping]] = ..., remove: _Optional[_Union[TpKeys, _Mapping]] = ..., switches: _Optional[_Iterable[_Union[SwitchEntry, _Mapping]]] = ..., registers: _Optional[_Iterable[_Union[RegisterEntry, _Mapping]]] = ..., flush_robots: _Optional[_Iterable[int]] = ..., controller: _Optional[int] = ...) -> None: ...
 
 class SwitchEntry(_message.Message):
     __slots__ = ("robot_id", "tp_id", "next_id", "unset")
@@ -111,7 +113,7 @@ class StateRequest(_message.Message):
     def __init__(self, robot_ids: _Optional[_Iterable[int]] = ..., robots_only: _Optional[bool] = ...) -> None: ...
 
 class RobotPlaneState(_message.Message):
-    __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns", "position", "velocity", "status_ns", "dropped_ns", "stalled", "dropped_why", "stopped")
+    __slots__ = ("robot_id", "entity", "tp_id", "next_time_ns", "position", "velocity", "status_ns", "dropped_ns", "stalled", "dropped_why", "stopped", "controller")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     ENTITY_FIELD_NUMBER: _ClassVar[int]
     TP_ID_FIELD_NUMBER: _ClassVar[int]
@@ -123,6 +125,7 @@ class RobotPlaneState(_message.Message):
     STALLED_FIELD_NUMBER: _ClassVar[int]
     DROPPED_WHY_FIELD_NUMBER: _ClassVar[int]
     STOPPED_FIELD_NUMBER: _ClassVar[int]
+    CONTROLLER_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     entity: int
     tp_id: int
@@ -134,7 +137,8 @@ class RobotPlaneState(_message.Message):
     stalled: bool
     dropped_why: str
     stopped: bool
-    def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., position: _Optional[_Iterable[float]] = ..., velocity: _Optional[_Iterable[float]] = ..., status_ns: _Optional[int] = ..., dropped_ns: _Optional[int] = ..., stalled: _Optional[bool] = ..., dropped_why: _Optional[str] = ..., stopped: _Optional[bool] = ...) -> None: ...
+    controller: int
+    def __init__(self, robot_id: _Optional[int] = ..., entity: _Optional[int] = ..., tp_id: _Optional[int] = ..., next_time_ns: _Optional[int] = ..., position: _Optional[_Iterable[float]] = ..., velocity: _Optional[_Iterable[float]] = ..., status_ns: _Optional[int] = ..., dropped_ns: _Optional[int] = ..., stalled: _Optional[bool] = ..., dropped_why: _Optional[str] = ..., stopped: _Optional[bool] = ..., controller: _Optional[int] = ...) -> None: ...
 
 class DataplaneState(_message.Message):
     __slots__ = ("now_ns", "loaded", "capacity", "robots", "counters", "boot_id", "realtime_offset_ns")
