@@ -87,9 +87,8 @@ class ControllerService:
             raise RpcFault(FaultCode.STOPPED, str(exc)) from None
         except NotAtGoal as exc:
             raise RpcFault(FaultCode.FAILED, str(exc)) from None
-        except RemoteError as exc:  # the data plane refused an update: its code and reason (taken, ...)
-            code = FaultCode(exc.code) if exc.code in {c.value for c in FaultCode} else FaultCode.FAILED
-            raise RpcFault(code, f"the data plane refused: {exc.message}") from None
+        except RemoteError as exc:
+            raise _refused(exc) from None
         except BusError as exc:
             raise RpcFault(FaultCode.STOPPED, f"the data plane is not answering: {exc}") from None
         return controller_pb2.MoveReply() if result is None else self._reply(robot, result)
@@ -217,9 +216,8 @@ class ControllerService:
             raise RpcFault(FaultCode.STOPPED, str(exc)) from None
         except NotAtGoal as exc:
             raise RpcFault(FaultCode.FAILED, str(exc)) from None
-        except RemoteError as exc:  # the data plane refused an update: its code and reason (taken, ...)
-            code = FaultCode(exc.code) if exc.code in {c.value for c in FaultCode} else FaultCode.FAILED
-            raise RpcFault(code, f"the data plane refused: {exc.message}") from None
+        except RemoteError as exc:
+            raise _refused(exc) from None
         except BusError as exc:  # (a BusTimeout is a TimeoutError too: not the robot's)
             raise RpcFault(FaultCode.STOPPED, f"the data plane is not answering: {exc}") from None
         except TimeoutError:
@@ -299,6 +297,12 @@ class ControllerService:
             raise RpcFault(FaultCode.PLAN, str(exc)) from None
         assert run is not None
         return controller_pb2.LoopReply(t_start_ns=run.start_ns, lap_ns=run.lap_ns, laps=laps)
+
+
+def _refused(exc: RemoteError) -> RpcFault:
+    """The data plane's refusal of an update, passed on with its code and reason (taken, ...)."""
+    code = FaultCode(exc.code) if exc.code in {c.value for c in FaultCode} else FaultCode.FAILED
+    return RpcFault(code, f"the data plane refused: {exc.message}")
 
 
 def _speed(percent: float) -> float:

@@ -23,6 +23,7 @@ from cell.controller.schedule import (
     status_of,
     stop_limits,
     stop_plan,
+    taken,
     tp_batch,
 )
 from cell.controller.tps import cut
@@ -168,6 +169,22 @@ def test_a_drop_ends_the_motion_only_if_newer_than_what_it_carries() -> None:
     assert [(t.robot, "watchdog" in why) for t, why in hit] == [(1, True)]  # robot 2's is old news
     assert seen == {1: 300, 2: 400}
     assert dropped(st, seen, tracks.__getitem__) == []  # said once
+
+
+def test_a_robot_another_controller_took_ends_the_motion_once_and_its_own_take_over_is_no_news() -> None:
+    tracks = {1: Track(1, [1], LIMITS), 2: Track(2, [2], LIMITS)}
+    me, other = 7, 9
+
+    def state(*owners: int) -> dataplane_pb2.DataplaneState:
+        robots = [dataplane_pb2.RobotPlaneState(robot_id=r, controller=c) for r, c in enumerate(owners, 1)]
+        return dataplane_pb2.DataplaneState(robots=robots)
+
+    owners: dict[int, int] = {}
+    assert taken(state(me, 0), owners, me, tracks.__getitem__) == []  # ours, and nobody's
+    hit = taken(state(me, other), owners, me, tracks.__getitem__)
+    assert [(t.robot, "another controller took it over" in why) for t, why in hit] == [(2, True)]
+    assert taken(state(me, other), owners, me, tracks.__getitem__) == []  # said once
+    assert taken(state(me, me), owners, me, tracks.__getitem__) == []  # taken back (our take-over)
 
 
 def test_a_status_counts_only_when_every_robot_of_the_track_has_one() -> None:
