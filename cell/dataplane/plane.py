@@ -36,6 +36,7 @@ from cell.bus import FaultCode, RpcFault
 from cell.config import CellConfig, parse_host_port
 from cell.dataplane.egress import ROBOT, EgressPort
 from cell.dataplane.forward import Forwarder
+from cell.dataplane.ownership import Ownership
 from cell.dataplane.pipeline import (
     DROP_QUIET,
     DROP_STOP,
@@ -91,10 +92,7 @@ class DataPlane:
             self.pipeline.stale_periods[r.id] = (r.watchdog_windows + 1) * (r.status_hz // r.command_hz)
             self.pipeline.quiet_ns[r.id] = QUIET_NS
         self.boot_id = int.from_bytes(os.urandom(8), "little")  # tells a controller our tables are new
-        # robot -> the controller whose it is: the last to flush it (TableUpdate.controller).  Two
-        # controllers on one data plane would otherwise take each other's robots over unseen: the
-        # later one's start flushes the tables the earlier one is moving its robots on
-        self.owner: dict[int, int] = {}
+        self.ownership = Ownership()  # which controller has each robot (take-overs seen, not fought)
         self.poll: Callable[[], None] | None = None  # called between slices (the event socket)
         self.batch = dp.batch
         self.rejected = {"length": 0, "kind": 0, "joint": 0, "spoofed": 0}
@@ -359,11 +357,12 @@ class DataPlane:
                 insert, remove = decode_tps(req.insert), decode_keys(req.remove)
             except ValueError as exc:
                 raise RpcFault(FaultCode.BAD_REQUEST, str(exc)) from None
-            if req.controller and (taken := self._taken(req, insert, remove)):
+            robots = _robots_of(req, insert, remove)
+            if taken := self.ownership.refused(req.controller, robots):
                 raise RpcFault(
                     FaultCode.TAKEN,
-                    f"robot(s) {taken} taken over by another controller (it flushed their tables as it "
-                    "started): this one has lost them",
+                    f"robot(s) {taken} taken over by another controller since this one loaded them (it "
+                    "flushed their tables as it started): this one has lost them",
                 )
             held = [r.robot_id for r in req.registers if not r.clear and self.stopped(r.robot_id)]
             try:
@@ -398,7 +397,7 @@ class DataPlane:
             finally:
                 steps.close()  # cancelled mid-way: the staged rows go back (GeneratorExit in the update)
             longest = max(longest, time.perf_counter_ns() - slice_start)  # the last slice
-            self.owner.update(dict.fromkeys(req.flush_robots, req.controller))
+            self.ownership.applied(req.controller, robots, req.flush_robots)
             return dataplane_pb2.UpdateReply(
                 inserted=len(insert),
                 removed=removed,
@@ -409,13 +408,6 @@ class DataPlane:
                 now_ns=time.monotonic_ns(),
                 boot_id=self.boot_id,
             )
-
-    def _taken(self, req: dataplane_pb2.TableUpdate, insert: TPBatch, remove: np.ndarray) -> list[int]:
-        """The robots an update from req.controller touches that another controller has taken."""
-        touched = {*insert.robot.tolist(), *remove[:, 0].tolist()}
-        touched |= {s.robot_id for s in req.switches} | {r.robot_id for r in req.registers}
-        touched -= set(req.flush_robots)  # (a take-over: what it flushes becomes its own)
-        return sorted(r for r in touched if self.owner.get(r, 0) not in (0, req.controller))
 
     async def load_constants(self, req: dataplane_pb2.Constants) -> dataplane_pb2.ConstantsReply:
         """New controller constants: tables built in a worker thread, then swapped in at once."""
@@ -541,9 +533,17 @@ class DataPlane:
                 stalled=bool(stalled),
                 dropped_why=_DROP_WHY.get(why, ""),
                 stopped=bool(stopped) or e in stopped_merged,
-                controller=self.owner.get(robot, 0),
+                controller=self.ownership.owner.get(robot, 0),
             )
         return st
+
+
+def _robots_of(req: dataplane_pb2.TableUpdate, insert: TPBatch, remove: np.ndarray) -> set[int]:
+    """The robots an update loads, removes, switches or sets registers of, those it flushes aside
+    (a take-over: what it flushes becomes its own)."""
+    robots = {*insert.robot.tolist(), *remove[:, 0].tolist()}
+    robots |= {s.robot_id for s in req.switches} | {r.robot_id for r in req.registers}
+    return robots - set(req.flush_robots)
 
 
 # SCHED_FIFO of the data plane's control plane (its Python) where the packet path runs elsewhere (the

@@ -90,8 +90,8 @@ async def test_refusals_and_bad_datagrams(start_cell) -> None:
             await bus.request("dataplane", "update", bad, dataplane_pb2.UpdateReply, 5)
         assert info.value.code == "bad_request" and "6 joint values expected" in str(info.value)
         assert (await dp.state()).loaded == 0
-        # a robot is the controller's that flushed it last (taking it over): another's update to it
-        # is refused whole, saying so; a tool's (no controller id) is not held to it
+        # a robot is the controller's that flushed it last (taking it over): one that had loaded it
+        # before is refused whole, saying so; one new to it, or a tool (no controller id), is not
         first, second = DataplaneClient(bus, controller=11), DataplaneClient(bus, controller=22)
         tp = TP(1, 5, 5, 0.1, [0.0] * 6, [0.0] * 6)
         await first.update(flush=[1])
@@ -102,7 +102,7 @@ async def test_refusals_and_bad_datagrams(start_cell) -> None:
         assert (await dp.state()).loaded == 0
         assert [r.controller for r in (await dp.state([1])).robots] == [22]
         assert (await second.update(insert=[tp])).inserted == 1
-        assert (await dp.update(remove=[(1, 5)])).removed == 1
+        assert (await DataplaneClient(bus, controller=33).update(remove=[(1, 5)])).removed == 1
         # new controller constants: tables regenerated and swapped in; bad ones refused
         reply = await dp.load_constants([1.0] * 6, [4.0] * 6, 6, [1.0] * 6)
         assert reply.transform_entries == 3 * 6 * 2 * (2**6 + 57 * 2**5)
