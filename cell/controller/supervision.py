@@ -15,6 +15,7 @@ import contextlib
 import time
 from typing import TYPE_CHECKING
 
+from cell import sched
 from cell.bus import BusError
 from cell.controller.schedule import dropped, taken
 from cell.v1.dataplane_pb2 import DataplaneState
@@ -71,6 +72,7 @@ async def _judge(
     owners: dict[int, int] = {}  # robot -> the controller the data plane last said it was
     # silence counts from the last answer (or our start): one slow answer is no verdict
     silent_since = newest = time.monotonic()
+    stolen_at, excused = sched.stolen_seconds(), 0.0  # (the steal and our hold-ups since that answer)
     gone = False  # the motions were declared lost for silence; flush once it answers again
     while True:
         waited = time.monotonic()
@@ -85,7 +87,15 @@ async def _judge(
             held = now - waited - WATCH_S
             if held > HELD_S:
                 silent_since += held
-            if not gone and now - silent_since >= DEAD_S:
+                excused += held
+            # ... nor is time the hypervisor stole of the VM's CPUs (nothing in it ran, the data plane
+            # neither: a CI run at 25 % steal had a motion "lost" to a data plane that was fine).  What
+            # cannot go on after it, the data plane ends itself: a robot's watchdog, an underrun
+            if (
+                not gone
+                and now - silent_since >= DEAD_S
+                and now - silent_since - max(0.0, sched.most_stolen(stolen_at) - excused) >= DEAD_S
+            ):
                 gone = True
                 ready.clear()
                 ctl.stopping.lose(
@@ -94,6 +104,7 @@ async def _judge(
                 )
             continue
         silent_since = time.monotonic()
+        stolen_at, excused = sched.stolen_seconds(), 0.0
         if asked < newest:
             continue
         newest = asked

@@ -77,3 +77,25 @@ async def test_a_data_plane_silent_longer_than_the_verdict_loses_the_motions_it_
                 os.kill(pid, signal.SIGCONT)
         with pytest.raises(MotionStopped, match=SILENT):
             await move
+
+
+@pytest.mark.slow
+async def test_a_silence_the_hypervisor_stole_is_no_verdict(
+    start_cell, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Steal stops every vCPU of the VM, the data plane's too: a silence it explains is not the data
+    plane's (this host's steal comes in bursts; faked here, as no test can make the hypervisor
+    steal).  The motion goes on, or ends for what the data plane itself saw, never for the silence."""
+    from cell import sched
+
+    async with supervised(start_cell) as (ctl, _):
+        status = await fetch_status(ctl.config)
+        pid = next(s for s in status.services if s.name == "dataplane").last.pid
+        monkeypatch.setattr(sched, "most_stolen", lambda before: 60.0)  # all of it stolen
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            await asyncio.sleep(DEAD_S + 5 * WATCH_S)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        await asyncio.sleep(3 * WATCH_S)  # (its answers again)
+        assert _verdicts(ctl) == [] and ctl.track("r1").stop_reason is None, ctl.stopping.lost
