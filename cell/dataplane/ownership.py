@@ -10,7 +10,8 @@ watching controller sees its robot go).  A controller that had loaded a robot be
 controller flushed it has lost it: its updates to that robot are refused (`taken`) until it takes
 the robot over itself.  A controller that never loaded the robot before the flush may load it:
 controllers still share robots (the script's beside the service's), but none goes on unseen on
-tables another took.  Controller 0 is a tool (a bench writing TPs): never refused.
+tables another took.  Controller 0 is a tool (a bench writing TPs, a test pulling a robot's TPs
+from under its controller): never refused, and its flush takes nothing over.
 """
 
 from __future__ import annotations
@@ -37,14 +38,14 @@ class Ownership:
     def applied(self, controller: int, robots: Iterable[int], flushed: Iterable[int]) -> None:
         """An update of `controller` applied: it flushed `flushed` (taking them over) and loaded,
         removed, switched or set registers of `robots`."""
+        if not controller:
+            return
         for r in flushed:
             lost = self._lost.pop(r, {}) | self._loaded.pop(r, {})
             lost.pop(controller, None)
             if lost:
                 self._lost[r] = dict.fromkeys(list(lost)[-KEEP:])
             self.owner[r] = controller
-            if controller:
-                self._loaded[r] = {controller: None}
-        if controller:
-            for r in robots:
-                self._loaded.setdefault(r, {})[controller] = None
+            self._loaded[r] = {controller: None}
+        for r in robots:
+            self._loaded.setdefault(r, {})[controller] = None

@@ -26,9 +26,9 @@ def test_a_controller_new_to_a_robot_shares_it_and_a_tool_is_never_held() -> Non
     assert o.owner[1] == A  # (loading is no take-over)
     o.applied(B, [], flushed=[1])
     assert o.refused(A, [1]) == o.refused(C, [1]) == [1]  # both had loaded it
-    assert o.refused(0, [1]) == []  # a tool (no controller id)
-    o.applied(0, [1], flushed=[1])
-    assert o.owner[1] == 0 and o.refused(B, [1]) == [1]
+    assert o.refused(0, [1]) == []  # a tool (no controller id) ...
+    o.applied(0, [1], flushed=[1])  # ... whose flush (a test pulling the TPs away) takes nothing
+    assert o.owner[1] == B and o.refused(B, [1]) == [] and o.refused(A, [1]) == [1]
 
 
 def test_the_controllers_remembered_as_losers_are_bounded() -> None:
